@@ -1,0 +1,373 @@
+"""The object dictionary: every CNC object geo-server serves, loaded from `objects/`.
+
+One source of truth (SPEC §2): the TOML file in `objects/` names every object with its
+element ID, type, access, unit and manual source. This module loads it, resolves names,
+aliases and `(index group, index offset)` pairs, encodes and decodes values in the ADS
+little-endian encoding and checks write ranges. Failures are `AdsError`s carrying the
+ADS return code of SPEC §9, so every transport maps them the same way.
+
+Addressing (SPEC §2): index group `0x120300` (GEO) or `0x12F300` (emulator), index
+offset `(axis << 16) | id`; machine-wide emulator objects use axis 0. Attribute groups
+sit at group + 0x100 (name), 0x200 (type name), 0x300 (length), 0x400 (unit),
+0x500 (writable) with the same offsets.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import tomllib
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from enum import IntEnum
+from functools import cache
+from typing import Any
+
+from geo_server.paths import data_dir
+
+
+class AdsErrorCode(IntEnum):
+    """ADS/AMS return codes used by geo-server (SPEC §9; Beckhoff ADS return codes)."""
+
+    NOERROR = 0x000
+    TARGET_PORT_NOT_FOUND = 0x006
+    SERVICE_NOT_SUPPORTED = 0x701
+    INVALID_INDEX_GROUP = 0x702
+    INVALID_INDEX_OFFSET = 0x703
+    INVALID_ACCESS = 0x704
+    INVALID_SIZE = 0x705
+    INVALID_DATA = 0x706
+
+
+class AdsError(Exception):
+    """A request failed with an ADS return code; `message` says precisely why."""
+
+    def __init__(self, code: int, message: str, name: str = "") -> None:
+        super().__init__(f"ADS error 0x{code:X}: {message}")
+        self.code = int(code)
+        self.message = message
+        self.name = name
+
+    def as_dict(self) -> dict[str, Any]:
+        """The JSON error body used by the Zenoh interface (SPEC §7)."""
+        return {"ads_error": self.code, "name": self.name, "message": self.message}
+
+
+#: Index groups of the object groups (SPEC §2).
+GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300}
+#: Attribute group offsets relative to an object group (SPEC §2).
+ATTRIBUTES: dict[int, str] = {
+    0x100: "name",
+    0x200: "type",
+    0x300: "length",
+    0x400: "unit",
+    0x500: "writable",
+}
+STRING_LENGTH = 256
+
+
+@dataclass(frozen=True)
+class DataType:
+    """An ADS data type: wire size, struct code (little-endian) and value range."""
+
+    name: str
+    size: int
+    code: str  # struct format character, "" for STRING
+    lo: float
+    hi: float
+
+
+TYPES: dict[str, DataType] = {
+    t.name: t
+    for t in (
+        DataType("BOOLEAN", 1, "B", 0, 1),
+        DataType("UNS16", 2, "H", 0, 0xFFFF),
+        DataType("UNS32", 4, "I", 0, 0xFFFF_FFFF),
+        DataType("SGN32", 4, "i", -(2**31), 2**31 - 1),
+        DataType("REAL64", 8, "d", -math.inf, math.inf),
+        DataType("STRING", STRING_LENGTH, "", 0, 0),
+    )
+}
+
+
+def round_half_away(x: float) -> int:
+    """Round half away from zero (SPEC §3: SGN32 objects from the internal float64)."""
+    return int(math.copysign(math.floor(abs(x) + 0.5), x))
+
+
+def _key_part(text: str) -> str:
+    """Zenoh key part of SPEC §7: lower case, blanks and dots to `_`, no doubled `_`."""
+    out = text.strip().lower().replace(" ", "_").replace(".", "_")
+    while "__" in out:
+        out = out.replace("__", "_")
+    return out.strip("_")
+
+
+@dataclass(frozen=True)
+class ObjectDef:
+    """One CNC object of the dictionary."""
+
+    name: str
+    group: str  # "geo" | "sim"
+    id: int
+    type: DataType
+    access: str  # "r" | "rw" | "w"
+    unit: str
+    scope: str  # "axis" | "machine"
+    description: str
+    source: str
+    aliases: tuple[str, ...] = ()
+    min: float | None = None
+    max: float | None = None
+
+    @property
+    def index_group(self) -> int:
+        return GROUPS[self.group]
+
+    @property
+    def length(self) -> int:
+        return self.type.size
+
+    @property
+    def readable(self) -> bool:
+        return "r" in self.access
+
+    @property
+    def writable(self) -> bool:
+        return "w" in self.access
+
+    def index_offset(self, axis: int) -> int:
+        """`(axis << 16) | id` (SPEC §2); axis 0 for machine-wide objects."""
+        return (axis << 16) | self.id
+
+    @property
+    def key_group(self) -> str:
+        """Zenoh `<group>` (SPEC §7): `bc`, `tempc`, …; `ssfk activated` is `lsec`."""
+        if "::" not in self.name:
+            return "lsec"
+        return _key_part(self.name.split("::", 1)[0])
+
+    @property
+    def key_field(self) -> str:
+        """Zenoh `<field>` (SPEC §7): `actual_backlash`, `conf_backlash`, `sum_epsilon`."""
+        rest = self.name.split("::", 1)[1] if "::" in self.name else self.name
+        if self.group == "sim" and self.key_group != "sim":
+            return _key_part(f"{self.key_group}_{rest}")
+        return _key_part(rest)
+
+    # ------------------------------------------------------------------ value codec
+
+    def encode(self, value: Any) -> bytes:
+        """Encode a Python value as ADS bytes (little-endian); checks type and range."""
+        v = self.coerce(value)
+        if self.type.name == "STRING":
+            raw = str(v).encode("cp1252", errors="replace")[: STRING_LENGTH - 1]
+            return raw.ljust(STRING_LENGTH, b"\0")
+        return struct.pack("<" + self.type.code, v)
+
+    def decode(self, data: bytes) -> Any:
+        """Decode ADS bytes; wrong length -> 0x705, invalid BOOLEAN/NaN -> 0x706."""
+        if len(data) != self.length:
+            raise AdsError(
+                AdsErrorCode.INVALID_SIZE,
+                f"{self.name} is {self.type.name} of {self.length} bytes, got {len(data)}",
+                self.name,
+            )
+        if self.type.name == "STRING":
+            return data.split(b"\0", 1)[0].decode("cp1252", errors="replace")
+        (v,) = struct.unpack("<" + self.type.code, data)
+        if self.type.name == "BOOLEAN":
+            if v > 1:
+                raise AdsError(
+                    AdsErrorCode.INVALID_DATA, f"{self.name}: BOOLEAN must be 0 or 1, got {v}"
+                )
+            return bool(v)
+        self.check_range(v)
+        return v
+
+    def coerce(self, value: Any) -> Any:
+        """Turn a decoded/JSON value into this type's Python value, checking the range."""
+        t = self.type.name
+        try:
+            if t == "BOOLEAN":
+                if isinstance(value, str):
+                    low = value.strip().lower()
+                    if low not in ("0", "1", "true", "false"):
+                        raise ValueError(value)
+                    return low in ("1", "true")
+                if value not in (0, 1, True, False):
+                    raise ValueError(value)
+                return bool(value)
+            if t == "STRING":
+                return str(value)
+            if t == "REAL64":
+                v = float(value)
+            else:
+                if isinstance(value, float) and not value.is_integer():
+                    raise ValueError(value)
+                v = int(value)
+        except (TypeError, ValueError) as exc:
+            raise AdsError(
+                AdsErrorCode.INVALID_DATA, f"{self.name}: {value!r} is not a valid {t}", self.name
+            ) from exc
+        self.check_range(v)
+        return v
+
+    def check_range(self, v: float) -> None:
+        """Raise 0x706 when `v` is outside the type or the documented range."""
+        lo = self.type.lo if self.min is None else self.min
+        hi = self.type.hi if self.max is None else self.max
+        if isinstance(v, float) and not math.isfinite(v):
+            raise AdsError(AdsErrorCode.INVALID_DATA, f"{self.name}: {v} is not finite", self.name)
+        if not lo <= v <= hi:
+            raise AdsError(
+                AdsErrorCode.INVALID_DATA,
+                f"{self.name}: {v} outside the range {lo:g} … {hi:g} {self.unit}",
+                self.name,
+            )
+
+    def attribute(self, kind: str) -> bytes:
+        """Value of an attribute group (SPEC §2) as ADS bytes."""
+        if kind == "length":
+            return struct.pack("<I", self.length)
+        if kind == "writable":
+            return struct.pack("<B", int(self.writable))
+        text = {"name": self.name, "type": self.type.name, "unit": self.unit}[kind]
+        return text.encode("cp1252", errors="replace")[: STRING_LENGTH - 1].ljust(
+            STRING_LENGTH, b"\0"
+        )
+
+    def as_row(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "index_group": f"0x{self.index_group:06X}",
+            "id": f"0x{self.id:04X}",
+            "scope": self.scope,
+            "type": self.type.name,
+            "length": self.length,
+            "access": {"r": "read", "rw": "read/write", "w": "write"}[self.access],
+            "unit": self.unit,
+            "min": self.min,
+            "max": self.max,
+            "aliases": list(self.aliases),
+            "description": self.description,
+            "source": self.source,
+        }
+
+
+def _normalize_name(name: str) -> str:
+    """Case-insensitive name key; `TEMPC:: activated` (000's spelling) == `TEMPC::activated`."""
+    return " ".join(name.replace(":: ", "::").split()).lower()
+
+
+@dataclass
+class Dictionary:
+    """All objects, indexed by name/alias and by `(group, id, scope)`."""
+
+    objects: list[ObjectDef]
+    _by_name: dict[str, ObjectDef] = field(default_factory=dict, repr=False)
+    _by_id: dict[tuple[str, int, str], ObjectDef] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        for obj in self.objects:
+            for n in (obj.name, *obj.aliases):
+                key = _normalize_name(n)
+                if key in self._by_name:
+                    raise ValueError(f"object dictionary: duplicate name {n!r}")
+                self._by_name[key] = obj
+            k = (obj.group, obj.id, obj.scope)
+            if k in self._by_id:
+                raise ValueError(f"object dictionary: duplicate id {k}")
+            self._by_id[k] = obj
+
+    def by_name(self, name: str) -> ObjectDef:
+        """Resolve a name or alias (case-insensitive); unknown -> AdsError 0x703."""
+        try:
+            return self._by_name[_normalize_name(name)]
+        except KeyError:
+            raise AdsError(
+                AdsErrorCode.INVALID_INDEX_OFFSET, f"unknown object name {name!r}", name
+            ) from None
+
+    def group_objects(self, group: str, scope: str = "axis") -> list[ObjectDef]:
+        return [o for o in self.objects if o.group == group and o.scope == scope]
+
+    def resolve(
+        self, index_group: int, index_offset: int, axes: Iterable[int]
+    ) -> tuple[ObjectDef, int, str | None]:
+        """Resolve an ADS address to (object, axis, attribute kind or None).
+
+        Unknown index group -> 0x702; unknown element ID or axis -> 0x703 (SPEC §9).
+        """
+        attr: str | None = None
+        group = next((g for g, ig in GROUPS.items() if ig == index_group), None)
+        if group is None:
+            for g, ig in GROUPS.items():
+                if index_group - ig in ATTRIBUTES:
+                    group, attr = g, ATTRIBUTES[index_group - ig]
+                    break
+        if group is None:
+            raise AdsError(
+                AdsErrorCode.INVALID_INDEX_GROUP, f"unknown index group 0x{index_group:X}"
+            )
+        axis, oid = index_offset >> 16, index_offset & 0xFFFF
+        scope = "machine" if axis == 0 else "axis"
+        obj = self._by_id.get((group, oid, scope))
+        if obj is None:
+            raise AdsError(
+                AdsErrorCode.INVALID_INDEX_OFFSET,
+                f"no object 0x{oid:04X} in group 0x{GROUPS[group]:X} for "
+                + ("the machine (axis 0)" if axis == 0 else f"axis {axis}"),
+            )
+        if scope == "axis" and axis not in set(axes):
+            raise AdsError(
+                AdsErrorCode.INVALID_INDEX_OFFSET,
+                f"axis {axis} is not configured (offset 0x{index_offset:X})",
+                obj.name,
+            )
+        return obj, axis, attr
+
+
+def _load(raw: dict[str, Any]) -> ObjectDef:
+    return ObjectDef(
+        name=raw["name"],
+        group=raw["group"],
+        id=int(raw["id"]),
+        type=TYPES[raw["type"].split()[0]],
+        access=raw["access"],
+        unit=raw.get("unit", "[-]"),
+        scope=raw.get("scope", "axis"),
+        description=raw.get("description", ""),
+        source=raw.get("source", ""),
+        aliases=tuple(raw.get("aliases", ())),
+        min=raw.get("min"),
+        max=raw.get("max"),
+    )
+
+
+@cache
+def load_dictionary() -> Dictionary:
+    """Load `objects/objects.toml` (installed copy or repository checkout)."""
+    with (data_dir("objects") / "objects.toml").open("rb") as fh:
+        raw = tomllib.load(fh)
+    return Dictionary([_load(o) for o in raw["object"]])
+
+
+# ---------------------------------------------------------------------- documentation
+
+COLUMNS = ("name", "index_group", "id", "scope", "type", "length", "access", "unit", "source")
+
+
+def dictionary_markdown(d: Dictionary | None = None) -> str:
+    """The object table as Markdown (README and `geo-server objects`)."""
+    d = d or load_dictionary()
+    lines = [
+        "| " + " | ".join(COLUMNS) + " |",
+        "|" + "---|" * len(COLUMNS),
+    ]
+    for o in d.objects:
+        row = o.as_row()
+        name = row["name"] + ("".join(f" (alias `{a}`)" for a in o.aliases[:1]))
+        cells = [name] + [str(row[c]) for c in COLUMNS[1:]]
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return "\n".join(lines) + "\n"

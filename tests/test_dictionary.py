@@ -1,0 +1,144 @@
+"""The object dictionary against research/objects.csv and the ADS encoding (SPEC §2, §9)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import struct
+from pathlib import Path
+
+import pytest
+
+from geo_server.dictionary import AdsError, dictionary_markdown, load_dictionary, round_half_away
+
+OBJECTS_CSV = Path(__file__).resolve().parents[2] / "shared" / "research" / "objects.csv"
+ACCESS = {"read": "r", "read/write": "rw"}
+
+
+def _geo_rows() -> list[dict[str, str]]:
+    with OBJECTS_CSV.open(encoding="utf-8") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["task"] == "GEO"]
+    return [r for r in rows if r["name"] != "TEMPC::is_active"]
+
+
+@pytest.fixture(scope="module")
+def d():
+    return load_dictionary()
+
+
+@pytest.mark.skipif(not OBJECTS_CSV.exists(), reason="shared/research not beside the checkout")
+def test_every_geo_object_of_the_research_table(d):
+    rows = _geo_rows()
+    assert len(rows) == 24
+    for r in rows:
+        obj = d.by_name(r["name"])
+        assert obj.group == "geo" and obj.index_group == 0x120300
+        assert obj.id == int(r["offset_id_hex"], 16), r["name"]
+        assert obj.type.name == r["type"], r["name"]
+        assert obj.length == int(r["length"]), r["name"]
+        assert obj.access == ACCESS[r["access"]], r["name"]
+    assert len(d.group_objects("geo")) == 24
+
+
+def test_only_four_tempc_objects_are_writable(d):
+    writable = sorted(o.name for o in d.group_objects("geo") if o.writable)
+    assert writable == [
+        "TEMPC::activated",
+        "TEMPC::coefficient",
+        "TEMPC::offset_0",
+        "TEMPC::position_0",
+    ]
+
+
+def test_aliases_and_spellings(d):
+    assert d.by_name("TEMPC::is_active").id == 0x41
+    assert d.by_name("TEMPC:: activated").id == 0x41  # 000's table spelling
+    assert d.by_name("tempc::actual_offset").id == 0x42  # not is_active (EN misprint)
+    assert d.by_name("ssfk activated").id == 0x38
+    with pytest.raises(AdsError) as e:
+        d.by_name("TEMPC::nonsense")
+    assert e.value.code == 0x703
+
+
+def test_resolve_offsets_and_errors(d):
+    obj, axis, attr = d.resolve(0x120300, 0x10043, [1, 2])
+    assert (obj.name, axis, attr) == ("TEMPC::coefficient", 1, None)
+    obj, axis, attr = d.resolve(0x120300, (2 << 16) | 0x93, [1, 2])
+    assert (obj.name, axis) == ("BC::actual backlash", 2)
+    obj, axis, attr = d.resolve(0x12F300, 0x00000001, [1])
+    assert (obj.name, axis) == ("SIM::cycle_count", 0)
+    for ig, io, code in [
+        (0x120200, 0x10043, 0x702),  # unknown group
+        (0x120300, 0x10099, 0x703),  # unknown element id
+        (0x120300, 0x50043, 0x703),  # axis 5 not configured
+        (0x120300, 0x00043, 0x703),  # axis 0 has no GEO objects
+    ]:
+        with pytest.raises(AdsError) as e:
+            d.resolve(ig, io, [1, 2])
+        assert e.value.code == code
+
+
+def test_attribute_groups(d):
+    obj, _, attr = d.resolve(0x120400, 0x10043, [1])
+    assert attr == "name"
+    assert obj.attribute("name") == b"TEMPC::coefficient".ljust(256, b"\0")
+    assert obj.attribute("type").rstrip(b"\0") == b"REAL64"
+    assert obj.attribute("length") == b"\x08\x00\x00\x00"
+    assert obj.attribute("unit").rstrip(b"\0") == "[µm/m]".encode("cp1252")
+    assert obj.attribute("writable") == b"\x01"
+    _, _, attr = d.resolve(0x120800, 0x10093, [1])
+    assert attr == "writable"
+    assert d.by_name("BC::actual backlash").attribute("writable") == b"\x00"
+    _, _, attr = d.resolve(0x12F700, 0x10005, [1])
+    assert attr == "unit"
+
+
+def test_encoding_is_little_endian(d):
+    assert d.by_name("TEMPC::activated").encode(True) == b"\x01"
+    assert d.by_name("TEMPC::actual_offset").encode(-2) == b"\xfe\xff\xff\xff"
+    assert d.by_name("TEMPC::offset_0").encode(0x01020304) == b"\x04\x03\x02\x01"
+    assert d.by_name("TEMPC::coefficient").encode(4000.0) == struct.pack("<d", 4000.0)
+    assert d.by_name("SIM::reload").encode(1) == b"\x01\x00"
+    assert d.by_name("SIM::cycle_count").encode(0x01020304) == b"\x04\x03\x02\x01"
+    assert d.by_name("TEMPC::coefficient").decode(bytes.fromhex("0000000000407f40")) == 500.0
+    assert d.by_name("TEMPC::position_0").decode(b"\x9c\xff\xff\xff") == -100
+
+
+@pytest.mark.parametrize(
+    "name,value",
+    [
+        ("TEMPC::coefficient", 10000.5),
+        ("TEMPC::coefficient", -10001),
+        ("TEMPC::coefficient", math.nan),
+        ("TEMPC::activated", 2),
+        ("TEMPC::offset_0", 2**31),
+        ("SIM::reload", 2),
+        ("SIM::feed", 0),
+    ],
+)
+def test_out_of_range_is_0x706(d, name, value):
+    with pytest.raises(AdsError) as e:
+        d.by_name(name).encode(value)
+    assert e.value.code == 0x706
+
+
+def test_wrong_length_is_0x705_and_bad_boolean_0x706(d):
+    with pytest.raises(AdsError) as e:
+        d.by_name("TEMPC::coefficient").decode(b"\0" * 4)
+    assert e.value.code == 0x705
+    with pytest.raises(AdsError) as e:
+        d.by_name("TEMPC::activated").decode(b"\x02")
+    assert e.value.code == 0x706
+
+
+def test_round_half_away_from_zero():
+    assert round_half_away(4039.6) == 4040
+    assert round_half_away(2.5) == 3
+    assert round_half_away(-2.5) == -3
+    assert round_half_away(-2.4) == -2
+
+
+def test_markdown_table_lists_every_object(d):
+    md = dictionary_markdown(d)
+    assert md.count("\n") == len(d.objects) + 2
+    assert "| TEMPC::activated (alias `TEMPC::is_active`) | 0x120300 | 0x0041 |" in md

@@ -1,0 +1,731 @@
+"""A small NC program player for the manuals' test programs (SPEC §5).
+
+Pure state machine: no threads, no sleeping, no wall clock. `Player.step()` is called once
+per GEO cycle *before* motion advances and talks to the machine only through the
+`MachinePort` protocol.
+
+Supported subset (SPEC §5; TF5200 axis compensation manual, 000):
+
+* `N<n>` block numbers, also as labels `N10:` (000 p.24); `;` comments to the end of the
+  line and `( … )` comments (an unclosed `(` comments out the rest of the line);
+  `\\` at the end of a line continues the block on the next line (000 §5.1).
+* `G90`/`G91` absolute/incremental (modal, default G90), `G00`/`G01` rapid/linear
+  (modal, default G00 so that the friction example `N35 X22 Y33 Z44` runs without F),
+  `F<mm/min>` (modal; rotary axes °/min), axis words `<name><value>` in mm or degrees.
+* `G04 <s>` or `G04 X<s>` dwell in seconds, `round(s/dt)` cycles, at least one.
+* `G74 <axis>[<order>] …` homing: the axes are marked referenced in place (the order
+  numbers of `G74 X1 Y2 Z3`, 000 p.96, are accepted and ignored).
+* `<axis>[COMP ON|OFF <kinds…> | OFF_ALL [NO_MOVE]]` (000 §5.1, p.94) with kinds
+  BACKLASH CROSS PLANE LEAD TEMP FRICT CROSSTALK, several axes per block; a missing
+  closing `]` at the end of a block (000 prints `N10 X[COMP OFF CROSS PLANE`) is
+  accepted with a warning.
+* `$GOTO N<n>` and `$GOTO [N<n>]`: jump to the block labelled `N<n>:`, else to the first
+  block numbered `N<n>` (the temperature program of 000 p.24 numbers three blocks N10).
+* `M30` (and `M02`) program end.
+
+Monitoring (000 §5.3, p.97): a motion block that would move an axis whose required
+compensations (`MachinePort.required`) are not all effective raises P-ERR-70435 and stops
+the program; homing (G74) is not monitored. Errors of `COMP` commands (e.g. P-ERR-70495,
+`COMP ON FRICT` without `lr_param.frict_comp`, 000 p.73) come from the port.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Protocol
+
+from geo_server.config import CompKind, Diagnostic
+
+#: Internal units per mm / degree (SPEC §3).
+UNITS_PER_MM = 10_000.0
+
+#: P-ERR-70435: axis moved in automatic mode without the required compensations (000 p.97).
+ERR_REQUIRED_COMP = 70435
+#: P-ERR-70495: `COMP ON FRICT` while P-AXIS-00522 `lr_param.frict_comp` is not set.
+ERR_FRICT_NOT_SELECTED = 70495
+#: Emulator-internal NC runtime errors (runaway `$GOTO` loop, missing feed) carry ID 0.
+ERR_NC_RUNTIME = 0
+
+#: At most this many blocks without motion/dwell are executed in one cycle.
+MAX_BLOCKS_PER_CYCLE = 1000
+
+KIND_WORDS: dict[str, CompKind] = {
+    "BACKLASH": CompKind.BACKLASH,
+    "CROSS": CompKind.CROSS,
+    "PLANE": CompKind.PLANE,
+    "LEAD": CompKind.LEAD,
+    "TEMP": CompKind.TEMP,
+    "FRICT": CompKind.FRICT,
+    "CROSSTALK": CompKind.CROSSTALK,
+}
+
+_KNOWN_ERRORS = {
+    ERR_FRICT_NOT_SELECTED: "COMP ON FRICT but lr_param.frict_comp (P-AXIS-00522) is not set",
+}
+
+
+class NcError(ValueError):
+    """An error in the NC program text, with the 1-based line number."""
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(f"line {line}: {message}")
+        self.line = line
+        self.message = message
+
+
+class MachinePort(Protocol):
+    """What the player needs from the machine (implemented by the GEO-cycle machine).
+
+    Positions in internal units, feeds in units/s. Slots are the axis indices used by
+    `Motion` and by `parse_program(axis_names=…)`.
+    """
+
+    def position(self, slot: int) -> float:
+        """Command position of the axis (unwrapped for modulo axes)."""
+        ...
+
+    def modulo_period(self, slot: int) -> float:
+        """Modulo period in internal units, 0.0 for non-modulo axes."""
+        ...
+
+    def move_linear(
+        self,
+        targets: dict[int, float],
+        feed: float | None,
+        rapid: bool,
+        next_dirs: dict[int, int],
+    ) -> None:
+        """Start a synchronised move (G00 when `rapid`, else G01 at path `feed`).
+
+        `next_dirs` is the lookahead: direction (−1/0/+1) of each axis' next programmed
+        move, for `Motion.announce_next` / reversal detection.
+        """
+        ...
+
+    def home(self, slots: Sequence[int]) -> None:
+        """G74: reference the axes."""
+        ...
+
+    def in_position(self, slots: Iterable[int]) -> bool:
+        """True when every axis in `slots` is at rest on its target."""
+        ...
+
+    def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
+        """`COMP ON|OFF kinds` for one axis; returns 0 or an error ID (e.g. 70495)."""
+        ...
+
+    def comp_off_all(self, slot: int, no_move: bool) -> int:
+        """`COMP OFF_ALL`; returns 0 or an error ID."""
+        ...
+
+    def comp_settled(self, slots: Iterable[int]) -> bool:
+        """True when the offset ramps started by COMP on these axes have finished."""
+        ...
+
+    def effective(self, slot: int) -> CompKind:
+        """Compensations currently effective on the axis."""
+        ...
+
+    def required(self, slot: int) -> CompKind:
+        """`prog_movement_requires_compensations` ∩ compensations selected in the list."""
+        ...
+
+    def program_end(self) -> None:
+        """M30: deselect manual-activation compensations (000 §5.1)."""
+        ...
+
+    def report(self, error_id: int, message: str, line: int) -> None:
+        """Log an NC runtime error (the player stops after reporting)."""
+        ...
+
+
+# --------------------------------------------------------------------------- program
+
+
+@dataclass(frozen=True)
+class CompCommand:
+    """One `<axis>[COMP …]` group (000 §5.1)."""
+
+    slot: int
+    axis: str
+    on: bool
+    kinds: CompKind
+    off_all: bool = False
+    no_move: bool = False
+
+
+@dataclass
+class Block:
+    """One NC block (a logical line after `\\` continuation)."""
+
+    line: int
+    text: str
+    number: int | None = None
+    label: bool = False
+    motion: int | None = None  # 0 = G00, 1 = G01 (modal, programmed in this block)
+    absolute: bool | None = None  # G90 True, G91 False (modal)
+    feed: float | None = None  # units/s (modal)
+    axes: dict[int, float] = field(default_factory=dict)  # slot -> units
+    dwell: float | None = None  # seconds
+    home: tuple[int, ...] = ()
+    comps: tuple[CompCommand, ...] = ()
+    goto: int | None = None  # index of the target block
+    goto_number: int | None = None
+    end: bool = False
+
+
+@dataclass
+class Program:
+    """A parsed NC program."""
+
+    blocks: list[Block]
+    warnings: list[Diagnostic] = field(default_factory=list)
+    axis_names: dict[str, int] = field(default_factory=dict)
+
+
+_TOKEN = re.compile(
+    r"""\s*(?:
+      (?P<goto>\$GOTO)
+    | (?P<group>[A-Z][A-Z0-9_]*)\s*\[(?P<content>[^\]]*)(?P<close>\])?
+    | (?P<addr>[A-Z]+)\s*(?:=\s*)?(?P<value>[+-]?(?:\d+\.?\d*|\.\d+))?(?P<colon>:)?
+    | (?P<number>[+-]?(?:\d+\.?\d*|\.\d+))
+    )""",
+    re.VERBOSE,
+)
+_GOTO_TARGET = re.compile(r"\s*(?:\[\s*N(\d+)\s*\]|N(\d+))")
+
+
+def parse_program(text: str, axis_names: Mapping[str, int], *, mdi: bool = False) -> Program:
+    """Parse NC text into blocks; raises `NcError` with the line number on errors.
+
+    `axis_names` maps axis names (case-insensitive, letters) to slots. With `mdi` a
+    missing M30 is not warned about.
+    """
+    names = {k.upper(): v for k, v in axis_names.items()}
+    prog = Program(blocks=[], axis_names=names)
+    for line, body in _logical_lines(text):
+        block = _parse_block(line, body, names, prog.warnings)
+        if block is not None:
+            prog.blocks.append(block)
+    _resolve_gotos(prog.blocks)
+    _check_feed(prog.blocks)
+    if not mdi and not any(b.end for b in prog.blocks):
+        prog.warnings.append(_warning(0, "no M30: the end of the text ends the program"))
+    return prog
+
+
+def _warning(line: int, message: str) -> Diagnostic:
+    return Diagnostic(severity="warning", message=message, file="<nc>", line=line)
+
+
+def _strip_comments(raw: str) -> str:
+    """Remove `;` comments and `( … )` comments (unclosed `(` runs to the line end)."""
+    out, depth = [], 0
+    for ch in raw:
+        if depth == 0 and ch == ";":
+            break
+        if ch == "(":
+            depth += 1
+        elif ch == ")" and depth:
+            depth -= 1
+        elif depth == 0:
+            out.append(ch)
+    return "".join(out).strip()
+
+
+def _logical_lines(text: str) -> Iterable[tuple[int, str]]:
+    """Yield (first line number, block text) with `\\` continuations joined."""
+    start, parts = 0, []
+    for i, raw in enumerate(text.splitlines(), start=1):
+        body = _strip_comments(raw)
+        if not parts:
+            start = i
+        if body.endswith("\\"):
+            parts.append(body[:-1])
+            continue
+        parts.append(body)
+        joined = " ".join(p.strip() for p in parts).strip()
+        parts = []
+        if joined:
+            yield start, joined
+    if parts:
+        joined = " ".join(p.strip() for p in parts).strip()
+        if joined:
+            yield start, joined
+
+
+@dataclass
+class _Words:
+    """Raw tokens of one block before interpretation."""
+
+    number: int | None = None
+    label: bool = False
+    gcodes: list[int] = field(default_factory=list)
+    mcodes: list[int] = field(default_factory=list)
+    feed: float | None = None
+    axes: list[tuple[str, float | None]] = field(default_factory=list)
+    numbers: list[float] = field(default_factory=list)
+    groups: list[tuple[str, str]] = field(default_factory=list)
+    goto: int | None = None
+
+
+def _tokenize(line: int, body: str, warnings: list[Diagnostic]) -> _Words:
+    """Split a block into words, bracket groups, bare numbers and `$GOTO`."""
+    w, text, pos = _Words(), body.upper(), 0
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        if m is None or m.end() == pos:
+            raise NcError(line, f"unexpected {text[pos:].strip()[:20]!r}")
+        pos = m.end()
+        if m["goto"]:
+            pos = _goto_target(line, text, pos, w)
+        elif m["group"]:
+            if m["close"] is None:
+                warnings.append(_warning(line, f"missing ']' after {m['group']}[{m['content']}"))
+            w.groups.append((m["group"], m["content"]))
+        elif m["addr"]:
+            _add_word(line, w, m["addr"], m["value"], bool(m["colon"]))
+        elif m["number"] is not None:
+            w.numbers.append(float(m["number"]))
+    return w
+
+
+def _goto_target(line: int, text: str, pos: int, w: _Words) -> int:
+    m = _GOTO_TARGET.match(text, pos)
+    if m is None:
+        raise NcError(line, "$GOTO needs a target N<number> or [N<number>]")
+    w.goto = int(m[1] or m[2])
+    return m.end()
+
+
+def _add_word(line: int, w: _Words, addr: str, value: str | None, colon: bool) -> None:
+    """Sort one address word into the block's word lists."""
+    if colon and addr != "N":
+        raise NcError(line, f"unexpected ':' after {addr}")
+    num = None if value is None else float(value)
+    if addr in ("N", "G", "M", "F") and num is None:
+        raise NcError(line, f"{addr} needs a number")
+    if addr == "N":
+        if w.number is not None or w.gcodes or w.axes or w.groups:
+            raise NcError(line, "block number N must come first")
+        w.number, w.label = _integer(line, addr, num), colon
+    elif addr == "G":
+        w.gcodes.append(_integer(line, addr, num))
+    elif addr == "M":
+        w.mcodes.append(_integer(line, addr, num))
+    elif addr == "F":
+        w.feed = num
+    else:
+        w.axes.append((addr, num))
+
+
+def _integer(line: int, addr: str, num: float | None) -> int:
+    if num is None or num != int(num) or num < 0:
+        raise NcError(line, f"{addr} needs a non-negative integer, got {num}")
+    return int(num)
+
+
+def _parse_block(
+    line: int, body: str, names: dict[str, int], warnings: list[Diagnostic]
+) -> Block | None:
+    """Interpret the words of one block."""
+    w = _tokenize(line, body, warnings)
+    b = Block(line=line, text=body, number=w.number, label=w.label)
+    _apply_gcodes(line, w, b)
+    _apply_mcodes(line, w, b)
+    if w.feed is not None:
+        if w.feed <= 0:
+            raise NcError(line, f"feed F must be > 0, got {w.feed:g}")
+        b.feed = w.feed / 60.0 * UNITS_PER_MM
+    b.comps = tuple(_parse_comp(line, axis, content, names) for axis, content in w.groups)
+    _apply_axes(line, w, b, names)
+    if w.goto is not None:
+        if b.axes or b.dwell is not None or b.home or b.comps or b.end or w.gcodes:
+            raise NcError(line, "$GOTO must stand alone in its block")
+        b.goto_number = w.goto
+    return b
+
+
+def _apply_gcodes(line: int, w: _Words, b: Block) -> None:
+    for g in w.gcodes:
+        if g in (0, 1):
+            b.motion = g
+        elif g in (90, 91):
+            b.absolute = g == 90
+        elif g == 4:
+            b.dwell = math.nan  # filled in by _apply_axes
+        elif g == 74:
+            b.home = (-1,)  # marker, filled in by _apply_axes
+        else:
+            raise NcError(line, f"G{g:02d} is not supported (G00 G01 G04 G74 G90 G91)")
+
+
+def _apply_mcodes(line: int, w: _Words, b: Block) -> None:
+    for m in w.mcodes:
+        if m not in (2, 30):
+            raise NcError(line, f"M{m} is not supported (M30 program end)")
+        b.end = True
+
+
+def _axis_slot(line: int, name: str, names: dict[str, int]) -> int:
+    if name not in names:
+        known = " ".join(names) or "none"
+        raise NcError(line, f"unknown axis or address {name!r} (axes: {known})")
+    return names[name]
+
+
+def _apply_axes(line: int, w: _Words, b: Block, names: dict[str, int]) -> None:
+    """Axis words are motion targets, homing axes (G74) or the dwell time (G04 X<s>)."""
+    if b.dwell is not None:
+        _apply_dwell(line, w, b)
+        return
+    if w.numbers:
+        raise NcError(line, f"unexpected number {w.numbers[0]:g}")
+    if b.home:
+        b.home = tuple(_axis_slot(line, a, names) for a, _ in w.axes)
+        if not b.home:
+            raise NcError(line, "G74 needs at least one axis")
+        return
+    for name, value in w.axes:
+        slot = _axis_slot(line, name, names)
+        if value is None:
+            raise NcError(line, f"axis {name} needs a value")
+        if slot in b.axes:
+            raise NcError(line, f"axis {name} programmed twice")
+        b.axes[slot] = value * UNITS_PER_MM
+
+
+def _apply_dwell(line: int, w: _Words, b: Block) -> None:
+    """`G04 <s>` (000 p.24) or `G04 X<s>`."""
+    if b.home:
+        raise NcError(line, "G04 and G74 in one block")
+    times = list(w.numbers)
+    if len(w.axes) == 1 and w.axes[0][0] == "X" and not times:
+        times = [w.axes[0][1]]
+    elif w.axes:
+        raise NcError(line, "G04 cannot be combined with axis motion")
+    if len(times) != 1 or times[0] is None or times[0] < 0:
+        raise NcError(line, "G04 needs one dwell time >= 0 in seconds")
+    b.dwell = times[0]
+
+
+def _parse_comp(line: int, axis: str, content: str, names: dict[str, int]) -> CompCommand:
+    """`<axis>[COMP ON|OFF <kinds…> | OFF_ALL [NO_MOVE]]` (000 §5.1, p.94)."""
+    slot = _axis_slot(line, axis, names)
+    words = content.replace("\\", " ").split()
+    if not words or words[0] != "COMP":
+        raise NcError(line, f"{axis}[…]: COMP must be the first keyword")
+    no_move = "NO_MOVE" in words
+    rest = [x for x in words[1:] if x != "NO_MOVE"]
+    if not rest or rest[0] not in ("ON", "OFF", "OFF_ALL"):
+        raise NcError(line, f"{axis}[COMP …]: expected ON, OFF or OFF_ALL")
+    if rest[0] == "OFF_ALL":
+        if len(rest) > 1:
+            raise NcError(line, f"{axis}[COMP OFF_ALL]: no keywords may follow OFF_ALL")
+        return CompCommand(slot, axis, False, CompKind(0), off_all=True, no_move=no_move)
+    kinds = CompKind(0)
+    for word in rest[1:]:
+        if word not in KIND_WORDS:
+            raise NcError(line, f"{axis}[COMP {rest[0]}]: unknown compensation {word!r}")
+        kinds |= KIND_WORDS[word]
+    if not kinds:
+        raise NcError(line, f"{axis}[COMP {rest[0]}]: name at least one compensation")
+    return CompCommand(slot, axis, rest[0] == "ON", kinds, no_move=no_move)
+
+
+def _resolve_gotos(blocks: list[Block]) -> None:
+    """`$GOTO N<n>`: a block labelled `N<n>:` wins, else the first block numbered n."""
+    first: dict[int, int] = {}
+    labels: dict[int, int] = {}
+    for i, b in enumerate(blocks):
+        if b.number is not None:
+            first.setdefault(b.number, i)
+            if b.label:
+                labels.setdefault(b.number, i)
+    for b in blocks:
+        if b.goto_number is None:
+            continue
+        target = labels.get(b.goto_number, first.get(b.goto_number))
+        if target is None:
+            raise NcError(b.line, f"$GOTO target N{b.goto_number} does not exist")
+        b.goto = target
+
+
+def _check_feed(blocks: list[Block]) -> None:
+    """G01 motion needs a feed programmed before it (in text order)."""
+    motion, feed = 0, None
+    for b in blocks:
+        motion = b.motion if b.motion is not None else motion
+        feed = b.feed if b.feed is not None else feed
+        if motion == 1 and b.axes and feed is None:
+            raise NcError(b.line, "G01 without feed F")
+
+
+# --------------------------------------------------------------------------- player
+
+
+@dataclass
+class _Modal:
+    """Modal state of the channel."""
+
+    absolute: bool = True
+    motion: int = 0
+    feed: float | None = None
+
+    def update(self, b: Block) -> None:
+        self.absolute = b.absolute if b.absolute is not None else self.absolute
+        self.motion = b.motion if b.motion is not None else self.motion
+        self.feed = b.feed if b.feed is not None else self.feed
+
+
+@dataclass
+class _Wait:
+    """What the current block waits for before the next block may run."""
+
+    motion: tuple[int, ...] = ()
+    comp: tuple[int, ...] = ()
+    until_cycle: int = 0
+    end: bool = False  # M30 in the waiting block: end after the wait
+
+
+class Player:
+    """Executes a `Program` block by block, driven by `step()` once per GEO cycle.
+
+    At most one block that waits (motion, homing, dwell, COMP with offset move) is
+    started per cycle; the next block runs in the first cycle in which the wait is over
+    (motion in position, dwell of n cycles elapsed — n cycles after it started, COMP
+    ramps settled). At most `MAX_BLOCKS_PER_CYCLE` blocks run per cycle, so
+    `N10 $GOTO N10` ends with an error instead of hanging.
+
+    A program (not `mdi`) that reaches M30 or its end calls `MachinePort.program_end()`;
+    an MDI run (`run_lines`) calls it only on an explicit M30, so `nc "X[COMP ON TEMP]"`
+    stays in effect. After an error the player stops without `program_end` (the
+    machine's reset does that).
+    """
+
+    def __init__(
+        self,
+        prog: Program,
+        port: MachinePort,
+        dt: float,
+        *,
+        mdi: bool = False,
+        monitor: bool = True,
+    ) -> None:
+        if dt <= 0:
+            raise ValueError(f"cycle time must be > 0, got {dt}")
+        self.prog, self.port, self.dt = prog, port, dt
+        self.mdi, self.monitor = mdi, monitor
+        self.running = True
+        self.finished = False
+        self.error: Diagnostic | None = None
+        self.cycle = 0
+        self.index = 0  # next block to execute
+        self.line = 0  # line of the block executed last
+        self._modal = _Modal()
+        self._wait: _Wait | None = None
+
+    def step(self) -> None:
+        """One GEO cycle: finish the waiting block if its condition holds, run blocks."""
+        if not self.running:
+            return
+        self.cycle += 1
+        if self._wait is not None:
+            if not self._wait_over(self._wait):
+                return
+            end, self._wait = self._wait.end, None
+            if end:
+                self._finish(explicit=True)
+                return
+        for _ in range(MAX_BLOCKS_PER_CYCLE):
+            if self.index >= len(self.prog.blocks):
+                self._finish(explicit=False)
+                return
+            block = self.prog.blocks[self.index]
+            self.index += 1
+            self.line = block.line
+            self._execute(block)
+            if not self.running or self._wait is not None:
+                return
+        self._fail(ERR_NC_RUNTIME, f"{MAX_BLOCKS_PER_CYCLE} blocks without motion in one cycle")
+
+    def abort(self) -> None:
+        """Stop executing (CNC reset); the machine handles the reset semantics."""
+        self.running = False
+        self._wait = None
+
+    # ------------------------------------------------------------------ blocks
+
+    def _execute(self, b: Block) -> None:
+        """Run one block: modal words, G74, COMP, motion or dwell, then $GOTO/M30."""
+        self._modal.update(b)
+        wait = _Wait()
+        if b.home:
+            self.port.home(b.home)
+            wait.motion = b.home
+        if b.comps and not self._run_comps(b, wait):
+            return
+        if b.axes and not self._run_motion(b, wait):
+            return
+        if b.dwell is not None:
+            wait.until_cycle = self.cycle + max(1, math.floor(b.dwell / self.dt + 0.5))
+        if b.goto is not None:
+            self.index = b.goto
+        waits = bool(wait.motion or wait.comp or wait.until_cycle)
+        if b.end and not waits:
+            self._finish(explicit=True)
+        elif waits:
+            wait.end = b.end
+            self._wait = wait
+
+    def _run_comps(self, b: Block, wait: _Wait) -> bool:
+        """Issue the COMP commands of a block; False after an error."""
+        for c in b.comps:
+            if c.off_all:
+                err = self.port.comp_off_all(c.slot, c.no_move)
+            else:
+                err = self.port.comp(c.slot, c.on, c.kinds, c.no_move)
+            if err:
+                self._fail(err, _comp_message(err, c))
+                return False
+        wait.comp = tuple(c.slot for c in b.comps if not c.no_move)
+        return True
+
+    def _run_motion(self, b: Block, wait: _Wait) -> bool:
+        """Start the motion of a block; False after an error (70435, missing F)."""
+        targets = self._targets(b, self._modal.absolute, self.port.position)
+        moving = [s for s, t in targets.items() if t != self.port.position(s)]
+        if self.monitor and not self._check_required(moving):
+            return False
+        rapid = self._modal.motion == 0
+        if not rapid and self._modal.feed is None:
+            self._fail(ERR_NC_RUNTIME, "G01 without feed F")
+            return False
+        next_dirs = self._lookahead(targets)
+        self.port.move_linear(targets, None if rapid else self._modal.feed, rapid, next_dirs)
+        wait.motion = tuple(targets)
+        return True
+
+    def _check_required(self, slots: Iterable[int]) -> bool:
+        """000 §5.3: required compensations must be effective on every moved axis."""
+        for s in slots:
+            missing = self.port.required(s) & ~self.port.effective(s)
+            if missing:
+                names = " ".join(k.name or "" for k in CompKind if k & missing)
+                axis = self._axis_name(s)
+                msg = f"P-ERR-70435: axis {axis} moved without required compensations {names}"
+                self._fail(ERR_REQUIRED_COMP, msg)
+                return False
+        return True
+
+    def _targets(self, b: Block, absolute: bool, base: Callable[[int], float]) -> dict[int, float]:
+        """Absolute targets of a block; modulo axes take the shortest way under G90."""
+        out: dict[int, float] = {}
+        for slot, value in b.axes.items():
+            cur = float(base(slot))
+            if not absolute:
+                out[slot] = cur + value
+                continue
+            period = self.port.modulo_period(slot)
+            out[slot] = cur + _shortest(value - cur, period) if period > 0 else value
+        return out
+
+    def _lookahead(self, targets: dict[int, float]) -> dict[int, int]:
+        """Direction of each axis' next programmed move (through $GOTO, dwell, COMP).
+
+        Stops at M30 or the program end (direction 0) and after MAX_BLOCKS_PER_CYCLE.
+        """
+        modal = _Modal(self._modal.absolute, self._modal.motion, self._modal.feed)
+        index = self.index
+        for _ in range(MAX_BLOCKS_PER_CYCLE):
+            if index >= len(self.prog.blocks):
+                break
+            b = self.prog.blocks[index]
+            modal.update(b)
+            index = b.goto if b.goto is not None else index + 1
+            if b.axes:
+                nxt = self._targets(b, modal.absolute, partial(_base, targets, self.port))
+                return {s: _sign(nxt.get(s, t) - t) for s, t in targets.items()}
+            if b.end:
+                break
+        return dict.fromkeys(targets, 0)
+
+    # ------------------------------------------------------------------ end states
+
+    def _wait_over(self, w: _Wait) -> bool:
+        return (
+            self.cycle >= w.until_cycle
+            and (not w.motion or self.port.in_position(w.motion))
+            and (not w.comp or self.port.comp_settled(w.comp))
+        )
+
+    def _finish(self, explicit: bool) -> None:
+        self.running = False
+        self.finished = True
+        if explicit or not self.mdi:
+            self.port.program_end()
+
+    def _fail(self, error_id: int, message: str) -> None:
+        self.running = False
+        self._wait = None
+        self.error = Diagnostic(
+            severity="error", message=message, file="<nc>", line=self.line, error_id=error_id
+        )
+        self.port.report(error_id, message, self.line)
+
+    def _axis_name(self, slot: int) -> str:
+        for name, s in self.prog.axis_names.items():
+            if s == slot:
+                return name
+        return f"#{slot}"
+
+
+def _comp_message(err: int, c: CompCommand) -> str:
+    what = "OFF_ALL" if c.off_all else ("ON " if c.on else "OFF ") + _kind_names(c.kinds)
+    reason = _KNOWN_ERRORS.get(err, "rejected by the machine")
+    return f"P-ERR-{err}: {c.axis}[COMP {what}]: {reason}"
+
+
+def _kind_names(kinds: CompKind) -> str:
+    return " ".join(w for w, k in KIND_WORDS.items() if k & kinds)
+
+
+def _shortest(delta: float, period: float) -> float:
+    """Shortest signed way on a modulo axis, in (−period/2, period/2]."""
+    d = math.fmod(delta, period)
+    if d > period / 2:
+        d -= period
+    elif d <= -period / 2:
+        d += period
+    return d
+
+
+def _base(targets: dict[int, float], port: MachinePort, slot: int) -> float:
+    """Position an axis will have after the current block (lookahead base)."""
+    return targets[slot] if slot in targets else port.position(slot)
+
+
+def _sign(x: float) -> int:
+    return (x > 0) - (x < 0)
+
+
+def run_lines(
+    lines: str,
+    port: MachinePort,
+    axis_names: Mapping[str, int],
+    dt: float,
+    *,
+    monitor: bool = True,
+) -> Player:
+    """Parse one or more NC lines (MDI, the transports' `nc` command) into a Player.
+
+    Same semantics as a tiny program, except that `program_end` is only called on an
+    explicit M30. `monitor=False` models manual mode (no 70435, 000 §5.3). Raises
+    `NcError` for bad text; the caller steps the player once per cycle.
+    """
+    prog = parse_program(lines, axis_names, mdi=True)
+    return Player(prog, port, dt, mdi=True, monitor=monitor)

@@ -37,6 +37,9 @@ class AdsErrorCode(IntEnum):
     INVALID_ACCESS = 0x704
     INVALID_SIZE = 0x705
     INVALID_DATA = 0x706
+    DEVICE_NOT_READY = 0x707
+    DEVICE_BUSY = 0x708
+    DEVICE_SYNTAX = 0x70D
 
 
 class AdsError(Exception):

@@ -31,8 +31,15 @@ def test_every_example_parses(path: Path):
     assert parse_list(path) is not None
 
 
-def _machine(tmp_path: Path, slave: int, *, comp: str | None = None, axis_lists: dict | None = None,
-             select: tuple[str, ...] = (), axes: tuple[int, ...] = (1, 2, 3)) -> MachineConfig:
+def _machine(
+    tmp_path: Path,
+    slave: int,
+    *,
+    comp: str | None = None,
+    axis_lists: dict | None = None,
+    select: tuple[str, ...] = (),
+    axes: tuple[int, ...] = (1, 2, 3),
+) -> MachineConfig:
     """Start-up list with linear axes `axes`; `comp` is the slave's compensation list,
     `axis_lists` maps an axis number to an example axis list used instead of a minimal one,
     `select` are the lr_param selections written into the slave's minimal axis list."""
@@ -148,8 +155,12 @@ def test_crosstalk_mode1_000_p91(tmp_path):
     assert ct.velocity_dependent
     assert ct.acceleration == 10000 and ct.deceleration == -10000
     row = dict(zip(CROSSTALK_COLUMNS, ct.corrections[0], strict=True))
-    assert row == {"accelerate_dir_pos": 25, "decelerate_dir_pos": 25,  # "Kw.crosstalk" lines
-                   "accelerate_dir_neg": 50, "decelerate_dir_neg": 50}
+    assert row == {
+        "accelerate_dir_pos": 25,
+        "decelerate_dir_pos": 25,  # "Kw.crosstalk" lines
+        "accelerate_dir_neg": 50,
+        "decelerate_dir_neg": 50,
+    }
 
 
 def test_crosstalk_mode2_000_p91(tmp_path):

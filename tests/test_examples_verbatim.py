@@ -27,8 +27,11 @@ _REPO = Path(__file__).resolve().parent.parent
 
 
 def _seeds_dir() -> Path | None:
-    candidates = [os.environ.get("GEO_SERVER_SEEDS", ""), _REPO.parent / "shared" / "seeds",
-                  Path("/work/shared/seeds")]
+    candidates = [
+        os.environ.get("GEO_SERVER_SEEDS", ""),
+        _REPO.parent / "shared" / "seeds",
+        Path("/work/shared/seeds"),
+    ]
     for c in candidates:
         if c and Path(c).is_dir() and any(Path(c).glob("000_*.txt")):
             return Path(c)
@@ -72,8 +75,12 @@ def seed_pages(name: str) -> dict[int, str]:
 
 def example_files() -> list[Path]:
     vol = EXAMPLES / "volumetric"
-    return (sorted(EXAMPLES.glob("*.lis")) + sorted((EXAMPLES / "nc").glob("*.nc"))
-            + sorted(vol.glob("*.lis")) + sorted(vol.glob("*.csv")))
+    return (
+        sorted(EXAMPLES.glob("*.lis"))
+        + sorted((EXAMPLES / "nc").glob("*.nc"))
+        + sorted(vol.glob("*.lis"))
+        + sorted(vol.glob("*.csv"))
+    )
 
 
 def split_example(path: Path) -> tuple[str, list[str], list[list[str]]]:
@@ -141,7 +148,8 @@ def test_completed_blocks_follow_an_elision_marker(path: Path):
     for k, line in enumerate(lines):
         if line.startswith("# completed:"):
             assert lines[k - 1].strip() in ELISIONS, (
-                f"{path.name}:{k + 1}: completion must follow the manual's elision marker")
+                f"{path.name}:{k + 1}: completion must follow the manual's elision marker"
+            )
 
 
 # Key lines (name and value as printed), checked one by one against the manual text:
@@ -166,8 +174,11 @@ KEY_LINES = [
     ("000_p91_crosstalk_mode1.lis", "Kw.crosstalk.position[0].correction_decelerate_dir_pos", "25"),
     ("000_p91_crosstalk_mode2.lis", "kw.crosstalk.position[2].ax_1", "2000 ( 0.1 um)"),
     ("000_p92_crosstalk_mode3.lis", "kw.crosstalk.acceleration_neg", "-1000 ( mm/s^2 )"),
-    ("000_p98_prog_movement_requires.lis", "lr_param.prog_movement_requires_compensations",
-     "LEAD | CROSS"),
+    (
+        "000_p98_prog_movement_requires.lis",
+        "lr_param.prog_movement_requires_compensations",
+        "LEAD | CROSS",
+    ),
     ("001_s4.5.3_crosstalk_old.lis", "kw.crosstalk.table[1].acceleration", "10000"),
     ("001_s4.4.2_plane_full.lis", "kw.crosscomp2.table[200][100].correction", "49"),
     ("001_s4.2.2_lsec_bilateral.lis", "kopf.log_achs_name", "Y-ACHSE"),
@@ -179,14 +190,14 @@ KEY_LINES = [
 ]
 
 
-@pytest.mark.parametrize(("fname", "name", "value"), KEY_LINES,
-                         ids=[f"{f}:{n}" for f, n, _ in KEY_LINES])
+@pytest.mark.parametrize(
+    ("fname", "name", "value"), KEY_LINES, ids=[f"{f}:{n}" for f, n, _ in KEY_LINES]
+)
 def test_key_line(fname: str, name: str, value: str):
     path = EXAMPLES / fname
     _, verbatim, _ = split_example(path)
     want = norm(f"{name} {value}")
-    in_file = [line for line in verbatim
-               if norm(line) == want or norm(line).startswith(want + " ")]
+    in_file = [line for line in verbatim if norm(line) == want or norm(line).startswith(want + " ")]
     assert in_file, f"{fname} has no line '{name} {value}'"
     seed, _ = source_of(path, path.read_text(encoding="utf-8").splitlines()[0])
     assert want in norm(seed_text(seed)), f"{seed} does not print '{name} {value}'"

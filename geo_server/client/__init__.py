@@ -1,0 +1,42 @@
+"""Client library: talk to a running geo-server over one of its transports.
+
+Every transport offers the same small API (`GeoClient`), so scripts, the `geo-client`
+command, the PLC/HMI programs and test helpers can switch transports with one argument.
+Values are decoded with the object dictionary; errors raise `AdsError` with the server's
+ADS code.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+from geo_server.dictionary import ObjectDef, load_dictionary
+
+
+class GeoClient(Protocol):
+    """What every transport client can do."""
+
+    def read_raw(self, index_group: int, index_offset: int, length: int) -> bytes: ...
+
+    def write_raw(self, index_group: int, index_offset: int, data: bytes) -> None: ...
+
+    def read(self, name: str, axis: int = 0) -> Any: ...
+
+    def write(self, name: str, axis: int, value: Any) -> Any: ...
+
+    def close(self) -> None: ...
+
+
+def resolve(index_group: int, index_offset: int) -> ObjectDef:
+    """The dictionary entry of an address (attribute groups resolve to their object)."""
+    obj, _axis, _attr = load_dictionary().resolve(index_group, index_offset, [index_offset >> 16])
+    return obj
+
+
+def connect(via: str = "zenoh", **options: Any) -> GeoClient:
+    """Open a client over `via` (`zenoh`; `modbus` and `ads` as they arrive)."""
+    if via == "zenoh":
+        from geo_server.client.zenoh_client import ZenohClient
+
+        return ZenohClient(**options)
+    raise ValueError(f"unknown transport {via!r} (available: zenoh)")

@@ -1,0 +1,89 @@
+"""Static interpretation of a `MachineConfig`, shared by the fast and the reference kernel.
+
+Only *configuration* is interpreted here (which compensation is selected at start-up,
+which sin² length belongs to which column, which preconditions apply); every per-cycle
+computation is written twice, once vectorised (`kernel.py`) and once per axis in plain
+Python (`reference.py`), so that the reference stays an independent oracle.
+"""
+
+from __future__ import annotations
+
+from geo_server.config import AxisConfig, CompKind, MachineConfig
+
+#: Column index c of every per-compensation array `[n, 7]`.
+COMP_ORDER: tuple[CompKind, ...] = (
+    CompKind.BACKLASH,
+    CompKind.TEMP,
+    CompKind.CROSS,
+    CompKind.PLANE,
+    CompKind.LEAD,
+    CompKind.FRICT,
+    CompKind.CROSSTALK,
+)
+BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
+COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}
+
+#: TEMPC parameters writable as CNC objects (000 §3.2.3, p.22).
+TEMPC_FIELDS = ("coefficient", "offset_0", "position_0")
+
+
+def initial_direction(anwahl_losekomp: int) -> float:
+    """Start-up direction state (000 §2.3.2, P-AXIS-00021; SPEC §3).
+
+    1 = last motion positive, 2 = last motion negative; 0 (backlash off) → positive.
+    """
+    return -1.0 if anwahl_losekomp == 2 else 1.0
+
+
+def initial_selection(ax: AxisConfig) -> list[bool]:
+    """What `*::activated` reports at start-up, per column (SPEC §6 "Effective flags").
+
+    A compensation is selected by its axis parameter; compensations with
+    `manual_activation` start deselected and need `COMP ON` (000 §5.1, p.94).
+    TEMP: `lr_param.temp_comp` and not `temp_comp_manual_activation` (000 §3.2, p.17).
+    BACKLASH: `lr_param.anwahl_losekomp` ≠ 0 (000 §2.3.2). FRICT has no manual mode.
+    """
+    p, comp = ax.params, ax.comp
+    cross = comp.cross if comp else None
+    plane = comp.plane if comp else None
+    lsec = comp.lsec if comp else None
+    xtalk = comp.crosstalk if comp else None
+    return [
+        p.anwahl_losekomp != 0,
+        p.temp_comp and not p.temp_comp_manual_activation,
+        p.crosscomp and not (cross is not None and cross.manual_activation),
+        p.crosscomp2 and not (plane is not None and plane.manual_activation),
+        p.ssfk and not (lsec is not None and lsec.manual_activation),
+        p.frict_comp,
+        p.crosstalk and not (xtalk is not None and xtalk.manual_activation),
+    ]
+
+
+def filter_cycles(ax: AxisConfig) -> list[int]:
+    """sin² length N of the step events of each column (SPEC §3; N ≤ 1 is a jump → 1).
+
+    BC and LSEC use `lr_param.n_backlash_cyc` (000 §2.3.2 P-AXIS-00243, which also names
+    the bilateral LSEC reversal; the manual gives LSEC no own filter length, so its
+    activation/deactivation uses it too). TEMP `temp_comp_n_cycles` (P-AXIS-00275),
+    CROSS/PLANE/CROSSTALK their list's `n_cycles`. FRICT is not sin²-filtered (1).
+    """
+    p, comp = ax.params, ax.comp
+
+    def n_of(part: object) -> int:
+        return int(getattr(part, "n_cycles", 0)) if part is not None else 0
+
+    ns = [
+        p.n_backlash_cyc,
+        p.temp_comp_n_cycles,
+        n_of(comp.cross) if comp else 0,
+        n_of(comp.plane) if comp else 0,
+        p.n_backlash_cyc,
+        1,
+        n_of(comp.crosstalk) if comp else 0,
+    ]
+    return [max(1, int(n)) for n in ns]
+
+
+def check_axes(cfg: MachineConfig) -> list[int]:
+    """Axis numbers in slot order (sorted logical axis numbers)."""
+    return sorted(cfg.axes)

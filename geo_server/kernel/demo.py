@@ -1,0 +1,186 @@
+"""Synthetic machines and motion for the kernel benchmark and the randomized tests.
+
+`full_machine` builds n axes with every compensation configured at the manuals' table
+sizes (SPEC §11: LSEC 1500 points, cross 1001, plane 101×101, crosstalk mode 3 with 15
+points, friction 20 points); `random_machine` varies sizes, modes and flags;
+`Motion` produces smooth moving profiles with reversals.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from geo_server.config import (
+    AxisConfig,
+    AxisParams,
+    CompList,
+    CrossComp,
+    CrosstalkComp,
+    FrictComp,
+    LsecComp,
+    MachineConfig,
+    PlaneComp,
+)
+
+
+def _axis(i: int, n: int, rng: np.random.Generator, full: bool) -> AxisConfig:
+    nr = i + 1
+    m1, m2, m3 = (i + 1) % n + 1, (i + 2) % n + 1, (i + 3) % n + 1
+    rotary = (not full) and rng.random() < 0.2
+    p = AxisParams(
+        log_nr=nr,
+        name=f"A{nr}",
+        kind="R" if rotary else "T",
+        modulo=rotary,
+        modulo_period=3_600_000.0,
+        lose=int(rng.integers(-500, 500)) or 100,
+        anwahl_losekomp=int(rng.integers(1, 3)) if full else int(rng.integers(0, 3)),
+        n_backlash_cyc=int(rng.integers(0, 21)),
+        temp_comp=True,
+        temp_comp_position_0=int(rng.integers(-1000, 1000)),
+        temp_comp_offset_0=int(rng.integers(-100, 100)),
+        temp_comp_coefficient=float(rng.uniform(-50, 50)),
+        temp_comp_n_cycles=int(rng.integers(0, 21)),
+        crosscomp=True,
+        crosscomp2=True,
+        ssfk=True,
+        frict_comp=True,
+        crosstalk=True,
+    )
+    if not full:
+        p.temp_comp_manual_activation = bool(rng.random() < 0.2)
+    # cross: 1001 points over ±500 mm
+    nc = 1001 if full else int(rng.integers(1, 40))
+    sp = np.linspace(-5_000_000, 5_000_000, nc) if nc > 1 else np.array([0.0])
+    if rotary or (not full and rng.random() < 0.3):
+        sp = np.linspace(0, 3_600_000, max(nc, 2))
+    cross = CrossComp(
+        master_ax_nr=m1,
+        setpoint=np.round(sp),
+        correction=np.round(rng.normal(0, 50, len(sp))),
+        n_cycles=int(rng.integers(0, 21)),
+    )
+    # plane: 101 x 101 grid, 10 mm interval
+    l1, l2 = (101, 101) if full else (int(rng.integers(1, 8)), int(rng.integers(1, 8)))
+    plane = PlaneComp(
+        master1_ax_nr=m1,
+        master2_ax_nr=m2,
+        start_position_master1=-5_000_000.0 if full else float(rng.integers(-200000, 0)),
+        start_position_master2=-5_000_000.0 if full else float(rng.integers(-200000, 0)),
+        interval1=100_000.0 if full else float(rng.integers(10000, 100000)),
+        interval2=100_000.0 if full else float(rng.integers(10000, 100000)),
+        table=np.round(rng.normal(0, 30, (l2, l1))),
+        n_cycles=int(rng.integers(0, 21)),
+    )
+    # LSEC: 1500 non-equidistant points
+    nl = 1500 if full else int(rng.integers(1, 60))
+    if rotary:
+        lsp = np.linspace(0, 3_600_000, max(nl, 2))
+    else:
+        lsp = np.sort(rng.uniform(-6_000_000, 6_000_000, nl)).round()
+        lsp = np.unique(lsp)
+    pos = np.round(rng.normal(0, 40, len(lsp)))
+    neg = np.round(pos + rng.normal(0, 20, len(lsp)))
+    if rotary:
+        neg[-1], pos[-1] = neg[0], pos[0]
+    lsec = LsecComp(
+        setpoint=lsp,
+        pos=pos,
+        neg=neg,
+        bilateral=full or bool(rng.random() < 0.7),
+        modulo=rotary,
+        set_pos_without_comp=(not full) and bool(rng.random() < 0.3),
+    )
+    # friction: 20 points over 0..300 mm/s (µm/s in the table)
+    nf = 20 if full else int(rng.integers(1, 20))
+    vin = np.sort(np.unique(np.round(rng.uniform(0, 300_000, nf))))
+    if full:
+        vin[0] = 0.0
+    frict = FrictComp(
+        vin=vin,
+        out=np.round(rng.uniform(0, 4000, len(vin))),
+        position_delay=int(rng.integers(0, 31)),
+        reversal_lookahead=int(rng.integers(0, 5)),
+        scaling_factor=int(rng.integers(1, 2000)),
+        delay_cycles=int(rng.integers(0, 10)),
+    )
+    # crosstalk: mode 3 with 15 test points over the adaptation axes
+    mode = 3 if full else int(rng.integers(1, 4))
+    dialect = "new" if full or rng.random() < 0.8 else "old"
+    npts = 15 if full else int(rng.integers(1, 16))
+    if mode == 3 and not full and rng.random() < 0.3:
+        g = np.array([(x, y) for y in (0, 1500, 3000) for x in (0, 1500, 3000)], dtype=float)
+        ax1, ax2 = g[:, 0] * 1000, g[:, 1] * 1000
+        npts = 9
+    else:
+        ax1 = np.round(rng.uniform(-4_000_000, 4_000_000, npts))
+        ax2 = np.round(rng.uniform(-4_000_000, 4_000_000, npts))
+    xt = CrosstalkComp(
+        dialect=dialect,
+        master_dyn_ax_nr=m1,
+        mode=mode,
+        master_pos1_ax_nr=m2,
+        master_pos2_ax_nr=m3,
+        n_cycles=int(rng.integers(0, 21)),
+        acceleration=float(rng.integers(100, 5000)),
+        deceleration=-float(rng.integers(100, 5000)),
+        velocity_dependent=bool(rng.random() < 0.5),
+        ax_1=ax1,
+        ax_2=ax2,
+        corrections=np.round(rng.normal(0, 40, (npts, 4))),
+        acc_table=np.sort(rng.uniform(-5000, 5000, 5)),
+        corr_table=np.round(rng.normal(0, 40, 5)),
+    )
+    comp = CompList(
+        path="", achs_nr=nr, cross=cross, plane=plane, lsec=lsec, frict=frict, crosstalk=xt
+    )
+    if not full:  # leave some compensations unconfigured
+        for name in ("cross", "plane", "lsec", "frict", "crosstalk"):
+            if rng.random() < 0.15:
+                setattr(comp, name, None)
+    return AxisConfig(params=p, comp=comp)
+
+
+def full_machine(n: int, seed: int = 1) -> MachineConfig:
+    """n axes, every compensation at manual table sizes (SPEC §11)."""
+    rng = np.random.default_rng(seed)
+    return MachineConfig(Path("<bench>"), {i + 1: _axis(i, n, rng, True) for i in range(n)})
+
+
+def random_machine(n: int, seed: int) -> MachineConfig:
+    """n axes with random small tables, modes and flags (randomized equality tests)."""
+    rng = np.random.default_rng(seed)
+    return MachineConfig(Path("<random>"), {i + 1: _axis(i, n, rng, False) for i in range(n)})
+
+
+class Motion:
+    """Random smooth motion: per axis a velocity that drifts and reverses (units/s)."""
+
+    def __init__(self, n: int, seed: int = 0, dt: float = 0.001) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.dt = dt
+        self.pos = self.rng.uniform(-4_000_000, 4_000_000, n)
+        self.vel = np.zeros(n)
+        self.acc = np.zeros(n)
+        self.homed = np.zeros(n, dtype=bool)
+        self.reversal = np.full(n, -1, dtype=np.int64)
+        self._goal = self.rng.uniform(-1_000_000, 1_000_000, n)
+
+    def step(self) -> None:
+        rng, n = self.rng, len(self.pos)
+        switch = rng.random(n) < 0.01
+        self._goal[switch] = rng.uniform(-1_000_000, 1_000_000, switch.sum())
+        stop = rng.random(n) < 0.005
+        self._goal[stop] = 0.0
+        new_vel = self.vel + np.clip(self._goal - self.vel, -50_000, 50_000)
+        self.acc = (new_vel - self.vel) / self.dt
+        self.vel = new_vel
+        self.pos = self.pos + self.vel * self.dt
+        self.homed |= rng.random(n) < 0.01
+        # cycles until a reversal if the goal has the opposite sign
+        rev = np.where(self._goal * self.vel < 0, np.ceil(np.abs(self.vel) / 50_000), -1).astype(
+            np.int64
+        )
+        self.reversal = rev

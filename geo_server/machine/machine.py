@@ -1,0 +1,418 @@
+"""The simulated machine: axes, motion, NC player and the compensation kernel in one GEO cycle.
+
+Every cycle runs, in this order (SPEC §5):
+1. apply the queued writes and commands in arrival order;
+2. advance the NC program and the motion;
+3. compute the compensations (the kernel);
+4. publish one consistent snapshot of every object;
+5. hand the snapshot to the listeners (transports, notifications).
+
+The machine is pure computation driven by `run_cycle()`; *when* cycles run is the
+scheduler's business (`geo_server.machine.scheduler`). Other threads talk to it only
+through `submit()` (a queue applied at the next cycle boundary) and the published
+`snapshot` reference, so no lock is ever held across a cycle.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from geo_server.config import COMP_NAMES, CompKind, Diagnostic, MachineConfig
+from geo_server.dictionary import AdsError, AdsErrorCode, Dictionary, load_dictionary
+from geo_server.kernel import COMP_ORDER, Kernel
+from geo_server.machine.motion import Motion, MotionError
+from geo_server.machine.nc import Player, Program, parse_program
+from geo_server.machine.snapshot import ObjectLayout, Snapshot
+
+#: Column of each compensation in the kernel's [n, 7] arrays.
+C = {kind: i for i, kind in enumerate(COMP_ORDER)}
+#: Position compensations summed into the drive output (SPEC §3).
+UNITS_PER_UM = 10.0  # internal units (0.1 µm) per µm; also 0.001° = 10 units
+UNITS_PER_MM = 10_000.0
+
+
+@dataclass
+class Event:
+    """A warning/error the machine reports (list validation, NC program, monitoring)."""
+
+    cycle: int
+    diagnostic: Diagnostic
+
+    def as_dict(self) -> dict[str, Any]:
+        d = self.diagnostic
+        return {
+            "cycle": self.cycle,
+            "severity": d.severity,
+            "error_id": d.error_id,
+            "message": d.message,
+            "file": d.file,
+            "line": d.line,
+            "entry": d.entry,
+            "axis": d.axis,
+            "deactivated": COMP_NAMES[d.deactivated] if d.deactivated is not None else None,
+        }
+
+
+def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Vectorised round half away from zero (SPEC §3), into `out`."""
+    np.abs(x, out=out)
+    out += 0.5
+    np.floor(out, out=out)
+    np.copysign(out, x, out=out)
+    return out
+
+
+class Machine:
+    """A whole simulated machine built from a validated `MachineConfig`."""
+
+    def __init__(
+        self,
+        cfg: MachineConfig,
+        cycle_s: float = 0.001,
+        dictionary: Dictionary | None = None,
+        homed: bool = False,
+    ) -> None:
+        self.cfg = cfg
+        self.cycle_s = float(cycle_s)
+        self.dictionary = dictionary or load_dictionary()
+        self.layout = ObjectLayout(self.dictionary)
+        self.axes: tuple[int, ...] = tuple(sorted(cfg.axes))
+        self.names = {cfg.axes[a].params.name.upper(): i for i, a in enumerate(self.axes)}
+        self.kernel = Kernel(cfg)
+        self.motion = Motion([cfg.axes[a].params for a in self.axes], self.cycle_s)
+        if homed:
+            for slot in range(len(self.axes)):
+                self.motion.home(slot)
+        self.cycle = 0
+        self.overruns = 0
+        self.player: Player | None = None
+        self.events: deque[Event] = deque(maxlen=100)
+        self.last_error_id = 0
+        self.listeners: list[Callable[[Snapshot], None]] = []
+        self.event_listeners: list[Callable[[Event], None]] = []
+        self._queue: deque[tuple[Callable[[], Any], Future]] = deque()
+        self._queue_lock = threading.Lock()
+        self._cycle_lock = threading.Lock()
+        n = len(self.axes)
+        self._reversal = np.full(n, -1, dtype=np.int64)
+        self._rounded = np.zeros((n, 7))
+        self._prev_rounded = np.zeros((n, 7))
+        self._scratch = np.zeros((n, 7))
+        self._display = np.zeros(n)
+        self._lose = np.array([cfg.axes[a].params.lose for a in self.axes], dtype=float)
+        self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
+        self._period = np.array([cfg.axes[a].params.modulo_period for a in self.axes])
+        for d in cfg.diagnostics:
+            self._record(d)
+        self.snapshot: Snapshot = self._build_snapshot()
+
+    # ------------------------------------------------------------------ the cycle
+
+    def run_cycle(self) -> Snapshot:
+        """Run one GEO cycle (SPEC §5) and return the snapshot it published."""
+        with self._cycle_lock:
+            self._apply_queue()
+            if self.player is not None and self.player.running:
+                self.player.step()
+            self.motion.step()
+            self.motion.reversal_in(self._reversal)
+            k = self.kernel
+            k.step(
+                self.motion.pos, self.motion.vel, self.motion.acc, self.motion.homed, self._reversal
+            )
+            self.cycle += 1
+            snap = self._build_snapshot()
+            self.snapshot = snap
+        for listener in self.listeners:
+            listener(snap)
+        return snap
+
+    def step(self, n: int = 1) -> Snapshot:
+        """Run `n` cycles now (stepped mode)."""
+        snap = self.snapshot
+        for _ in range(n):
+            snap = self.run_cycle()
+        return snap
+
+    def _apply_queue(self) -> None:
+        with self._queue_lock:
+            items = list(self._queue)
+            self._queue.clear()
+        for fn, fut in items:
+            try:
+                fut.set_result(fn())
+            except Exception as exc:  # the caller gets the error, the cycle goes on
+                fut.set_exception(exc)
+
+    def submit(self, fn: Callable[[], Any]) -> Future:
+        """Queue `fn` to run at the next cycle boundary, in arrival order."""
+        fut: Future = Future()
+        with self._queue_lock:
+            self._queue.append((fn, fut))
+        return fut
+
+    # ------------------------------------------------------------------ snapshot
+
+    def _build_snapshot(self) -> Snapshot:
+        lay, k, m = self.layout, self.kernel, self.motion
+        n = len(self.axes)
+        v = np.zeros((n, len(lay.axis_objects)))
+        col = lay.col
+        _round_half_away(k.actual, self._rounded)
+        np.subtract(self._rounded, self._prev_rounded, out=self._scratch)
+        self._prev_rounded[...] = self._rounded
+        delta = self._scratch
+        bc, tp, cr, pl, ls, ct = (
+            C[x]
+            for x in (
+                CompKind.BACKLASH,
+                CompKind.TEMP,
+                CompKind.CROSS,
+                CompKind.PLANE,
+                CompKind.LEAD,
+                CompKind.CROSSTALK,
+            )
+        )
+        v[:, col("BC::actual backlash")] = k.actual[:, bc]
+        v[:, col("BC::sum backlash")] = k.target[:, bc]
+        v[:, col("BC::delta backlash")] = delta[:, bc]
+        v[:, col("BC::conf. backlash")] = self._lose
+        v[:, col("TEMPC::activated")] = k.selected[:, tp]
+        v[:, col("TEMPC::f_is_active")] = k.effective[:, tp]
+        v[:, col("TEMPC::actual_offset")] = k.actual[:, tp]
+        coefficient, offset_0, position_0 = k.tempc_params
+        v[:, col("TEMPC::coefficient")] = coefficient
+        v[:, col("TEMPC::offset_0")] = offset_0
+        v[:, col("TEMPC::position_0")] = position_0
+        v[:, col("CROSSC::f_is_active")] = k.effective[:, cr]
+        v[:, col("CROSSC::activated")] = k.selected[:, cr]
+        v[:, col("CROSSC::actual_offset")] = k.actual[:, cr]
+        v[:, col("CROSSC::delta_offset")] = delta[:, cr]
+        v[:, col("CC2::correction")] = k.actual[:, pl]
+        v[:, col("CC2::activated")] = k.selected[:, pl]
+        v[:, col("ssfk activated")] = k.selected[:, ls]
+        v[:, col("LSEC::active")] = k.effective[:, ls]
+        v[:, col("LSEC::epsilon")] = delta[:, ls]
+        v[:, col("LSEC::sum epsilon")] = k.actual[:, ls]
+        v[:, col("CROSSTALK::activated")] = k.selected[:, ct]
+        v[:, col("CROSSTALK::actual_offset")] = k.actual[:, ct]
+        v[:, col("CROSSTALK::delta_offset")] = delta[:, ct]
+        v[:, col("CROSSTALK::end_offset")] = k.target[:, ct]
+        display = m.display_pos(self._display)
+        v[:, col("SIM::command_position")] = display
+        v[:, col("SIM::set_position")] = display
+        v[:, col("SIM::target_position")] = m.target
+        v[:, col("SIM::velocity")] = m.vel / UNITS_PER_UM
+        v[:, col("SIM::acceleration")] = m.acc / UNITS_PER_MM
+        v[:, col("SIM::homed")] = m.homed
+        v[:, col("SIM::output_position")] = m.pos + k.total_offset
+        v[:, col("SIM::total_offset")] = k.total_offset
+        v[:, col("SIM::feed")] = m.feed / UNITS_PER_UM
+        v[:, col("FRICT::additive_current")] = k.friction_current
+        mach = np.zeros(len(lay.machine_objects))
+        mach[lay.mcol("SIM::cycle_count")] = self.cycle & 0xFFFF_FFFF
+        mach[lay.mcol("SIM::cycle_time_us")] = round(self.cycle_s * 1e6)
+        mach[lay.mcol("SIM::overruns")] = self.overruns
+        mach[lay.mcol("SIM::last_error_id")] = self.last_error_id
+        return Snapshot(self.cycle, self.axes, v, mach, lay)
+
+    # ------------------------------------------------------------------ events
+
+    def _record(self, d: Diagnostic) -> Event:
+        ev = Event(self.cycle, d)
+        self.events.append(ev)
+        if d.error_id:
+            self.last_error_id = d.error_id
+        for listener in self.event_listeners:
+            listener(ev)
+        return ev
+
+    def report(self, error_id: int, message: str, line: int = 0, axis: int = 0) -> None:
+        """Record an error raised while running (NC program, monitoring)."""
+        self._record(
+            Diagnostic(
+                "error",
+                message,
+                file="<nc>" if line else "",
+                line=line,
+                error_id=error_id,
+                axis=axis,
+            )
+        )
+
+    # ------------------------------------------------------------------ object writes
+
+    def slot(self, axis: int) -> int:
+        return self.axes.index(axis)
+
+    def apply_write(self, name: str, axis: int, value: Any) -> None:
+        """Apply a validated object write (runs at a cycle boundary, SPEC §5 step 1)."""
+        obj = self.dictionary.by_name(name)
+        handler = _WRITE_HANDLERS[obj.name]
+        handler(self, self.slot(axis) if obj.scope == "axis" else -1, value)
+
+    def set_comp(self, slot: int, kinds: CompKind, on: bool) -> int:
+        """COMP ON/OFF (manual §5.1). Returns 70495 for `COMP ON FRICT` without
+        `lr_param.frict_comp`, else 0."""
+        params = self.cfg.axes[self.axes[slot]].params
+        if on and kinds & CompKind.FRICT and not params.frict_comp:
+            return 70495
+        for kind in COMP_ORDER:
+            if kinds & kind:
+                self.kernel.set_selected(slot, kind, on)
+        return 0
+
+    def program_end(self) -> None:
+        """M30 / reset: manual-activation compensations are deselected (manual §5.1)."""
+        for slot, a in enumerate(self.axes):
+            ax = self.cfg.axes[a]
+            manual = CompKind(0)
+            if ax.params.temp_comp_manual_activation:
+                manual |= CompKind.TEMP
+            comp = ax.comp
+            if comp is not None:
+                for kind, part in (
+                    (CompKind.CROSS, comp.cross),
+                    (CompKind.PLANE, comp.plane),
+                    (CompKind.LEAD, comp.lsec),
+                    (CompKind.CROSSTALK, comp.crosstalk),
+                ):
+                    if part is not None and part.manual_activation:
+                        manual |= kind
+            if manual:
+                self.set_comp(slot, manual, False)
+
+    def reload(self, cfg: MachineConfig) -> None:
+        """Swap in a validated configuration at this cycle boundary (SPEC §4).
+
+        Active compensations ramp from the old to the new value with their n_cycles
+        (the kernel treats the swap as a step event).
+        """
+        self.cfg = cfg
+        self.kernel.reload(cfg)
+        self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
+        for d in cfg.diagnostics:
+            self._record(d)
+
+    def start_program(self, text: str, mdi: bool = False) -> None:
+        """Parse an NC program (raises `NcError`) and run it from the next cycle on."""
+        prog = parse_program(text, self.names, mdi=mdi)
+        self.start(prog, mdi)
+
+    def start(self, prog: Program, mdi: bool = False) -> None:
+        """Run a parsed program (or MDI lines) from the next cycle on."""
+        if self.player is not None and self.player.running:
+            self.player.abort()
+        for w in prog.warnings:
+            self._record(w)
+        self.player = Player(prog, self, self.cycle_s, mdi=mdi)
+
+    # ------------------------------------------------------------------ MachinePort (nc.py)
+
+    def position(self, slot: int) -> float:
+        return float(self.motion.pos[slot])
+
+    def modulo_period(self, slot: int) -> float:
+        return float(self._period[slot]) if self._modulo[slot] else 0.0
+
+    def move_linear(
+        self,
+        targets: dict[int, float],
+        feed: float | None,
+        rapid: bool,
+        next_dirs: dict[int, int],
+    ) -> None:
+        self.motion.move_linear(targets, feed, rapid)
+        for slot, direction in next_dirs.items():
+            self.motion.announce_next(slot, direction)
+
+    def home(self, slots: Sequence[int]) -> None:
+        for slot in slots:
+            self.motion.home(slot)
+
+    def in_position(self, slots: Iterable[int]) -> bool:
+        return self.motion.all_in_position(slots)
+
+    def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
+        return self.set_comp(slot, kinds, on)
+
+    def comp_off_all(self, slot: int, no_move: bool) -> int:
+        return self.set_comp(slot, ALL_COMPS, False)
+
+    def comp_settled(self, slots: Iterable[int]) -> bool:
+        # The sin² ramps run while the next block starts; the manual's COMP with motion
+        # travels the offset with the next move (000 §5.1), which the ramp models.
+        return True
+
+    def effective(self, slot: int) -> CompKind:
+        row = self.kernel.effective[slot]
+        return _mask(kind for i, kind in enumerate(COMP_ORDER) if row[i])
+
+    def required(self, slot: int) -> CompKind:
+        """`prog_movement_requires_compensations` ∩ compensations selected in the axis
+        list: errors only for compensations also enabled there (000 §5.3, p.97)."""
+        p = self.cfg.axes[self.axes[slot]].params
+        listed = _mask(
+            kind
+            for kind, on in (
+                (CompKind.BACKLASH, p.anwahl_losekomp != 0),
+                (CompKind.LEAD, p.ssfk),
+                (CompKind.TEMP, p.temp_comp),
+                (CompKind.CROSS, p.crosscomp),
+                (CompKind.PLANE, p.crosscomp2),
+            )
+            if on
+        )
+        return p.prog_movement_requires_compensations & listed
+
+
+def _mask(kinds: Iterable[CompKind]) -> CompKind:
+    out = CompKind(0)
+    for k in kinds:
+        out |= k
+    return out
+
+
+ALL_COMPS = _mask(COMP_ORDER)
+
+
+def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:
+    def apply(m: Machine, slot: int, value: Any) -> None:
+        m.kernel.write_tempc(slot, field, float(value))
+
+    return apply
+
+
+def _move(m: Machine, slot: int, target: float) -> None:
+    try:
+        m.motion.move_to(slot, target)
+    except MotionError as exc:
+        raise AdsError(AdsErrorCode.DEVICE_BUSY, f"axis {m.axes[slot]}: {exc}") from None
+
+
+def _set_homed(m: Machine, slot: int, value: Any) -> None:
+    if value:
+        m.motion.home(slot)
+    else:
+        m.motion.homed[slot] = False
+
+
+_WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
+    "TEMPC::activated": lambda m, s, v: m.kernel.set_selected(s, CompKind.TEMP, bool(v)),
+    "TEMPC::coefficient": _set_tempc("coefficient"),
+    "TEMPC::offset_0": _set_tempc("offset_0"),
+    "TEMPC::position_0": _set_tempc("position_0"),
+    "SIM::target_position": lambda m, s, v: _move(m, s, float(v)),
+    "SIM::homed": _set_homed,
+    "SIM::feed": lambda m, s, v: m.motion.feed.__setitem__(
+        s, min(float(v) * UNITS_PER_UM, m.cfg.axes[m.axes[s]].params.v_max)
+    ),
+    "SIM::set_position": lambda m, s, v: m.motion.set_position(s, float(v)),
+}

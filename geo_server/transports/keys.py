@@ -1,0 +1,140 @@
+"""The Zenoh key space of SPEC §7, as pure functions (no Zenoh session needed).
+
+    cnc/<m>/ads/<port>/<ig>/<io>        raw ADS bytes (ig, io as lowercase 0x… hex)
+    cnc/<m>/axis/<A>/<group>/<field>    GEO objects by name, JSON
+    cnc/<m>/sim/axis/<A>/<field>        emulator axis objects, JSON
+    cnc/<m>/sim/machine/<field>         emulator machine-wide objects, JSON
+    cnc/<m>/nc                          execute NC lines (get with payload)
+    cnc/<m>/cmd/reload, cmd/save        commands (get with payload)
+    cnc/<m>/status, cnc/<m>/errors      JSON
+    cnc/<m>/alive                       liveliness token
+
+`<group>` and `<field>` come from the dictionary (`ObjectDef.key_group/key_field`), so no
+key is typed twice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from geo_server.dictionary import (
+    ATTRIBUTES,
+    GROUPS,
+    AdsError,
+    AdsErrorCode,
+    Dictionary,
+    ObjectDef,
+)
+
+GEO_PORT = 551
+
+
+@dataclass(frozen=True)
+class Route:
+    """What a concrete key addresses."""
+
+    kind: str  # "raw" | "named" | "nc" | "reload" | "save" | "status" | "errors"
+    obj: ObjectDef | None = None
+    axis: int = 0
+    index_group: int = 0
+    index_offset: int = 0
+
+
+class KeySpace:
+    """Build and parse the keys of one machine."""
+
+    def __init__(self, machine: str, dictionary: Dictionary, axes: tuple[int, ...]) -> None:
+        self.machine = machine
+        self.prefix = f"cnc/{machine}"
+        self.dictionary = dictionary
+        self.axes = axes
+        self._named: dict[str, Route] = {}
+        for obj in dictionary.objects:
+            for axis in axes if obj.scope == "axis" else (0,):
+                self._named[self.named_key(obj, axis)] = Route("named", obj, axis)
+        self._fixed = {
+            f"{self.prefix}/nc": Route("nc"),
+            f"{self.prefix}/cmd/reload": Route("reload"),
+            f"{self.prefix}/cmd/save": Route("save"),
+            f"{self.prefix}/status": Route("status"),
+            f"{self.prefix}/errors": Route("errors"),
+        }
+
+    # ------------------------------------------------------------------ building
+
+    def raw_key(self, index_group: int, index_offset: int, port: int = GEO_PORT) -> str:
+        return f"{self.prefix}/ads/{port}/0x{index_group:x}/0x{index_offset:x}"
+
+    def named_key(self, obj: ObjectDef, axis: int) -> str:
+        if obj.group == "sim":
+            if obj.scope == "machine":
+                return f"{self.prefix}/sim/machine/{obj.key_field}"
+            return f"{self.prefix}/sim/axis/{axis}/{obj.key_field}"
+        return f"{self.prefix}/axis/{axis}/{obj.key_group}/{obj.key_field}"
+
+    @property
+    def alive_key(self) -> str:
+        return f"{self.prefix}/alive"
+
+    def named_routes(self) -> dict[str, Route]:
+        """Every named key (GEO and emulator objects) of this machine."""
+        return self._named
+
+    def readable_keys(self) -> dict[str, Route]:
+        """Every concrete key a wildcard `get` may answer: named, raw value keys, status,
+        errors (attribute groups are answered only when asked for by concrete key)."""
+        keys = dict(self._named)
+        for route in self._named.values():
+            assert route.obj is not None
+            ig = route.obj.index_group
+            io = route.obj.index_offset(route.axis)
+            keys[self.raw_key(ig, io)] = Route("raw", route.obj, route.axis, ig, io)
+        keys[f"{self.prefix}/status"] = self._fixed[f"{self.prefix}/status"]
+        keys[f"{self.prefix}/errors"] = self._fixed[f"{self.prefix}/errors"]
+        return keys
+
+    # ------------------------------------------------------------------ parsing
+
+    def parse(self, key: str) -> Route:
+        """Route of a concrete key; unknown keys raise `AdsError` with the SPEC §9 code."""
+        if key in self._named:
+            return self._named[key]
+        if key in self._fixed:
+            return self._fixed[key]
+        parts = key.split("/")
+        if parts[:2] != ["cnc", self.machine]:
+            raise AdsError(AdsErrorCode.INVALID_INDEX_GROUP, f"not a key of this machine: {key}")
+        rest = parts[2:]
+        if len(rest) == 4 and rest[0] == "ads":
+            return self._parse_raw(key, rest[1:])
+        if rest[:1] == ["axis"] and len(rest) == 4:
+            return self._unknown_named(key, rest[1])
+        if rest[:2] == ["sim", "axis"] and len(rest) == 4:
+            return self._unknown_named(key, rest[2])
+        raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"unknown key {key}")
+
+    def _parse_raw(self, key: str, parts: list[str]) -> Route:
+        try:
+            port, ig, io = int(parts[0]), int(parts[1], 16), int(parts[2], 16)
+        except ValueError:
+            raise AdsError(
+                AdsErrorCode.INVALID_INDEX_OFFSET,
+                f"raw key needs <port>/<0xgroup>/<0xoffset>: {key}",
+            ) from None
+        if port != GEO_PORT:
+            raise AdsError(AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is 551)")
+        obj, axis, _attr = self.dictionary.resolve(ig, io, self.axes)
+        return Route("raw", obj, axis, ig, io)
+
+    def _unknown_named(self, key: str, axis_text: str) -> Route:
+        try:
+            axis = int(axis_text)
+        except ValueError:
+            axis = -1
+        if axis not in self.axes:
+            raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis_text} is not configured")
+        raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"no object at {key}")
+
+
+def is_attribute_group(index_group: int) -> bool:
+    return any(index_group - ig in ATTRIBUTES for ig in GROUPS.values())

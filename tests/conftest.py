@@ -1,0 +1,65 @@
+"""Shared fixtures: the default machine in stepped mode, free ports, an asyncio loop thread."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import socket
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.paths import data_dir, default_startup_list
+from geo_server.service import ObjectService
+
+
+def free_port() -> int:
+    """An ephemeral TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def default_cfg():
+    return load_machine(default_startup_list())
+
+
+@pytest.fixture
+def machine(default_cfg) -> Machine:
+    """The default machine, every axis homed, stepped (nothing runs until stepped)."""
+    return Machine(default_cfg, cycle_s=0.001, homed=True)
+
+
+@pytest.fixture
+def service(machine) -> ObjectService:
+    return ObjectService(machine)
+
+
+@pytest.fixture
+def lists_copy(tmp_path: Path) -> Path:
+    """A private copy of the default machine's lists; returns its start-up list."""
+    dst = tmp_path / "lists"
+    shutil.copytree(data_dir("lists"), dst, ignore=shutil.ignore_patterns("examples", "tools"))
+    return dst / "hochlauf.lis"
+
+
+@pytest.fixture
+def loop_thread() -> Iterator[asyncio.AbstractEventLoop]:
+    """An asyncio loop running in a background thread (for servers under test)."""
+    loop = asyncio.new_event_loop()
+    t = threading.Thread(target=loop.run_forever, name="test-loop", daemon=True)
+    t.start()
+    yield loop
+    loop.call_soon_threadsafe(loop.stop)
+    t.join(5)
+    loop.close()
+
+
+def run_in(loop: asyncio.AbstractEventLoop, coro, timeout: float = 10.0):
+    """Run a coroutine on the loop thread and wait for its result."""
+    return asyncio.run_coroutine_threadsafe(coro, loop).result(timeout)

@@ -1,0 +1,327 @@
+"""The Zenoh interface (SPEC §7) with real Zenoh sessions on loopback.
+
+The server runs in stepped mode; an independent plain `zenoh` session (not the project's
+client) asks the questions. Peer mode, multicast scouting off, explicit endpoints, a
+timeout on every get, undeclare before close.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import struct
+from pathlib import Path
+
+import pytest
+import zenoh
+from conftest import free_port, run_in
+
+from geo_server.client_cli import main as client_main
+from geo_server.dictionary import load_dictionary
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.service import ObjectService
+from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+
+TIMEOUT = 5.0
+D = load_dictionary()
+
+
+def session_config(connect: list[str], listen: list[str] | None = None, mode: str = "peer"):
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("listen/endpoints", json.dumps(listen or []))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    return c
+
+
+class Server:
+    """A stepped geo-server with its Zenoh interface on an ephemeral port."""
+
+    def __init__(
+        self, loop, service: ObjectService, machine: str = "t", connect: list[str] | None = None
+    ) -> None:
+        self.loop = loop
+        self.service = service
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        opts = ZenohOptions(
+            machine=machine, listen=[self.endpoint], connect=connect or [], publish_period=0.01
+        )
+        self.iface = ZenohInterface(service, opts)
+        run_in(loop, self.iface.start())
+
+    def close(self) -> None:
+        run_in(self.loop, self.iface.close())
+
+
+@pytest.fixture
+def server(loop_thread, service):
+    srv = Server(loop_thread, service)
+    yield srv
+    srv.close()
+
+
+@pytest.fixture
+def zs(server):
+    s = zenoh.open(session_config([server.endpoint]))
+    yield s
+    s.close()
+
+
+def get(session, key: str, payload: bytes | None = None, encoding=None):
+    kwargs = {"timeout": TIMEOUT}
+    if payload is not None:
+        kwargs["payload"] = payload
+        if encoding is not None:
+            kwargs["encoding"] = encoding
+    oks, errs = [], []
+    for r in session.get(key, **kwargs):
+        if r.ok is not None:
+            oks.append((str(r.ok.key_expr), r.ok.payload.to_bytes()))
+        else:
+            errs.append(json.loads(r.err.payload.to_bytes()))
+    return oks, errs
+
+
+def get_one(session, key, payload=None, encoding=None) -> bytes:
+    oks, errs = get(session, key, payload, encoding)
+    assert not errs, errs
+    assert len(oks) == 1, oks
+    return oks[0][1]
+
+
+def get_err(session, key, payload=None, encoding=None) -> dict:
+    oks, errs = get(session, key, payload, encoding)
+    assert not oks, oks
+    assert len(errs) == 1, errs
+    return errs[0]
+
+
+# ---------------------------------------------------------------------------- reads
+
+
+def test_raw_read_of_every_geo_object(server, zs):
+    service = server.service
+    for axis in service.axes:
+        for obj in D.group_objects("geo"):
+            io = (axis << 16) | obj.id
+            data = get_one(zs, f"cnc/t/ads/551/0x120300/0x{io:x}")
+            assert len(data) == obj.length, obj.name
+            assert obj.decode(data) == service.read_name(obj.name, axis), (obj.name, axis)
+
+
+def test_named_read_of_the_manual_temperature_parameters(server, zs):
+    # Default machine, axis X (1): the manual's example (000 p.17): 100 / 40 / 4000.
+    assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/coefficient")) == 4000.0
+    assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/offset_0")) == 40
+    assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/position_0")) == 100
+    assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/activated")) is True
+    raw = get_one(zs, "cnc/t/ads/551/0x120300/0x10043")
+    assert struct.unpack("<d", raw) == (4000.0,)
+
+
+def test_wildcard_answers_once_per_object(server, zs):
+    oks, errs = get(zs, "cnc/t/axis/1/tempc/*")
+    assert not errs
+    fields = sorted(k.rsplit("/", 1)[1] for k, _ in oks)
+    assert fields == [
+        "activated",
+        "actual_offset",
+        "coefficient",
+        "f_is_active",
+        "offset_0",
+        "position_0",
+    ]
+    oks, _ = get(zs, "cnc/t/axis/*/bc/conf_backlash")
+    assert len(oks) == len(server.service.axes)
+
+
+def test_status_and_errors(server, zs):
+    server.service.step(3)
+    status = json.loads(get_one(zs, "cnc/t/status"))
+    assert status["cycle"] == 3
+    assert status["axes"] == list(server.service.axes)
+    assert isinstance(json.loads(get_one(zs, "cnc/t/errors")), list)
+
+
+# ---------------------------------------------------------------------------- writes
+
+
+def test_writes_of_each_tempc_object_and_their_effect(server, zs):
+    svc = server.service
+    # X to 100 mm: Δs = 40 + 4000e-6·(1_000_000 − 100) = 4039.6 -> 4040 (000 p.17 example).
+    svc.write_name("SIM::set_position", 1, 1_000_000)
+    svc.step(25)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 4040
+    enc = zenoh.Encoding.APPLICATION_JSON
+    assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/coefficient", b"2000", enc)) == 2000.0
+    svc.step(20)  # temp_comp_n_cycles 20: the ramp ends in the 20th cycle
+    # 40 + 2000e-6·999_900 = 2039.8 -> 2040
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
+    get_one(zs, "cnc/t/axis/1/tempc/offset_0", b'{"value": 100}', enc)
+    svc.step(20)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
+    raw = struct.pack("<i", 0)
+    get_one(zs, "cnc/t/ads/551/0x120300/0x10045", raw, zenoh.Encoding.APPLICATION_OCTET_STREAM)
+    svc.step(20)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 0.002·1_000_000
+    get_one(zs, "cnc/t/axis/1/tempc/activated", b"false", enc)
+    svc.step(20)
+    assert svc.read_name("TEMPC::activated", 1) is False
+    assert svc.read_name("TEMPC::actual_offset", 1) == 0
+
+
+@pytest.mark.parametrize(
+    "key,payload,code",
+    [
+        ("cnc/t/ads/551/0x120200/0x10043", None, 0x702),  # unknown index group
+        ("cnc/t/ads/551/0x120300/0x10099", None, 0x703),  # unknown offset
+        ("cnc/t/ads/551/0x120300/0x90043", None, 0x703),  # unknown axis (raw)
+        ("cnc/t/axis/9/tempc/coefficient", None, 0x703),  # unknown axis (named)
+        ("cnc/t/axis/1/tempc/nonsense", None, 0x703),  # unknown field
+        ("cnc/t/ads/552/0x120300/0x10043", None, 0x6),  # unknown ADS port
+        ("cnc/t/axis/1/bc/actual_backlash", b"5", 0x704),  # read-only
+        ("cnc/t/ads/551/0x120300/0x10043", b"\0\0\0\0", 0x705),  # REAL64 needs 8 bytes
+        ("cnc/t/axis/1/tempc/coefficient", b"20000", 0x706),  # > 10000 µm/m
+        ("cnc/t/axis/1/tempc/coefficient", b"{not json", 0x706),  # garbage JSON
+        ("cnc/t/axis/1/tempc/activated", b"[1, 2]", 0x706),  # not a scalar
+        ("cnc/t/axis/1/tempc/coefficient", b"1" * 70_000, 0x705),  # huge payload
+    ],
+)
+def test_errors_are_reply_err_with_the_ads_code(server, zs, key, payload, code):
+    err = get_err(zs, key, payload, zenoh.Encoding.APPLICATION_JSON if payload else None)
+    assert err["ads_error"] == code
+    assert err["message"]
+    server.service.step(1)  # the cycle keeps running
+    assert server.service.snapshot.cycle == 1
+
+
+def test_garbage_leaves_values_untouched(server, zs):
+    before = server.service.read_axis(1)
+    for payload in (b"\xff\xfe", b"nan", b"1e999", b'"text"'):
+        oks, errs = get(
+            zs, "cnc/t/axis/1/tempc/coefficient", payload, zenoh.Encoding.APPLICATION_JSON
+        )
+        assert errs and not oks
+    server.service.step(2)
+    assert server.service.read_axis(1)["TEMPC::coefficient"] == before["TEMPC::coefficient"]
+
+
+# ---------------------------------------------------------------------------- publications
+
+
+def test_publications_arrive_on_a_subscriber(server, zs):
+    q: queue.Queue = queue.Queue()
+    sub = zs.declare_subscriber(
+        "cnc/t/axis/1/tempc/actual_offset",
+        lambda s: q.put((str(s.key_expr), json.loads(s.payload.to_bytes()))),
+    )
+    try:
+        server.service.write_name("SIM::set_position", 1, 1_000_000)
+        server.service.step(25)
+        deadline_values = []
+        while True:
+            key, value = q.get(timeout=TIMEOUT)
+            deadline_values.append(value)
+            if value == 4040:
+                break
+        assert key == "cnc/t/axis/1/tempc/actual_offset"
+    finally:
+        sub.undeclare()
+
+
+# ---------------------------------------------------------------------------- nc, commands
+
+
+def test_nc_switches_temperature_compensation_off(server, zs):
+    svc = server.service
+    svc.step(1)
+    assert svc.read_name("TEMPC::activated", 1) is True
+    reply = json.loads(get_one(zs, "cnc/t/nc", b"X[COMP OFF TEMP]", zenoh.Encoding.TEXT_PLAIN))
+    assert reply["ok"] is True
+    svc.step(3)
+    assert svc.read_name("TEMPC::activated", 1) is False
+
+
+def test_save_and_reload(loop_thread, lists_copy: Path):
+    service = ObjectService(Machine(load_machine(lists_copy), homed=True))
+    srv = Server(loop_thread, service)
+    s = zenoh.open(session_config([srv.endpoint]))
+    try:
+        axis_list = Path(service.machine.cfg.axes[1].params.path)
+        before = axis_list.read_bytes()
+        get_one(s, "cnc/t/axis/1/tempc/coefficient", b"1234.5", zenoh.Encoding.APPLICATION_JSON)
+        service.step(1)
+        result = json.loads(get_one(s, "cnc/t/cmd/save", b"{}"))
+        assert result["ok"] and str(axis_list) in result["files"]
+        after = axis_list.read_bytes()
+        assert after != before
+        assert after.replace(b"1234.5", b"4000", 1) == before
+        # a valid reload keeps the saved value
+        result = json.loads(get_one(s, "cnc/t/cmd/reload", b"{}"))
+        assert result["ok"], result
+        service.step(1)
+        assert service.read_name("TEMPC::coefficient", 1) == 1234.5
+        # a broken list: the reload is rejected as a whole, nothing changes
+        values = service.read_axis(1)
+        axis_list.write_bytes(after.replace(b"1234.5", b"99999", 1))  # out of range
+        err = get_err(s, "cnc/t/cmd/reload", b"{}")
+        assert err["ads_error"] == 0x70D
+        assert "99999" in err["message"] or "coefficient" in err["message"]
+        service.step(1)
+        assert service.read_axis(1)["TEMPC::coefficient"] == values["TEMPC::coefficient"]
+    finally:
+        s.close()
+        srv.close()
+
+
+# ---------------------------------------------------------------------------- topology
+
+
+def test_two_servers_through_a_router(loop_thread, default_cfg):
+    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(session_config([], [router_ep], mode="router"))
+    a = ObjectService(Machine(default_cfg, homed=True))
+    b = ObjectService(Machine(default_cfg, homed=True))
+    sa = Server(loop_thread, a, machine="mill", connect=[router_ep])
+    sb = Server(loop_thread, b, machine="lathe", connect=[router_ep])
+    client = zenoh.open(session_config([router_ep], mode="client"))
+    try:
+        a.step(7)
+        b.step(3)
+        assert json.loads(get_one(client, "cnc/mill/sim/machine/cycle_count")) == 7
+        assert json.loads(get_one(client, "cnc/lathe/sim/machine/cycle_count")) == 3
+        oks, _ = get(client, "cnc/*/sim/machine/cycle_count")
+        assert sorted(k for k, _ in oks) == [
+            "cnc/lathe/sim/machine/cycle_count",
+            "cnc/mill/sim/machine/cycle_count",
+        ]
+    finally:
+        client.close()
+        sa.close()
+        sb.close()
+        router.close()
+
+
+def test_liveliness_token(server, zs):
+    replies = list(zs.liveliness().get("cnc/t/alive", timeout=TIMEOUT))
+    assert [str(r.ok.key_expr) for r in replies if r.ok is not None] == ["cnc/t/alive"]
+
+
+# ---------------------------------------------------------------------------- geo-client
+
+
+def test_geo_client_read_write(server, capsys):
+    base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
+    assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
+    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
+    assert client_main([*base, "--json", "read", "0x120300", "0x10044"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out == {"name": "TEMPC::offset_0", "axis": 1, "value": 40, "unit": "[0.1 µm]"}
+    assert client_main([*base, "write", "--axis", "1", "TEMPC::coefficient", "3000"]) == 0
+    capsys.readouterr()
+    server.service.step(1)
+    assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
+    assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
+    assert "ADS 0x704" in capsys.readouterr().err

@@ -299,7 +299,7 @@ class ObjectService:
                 except OSError as exc:
                     errors.append(f"{params.path}: {exc}")
                     continue
-                self.machine.submit(lambda p=params, c=changes: _note_saved(p, c))
+                _note_saved(params, changes)
                 files.append(params.path)
             return CommandResult(not errors, "save", errors=errors, files=files)
 

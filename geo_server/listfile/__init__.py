@@ -1,0 +1,37 @@
+"""ASCII list files of the CNC (002/003 §1.3–1.4): tokenizer, loader, validation, writer.
+
+Public API:
+
+* `load_machine(startup) -> MachineConfig` — start-up list + every list it names, validated
+  (SPEC §4); raises `ListFileError` only if the lists cannot be read at all;
+* `parse_list(path) -> ParsedList` — tokenized entries with value spans;
+* `default_startup_list() -> Path` — `lists/hochlauf.lis` of the default machine;
+* `compare_max_points(old, new) -> list[Diagnostic]` — reload check (110638–110641);
+* `rewrite_values(path, changes)` / `apply_changes(text, changes)` — token writer for `save`;
+* `checks_markdown() -> str` — the check → error-ID table (`docs/list_checks.md`).
+"""
+
+from __future__ import annotations
+
+from geo_server.listfile.checks import CHECKS, EMU_TEMP_ERROR, Check, checks_markdown
+from geo_server.listfile.loader import ListFileError, compare_max_points, load_machine
+from geo_server.listfile.syntax import Entry, ParsedList, parse_list, parse_text
+from geo_server.listfile.writer import apply_changes, rewrite_values
+from geo_server.paths import default_startup_list
+
+__all__ = [
+    "CHECKS",
+    "EMU_TEMP_ERROR",
+    "Check",
+    "Entry",
+    "ListFileError",
+    "ParsedList",
+    "apply_changes",
+    "checks_markdown",
+    "compare_max_points",
+    "default_startup_list",
+    "load_machine",
+    "parse_list",
+    "parse_text",
+    "rewrite_values",
+]

@@ -1,0 +1,240 @@
+"""Start-up list [STUP] -> axis parameter lists [AXIS] + compensation value lists [COMP].
+
+Start-up list entries (000 §4.1 p.26, digest §6.2):
+
+* `zahl_kw`, `achs_kw[i]`, `achs_kw_log_ax_nr[i]` — compensation value lists (manual);
+* `zahl_mds`, `achs_mds[i]`, `achs_mds_log_ax_nr[i]` — axis parameter lists (emulator
+  extension: the manuals print no start-up entry for them);
+* `vol_comp[i].max_records`, `vol_comp[i].file_name` — volumetric (004), ignored.
+
+File names are relative to the start-up list's folder; Windows `..\\listen\\x.lis` works.
+The axis number of a list is `achs_*_log_ax_nr[i]`, else the list's `kopf.achs_nr`.
+Without any axis parameter list, every compensation list's axis gets default parameters.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path, PureWindowsPath
+
+from geo_server.config import (
+    AxisConfig,
+    AxisParams,
+    CompKind,
+    Diagnostic,
+    MachineConfig,
+)
+from geo_server.listfile.axislist import axis_number, build_axis_params
+from geo_server.listfile.checks import HEADER_CHECK, MAX_POINTS_IDS
+from geo_server.listfile.complist import Ctx, build_comp_list, sections_present
+from geo_server.listfile.schema import ListKind
+from geo_server.listfile.syntax import parse_list
+from geo_server.listfile.values import Reporter, Values, read_values
+
+
+class ListFileError(Exception):
+    """The lists cannot be read at all (missing/unreadable file, no axes)."""
+
+    def __init__(self, path: Path | str, line: int, message: str) -> None:
+        self.path, self.line, self.message = str(path), line, message
+        where = f"{self.path}:{line}" if line else self.path
+        super().__init__(f"{where}: {message}")
+
+
+def load_machine(startup: Path | str) -> MachineConfig:
+    """Read the start-up list and every list it names; validate; never raise on content.
+
+    Raises `ListFileError` only if a list cannot be read or no axis is defined.
+    """
+    startup = Path(startup)
+    diags: list[Diagnostic] = []
+    rep = Reporter(diags)
+    stup = _read(startup, ListKind.STUP, rep)
+    mds = _named_lists(stup, "mds", rep)
+    kws = _named_lists(stup, "kw", rep)
+    axes = _load_axes(startup.parent, mds, rep)
+    comp_values = [
+        (nr, _read(_resolve(startup.parent, f, stup.path, ln), ListKind.COMP, rep))
+        for nr, f, ln in kws
+    ]
+    if not axes:
+        for nr, values in comp_values:
+            nr = nr or int(values.get("kopf.achs_nr", 0))  # type: ignore[arg-type]
+            if nr and nr not in axes:
+                axes[nr] = AxisParams(log_nr=nr)
+    if not axes:
+        raise ListFileError(startup, 0, "no axes: no axis parameter or compensation lists")
+    configs = {nr: AxisConfig(params=axes[nr]) for nr in sorted(axes)}
+    for nr, values in comp_values:
+        _attach_comp(configs, nr, values, rep)
+    _check_selected(configs, rep)
+    return MachineConfig(startup_path=startup, axes=configs, diagnostics=diags)
+
+
+def _read(path: Path, kind: ListKind, rep: Reporter) -> Values:
+    try:
+        parsed = parse_list(path)
+    except FileNotFoundError:
+        raise ListFileError(path, 0, f"{kind.value} not found") from None
+    except OSError as exc:
+        raise ListFileError(path, 0, f"{kind.value} unreadable: {exc}") from None
+    return read_values(parsed, kind, rep)
+
+
+def _resolve(folder: Path, name: str, stup: str, line: int) -> Path:
+    """A list file named in the start-up list, relative to its folder (Windows `\\` too)."""
+    if not name:
+        raise ListFileError(stup, line, "empty file name")
+    p = Path(*PureWindowsPath(name).parts) if "\\" in name else Path(name)
+    return p if p.is_absolute() else Path(os.path.normpath(folder / p))
+
+
+def _named_lists(stup: Values, tag: str, rep: Reporter) -> list[tuple[int, str, int]]:
+    """(axis number or 0, file name, start-up line) of `achs_<tag>[i]`, honouring `zahl_<tag>`."""
+    files = stup.table(f"achs_{tag}[]")
+    count = stup.item(f"zahl_{tag}")
+    out = []
+    for (i,), item in sorted(files.items()):
+        if count is not None and i >= count.value:  # type: ignore[operator]
+            rep.at("list.ignored", f"index {i} >= zahl_{tag} {count.value}: ignored", item.entry)
+            continue
+        nr = int(stup.get(f"achs_{tag}_log_ax_nr[]", 0, (i,)))  # type: ignore[arg-type]
+        out.append((nr, str(item.value), item.entry.line))
+    if count is not None and len(out) < count.value:  # type: ignore[operator]
+        rep.at("list.ignored", f"zahl_{tag} {count.value} but {len(out)} lists named", count.entry)
+    for base in ("vol_comp[].max_records", "vol_comp[].file_name"):
+        for item in stup.table(base).values() if tag == "kw" else ():
+            rep.at("list.ignored", "volumetric compensation is not emulated yet", item.entry)
+    return out
+
+
+def _load_axes(
+    folder: Path, mds: list[tuple[int, str, int]], rep: Reporter
+) -> dict[int, AxisParams]:
+    axes: dict[int, AxisParams] = {}
+    for nr, name, line in mds:
+        path = _resolve(folder, name, "start-up list", line)
+        values = _read(path, ListKind.AXIS, rep)
+        own = axis_number(values)
+        nr = nr or own
+        if not nr or nr in axes:
+            why = "no logical axis number" if not nr else f"axis {nr} defined twice"
+            rep.report("list.axis", f"{why}: list skipped", file=str(path), entry="kopf.achs_nr")
+            continue
+        if own and own != nr:
+            rep.report(
+                "list.axis",
+                f"kopf.achs_nr {own} but start-up list says {nr}; {nr} used",
+                file=str(path),
+                entry="kopf.achs_nr",
+            )
+        axes[nr] = build_axis_params(values, nr, rep)
+    return axes
+
+
+def _attach_comp(configs: dict[int, AxisConfig], nr: int, values: Values, rep: Reporter) -> None:
+    """Validate one compensation list and attach it to its axis (or report its header)."""
+    own = int(values.get("kopf.achs_nr", 0))  # type: ignore[arg-type]
+    nr = nr or own
+    problem = ""
+    if not nr:
+        problem = "kopf.achs_nr missing and no achs_kw_log_ax_nr: list belongs to no axis"
+    elif nr not in configs:
+        problem = f"axis {nr} is not an axis of the machine"
+    elif own and own != nr:
+        problem = f"kopf.achs_nr {own} but the start-up list assigns it to axis {nr}"
+    elif configs[nr].comp is not None:
+        problem = f"a second compensation value list for axis {nr}"
+    if problem:
+        _report_header(values, nr, problem, rep)
+        return
+    ctx = Ctx(axis=configs[nr].params, axes={k: c.params for k, c in configs.items()}, rep=rep)
+    configs[nr].comp = build_comp_list(values, ctx)
+
+
+def _report_header(values: Values, nr: int, problem: str, rep: Reporter) -> None:
+    item = values.item("kopf.achs_nr")
+    line = item.entry.line if item else 0
+    for comp in sections_present(values):
+        rep.report(
+            HEADER_CHECK[comp],
+            f"{problem}: list not used",
+            file=values.path,
+            line=line,
+            entry="kopf.achs_nr",
+            axis=nr,
+        )
+
+
+#: selection attribute -> (compensation, CompList attribute, check when the table is missing)
+_SELECTIONS = {
+    "crosscomp": (CompKind.CROSS, "cross", "cross.missing"),
+    "crosscomp2": (CompKind.PLANE, "plane", "plane.missing"),
+    "ssfk": (CompKind.LEAD, "lsec", "lead.missing"),
+    "frict_comp": (CompKind.FRICT, "frict", "frict.values"),
+    "crosstalk": (CompKind.CROSSTALK, "crosstalk", "crosstalk.missing"),
+}
+
+
+def _check_selected(configs: dict[int, AxisConfig], rep: Reporter) -> None:
+    """A compensation selected in the axis list needs its table (000 §4.x "Effectiveness")."""
+    for nr, cfg in configs.items():
+        for attr, (_kind, comp_attr, key) in _SELECTIONS.items():
+            if not getattr(cfg.params, attr):
+                continue
+            if cfg.comp is not None and getattr(cfg.comp, comp_attr) is not None:
+                continue
+            src = cfg.params.sources.get(f"lr_param.{attr}")
+            rep.report(
+                key,
+                f"lr_param.{attr} 1 but no table in a compensation value list",
+                file=src.file if src else cfg.params.path,
+                line=src.line if src else 0,
+                entry=f"lr_param.{attr}",
+                axis=nr,
+            )
+
+
+# --------------------------------------------------------------------------- reload
+
+_MAX_POINTS = {
+    CompKind.LEAD: ("lsec", "kw.ssfk.max_points", 1500),
+    CompKind.CROSS: ("cross", "kw.crosscomp.max_points", 1001),
+    CompKind.PLANE: ("plane", "kw.crosscomp2.max_points", 10201),
+    CompKind.FRICT: ("frict", "frict_comp.max_points", 20),
+}
+
+
+def compare_max_points(old: MachineConfig, new: MachineConfig) -> list[Diagnostic]:
+    """Errors for every `max_points` that differs between two loads (002 §3.x.1).
+
+    110638 LSEC, 110639 cross, 110640 plane, 110641 friction. A missing table counts as
+    the default value (002: "not specified (or 0) -> default").
+    """
+    out: list[Diagnostic] = []
+    for nr, cfg in new.axes.items():
+        before = old.axes.get(nr)
+        if before is None:
+            continue
+        for kind, (attr, entry, default) in _MAX_POINTS.items():
+            a, b = _max_points(before, attr, default), _max_points(cfg, attr, default)
+            if a != b:
+                path = cfg.comp.path if cfg.comp else ""
+                msg = f"max_points changed from {a} to {b}; not allowed after start-up"
+                out.append(
+                    Diagnostic(
+                        "error",
+                        msg,
+                        file=path,
+                        entry=entry,
+                        error_id=MAX_POINTS_IDS[kind],
+                        axis=nr,
+                        deactivated=kind,
+                    )
+                )
+    return out
+
+
+def _max_points(cfg: AxisConfig, attr: str, default: int) -> int:
+    comp = getattr(cfg.comp, attr, None) if cfg.comp else None
+    return comp.max_points if comp is not None else default

@@ -1,0 +1,191 @@
+"""Tokenizer of the ASCII list files (002/003 §1.3–1.4; digest §6.1).
+
+Rules (each cites where it comes from):
+
+* one entry per line, `name value` (002 §1.3);
+* a line starting with `#` is a comment (002 §1.4 asks for `# `; the examples also use a
+  bare `#`, `#…` and `# End`, so any `#` at the start of a line makes it a comment);
+* after a numeric value anything after a blank is a comment (`1 Comment`, `1 # c`,
+  `1 ( c`, `1 /* c */`, `100 [0.1µm]`; 002 §1.4, 000 p.24);
+* after a STRING value only `(` opens a comment; the string runs up to it, trailing
+  blanks removed, so `kopf.log_achs_name Y AXIS` is "Y AXIS" (002 §1.4, 000 p.62);
+* strings in inverted commas `"…"` (printed `″…″`, also `“…”`) may hold any character;
+  trailing blanks inside are removed (002 §1.3);
+* blanks inside brackets are allowed (`table[ 0][ 1]`, 000 p.49);
+* `End`/`Ende` ends the list (002 §3.2.15 example, 001);
+* the first name segment is case-insensitive (`Kw.crosstalk…`, 000 p.91);
+* a blank after a dot (`lr_param. n_backlash_cyc`, 000 p.13, an extraction artefact) is
+  accepted with a warning;
+* elision lines of the printed examples (`:`, `...`, `…`, `etc.`) are ignored;
+* files are UTF-8, falling back to CP1252 (Windows lists) and finally Latin-1.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from geo_server.config import Diagnostic
+from geo_server.listfile.schema import value_class
+
+#: Quote characters accepted around strings: ASCII and the typographic ones printed.
+QUOTES = '"\u2033\u201c\u201d\u201e'
+_END_WORDS = {"end", "ende"}
+_ELISION = re.compile(r"^(?::+|\.{2,}|…+|etc\.?)(?:\s.*)?$", re.IGNORECASE)
+_NAME = re.compile(r"[A-Za-z_]\w*(?:\[-?\d+\])*(?:\.[A-Za-z_]\w*(?:\[-?\d+\])*)*")
+_INDEX = re.compile(r"\[(-?\d+)\]")
+_MASK_VALUE = re.compile(r"[\w]+(?:\s*\|\s*[\w]+)*")
+_NUMBER_STOP = re.compile(r"#|/\*|\(|\[")
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One `name value` line.
+
+    `name` is normalized (no blanks, lower-case first segment): `kw.ssfk.table[3].pos`;
+    `base` has the indices replaced by `[]`; `span` is the [start, end) character range of
+    the value token in `text_line` (quotes included) so the writer can replace exactly it.
+    """
+
+    name: str
+    base: str
+    indices: tuple[int, ...]
+    raw: str  # value text as written (quotes included)
+    value: str  # value text with quotes removed and trailing blanks stripped
+    span: tuple[int, int]
+    file: str
+    line: int  # 1-based
+    raw_name: str = ""
+
+
+@dataclass
+class ParsedList:
+    """Every entry of one list file, in file order, with the tokenizer's warnings."""
+
+    path: str
+    entries: list[Entry] = field(default_factory=list)
+    warnings: list[Diagnostic] = field(default_factory=list)
+    encoding: str = "utf-8"
+    end_line: int = 0  # 1-based line of `End`/`Ende`, 0 if none
+
+
+def read_text(path: Path | str) -> tuple[str, str]:
+    """Decode a list file: UTF-8 (BOM kept as utf-8-sig), else CP1252, else Latin-1."""
+    data = Path(path).read_bytes()
+    for enc in ("utf-8-sig" if data.startswith(b"\xef\xbb\xbf") else "utf-8", "cp1252"):
+        try:
+            return data.decode(enc), enc
+        except UnicodeDecodeError:
+            continue
+    return data.decode("latin-1"), "latin-1"
+
+
+def split_lines(text: str) -> list[str]:
+    """Split after every LF, keeping the line endings (CRLF stays inside the line)."""
+    lines = text.split("\n")
+    out = [ln + "\n" for ln in lines[:-1]]
+    if lines[-1]:
+        out.append(lines[-1])
+    return out
+
+
+def normalize_name(raw: str) -> str:
+    """Drop blanks and lower-case the first segment (`Kw.crosstalk` -> `kw.crosstalk`)."""
+    name = re.sub(r"\s+", "", raw)
+    cut = min((i for i in (name.find("."), name.find("[")) if i >= 0), default=len(name))
+    return name[:cut].lower() + name[cut:]
+
+
+def base_name(name: str) -> tuple[str, tuple[int, ...]]:
+    """`kw.crosscomp2.table[3][4].correction` -> (`kw.crosscomp2.table[][].correction`, (3, 4))."""
+    return _INDEX.sub("[]", name), tuple(int(i) for i in _INDEX.findall(name))
+
+
+def parse_text(text: str, file: str = "") -> ParsedList:
+    """Tokenize list text into entries (see the module docstring for the rules)."""
+    result = ParsedList(path=file)
+    for number, line in enumerate(split_lines(text), start=1):
+        content = line.rstrip("\r\n")
+        stripped = content.strip()
+        if not stripped or stripped.startswith("#") or _ELISION.match(stripped):
+            continue
+        if stripped.split()[0].lower() in _END_WORDS:
+            result.end_line = number
+            break
+        entry = _parse_entry(content, file, number, result.warnings)
+        if entry is not None:
+            result.entries.append(entry)
+    return result
+
+
+def parse_list(path: Path | str) -> ParsedList:
+    """Read and tokenize one list file (OSError if it cannot be read)."""
+    text, encoding = read_text(path)
+    parsed = parse_text(text, str(path))
+    parsed.encoding = encoding
+    return parsed
+
+
+def _warn(warnings: list[Diagnostic], file: str, line: int, entry: str, msg: str) -> None:
+    warnings.append(Diagnostic("warning", msg, file=file, line=line, entry=entry))
+
+
+def _scan_name(content: str) -> tuple[int, bool]:
+    """End of the name token and whether a blank after a dot had to be skipped."""
+    i, depth, dot_gap = len(content) - len(content.lstrip()), 0, False
+    while i < len(content):
+        c = content[i]
+        if c == "[":
+            depth += 1
+        elif c == "]":
+            depth -= 1
+        elif c in QUOTES and depth == 0:
+            break
+        elif c.isspace() and depth <= 0:
+            if not content[:i].rstrip().endswith(".") or not content[i:].strip():
+                break
+            dot_gap = True
+        i += 1
+    return i, dot_gap
+
+
+def _parse_entry(content: str, file: str, number: int, warnings: list[Diagnostic]) -> Entry | None:
+    end, dot_gap = _scan_name(content)
+    raw_name = content[:end].strip()
+    name = normalize_name(raw_name)
+    if not _NAME.fullmatch(name):
+        _warn(warnings, file, number, raw_name, "malformed line ignored (not `name value`)")
+        return None
+    if dot_gap:
+        _warn(warnings, file, number, name, f"blank after a dot in {raw_name!r} ignored")
+    base, indices = base_name(name)
+    start = end + len(content[end:]) - len(content[end:].lstrip())
+    token = _value_token(content, start, value_class(base))
+    if token is None:
+        _warn(warnings, file, number, name, "entry without a value ignored")
+        return None
+    (vs, ve), value = token
+    return Entry(name, base, indices, content[vs:ve], value, (vs, ve), file, number, raw_name)
+
+
+def _value_token(content: str, start: int, kind: str) -> tuple[tuple[int, int], str] | None:
+    """Locate the value after `start`: its span and its text (002 §1.3–1.4)."""
+    rest = content[start:]
+    if not rest.strip():
+        return None
+    if rest[0] in QUOTES:
+        close = next((i for i in range(1, len(rest)) if rest[i] in QUOTES), None)
+        if close is not None:
+            return (start, start + close + 1), rest[1:close].rstrip()
+    if kind == "string":
+        text = rest.split("(", 1)[0].rstrip() if not rest.startswith("(") else ""
+        return ((start, start + len(text)), text) if text else None
+    if kind == "mask":
+        m = _MASK_VALUE.match(rest)
+        if m:
+            return (start, start + m.end()), m.group()
+    token = rest.split(None, 1)[0]
+    stop = _NUMBER_STOP.search(token, 1)
+    token = token[: stop.start()] if stop else token
+    return (start, start + len(token)), token

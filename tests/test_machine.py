@@ -1,0 +1,286 @@
+"""The machine end to end: GEO cycle, objects, COMP, monitoring, reload, save, determinism.
+
+Expected values are computed here from the manuals' formulas (000 §2, §3; SPEC §3 sin²
+rule), never by calling the code under test.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from geo_server.dictionary import AdsError
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Scheduler
+from geo_server.paths import data_dir
+from geo_server.service import ObjectService
+
+
+def rhaz(x: float) -> int:
+    """Round half away from zero (SPEC §3), written out independently of the code."""
+    return int(math.floor(abs(x) + 0.5)) * (1 if x >= 0 else -1)
+
+
+def sin2_ramp(start: float, target: float, k: int, n: int) -> float:
+    """SPEC §3: out_k = target − J·cos²(π·k/(2N)), J = target − start."""
+    return target - (target - start) * math.cos(math.pi * k / (2 * n)) ** 2
+
+
+# ------------------------------------------------------------------------- temperature
+
+
+def test_temperature_manual_example_through_the_objects(service):
+    # 000 p.17: position_0 100, offset_0 40, coefficient 4000 µm/m; X homed at 100 mm.
+    service.write_name("SIM::set_position", 1, 1_000_000)
+    service.step(25)  # temp_comp_n_cycles 20: the start-up ramp is over
+    expected = 40 + 4000e-6 * (1_000_000 - 100)  # 4039.6
+    assert service.read_name("TEMPC::actual_offset", 1) == rhaz(expected) == 4040
+    assert service.read_name("TEMPC::f_is_active", 1) is True
+    # the drive gets command + every position compensation; the display does not
+    total = service.read_name("SIM::total_offset", 1)
+    assert service.read_name("SIM::command_position", 1) == 1_000_000
+    assert service.read_name("SIM::output_position", 1) == 1_000_000 + total
+
+
+def test_temperature_coefficient_write_ramps_cycle_by_cycle(service):
+    service.write_name("SIM::set_position", 1, 1_000_000)
+    service.step(25)
+    old = 40 + 4000e-6 * 999_900
+    new = 40 + 2500e-6 * 999_900
+    service.write_name("TEMPC::coefficient", 1, 2500.0)
+    for k in range(1, 21):
+        service.step(1)
+        assert service.read_name("TEMPC::actual_offset", 1) == rhaz(sin2_ramp(old, new, k, 20))
+    assert service.read_name("TEMPC::coefficient", 1) == 2500.0
+
+
+def test_unhomed_axis_has_no_temperature_offset(default_cfg):
+    svc = ObjectService(Machine(default_cfg, homed=False))
+    svc.write_name("SIM::set_position", 1, 1_000_000)
+    svc.step(30)
+    assert svc.read_name("TEMPC::activated", 1) is True
+    assert svc.read_name("TEMPC::f_is_active", 1) is False
+    assert svc.read_name("TEMPC::actual_offset", 1) == 0
+    svc.write_name("SIM::homed", 1, True)
+    svc.step(20)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 4040
+
+
+# ------------------------------------------------------------------------- backlash
+
+
+def test_backlash_manual_example_reversal(service):
+    # 000 p.13: lose 1000, anwahl_losekomp 1 (positive), n_backlash_cyc 10.
+    service.step(2)
+    assert service.read_name("BC::conf. backlash", 1) == 1000
+    assert service.read_name("BC::actual backlash", 1) == 0
+    service.write_name("SIM::target_position", 1, -100_000)  # move negative: a reversal
+    previous = 0
+    for k in range(1, 11):
+        service.step(1)
+        expected = rhaz(-1000 * math.sin(math.pi * k / 20) ** 2)
+        assert service.read_name("BC::actual backlash", 1) == expected
+        assert service.read_name("BC::delta backlash", 1) == expected - previous
+        assert service.read_name("BC::sum backlash", 1) == -1000
+        previous = expected
+    service.step(1)
+    assert service.read_name("BC::actual backlash", 1) == -1000
+    assert service.read_name("BC::delta backlash", 1) == 0
+
+
+# ------------------------------------------------------------------------- COMP, monitoring
+
+
+def _run_until_done(machine: Machine, limit: int = 5000) -> None:
+    for _ in range(limit):
+        machine.run_cycle()
+        if machine.player is None or not machine.player.running:
+            return
+    raise AssertionError("program did not finish")
+
+
+def test_comp_off_is_program_global(machine):
+    machine.step(1)
+    machine.start_program("N10 X[COMP OFF TEMP]\nN20 M30\n")
+    _run_until_done(machine)
+    machine.step(25)
+    svc = ObjectService(machine)
+    assert svc.read_name("TEMPC::activated", 1) is False
+    assert svc.read_name("TEMPC::actual_offset", 1) == 0
+
+
+def test_manual_activation_is_deselected_at_program_end(default_cfg):
+    default_cfg.axes[1].params.temp_comp_manual_activation = True
+    machine = Machine(default_cfg, homed=True)
+    svc = ObjectService(machine)
+    machine.step(1)
+    assert svc.read_name("TEMPC::activated", 1) is False  # manual: off until COMP ON
+    machine.start_program("N10 X[COMP ON TEMP]\nN20 G04 0.05\nN30 M30\n")
+    machine.step(5)
+    assert svc.read_name("TEMPC::activated", 1) is True
+    _run_until_done(machine)
+    assert svc.read_name("TEMPC::activated", 1) is False
+
+
+def test_comp_on_frict_without_parameter_is_70495(service):
+    # Y has lr_param.frict_comp 0 in the default machine.
+    service.run_nc("Y[COMP ON FRICT]")
+    service.step(3)
+    assert [e["error_id"] for e in service.errors()][-1] == 70495
+    assert service.read_name("SIM::last_error_id") == 70495
+
+
+def test_required_compensations_are_monitored_70435(default_cfg):
+    # Y: prog_movement_requires_compensations LEAD | TEMP; unhomed, neither is effective.
+    svc = ObjectService(Machine(default_cfg, homed=False))
+    svc.run_nc("G01 Y10 F1000")
+    svc.step(5)
+    assert [e["error_id"] for e in svc.errors()][-1] == 70435
+    assert svc.read_name("SIM::command_position", 2) == 0  # the move was not started
+    svc.write_name("SIM::homed", 2, True)
+    svc.step(2)
+    svc.run_nc("G01 Y10 F1000")
+    svc.step(2000)
+    assert svc.read_name("SIM::command_position", 2) == 100_000
+    assert [e["error_id"] for e in svc.errors()].count(70435) == 1
+
+
+# ------------------------------------------------------------------------- service errors
+
+
+def test_read_lengths_and_batch_from_one_snapshot(service):
+    service.step(1)
+    with pytest.raises(AdsError) as e:
+        service.read(0x120300, 0x10043, 4)
+    assert e.value.code == 0x705
+    assert len(service.read(0x120300, 0x10043, 100)) == 8  # never more than the object
+    out = service.read_many(
+        [(0x120300, 0x10043, 8), (0x120300, 0x19999, 4), (0x12F300, 0x00001, 4)]
+    )
+    assert out[0] == service.read(0x120300, 0x10043)
+    assert isinstance(out[1], AdsError) and out[1].code == 0x703
+    assert out[2] == (1).to_bytes(4, "little")
+    with pytest.raises(AdsError) as e:
+        service.write_name("BC::actual backlash", 1, 5)
+    assert e.value.code == 0x704
+
+
+# ------------------------------------------------------------------------- reload, save
+
+
+def test_rejected_reload_changes_nothing(lists_copy: Path):
+    cfg = load_machine(lists_copy)
+    a = Machine(load_machine(lists_copy), homed=True)
+    b = Machine(cfg, homed=True)  # the twin that never sees the reload
+    svc = ObjectService(a)
+    a.step(30)
+    b.step(30)
+    axis_list = Path(cfg.axes[1].params.path)
+    text = axis_list.read_text(encoding="utf-8")
+    axis_list.write_text(
+        text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 99999"),
+        encoding="utf-8",
+    )
+    result = svc.reload()
+    assert not result.ok
+    assert any("achsmd1.lis" in e and "temp_comp_coefficient" in e for e in result.errors)
+    a.step(40)
+    b.step(40)
+    np.testing.assert_array_equal(a.snapshot.values, b.snapshot.values)
+
+
+def test_valid_reload_ramps_to_the_new_value(lists_copy: Path):
+    svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
+    svc.write_name("SIM::set_position", 1, 1_000_000)
+    svc.step(30)
+    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    text = axis_list.read_text(encoding="utf-8")
+    axis_list.write_text(
+        text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 2000"),
+        encoding="utf-8",
+    )
+    result = svc.reload()
+    assert result.ok, result.errors
+    old, new = 40 + 4000e-6 * 999_900, 40 + 2000e-6 * 999_900
+    svc.step(10)
+    assert svc.read_name("TEMPC::actual_offset", 1) == rhaz(sin2_ramp(old, new, 10, 20)) == 3040
+    svc.step(10)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
+    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
+
+
+def test_save_round_trips(lists_copy: Path):
+    svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
+    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    before = axis_list.read_bytes()
+    svc.write_name("TEMPC::coefficient", 1, 1234.5)
+    svc.write_name("TEMPC::offset_0", 1, -7)
+    svc.step(1)
+    result = svc.save()
+    assert result.ok and result.files == [str(axis_list)]
+    after = axis_list.read_bytes()
+    assert after == before.replace(b"coefficient 4000 ", b"coefficient 1234.5 ").replace(
+        b"offset_0 40 ", b"offset_0 -7 "
+    )
+    cfg = load_machine(lists_copy)
+    assert cfg.axes[1].params.temp_comp_coefficient == 1234.5
+    assert cfg.axes[1].params.temp_comp_offset_0 == -7
+    assert svc.save().files == []  # nothing changed since: nothing written
+
+
+# ------------------------------------------------------------------------- determinism
+
+
+def test_stepped_and_free_running_give_identical_values(default_cfg):
+    program = (data_dir("lists") / "demo_temperature.nc").read_text(encoding="utf-8")
+    n = 3000
+    stepped = Machine(default_cfg, homed=False)
+    stepped.start_program(program)
+    want = {}
+    for _ in range(n):
+        snap = stepped.run_cycle()
+        if snap.cycle % 50 == 0:
+            want[snap.cycle] = snap.values.copy()
+    free = Machine(load_machine(default_cfg.startup_path), homed=False)
+    free.start_program(program)
+    got: dict[int, np.ndarray] = {}
+    done = threading.Event()
+
+    def record(snap) -> None:
+        if snap.cycle % 50 == 0 and snap.cycle <= n:
+            got[snap.cycle] = snap.values.copy()
+        if snap.cycle >= n:
+            done.set()
+
+    free.listeners.append(record)
+    sched = Scheduler(free, mode="free")
+    sched.start()
+    assert done.wait(60)
+    sched.stop()
+    assert sorted(got) == sorted(want)
+    moved = False
+    for cycle, values in want.items():
+        np.testing.assert_array_equal(got[cycle], values, err_msg=f"cycle {cycle}")
+        moved |= bool(values[0, stepped.layout.col("SIM::velocity")] != 0)
+    assert moved  # the program really ran
+
+
+def test_realtime_scheduler_runs_and_reports(default_cfg):
+    machine = Machine(default_cfg, cycle_s=0.001)
+    sched = Scheduler(machine, mode="realtime")
+    sched.start()
+    try:
+        deadline = threading.Event()
+        deadline.wait(0.3)
+    finally:
+        sched.stop()
+    st = sched.status()
+    assert st["cycle"] > 50  # ~300 cycles at 1 ms; generous for a loaded CI machine
+    assert st["cycle"] == machine.cycle
+    assert st["lateness_p50_us"] >= 0 and st["lateness_max_us"] >= st["lateness_p99_us"]
+    assert ObjectService(machine, sched).read_name("SIM::cycle_time_us") == 1000

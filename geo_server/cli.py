@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import csv
 import io
 import json
 import signal
 import sys
-import threading
 from pathlib import Path
+from typing import Any
 
 from geo_server import __version__
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
@@ -79,29 +81,63 @@ def _run(args: argparse.Namespace) -> int:
     service = ObjectService(machine, scheduler)
     if args.program:
         machine.start_program(Path(args.program).read_text(encoding="utf-8"))
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     scheduler.start()
     print(
         f"geo-server {__version__}: {path} with axes {list(machine.axes)}, cycle "
-        f"{args.cycle_ms} ms ({args.mode}); Ctrl-C stops"
+        f"{args.cycle_ms} ms ({args.mode}); Ctrl-C stops",
+        flush=True,
     )
     try:
-        while not stop.wait(args.status_period):
+        asyncio.run(_serve(args, service))
+    finally:
+        scheduler.stop()
+    print(f"stopped after {machine.cycle} cycles")
+    return 0
+
+
+async def _serve(args: argparse.Namespace, service: Any) -> None:
+    """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    interfaces: list[Any] = []
+    if not args.no_zenoh:
+        from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+
+        opts = ZenohOptions(
+            machine=args.machine,
+            mode=args.zenoh_mode,
+            listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
+            connect=args.zenoh_connect or [],
+            config_file=args.zenoh_config,
+            multicast_scouting=args.zenoh_scouting,
+            read_only=args.read_only,
+        )
+        zi = ZenohInterface(service, opts)
+        await zi.start()
+        interfaces.append(zi)
+        print(
+            f"zenoh: machine {args.machine!r} on {', '.join(opts.listen)} "
+            f"(keys cnc/{args.machine}/**)",
+            flush=True,
+        )
+    try:
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), args.status_period)
             st = service.status()
             print(
                 f"cycle {st['cycle']}  lateness p50 {st['lateness_p50_us']:.0f} µs "
                 f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  "
-                f"overruns {st['overruns']}  kernel p50 {st['cycle_p50_us']:.0f} µs",
+                f"overruns {st['overruns']}  cycle p50 {st['cycle_p50_us']:.0f} µs",
                 flush=True,
             )
             if args.cycles and st["cycle"] >= args.cycles:
                 break
     finally:
-        scheduler.stop()
-    print(f"stopped after {machine.cycle} cycles")
-    return 0
+        for iface in interfaces:
+            await iface.close()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,6 +161,27 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--mode", choices=("realtime", "free"), default="realtime")
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument("--cycles", type=int, default=0, help="stop after this many cycles (0: never)")
+    r.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
+    r.add_argument("--read-only", action="store_true", help="reject every write")
+    z = r.add_argument_group("zenoh")
+    z.add_argument("--no-zenoh", action="store_true", help="do not start the Zenoh interface")
+    z.add_argument(
+        "--zenoh-listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="listen endpoint (default tcp/127.0.0.1:7447; repeatable)",
+    )
+    z.add_argument(
+        "--zenoh-connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="router or peer to connect to (repeatable)",
+    )
+    z.add_argument("--zenoh-mode", choices=("peer", "client"), default="peer")
+    z.add_argument(
+        "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control, …)"
+    )
+    z.add_argument("--zenoh-scouting", action="store_true", help="enable multicast scouting")
     r.set_defaults(func=_run)
     return p
 

@@ -23,7 +23,7 @@ from geo_server.service import ObjectService
 
 def rhaz(x: float) -> int:
     """Round half away from zero (SPEC §3), written out independently of the code."""
-    return int(math.floor(abs(x) + 0.5)) * (1 if x >= 0 else -1)
+    return math.floor(abs(x) + 0.5) * (1 if x >= 0 else -1)
 
 
 def sin2_ramp(start: float, target: float, k: int, n: int) -> float:

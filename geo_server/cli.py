@@ -40,6 +40,13 @@ def _objects(args: argparse.Namespace) -> int:
     return 0
 
 
+def _modbus_map(args: argparse.Namespace) -> int:
+    from geo_server.modbus.regmap import modbus_map
+
+    sys.stdout.write(modbus_map(args.format))
+    return 0
+
+
 def _check(args: argparse.Namespace) -> int:
     """Exit 0 when the machine loads, 1 when a compensation was deactivated, 2 when the
     lists cannot be read (issue 2)."""
@@ -122,6 +129,16 @@ async def _serve(args: argparse.Namespace, service: Any) -> None:
             f"(keys cnc/{args.machine}/**)",
             flush=True,
         )
+    if not args.no_modbus:
+        from geo_server.modbus.server import ModbusInterface, ModbusOptions
+
+        mb = ModbusInterface(
+            service,
+            ModbusOptions(host=args.modbus_host, port=args.modbus_port, read_only=args.read_only),
+        )
+        await mb.start()
+        interfaces.append(mb)
+        print(f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)", flush=True)
     try:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
@@ -182,7 +199,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control, …)"
     )
     z.add_argument("--zenoh-scouting", action="store_true", help="enable multicast scouting")
+    m = r.add_argument_group("modbus")
+    m.add_argument("--no-modbus", action="store_true", help="do not start Modbus TCP")
+    m.add_argument("--modbus-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
+    m.add_argument("--modbus-port", type=int, default=5020, help="listen port (default 5020)")
     r.set_defaults(func=_run)
+
+    mm = sub.add_parser("modbus-map", help="print the Modbus register map")
+    mm.add_argument("--format", choices=("md", "csv"), default="md")
+    mm.set_defaults(func=_modbus_map)
     return p
 
 

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from geo_server.client import connect, resolve
+from geo_server.client import TRANSPORTS, connect, resolve
 from geo_server.dictionary import AdsError, ObjectDef, load_dictionary
 
 
@@ -90,7 +90,12 @@ def _status(args: argparse.Namespace, client: Any) -> int:
 
 def _command(name: str):
     def run(args: argparse.Namespace, client: Any) -> int:
-        print(json.dumps(getattr(client, name)(), indent=None if args.json else 2))
+        result = getattr(client, name)()
+        print(
+            json.dumps(
+                result if result is not None else {"ok": True}, indent=None if args.json else 2
+            )
+        )
         return 0
 
     return run
@@ -100,13 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="geo-client", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--via", choices=("zenoh",), default="zenoh", help="transport")
+    p.add_argument("--via", choices=TRANSPORTS, default="zenoh", help="transport")
     p.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
     p.add_argument(
         "--connect",
         action="append",
         help="Zenoh endpoint of the server (default tcp/127.0.0.1:7447)",
     )
+    p.add_argument("--host", default="127.0.0.1", help="server address (Modbus, ADS)")
+    p.add_argument("--port", type=int, help="server port (Modbus 5020, ADS 48898)")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
     sub = p.add_subparsers(dest="command", required=True)
@@ -133,6 +140,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _client_options(args: argparse.Namespace) -> dict[str, Any]:
+    if args.via == "zenoh":
+        return {
+            "machine": args.machine,
+            "connect": args.connect or ["tcp/127.0.0.1:7447"],
+            "timeout": args.timeout,
+        }
+    default_port = {"modbus": 5020, "ads": 48898}[args.via]
+    return {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+
+
+def _client_options(args: argparse.Namespace) -> dict[str, Any]:
+    if args.via == "zenoh":
+        return {
+            "machine": args.machine,
+            "connect": args.connect or ["tcp/127.0.0.1:7447"],
+            "timeout": args.timeout,
+        }
+    default_port = {"modbus": 5020, "ads": 48898}[args.via]
+    return {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "objects":
@@ -141,14 +170,24 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(dictionary_markdown())
         return 0
     try:
-        client = connect(
-            args.via,
-            machine=args.machine,
-            connect=args.connect or ["tcp/127.0.0.1:7447"],
-            timeout=args.timeout,
-        )
+        client = connect(args.via, **_client_options(args))
     except Exception as exc:
         print(f"error: cannot open {args.via} client: {exc}", file=sys.stderr)
+        return 2
+    needs = {
+        "watch": "watch",
+        "nc": "nc",
+        "status": "status",
+        "errors": "errors",
+        "reload": "reload",
+        "save": "save",
+    }.get(args.command)
+    if needs and not hasattr(client, needs):
+        client.close()
+        print(
+            f"error: `{args.command}` is not available over {args.via}; use --via zenoh",
+            file=sys.stderr,
+        )
         return 2
     try:
         return args.func(args, client)

@@ -34,9 +34,17 @@ def resolve(index_group: int, index_offset: int) -> ObjectDef:
 
 
 def connect(via: str = "zenoh", **options: Any) -> GeoClient:
-    """Open a client over `via` (`zenoh`; `modbus` and `ads` as they arrive)."""
+    """Open a client over `via` (`zenoh`, `modbus`); `options` go to its constructor."""
     if via == "zenoh":
         from geo_server.client.zenoh_client import ZenohClient
 
         return ZenohClient(**options)
-    raise ValueError(f"unknown transport {via!r} (available: zenoh)")
+    if via == "modbus":
+        from geo_server.client.modbus_client import ModbusClient
+
+        return ModbusClient(**options)
+    raise ValueError(f"unknown transport {via!r} (available: {', '.join(TRANSPORTS)})")
+
+
+#: The transports `connect()` knows.
+TRANSPORTS = ("zenoh", "modbus")

@@ -118,7 +118,7 @@ class Machine:
     def run_cycle(self) -> Snapshot:
         """Run one GEO cycle (SPEC §5) and return the snapshot it published."""
         with self._cycle_lock:
-            self._apply_queue()
+            applied = self._apply_queue()
             if self.player is not None and self.player.running:
                 self.player.step()
             self.motion.step()
@@ -130,6 +130,13 @@ class Machine:
             self.cycle += 1
             snap = self._build_snapshot()
             self.snapshot = snap
+        # Acknowledge the writes only now: a read right after an acknowledged write
+        # sees its effect (the snapshot of the cycle that applied it is published).
+        for fut, result, exc in applied:
+            if exc is None:
+                fut.set_result(result)
+            else:
+                fut.set_exception(exc)
         for listener in self.listeners:
             listener(snap)
         return snap
@@ -141,15 +148,18 @@ class Machine:
             snap = self.run_cycle()
         return snap
 
-    def _apply_queue(self) -> None:
+    def _apply_queue(self) -> list[tuple[Future, Any, BaseException | None]]:
+        """SPEC §5 step 1: run queued writes/commands in arrival order; return outcomes."""
         with self._queue_lock:
             items = list(self._queue)
             self._queue.clear()
+        out: list[tuple[Future, Any, BaseException | None]] = []
         for fn, fut in items:
             try:
-                fut.set_result(fn())
+                out.append((fut, fn(), None))
             except Exception as exc:  # the caller gets the error, the cycle goes on
-                fut.set_exception(exc)
+                out.append((fut, None, exc))
+        return out
 
     def submit(self, fn: Callable[[], Any]) -> Future:
         """Queue `fn` to run at the next cycle boundary, in arrival order."""

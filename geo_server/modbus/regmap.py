@@ -1,0 +1,467 @@
+"""The Modbus register map (SPEC §8), generated from the object dictionary — sans-I/O.
+
+Everything here is a pure function of the dictionary and of values: which object sits at
+which address, how a value becomes big-endian registers and back, and which Modbus
+exception code a request earns. The server (`geo_server.modbus.server`) is a thin shell
+around these functions; tests drive them without sockets.
+
+Layout (one map per unit; unit id = logical axis number, unit 0 = the machine-wide
+emulator objects of index offset axis 0):
+
+- holding registers (FC 3, 6, 16) and input registers (FC 4): an object with element ID
+  `ID` owns the four-register *slot* `4·ID … 4·ID+3` — group `0x120300` at `4·ID`,
+  emulator group `0x12F300` at `0x4000 + 4·ID`. Its value fills the first registers of
+  the slot, big-endian bytes and words (high word first): BOOLEAN and UNS16 one register,
+  SGN32/UNS32 two, REAL64 four. The unused registers of a slot read 0.
+- discrete inputs (FC 2): every BOOLEAN object at address `ID` (emulator group
+  `0x4000 + ID`); coils (FC 1, 5, 15): the writable BOOLEAN objects at the same address.
+
+Exceptions: a read must cover only slot registers (bits: only object addresses), else 2;
+a write must cover whole objects (all value registers of every object it touches), else
+3; writing a read-only object → 2; a value outside its range → 3; a quantity outside the
+Modbus limits → 3; an unknown unit id → 11 (decided by the server).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import struct
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+from geo_server.dictionary import AdsError, AdsErrorCode, Dictionary, ObjectDef, load_dictionary
+
+#: First address of the emulator group `0x12F300` (registers and bits).
+SIM_BASE = 0x4000
+#: Registers per object slot.
+SLOT = 4
+#: Modbus quantity limits (Modbus application protocol v1.1b3, §6).
+MAX_READ_REGISTERS = 125
+MAX_WRITE_REGISTERS = 123
+MAX_READ_BITS = 2000
+MAX_WRITE_BITS = 1968
+#: Unit id of the machine-wide emulator objects (index offset axis 0).
+MACHINE_UNIT = 0
+
+#: Registers per dictionary type (STRING objects are not mapped to Modbus).
+REGISTERS: dict[str, int] = {"BOOLEAN": 1, "UNS16": 1, "SGN32": 2, "UNS32": 2, "REAL64": 4}
+_STRUCT: dict[str, str] = {"BOOLEAN": ">H", "UNS16": ">H", "SGN32": ">i", "UNS32": ">I"}
+_BASE: dict[str, int] = {"geo": 0, "sim": SIM_BASE}
+
+
+class ExcCode(IntEnum):
+    """Modbus exception codes used by geo-server (same values as pymodbus `ExcCodes`)."""
+
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_ADDRESS = 0x02
+    ILLEGAL_VALUE = 0x03
+    DEVICE_FAILURE = 0x04
+    DEVICE_BUSY = 0x06
+    GATEWAY_NO_RESPONSE = 0x0B
+
+
+class Table(IntEnum):
+    """The four Modbus tables; the value is the read function code."""
+
+    COILS = 1
+    DISCRETE_INPUTS = 2
+    HOLDING_REGISTERS = 3
+    INPUT_REGISTERS = 4
+
+
+#: Function code → (table, is a write).
+FUNCTIONS: dict[int, tuple[Table, bool]] = {
+    1: (Table.COILS, False),
+    2: (Table.DISCRETE_INPUTS, False),
+    3: (Table.HOLDING_REGISTERS, False),
+    4: (Table.INPUT_REGISTERS, False),
+    5: (Table.COILS, True),
+    6: (Table.HOLDING_REGISTERS, True),
+    15: (Table.COILS, True),
+    16: (Table.HOLDING_REGISTERS, True),
+}
+
+
+class RegisterError(Exception):
+    """A request earns Modbus exception `code`; `message` says precisely why."""
+
+    def __init__(self, code: int, message: str) -> None:
+        super().__init__(f"Modbus exception {int(code)}: {message}")
+        self.code = ExcCode(code)
+        self.message = message
+
+
+def exception_for(exc: AdsError) -> ExcCode:
+    """The Modbus exception code for an object-service error (SPEC §8 ↔ §9)."""
+    return {
+        AdsErrorCode.INVALID_INDEX_GROUP: ExcCode.ILLEGAL_ADDRESS,
+        AdsErrorCode.INVALID_INDEX_OFFSET: ExcCode.ILLEGAL_ADDRESS,
+        AdsErrorCode.INVALID_ACCESS: ExcCode.ILLEGAL_ADDRESS,
+        AdsErrorCode.INVALID_SIZE: ExcCode.ILLEGAL_VALUE,
+        AdsErrorCode.INVALID_DATA: ExcCode.ILLEGAL_VALUE,
+        AdsErrorCode.DEVICE_BUSY: ExcCode.DEVICE_BUSY,
+    }.get(exc.code, ExcCode.DEVICE_FAILURE)
+
+
+# ---------------------------------------------------------------------- addresses
+
+
+def mapped(obj: ObjectDef) -> bool:
+    """True when the object has a Modbus representation (every non-STRING object)."""
+    return obj.type.name in REGISTERS
+
+
+def register_count(obj: ObjectDef) -> int:
+    """Registers that carry the object's value (1, 2 or 4)."""
+    return REGISTERS[obj.type.name]
+
+
+def register_address(obj: ObjectDef) -> int:
+    """First register of the object's slot: `4·ID` (+ 0x4000 in the emulator group)."""
+    return _BASE[obj.group] + SLOT * obj.id
+
+
+def bit_address(obj: ObjectDef) -> int:
+    """Coil / discrete-input address of a BOOLEAN object: `ID` (+ 0x4000 emulator group)."""
+    return _BASE[obj.group] + obj.id
+
+
+def is_bit(obj: ObjectDef) -> bool:
+    return obj.type.name == "BOOLEAN"
+
+
+def is_coil(obj: ObjectDef) -> bool:
+    return is_bit(obj) and obj.writable
+
+
+def unit_scope(unit: int) -> str:
+    """Dictionary scope served on a unit: unit 0 → "machine", any other → "axis"."""
+    return "machine" if unit == MACHINE_UNIT else "axis"
+
+
+# ---------------------------------------------------------------------- value codec
+
+
+def _clamp_int(obj: ObjectDef, value: Any) -> int:
+    v = int(value)
+    return max(int(obj.type.lo), min(int(obj.type.hi), v))
+
+
+def encode(obj: ObjectDef, value: Any) -> list[int]:
+    """A decoded object value as big-endian registers (high word first).
+
+    Reads never fail: an integer outside its type saturates, a non-finite REAL64 is sent
+    as it is (IEEE-754).
+    """
+    t = obj.type.name
+    if t == "REAL64":
+        raw = struct.pack(">d", float(value))
+    elif t == "BOOLEAN":
+        raw = struct.pack(">H", 1 if value else 0)
+    else:
+        raw = struct.pack(_STRUCT[t], _clamp_int(obj, value))
+    return [int.from_bytes(raw[i : i + 2], "big") for i in range(0, len(raw), 2)]
+
+
+def decode(obj: ObjectDef, registers: Sequence[int], check: bool = True) -> Any:
+    """Big-endian registers → the object's Python value, checked against its range.
+
+    Raises `RegisterError` 3 (illegal data value) for a wrong register count, a BOOLEAN
+    other than 0/1, a non-finite REAL64 or a value outside the documented range.
+    `check=False` (a client decoding what the server sent) skips the value checks.
+    """
+    n = register_count(obj)
+    if len(registers) != n:
+        raise RegisterError(
+            ExcCode.ILLEGAL_VALUE, f"{obj.name} takes {n} registers, got {len(registers)}"
+        )
+    if any(not 0 <= r <= 0xFFFF for r in registers):
+        raise RegisterError(ExcCode.ILLEGAL_VALUE, f"{obj.name}: register out of 0…0xFFFF")
+    raw = b"".join(int(r).to_bytes(2, "big") for r in registers)
+    t = obj.type.name
+    (v,) = struct.unpack(">d" if t == "REAL64" else _STRUCT[t], raw)
+    if not check:
+        return bool(v) if t == "BOOLEAN" else v
+    if t == "BOOLEAN" and v > 1:
+        raise RegisterError(ExcCode.ILLEGAL_VALUE, f"{obj.name}: BOOLEAN must be 0 or 1, got {v}")
+    if t == "REAL64" and not math.isfinite(v):
+        raise RegisterError(ExcCode.ILLEGAL_VALUE, f"{obj.name}: {v} is not finite")
+    try:
+        return obj.coerce(bool(v) if t == "BOOLEAN" else v)
+    except AdsError as exc:
+        raise RegisterError(exception_for(exc), exc.message) from None
+
+
+# ---------------------------------------------------------------------- the map
+
+
+@dataclass(frozen=True)
+class UnitMap:
+    """The register and bit layout of one kind of unit (axis or machine)."""
+
+    scope: str
+    objects: tuple[ObjectDef, ...]
+    #: register address → (object, word index in the slot: 0…3; ≥ count = unused)
+    registers: dict[int, tuple[ObjectDef, int]] = field(repr=False)
+    #: discrete-input address → BOOLEAN object
+    discrete: dict[int, ObjectDef] = field(repr=False)
+    #: coil address → writable BOOLEAN object
+    coils: dict[int, ObjectDef] = field(repr=False)
+
+    @classmethod
+    def build(cls, objects: Iterable[ObjectDef], scope: str) -> UnitMap:
+        objs = tuple(
+            sorted((o for o in objects if o.scope == scope and mapped(o)), key=register_address)
+        )
+        regs: dict[int, tuple[ObjectDef, int]] = {}
+        discrete: dict[int, ObjectDef] = {}
+        coils: dict[int, ObjectDef] = {}
+        for o in objs:
+            base = register_address(o)
+            for word in range(SLOT):
+                if base + word in regs:
+                    raise ValueError(f"Modbus map: {o.name} overlaps {regs[base + word][0].name}")
+                regs[base + word] = (o, word)
+            if is_bit(o):
+                discrete[bit_address(o)] = o
+                if is_coil(o):
+                    coils[bit_address(o)] = o
+        return cls(scope, objs, regs, discrete, coils)
+
+    def bits(self, table: Table) -> dict[int, ObjectDef]:
+        return self.coils if table == Table.COILS else self.discrete
+
+    # ------------------------------------------------------------------ checks
+
+    def check_read(self, function_code: int, address: int, count: int) -> Table:
+        """Check a read request; returns its table or raises `RegisterError`."""
+        table, is_write = _function(function_code)
+        if is_write:
+            raise RegisterError(ExcCode.ILLEGAL_FUNCTION, f"FC {function_code} is not a read")
+        limit = MAX_READ_BITS if table <= Table.DISCRETE_INPUTS else MAX_READ_REGISTERS
+        if not 1 <= count <= limit:
+            raise RegisterError(ExcCode.ILLEGAL_VALUE, f"quantity {count} outside 1…{limit}")
+        if address + count > 0x10000:
+            raise RegisterError(ExcCode.ILLEGAL_ADDRESS, "request runs past address 0xFFFF")
+        where = self.bits(table) if table <= Table.DISCRETE_INPUTS else self.registers
+        for a in range(address, address + count):
+            if a not in where:
+                raise RegisterError(
+                    ExcCode.ILLEGAL_ADDRESS,
+                    f"no {table.name.lower().replace('_', ' ')} object at address {a}"
+                    f" (0x{a:04X}) on a {self.scope} unit",
+                )
+        return table
+
+    def check_write(self, function_code: int, address: int, count: int) -> list[ObjectDef]:
+        """Check the addresses of a write; returns the objects it writes, in order.
+
+        Every address must belong to an object (else 2); every object touched must be
+        writable (else 2) and wholly covered (else 3). Values are checked by `decode_write`.
+        """
+        table, is_write = _function(function_code)
+        if not is_write:
+            raise RegisterError(ExcCode.ILLEGAL_FUNCTION, f"FC {function_code} is not a write")
+        limit = MAX_WRITE_BITS if table == Table.COILS else MAX_WRITE_REGISTERS
+        if not 1 <= count <= limit:
+            raise RegisterError(ExcCode.ILLEGAL_VALUE, f"quantity {count} outside 1…{limit}")
+        if address + count > 0x10000:
+            raise RegisterError(ExcCode.ILLEGAL_ADDRESS, "request runs past address 0xFFFF")
+        if table == Table.COILS:
+            objs = []
+            for a in range(address, address + count):
+                obj = self.discrete.get(a)
+                if obj is None:
+                    raise RegisterError(ExcCode.ILLEGAL_ADDRESS, f"no coil at address {a}")
+                if not obj.writable:
+                    raise RegisterError(ExcCode.ILLEGAL_ADDRESS, f"{obj.name} is read-only")
+                objs.append(obj)
+            return objs
+        touched: dict[str, tuple[ObjectDef, set[int]]] = {}
+        for a in range(address, address + count):
+            hit = self.registers.get(a)
+            if hit is None:
+                raise RegisterError(ExcCode.ILLEGAL_ADDRESS, f"no object at register {a}")
+            obj, word = hit
+            if not obj.writable:
+                raise RegisterError(ExcCode.ILLEGAL_ADDRESS, f"{obj.name} is read-only")
+            touched.setdefault(obj.name, (obj, set()))[1].add(word)
+        for obj, words in touched.values():
+            if not set(range(register_count(obj))) <= words:
+                raise RegisterError(
+                    ExcCode.ILLEGAL_VALUE,
+                    f"{obj.name} is {register_count(obj)} registers at "
+                    f"{register_address(obj)}; a write must cover all of them",
+                )
+        return [obj for obj, _ in touched.values()]
+
+    # ------------------------------------------------------------------ data
+
+    def read_registers(
+        self, address: int, count: int, value_of: Callable[[ObjectDef], Any]
+    ) -> list[int]:
+        """Registers `address … address+count-1` (already checked); unused words read 0."""
+        out: list[int] = []
+        cache: dict[str, list[int]] = {}
+        for a in range(address, address + count):
+            obj, word = self.registers[a]
+            regs = cache.get(obj.name)
+            if regs is None:
+                regs = cache[obj.name] = encode(obj, value_of(obj))
+            out.append(regs[word] if word < len(regs) else 0)
+        return out
+
+    def read_bits(
+        self, table: Table, address: int, count: int, value_of: Callable[[ObjectDef], Any]
+    ) -> list[bool]:
+        """Bits `address … address+count-1` of a bit table (already checked)."""
+        where = self.bits(table)
+        return [bool(value_of(where[a])) for a in range(address, address + count)]
+
+    def decode_write(
+        self, function_code: int, address: int, values: Sequence[int] | Sequence[bool]
+    ) -> list[tuple[ObjectDef, Any]]:
+        """Check a write and decode its values: `[(object, value), …]` in address order."""
+        objs = self.check_write(function_code, address, len(values))
+        table, _ = _function(function_code)
+        if table == Table.COILS:
+            return [(o, bool(v)) for o, v in zip(objs, values, strict=True)]
+        out = []
+        for obj in objs:
+            first = register_address(obj) - address
+            words = [int(v) for v in values[first : first + register_count(obj)]]
+            out.append((obj, decode(obj, words)))
+        return out
+
+
+def _function(function_code: int) -> tuple[Table, bool]:
+    try:
+        return FUNCTIONS[function_code]
+    except KeyError:
+        raise RegisterError(
+            ExcCode.ILLEGAL_FUNCTION, f"function code {function_code} is not supported"
+        ) from None
+
+
+@dataclass(frozen=True)
+class ModbusMap:
+    """The maps of axis units and of the machine unit (unit 0)."""
+
+    axis: UnitMap
+    machine: UnitMap
+
+    @classmethod
+    def build(cls, dictionary: Dictionary | None = None) -> ModbusMap:
+        d = dictionary or load_dictionary()
+        return cls(UnitMap.build(d.objects, "axis"), UnitMap.build(d.objects, "machine"))
+
+    def for_unit(self, unit: int, axes: Iterable[int]) -> UnitMap | None:
+        """The map served on `unit`, or None when the unit id is unknown (→ exception 11)."""
+        if unit == MACHINE_UNIT:
+            return self.machine
+        return self.axis if unit in set(axes) else None
+
+
+# ---------------------------------------------------------------------- documentation
+
+MAP_COLUMNS = ("unit", "table", "address", "object", "group", "id", "type", "registers", "access")
+
+_TABLE_NAMES = {
+    Table.COILS: "coil",
+    Table.DISCRETE_INPUTS: "discrete input",
+    Table.HOLDING_REGISTERS: "holding+input register",
+}
+
+
+def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
+    """Every entry of the map: one row per object and table (holding and input registers
+    share a row; FC 4 reads the same values as FC 3)."""
+    mm = ModbusMap.build(dictionary)
+    rows: list[dict[str, str]] = []
+    for um, unit in ((mm.axis, "axis number"), (mm.machine, "0 (machine)")):
+        for o in um.objects:
+            base = register_address(o)
+            n = register_count(o)
+            access = {"r": "read", "rw": "read/write", "w": "write"}[o.access]
+            common = {
+                "unit": unit,
+                "object": o.name,
+                "group": f"0x{o.index_group:06X}",
+                "id": f"0x{o.id:04X}",
+                "type": o.type.name,
+            }
+            rows.append(
+                {
+                    **common,
+                    "table": _TABLE_NAMES[Table.HOLDING_REGISTERS],
+                    "address": f"{base}…{base + SLOT - 1} (0x{base:04X})",
+                    "registers": f"{n} (+{SLOT - n} unused)" if n < SLOT else str(n),
+                    "access": access
+                    + {"r": " (FC 3/4)", "rw": " (FC 3/4, 6/16)", "w": " (FC 6/16; reads 0)"}[
+                        o.access
+                    ],
+                }
+            )
+            if is_bit(o):
+                b = bit_address(o)
+                rows.append(
+                    {
+                        **common,
+                        "table": _TABLE_NAMES[Table.DISCRETE_INPUTS],
+                        "address": f"{b} (0x{b:04X})",
+                        "registers": "1 bit",
+                        "access": "read (FC 2)",
+                    }
+                )
+                if is_coil(o):
+                    rows.append(
+                        {
+                            **common,
+                            "table": _TABLE_NAMES[Table.COILS],
+                            "address": f"{b} (0x{b:04X})",
+                            "registers": "1 bit",
+                            "access": "read/write (FC 1, 5/15)",
+                        }
+                    )
+    return rows
+
+
+def modbus_map(format: str = "md", dictionary: Dictionary | None = None) -> str:
+    """The complete Modbus map from the dictionary, as Markdown (`md`) or CSV (`csv`)."""
+    rows = map_rows(dictionary)
+    if format == "csv":
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=MAP_COLUMNS, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+        return buf.getvalue()
+    if format != "md":
+        raise ValueError(f"unknown format {format!r} (md or csv)")
+    lines = ["| " + " | ".join(MAP_COLUMNS) + " |", "|" + "---|" * len(MAP_COLUMNS)]
+    for r in rows:
+        lines.append("| " + " | ".join(r[c].replace("|", "\\|") for c in MAP_COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = [
+    "MACHINE_UNIT",
+    "SIM_BASE",
+    "SLOT",
+    "ExcCode",
+    "ModbusMap",
+    "RegisterError",
+    "Table",
+    "UnitMap",
+    "bit_address",
+    "decode",
+    "encode",
+    "exception_for",
+    "map_rows",
+    "modbus_map",
+    "register_address",
+    "register_count",
+]

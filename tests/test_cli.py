@@ -1,0 +1,91 @@
+"""The console scripts as a user runs them: from another directory, as subprocesses."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import free_port
+
+BIN = Path(sys.executable).parent
+
+
+def script(name: str) -> list[str]:
+    """The installed console script (falls back to `python -m` in odd environments)."""
+    exe = BIN / name
+    if exe.exists():
+        return [str(exe)]
+    module = {"geo-server": "geo_server.cli", "geo-client": "geo_server.client_cli"}[name]
+    return [sys.executable, "-m", module]
+
+
+def run(args: list[str], cwd: Path, timeout: float = 60) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def test_objects_from_any_directory(tmp_path):
+    r = run([*script("geo-server"), "objects"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "| TEMPC::coefficient | 0x120300 | 0x0043 | axis | REAL64 | 8 | read/write |" in r.stdout
+    r = run([*script("geo-server"), "objects", "--format", "json"], tmp_path)
+    rows = json.loads(r.stdout)
+    assert {"name": "SIM::cycle_count", "id": "0x0001", "scope": "machine"}.items() <= {
+        k: v for k, v in next(x for x in rows if x["name"] == "SIM::cycle_count").items()
+    }.items()
+    r = run([*script("geo-server"), "objects", "--format", "csv"], tmp_path)
+    assert r.stdout.splitlines()[0].startswith("name,index_group,id,")
+
+
+def test_check_exit_codes(tmp_path, lists_copy):
+    r = run([*script("geo-server"), "check"], tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "4 axes (1=X, 2=Y, 3=Z, 4=C)" in r.stdout
+    # a broken table deactivates one compensation -> 1, with file and line
+    comp = lists_copy.parent / "achskw2.lis"
+    text = comp.read_text(encoding="utf-8")
+    comp.write_text(
+        text.replace("kw.ssfk.table[1].setpoint -199306", "kw.ssfk.table[1].setpoint -300000"),
+        encoding="utf-8",
+    )
+    r = run([*script("geo-server"), "check", str(lists_copy)], tmp_path)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "achskw2.lis:" in r.stdout and "110476" in r.stdout
+    # unreadable lists -> 2
+    r = run([*script("geo-server"), "check", str(tmp_path / "nope.lis")], tmp_path)
+    assert r.returncode == 2
+    assert "nope.lis" in r.stderr
+
+
+def test_run_serves_and_stops(tmp_path):
+    zport, mport = free_port(), free_port()
+    r = run(
+        [
+            *script("geo-server"),
+            "run",
+            "--homed",
+            "--cycles",
+            "300",
+            "--status-period",
+            "0.1",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--modbus-port",
+            str(mport),
+        ],
+        tmp_path,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert f"tcp/127.0.0.1:{zport}" in r.stdout
+    assert f"127.0.0.1:{mport}" in r.stdout
+    assert "lateness p50" in r.stdout and "stopped after" in r.stdout
+
+
+def test_modbus_map_command(tmp_path):
+    r = run([*script("geo-server"), "modbus-map", "--format", "csv"], tmp_path)
+    assert r.returncode == 0
+    assert any("TEMPC::coefficient" in line and "268" in line for line in r.stdout.splitlines())

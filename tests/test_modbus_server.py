@@ -1,0 +1,374 @@
+"""Modbus TCP interface (SPEC §8) against the default machine, with pymodbus' own client.
+
+The server runs on an asyncio loop thread (`loop_thread`), the machine in stepped mode
+unless a test starts the real-time scheduler; clients talk over loopback to an
+ephemeral port. Every request is bounded by the client timeout.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import pytest
+from conftest import run_in
+from pymodbus.client import ModbusTcpClient
+
+from geo_server.client.modbus_client import ModbusClient
+from geo_server.dictionary import AdsError, AdsErrorCode, load_dictionary
+from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Scheduler
+from geo_server.modbus.regmap import (
+    ModbusMap,
+    bit_address,
+    encode,
+    register_address,
+    register_count,
+)
+from geo_server.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.service import ObjectService
+
+D = load_dictionary()
+MM = ModbusMap.build(D)
+TIMEOUT = 3.0
+
+
+def obj(name: str):
+    return D.by_name(name)
+
+
+def start(loop, service, **kw) -> ModbusInterface:
+    iface = ModbusInterface(service, ModbusOptions(port=0, **kw))
+    run_in(loop, iface.start())
+    return iface
+
+
+@pytest.fixture
+def server(loop_thread, service) -> Iterator[ModbusInterface]:
+    service.step(5)
+    iface = start(loop_thread, service)
+    yield iface
+    run_in(loop_thread, iface.close())
+
+
+@pytest.fixture
+def client(server) -> Iterator[ModbusTcpClient]:
+    c = ModbusTcpClient("127.0.0.1", port=server.port, timeout=TIMEOUT, retries=0)
+    assert c.connect()
+    yield c
+    c.close()
+
+
+@pytest.fixture
+def geo(server) -> Iterator[ModbusClient]:
+    with ModbusClient(port=server.port, timeout=TIMEOUT) as c:
+        yield c
+
+
+def regs_of(service: ObjectService, o, axis: int) -> list[int]:
+    return encode(o, service.snapshot.value(o, axis))
+
+
+def exc(rr) -> int:
+    assert rr.isError(), rr
+    return rr.exception_code
+
+
+def move(service: ObjectService) -> None:
+    """Give the machine non-trivial values: moves on every axis, some cycles."""
+    for axis in service.axes:
+        service.write_name("SIM::target_position", axis, 123_456 * axis)
+    service.step(40)
+
+
+# ---------------------------------------------------------------------- reads
+
+
+def test_port_zero_is_ephemeral(server):
+    assert server.port not in (0, 5020)
+    assert server.endpoint == f"127.0.0.1:{server.port}"
+
+
+def test_every_object_of_every_axis(server, client, service):
+    move(service)
+    for axis in (0, *service.axes):
+        um = MM.machine if axis == 0 else MM.axis
+        for o in um.objects:
+            a, n = register_address(o), register_count(o)
+            hr = client.read_holding_registers(a, count=n, device_id=axis)
+            ir = client.read_input_registers(a, count=n, device_id=axis)
+            want = regs_of(service, o, axis)
+            assert hr.registers == want, (axis, o.name)
+            assert ir.registers == want, (axis, o.name)
+            if o.type.name == "BOOLEAN":
+                di = client.read_discrete_inputs(bit_address(o), count=1, device_id=axis)
+                assert di.bits[0] == service.snapshot.value(o, axis), (axis, o.name)
+                if o.writable:
+                    co = client.read_coils(bit_address(o), count=1, device_id=axis)
+                    assert co.bits[0] == service.snapshot.value(o, axis)
+
+
+def test_client_read_matches_service(server, geo, service):
+    move(service)
+    for axis in service.axes:
+        for o in MM.axis.objects:
+            assert geo.read(o.name, axis) == service.read_name(o.name, axis), o.name
+    assert geo.read("SIM::cycle_count") == service.read_name("SIM::cycle_count") > 0
+    ig, io = 0x120300, (1 << 16) | 0x43
+    assert geo.read_raw(ig, io, 8) == service.read(ig, io, 8)
+    assert geo.read_raw(0x120400, io, 256).rstrip(b"\0") == b"TEMPC::coefficient"
+    with pytest.raises(AdsError) as info:
+        geo.read("TEMPC::coefficient", 77)
+    assert info.value.code == AdsErrorCode.INVALID_INDEX_OFFSET
+
+
+def test_block_read_across_objects(server, client, service):
+    move(service)
+    snap = service.snapshot
+    start_ = register_address(obj("TEMPC::activated"))  # 0x41 … 0x45: 20 registers
+    rr = client.read_holding_registers(start_, count=20, device_id=2)
+    want = MM.axis.read_registers(start_, 20, lambda o: snap.value(o, 2))
+    assert rr.registers == want
+    # the emulator group: command position … FRICT::additive_current, 36 registers
+    rr = client.read_input_registers(0x4004, count=36, device_id=1)
+    assert rr.registers == MM.axis.read_registers(0x4004, 36, lambda o: snap.value(o, 1))
+    rr = client.read_discrete_inputs(0x1D6, count=3, device_id=1)
+    assert rr.bits[:3] == [
+        snap.value(obj(n), 1) for n in ("CROSSC::activated", "CC2::activated", "TEMPC::f_is_active")
+    ]
+
+
+def test_block_read_never_mixes_cycles(loop_thread, machine):
+    """While the GEO cycle runs, output = command + total offset in every block read."""
+    sched = Scheduler(machine, mode="realtime")
+    service = ObjectService(machine, sched)
+    iface = start(loop_thread, service)
+    sched.start()
+    try:
+        service.write_name("SIM::target_position", 1, 50_000_000)
+        with ModbusTcpClient("127.0.0.1", port=iface.port, timeout=TIMEOUT, retries=0) as c:
+            seen = set()
+            for _ in range(200):
+                regs = c.read_holding_registers(0x4004, count=28, device_id=1).registers
+                cmd = int.from_bytes(bytes(_b(regs[0:2])), "big", signed=True)
+                out = int.from_bytes(bytes(_b(regs[20:22])), "big", signed=True)
+                tot = int.from_bytes(bytes(_b(regs[24:26])), "big", signed=True)
+                assert abs(out - (cmd + tot)) <= 1, (cmd, out, tot)
+                seen.add(cmd)
+            assert len(seen) > 5  # the axis really moved during the reads
+    finally:
+        sched.stop()
+        run_in(loop_thread, iface.close())
+
+
+def _b(regs: list[int]) -> list[int]:
+    return [x for r in regs for x in (r >> 8, r & 0xFF)]
+
+
+def test_concurrent_clients(server, service):
+    move(service)
+    errors: list[BaseException] = []
+    a = register_address(obj("TEMPC::coefficient"))
+    want = {axis: regs_of(service, obj("TEMPC::coefficient"), axis) for axis in service.axes}
+
+    def worker() -> None:
+        try:
+            with ModbusTcpClient("127.0.0.1", port=server.port, timeout=TIMEOUT, retries=0) as c:
+                for i in range(50):
+                    axis = service.axes[i % len(service.axes)]
+                    assert (
+                        c.read_holding_registers(a, count=4, device_id=axis).registers
+                        == (want[axis])
+                    )
+        except BaseException as e:  # collected for the main thread
+            errors.append(e)
+
+    threads = [threading.Thread(target=worker) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert not errors, errors[0]
+    assert server.requests >= 400
+
+
+def test_device_identification(server, client, geo):
+    import geo_server
+
+    info = client.read_device_information(device_id=1).information
+    assert info[0] == b"geo-server"
+    assert info[1] == b"geo-server"
+    assert info[2] == geo_server.__version__.encode()
+    assert geo.device_information()[2] == geo_server.__version__.encode()
+
+
+# ---------------------------------------------------------------------- writes
+
+
+def test_write_every_writable_tempc_object(server, client, service):
+    axis = 2
+    before = service.read_name("TEMPC::actual_offset", axis)
+    coef = obj("TEMPC::coefficient")
+    a = register_address(coef)
+    rr = client.write_registers(a, encode(coef, 4000.0), device_id=axis)  # FC 16, 4 words
+    assert not rr.isError()
+    rr = client.write_registers(
+        register_address(obj("TEMPC::offset_0")),
+        encode(obj("TEMPC::offset_0"), -2500),
+        device_id=axis,
+    )
+    assert not rr.isError()
+    rr = client.write_registers(
+        register_address(obj("TEMPC::position_0")),
+        encode(obj("TEMPC::position_0"), 1000),
+        device_id=axis,
+    )
+    assert not rr.isError()
+    assert not client.write_coil(0x41, True, device_id=axis).isError()  # FC 5
+    # stepped: nothing applied before the next cycle boundary
+    assert service.read_name("TEMPC::offset_0", axis) != -2500
+    service.step(1)
+    assert service.read_name("TEMPC::coefficient", axis) == 4000.0
+    assert service.read_name("TEMPC::offset_0", axis) == -2500
+    assert service.read_name("TEMPC::position_0", axis) == 1000
+    assert service.read_name("TEMPC::activated", axis) is True
+    assert client.read_holding_registers(a, count=4, device_id=axis).registers == [
+        0x40AF,
+        0x4000,
+        0,
+        0,
+    ]
+    service.step(60)  # past the sin² ramp of temp_comp_n_cycles
+    after = client.read_holding_registers(4 * 0x42, count=2, device_id=axis).registers
+    assert after == regs_of(service, obj("TEMPC::actual_offset"), axis)
+    assert service.read_name("TEMPC::actual_offset", axis) != before
+    # FC 6 on a one-register BOOLEAN, FC 15 on a coil: deactivate again
+    assert not client.write_register(4 * 0x41, 0, device_id=axis).isError()
+    service.step(1)
+    assert service.read_name("TEMPC::activated", axis) is False
+    assert not client.write_coils(0x41, [True], device_id=axis).isError()
+    service.step(1)
+    assert client.read_coils(0x41, count=1, device_id=axis).bits[0] is True
+    # other axes untouched
+    assert service.read_name("TEMPC::offset_0", 1) != -2500
+
+
+def test_client_write_and_raw(server, geo, service):
+    assert geo.write("TEMPC::coefficient", 1, 12.5) == 12.5
+    geo.write_raw(0x120300, (1 << 16) | 0x44, (-7).to_bytes(4, "little", signed=True))
+    service.step(1)
+    assert service.read_name("TEMPC::coefficient", 1) == 12.5
+    assert service.read_name("TEMPC::offset_0", 1) == -7
+    with pytest.raises(AdsError) as info:
+        geo.write("TEMPC::actual_offset", 1, 5)
+    assert info.value.code == AdsErrorCode.INVALID_ACCESS
+    with pytest.raises(AdsError) as info:
+        geo.write("TEMPC::coefficient", 1, 1e6)  # refused by the client's own check
+    assert info.value.code == AdsErrorCode.INVALID_DATA
+
+
+def test_writes_wait_for_the_cycle_when_running(loop_thread, machine):
+    sched = Scheduler(machine, mode="realtime")
+    service = ObjectService(machine, sched)
+    iface = start(loop_thread, service)
+    sched.start()
+    try:
+        with ModbusClient(port=iface.port, timeout=TIMEOUT) as c:
+            for v in (1.25, -3.5, 77.0):
+                c.write("TEMPC::coefficient", 3, v)
+                assert c.read("TEMPC::coefficient", 3) == v  # applied before the ack
+    finally:
+        sched.stop()
+        run_in(loop_thread, iface.close())
+
+
+def test_sim_objects_move_the_axis(server, geo, service):
+    geo.write("SIM::feed", 1, 100_000)
+    geo.write("SIM::target_position", 1, 20_000)
+    service.step(2000)
+    assert geo.read("SIM::command_position", 1) == 20_000
+    assert geo.read("SIM::command_position", 1) == service.read_name("SIM::command_position", 1)
+
+
+# ---------------------------------------------------------------------- exceptions
+
+
+def test_exception_codes(server, client):
+    c = client
+    # 2: a read touching a register outside every slot
+    assert exc(c.read_holding_registers(0, count=1, device_id=1)) == 2
+    assert exc(c.read_holding_registers(4 * 0x45, count=8, device_id=1)) == 2
+    assert exc(c.read_input_registers(0x3FFF, count=2, device_id=1)) == 2
+    assert exc(c.read_coils(0x40, count=1, device_id=1)) == 2
+    assert exc(c.read_discrete_inputs(0x42, count=1, device_id=1)) == 2
+    # 2: a write to a read-only object
+    assert exc(c.write_registers(4 * 0x42, [0, 1], device_id=1)) == 2
+    assert exc(c.write_coil(0x1D8, True, device_id=1)) == 2
+    # 3: a write that does not cover whole objects, a value out of range
+    assert exc(c.write_register(4 * 0x43, 0x40AF, device_id=1)) == 3
+    assert exc(c.write_registers(4 * 0x43, [0x40AF, 0x4000], device_id=1)) == 3
+    assert (
+        exc(c.write_registers(4 * 0x43, encode(obj("TEMPC::coefficient"), 1e5), device_id=1)) == 3
+    )
+    assert exc(c.write_register(4 * 0x41, 2, device_id=1)) == 3
+    # 11: an unknown unit id
+    assert exc(c.read_holding_registers(4 * 0x43, count=4, device_id=42)) == 11
+    assert exc(c.write_coil(0x41, True, device_id=200)) == 11
+    # 1: function codes geo-server does not serve, with the right function code echoed
+    rr = c.mask_write_register(address=4 * 0x41, and_mask=0, or_mask=1, device_id=1)
+    assert exc(rr) == 1 and rr.function_code == 0x80 | 22
+    rr = c.readwrite_registers(
+        read_address=4 * 0x41, read_count=1, write_address=4 * 0x41, values=[1], device_id=1
+    )
+    assert exc(rr) == 1
+    assert exc(c.report_device_id(device_id=1)) == 1
+    # the machine unit has no per-axis objects
+    assert exc(c.read_holding_registers(4 * 0x43, count=4, device_id=0)) == 2
+    assert not c.read_holding_registers(0x4004, count=4, device_id=1).isError()
+
+
+def test_read_only_option(loop_thread, service):
+    iface = start(loop_thread, service, read_only=True)
+    try:
+        with ModbusTcpClient("127.0.0.1", port=iface.port, timeout=TIMEOUT, retries=0) as c:
+            assert exc(c.write_coil(0x41, False, device_id=1)) == 2
+            coef = encode(obj("TEMPC::coefficient"), 1.0)
+            assert exc(c.write_registers(4 * 0x43, coef, device_id=1)) == 2
+            assert not c.read_holding_registers(4 * 0x43, count=4, device_id=1).isError()
+    finally:
+        run_in(loop_thread, iface.close())
+
+
+def test_units_are_machine_zero_and_every_axis(service):
+    iface = ModbusInterface(service, ModbusOptions(port=0))
+    assert set(iface.unit_maps) == {0, *service.axes}
+
+
+def test_reload_over_modbus(loop_thread, lists_copy):
+    from geo_server.listfile import load_machine
+
+    service = ObjectService(Machine(load_machine(lists_copy), cycle_s=0.001, homed=True))
+    iface = start(loop_thread, service)
+    try:
+        with ModbusClient(port=iface.port, timeout=TIMEOUT) as c:
+            c.reload()
+            c.save()
+    finally:
+        run_in(loop_thread, iface.close())
+
+
+def test_geo_client_via_modbus(server, capsys):
+    from geo_server.client_cli import main as client_main
+
+    base = ["--via", "modbus", "--port", str(server.port), "--timeout", "3"]
+    assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
+    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
+    assert client_main([*base, "--json", "read", "0x120300", "0x10044"]) == 0
+    assert '"value": 40' in capsys.readouterr().out
+    assert client_main([*base, "write", "--axis", "2", "TEMPC::offset_0", "-250"]) == 0
+    capsys.readouterr()
+    server.service.step(1)
+    assert server.service.read_name("TEMPC::offset_0", 2) == -250
+    assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
+    assert "ADS 0x704" in capsys.readouterr().err
+    assert client_main([*base, "status"]) == 2

@@ -1,19 +1,37 @@
 """Fast, data-oriented compensation kernel (SPEC §3, §6, §11).
 
 Same semantics as `geo_server.kernel.reference.ReferenceKernel` (the readable statement
-and the test oracle), computed for all axes at once with numpy:
+and the test oracle), computed for all axes at once with numpy.
 
-* every table is preloaded at construction into flat arrays (`tables.BatchedInterp`:
-  one `np.searchsorted` per table kind serves every axis);
-* each compensation kind works on the *rows* (axes) that have it: slot index arrays
-  gather inputs and scatter results through flat indices of the `[n, 7]` outputs;
-* all scratch arrays are preallocated; `step` uses `out=` arguments throughout. The only
-  per-cycle allocations are the few index arrays numpy returns from `searchsorted`.
+Why it is shaped like this: with the manual's table sizes the arithmetic per cycle is
+tiny; the cost is the *number* of numpy calls (~0.35 µs each plus Python overhead). So
+the cycle is a fixed, short sequence of whole-array calls, and everything that can be
+decided from the configuration is decided in `_setup` (construction and reload):
+
+* the inputs are copied once into one source vector `S = [pos | vel | acc | trunc(rev)
+  | 0 | 1]`; every compensation gathers its inputs from S with one precomputed `take`;
+* every 1-D table (cross, friction, crosstalk modes 1/2 and old model, the friction
+  pre-reversal weight) is one row of a single `tables.MergedTable`: one `searchsorted`
+  serves all of them; LSEC has its own (its lookup position needs this cycle's filtered
+  cross and plane outputs);
+* all target values go through one vector `V` (layout below), one multiplication by a
+  factor vector (crosstalk acceleration ratio, friction sign·scale) and one scatter;
+* crosstalk mode 3 is precomputed into convex regions with an affine value each (the
+  Delaunay triangles, and outside the hull the Voronoi regions of the hull edges and
+  vertices, where the nearest-hull-point value is affine too): one region test over all
+  regions and one gather replace the per-vertex and per-edge evaluation;
+* the sin² weights come from a table (`sin2.Sin2Filter`), all seven columns at once;
+* a compensation kind nobody has configured costs nothing (Python flags from `_setup`).
+
+All arrays are preallocated; the only per-cycle allocations are the index arrays numpy
+returns from `searchsorted`.
 
 Column order (`COMP_ORDER`): BACKLASH, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -32,32 +50,158 @@ from geo_server.kernel.common import (
     initial_direction,
     initial_selection,
 )
-from geo_server.kernel.sin2 import Sin2Filter
-from geo_server.kernel.tables import BatchedInterp
-from geo_server.kernel.triangulation import INSIDE_EPS, triangulate
+from geo_server.kernel.sin2 import Sin2Filter, sin2_apply
+from geo_server.kernel.tables import Lookup, MergedTable
+from geo_server.kernel.triangulation import INSIDE_EPS, Triangulation, evaluate, triangulate
 
 UNITS_PER_MM = 10_000.0
 UNITS_PER_UM = 10.0
 RING = 249  # friction delay line length: delay_cycles < 249 (000 p.79)
+#: Outside the hull, neighbouring regions overlap by this distance [units] so that
+#: rounding can never leave a point in no region; the value there is continuous, so the
+#: overlap changes results by at most REGION_TOL·|gradient| (≪ 1e-9 for real tables).
+REGION_TOL = 1e-6
 
 
-class _Rows:
-    """Gather/scatter helpers for the axes (rows) that use one compensation kind."""
-
-    def __init__(self, slots: list[int], col: int) -> None:
-        self.slots = np.array(slots, dtype=np.int64)
-        self.flat = self.slots * 7 + col  # index into the raveled [n, 7] arrays
-        self.n = len(slots)
+def _i64(values: list | np.ndarray) -> np.ndarray:
+    return np.array(values, dtype=np.int64).reshape(-1)
 
 
-def _wrap(
-    q: np.ndarray, start: np.ndarray | float, period: np.ndarray, mask: np.ndarray, tmp: np.ndarray
-) -> None:
-    """q ← start + (q − start) mod period where mask (in place)."""
-    np.subtract(q, start, out=tmp)
-    np.mod(tmp, period, out=tmp)
-    np.add(tmp, start, out=tmp)
-    np.copyto(q, tmp, where=mask)
+def _f64(values: list | np.ndarray) -> np.ndarray:
+    return np.array(values, dtype=float).reshape(-1)
+
+
+def _xt_lut(veldep: bool, inv_acc: float, inv_dec: float) -> tuple[list[int], list[float]]:
+    """Correction column and 1/|a_ref| for the 9 sign combinations of (v, a).
+
+    Index 3·sign(v) + sign(a) + 4. Accelerating ⇔ a·v ≥ 0 (decelerate columns 2, 3);
+    negative direction ⇔ v < 0, or v = 0 and a < 0 (columns 1, 3 when velocity
+    dependent) — the reference's rules, tabulated so that the kernel needs no per-cycle
+    comparisons.
+    """
+    cols, invs = [], []
+    for sv in (-1, 0, 1):
+        for sa in (-1, 0, 1):
+            accelerating = sv * sa >= 0
+            neg = sv < 0 or (sv == 0 and sa < 0)
+            cols.append((0 if accelerating else 2) + (1 if neg and veldep else 0))
+            invs.append(inv_acc if accelerating else inv_dec)
+    return cols, invs
+
+
+def _hull_cycle(tri: Triangulation) -> list[int] | None:
+    """Hull vertices in CCW order when the hull edges form one convex cycle that the
+    triangles cover; None otherwise (then the row uses the scalar `evaluate`)."""
+    nxt = {}
+    for a, b in tri.edges:
+        if a in nxt:
+            return None
+        nxt[a] = b
+    start = tri.edges[0][0]
+    cyc, v = [start], nxt.get(start)
+    while v is not None and v != start and len(cyc) <= len(tri.edges):
+        cyc.append(v)
+        v = nxt.get(v)
+    if v != start or len(cyc) != len(tri.edges):
+        return None
+    pts = tri.points
+    area = 0.0
+    scale = 0.0
+    for i, a in enumerate(cyc):
+        b, c = cyc[(i + 1) % len(cyc)], cyc[(i + 2) % len(cyc)]
+        (ax, ay), (bx, by), (cx, cy) = pts[a], pts[b], pts[c]
+        cross = (bx - ax) * (cy - by) - (by - ay) * (cx - bx)
+        scale = max(scale, abs(bx - ax) + abs(by - ay))
+        if cross < -1e-9 * scale * scale:  # a reflex hull vertex
+            return None
+        area += ax * by - bx * ay
+    tri_area = 0.0
+    for t in tri.triangles:
+        (ax, ay), (bx, by), (cx, cy) = (pts[v] for v in t)
+        tri_area += (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
+    if abs(area - tri_area) > 1e-9 * max(abs(area), scale * scale):
+        return None
+    return cyc
+
+
+def _regions(tri: Triangulation, vals: np.ndarray) -> list[tuple] | None:
+    """Convex regions covering the plane with the mode-3 value affine in each.
+
+    Each region is (3 half-planes (a, b, c), 4 columns of (α, β, γ)); a point is in a
+    region when min(a·x + b·y + c) ≥ −INSIDE_EPS, and the value there is α·x + β·y + γ.
+    Triangles come first with the reference's own barycentric coefficients (so inside
+    the hull the region choice equals the reference's triangle choice); the exterior
+    regions' half-planes are unit normals scaled so that −INSIDE_EPS means −REGION_TOL.
+    """
+    pad = (0.0, 0.0, 1.0)  # always satisfied
+    kappa = INSIDE_EPS / REGION_TOL
+    pts = tri.points
+    out = []
+
+    def const(v: int) -> list[tuple[float, float, float]]:
+        return [(0.0, 0.0, float(vals[v, c])) for c in range(4)]
+
+    def edge_value(a: int, b: int) -> list[tuple[float, float, float]]:
+        # va + s·(vb − va), s = ((x − ax)·dx + (y − ay)·dy)·inv: affine in (x, y)
+        (ax, ay), (bx, by) = pts[a], pts[b]
+        dx, dy = bx - ax, by - ay
+        inv = 1.0 / (dx * dx + dy * dy)
+        res = []
+        for c in range(4):
+            dv = float(vals[b, c] - vals[a, c])
+            res.append(
+                (dv * dx * inv, dv * dy * inv, float(vals[a, c]) - dv * (ax * dx + ay * dy) * inv)
+            )
+        return res
+
+    def half(nx: float, ny: float, px: float, py: float) -> tuple[float, float, float]:
+        # κ·n·(p − p0) ≥ 0 with n a unit vector
+        return (kappa * nx, kappa * ny, -kappa * (nx * px + ny * py))
+
+    def unit(a: int, b: int) -> tuple[float, float]:
+        dx, dy = pts[b][0] - pts[a][0], pts[b][1] - pts[a][1]
+        ln = math.hypot(dx, dy)
+        return dx / ln, dy / ln
+
+    for t, coef in zip(tri.triangles, tri.bary, strict=True):
+        value = []
+        for c in range(4):
+            v = [float(vals[i, c]) for i in t]
+            value.append(tuple(sum(coef[k][j] * v[k] for k in range(3)) for j in range(3)))
+        out.append((tuple(coef), value))
+    if tri.triangles:
+        cyc = _hull_cycle(tri)
+        if cyc is None:
+            return None
+        m = len(cyc)
+        for i in range(m):
+            a, b = cyc[i], cyc[(i + 1) % m]
+            ux, uy = unit(a, b)
+            slab = (
+                half(ux, uy, *pts[a]),  # beyond a along the edge
+                half(-ux, -uy, *pts[b]),  # before b
+                half(uy, -ux, *pts[a]),  # outside (right of the CCW edge)
+            )
+            out.append((slab, edge_value(a, b)))
+        for i in range(m):
+            p, v, w = cyc[i - 1], cyc[i], cyc[(i + 1) % m]
+            u1, u2 = unit(p, v), unit(v, w)
+            wedge = (half(*u1, *pts[v]), half(-u2[0], -u2[1], *pts[v]), pad)
+            out.append((wedge, const(v)))
+        return out
+    # no triangles: a chain of collinear points sorted along the line, or one point
+    (a0, b0) = tri.edges[0]
+    if a0 == b0:
+        return [((pad, pad, pad), const(a0))]
+    for a, b in tri.edges:
+        ux, uy = unit(a, b)
+        out.append(((half(ux, uy, *pts[a]), half(-ux, -uy, *pts[b]), pad), edge_value(a, b)))
+    first, last = tri.edges[0][0], tri.edges[-1][1]
+    ux, uy = unit(*tri.edges[0])
+    out.append(((half(-ux, -uy, *pts[first]), pad, pad), const(first)))
+    ux, uy = unit(*tri.edges[-1])
+    out.append(((half(ux, uy, *pts[last]), pad, pad), const(last)))
+    return out
 
 
 class Kernel:
@@ -71,35 +215,61 @@ class Kernel:
         self.selected = np.array(
             [initial_selection(cfg.axes[int(a)]) for a in self.axis_numbers], dtype=bool
         ).reshape(n, 7)
+        # outputs (updated in place: the machine keeps references to them)
         self.target = np.zeros((n, 7))
         self.actual = np.zeros((n, 7))
         self.delta = np.zeros((n, 7))
         self.effective = np.zeros((n, 7), dtype=bool)
         self.friction_current = np.zeros(n)
         self.total_offset = np.zeros(n)
-        self._prev = np.zeros((n, 7))
-        self._prev_eff = np.zeros((n, 7), dtype=bool)
-        self._pending = np.zeros((n, 7), dtype=bool)
-        self._event = np.zeros((n, 7), dtype=bool)
-        self._tempc = np.zeros((3, n))
+        # state
         p = [cfg.axes[int(a)].params for a in self.axis_numbers]
+        self._tempc = np.zeros((3, n))
         self._tempc[0] = [x.temp_comp_coefficient for x in p]
         self._tempc[1] = [x.temp_comp_offset_0 for x in p]
         self._tempc[2] = [x.temp_comp_position_0 for x in p]
-        self._dir = np.array([initial_direction(x.anwahl_losekomp) for x in p])
-        self._path = np.full(n, np.inf)
+        self._tc6 = self._tempc[0] * 1e-6  # coefficient·1e-6, as the reference groups it
+        self._dir = _f64([initial_direction(x.anwahl_losekomp) for x in p])
+        self._dneg = (self._dir < 0).astype(float)  # 1.0 while moving negative
+        self._path = np.full(n, np.inf)  # path since the last reversal (friction)
         self._prev_pos = np.zeros(n)
         self._first = True
-        # scratch [n]
-        self._s = np.zeros(n)
-        self._t1 = np.zeros(n)
-        self._t2 = np.zeros(n)
-        self._b1 = np.zeros(n, dtype=bool)
-        self._rev = np.zeros(n, dtype=bool)
-        self._homed = np.ones(n + 1, dtype=bool)  # slot n = "no homing needed"
-        self._hb1 = np.zeros((n, 7), dtype=bool)
-        self._hb2 = np.zeros((n, 7), dtype=bool)
+        self._pending = np.zeros((n, 7), dtype=bool)
+        self._pending_any = False
+        self._ring = np.zeros((RING, n))  # friction delay line, one row per cycle
+        self._ring_flat = self._ring.reshape(-1)
         self._ring_pos = 0
+        # source vector S = [pos | vel | acc | trunc(reversal_in) | 0 | 1]
+        self._S = np.zeros(4 * n + 2)
+        self._S[4 * n + 1] = 1.0
+        self._Spos, self._Svel = self._S[:n], self._S[n : 2 * n]
+        self._Sacc, self._Srev = self._S[2 * n : 3 * n], self._S[3 * n : 4 * n]
+        self._zero, self._one = 4 * n, 4 * n + 1
+        # scratch
+        self._prev = np.zeros((n, 7))
+        self._neweff = np.zeros((n, 7), dtype=bool)
+        self._event = np.zeros((n, 7), dtype=bool)
+        self._b7 = np.zeros((n, 7), dtype=bool)
+        self._t7 = np.zeros((n, 7))
+        self._homed = np.ones(n + 2, dtype=bool)  # slot n: "no homing", n + 1: "never"
+        self._homed[n + 1] = False
+        self._homed_in = self._homed[:n]
+        self._hb = np.zeros((2, n, 7), dtype=bool)
+        self._s = np.zeros(n)  # sign of the command velocity
+        self._t1 = np.zeros(n)
+        self._rev = np.zeros(n, dtype=bool)
+        self._rev_col = self._rev[:, None]
+        self._cur = np.zeros(n)
+        self._wpre = np.ones(n)
+        self._wpost = np.ones(n)
+        # column views used every cycle
+        t, a, e = self.target, self.actual, self.effective
+        self._tgt_bc, self._tgt_temp, self._tgt_lead = t[:, BC], t[:, TEMP], t[:, LEAD]
+        self._tgt_fr, self._act_fr, self._eff_fr = t[:, FRICT], a[:, FRICT], e[:, FRICT]
+        self._act_lead, self._eff_lead = a[:, LEAD], e[:, LEAD]
+        self._prev_lead, self._ev_lead = self._prev[:, LEAD], self._event[:, LEAD]
+        self._tflat, self._aflat = t.reshape(-1), a.reshape(-1)
+        self._filter: Sin2Filter | None = None
         self._setup(cfg)
 
     # ------------------------------------------------------------------ configuration
@@ -112,25 +282,37 @@ class Kernel:
         n, slot = self.n, self._slot
         axes = [cfg.axes[int(a)] for a in self.axis_numbers]
         p = [ax.params for ax in axes]
-        ncyc = np.array([filter_cycles(ax) for ax in axes], dtype=float).reshape(n, 7)
-        if hasattr(self, "_fa"):
-            self._fa.set_n(ncyc[:, 0:4])
-            self._fb.set_n(ncyc[:, 4:7])
+        ncyc = np.array([filter_cycles(ax) for ax in axes], dtype=np.int64).reshape(n, 7)
+        ncyc[:, FRICT] = 0  # friction is not sin²-filtered: its output is the delay line
+        if self._filter is None:
+            self._filter = Sin2Filter(ncyc)
         else:
-            self._fa = Sin2Filter(ncyc[:, 0:4])
-            self._fb = Sin2Filter(ncyc[:, 4:7])
-        self._init_dir = np.array([initial_direction(x.anwahl_losekomp) for x in p])
-        self._lose = np.array([float(x.lose) for x in p])
-        self._modulo = np.array([x.modulo for x in p], dtype=bool)
-        self._period = np.array([x.modulo_period for x in p], dtype=float)
-        ok = np.zeros((n, 7), dtype=bool)
-        ok[:, BC] = [x.anwahl_losekomp != 0 and x.lose != 0 for x in p]
-        ok[:, TEMP] = True
-        # homing requirements as indices into self._homed (n = none)
-        h1 = np.full((n, 7), n, dtype=np.int64)
-        h2 = np.full((n, 7), n, dtype=np.int64)
-        h1[:, TEMP] = np.arange(n)  # 000 §3.2: homed
-        h1[:, LEAD] = np.arange(n)  # 000 §5.3 item 2
+            self._filter.set_n(ncyc)
+        f = self._filter
+        self._f_w_lead, self._f_j_lead = f.w[:, LEAD], f.jump[:, LEAD]
+        self._t_lead = self._t7[:, LEAD]
+        self._init_dir = _f64([initial_direction(x.anwahl_losekomp) for x in p])
+        self._half_lose = _f64([x.lose for x in p]) / 2.0
+        modulo = np.array([x.modulo for x in p], dtype=bool)
+        period = _f64([x.modulo_period if x.modulo else 1.0 for x in p])
+        self._any_modulo = bool(modulo.any())
+        self._mod_period, self._not_modulo = period, ~modulo
+
+        def master_wrap(m: int) -> tuple[bool, float]:
+            return bool(modulo[m]), float(period[m])
+
+        # effective = selected ∧ homed[h1] ∧ homed[h2]; "not configured" → slot n + 1
+        h = np.full((2, n, 7), n, dtype=np.int64)
+        h[0, :, TEMP] = np.arange(n)  # 000 §3.2: homed
+        h[0, :, LEAD] = np.arange(n)  # 000 §5.3 item 2
+        for i, x in enumerate(p):
+            if not (x.anwahl_losekomp != 0 and x.lose != 0):
+                h[0, i, BC] = n + 1
+        for c in (CROSS, PLANE, LEAD, FRICT, CROSSTALK):
+            h[1, :, c] = n + 1  # until configured below
+        rev_mask = np.zeros((n, 7), dtype=bool)  # reversal = step event (when effective)
+        rev_mask[:, BC] = True
+
         cross, plane, lsec, frict, lin, tri, old = [], [], [], [], [], [], []
         for i, ax in enumerate(axes):
             comp = ax.comp
@@ -138,8 +320,8 @@ class Kernel:
                 continue
             c = comp.cross
             if c is not None and c.valid and c.master_ax_nr in slot and len(c.setpoint):
-                ok[i, CROSS] = True
-                h1[i, CROSS] = slot[c.master_ax_nr]
+                h[0, i, CROSS] = slot[c.master_ax_nr]
+                h[1, i, CROSS] = n
                 cross.append(i)
             pl = comp.plane
             if (
@@ -149,24 +331,25 @@ class Kernel:
                 and pl.master2_ax_nr in slot
                 and pl.table.size
             ):
-                ok[i, PLANE] = True
-                h1[i, PLANE] = slot[pl.master1_ax_nr]
-                h2[i, PLANE] = slot[pl.master2_ax_nr]
+                h[0, i, PLANE] = slot[pl.master1_ax_nr]
+                h[1, i, PLANE] = slot[pl.master2_ax_nr]
                 plane.append(i)
             ls = comp.lsec
             if ls is not None and ls.valid and len(ls.setpoint):
-                ok[i, LEAD] = True
+                h[1, i, LEAD] = n
+                rev_mask[i, LEAD] = ls.bilateral
                 lsec.append(i)
-            f = comp.frict
-            if f is not None and f.valid and f.mode == 3 and len(f.vin):
-                ok[i, FRICT] = True
+            fr = comp.frict
+            if fr is not None and fr.valid and fr.mode == 3 and len(fr.vin):
+                h[1, i, FRICT] = n
                 frict.append(i)
             x = comp.crosstalk
             if x is not None and x.valid and x.master_dyn_ax_nr in slot:
+                ok = False
                 if x.dialect == "old":
                     if len(x.acc_table):
                         old.append(i)
-                        ok[i, CROSSTALK] = True
+                        ok = True
                 else:
                     corr = np.atleast_2d(np.asarray(x.corrections, dtype=float))
                     if corr.shape[0] == 0:
@@ -174,221 +357,315 @@ class Kernel:
                     if x.mode == 3:
                         if x.master_pos1_ax_nr in slot and x.master_pos2_ax_nr in slot:
                             tri.append(i)
-                            ok[i, CROSSTALK] = True
+                            ok = True
                     elif x.mode != 2 or x.master_pos1_ax_nr in slot:
                         lin.append(i)
-                        ok[i, CROSSTALK] = True
-        self._ok, self._h1, self._h2 = ok, h1, h2
-        self._build_cross(axes, cross)
-        self._build_plane(axes, plane)
-        self._build_lsec(axes, lsec)
-        self._build_frict(axes, frict)
-        self._build_xt_lin(axes, lin)
-        self._build_xt_tri(axes, tri)
-        self._build_xt_old(axes, old)
+                        ok = True
+                if ok:
+                    h[1, i, CROSSTALK] = n
+        self._h, self._rev_mask = h, rev_mask
 
-    def _master_wrap(self, masters: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self._modulo[masters].copy(), self._period[masters].copy()
-
-    def _build_cross(self, axes: list, rows: list[int]) -> None:
-        r = self._cross = _Rows(rows, CROSS)
-        if not r.n:
-            return
-        cs = [axes[i].comp.cross for i in rows]
-        r.master = np.array([self._slot[c.master_ax_nr] for c in cs], dtype=np.int64)
-        r.mod, r.period = self._master_wrap(r.master)
-        r.table = BatchedInterp([c.setpoint for c in cs], [[c.correction] for c in cs])
-        r.q, r.tmp, r.val = np.zeros(r.n), np.zeros(r.n), np.zeros(r.n)
-
-    def _build_plane(self, axes: list, rows: list[int]) -> None:
-        r = self._plane = _Rows(rows, PLANE)
-        if not r.n:
-            return
-        ps = [axes[i].comp.plane for i in rows]
-        r.m1 = np.array([self._slot[x.master1_ax_nr] for x in ps], dtype=np.int64)
-        r.m2 = np.array([self._slot[x.master2_ax_nr] for x in ps], dtype=np.int64)
-        r.mod1, r.per1 = self._master_wrap(r.m1)
-        r.mod2, r.per2 = self._master_wrap(r.m2)
-        r.s1 = np.array([x.start_position_master1 for x in ps], dtype=float)
-        r.s2 = np.array([x.start_position_master2 for x in ps], dtype=float)
-        r.i1 = np.array([x.interval1 for x in ps], dtype=float)
-        r.i2 = np.array([x.interval2 for x in ps], dtype=float)
-        tabs = [np.atleast_2d(np.asarray(x.table, dtype=float)) for x in ps]
-        r.last1 = np.array([t.shape[1] - 1 for t in tabs], dtype=float)
-        r.last2 = np.array([t.shape[0] - 1 for t in tabs], dtype=float)
-        r.lim1 = np.maximum(r.last1 - 1, 0)
-        r.lim2 = np.maximum(r.last2 - 1, 0)
-        r.step1 = (r.last1 > 0).astype(np.int64)
-        r.step2 = (r.last2 > 0).astype(np.int64) * np.array([t.shape[1] for t in tabs])
-        r.stride = np.array([t.shape[1] for t in tabs], dtype=np.int64)
-        sizes = np.array([t.size for t in tabs], dtype=np.int64)
-        r.base = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        r.flat_t = np.concatenate([t.ravel() for t in tabs])
-        z = lambda: np.zeros(r.n)  # noqa: E731
-        r.q1, r.q2, r.tmp, r.u, r.v, r.fu, r.fv, r.gu, r.gv = (z() for _ in range(9))
-        r.c, r.w, r.val = z(), z(), z()
-        zi = lambda: np.zeros(r.n, dtype=np.int64)  # noqa: E731
-        r.ii, r.jj, r.k00, r.k = zi(), zi(), zi(), zi()
-
-    def _build_lsec(self, axes: list, rows: list[int]) -> None:
-        r = self._lsec = _Rows(rows, LEAD)
-        if not r.n:
-            return
-        ls = [axes[i].comp.lsec for i in rows]
-        r.bilateral = np.array([x.bilateral for x in ls], dtype=bool)
-        r.with_comp = np.array([not x.set_pos_without_comp for x in ls], dtype=bool)
-        r.modulo = np.array([x.modulo for x in ls], dtype=bool)
-        r.x0 = np.array([float(x.setpoint[0]) for x in ls])
-        spans = np.array([float(x.setpoint[-1] - x.setpoint[0]) for x in ls])
-        r.period = np.where(self._modulo[r.slots], self._period[r.slots], spans)
-        r.modulo &= r.period > 0
-        r.period = np.where(r.period > 0, r.period, 1.0)
-        r.table = BatchedInterp(
-            [x.setpoint for x in ls],
-            [[x.pos, x.neg if x.bilateral else x.pos] for x in ls],
+        # ---- the target vector V = [plane | xt mode 3 | xt modes 1/2 | friction | cross
+        #      | xt old | friction pre-reversal weight]; all but the last part are
+        #      targets. The merged 1-D lookup fills V from "xt modes 1/2" on.
+        P, T, X, F = len(plane), len(tri), len(lin), len(frict)
+        o_tri, o_lin = P, P + T
+        o_fr = o_lin + X
+        o_cross = o_fr + F
+        o_old = o_cross + len(cross)
+        o_wpre = o_old + len(old)
+        nv = o_wpre + F
+        self._V = np.zeros(nv)
+        self._fac = np.ones(nv)
+        self._any_fac = bool(T + X + F)
+        t_flat = (
+            [i * 7 + PLANE for i in plane]
+            + [i * 7 + CROSSTALK for i in tri + lin]
+            + [i * 7 + FRICT for i in frict]
+            + [i * 7 + CROSS for i in cross]
+            + [i * 7 + CROSSTALK for i in old]
         )
-        r.q, r.tmp, r.val = np.zeros(r.n), np.zeros(r.n), np.zeros(r.n)
-        r.var = np.zeros(r.n, dtype=np.int64)
-        r.b = np.zeros(r.n, dtype=bool)
-        r.eff = np.zeros(r.n, dtype=bool)
-        r.flat_c = r.slots * 7 + CROSS
-        r.flat_p = r.slots * 7 + PLANE
+        self._V_flat = _i64(t_flat)
+        self._V_tgt = self._V[:o_wpre]
+        self._V_plane, self._V_tri = self._V[:P], self._V[o_tri:o_lin]
+        self._V_l1, self._V_wpre = self._V[o_lin:], self._V[o_wpre:]
+        self._fac_xt, self._fac_fr = self._fac[o_tri:o_fr], self._fac[o_fr:o_cross]
 
-    def _build_frict(self, axes: list, rows: list[int]) -> None:
-        r = self._frict = _Rows(rows, FRICT)
-        fs = [axes[i].comp.frict for i in rows]
-        delays = [min(int(f.delay_cycles), RING - 1) for f in fs]
-        # one delay line of the manual's maximum length (delay_cycles < 249, P-COMP-00058)
-        # for every axis: it survives a reload that changes delay_cycles unchanged
-        if not hasattr(self, "_ring"):
-            self._ring = np.zeros((self.n, RING))
-        self._ring_size = RING
-        if not r.n:
+        self._build_xt(axes, tri, lin)
+        self._build_l1(axes, lin, frict, cross, old, master_wrap)
+        self._build_plane(axes, plane, master_wrap)
+        self._build_tri(axes, tri)
+        self._build_lsec(axes, lsec, modulo, period)
+        self._build_frict(axes, frict)
+
+    def _build_xt(self, axes: list, tri: list[int], lin: list[int]) -> None:
+        """Crosstalk (new model) acceleration state: column LUT and ratio inputs."""
+        rows = tri + lin
+        self._nxt = len(rows)
+        if not rows:
             return
-        r.scale = np.array([f.scaling_factor / 1000.0 for f in fs])
-        r.look = np.array([f.reversal_lookahead for f in fs], dtype=float)
-        r.look_div = r.look + 1.0
-        r.pd = np.array([float(f.position_delay) for f in fs])
-        r.has_pd = r.pd > 0
-        r.pd_safe = np.where(r.has_pd, r.pd, 1.0)
-        r.delay = np.array(delays, dtype=np.int64)
-        r.table = BatchedInterp([f.vin for f in fs], [[f.out] for f in fs])
-        z = lambda: np.zeros(r.n)  # noqa: E731
-        r.v, r.q, r.val, r.w, r.tmp, r.cur = (z() for _ in range(6))
-        r.b, r.b2, r.eff = (np.zeros(r.n, dtype=bool) for _ in range(3))
-        r.rev = np.zeros(r.n)
-        r.ridx = np.zeros(r.n, dtype=np.int64)
-        r.widx = np.zeros(r.n, dtype=np.int64)
-
-    def _xt_common(self, r: _Rows, xs: list) -> None:
-        r.dyn = np.array([self._slot[x.master_dyn_ax_nr] for x in xs], dtype=np.int64)
-        r.veldep = np.array([x.velocity_dependent for x in xs], dtype=np.int64)
-        r.inv_acc = np.array([1.0 / abs(x.acceleration) if x.acceleration else 0.0 for x in xs])
-        r.inv_dec = np.array([1.0 / abs(x.deceleration) if x.deceleration else 0.0 for x in xs])
-        z = lambda: np.zeros(r.n)  # noqa: E731
-        r.a, r.v, r.ratio, r.inv, r.val = (z() for _ in range(5))
-        r.col = np.zeros(r.n, dtype=np.int64)
-        r.acc_b, r.neg_b, r.tb = (np.zeros(r.n, dtype=bool) for _ in range(3))
-
-    def _build_xt_lin(self, axes: list, rows: list[int]) -> None:
-        """Crosstalk modes 1 and 2: reference correction over ax_1 (mode 1: one point)."""
-        r = self._xt_lin = _Rows(rows, CROSSTALK)
-        if not r.n:
-            return
+        n, slot = self.n, self._slot
         xs = [axes[i].comp.crosstalk for i in rows]
-        self._xt_common(r, xs)
-        keys, vals = [], []
+        dyn = _i64([slot[x.master_dyn_ax_nr] for x in xs])
+        self._xt_src = np.stack([n + dyn, 2 * n + dyn])  # (vel, acc) of the dynamic master
+        cols, invs = [], []
         for x in xs:
+            c, v = _xt_lut(
+                bool(x.velocity_dependent),
+                1.0 / abs(x.acceleration) if x.acceleration else 0.0,
+                1.0 / abs(x.deceleration) if x.deceleration else 0.0,
+            )
+            cols.append(c)
+            invs.append(v)
+        self._xt_col = _i64(cols)  # [rows·9]
+        self._xt_inv = _f64(invs)
+        self._xt_rowoff = np.arange(len(rows), dtype=float) * 9 + 4
+        self._xt_av = np.zeros((2, len(rows)))
+        self._xt_sg = np.zeros((2, len(rows)))
+        self._xt_code = np.zeros(len(rows))
+        self._xt_idx = np.zeros(len(rows), dtype=np.int64)
+        self._xt_idx_tri, self._xt_idx_lin = self._xt_idx[: len(tri)], self._xt_idx[len(tri) :]
+        self._xt_r = np.zeros(len(rows))
+
+    def _build_l1(self, axes: list, lin, frict, cross, old, master_wrap) -> None:
+        """One merged table for all 1-D lookups that only need this cycle's inputs."""
+        n, slot = self.n, self._slot
+        tables: list[tuple[np.ndarray, np.ndarray]] = []
+        row_ids, src, div, wrap, per = [], [], [], [], []
+        lin_base = []
+        for i in lin:  # four variant rows each (correction columns); per-cycle choice
+            x = axes[i].comp.crosstalk
             corr = np.atleast_2d(np.asarray(x.corrections, dtype=float))
             if x.mode == 1:
-                keys.append(np.zeros(1))
-                vals.append([corr[:1, c] for c in range(4)])
+                keys, vals = np.zeros(1), corr[:1]
+                src.append(self._zero)
             else:
                 ax1 = np.asarray(x.ax_1, dtype=float)[: corr.shape[0]]
+                if len(ax1) == 0:
+                    ax1 = np.zeros(1)
                 order = np.argsort(ax1, kind="stable")
-                keys.append(ax1[order])
-                vals.append([corr[order, c] for c in range(4)])
-        r.table = BatchedInterp(keys, vals)
-        r.mode2 = np.array([x.mode == 2 for x in xs], dtype=bool)
-        r.p1 = np.array([self._slot.get(x.master_pos1_ax_nr, 0) for x in xs], dtype=np.int64)
-        r.q = np.zeros(r.n)
-
-    def _build_xt_tri(self, axes: list, rows: list[int]) -> None:
-        """Crosstalk mode 3: Delaunay piecewise-linear, nearest hull point outside."""
-        r = self._xt_tri = _Rows(rows, CROSSTALK)
-        if not r.n:
-            return
-        xs = [axes[i].comp.crosstalk for i in rows]
-        self._xt_common(r, xs)
-        r.p1 = np.array([self._slot[x.master_pos1_ax_nr] for x in xs], dtype=np.int64)
-        r.p2 = np.array([self._slot[x.master_pos2_ax_nr] for x in xs], dtype=np.int64)
-        tris = []
-        npts = 1
-        for x in xs:
-            corr = np.atleast_2d(np.asarray(x.corrections, dtype=float))
-            m = min(len(x.ax_1), len(x.ax_2), corr.shape[0])
-            pts = tuple((float(x.ax_1[i]), float(x.ax_2[i])) for i in range(m))
-            tris.append((triangulate(pts), corr[:m]))
-            npts = max(npts, m)
-        nt = max(1, max(len(t.triangles) for t, _ in tris))
-        ne = max(len(t.edges) for t, _ in tris)
-        R = r.n
-        r.npts = npts
-        r.A = np.zeros((R, nt, 3))
-        r.B = np.zeros((R, nt, 3))
-        r.C = np.full((R, nt, 3), -1.0)  # rows without triangles: never inside
-        r.V = np.zeros((R, nt, 3), dtype=np.int64)
-        r.ex = np.zeros((5, R, ne))
-        r.ea = np.zeros((R, ne), dtype=np.int64)
-        r.eb = np.zeros((R, ne), dtype=np.int64)
-        r.vals = np.zeros((R, npts, 4))
-        for k, (t, corr) in enumerate(tris):
-            r.vals[k, : len(corr)] = corr
-            for j in range(nt):  # pad by repeating triangle 0 (first match wins)
-                if not t.triangles:
-                    break
-                jj = j if j < len(t.triangles) else 0
-                for v in range(3):
-                    r.A[k, j, v], r.B[k, j, v], r.C[k, j, v] = t.bary[jj][v]
-                    r.V[k, j, v] = t.triangles[jj][v]
-            for j in range(ne):  # pad by repeating edge 0 (first minimum wins)
-                jj = j if j < len(t.edges) else 0
-                for q in range(5):
-                    r.ex[q, k, j] = t.edge_geom[jj][q]
-                r.ea[k, j], r.eb[k, j] = t.edges[jj]
-        r.vals_flat = r.vals.ravel()
-        r.row_base = np.arange(R, dtype=np.int64) * npts
-        r.rowT = np.arange(R, dtype=np.int64) * nt
-        r.rowE = np.arange(R, dtype=np.int64) * ne
-        r.x, r.y = np.zeros(R), np.zeros(R)
-        r.lam = np.zeros((R, nt, 3))
-        r.lam2 = np.zeros((R, nt, 3))
-        r.minl = np.zeros((R, nt))
-        r.inside = np.zeros((R, nt), dtype=bool)
-        r.tsel = np.zeros(R, dtype=np.int64)
-        r.anyin = np.zeros(R, dtype=bool)
-        r.es = np.zeros((R, ne))
-        r.et = np.zeros((R, ne))
-        r.ed = np.zeros((R, ne))
-        r.esel = np.zeros(R, dtype=np.int64)
-        r.idx = np.zeros(R, dtype=np.int64)
-        r.vidx = np.zeros(R, dtype=np.int64)
-        r.l, r.g, r.acc1, r.s_e, r.va = (np.zeros(R) for _ in range(5))
-
-    def _build_xt_old(self, axes: list, rows: list[int]) -> None:
-        r = self._xt_old = _Rows(rows, CROSSTALK)
-        if not r.n:
-            return
-        xs = [axes[i].comp.crosstalk for i in rows]
-        r.dyn = np.array([self._slot[x.master_dyn_ax_nr] for x in xs], dtype=np.int64)
-        keys, vals = [], []
-        for x in xs:
+                keys, vals = ax1[order], corr[order]
+                src.append(slot[x.master_pos1_ax_nr])
+            lin_base.append(len(tables))
+            row_ids.append(len(tables))
+            tables.extend((keys, vals[:, c]) for c in range(4))
+            div.append(1.0)
+            wrap.append(False)
+            per.append(1.0)
+        for i in frict:  # sign(v)·table(|v|) = sign(v)·mirrored table(v)
+            fr = axes[i].comp.frict
+            x, y = np.asarray(fr.vin, dtype=float), np.asarray(fr.out, dtype=float)
+            keep = x[::-1] > 0 if x[0] == 0 else np.ones(len(x), dtype=bool)
+            row_ids.append(len(tables))
+            tables.append((np.concatenate([-x[::-1][keep], x]), np.concatenate([y[::-1][keep], y])))
+            src.append(n + i)
+            div.append(UNITS_PER_UM)
+            wrap.append(False)
+            per.append(1.0)
+        for i in cross:
+            c = axes[i].comp.cross
+            m = slot[c.master_ax_nr]
+            row_ids.append(len(tables))
+            tables.append(
+                (np.asarray(c.setpoint, dtype=float), np.asarray(c.correction, dtype=float))
+            )
+            src.append(m)
+            div.append(1.0)
+            w, pp = master_wrap(m)  # modulo master: the table wraps with it (000 p.31)
+            wrap.append(w)
+            per.append(pp)
+        for i in old:  # old model: table over the signed acceleration in mm/s²
+            x = axes[i].comp.crosstalk
             a = np.asarray(x.acc_table, dtype=float)
             order = np.argsort(a, kind="stable")
-            keys.append(a[order])
-            vals.append([np.asarray(x.corr_table, dtype=float)[order]])
-        r.table = BatchedInterp(keys, vals)
-        r.a, r.val = np.zeros(r.n), np.zeros(r.n)
+            row_ids.append(len(tables))
+            tables.append((a[order], np.asarray(x.corr_table, dtype=float)[order]))
+            src.append(2 * n + slot[x.master_dyn_ax_nr])
+            div.append(UNITS_PER_MM)
+            wrap.append(False)
+            per.append(1.0)
+        for i in frict:  # pre-reversal weight r/(lookahead+1) for 0 ≤ r ≤ lookahead, else 1
+            look = int(axes[i].comp.frict.reversal_lookahead)
+            row_ids.append(len(tables))
+            if look > 0:
+                tables.append(
+                    (
+                        np.array([-1.0, 0.0, look, look + 1.0]),
+                        np.array([1.0, 0.0, look / (look + 1), 1.0]),
+                    )
+                )
+            else:
+                tables.append((np.zeros(1), np.ones(1)))
+            src.append(3 * n + i)
+            div.append(1.0)
+            wrap.append(False)
+            per.append(1.0)
+        self._n_l1 = len(row_ids)
+        if not self._n_l1:
+            return
+        self._l1 = Lookup(MergedTable(tables), _f64(row_ids))
+        self._l1_src, self._l1_div = _i64(src), _f64(div)
+        self._l1_raw = np.zeros(self._n_l1)
+        self._l1_wrap, self._l1_per = np.array(wrap, dtype=bool), _f64(per)
+        self._l1_any_wrap = bool(self._l1_wrap.any())
+        self._l1_tmp = np.zeros(self._n_l1)
+        # variant row ids of the crosstalk rows: base + column, tabulated per sign code
+        # (indexed like the crosstalk state: mode-3 rows first, their entries unused)
+        self._lin_rowid = np.zeros(self._nxt * 9)
+        if lin:
+            cols = self._xt_col.reshape(-1, 9)[-len(lin) :]
+            rowid = np.array(lin_base, dtype=float)[:, None] + cols
+            self._lin_rowid[-len(lin) * 9 :] = rowid.reshape(-1)
+        self._l1_rowid_lin = self._l1.qc.real[: len(lin)]
+        self._fr_slots = _i64(frict)
+        self._fr_scale = _f64([axes[i].comp.frict.scaling_factor / 1000.0 for i in frict])
+        self._fr_s = np.zeros(len(frict))
+
+    def _build_plane(self, axes: list, rows: list[int], master_wrap) -> None:
+        self._n_plane = P = len(rows)
+        if not P:
+            return
+        slot = self._slot
+        ps = [axes[i].comp.plane for i in rows]
+        m = np.array([[slot[x.master1_ax_nr] for x in ps], [slot[x.master2_ax_nr] for x in ps]])
+        self._pl_src = m.astype(np.int64)
+        w = [[master_wrap(int(s)) for s in row] for row in m]
+        self._pl_wrap = np.array([[a for a, _ in r] for r in w], dtype=bool)
+        self._pl_per = np.array([[b for _, b in r] for r in w], dtype=float)
+        self._pl_any_wrap = bool(self._pl_wrap.any())
+        tabs = [np.atleast_2d(np.asarray(x.table, dtype=float)) for x in ps]
+        self._pl_s0 = np.array(
+            [[x.start_position_master1 for x in ps], [x.start_position_master2 for x in ps]],
+            dtype=float,
+        )
+        self._pl_iv = np.array([[x.interval1 for x in ps], [x.interval2 for x in ps]], dtype=float)
+        last = np.array(
+            [[t.shape[1] - 1 for t in tabs], [t.shape[0] - 1 for t in tabs]], dtype=float
+        )
+        self._pl_last, self._pl_lim = last, np.maximum(last - 1, 0)
+        stride = np.array([t.shape[1] for t in tabs], dtype=float)
+        self._pl_sw = np.stack([np.ones(P), stride])  # flat cell index = i0 + j0·stride
+        sizes = [t.size for t in tabs]
+        base = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(float)
+        step1 = (last[0] > 0).astype(float)
+        step2 = (last[1] > 0) * stride
+        # corner offsets [j, i]: (j0, i0), (j0, i1), (j1, i0), (j1, i1) — the reference's order
+        self._pl_base4 = np.stack(
+            [np.stack([base, base + step1]), np.stack([base + step2, base + step2 + step1])]
+        )
+        self._pl_tab = np.concatenate([t.ravel() for t in tabs])
+        self._pl_q, self._pl_tmp = np.zeros((2, P)), np.zeros((2, P))
+        self._pl_u, self._pl_f = np.zeros((2, P)), np.zeros((2, P))
+        self._pl_uv = np.zeros((2, 2, P))  # [axis u/v][1 − frac, frac]
+        self._pl_frac, self._pl_gfrac = self._pl_uv[:, 1], self._pl_uv[:, 0]
+        self._pl_V, self._pl_U = self._pl_uv[1][:, None, :], self._pl_uv[0][None, :, :]
+        self._pl_w = np.zeros((2, 2, P))
+        self._pl_w4 = self._pl_w.reshape(4, P)
+        self._pl_c = np.zeros((2, 2, P))
+        self._pl_k = np.zeros((2, 2, P), dtype=np.int64)
+        self._pl_k00 = np.zeros(P)
+        self._pl_k00b = self._pl_k00[None, None, :]
+
+    def _build_tri(self, axes: list, rows: list[int]) -> None:
+        """Crosstalk mode 3: regions with affine values (see `_regions`)."""
+        self._n_tri = T = len(rows)
+        if not T:
+            return
+        slot = self._slot
+        xs = [axes[i].comp.crosstalk for i in rows]
+        regs, self._tri_slow = [], []
+        for j, x in enumerate(xs):
+            corr = np.atleast_2d(np.asarray(x.corrections, dtype=float))
+            m = min(len(x.ax_1), len(x.ax_2), corr.shape[0])
+            t = triangulate(tuple((float(x.ax_1[i]), float(x.ax_2[i])) for i in range(m)))
+            r = _regions(t, corr) if t.edges else None
+            if r is None:  # unusual hull: this row uses the scalar reference evaluation
+                self._tri_slow.append((j, t, [list(map(float, corr[:, c])) for c in range(4)]))
+                r = []
+            regs.append(r)
+        G = max(1, max(len(r) for r in regs))
+        never = ((0.0, 0.0, -1.0),) * 3
+        H = np.zeros((T, 3, G, 3))
+        H[...] = -1.0  # padding: λ = −1 never matches
+        H[..., 0] = H[..., 1] = 0.0
+        VALC = np.zeros((T, 4, G, 3))
+        for j, r in enumerate(regs):
+            for g, (hp, val) in enumerate(r or [(never, [(0.0, 0.0, 0.0)] * 4)]):
+                for v in range(3):
+                    H[j, v, g] = hp[v]
+                for c in range(4):
+                    VALC[j, c, g] = val[c]
+        self._tri_A = np.ascontiguousarray(H[..., 0])
+        self._tri_B = np.ascontiguousarray(H[..., 1])
+        self._tri_C = np.ascontiguousarray(H[..., 2])
+        self._tri_val = VALC.reshape(-1, 3)
+        # region block of (row j, column c) starts at (4·j + c)·G, tabulated per sign code
+        cols = self._xt_col.reshape(-1, 9)[:T]
+        self._tri_off = ((np.arange(T)[:, None] * 4 + cols) * G).reshape(-1)
+        self._tri_colv = cols.reshape(-1)
+        p1 = [slot[x.master_pos1_ax_nr] for x in xs]
+        p2 = [slot[x.master_pos2_ax_nr] for x in xs]
+        self._tri_src = np.array(
+            [[a, b, self._one] for a, b in zip(p1, p2, strict=True)], dtype=np.int64
+        )
+        self._tri_xy1 = np.zeros((T, 3))  # (x, y, 1) per row
+        self._tri_x = self._tri_xy1[:, 0, None, None]
+        self._tri_y = self._tri_xy1[:, 1, None, None]
+        self._tri_lam = np.zeros((T, 3, G))
+        self._tri_lam2 = np.zeros((T, 3, G))
+        self._tri_l0, self._tri_l1, self._tri_l2 = (self._tri_lam[:, v] for v in range(3))
+        self._tri_min = np.zeros((T, G))
+        self._tri_in = np.zeros((T, G), dtype=bool)
+        self._tri_sel = np.zeros(T, dtype=np.int64)
+        self._tri_off_now = np.zeros(T, dtype=np.int64)
+        self._tri_coef = np.zeros((T, 3))
+
+    def _build_lsec(self, axes: list, rows: list[int], modulo, period) -> None:
+        self._n_lsec = L = len(rows)
+        if not L:
+            return
+        ls = [axes[i].comp.lsec for i in rows]
+        tables = []
+        for x in ls:  # rows 2j (pos) and 2j + 1 (neg; = pos when unilateral)
+            tables.append((x.setpoint, x.pos))
+            tables.append((x.setpoint, x.neg if x.bilateral else x.pos))
+        # the applied offset is −Δs: negate the values once here
+        tables = [(np.asarray(k, dtype=float), -np.asarray(v, dtype=float)) for k, v in tables]
+        self._ls = Lookup(MergedTable(tables), np.arange(L, dtype=float) * 2)
+        self._ls_base = np.arange(L, dtype=float) * 2
+        self._ls_slots = _i64(rows)
+        self._ls_flat = self._ls_slots * 7 + LEAD
+        self._ls_cp = np.stack([self._ls_slots * 7 + CROSS, self._ls_slots * 7 + PLANE])
+        wc = _f64([0.0 if x.set_pos_without_comp else 1.0 for x in ls])
+        self._ls_wc = wc
+        self._ls_all_wc = bool(wc.all())
+        self._ls_x0 = _f64([float(x.setpoint[0]) for x in ls])
+        spans = _f64([float(x.setpoint[-1] - x.setpoint[0]) for x in ls])
+        per = np.where(modulo[self._ls_slots], period[self._ls_slots], spans)
+        self._ls_wrap = np.array([x.modulo for x in ls], dtype=bool) & (per > 0)
+        self._ls_per = np.where(per > 0, per, 1.0)
+        self._ls_any_wrap = bool(self._ls_wrap.any())
+        self._ls_cpv = np.zeros((2, L))
+        self._ls_t, self._ls_d, self._ls_val = np.zeros(L), np.zeros(L), np.zeros(L)
+
+    def _build_frict(self, axes: list, rows: list[int]) -> None:
+        n = self.n
+        pd = np.zeros(n)
+        delay = np.zeros(n, dtype=np.int64)
+        for i in rows:
+            fr = axes[i].comp.frict
+            pd[i] = float(fr.position_delay)
+            delay[i] = int(fr.delay_cycles)
+        self._fr_rows = _i64(rows)
+        self._fr_pd, self._fr_has_pd = pd, pd > 0
+        self._fr_any_pd = bool(self._fr_has_pd.any())
+        # read index of every axis for every ring position (the reference's
+        # (pos − delay) mod 249), so that a cycle only picks a row of it
+        pos = np.arange(RING)[:, None]
+        self._fr_ridx = ((pos - delay[None, :]) % RING) * n + np.arange(n)[None, :]
+        self._wpre[:] = 1.0
+        self._wpost[:] = 1.0
+        self._fr_rv = np.zeros(n)
 
     # ------------------------------------------------------------------ interface
 
@@ -407,7 +684,9 @@ class Kernel:
     def write_tempc(self, slot: int, field: str, value: float) -> None:
         """TEMPC parameter write: step event with temp_comp_n_cycles (SPEC §3)."""
         self._tempc[TEMPC_FIELDS.index(field), slot] = float(value)
+        np.multiply(self._tempc[0], 1e-6, out=self._tc6)
         self._pending[slot, TEMP] = True
+        self._pending_any = True
 
     def reload(self, cfg: MachineConfig) -> None:
         """Swap tables at this cycle boundary (SPEC §4): a step event on every column.
@@ -430,7 +709,9 @@ class Kernel:
                 self._tempc[1, i] = pn.temp_comp_offset_0
             if po.temp_comp_position_0 != pn.temp_comp_position_0:
                 self._tempc[2, i] = pn.temp_comp_position_0
+        np.multiply(self._tempc[0], 1e-6, out=self._tc6)
         self._pending[:] = True
+        self._pending_any = True
 
     # ------------------------------------------------------------------ the cycle
 
@@ -443,339 +724,222 @@ class Kernel:
         reversal_in: np.ndarray,
     ) -> None:
         """One GEO cycle for every axis (SPEC §5 step 3)."""
-        pos, vel = cmd_pos, cmd_vel
         tgt, act, eff, ev = self.target, self.actual, self.effective, self._event
-        s, t1, t2, b1, rev = self._s, self._t1, self._t2, self._b1, self._rev
+        s, rev, d, t1 = self._s, self._rev, self._dir, self._t1
+        pos = self._Spos
         np.copyto(self._prev, act)
-        np.copyto(self._prev_eff, eff)
+        np.copyto(pos, cmd_pos)
+        np.copyto(self._Svel, cmd_vel)
+        np.copyto(self._Sacc, cmd_acc)
+        np.trunc(reversal_in, out=self._Srev)  # the reference's int(): −0.5 → 0
         if self._first:
             np.copyto(self._prev_pos, pos)
             self._first = False
 
-        # direction: sign of the command velocity, last one held at standstill (SPEC §3)
-        np.sign(vel, out=s)
-        np.not_equal(s, 0.0, out=b1)
-        np.not_equal(s, self._dir, out=rev)
-        np.logical_and(rev, b1, out=rev)
-        np.copyto(self._dir, s, where=b1)
-        d = self._dir
+        # direction: sign of the command velocity, last one held at standstill (SPEC §3).
+        # d is always ±1, so "s ≠ 0 and s ≠ d" is s·d < 0, and the update is a flip.
+        np.sign(self._Svel, s)
+        np.multiply(s, d, t1)
+        np.less(t1, 0.0, rev)
+        np.negative(d, out=d, where=rev)
+        np.less(d, 0.0, self._dneg)
 
-        # effective = selected ∧ configured ∧ homing preconditions
-        self._homed[: self.n] = homed
-        self._homed.take(self._h1, out=self._hb1)
-        self._homed.take(self._h2, out=self._hb2)
-        np.logical_and(self.selected, self._ok, out=eff)
-        np.logical_and(eff, self._hb1, out=eff)
-        np.logical_and(eff, self._hb2, out=eff)
-        np.not_equal(eff, self._prev_eff, out=ev)
-        np.logical_or(ev, self._pending, out=ev)
-        self._pending[:] = False
+        # effective = selected ∧ configured ∧ homing preconditions; events on change
+        np.copyto(self._homed_in, homed)
+        self._homed.take(self._h, out=self._hb)
+        ne = self._neweff
+        np.logical_and(self._hb[0], self._hb[1], ne)
+        np.logical_and(ne, self.selected, ne)
+        np.not_equal(ne, eff, ev)
+        np.copyto(eff, ne)
+        if self._pending_any:  # TEMPC writes, reload
+            np.logical_or(ev, self._pending, ev)
+            self._pending.fill(False)
+            self._pending_any = False
+        # reversal: step event of backlash and bilateral LSEC (P-AXIS-00243)
+        b7 = self._b7
+        np.logical_and(self._rev_mask, self._rev_col, b7)
+        np.logical_and(b7, eff, b7)
+        np.logical_or(ev, b7, ev)
 
-        tgt[:] = 0.0
-        tflat = tgt.reshape(-1)
-        # backlash: 0 in the start-up direction, d·lose after a reversal (000 §2, SPEC §6)
-        np.not_equal(d, self._init_dir, out=b1)
-        np.multiply(d, self._lose, out=t1)
-        np.multiply(t1, b1, out=tgt[:, BC])
-        np.logical_and(rev, eff[:, BC], out=b1)
-        np.logical_or(ev[:, BC], b1, out=ev[:, BC])
+        # backlash: 0 in the start-up direction, d·lose after a reversal; with d, init
+        # ∈ {±1} that is (d − init)·lose/2, exactly (000 §2, SPEC §6)
+        np.subtract(d, self._init_dir, t1)
+        np.multiply(t1, self._half_lose, self._tgt_bc)
         # temperature: offset_0 + coefficient·1e-6·(s − position_0) (000 §3.1)
-        np.copyto(t2, pos)
-        _wrap(t2, 0.0, self._period, self._modulo, t1)
-        np.subtract(t2, self._tempc[2], out=t2)
-        np.multiply(self._tempc[0], 1e-6, out=t1)
-        np.multiply(t1, t2, out=t1)
-        np.add(self._tempc[1], t1, out=tgt[:, TEMP])
-        # cross, plane, crosstalk targets
-        self._step_cross(pos, tflat)
-        self._step_plane(pos, tflat)
-        self._step_xt_lin(pos, vel, cmd_acc, tflat)
-        self._step_xt_tri(pos, vel, cmd_acc, tflat)
-        self._step_xt_old(cmd_acc, tflat)
-        np.multiply(tgt, eff, out=tgt)
-        # sin² filter of BC, TEMP, CROSS, PLANE (LSEC needs cross/plane outputs first)
-        self._fa.step(tgt[:, 0:4], self._prev[:, 0:4], ev[:, 0:4], act[:, 0:4])
-        self._step_lsec(pos, d, rev, tflat)
-        self._fb.step(tgt[:, 4:7], self._prev[:, 4:7], ev[:, 4:7], act[:, 4:7])
-        self._step_frict(pos, vel, reversal_in, rev)
+        if self._any_modulo:
+            np.mod(pos, self._mod_period, t1)
+            np.copyto(t1, pos, where=self._not_modulo)
+            np.subtract(t1, self._tempc[2], t1)
+        else:
+            np.subtract(pos, self._tempc[2], t1)
+        np.multiply(self._tc6, t1, t1)
+        np.add(self._tempc[1], t1, self._tgt_temp)
 
-        np.subtract(act, self._prev, out=self.delta)
+        # cross, plane, crosstalk, friction base: all into V, then one scatter
+        if self._nxt:
+            self._step_xt_state()
+        if self._n_l1:
+            self._step_l1()
+        if self._n_plane:
+            self._step_plane()
+        if self._n_tri:
+            self._step_tri()
+        if self._any_fac:
+            np.multiply(self._V, self._fac, self._V)
+        self._tflat[self._V_flat] = self._V_tgt
+        np.multiply(tgt, eff, tgt)
+
+        # sin² filter of every column (LSEC again below, once its target is known)
+        f = self._filter
+        f.advance(ev)
+        sin2_apply(tgt, self._prev, ev, f.jump, f.w, self._t7, act)
+        if self._n_lsec:
+            self._step_lsec()
+        self._step_frict()
+
+        np.subtract(act, self._prev, self.delta)
         np.add.reduce(act, axis=1, out=self.total_offset)
-        np.subtract(self.total_offset, act[:, FRICT], out=self.total_offset)
-        np.copyto(self.friction_current, act[:, FRICT])
-        np.copyto(self._prev_pos, pos)
+        np.subtract(self.total_offset, self._act_fr, self.total_offset)
 
-    def _step_cross(self, pos: np.ndarray, tflat: np.ndarray) -> None:
-        """Cross (000 §4.2): slave offset over the (wrapped) master command position."""
-        r = self._cross
-        if not r.n:
-            return
-        pos.take(r.master, out=r.q)
-        _wrap(r.q, 0.0, r.period, r.mod, r.tmp)
-        r.table.lookup(r.q, r.val)
-        tflat[r.flat] = r.val
+    def _step_xt_state(self) -> None:
+        """Crosstalk (000 §4.6 p.84): column by accelerate/decelerate × direction and the
+        clamped ratio |a|/|a_ref|, for every new-model row (modes 1, 2, 3)."""
+        av, sg, code, idx = self._xt_av, self._xt_sg, self._xt_code, self._xt_idx
+        self._S.take(self._xt_src, out=av)
+        np.sign(av, sg)
+        np.multiply(sg[0], 3.0, code)
+        np.add(code, sg[1], code)
+        np.add(code, self._xt_rowoff, idx, casting="unsafe")
+        r = self._xt_r
+        self._xt_inv.take(idx, out=r)
+        np.abs(av[1], t := self._xt_code)  # |a| (code is no longer needed)
+        np.divide(t, UNITS_PER_MM, t)
+        np.multiply(t, r, t)
+        np.minimum(t, 1.0, out=self._fac_xt)  # clamp beyond the reference (SPEC §12)
+        if self._n_tri:
+            self._tri_off.take(self._xt_idx_tri, out=self._tri_off_now)
+        if len(self._xt_idx_lin):
+            self._lin_rowid.take(self._xt_idx_lin, out=self._l1_rowid_lin)
 
-    def _step_plane(self, pos: np.ndarray, tflat: np.ndarray) -> None:
+    def _step_l1(self) -> None:
+        """Cross (000 §4.2), friction base (§4.5), crosstalk modes 1/2 and old model
+        (§4.6) and the friction pre-reversal weight: one merged lookup."""
+        lk, q = self._l1, self._l1_raw
+        self._S.take(self._l1_src, out=q)
+        if self._l1_any_wrap:  # modulo master: position wrapped into [0, period)
+            np.mod(q, self._l1_per, self._l1_tmp)
+            np.copyto(q, self._l1_tmp, where=self._l1_wrap)
+        np.divide(q, self._l1_div, lk.q)
+        lk(self._V_l1)
+        # friction: sign(v)·scaling_factor/1000
+        self._s.take(self._fr_slots, out=self._fr_s)
+        np.multiply(self._fr_s, self._fr_scale, self._fac_fr)
+
+    def _step_plane(self) -> None:
         """Plane (000 §4.3): bilinear on table[j][i] (j master 2, i master 1), clamped."""
-        r = self._plane
-        if not r.n:
-            return
-        pos.take(r.m1, out=r.q1)
-        pos.take(r.m2, out=r.q2)
-        _wrap(r.q1, 0.0, r.per1, r.mod1, r.tmp)
-        _wrap(r.q2, 0.0, r.per2, r.mod2, r.tmp)
-        for q, s0, iv, last, lim, cell, frac in (
-            (r.q1, r.s1, r.i1, r.last1, r.lim1, r.ii, r.fu),
-            (r.q2, r.s2, r.i2, r.last2, r.lim2, r.jj, r.fv),
-        ):
-            np.subtract(q, s0, out=r.u)
-            np.divide(r.u, iv, out=r.u)
-            np.maximum(r.u, 0.0, out=r.u)
-            np.minimum(r.u, last, out=r.u)
-            np.floor(r.u, out=r.v)
-            np.minimum(r.v, lim, out=r.v)
-            np.subtract(r.u, r.v, out=frac)
-            np.copyto(cell, r.v, casting="unsafe")
-        # corner (j0, i0) = base + j0·stride + i0
-        np.multiply(r.jj, r.stride, out=r.k00)
-        np.add(r.k00, r.base, out=r.k00)
-        np.add(r.k00, r.ii, out=r.k00)
-        np.subtract(1.0, r.fu, out=r.gu)
-        np.subtract(1.0, r.fv, out=r.gv)
-        # (1−fu)(1−fv)·T00 + fu(1−fv)·T01 + (1−fu)fv·T10 + fu·fv·T11 (reference order)
-        r.flat_t.take(r.k00, out=r.c)
-        np.multiply(r.gu, r.gv, out=r.w)
-        np.multiply(r.w, r.c, out=r.val)
-        np.add(r.k00, r.step1, out=r.k)
-        r.flat_t.take(r.k, out=r.c)
-        np.multiply(r.fu, r.gv, out=r.w)
-        np.multiply(r.w, r.c, out=r.w)
-        np.add(r.val, r.w, out=r.val)
-        np.add(r.k00, r.step2, out=r.k)
-        r.flat_t.take(r.k, out=r.c)
-        np.multiply(r.gu, r.fv, out=r.w)
-        np.multiply(r.w, r.c, out=r.w)
-        np.add(r.val, r.w, out=r.val)
-        np.add(r.k, r.step1, out=r.k)
-        r.flat_t.take(r.k, out=r.c)
-        np.multiply(r.fu, r.fv, out=r.w)
-        np.multiply(r.w, r.c, out=r.w)
-        np.add(r.val, r.w, out=r.val)
-        tflat[r.flat] = r.val
+        q, u, fl = self._pl_q, self._pl_u, self._pl_f
+        self._S.take(self._pl_src, out=q)
+        if self._pl_any_wrap:
+            np.mod(q, self._pl_per, self._pl_tmp)
+            np.copyto(q, self._pl_tmp, where=self._pl_wrap)
+        # u = clamp((q − start)/interval, 0, last); cell = min(floor(u), last − 1)
+        np.subtract(q, self._pl_s0, u)
+        np.divide(u, self._pl_iv, u)
+        np.maximum(u, 0.0, out=u)
+        np.minimum(u, self._pl_last, out=u)
+        np.floor(u, fl)
+        np.minimum(fl, self._pl_lim, out=fl)
+        np.subtract(u, fl, self._pl_frac)
+        np.subtract(1.0, self._pl_frac, self._pl_gfrac)
+        # weights [j, i] = (1 − fv | fv)_j · (1 − fu | fu)_i
+        np.multiply(self._pl_V, self._pl_U, self._pl_w)
+        # corner indices: base + j0·stride + i0 + corner offset
+        np.multiply(fl, self._pl_sw, self._pl_tmp)
+        np.add(self._pl_tmp[0], self._pl_tmp[1], self._pl_k00)
+        np.add(self._pl_k00b, self._pl_base4, self._pl_k, casting="unsafe")
+        self._pl_tab.take(self._pl_k, out=self._pl_c)
+        np.multiply(self._pl_w, self._pl_c, self._pl_w)
+        np.add.reduce(self._pl_w4, axis=0, out=self._V_plane)
 
-    def _step_lsec(
-        self, pos: np.ndarray, d: np.ndarray, rev: np.ndarray, tflat: np.ndarray
-    ) -> None:
-        """LSEC (000 §4.4): −Δs at command (+ cross + plane output), pos/neg by direction."""
-        r = self._lsec
-        if not r.n:
-            return
-        aflat = self.actual.reshape(-1)
-        pos.take(r.slots, out=r.q)
-        aflat.take(r.flat_c, out=r.tmp)
-        np.add(r.q, r.tmp, out=r.tmp)
-        aflat.take(r.flat_p, out=r.val)
-        np.add(r.tmp, r.val, out=r.tmp)
-        np.copyto(r.q, r.tmp, where=r.with_comp)
-        _wrap(r.q, r.x0, r.period, r.modulo, r.tmp)
-        d.take(r.slots, out=r.tmp)
-        np.less(r.tmp, 0.0, out=r.b)
-        np.logical_and(r.b, r.bilateral, out=r.b)
-        np.copyto(r.var, r.b)
-        r.table.lookup(r.q, r.val, r.var)
-        np.negative(r.val, out=r.val)
-        # unfiltered target only where effective; reversal event when bilateral
-        self.effective.reshape(-1).take(r.flat, out=r.eff)
-        np.multiply(r.val, r.eff, out=r.val)
-        tflat[r.flat] = r.val
-        rev.take(r.slots, out=r.b)
-        np.logical_and(r.b, r.bilateral, out=r.b)
-        np.logical_and(r.b, r.eff, out=r.b)
-        evflat = self._event.reshape(-1)
-        evflat.take(r.flat, out=r.eff)
-        np.logical_or(r.eff, r.b, out=r.eff)
-        evflat[r.flat] = r.eff
+    def _step_tri(self) -> None:
+        """Crosstalk mode 3 (000 §4.6 p.84, SPEC §12): first region containing (x, y),
+        then its affine value in the selected column (× ratio via the factor vector)."""
+        xy1, lam, lam2 = self._tri_xy1, self._tri_lam, self._tri_lam2
+        self._S.take(self._tri_src, out=xy1)
+        # λ = a·x + b·y + c, in the reference's order
+        np.multiply(self._tri_A, self._tri_x, lam)
+        np.multiply(self._tri_B, self._tri_y, lam2)
+        np.add(lam, lam2, lam)
+        np.add(lam, self._tri_C, lam)
+        np.minimum(self._tri_l0, self._tri_l1, out=self._tri_min)
+        np.minimum(self._tri_min, self._tri_l2, out=self._tri_min)
+        np.greater_equal(self._tri_min, -INSIDE_EPS, self._tri_in)
+        self._tri_in.argmax(axis=1, out=self._tri_sel)  # first region wins
+        np.add(self._tri_sel, self._tri_off_now, self._tri_sel)
+        coef = self._tri_coef
+        self._tri_val.take(self._tri_sel, axis=0, out=coef)
+        np.multiply(coef, xy1, coef)
+        np.add.reduce(coef, axis=1, out=self._V_tri)
+        for j, t, cols in self._tri_slow:
+            col = int(self._tri_colv[self._xt_idx_tri[j]])
+            self._V_tri[j] = evaluate(t, cols[col], xy1[j, 0], xy1[j, 1])
 
-    def _step_frict(
-        self, pos: np.ndarray, vel: np.ndarray, reversal_in: np.ndarray, rev: np.ndarray
-    ) -> None:
-        """Friction (000 §4.5): sign(v)·scale·table(|v|), reversal weights, delay line."""
-        # path since the last reversal (all axes; cheap and keeps the state uniform)
-        np.copyto(self._path, 0.0, where=rev)
-        np.subtract(pos, self._prev_pos, out=self._t1)
-        np.abs(self._t1, out=self._t1)
-        np.add(self._path, self._t1, out=self._path)
-        size = self._ring_size
+    def _step_lsec(self) -> None:
+        """LSEC (000 §4.4): −Δs at command (+ cross + plane output), pos/neg by direction;
+        then its sin² pass (reversal events were set with the others)."""
+        lk = self._ls
+        cp, t = self._ls_cpv, self._ls_t
+        self._aflat.take(self._ls_cp, out=cp)
+        np.add(cp[0], cp[1], t)
+        if not self._ls_all_wc:  # set_pos_without_comp: command position only
+            np.multiply(t, self._ls_wc, t)
+        self._Spos.take(self._ls_slots, out=self._ls_d)
+        np.add(self._ls_d, t, lk.q)
+        if self._ls_any_wrap:  # modulo table: wrap into [x0, x0 + period)
+            np.subtract(lk.q, self._ls_x0, t)
+            np.mod(t, self._ls_per, t)
+            np.add(t, self._ls_x0, t)
+            np.copyto(lk.q, t, where=self._ls_wrap)
+        self._dneg.take(self._ls_slots, out=self._ls_d)
+        np.add(self._ls_base, self._ls_d, lk.rowid)  # row 2j pos, 2j + 1 neg
+        lk(self._ls_val)
+        self._tflat[self._ls_flat] = self._ls_val
+        np.multiply(self._tgt_lead, self._eff_lead, self._tgt_lead)
+        sin2_apply(
+            self._tgt_lead,
+            self._prev_lead,
+            self._ev_lead,
+            self._f_j_lead,
+            self._f_w_lead,
+            self._t_lead,
+            self._act_lead,
+        )
+
+    def _step_frict(self) -> None:
+        """Friction (000 §4.5): reversal weights and the delay line, for every axis (the
+        non-friction rows carry zeros, as in the reference's per-axis delay lines)."""
+        pos, path, t1 = self._Spos, self._path, self._t1
+        # path since the last reversal
+        np.copyto(path, 0.0, where=self._rev)
+        np.subtract(pos, self._prev_pos, t1)
+        np.abs(t1, t1)
+        np.add(path, t1, path)
+        np.copyto(self._prev_pos, pos)
         wpos = self._ring_pos
-        self._ring_pos = (wpos + 1) % size
-        self.actual[:, FRICT] = 0.0
-        r = self._frict
-        if not r.n:
-            return
-        tflat, aflat = self.target.reshape(-1), self.actual.reshape(-1)
-        self.effective.reshape(-1).take(r.flat, out=r.eff)
-        vel.take(r.slots, out=r.v)
-        np.abs(r.v, out=r.q)
-        np.divide(r.q, UNITS_PER_UM, out=r.q)
-        r.table.lookup(r.q, r.val)
-        np.sign(r.v, out=r.tmp)
-        np.multiply(r.tmp, r.scale, out=r.tmp)
-        np.multiply(r.tmp, r.val, out=r.cur)
-        np.multiply(r.cur, r.eff, out=r.cur)
-        tflat[r.flat] = r.cur
-        # before the reversal: weight r/(lookahead+1) while 0 ≤ r ≤ lookahead
-        np.copyto(self._t2, reversal_in, casting="unsafe")  # int or float input
-        self._t2.take(r.slots, out=r.rev)
-        np.greater_equal(r.rev, 0.0, out=r.b)
-        np.less_equal(r.rev, r.look, out=r.b2)
-        np.logical_and(r.b, r.b2, out=r.b)
-        np.greater(r.look, 0.0, out=r.b2)
-        np.logical_and(r.b, r.b2, out=r.b)
-        np.divide(r.rev, r.look_div, out=r.w)
-        np.copyto(r.tmp, r.cur)
-        np.multiply(r.tmp, r.w, out=r.tmp)
-        np.copyto(r.cur, r.tmp, where=r.b)
-        # after the reversal: build-up over position_delay of path
-        self._path.take(r.slots, out=r.w)
-        np.divide(r.w, r.pd_safe, out=r.w)
-        np.minimum(r.w, 1.0, out=r.w)
-        np.multiply(r.cur, r.w, out=r.tmp)
-        np.copyto(r.cur, r.tmp, where=r.has_pd)
-        # delay line: write now, read `delay_cycles` back
-        np.multiply(r.slots, size, out=r.widx)
-        np.subtract(wpos, r.delay, out=r.ridx)
-        np.mod(r.ridx, size, out=r.ridx)
-        np.add(r.ridx, r.widx, out=r.ridx)
-        np.add(r.widx, wpos, out=r.widx)
-        ring = self._ring.reshape(-1)
-        ring[r.widx] = r.cur
-        ring.take(r.ridx, out=r.val)
-        np.multiply(r.val, r.eff, out=r.val)
-        aflat[r.flat] = r.val
-
-    def _xt_scale(self, r: _Rows, vel: np.ndarray, acc: np.ndarray) -> None:
-        """Column (accelerate/decelerate × direction) and clamped ratio |a|/|a_ref|."""
-        acc.take(r.dyn, out=r.a)
-        np.divide(r.a, UNITS_PER_MM, out=r.a)
-        vel.take(r.dyn, out=r.v)
-        np.multiply(r.a, r.v, out=r.ratio)
-        np.greater_equal(r.ratio, 0.0, out=r.acc_b)  # accelerating: a·v ≥ 0
-        np.less(r.v, 0.0, out=r.neg_b)
-        np.equal(r.v, 0.0, out=r.tb)
-        np.logical_and(r.tb, np.less(r.a, 0.0, out=self._xt_tmp_b(r)), out=r.tb)
-        np.logical_or(r.neg_b, r.tb, out=r.neg_b)
-        np.multiply(r.neg_b, r.veldep, out=r.col)
-        np.logical_not(r.acc_b, out=r.tb)
-        np.add(r.col, r.tb, out=r.col)
-        np.add(r.col, r.tb, out=r.col)  # decelerate columns are 2 and 3
-        np.copyto(r.inv, r.inv_dec)
-        np.copyto(r.inv, r.inv_acc, where=r.acc_b)
-        np.abs(r.a, out=r.ratio)
-        np.multiply(r.ratio, r.inv, out=r.ratio)
-        np.minimum(r.ratio, 1.0, out=r.ratio)
-
-    @staticmethod
-    def _xt_tmp_b(r: _Rows) -> np.ndarray:
-        if not hasattr(r, "tmp_b"):
-            r.tmp_b = np.zeros(r.n, dtype=bool)
-        return r.tmp_b
-
-    def _step_xt_lin(
-        self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, tflat: np.ndarray
-    ) -> None:
-        """Crosstalk modes 1/2 (000 §4.6 p.84): c_ref (over ax_1) · clamp(|a|/|a_ref|)."""
-        r = self._xt_lin
-        if not r.n:
-            return
-        self._xt_scale(r, vel, acc)
-        r.q[:] = 0.0
-        pos.take(r.p1, out=r.val)
-        np.copyto(r.q, r.val, where=r.mode2)
-        r.table.lookup(r.q, r.val, r.col)
-        np.multiply(r.val, r.ratio, out=r.val)
-        tflat[r.flat] = r.val
-
-    def _step_xt_tri(
-        self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, tflat: np.ndarray
-    ) -> None:
-        """Crosstalk mode 3 (000 §4.6 p.84, SPEC §12): Delaunay piecewise-linear."""
-        r = self._xt_tri
-        if not r.n:
-            return
-        self._xt_scale(r, vel, acc)
-        pos.take(r.p1, out=r.x)
-        pos.take(r.p2, out=r.y)
-        x3, y3 = r.x[:, None, None], r.y[:, None, None]
-        # λ = a·x + b·y + c for every triangle vertex
-        np.multiply(r.A, x3, out=r.lam)
-        np.multiply(r.B, y3, out=r.lam2)
-        np.add(r.lam, r.lam2, out=r.lam)
-        np.add(r.lam, r.C, out=r.lam)
-        np.minimum.reduce(r.lam, axis=2, out=r.minl)
-        np.greater_equal(r.minl, -INSIDE_EPS, out=r.inside)
-        r.inside.argmax(axis=1, out=r.tsel)
-        np.add(r.tsel, r.rowT, out=r.tsel)
-        r.inside.reshape(-1).take(r.tsel, out=r.anyin)
-        # value inside: Σ λ_v · value(vertex v, column)
-        lamf, vf = r.lam.reshape(-1), r.V.reshape(-1)
-        r.val[:] = 0.0
-        for v in range(3):
-            np.multiply(r.tsel, 3, out=r.idx)
-            np.add(r.idx, v, out=r.idx)
-            lamf.take(r.idx, out=r.l)
-            vf.take(r.idx, out=r.vidx)
-            self._xt_value(r, r.vidx, r.g)
-            np.multiply(r.l, r.g, out=r.l)
-            np.add(r.val, r.l, out=r.val)
-        # outside the hull: the value at the closest point of the hull boundary
-        ax, ay, dx, dy, inv = r.ex
-        x2, y2 = r.x[:, None], r.y[:, None]
-        np.subtract(x2, ax, out=r.es)
-        np.multiply(r.es, dx, out=r.es)
-        np.subtract(y2, ay, out=r.et)
-        np.multiply(r.et, dy, out=r.et)
-        np.add(r.es, r.et, out=r.es)
-        np.multiply(r.es, inv, out=r.es)
-        np.maximum(r.es, 0.0, out=r.es)
-        np.minimum(r.es, 1.0, out=r.es)  # s along each edge
-        np.multiply(r.es, dx, out=r.et)
-        np.add(ax, r.et, out=r.et)
-        np.subtract(x2, r.et, out=r.et)
-        np.multiply(r.et, r.et, out=r.ed)
-        np.multiply(r.es, dy, out=r.et)
-        np.add(ay, r.et, out=r.et)
-        np.subtract(y2, r.et, out=r.et)
-        np.multiply(r.et, r.et, out=r.et)
-        np.add(r.ed, r.et, out=r.ed)
-        r.ed.argmin(axis=1, out=r.esel)
-        np.add(r.esel, r.rowE, out=r.esel)
-        r.es.reshape(-1).take(r.esel, out=r.s_e)
-        r.ea.reshape(-1).take(r.esel, out=r.vidx)
-        self._xt_value(r, r.vidx, r.va)
-        r.eb.reshape(-1).take(r.esel, out=r.vidx)
-        self._xt_value(r, r.vidx, r.g)
-        np.subtract(r.g, r.va, out=r.g)
-        np.multiply(r.s_e, r.g, out=r.g)
-        np.add(r.va, r.g, out=r.g)
-        np.logical_not(r.anyin, out=r.tb)
-        np.copyto(r.val, r.g, where=r.tb)
-        np.multiply(r.val, r.ratio, out=r.val)
-        tflat[r.flat] = r.val
-
-    @staticmethod
-    def _xt_value(r: _Rows, vertex: np.ndarray, out: np.ndarray) -> None:
-        """out = correction of `vertex` in each row's selected column."""
-        np.add(vertex, r.row_base, out=r.idx)
-        np.multiply(r.idx, 4, out=r.idx)
-        np.add(r.idx, r.col, out=r.idx)
-        r.vals_flat.take(r.idx, out=out)
-
-    def _step_xt_old(self, acc: np.ndarray, tflat: np.ndarray) -> None:
-        """Old crosstalk model (001 §4.5, 003 §3.5): table over the signed acceleration."""
-        r = self._xt_old
-        if not r.n:
-            return
-        acc.take(r.dyn, out=r.a)
-        np.divide(r.a, UNITS_PER_MM, out=r.a)
-        r.table.lookup(r.a, r.val)
-        tflat[r.flat] = r.val
+        self._ring_pos = (wpos + 1) % RING
+        cur = self._cur
+        np.copyto(cur, self._tgt_fr)  # sign(v)·scale·table(|v|), 0 when not effective
+        if self._n_l1 and len(self._fr_slots):
+            # before the reversal: r/(lookahead + 1) while 0 ≤ r ≤ lookahead
+            self._wpre[self._fr_slots] = self._V_wpre
+            np.multiply(cur, self._wpre, cur)
+        if self._fr_any_pd:  # after the reversal: build-up over position_delay of path
+            np.divide(path, self._fr_pd, self._wpost, where=self._fr_has_pd)
+            np.minimum(self._wpost, 1.0, out=self._wpost)
+            np.multiply(cur, self._wpost, cur)
+        # delay line: write now, read `delay_cycles` back; output only while effective
+        np.copyto(self._ring[wpos], cur)
+        self._ring_flat.take(self._fr_ridx[wpos], out=self._fr_rv)
+        np.multiply(self._fr_rv, self._eff_fr, self.friction_current)
+        np.copyto(self._act_fr, self.friction_current)

@@ -25,38 +25,68 @@ def sin2_weight(k: int, n: int) -> float:
 
 
 class Sin2Filter:
-    """Vectorised sin² filter over an `[n, m]` block of compensation columns.
+    """Vectorised sin² filter over the kernel's `[n, 7]` columns.
 
-    State per entry: the jump `J` of the last event, the cycle counter `k` (saturating at
-    N) and N (≥ 1). Works on views (e.g. columns 0:4 of the kernel's [n, 7] arrays).
+    The weight cos²(π·k/(2N)) only depends on the integers k and N, so it is read from a
+    precomputed table (bit-identical to `sin2_weight`) instead of evaluating cos per
+    cycle: each entry keeps `kidx = offset(N) + k`, and a cycle is "restart at the
+    offset on an event, step, saturate at offset + N, gather" — 4 numpy calls for every
+    column at once. N = 0 marks an unfiltered column (weight exactly 0: out = target).
+
+    The jump update and the output (`apply`) are separate from the weight step
+    (`advance`) because the kernel applies them in two passes: LSEC's target depends on
+    the filtered cross/plane outputs of the same cycle.
     """
 
     def __init__(self, n_cycles: np.ndarray) -> None:
-        self.n = np.maximum(np.asarray(n_cycles, dtype=float), 1.0)
-        self.half_pi_over_n = (math.pi / 2) / self.n
-        self.jump = np.zeros_like(self.n)
-        self.k = self.n.copy()  # idle: ramp finished
-        self._w = np.zeros_like(self.n)
+        shape = np.shape(n_cycles)
+        self.kidx = np.zeros(shape, dtype=np.int64)
+        self.jump = np.zeros(shape)
+        self.w = np.zeros(shape)
+        self._tmp = np.zeros(shape)
+        self.n = np.zeros(shape, dtype=np.int64)
+        self.set_n(n_cycles, idle=True)
 
-    def set_n(self, n_cycles: np.ndarray) -> None:
+    def set_n(self, n_cycles: np.ndarray, idle: bool = False) -> None:
         """New filter lengths (reload); a running ramp continues with the new N."""
-        np.maximum(np.asarray(n_cycles, dtype=float), 1.0, out=self.n)
-        np.divide(math.pi / 2, self.n, out=self.half_pi_over_n)
-        np.minimum(self.k, self.n, out=self.k)
+        n_new = np.asarray(n_cycles, dtype=np.int64)
+        k = self.n.copy() if idle else self.kidx - self.off
+        lengths = sorted({int(v) for v in n_new.ravel()})
+        table, start = [], {}
+        for m in lengths:
+            start[m] = len(table)
+            if m <= 0:
+                table.append(0.0)  # unfiltered column
+            else:
+                table.extend(math.cos(math.pi * float(j) / (2 * m)) ** 2 for j in range(m + 1))
+        self.table = np.array(table)
+        self.off = np.vectorize(start.__getitem__, otypes=[np.int64])(n_new)
+        n_eff = np.maximum(n_new, 0)
+        self.end = self.off + n_eff
+        if idle:
+            k = n_eff
+        np.copyto(self.n, n_eff)
+        np.minimum(self.off + k, self.end, out=self.kidx)
 
-    def step(
-        self, target: np.ndarray, prev_out: np.ndarray, event: np.ndarray, out: np.ndarray
-    ) -> None:
-        """out = filtered target; `event` marks entries with a step event this cycle."""
-        w = self._w
-        # J = target − previous output where an event happens; restart k at 0
-        np.subtract(target, prev_out, out=w)
-        np.copyto(self.jump, w, where=event)
-        np.copyto(self.k, 0.0, where=event)
-        self.k += 1.0
-        np.minimum(self.k, self.n, out=self.k)
-        np.multiply(self.k, self.half_pi_over_n, out=w)
-        np.cos(w, out=w)
-        np.multiply(w, w, out=w)
-        np.multiply(w, self.jump, out=w)
-        np.subtract(target, w, out=out)
+    def advance(self, event: np.ndarray) -> None:
+        """k ← 0 where an event happens, then k ← min(k + 1, N); w = cos²(πk/(2N))."""
+        np.copyto(self.kidx, self.off, where=event)
+        np.add(self.kidx, 1, self.kidx)
+        np.minimum(self.kidx, self.end, out=self.kidx)
+        self.table.take(self.kidx, out=self.w)
+
+
+def sin2_apply(
+    target: np.ndarray,
+    prev_out: np.ndarray,
+    event: np.ndarray,
+    jump: np.ndarray,
+    w: np.ndarray,
+    tmp: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """J ← target − prev_out where `event`; out = target − J·w (views of one filter)."""
+    np.subtract(target, prev_out, tmp)
+    np.copyto(jump, tmp, where=event)
+    np.multiply(jump, w, tmp)
+    np.subtract(target, tmp, out)

@@ -1,15 +1,20 @@
-"""Batched table lookups for the fast kernel (SPEC §6: linear, edges held).
+"""Merged table lookups for the fast kernel (SPEC §6: linear, edges held).
 
-`BatchedInterp` serves every axis that uses one kind of 1-D table with a single
-`np.searchsorted`: the per-row tables are concatenated and row r's keys are shifted by
-r·2^33 so that the rows occupy disjoint key ranges of one ascending array. Because the
-shifted query `q + r·2^33` is rounded (ulp 2^-12 at 128 rows), the index is checked and
-corrected by one step against the *unshifted* keys, so results equal a per-row bisect
-exactly. Table values may come in several variants (LSEC pos/neg, crosstalk's four
-correction columns): variant v of row r lives at `v·L + index` in one flat value array.
+Per GEO cycle the kernel's cost is dominated by the *number* of numpy calls, not by the
+work, so every 1-D table of every axis and kind (cross, friction, crosstalk modes 1/2
+and old model, the friction pre-reversal weight) lives in ONE `MergedTable` and is served
+by one `searchsorted`, one gather and three arithmetic calls.
 
-Everything is allocated at construction; `lookup` only writes into preallocated
-scratch arrays and the caller's `out`.
+Exact row separation without rounding: the keys are complex numbers `row + 1j·x`. numpy
+orders complex values lexicographically (real part first), so the concatenated rows form
+one ascending array while every x stays an unshifted float64. (Shifting x by
+`row·2^33` instead rounds the query by up to 2^-12 units, which moves results by more
+than the kernel's 1e-9 equivalence tolerance.)
+
+Held edges without clipping: each row starts with a `-inf` key, and the segment table
+has one entry per `searchsorted` result: "before the first point" (constant y0), each
+inner segment (x_i, y_i, slope_i), and "at or after the last point" (constant y_last).
+A lookup is then `y_i + (q − x_i)·slope_i` for every query, whatever its position.
 """
 
 from __future__ import annotations
@@ -18,89 +23,58 @@ from collections.abc import Sequence
 
 import numpy as np
 
-#: Row key offset: tables of internal-unit positions stay below 2^32 in magnitude.
-ROW_SHIFT = float(2**33)
 
+class MergedTable:
+    """Linear interpolation with held edges for many small 1-D tables at once.
 
-class BatchedInterp:
-    """Linear interpolation with held edges for many small tables at once."""
+    `rows[r] = (x, y)`, x ascending (ties allowed, as in `bisect_right`). A query is a
+    complex number `r + 1j·q`: the caller writes the row id into the real part (fixed
+    rows, or a per-cycle choice between variant rows such as LSEC pos/neg) and the
+    position into the imaginary part.
+    """
 
-    def __init__(self, keys: Sequence[np.ndarray], values: Sequence[Sequence[np.ndarray]]):
-        """`keys[r]` ascending x of row r; `values[r][v]` the y of variant v (same length).
-
-        Rows with a single point get a second point one unit further with the same value,
-        so that every row has at least one segment (a constant).
-        """
+    def __init__(self, rows: Sequence[tuple[np.ndarray, np.ndarray]]) -> None:
+        keys, segs = [], [np.zeros((1, 3))]  # segs[0]: never selected (ss ≥ 1)
+        for r, (x, y) in enumerate(rows):
+            x = np.asarray(x, dtype=float).ravel()
+            y = np.asarray(y, dtype=float).ravel()
+            m = len(x)
+            k = np.empty(m + 1, dtype=complex)
+            k.real = r
+            k.imag[0] = -np.inf
+            k.imag[1:] = x
+            keys.append(k)
+            seg = np.zeros((m + 1, 3))  # columns: x_i, y_i, slope_i
+            seg[0] = (x[0], y[0], 0.0)  # q < x0: held first value
+            if m > 1:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    slope = np.diff(y) / np.diff(x)
+                seg[1:m, 0], seg[1:m, 1], seg[1:m, 2] = x[:-1], y[:-1], slope
+            seg[m] = (x[-1], y[-1], 0.0)  # q ≥ x_last: held last value
+            segs.append(seg)
         self.rows = len(keys)
-        nvar = len(values[0]) if self.rows else 1
-        xs, ys = [], [[] for _ in range(nvar)]
-        for k, vs in zip(keys, values, strict=True):
-            k = np.asarray(k, dtype=float)
-            vs = [np.asarray(v, dtype=float) for v in vs]
-            if len(k) == 1:
-                k = np.array([k[0], k[0] + 1.0])
-                vs = [np.array([v[0], v[0]]) for v in vs]
-            xs.append(k)
-            for i, v in enumerate(vs):
-                ys[i].append(v)
-        lens = np.array([len(k) for k in xs], dtype=np.int64)
-        self.start = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.int64)
-        self.last_seg = self.start + lens - 2  # last valid segment start per row
-        self.x = np.concatenate(xs) if xs else np.zeros(2)
-        total = len(self.x)
-        self.y = np.concatenate([np.concatenate(v) for v in ys]) if xs else np.zeros(2)
-        self.var_stride = total
-        shift = np.repeat(np.arange(self.rows, dtype=float) * ROW_SHIFT, lens)
-        self.keys = self.x + shift
-        self.row_shift = np.arange(self.rows, dtype=float) * ROW_SHIFT
-        self.xmin = self.x[self.start] if self.rows else np.zeros(0)
-        self.xmax = self.x[self.start + lens - 1] if self.rows else np.zeros(0)
-        n = self.rows
-        self._q = np.zeros(n)
-        self._qs = np.zeros(n)
-        self._i = np.zeros(n, dtype=np.int64)
-        self._i1 = np.zeros(n, dtype=np.int64)
-        self._b = np.zeros(n, dtype=bool)
-        self._x0 = np.zeros(n)
-        self._x1 = np.zeros(n)
-        self._y0 = np.zeros(n)
-        self._y1 = np.zeros(n)
-        self._t = np.zeros(n)
+        self.keys = np.concatenate(keys) if keys else np.zeros(1, dtype=complex)
+        self.seg = np.concatenate(segs)
 
-    def lookup(self, q: np.ndarray, out: np.ndarray, variant: np.ndarray | None = None) -> None:
-        """out[r] = table_r(q[r]) (variant[r] when given), edges held."""
-        x, qq, i, i1, b = self.x, self._q, self._i, self._i1, self._b
-        np.maximum(q, self.xmin, out=qq)
-        np.minimum(qq, self.xmax, out=qq)
-        np.add(qq, self.row_shift, out=self._qs)
-        np.copyto(i, np.searchsorted(self.keys, self._qs, side="right"))
-        i -= 1
-        np.maximum(i, self.start, out=i)
-        np.minimum(i, self.last_seg, out=i)
-        # one-step correction against the exact keys (see module docstring)
-        np.add(i, 1, out=i1)
-        x.take(i1, out=self._x1)
-        np.greater_equal(qq, self._x1, out=b)
-        np.add(i, b, out=i)
-        x.take(i, out=self._x0)
-        np.less(qq, self._x0, out=b)
-        np.subtract(i, b, out=i)
-        np.maximum(i, self.start, out=i)
-        np.minimum(i, self.last_seg, out=i)
-        x.take(i, out=self._x0)
-        np.add(i, 1, out=i1)
-        x.take(i1, out=self._x1)
-        if variant is not None:
-            # variant offsets into the flat value array
-            np.multiply(variant, self.var_stride, out=self._i1)
-            np.add(i, self._i1, out=i)
-            np.add(i, 1, out=i1)
-        self.y.take(i, out=self._y0)
-        self.y.take(i1, out=self._y1)
-        # t = (q − x0)/(x1 − x0); value = y0 + t·(y1 − y0) (same formula as the reference)
-        np.subtract(qq, self._x0, out=self._t)
-        np.subtract(self._x1, self._x0, out=self._x1)
-        np.divide(self._t, self._x1, out=self._t)
-        np.subtract(self._y1, self._y0, out=self._y1)
-        np.multiply(self._t, self._y1, out=out)
-        np.add(self._y0, out, out=out)
+
+class Lookup:
+    """Preallocated query/result buffers of one `MergedTable` for a fixed row count."""
+
+    def __init__(self, table: MergedTable, row_ids: np.ndarray) -> None:
+        n = len(row_ids)
+        self.table = table
+        self.keys, self.seg_table = table.keys, table.seg
+        self.qc = np.zeros(n, dtype=complex)
+        self.qc.real = row_ids
+        self.q = self.qc.imag  # view: write the query positions here
+        self.rowid = self.qc.real  # view: write per-cycle variant row ids here
+        self.seg = np.zeros((n, 3))
+        self.x0, self.y0, self.slope = self.seg[:, 0], self.seg[:, 1], self.seg[:, 2]
+        self.tmp = np.zeros(n)
+
+    def __call__(self, out: np.ndarray) -> None:
+        """out = table_row(q) for the queries in `qc` (5 numpy calls)."""
+        self.seg_table.take(self.keys.searchsorted(self.qc, "right"), axis=0, out=self.seg)
+        np.subtract(self.q, self.x0, self.tmp)
+        np.multiply(self.tmp, self.slope, self.tmp)
+        np.add(self.tmp, self.y0, out)

@@ -1,0 +1,112 @@
+"""Pieces of the fast kernel's optimisations against their readable counterparts.
+
+`test_kernel_equivalence.py` compares whole kernels; these tests aim at the places where
+the fast kernel computes something differently: crosstalk mode 3 as convex regions with
+affine values (vs `triangulation.evaluate`), its scalar fallback for unusual hulls, the
+merged complex-keyed table (vs the reference `interp`) and the sin² weight table.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from geo_server.kernel import Kernel, ReferenceKernel
+from geo_server.kernel import kernel as kmod
+from geo_server.kernel.demo import Motion, random_machine
+from geo_server.kernel.reference import interp
+from geo_server.kernel.sin2 import Sin2Filter
+from geo_server.kernel.tables import Lookup, MergedTable
+from geo_server.kernel.triangulation import INSIDE_EPS, evaluate, triangulate
+
+
+def region_value(regions: list, x: float, y: float, col: int) -> float:
+    for halves, value in regions:
+        if min(a * x + b * y + c for a, b, c in halves) >= -INSIDE_EPS:
+            a, b, c = value[col]
+            return a * x + b * y + c
+    raise AssertionError("point in no region")
+
+
+POINT_SETS = {
+    "random": lambda rng: rng.uniform(-4e6, 4e6, (15, 2)).round(),
+    "grid": lambda rng: np.array([(x, y) for y in (0, 1.5e6, 3e6) for x in (0, 1.5e6, 3e6)]),
+    "collinear": lambda rng: np.array([(0.0, 0.0), (2e6, 1e6), (-2e6, -1e6), (4e6, 2e6)]),
+    "single": lambda rng: np.array([(1e6, -1e6)]),
+    "triangle": lambda rng: np.array([(0.0, 0.0), (1e6, 0.0), (0.0, 1e6)]),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(POINT_SETS))
+@pytest.mark.parametrize("seed", range(4))
+def test_mode3_regions_equal_evaluate(kind: str, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    pts = POINT_SETS[kind](rng)
+    vals = rng.normal(0, 40, (len(pts), 4)).round()
+    tri = triangulate(tuple((float(x), float(y)) for x, y in pts))
+    regions = kmod._regions(tri, vals)
+    assert regions is not None
+    queries = np.concatenate(
+        [
+            rng.uniform(-1e7, 1e7, (400, 2)),
+            pts + rng.normal(0, 1.0, pts.shape),  # near the test points
+            pts,  # on them
+        ]
+    )
+    for x, y in queries:
+        for col in range(4):
+            want = evaluate(tri, list(vals[:, col]), float(x), float(y))
+            assert region_value(regions, float(x), float(y), col) == pytest.approx(want, abs=1e-9)
+
+
+def test_mode3_scalar_fallback_equals_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rows whose hull is not a plain convex cycle use the scalar `evaluate`."""
+    monkeypatch.setattr(kmod, "_hull_cycle", lambda tri: None)
+    n = 6
+    for seed in range(3):
+        cfg = random_machine(n, seed)
+        fast, ref = Kernel(cfg), ReferenceKernel(cfg)
+        m = Motion(n, seed)
+        for _ in range(300):
+            m.step()
+            fast.step(m.pos, m.vel, m.acc, m.homed, m.reversal)
+            ref.step(m.pos, m.vel, m.acc, m.homed, m.reversal)
+            np.testing.assert_allclose(fast.actual, ref.actual, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(fast.target, ref.target, rtol=0, atol=1e-9)
+
+
+def test_merged_table_equals_interp() -> None:
+    rng = np.random.default_rng(7)
+    rows = []
+    for _ in range(30):
+        m = int(rng.integers(1, 12))
+        x = np.sort(rng.uniform(-1e6, 1e6, m)).round()
+        x = np.unique(x)
+        rows.append((x, rng.normal(0, 50, len(x))))
+    table = MergedTable(rows)
+    r = np.repeat(np.arange(len(rows)), 50)
+    lk = Lookup(table, r.astype(float))
+    lk.q[:] = rng.uniform(-1.5e6, 1.5e6, len(r))
+    # exact knots, their neighbours and the edges
+    for j, (x, _) in enumerate(rows):
+        lk.q[j * 50 : j * 50 + len(x)] = x
+        lk.q[j * 50 + 20] = np.nextafter(x[0], -np.inf)
+        lk.q[j * 50 + 21] = np.nextafter(x[-1], np.inf)
+    out = np.zeros(len(r))
+    lk(out)
+    for i, (row, q) in enumerate(zip(r, lk.q, strict=True)):
+        x, y = rows[row]
+        assert out[i] == pytest.approx(interp(list(x), list(y), float(q)), abs=1e-9)
+
+
+def test_sin2_weight_table_is_bit_identical() -> None:
+    ns = np.array([[0, 1, 2, 7, 20]])
+    f = Sin2Filter(ns)
+    ev = np.ones(ns.shape, dtype=bool)
+    for k in range(1, 25):
+        f.advance(ev if k == 1 else ~ev)
+        for j, n in enumerate(ns[0]):
+            want = 0.0 if n == 0 else math.cos(math.pi * min(k, n) / (2 * n)) ** 2
+            assert f.w[0, j] == want

@@ -69,9 +69,13 @@ def _watch(args: argparse.Namespace, client: Any) -> int:
     else:
         obj, axis = _target(args)
         key = client.keyspace().named_key(obj, axis)
+    seen = 0
     try:
         for k, v in client.watch(key):
             print(json.dumps({"key": k, "value": v}) if args.json else f"{k} = {v}", flush=True)
+            seen += 1
+            if args.count and seen >= args.count:
+                break
     except KeyboardInterrupt:
         pass
     return 0
@@ -125,6 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
         s = sub.add_parser(name, help=help_)
         s.add_argument("--axis", type=int, default=1, help="logical axis number (default 1)")
         s.add_argument("target", nargs="+")
+        if name == "watch":
+            s.add_argument("--count", type=int, default=0, help="stop after N updates")
         s.set_defaults(func=func)
     s = sub.add_parser("nc", help="execute NC lines")
     s.add_argument("lines", nargs="*")

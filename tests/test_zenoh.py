@@ -325,3 +325,26 @@ def test_geo_client_read_write(server, capsys):
     assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
     assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
+
+
+def test_geo_client_commands(server, capsys):
+    base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
+    svc = server.service
+    svc.step(4)
+    assert client_main([*base, "--json", "status"]) == 0
+    assert json.loads(capsys.readouterr().out)["cycle"] == 4
+    assert client_main([*base, "nc", "X[COMP OFF TEMP]"]) == 0
+    assert json.loads(capsys.readouterr().out)["ok"] is True
+    svc.step(2)
+    assert svc.read_name("TEMPC::activated", 1) is False
+    assert client_main([*base, "nc", "G05 X1"]) == 1  # not in the supported subset
+    assert "ADS 0x70D" in capsys.readouterr().err
+    assert client_main([*base, "--json", "errors"]) == 0
+    assert isinstance(json.loads(capsys.readouterr().out), list)
+    # watch: the first publication of the value, then stop
+    assert (
+        client_main([*base, "--json", "watch", "--count", "1", "--axis", "1", "TEMPC::coefficient"])
+        == 0
+    )
+    out = json.loads(capsys.readouterr().out)
+    assert out == {"key": "cnc/t/axis/1/tempc/coefficient", "value": 4000.0}

@@ -144,9 +144,12 @@ class ZenohClient:
         return json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
 
     def watch(self, key_expr: str) -> Iterator[tuple[str, Any]]:
-        """Yield (key, decoded JSON) for every publication on `key_expr` (blocking)."""
+        """Yield (key, decoded JSON): the current values first, then every publication
+        on `key_expr` (blocking; publications arrive on change, SPEC §7)."""
         q: queue.Queue[tuple[str, bytes]] = queue.Queue()
         self.subscribe(key_expr, lambda k, v: q.put((k, v)))
+        for key, data in self.get(key_expr):
+            yield key, json.loads(data)
         while True:
             key, data = q.get()
             yield key, json.loads(data)

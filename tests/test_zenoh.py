@@ -348,3 +348,59 @@ def test_geo_client_commands(server, capsys):
     )
     out = json.loads(capsys.readouterr().out)
     assert out == {"key": "cnc/t/axis/1/tempc/coefficient", "value": 4000.0}
+
+
+# ---------------------------------------------------------------------------- exposure
+
+ACL = """{
+  access_control: {
+    enabled: true,
+    default_permission: "allow",
+    rules: [
+      { id: "no-commands", permission: "deny", flows: ["ingress", "egress"],
+        messages: ["query", "reply"], key_exprs: ["cnc/acl/cmd/**"] },
+    ],
+    subjects: [ { id: "loopback", interfaces: ["lo"] } ],
+    policies: [ { rules: ["no-commands"], subjects: ["loopback"] } ],
+  },
+}
+"""
+
+
+def test_access_control_config_refuses_a_denied_key(loop_thread, service, tmp_path):
+    acl = tmp_path / "acl.json5"
+    acl.write_text(ACL, encoding="utf-8")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    opts = ZenohOptions(machine="acl", listen=[endpoint], config_file=str(acl))
+    iface = ZenohInterface(service, opts)
+    run_in(loop_thread, iface.start())
+    s = zenoh.open(session_config([endpoint]))
+    try:
+        assert json.loads(get_one(s, "cnc/acl/axis/1/tempc/coefficient")) == 4000.0
+        oks, errs = get(s, "cnc/acl/cmd/save", b"{}")
+        assert oks == [] and errs == []  # the query never reaches the server
+    finally:
+        s.close()
+        run_in(loop_thread, iface.close())
+
+
+def test_read_only_interface_rejects_writes(loop_thread, service):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    iface = ZenohInterface(service, ZenohOptions(machine="ro", listen=[endpoint], read_only=True))
+    run_in(loop_thread, iface.start())
+    s = zenoh.open(session_config([endpoint]))
+    try:
+        assert json.loads(get_one(s, "cnc/ro/axis/1/tempc/coefficient")) == 4000.0
+        for key, payload in [
+            ("cnc/ro/axis/1/tempc/coefficient", b"1"),
+            ("cnc/ro/ads/551/0x120300/0x10044", b"\0\0\0\0"),
+            ("cnc/ro/nc", b"X[COMP OFF TEMP]"),
+            ("cnc/ro/cmd/save", b"{}"),
+        ]:
+            assert get_err(s, key, payload)["ads_error"] == 0x704
+        service.step(2)
+        assert service.read_name("TEMPC::coefficient", 1) == 4000.0
+        assert service.read_name("TEMPC::activated", 1) is True
+    finally:
+        s.close()
+        run_in(loop_thread, iface.close())

@@ -119,7 +119,7 @@ async def _serve(args: argparse.Namespace, service: Any) -> None:
             connect=args.zenoh_connect or [],
             config_file=args.zenoh_config,
             multicast_scouting=args.zenoh_scouting,
-            read_only=args.read_only,
+            read_only=args.read_only or args.zenoh_read_only,
         )
         zi = ZenohInterface(service, opts)
         await zi.start()
@@ -134,11 +134,30 @@ async def _serve(args: argparse.Namespace, service: Any) -> None:
 
         mb = ModbusInterface(
             service,
-            ModbusOptions(host=args.modbus_host, port=args.modbus_port, read_only=args.read_only),
+            ModbusOptions(
+                host=args.modbus_host,
+                port=args.modbus_port,
+                read_only=args.read_only or args.modbus_read_only,
+            ),
         )
         await mb.start()
         interfaces.append(mb)
         print(f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)", flush=True)
+    if not args.no_ads:
+        from geo_server.ads.server import AdsOptions, AdsServer
+
+        ads = AdsServer(
+            service,
+            AdsOptions(
+                host=args.ads_host,
+                port=args.ads_port,
+                netid=args.ads_netid,
+                read_only=args.read_only or args.ads_read_only,
+            ),
+        )
+        await ads.start()
+        interfaces.append(ads)
+        print(f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port 551", flush=True)
     try:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
@@ -203,6 +222,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--no-modbus", action="store_true", help="do not start Modbus TCP")
     m.add_argument("--modbus-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
     m.add_argument("--modbus-port", type=int, default=5020, help="listen port (default 5020)")
+    m.add_argument("--modbus-read-only", action="store_true", help="reject Modbus writes")
+    z.add_argument("--zenoh-read-only", action="store_true", help="reject Zenoh writes")
+    a = r.add_argument_group("ads")
+    a.add_argument("--no-ads", action="store_true", help="do not start ADS/AMS over TCP")
+    a.add_argument("--ads-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
+    a.add_argument("--ads-port", type=int, default=48898, help="listen port (default 48898)")
+    a.add_argument("--ads-netid", default="127.0.0.1.1.1", help="own AMS NetId")
+    a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
     r.set_defaults(func=_run)
 
     mm = sub.add_parser("modbus-map", help="print the Modbus register map")

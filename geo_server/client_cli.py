@@ -118,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--host", default="127.0.0.1", help="server address (Modbus, ADS)")
     p.add_argument("--port", type=int, help="server port (Modbus 5020, ADS 48898)")
+    p.add_argument("--netid", default="127.0.0.1.1.1", help="AMS NetId of the server (ADS)")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
     sub = p.add_subparsers(dest="command", required=True)
@@ -154,7 +155,10 @@ def _client_options(args: argparse.Namespace) -> dict[str, Any]:
             "timeout": args.timeout,
         }
     default_port = {"modbus": 5020, "ads": 48898}[args.via]
-    return {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+    options = {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+    if args.via == "ads":
+        options["netid"] = args.netid
+    return options
 
 
 def _client_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -165,7 +169,10 @@ def _client_options(args: argparse.Namespace) -> dict[str, Any]:
             "timeout": args.timeout,
         }
     default_port = {"modbus": 5020, "ads": 48898}[args.via]
-    return {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+    options = {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
+    if args.via == "ads":
+        options["netid"] = args.netid
+    return options
 
 
 def main(argv: list[str] | None = None) -> int:

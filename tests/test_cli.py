@@ -61,7 +61,7 @@ def test_check_exit_codes(tmp_path, lists_copy):
 
 
 def test_run_serves_and_stops(tmp_path):
-    zport, mport = free_port(), free_port()
+    zport, mport, aport = free_port(), free_port(), free_port()
     r = run(
         [
             *script("geo-server"),
@@ -75,6 +75,8 @@ def test_run_serves_and_stops(tmp_path):
             f"tcp/127.0.0.1:{zport}",
             "--modbus-port",
             str(mport),
+            "--ads-port",
+            str(aport),
         ],
         tmp_path,
         timeout=60,
@@ -82,6 +84,7 @@ def test_run_serves_and_stops(tmp_path):
     assert r.returncode == 0, r.stderr
     assert f"tcp/127.0.0.1:{zport}" in r.stdout
     assert f"127.0.0.1:{mport}" in r.stdout
+    assert f"127.0.0.1:{aport}" in r.stdout
     assert "lateness p50" in r.stdout and "stopped after" in r.stdout
 
 

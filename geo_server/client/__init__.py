@@ -34,7 +34,7 @@ def resolve(index_group: int, index_offset: int) -> ObjectDef:
 
 
 def connect(via: str = "zenoh", **options: Any) -> GeoClient:
-    """Open a client over `via` (`zenoh`, `modbus`); `options` go to its constructor."""
+    """Open a client over `via` (`zenoh`, `modbus`, `ads`); `options` go to its constructor."""
     if via == "zenoh":
         from geo_server.client.zenoh_client import ZenohClient
 
@@ -43,8 +43,12 @@ def connect(via: str = "zenoh", **options: Any) -> GeoClient:
         from geo_server.client.modbus_client import ModbusClient
 
         return ModbusClient(**options)
+    if via == "ads":
+        from geo_server.client.ads_client import AdsClient
+
+        return AdsClient(**options)
     raise ValueError(f"unknown transport {via!r} (available: {', '.join(TRANSPORTS)})")
 
 
 #: The transports `connect()` knows.
-TRANSPORTS = ("zenoh", "modbus")
+TRANSPORTS = ("zenoh", "modbus", "ads")

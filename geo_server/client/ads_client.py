@@ -24,6 +24,7 @@ pyads is an optional dependency (`pip install geo-server[test]` or `pip install 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import threading
 from collections.abc import Callable, Sequence
@@ -43,6 +44,18 @@ def _pyads() -> Any:
             "the ADS client needs pyads: pip install pyads (or geo-server[test])"
         ) from exc
     return pyads
+
+
+def close_port_first(conn: Any) -> None:
+    """Close a `pyads.Connection` safely even with live notifications: AMS port first
+    (AdsLib deletes the notifications with the server), then the route."""
+    pyads = _pyads()
+    if not conn.is_open:
+        return
+    if conn._port is not None:
+        pyads.pyads_ex.adsPortCloseEx(conn._port)
+        conn._port = None
+    conn.close()  # only the route is left to delete
 
 
 def _ads_error(exc: Exception) -> AdsError:
@@ -78,9 +91,17 @@ class AdsClient:
     # ------------------------------------------------------------------ lifecycle
 
     def close(self) -> None:
+        """Delete our notifications, close the AMS port, then drop the route.
+
+        This order matters: pyads' `Connection.close()` deletes the route (and with it the
+        TCP connection) *before* closing the port, and AdsLib's port close then deletes
+        any remaining notifications over the freed connection — a segmentation fault
+        (pyads 3.6.0, verified). Closing the port first lets AdsLib delete them cleanly.
+        """
         for handle in list(self._notifications):
-            self.unsubscribe(handle)
-        self.conn.close()
+            with contextlib.suppress(AdsError):
+                self.unsubscribe(handle)
+        close_port_first(self.conn)
 
     def __enter__(self) -> AdsClient:
         return self

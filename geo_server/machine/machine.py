@@ -111,6 +111,7 @@ class Machine:
         self._period = np.array([cfg.axes[a].params.modulo_period for a in self.axes])
         for d in cfg.diagnostics:
             self._record(d)
+        self._layout_sources()
         self.snapshot: Snapshot = self._build_snapshot()
 
     # ------------------------------------------------------------------ the cycle
@@ -170,68 +171,54 @@ class Machine:
 
     # ------------------------------------------------------------------ snapshot
 
+    def _layout_sources(self) -> None:
+        """Precompute where every snapshot column comes from (no name lookups per cycle)."""
+        col = self.layout.col
+        self._comp_groups = []
+        for attr in ("actual", "target", "delta", "selected", "effective"):
+            pairs = [(col(name), C[kind]) for name, (a, kind) in _FROM_COMP.items() if a == attr]
+            cols, idx = zip(*pairs, strict=True)
+            self._comp_groups.append((attr, np.array(cols), np.array(idx)))
+        self._vector_cols = [(col(name), fn) for name, fn in _FROM_STATE.items()]
+        mcol = self.layout.mcol
+        self._mcols = tuple(
+            mcol(n)
+            for n in (
+                "SIM::cycle_count",
+                "SIM::cycle_time_us",
+                "SIM::overruns",
+                "SIM::last_error_id",
+            )
+        )
+
     def _build_snapshot(self) -> Snapshot:
-        lay, k, m = self.layout, self.kernel, self.motion
-        n = len(self.axes)
-        v = np.zeros((n, len(lay.axis_objects)))
-        col = lay.col
+        """SPEC §5 step 4: every object of every axis, from this cycle's state."""
+        k = self.kernel
+        v = np.empty((len(self.axes), len(self.layout.axis_objects)))
+        # Deltas are differences of the published (rounded) values, so that the deltas
+        # of a ramp add up to its actual value.
         _round_half_away(k.actual, self._rounded)
         np.subtract(self._rounded, self._prev_rounded, out=self._scratch)
         self._prev_rounded[...] = self._rounded
-        delta = self._scratch
-        bc, tp, cr, pl, ls, ct = (
-            C[x]
-            for x in (
-                CompKind.BACKLASH,
-                CompKind.TEMP,
-                CompKind.CROSS,
-                CompKind.PLANE,
-                CompKind.LEAD,
-                CompKind.CROSSTALK,
-            )
+        sources = {
+            "actual": k.actual,
+            "target": k.target,
+            "delta": self._scratch,
+            "selected": k.selected,
+            "effective": k.effective,
+        }
+        for attr, cols, idx in self._comp_groups:
+            v[:, cols] = sources[attr][:, idx]
+        for c, fn in self._vector_cols:
+            v[:, c] = fn(self)
+        mach = np.zeros(len(self.layout.machine_objects))
+        mach[list(self._mcols)] = (
+            self.cycle & 0xFFFF_FFFF,
+            round(self.cycle_s * 1e6),
+            self.overruns,
+            self.last_error_id,
         )
-        v[:, col("BC::actual backlash")] = k.actual[:, bc]
-        v[:, col("BC::sum backlash")] = k.target[:, bc]
-        v[:, col("BC::delta backlash")] = delta[:, bc]
-        v[:, col("BC::conf. backlash")] = self._lose
-        v[:, col("TEMPC::activated")] = k.selected[:, tp]
-        v[:, col("TEMPC::f_is_active")] = k.effective[:, tp]
-        v[:, col("TEMPC::actual_offset")] = k.actual[:, tp]
-        coefficient, offset_0, position_0 = k.tempc_params
-        v[:, col("TEMPC::coefficient")] = coefficient
-        v[:, col("TEMPC::offset_0")] = offset_0
-        v[:, col("TEMPC::position_0")] = position_0
-        v[:, col("CROSSC::f_is_active")] = k.effective[:, cr]
-        v[:, col("CROSSC::activated")] = k.selected[:, cr]
-        v[:, col("CROSSC::actual_offset")] = k.actual[:, cr]
-        v[:, col("CROSSC::delta_offset")] = delta[:, cr]
-        v[:, col("CC2::correction")] = k.actual[:, pl]
-        v[:, col("CC2::activated")] = k.selected[:, pl]
-        v[:, col("ssfk activated")] = k.selected[:, ls]
-        v[:, col("LSEC::active")] = k.effective[:, ls]
-        v[:, col("LSEC::epsilon")] = delta[:, ls]
-        v[:, col("LSEC::sum epsilon")] = k.actual[:, ls]
-        v[:, col("CROSSTALK::activated")] = k.selected[:, ct]
-        v[:, col("CROSSTALK::actual_offset")] = k.actual[:, ct]
-        v[:, col("CROSSTALK::delta_offset")] = delta[:, ct]
-        v[:, col("CROSSTALK::end_offset")] = k.target[:, ct]
-        display = m.display_pos(self._display)
-        v[:, col("SIM::command_position")] = display
-        v[:, col("SIM::set_position")] = display
-        v[:, col("SIM::target_position")] = m.target
-        v[:, col("SIM::velocity")] = m.vel / UNITS_PER_UM
-        v[:, col("SIM::acceleration")] = m.acc / UNITS_PER_MM
-        v[:, col("SIM::homed")] = m.homed
-        v[:, col("SIM::output_position")] = m.pos + k.total_offset
-        v[:, col("SIM::total_offset")] = k.total_offset
-        v[:, col("SIM::feed")] = m.feed / UNITS_PER_UM
-        v[:, col("FRICT::additive_current")] = k.friction_current
-        mach = np.zeros(len(lay.machine_objects))
-        mach[lay.mcol("SIM::cycle_count")] = self.cycle & 0xFFFF_FFFF
-        mach[lay.mcol("SIM::cycle_time_us")] = round(self.cycle_s * 1e6)
-        mach[lay.mcol("SIM::overruns")] = self.overruns
-        mach[lay.mcol("SIM::last_error_id")] = self.last_error_id
-        return Snapshot(self.cycle, self.axes, v, mach, lay)
+        return Snapshot(self.cycle, self.axes, v, mach, self.layout)
 
     # ------------------------------------------------------------------ events
 
@@ -391,6 +378,56 @@ def _mask(kinds: Iterable[CompKind]) -> CompKind:
 
 
 ALL_COMPS = _mask(COMP_ORDER)
+
+
+B, T, X, P, L, K = (
+    CompKind.BACKLASH,
+    CompKind.TEMP,
+    CompKind.CROSS,
+    CompKind.PLANE,
+    CompKind.LEAD,
+    CompKind.CROSSTALK,
+)
+#: Axis objects fed by a kernel [n, 7] array: object -> (array, compensation) (SPEC §2).
+_FROM_COMP: dict[str, tuple[str, CompKind]] = {
+    "BC::actual backlash": ("actual", B),
+    "BC::sum backlash": ("target", B),
+    "BC::delta backlash": ("delta", B),
+    "TEMPC::activated": ("selected", T),
+    "TEMPC::f_is_active": ("effective", T),
+    "TEMPC::actual_offset": ("actual", T),
+    "CROSSC::f_is_active": ("effective", X),
+    "CROSSC::activated": ("selected", X),
+    "CROSSC::actual_offset": ("actual", X),
+    "CROSSC::delta_offset": ("delta", X),
+    "CC2::correction": ("actual", P),
+    "CC2::activated": ("selected", P),
+    "ssfk activated": ("selected", L),
+    "LSEC::active": ("effective", L),
+    "LSEC::epsilon": ("delta", L),
+    "LSEC::sum epsilon": ("actual", L),
+    "CROSSTALK::activated": ("selected", K),
+    "CROSSTALK::actual_offset": ("actual", K),
+    "CROSSTALK::delta_offset": ("delta", K),
+    "CROSSTALK::end_offset": ("target", K),
+}
+#: Axis objects fed by per-axis state vectors (emulator group, TEMPC parameters).
+_FROM_STATE: dict[str, Callable[[Machine], Any]] = {
+    "BC::conf. backlash": lambda m: m._lose,
+    "TEMPC::coefficient": lambda m: m.kernel.tempc_params[0],
+    "TEMPC::offset_0": lambda m: m.kernel.tempc_params[1],
+    "TEMPC::position_0": lambda m: m.kernel.tempc_params[2],
+    "SIM::command_position": lambda m: m.motion.display_pos(m._display),
+    "SIM::set_position": lambda m: m._display,
+    "SIM::target_position": lambda m: m.motion.target,
+    "SIM::velocity": lambda m: m.motion.vel / UNITS_PER_UM,
+    "SIM::acceleration": lambda m: m.motion.acc / UNITS_PER_MM,
+    "SIM::homed": lambda m: m.motion.homed,
+    "SIM::output_position": lambda m: m.motion.pos + m.kernel.total_offset,
+    "SIM::total_offset": lambda m: m.kernel.total_offset,
+    "SIM::feed": lambda m: m.motion.feed / UNITS_PER_UM,
+    "FRICT::additive_current": lambda m: m.kernel.friction_current,
+}
 
 
 def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:

@@ -1,0 +1,625 @@
+"""ADS over AMS/TCP (SPEC §9): a thin asyncio shell over the codec and the object service.
+
+One `asyncio.Protocol` per TCP connection feeds received bytes into a `codec.Framer`,
+dispatches each complete request to `AdsServer.handle_packet`, and writes the response
+frames. Reads are answered synchronously from the published snapshot; writes are
+validated at once (0x702…0x706) and applied by the GEO cycle at the next boundary — with
+running cycles the response waits until the write was applied, in stepped mode it is
+acknowledged as soon as it is queued (nobody runs the cycle until the test steps).
+
+Served (Beckhoff "ADS commands"; research §1): ReadDeviceInfo, Read, Write, ReadState,
+ReadWrite (incl. sum commands 0xF080 read, 0xF081 write, 0xF082 read-write, 0xF083
+read-ex, 0xF084 read-ex2), AddDeviceNotification, DeleteDeviceNotification and
+server-sent DeviceNotification. WriteControl and unknown commands answer 0x701. A request
+for another AMS port than 551 gets AMS error 0x6 (target port not found) in the AMS
+header with an empty payload — AdsLib returns a non-zero AMS header error code as is.
+
+Robustness: partial and coalesced TCP segments are reassembled; a frame that is too short
+or inconsistent is answered (0xE invalid AMS length) or skipped; only an AMS/TCP length
+beyond `max_frame` or an unknown AMS/TCP header kind closes that connection. A failing
+handler answers 0x700 and is logged; other connections are never affected.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any
+
+import geo_server
+from geo_server.ads import codec
+from geo_server.ads.codec import (
+    AddNotificationRequest,
+    AdsState,
+    AmsHeader,
+    AmsPacket,
+    BadPacket,
+    Command,
+    DeleteNotificationRequest,
+    Dropped,
+    FramingError,
+    PayloadError,
+    ReadDeviceInfoRequest,
+    ReadRequest,
+    ReadStateRequest,
+    ReadWriteRequest,
+    ReturnCode,
+    Stamp,
+    SumGroup,
+    WriteControlRequest,
+    WriteRequest,
+)
+from geo_server.ads.notifications import Batch, NotificationTable
+from geo_server.dictionary import AdsError
+from geo_server.machine.snapshot import Snapshot
+from geo_server.service import ObjectService
+
+log = logging.getLogger(__name__)
+
+GEO_AMS_PORT = 551
+#: Objects whose write runs a command synchronously (list reload/save): run off the loop.
+_BLOCKING_WRITES = frozenset({"SIM::reload", "SIM::save"})
+
+
+@dataclass
+class AdsOptions:
+    """How the ADS interface listens (SPEC §9)."""
+
+    host: str = "127.0.0.1"
+    port: int = 48898  # 0 = ephemeral (tests); the bound port is `AdsServer.port`
+    netid: str = "127.0.0.1.1.1"  # own AMS NetId
+    ams_ports: tuple[int, ...] = (GEO_AMS_PORT,)
+    read_only: bool = False  # every write answers 0x704
+    #: Reject requests addressed to another NetId with AMS error 0x7 (target machine not
+    #: found). Off by default: a stand-alone server answers whatever NetId the client
+    #: routed to it, and notifications echo that NetId so AdsLib dispatches them.
+    strict_netid: bool = False
+    max_frame: int = codec.MAX_FRAME
+    write_timeout: float = 2.0  # waiting for a write to be applied (running cycles)
+    max_notifications: int = 1024  # per connection
+    #: Notification frames are dropped (and counted) for a client whose unsent data
+    #: exceeds this: a stalled client must not make the server buffer without bound.
+    notification_backlog: int = 4 * 1024 * 1024
+    device_name: str = "geo-server"
+    #: With running cycles, no notification sample earlier than this many seconds after
+    #: its registration (AdsLib drops samples that overtake its own bookkeeping).
+    first_sample_hold: float = 0.005
+
+    def __post_init__(self) -> None:
+        codec.netid_to_bytes(self.netid)  # ValueError early for a malformed NetId
+
+
+@dataclass
+class AdsStats:
+    requests: int = 0
+    errors: int = 0  # responses with a non-zero result
+    dropped_frames: int = 0
+    closed_for_framing: int = 0
+    notifications_sent: int = 0
+    notifications_dropped: int = 0
+    connections: int = 0
+
+
+def _version() -> tuple[int, int, int]:
+    parts = [*geo_server.__version__.split("."), "0", "0"]
+    nums = []
+    for p in parts[:3]:
+        digits = "".join(ch for ch in p if ch.isdigit())
+        nums.append(int(digits) if digits else 0)
+    return nums[0], nums[1], nums[2]
+
+
+def error_payload(command: int, code: int) -> bytes:
+    """The response payload of `command` carrying only an error `code` (all fields the
+    client parses present, zero)."""
+    if command in (Command.READ, Command.READ_WRITE):
+        return codec.read_response(code)
+    if command == Command.ADD_DEVICE_NOTIFICATION:
+        return codec.add_notification_response(code)
+    if command == Command.READ_STATE:
+        return codec.read_state_response(code)
+    if command == Command.READ_DEVICE_INFO:
+        return codec.read_device_info_response(code)
+    return codec.result_response(code)
+
+
+#: What a command handler returns: the response payload now or later.
+Reply = bytes | Awaitable[bytes]
+_KNOWN_COMMANDS = frozenset(int(c) for c in Command)
+
+
+class AdsServer:
+    """Serve one `ObjectService` over ADS/AMS-TCP."""
+
+    def __init__(self, service: ObjectService, options: AdsOptions | None = None) -> None:
+        self.service = service
+        self.options = options or AdsOptions()
+        self.stats = AdsStats()
+        cycle_s = float(getattr(service.machine, "cycle_s", 0.001))
+        self.notifications = NotificationTable(
+            self._read_padded, cycle_s, self.options.max_notifications
+        )
+        self._server: asyncio.AbstractServer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._connections: set[AdsConnection] = set()
+        self._unsubscribe: Callable[[], None] | None = None
+        self._notify_invoke = 0
+        self._major, self._minor, self._build = _version()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Listen and subscribe to the GEO cycle (for notifications)."""
+        self._loop = asyncio.get_running_loop()
+        self._server = await self._loop.create_server(
+            lambda: AdsConnection(self), self.options.host, self.options.port
+        )
+        self._unsubscribe = self.service.subscribe(self._on_cycle_thread)
+        log.info("ADS listening on %s:%d as %s", self.options.host, self.port, self.options.netid)
+
+    async def close(self) -> None:
+        """Stop listening, drop every connection and notification."""
+        if self._unsubscribe is not None:
+            with contextlib.suppress(ValueError):
+                self._unsubscribe()
+            self._unsubscribe = None
+        if self._server is not None:
+            self._server.close()
+        for conn in list(self._connections):
+            conn.abort()
+        if self._server is not None:
+            await self._server.wait_closed()
+            self._server = None
+
+    async def __aenter__(self) -> AdsServer:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    @property
+    def port(self) -> int:
+        """The bound TCP port (useful with `port=0`)."""
+        if self._server is None or not self._server.sockets:
+            return self.options.port
+        return int(self._server.sockets[0].getsockname()[1])
+
+    @property
+    def address(self) -> str:
+        """`host:port` as pyads' `Connection(netid, 551, address)` wants it."""
+        return f"{self.options.host}:{self.port}"
+
+    @property
+    def connection_count(self) -> int:
+        return len(self._connections)
+
+    # ------------------------------------------------------------------ dispatch
+
+    def handle_packet(self, conn: AdsConnection, packet: AmsPacket) -> None:
+        """Answer one request on `conn` (never raises)."""
+        h = packet.header
+        if h.is_response or h.command == Command.DEVICE_NOTIFICATION:
+            # A response or a notification sent to us: there is nothing to answer.
+            self.stats.dropped_frames += 1
+            return
+        self.stats.requests += 1
+        if h.target.port not in self.options.ams_ports:
+            self.stats.errors += 1
+            conn.send(codec.response_frame(h, b"", ReturnCode.TARGET_PORT_NOT_FOUND))
+            return
+        if self.options.strict_netid and h.target.netid != self.options.netid:
+            self.stats.errors += 1
+            conn.send(codec.response_frame(h, b"", ReturnCode.TARGET_MACHINE_NOT_FOUND))
+            return
+        try:
+            reply = self._dispatch(conn, packet)
+        except AdsError as exc:
+            reply = error_payload(h.command, exc.code)
+        except PayloadError as exc:
+            reply = error_payload(h.command, exc.code)
+        except Exception:
+            log.exception("ADS %s request failed", h.command)
+            reply = error_payload(h.command, ReturnCode.DEVICE_ERROR)
+        if isinstance(reply, bytes):
+            self._respond(conn, h, reply)
+        else:
+            conn.spawn(self._respond_later(conn, h, reply))
+
+    def _respond(self, conn: AdsConnection, h: AmsHeader, payload: bytes) -> None:
+        if payload[:4] != b"\0\0\0\0":
+            self.stats.errors += 1
+        # An unknown command id also carries 0x701 in the AMS header: a client cannot
+        # know the layout of a response to a command it should not have sent.
+        error = 0 if h.command in _KNOWN_COMMANDS else ReturnCode.DEVICE_SRVNOTSUPP
+        conn.send(codec.response_frame(h, payload, error))
+
+    async def _respond_later(
+        self, conn: AdsConnection, h: AmsHeader, reply: Awaitable[bytes]
+    ) -> None:
+        try:
+            payload = await reply
+        except AdsError as exc:
+            payload = error_payload(h.command, exc.code)
+        except Exception:
+            log.exception("ADS %s request failed", h.command)
+            payload = error_payload(h.command, ReturnCode.DEVICE_ERROR)
+        self._respond(conn, h, payload)
+
+    def _dispatch(self, conn: AdsConnection, packet: AmsPacket) -> Reply:
+        req = codec.parse_request(packet)
+        if isinstance(req, ReadRequest):
+            return codec.read_response(
+                0, self.service.read(req.index_group, req.index_offset, req.length)
+            )
+        if isinstance(req, ReadWriteRequest):
+            return self._read_write(req)
+        if isinstance(req, WriteRequest):
+            return self._write_reply(req.index_group, req.index_offset, req.data)
+        if isinstance(req, AddNotificationRequest):
+            return self._add_notification(conn, packet.header, req)
+        if isinstance(req, DeleteNotificationRequest):
+            self.notifications.delete(conn, req.handle)
+            return codec.result_response(0)
+        if isinstance(req, ReadStateRequest):
+            return codec.read_state_response(0, AdsState.RUN, 0)
+        if isinstance(req, ReadDeviceInfoRequest):
+            return codec.read_device_info_response(
+                0, self._major, self._minor, self._build, self.options.device_name
+            )
+        if isinstance(req, WriteControlRequest):
+            # The CNC object interface offers Read, Write and ReadWrite only (TF5200).
+            return codec.result_response(ReturnCode.DEVICE_SRVNOTSUPP)
+        return codec.result_response(ReturnCode.DEVICE_SRVNOTSUPP)
+
+    # ------------------------------------------------------------------ reads
+
+    def _read_padded(self, ig: int, io: int, length: int, snap: Snapshot) -> bytes:
+        return self.service.read(ig, io, length, snap)
+
+    def _read_codes(
+        self, items: Sequence[tuple[int, int, int]], snap: Snapshot
+    ) -> list[tuple[int, bytes]]:
+        out: list[tuple[int, bytes]] = []
+        for ig, io, length in items:
+            try:
+                out.append((0, self.service.read(ig, io, length, snap)))
+            except AdsError as exc:
+                out.append((exc.code, b""))
+        return out
+
+    def _read_write(self, req: ReadWriteRequest) -> Reply:
+        ig, io = req.index_group, req.index_offset
+        if ig in _SUM_GROUPS:
+            return self._sum(req)
+        if not req.data:
+            return codec.read_response(0, self.service.read(ig, io, req.read_length))
+        # Write, then read the object back (after it was applied when cycles run; in
+        # stepped mode the value read back is still the one of the current snapshot).
+        write = self._write_reply(ig, io, req.data)
+
+        def read_back(write_answer: bytes) -> bytes:
+            result = codec.parse_result(write_answer)
+            if result:
+                return codec.read_response(result)
+            return codec.read_response(0, self.service.read(ig, io, req.read_length))
+
+        if isinstance(write, bytes):
+            return read_back(write)
+
+        async def later(pending: Awaitable[bytes]) -> bytes:
+            return read_back(await pending)
+
+        return later(write)
+
+    def _sum(self, req: ReadWriteRequest) -> Reply:
+        group, count, data = req.index_group, req.index_offset, req.data
+        if group in (SumGroup.READ, SumGroup.READ_EX, SumGroup.READ_EX2):
+            subs = codec.parse_sum_read(count, data)
+            if group != SumGroup.READ_EX2:
+                # The answer holds every requested length: check it fits the read buffer
+                # before building it (a sub-request may ask for gigabytes).
+                head = 4 if group == SumGroup.READ else 8
+                self._fit_size(head * len(subs) + sum(s.length for s in subs), req.read_length)
+            items = [(s.index_group, s.index_offset, s.length) for s in subs]
+            results = self._read_codes(items, self.service.snapshot)
+            if group == SumGroup.READ_EX2:
+                out = codec.sum_read_ex_response(results)
+            elif group == SumGroup.READ_EX:
+                out = codec.sum_read_ex_response(results, [s.length for s in subs])
+            else:
+                out = codec.sum_read_response(results, [s.length for s in subs])
+            return self._fit(out, req.read_length)
+        if group == SumGroup.WRITE:
+            writes = codec.parse_sum_write(count, data)
+            codes, futures = self._queue_writes(
+                [(w.index_group, w.index_offset, w.data) for w in writes]
+            )
+            if not self._must_wait(futures):
+                return self._fit(codec.sum_write_response(codes), req.read_length)
+
+            async def done() -> bytes:
+                final = await self._await_writes(codes, futures)
+                return self._fit(codec.sum_write_response(final), req.read_length)
+
+            return done()
+        if group == SumGroup.READ_WRITE:
+            subs_rw = codec.parse_sum_read_write(count, data)
+            to_write = [
+                (s.index_group, s.index_offset, s.data) if s.data else None for s in subs_rw
+            ]
+            codes, futures = self._queue_writes(to_write)
+
+            def finish(write_codes: list[int]) -> bytes:
+                snap = self.service.snapshot
+                results: list[tuple[int, bytes]] = []
+                for s, code in zip(subs_rw, write_codes, strict=True):
+                    if code:
+                        results.append((code, b""))
+                    else:
+                        results.extend(
+                            self._read_codes([(s.index_group, s.index_offset, s.read_length)], snap)
+                        )
+                return self._fit(codec.sum_read_ex_response(results), req.read_length)
+
+            if not self._must_wait(futures):
+                return finish(codes)
+
+            async def done_rw() -> bytes:
+                return finish(await self._await_writes(codes, futures))
+
+            return done_rw()
+        raise AdsError(ReturnCode.DEVICE_SRVNOTSUPP, f"sum command 0x{group:X} is not supported")
+
+    def _fit_size(self, size: int, read_length: int) -> None:
+        """Never more bytes than requested: a too small read buffer is 0x705; so is an
+        answer that would not fit one frame of `max_frame` bytes."""
+        limit = min(read_length, self.options.max_frame - codec.AMS_HEADER_SIZE - 8)
+        if size > limit:
+            raise AdsError(
+                ReturnCode.DEVICE_INVALIDSIZE,
+                f"the answer has {size} bytes, the read length is {read_length}",
+            )
+
+    def _fit(self, out: bytes, read_length: int) -> bytes:
+        self._fit_size(len(out), read_length)
+        return codec.read_response(0, out)
+
+    # ------------------------------------------------------------------ writes
+
+    def _check_writes_allowed(self) -> None:
+        if self.options.read_only:
+            raise AdsError(ReturnCode.DEVICE_INVALIDACCESS, "the ADS interface is read-only")
+
+    def _write_reply(self, ig: int, io: int, data: bytes) -> Reply:
+        self._check_writes_allowed()
+        obj, _axis, attr = self.service.resolve(ig, io)
+        if attr is None and obj.name in _BLOCKING_WRITES:
+            loop = asyncio.get_running_loop()
+
+            async def off_loop() -> bytes:
+                fut = await loop.run_in_executor(None, self.service.write, ig, io, data)
+                await self._applied(fut)
+                return codec.result_response(0)
+
+            return off_loop()
+        fut = self.service.write(ig, io, data)
+        if not self._must_wait([fut]):
+            return self._settled(fut)
+
+        async def wait() -> bytes:
+            await self._applied(fut)
+            return codec.result_response(0)
+
+        return wait()
+
+    @staticmethod
+    def _settled(fut: Future) -> bytes:
+        if fut.done() and fut.exception() is not None:
+            exc = fut.exception()
+            code = exc.code if isinstance(exc, AdsError) else ReturnCode.DEVICE_ERROR
+            return codec.result_response(code)
+        return codec.result_response(0)
+
+    def _must_wait(self, futures: Sequence[Future | None]) -> bool:
+        """Wait for queued writes only when cycles run by themselves (not stepped)."""
+        return self.service.scheduler.running and any(
+            f is not None and not f.done() for f in futures
+        )
+
+    async def _applied(self, fut: Future) -> None:
+        if fut.done():
+            fut.result()
+        elif self.service.scheduler.running:
+            try:
+                await asyncio.wait_for(asyncio.wrap_future(fut), self.options.write_timeout)
+            except TimeoutError:
+                raise AdsError(
+                    ReturnCode.DEVICE_TIMEOUT,
+                    f"write not applied within {self.options.write_timeout} s",
+                ) from None
+
+    def _queue_writes(
+        self, items: Sequence[tuple[int, int, bytes] | None]
+    ) -> tuple[list[int], list[Future | None]]:
+        """Validate and queue each write; per item a code (0 = queued) and its future."""
+        codes: list[int] = []
+        futures: list[Future | None] = []
+        for item in items:
+            if item is None:
+                codes.append(0)
+                futures.append(None)
+                continue
+            try:
+                self._check_writes_allowed()
+                ig, io, data = item
+                obj, _axis, attr = self.service.resolve(ig, io)
+                if attr is None and obj.name in _BLOCKING_WRITES:
+                    raise AdsError(
+                        ReturnCode.DEVICE_INVALIDACCESS,
+                        f"{obj.name} cannot be written inside a sum command",
+                    )
+                futures.append(self.service.write(ig, io, data))
+                codes.append(0)
+            except AdsError as exc:
+                codes.append(exc.code)
+                futures.append(None)
+        return codes, futures
+
+    async def _await_writes(self, codes: list[int], futures: list[Future | None]) -> list[int]:
+        out = list(codes)
+        for i, fut in enumerate(futures):
+            if fut is None:
+                continue
+            try:
+                await self._applied(fut)
+            except AdsError as exc:
+                out[i] = exc.code
+            except Exception:
+                log.exception("sum write item failed")
+                out[i] = ReturnCode.DEVICE_ERROR
+        return out
+
+    # ------------------------------------------------------------------ notifications
+
+    def _add_notification(
+        self, conn: AdsConnection, h: AmsHeader, req: AddNotificationRequest
+    ) -> bytes:
+        hold = 0.0
+        if self.service.scheduler.running:
+            hold = time.monotonic() + self.options.first_sample_hold
+        reg = self.notifications.add(
+            conn, h.source, h.target, req, self.service.snapshot, hold_until=hold
+        )
+        return codec.add_notification_response(0, reg.handle)
+
+    def _on_cycle_thread(self, snap: Snapshot) -> None:
+        """GEO cycle thread: hand the snapshot to the loop, only when someone listens."""
+        if not len(self.notifications):
+            return
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        with contextlib.suppress(RuntimeError):  # the loop closed in between
+            loop.call_soon_threadsafe(self._on_cycle, snap, codec.unix_to_filetime(time.time()))
+
+    def _on_cycle(self, snap: Snapshot, filetime: int) -> None:
+        for batch in self.notifications.sample(snap, time.monotonic()):
+            self._send_batch(batch, filetime)
+
+    def _send_batch(self, batch: Batch, filetime: int) -> None:
+        conn = batch.owner
+        assert isinstance(conn, AdsConnection)
+        if conn.backlog > self.options.notification_backlog:
+            self.stats.notifications_dropped += len(batch.samples)
+            return
+        self._notify_invoke = (self._notify_invoke + 1) & 0xFFFF_FFFF
+        payload = codec.device_notification([Stamp(filetime, tuple(batch.samples))])
+        conn.send(
+            codec.notification_frame(batch.server, batch.client, payload, self._notify_invoke)
+        )
+        self.stats.notifications_sent += len(batch.samples)
+
+    # ------------------------------------------------------------------ connections
+
+    def _connected(self, conn: AdsConnection) -> None:
+        self._connections.add(conn)
+        self.stats.connections += 1
+
+    def _disconnected(self, conn: AdsConnection) -> None:
+        self._connections.discard(conn)
+        n = self.notifications.drop_owner(conn)
+        if n:
+            log.debug("dropped %d notifications of %s", n, conn.peer)
+
+
+_SUM_GROUPS = frozenset(int(g) for g in SumGroup) - {
+    SumGroup.ADD_DEVICE_NOTIFICATION,
+    SumGroup.DELETE_DEVICE_NOTIFICATION,
+}
+
+
+class AdsConnection(asyncio.Protocol):
+    """One TCP client: framing in, responses and notifications out."""
+
+    def __init__(self, server: AdsServer) -> None:
+        self.server = server
+        self.framer = codec.Framer(server.options.max_frame)
+        self.transport: asyncio.Transport | None = None
+        self.peer: Any = None
+        self._tasks: set[asyncio.Task] = set()
+
+    def __hash__(self) -> int:
+        return id(self)
+
+    def __eq__(self, other: object) -> bool:
+        return self is other
+
+    # asyncio callbacks
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        self.peer = transport.get_extra_info("peername")
+        self.server._connected(self)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.server._disconnected(self)
+        for t in list(self._tasks):
+            t.cancel()
+        self.transport = None
+
+    def data_received(self, data: bytes) -> None:
+        for ev in self.framer.feed(data):
+            if isinstance(ev, AmsPacket):
+                self.server.handle_packet(self, ev)
+            elif isinstance(ev, BadPacket):
+                self.server.stats.dropped_frames += 1
+                log.debug("ADS bad packet from %s: %s", self.peer, ev.reason)
+                if not ev.header.is_response and ev.header.command != Command.DEVICE_NOTIFICATION:
+                    self.send(codec.response_frame(ev.header, b"", ev.error_code))
+            elif isinstance(ev, Dropped):
+                self.server.stats.dropped_frames += 1
+                log.debug("ADS frame dropped from %s: %s", self.peer, ev.reason)
+            elif isinstance(ev, FramingError):
+                self.server.stats.closed_for_framing += 1
+                log.warning("ADS closing %s: %s", self.peer, ev.reason)
+                if self.transport is not None:
+                    self.transport.close()  # flushes the answers already queued
+                return
+
+    def pause_writing(self) -> None:
+        # The client does not read its answers: stop reading its requests meanwhile.
+        if self.transport is not None:
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.resume_reading()
+
+    # used by the server
+
+    @property
+    def backlog(self) -> int:
+        return self.transport.get_write_buffer_size() if self.transport is not None else 0
+
+    def send(self, frame: bytes) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write(frame)
+
+    def spawn(self, coro: Awaitable[Any]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def abort(self) -> None:
+        if self.transport is not None:
+            self.transport.abort()
+
+
+__all__ = ["GEO_AMS_PORT", "AdsConnection", "AdsOptions", "AdsServer", "AdsStats", "error_payload"]

@@ -88,21 +88,20 @@ def _run(args: argparse.Namespace) -> int:
     service = ObjectService(machine, scheduler)
     if args.program:
         machine.start_program(Path(args.program).read_text(encoding="utf-8"))
-    scheduler.start()
     print(
         f"geo-server {__version__}: {path} with axes {list(machine.axes)}, cycle "
         f"{args.cycle_ms} ms ({args.mode}); Ctrl-C stops",
         flush=True,
     )
     try:
-        asyncio.run(_serve(args, service))
+        asyncio.run(_serve(args, service, scheduler))
     finally:
         scheduler.stop()
     print(f"stopped after {machine.cycle} cycles")
     return 0
 
 
-async def _serve(args: argparse.Namespace, service: Any) -> None:
+async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -158,6 +157,9 @@ async def _serve(args: argparse.Namespace, service: Any) -> None:
         await ads.start()
         interfaces.append(ads)
         print(f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port 551", flush=True)
+    # The cycle starts once every interface is up, so start-up work does not show as
+    # lateness of the first cycles.
+    scheduler.start()
     try:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):

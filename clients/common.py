@@ -15,51 +15,13 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from geo_server.client import GeoClient
-
-#: Transports the clients know, with their default endpoints (SPEC §7, §8, §9).
-DEFAULT_ENDPOINTS: dict[str, str] = {
-    "zenoh": "tcp/127.0.0.1:7447",
-    "modbus": "127.0.0.1:5020",
-    "ads": "127.0.0.1:48898",
-}
-TRANSPORTS = tuple(DEFAULT_ENDPOINTS)
-
-
-def split_host_port(endpoint: str, default_port: int) -> tuple[str, int]:
-    """`host:port` (or `tcp/host:port`, or `host`) as a tuple."""
-    text = endpoint.split("/", 1)[1] if endpoint.startswith("tcp/") else endpoint
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        return text or "127.0.0.1", default_port
-    return host or "127.0.0.1", int(port)
-
-
-def open_client(
-    via: str,
-    endpoint: str | None = None,
-    *,
-    machine: str = "local",
-    timeout: float = 2.0,
-    netid: str = "127.0.0.1.1.1",
-) -> GeoClient:
-    """A connected client of `via` for the server at `endpoint` (its default if None)."""
-    if via not in DEFAULT_ENDPOINTS:
-        raise ValueError(f"unknown transport {via!r} (use one of {', '.join(TRANSPORTS)})")
-    ep = endpoint or DEFAULT_ENDPOINTS[via]
-    if via == "zenoh":
-        from geo_server.client.zenoh_client import ZenohClient
-
-        return ZenohClient(machine=machine, connect=[ep], timeout=timeout)
-    if via == "modbus":
-        from geo_server.client.modbus_client import ModbusClient
-
-        host, port = split_host_port(ep, 5020)
-        return ModbusClient(host, port, timeout=timeout)
-    from geo_server.client.ads_client import AdsClient
-
-    host, port = split_host_port(ep, 48898)
-    return AdsClient(host, port, netid=netid, timeout=timeout)
+from geo_server.client import (
+    DEFAULT_ENDPOINTS,
+    TRANSPORTS,
+    GeoClient,
+    open_client,
+    split_host_port,
+)
 
 
 def add_transport_arguments(p: argparse.ArgumentParser) -> None:

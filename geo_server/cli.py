@@ -101,6 +101,48 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
+    from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+
+    opts = ZenohOptions(
+        machine=args.machine,
+        mode=args.zenoh_mode,
+        listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
+        connect=args.zenoh_connect or [],
+        config_file=args.zenoh_config,
+        multicast_scouting=args.zenoh_scouting,
+        read_only=args.read_only or args.zenoh_read_only,
+    )
+    return (
+        ZenohInterface(service, opts),
+        lambda: (
+            f"zenoh: machine {args.machine!r} on {', '.join(opts.listen)} "
+            f"(keys cnc/{args.machine}/**)"
+        ),
+    )
+
+
+def _modbus(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
+    from geo_server.modbus.server import ModbusInterface, ModbusOptions
+
+    read_only = args.read_only or args.modbus_read_only
+    mb = ModbusInterface(
+        service, ModbusOptions(host=args.modbus_host, port=args.modbus_port, read_only=read_only)
+    )
+    return mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"
+
+
+def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
+    from geo_server.ads.server import AdsOptions, AdsServer
+
+    read_only = args.read_only or args.ads_read_only
+    opts = AdsOptions(
+        host=args.ads_host, port=args.ads_port, netid=args.ads_netid, read_only=read_only
+    )
+    ads = AdsServer(service, opts)
+    return ads, lambda: f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port 551"
+
+
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
     stop = asyncio.Event()
@@ -108,55 +150,16 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     interfaces: list[Any] = []
-    if not args.no_zenoh:
-        from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
-
-        opts = ZenohOptions(
-            machine=args.machine,
-            mode=args.zenoh_mode,
-            listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
-            connect=args.zenoh_connect or [],
-            config_file=args.zenoh_config,
-            multicast_scouting=args.zenoh_scouting,
-            read_only=args.read_only or args.zenoh_read_only,
-        )
-        zi = ZenohInterface(service, opts)
-        await zi.start()
-        interfaces.append(zi)
-        print(
-            f"zenoh: machine {args.machine!r} on {', '.join(opts.listen)} "
-            f"(keys cnc/{args.machine}/**)",
-            flush=True,
-        )
-    if not args.no_modbus:
-        from geo_server.modbus.server import ModbusInterface, ModbusOptions
-
-        mb = ModbusInterface(
-            service,
-            ModbusOptions(
-                host=args.modbus_host,
-                port=args.modbus_port,
-                read_only=args.read_only or args.modbus_read_only,
-            ),
-        )
-        await mb.start()
-        interfaces.append(mb)
-        print(f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)", flush=True)
-    if not args.no_ads:
-        from geo_server.ads.server import AdsOptions, AdsServer
-
-        ads = AdsServer(
-            service,
-            AdsOptions(
-                host=args.ads_host,
-                port=args.ads_port,
-                netid=args.ads_netid,
-                read_only=args.read_only or args.ads_read_only,
-            ),
-        )
-        await ads.start()
-        interfaces.append(ads)
-        print(f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port 551", flush=True)
+    for disabled, build in (
+        (args.no_zenoh, _zenoh),
+        (args.no_modbus, _modbus),
+        (args.no_ads, _ads),
+    ):
+        if not disabled:
+            iface, describe = build(args, service)
+            await iface.start()
+            interfaces.append(iface)
+            print(describe(), flush=True)
     # The cycle starts once every interface is up, so start-up work does not show as
     # lateness of the first cycles.
     scheduler.start()

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from geo_server.client import TRANSPORTS, connect, resolve
+from geo_server.client import TRANSPORTS, open_client, resolve
 from geo_server.dictionary import AdsError, ObjectDef, load_dictionary
 
 
@@ -113,11 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
     p.add_argument(
         "--connect",
-        action="append",
-        help="Zenoh endpoint of the server (default tcp/127.0.0.1:7447)",
+        metavar="ENDPOINT",
+        help="server endpoint: zenoh tcp/127.0.0.1:7447 (default), modbus 127.0.0.1:5020, "
+        "ads 127.0.0.1:48898",
     )
-    p.add_argument("--host", default="127.0.0.1", help="server address (Modbus, ADS)")
-    p.add_argument("--port", type=int, help="server port (Modbus 5020, ADS 48898)")
     p.add_argument("--netid", default="127.0.0.1.1.1", help="AMS NetId of the server (ADS)")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -147,34 +146,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _client_options(args: argparse.Namespace) -> dict[str, Any]:
-    if args.via == "zenoh":
-        return {
-            "machine": args.machine,
-            "connect": args.connect or ["tcp/127.0.0.1:7447"],
-            "timeout": args.timeout,
-        }
-    default_port = {"modbus": 5020, "ads": 48898}[args.via]
-    options = {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
-    if args.via == "ads":
-        options["netid"] = args.netid
-    return options
-
-
-def _client_options(args: argparse.Namespace) -> dict[str, Any]:
-    if args.via == "zenoh":
-        return {
-            "machine": args.machine,
-            "connect": args.connect or ["tcp/127.0.0.1:7447"],
-            "timeout": args.timeout,
-        }
-    default_port = {"modbus": 5020, "ads": 48898}[args.via]
-    options = {"host": args.host, "port": args.port or default_port, "timeout": args.timeout}
-    if args.via == "ads":
-        options["netid"] = args.netid
-    return options
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "objects":
@@ -183,7 +154,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(dictionary_markdown())
         return 0
     try:
-        client = connect(args.via, **_client_options(args))
+        client = open_client(
+            args.via, args.connect, machine=args.machine, timeout=args.timeout, netid=args.netid
+        )
     except Exception as exc:
         print(f"error: cannot open {args.via} client: {exc}", file=sys.stderr)
         return 2

@@ -660,7 +660,7 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     from geo_server.client_cli import main as client_main
 
     host, port = ads.address.rsplit(":", 1)
-    base = ["--via", "ads", "--host", host, "--port", port, "--netid", next_netid()]
+    base = ["--via", "ads", "--connect", f"{host}:{port}", "--netid", next_netid()]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
     assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
     assert client_main([*base, "--json", "read", "0x120300", "0x10045"]) == 0

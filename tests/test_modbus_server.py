@@ -360,7 +360,7 @@ def test_reload_over_modbus(loop_thread, lists_copy):
 def test_geo_client_via_modbus(server, capsys):
     from geo_server.client_cli import main as client_main
 
-    base = ["--via", "modbus", "--port", str(server.port), "--timeout", "3"]
+    base = ["--via", "modbus", "--connect", f"127.0.0.1:{server.port}", "--timeout", "3"]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
     assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
     assert client_main([*base, "--json", "read", "0x120300", "0x10044"]) == 0

@@ -33,8 +33,59 @@ def resolve(index_group: int, index_offset: int) -> ObjectDef:
     return obj
 
 
+#: The transports and their default endpoints (SPEC §7, §8, §9).
+DEFAULT_ENDPOINTS: dict[str, str] = {
+    "zenoh": "tcp/127.0.0.1:7447",
+    "modbus": "127.0.0.1:5020",
+    "ads": "127.0.0.1:48898",
+}
+TRANSPORTS = tuple(DEFAULT_ENDPOINTS)
+
+
+def split_host_port(endpoint: str, default_port: int) -> tuple[str, int]:
+    """`host:port` (or `tcp/host:port`, or `host`) as a tuple."""
+    text = endpoint.split("/", 1)[1] if endpoint.startswith("tcp/") else endpoint
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text or "127.0.0.1", default_port
+    return host or "127.0.0.1", int(port)
+
+
+def open_client(
+    via: str,
+    endpoint: str | None = None,
+    *,
+    machine: str = "local",
+    timeout: float = 2.0,
+    netid: str = "127.0.0.1.1.1",
+) -> GeoClient:
+    """A connected client of `via` for the server at `endpoint` (its default if None).
+
+    Endpoints are written as the transports name them: Zenoh `tcp/127.0.0.1:7447`,
+    Modbus and ADS `host:port`; the ADS AMS NetId is `netid`.
+    """
+    if via not in DEFAULT_ENDPOINTS:
+        raise ValueError(f"unknown transport {via!r} (use one of {', '.join(TRANSPORTS)})")
+    ep = endpoint or DEFAULT_ENDPOINTS[via]
+    if via == "zenoh":
+        from geo_server.client.zenoh_client import ZenohClient
+
+        return ZenohClient(machine=machine, connect=[ep], timeout=timeout)
+    if via == "modbus":
+        from geo_server.client.modbus_client import ModbusClient
+
+        host, port = split_host_port(ep, 5020)
+        return ModbusClient(host, port, timeout=timeout)
+    from geo_server.client.ads_client import AdsClient
+
+    host, port = split_host_port(ep, 48898)
+    return AdsClient(host, port, netid=netid, timeout=timeout)
+
+
 def connect(via: str = "zenoh", **options: Any) -> GeoClient:
-    """Open a client over `via` (`zenoh`, `modbus`, `ads`); `options` go to its constructor."""
+    """Open a client over `via` with the client class' own keyword arguments
+    (`ZenohClient(machine=, connect=[…])`, `ModbusClient(host=, port=)`,
+    `AdsClient(host=, port=, netid=)`); `open_client` takes one endpoint string instead."""
     if via == "zenoh":
         from geo_server.client.zenoh_client import ZenohClient
 
@@ -47,8 +98,4 @@ def connect(via: str = "zenoh", **options: Any) -> GeoClient:
         from geo_server.client.ads_client import AdsClient
 
         return AdsClient(**options)
-    raise ValueError(f"unknown transport {via!r} (available: {', '.join(TRANSPORTS)})")
-
-
-#: The transports `connect()` knows.
-TRANSPORTS = ("zenoh", "modbus", "ads")
+    raise ValueError(f"unknown transport {via!r} (use one of {', '.join(TRANSPORTS)})")

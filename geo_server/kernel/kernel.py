@@ -220,7 +220,7 @@ class Kernel:
         self.actual = np.zeros((n, 7))
         self.delta = np.zeros((n, 7))
         self.effective = np.zeros((n, 7), dtype=bool)
-        self.friction_current = np.zeros(n)
+        self.friction_current = self.actual[:, FRICT]  # the friction column, as a vector
         self.total_offset = np.zeros(n)
         # state
         p = [cfg.axes[int(a)].params for a in self.axis_numbers]
@@ -232,7 +232,7 @@ class Kernel:
         self._dir = _f64([initial_direction(x.anwahl_losekomp) for x in p])
         self._dneg = (self._dir < 0).astype(float)  # 1.0 while moving negative
         self._path = np.full(n, np.inf)  # path since the last reversal (friction)
-        self._prev_pos = np.zeros(n)
+        self._dpos = np.zeros(n)  # |pos − previous pos| (friction path)
         self._first = True
         self._pending = np.zeros((n, 7), dtype=bool)
         self._pending_any = False
@@ -242,6 +242,7 @@ class Kernel:
         # source vector S = [pos | vel | acc | trunc(reversal_in) | 0 | 1]
         self._S = np.zeros(4 * n + 2)
         self._S[4 * n + 1] = 1.0
+        self._S4 = self._S[: 4 * n]  # the inputs, copied with one concatenate
         self._Spos, self._Svel = self._S[:n], self._S[n : 2 * n]
         self._Sacc, self._Srev = self._S[2 * n : 3 * n], self._S[3 * n : 4 * n]
         self._zero, self._one = 4 * n, 4 * n + 1
@@ -259,7 +260,6 @@ class Kernel:
         self._t1 = np.zeros(n)
         self._rev = np.zeros(n, dtype=bool)
         self._rev_col = self._rev[:, None]
-        self._cur = np.zeros(n)
         self._wpre = np.ones(n)
         self._wpost = np.ones(n)
         # column views used every cycle
@@ -635,6 +635,7 @@ class Kernel:
         self._ls_base = np.arange(L, dtype=float) * 2
         self._ls_slots = _i64(rows)
         self._ls_flat = self._ls_slots * 7 + LEAD
+        self._ls_all = rows == list(range(self.n))
         self._ls_cp = np.stack([self._ls_slots * 7 + CROSS, self._ls_slots * 7 + PLANE])
         wc = _f64([0.0 if x.set_pos_without_comp else 1.0 for x in ls])
         self._ls_wc = wc
@@ -728,13 +729,13 @@ class Kernel:
         s, rev, d, t1 = self._s, self._rev, self._dir, self._t1
         pos = self._Spos
         np.copyto(self._prev, act)
-        np.copyto(pos, cmd_pos)
-        np.copyto(self._Svel, cmd_vel)
-        np.copyto(self._Sacc, cmd_acc)
-        np.trunc(reversal_in, out=self._Srev)  # the reference's int(): −0.5 → 0
         if self._first:
-            np.copyto(self._prev_pos, pos)
+            np.copyto(pos, cmd_pos)
             self._first = False
+        np.subtract(cmd_pos, pos, self._dpos)  # pos still holds the previous cycle's
+        np.concatenate((cmd_pos, cmd_vel, cmd_acc, reversal_in), out=self._S4)
+        if reversal_in.dtype.kind != "i":
+            np.trunc(self._Srev, out=self._Srev)  # the reference's int(): −0.5 → 0
 
         # direction: sign of the command velocity, last one held at standstill (SPEC §3).
         # d is always ±1, so "s ≠ 0 and s ≠ d" is s·d < 0, and the update is a flip.
@@ -787,7 +788,7 @@ class Kernel:
             self._step_tri()
         if self._any_fac:
             np.multiply(self._V, self._fac, self._V)
-        self._tflat[self._V_flat] = self._V_tgt
+        self._tflat.put(self._V_flat, self._V_tgt)
         np.multiply(tgt, eff, tgt)
 
         # sin² filter of every column (LSEC again below, once its target is known)
@@ -872,8 +873,7 @@ class Kernel:
         np.multiply(self._tri_B, self._tri_y, lam2)
         np.add(lam, lam2, lam)
         np.add(lam, self._tri_C, lam)
-        np.minimum(self._tri_l0, self._tri_l1, out=self._tri_min)
-        np.minimum(self._tri_min, self._tri_l2, out=self._tri_min)
+        np.minimum.reduce(lam, axis=1, out=self._tri_min)
         np.greater_equal(self._tri_min, -INSIDE_EPS, self._tri_in)
         self._tri_in.argmax(axis=1, out=self._tri_sel)  # first region wins
         np.add(self._tri_sel, self._tri_off_now, self._tri_sel)
@@ -903,8 +903,11 @@ class Kernel:
             np.copyto(lk.q, t, where=self._ls_wrap)
         self._dneg.take(self._ls_slots, out=self._ls_d)
         np.add(self._ls_base, self._ls_d, lk.rowid)  # row 2j pos, 2j + 1 neg
-        lk(self._ls_val)
-        self._tflat[self._ls_flat] = self._ls_val
+        if self._ls_all:  # every axis has LSEC: straight into the target column
+            lk(self._tgt_lead)
+        else:
+            lk(self._ls_val)
+            self._tflat.put(self._ls_flat, self._ls_val)
         np.multiply(self._tgt_lead, self._eff_lead, self._tgt_lead)
         sin2_apply(
             self._tgt_lead,
@@ -919,27 +922,26 @@ class Kernel:
     def _step_frict(self) -> None:
         """Friction (000 §4.5): reversal weights and the delay line, for every axis (the
         non-friction rows carry zeros, as in the reference's per-axis delay lines)."""
-        pos, path, t1 = self._Spos, self._path, self._t1
+        path, t1 = self._path, self._dpos
         # path since the last reversal
         np.copyto(path, 0.0, where=self._rev)
-        np.subtract(pos, self._prev_pos, t1)
         np.abs(t1, t1)
         np.add(path, t1, path)
-        np.copyto(self._prev_pos, pos)
         wpos = self._ring_pos
         self._ring_pos = (wpos + 1) % RING
-        cur = self._cur
-        np.copyto(cur, self._tgt_fr)  # sign(v)·scale·table(|v|), 0 when not effective
+        # this cycle's value, into the delay line: sign(v)·scale·table(|v|) (0 when not
+        # effective), × the pre-reversal and the post-reversal weight
+        cur = self._ring[wpos]
         if self._n_l1 and len(self._fr_slots):
             # before the reversal: r/(lookahead + 1) while 0 ≤ r ≤ lookahead
-            self._wpre[self._fr_slots] = self._V_wpre
-            np.multiply(cur, self._wpre, cur)
+            self._wpre.put(self._fr_slots, self._V_wpre)
+            np.multiply(self._tgt_fr, self._wpre, cur)
+        else:
+            np.copyto(cur, self._tgt_fr)
         if self._fr_any_pd:  # after the reversal: build-up over position_delay of path
             np.divide(path, self._fr_pd, self._wpost, where=self._fr_has_pd)
             np.minimum(self._wpost, 1.0, out=self._wpost)
             np.multiply(cur, self._wpost, cur)
-        # delay line: write now, read `delay_cycles` back; output only while effective
-        np.copyto(self._ring[wpos], cur)
+        # delay line: read `delay_cycles` back; output only while effective
         self._ring_flat.take(self._fr_ridx[wpos], out=self._fr_rv)
-        np.multiply(self._fr_rv, self._eff_fr, self.friction_current)
-        np.copyto(self._act_fr, self.friction_current)
+        np.multiply(self._fr_rv, self._eff_fr, self._act_fr)  # = friction_current

@@ -102,13 +102,23 @@ class Machine:
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
-        self._rounded = np.zeros((n, 7))
-        self._prev_rounded = np.zeros((n, 7))
-        self._scratch = np.zeros((n, 7))
-        self._display = np.zeros(n)
-        self._lose = np.array([cfg.axes[a].params.lose for a in self.axes], dtype=float)
+        self._rounded = np.zeros((n, 7))  # published (rounded) actual values
+        self._prev_rounded = np.zeros((n, 7))  # scratch: swapped with _rounded per cycle
+        # per-cycle derived snapshot values, one buffer (columns: `_MBUF`)
+        self._mbuf = np.zeros((n, _MBUF["lose"] + 1))
+        self._mbuf_cols = (
+            self._mbuf[:, _MBUF["delta"] : _MBUF["delta"] + 7],
+            self._mbuf[:, _MBUF["display"]],
+            self._mbuf[:, _MBUF["velocity"]],
+            self._mbuf[:, _MBUF["acceleration"]],
+            self._mbuf[:, _MBUF["feed"]],
+            self._mbuf[:, _MBUF["output"]],
+        )
+        self._lose = self._mbuf[:, _MBUF["lose"]]
+        self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
         self._period = np.array([cfg.axes[a].params.modulo_period for a in self.axes])
+        self._any_modulo = bool(self._modulo.any())
         for d in cfg.diagnostics:
             self._record(d)
         self._layout_sources()
@@ -172,14 +182,47 @@ class Machine:
     # ------------------------------------------------------------------ snapshot
 
     def _layout_sources(self) -> None:
-        """Precompute where every snapshot column comes from (no name lookups per cycle)."""
+        """Precompute where every snapshot column comes from (no name lookups per cycle).
+
+        Each axis object is a column of a live 2-D "piece": a kernel `[n, 7]` array, a
+        state vector, or the machine's own `[n, 13]` buffer of per-cycle derived values
+        (`_MBUF`). A snapshot is then one `np.concatenate` of the pieces into a stacked
+        buffer and one `take` of the columns in layout order. The pieces are updated in
+        place by the kernel and the motion (their contract); they are looked up again
+        if `kernel` or `motion` is ever replaced.
+        """
         col = self.layout.col
-        self._comp_groups = []
-        for attr in ("actual", "target", "delta", "selected", "effective"):
-            pairs = [(col(name), C[kind]) for name, (a, kind) in _FROM_COMP.items() if a == attr]
-            cols, idx = zip(*pairs, strict=True)
-            self._comp_groups.append((attr, np.array(cols), np.array(idx)))
-        self._vector_cols = [(col(name), fn) for name, fn in _FROM_STATE.items()]
+        k, mo = self.kernel, self.motion
+        self._src_owner = (k, mo)
+        n = len(self.axes)
+        pieces: dict[str, np.ndarray] = {
+            "actual": k.actual,
+            "target": k.target,
+            "selected": k.selected,
+            "effective": k.effective,
+            "machine": self._mbuf,
+        }
+        where: list[tuple[str, int] | None] = [None] * len(self.layout.axis_objects)
+        for name, (attr, kind) in _FROM_COMP.items():
+            where[col(name)] = ("machine" if attr == "delta" else attr, C[kind])
+        for name, src in _FROM_STATE.items():
+            if isinstance(src, str):  # a column of the machine buffer
+                where[col(name)] = ("machine", _MBUF[src])
+            else:
+                key = f"state:{name}"
+                pieces[key] = src(self)[:, None]
+                where[col(name)] = (key, 0)
+        if any(w is None for w in where):  # not fed by the machine: 0
+            pieces["zero"] = np.zeros((n, 1))
+        offset, start = {}, 0
+        for key, piece in pieces.items():
+            offset[key] = start
+            start += piece.shape[1]
+        self._pieces = list(pieces.values())
+        self._stack = np.zeros((n, start))
+        self._columns = np.array(
+            [offset[w[0]] + w[1] if w else offset["zero"] for w in where], dtype=np.int64
+        )
         mcol = self.layout.mcol
         self._mcols = tuple(
             mcol(n)
@@ -190,35 +233,37 @@ class Machine:
                 "SIM::last_error_id",
             )
         )
+        self._mach_template = [0.0] * len(self.layout.machine_objects)
 
     def _build_snapshot(self) -> Snapshot:
         """SPEC §5 step 4: every object of every axis, from this cycle's state."""
-        k = self.kernel
-        v = np.empty((len(self.axes), len(self.layout.axis_objects)))
+        k, mo = self.kernel, self.motion
+        if self._src_owner[0] is not k or self._src_owner[1] is not mo:
+            self._layout_sources()
+        mb = self._mbuf_cols
         # Deltas are differences of the published (rounded) values, so that the deltas
         # of a ramp add up to its actual value.
-        _round_half_away(k.actual, self._rounded)
-        np.subtract(self._rounded, self._prev_rounded, out=self._scratch)
-        self._prev_rounded[...] = self._rounded
-        sources = {
-            "actual": k.actual,
-            "target": k.target,
-            "delta": self._scratch,
-            "selected": k.selected,
-            "effective": k.effective,
-        }
-        for attr, cols, idx in self._comp_groups:
-            v[:, cols] = sources[attr][:, idx]
-        for c, fn in self._vector_cols:
-            v[:, c] = fn(self)
-        mach = np.zeros(len(self.layout.machine_objects))
-        mach[list(self._mcols)] = (
-            self.cycle & 0xFFFF_FFFF,
-            round(self.cycle_s * 1e6),
-            self.overruns,
-            self.last_error_id,
-        )
-        return Snapshot(self.cycle, self.axes, v, mach, self.layout)
+        rounded = self._prev_rounded  # spare buffer; _rounded holds the last values
+        _round_half_away(k.actual, rounded)
+        np.subtract(rounded, self._rounded, out=mb[0])
+        self._prev_rounded, self._rounded = self._rounded, rounded
+        if self._any_modulo:
+            mo.display_pos(mb[1])
+        else:  # display_pos() is the identity without modulo axes
+            np.copyto(mb[1], mo.pos)
+        np.divide(mo.vel, UNITS_PER_UM, out=mb[2])
+        np.divide(mo.acc, UNITS_PER_MM, out=mb[3])
+        np.divide(mo.feed, UNITS_PER_UM, out=mb[4])
+        np.add(mo.pos, k.total_offset, out=mb[5])
+        np.concatenate(self._pieces, axis=1, out=self._stack)
+        v = self._stack.take(self._columns, axis=1)
+        mach = self._mach_template.copy()
+        c0, c1, c2, c3 = self._mcols
+        mach[c0] = self.cycle & 0xFFFF_FFFF
+        mach[c1] = round(self.cycle_s * 1e6)
+        mach[c2] = self.overruns
+        mach[c3] = self.last_error_id
+        return Snapshot(self.cycle, self.axes, v, np.array(mach, dtype=float), self.layout)
 
     # ------------------------------------------------------------------ events
 
@@ -411,21 +456,35 @@ _FROM_COMP: dict[str, tuple[str, CompKind]] = {
     "CROSSTALK::delta_offset": ("delta", K),
     "CROSSTALK::end_offset": ("target", K),
 }
-#: Axis objects fed by per-axis state vectors (emulator group, TEMPC parameters).
-_FROM_STATE: dict[str, Callable[[Machine], Any]] = {
-    "BC::conf. backlash": lambda m: m._lose,
+#: Columns of the machine's per-cycle buffer `Machine._mbuf`: the published deltas of
+#: the 7 compensations (from column "delta" on, kernel column order), then vectors
+#: computed by `Machine._build_snapshot` and the configured backlash.
+_MBUF: dict[str, int] = {
+    "delta": 0,
+    "display": 7,  # motion.display_pos()
+    "velocity": 8,  # motion.vel / UNITS_PER_UM
+    "acceleration": 9,  # motion.acc / UNITS_PER_MM
+    "feed": 10,  # motion.feed / UNITS_PER_UM
+    "output": 11,  # motion.pos + kernel.total_offset
+    "lose": 12,
+}
+#: Axis objects fed by per-axis state vectors (emulator group, TEMPC parameters): the
+#: live vector (updated in place) a column is read from, or the name of a column of
+#: the machine buffer (`_MBUF`).
+_FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
+    "BC::conf. backlash": "lose",
     "TEMPC::coefficient": lambda m: m.kernel.tempc_params[0],
     "TEMPC::offset_0": lambda m: m.kernel.tempc_params[1],
     "TEMPC::position_0": lambda m: m.kernel.tempc_params[2],
-    "SIM::command_position": lambda m: m.motion.display_pos(m._display),
-    "SIM::set_position": lambda m: m._display,
+    "SIM::command_position": "display",
+    "SIM::set_position": "display",
     "SIM::target_position": lambda m: m.motion.target,
-    "SIM::velocity": lambda m: m.motion.vel / UNITS_PER_UM,
-    "SIM::acceleration": lambda m: m.motion.acc / UNITS_PER_MM,
+    "SIM::velocity": "velocity",
+    "SIM::acceleration": "acceleration",
     "SIM::homed": lambda m: m.motion.homed,
-    "SIM::output_position": lambda m: m.motion.pos + m.kernel.total_offset,
+    "SIM::output_position": "output",
     "SIM::total_offset": lambda m: m.kernel.total_offset,
-    "SIM::feed": lambda m: m.motion.feed / UNITS_PER_UM,
+    "SIM::feed": "feed",
     "FRICT::additive_current": lambda m: m.kernel.friction_current,
 }
 

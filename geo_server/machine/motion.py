@@ -46,6 +46,9 @@ UNITS_PER_MM = 10_000.0
 #: T/dt = 3000.0000000004 still counts as 3000 cycles.
 _CYCLE_EPS = 1e-6
 
+#: Up to this many moving axes `Motion.step` runs per axis in Python (see `_step_scalar`).
+_SCALAR_MAX = 6
+
 
 class MotionError(ValueError):
     """A motion command that cannot be executed (busy axis, bad feed, bad slot)."""
@@ -261,6 +264,12 @@ class Motion:
         cycle).
         """
         mv = self._moving
+        moving = np.flatnonzero(mv)
+        if len(moving) == 0:  # nothing changes at rest
+            return
+        if len(moving) <= _SCALAR_MAX:
+            self._step_scalar(moving.tolist())
+            return
         np.add(self._k, mv, out=self._k, casting="unsafe")
         np.multiply(self._k, self.dt, out=self._t)
         self._eval_profile()
@@ -273,6 +282,50 @@ class Motion:
         np.logical_not(self._done, out=self._m)
         np.logical_and(mv, self._m, out=mv)
         if self._queued.any() and self._done.any():
+            self._start_queued()
+
+    def _step_scalar(self, moving: list[int]) -> None:
+        """`step()` for a few moving axes, one at a time with Python floats.
+
+        Bit-identical to the vectorised path: the same IEEE operations in the same
+        order (`_eval_profile`, `_apply`), only without the numpy call overhead, which
+        dominates when one or two axes move.
+        """
+        dt = self.dt
+        k_arr, pos, vel, acc = self._k, self.pos, self.vel, self.acc
+        done = []
+        for s in moving:
+            k = k_arr.item(s) + 1
+            k_arr[s] = k
+            t = k * dt
+            j = self._j.item(s)
+            u = t * t * 0.5 * j  # phase A
+            du = j * t
+            ddu = j
+            ta = self._ta.item(s)
+            if t >= ta:  # phase B
+                u = (t - ta) * self._w.item(s) + self._ub0.item(s)
+                du = self._w.item(s)
+                ddu = 0.0
+            if t >= self._td.item(s):  # phase C
+                r = self._tt.item(s) - t
+                u = r * r * j * -0.5 + 1.0
+                du = j * r
+                ddu = -j
+            if k >= self._nc.item(s):
+                pos[s] = self.target.item(s)
+                vel[s] = 0.0
+                acc[s] = 0.0
+                self._moving[s] = False
+                done.append(s)
+            else:
+                dist = self._dist.item(s)
+                pos[s] = dist * u + self._p0.item(s)
+                vel[s] = dist * du
+                acc[s] = dist * ddu
+        if done and self._queued.any():
+            self._done.fill(False)
+            self._done[done] = True
             self._start_queued()
 
     def _eval_profile(self) -> None:

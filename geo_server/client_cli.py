@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub.add_parser("reload", help="reload the list files").set_defaults(func=_command("reload"))
     sub.add_parser("save", help="save live TEMPC parameters").set_defaults(func=_command("save"))
+    sub.add_parser("reset", help="CNC reset: stop the NC program and the axes").set_defaults(
+        func=_command("reset")
+    )
     sub.add_parser("objects", help="print the object dictionary").set_defaults(func=None)
     return p
 
@@ -167,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         "errors": "errors",
         "reload": "reload",
         "save": "save",
+        "reset": "reset",
     }.get(args.command)
     if needs and not hasattr(client, needs):
         client.close()

@@ -179,7 +179,9 @@ class ObjectService:
             return self._done(self.reload())
         if obj.name == "SIM::save":
             return self._done(self.save())
-        return self.machine.submit(lambda: self.machine.apply_write(obj.name, axis, value))
+        return _detached(
+            self.machine.submit(lambda: self.machine.apply_write(obj.name, axis, value))
+        )
 
     @staticmethod
     def _done(result: CommandResult) -> Future:
@@ -249,7 +251,11 @@ class ObjectService:
             prog = parse_program(text, self.machine.names, mdi=True)
         except NcError as exc:
             raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
-        return self.machine.submit(lambda: self.machine.start(prog, mdi=True))
+        return _detached(self.machine.submit(lambda: self.machine.start(prog, mdi=True)))
+
+    def reset(self) -> Future:
+        """CNC reset at the next cycle boundary: program stopped, axes stopped."""
+        return _detached(self.machine.submit(self.machine.reset))
 
     # ------------------------------------------------------------------ commands
 
@@ -323,6 +329,34 @@ class ObjectService:
 
 
 _MISSING = object()
+
+
+def _detached(inner: Future) -> Future:
+    """The caller's copy of a queued write's future: it follows `inner`, but cancelling
+    it never reaches `inner`.
+
+    Transports await writes with `asyncio.wait_for(asyncio.wrap_future(fut), …)`; a
+    timeout or a dropped connection cancels the asyncio future, and `wrap_future` passes
+    that on to the concurrent future. The machine still applies the queued write, but
+    then `fut.set_result` on the cancelled future raised `InvalidStateError` on the
+    cycle thread: the cycle failed (`Scheduler.cycle_errors`), the other writes of that
+    cycle were never acknowledged and the listeners missed the cycle (found by
+    tests/test_robust_fuzz.py: ADS clients that vanish while a write is pending).
+    A cancelled copy just stays cancelled; the write itself is applied as queued.
+    """
+    outer: Future = Future()
+
+    def copy(done: Future) -> None:
+        if not outer.set_running_or_notify_cancel():
+            return  # the caller gave up waiting: nobody to tell
+        exc = done.exception()
+        if exc is None:
+            outer.set_result(done.result())
+        else:
+            outer.set_exception(exc)
+
+    inner.add_done_callback(copy)
+    return outer
 
 
 def _rejecting(cfg: MachineConfig) -> list[Diagnostic]:

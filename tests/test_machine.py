@@ -284,3 +284,33 @@ def test_realtime_scheduler_runs_and_reports(default_cfg):
     assert st["cycle"] == machine.cycle
     assert st["lateness_p50_us"] >= 0 and st["lateness_max_us"] >= st["lateness_p99_us"]
     assert ObjectService(machine, sched).read_name("SIM::cycle_time_us") == 1000
+
+
+def test_nc_while_a_program_runs_is_refused_and_reset_stops_it(service):
+    service.run_nc("G90 G01 X50 F6000")
+    service.step(100)  # X still moving (50 mm at 100 mm/s takes 500 ms)
+    assert service.read_name("SIM::velocity", 1) != 0
+    fut = service.run_nc("G90 G01 X-50 F6000")
+    write = service.write_name("TEMPC::coefficient", 1, 4100.0)
+    service.step(1)
+    assert write.result(timeout=1) is None  # the cycle ran; the write was answered
+    with pytest.raises(AdsError) as e:
+        fut.result(timeout=1)
+    assert e.value.code == 0x708
+    assert service.read_name("TEMPC::coefficient", 1) == 4100.0
+    service.reset()
+    service.step(400)  # a controlled stop, then standstill
+    assert service.read_name("SIM::velocity", 1) == 0
+    service.run_nc("G90 G01 X0 F6000")
+    service.step(2000)
+    assert service.read_name("SIM::command_position", 1) == 0
+    assert service.snapshot.cycle == 2501
+
+
+def test_a_move_the_machine_cannot_start_ends_the_program_not_the_cycle(service):
+    service.write_name("SIM::target_position", 1, 500_000)  # a single-axis move
+    service.step(10)
+    service.run_nc("G90 G01 X0 F6000")  # X is busy: the program must end with an error
+    service.step(3)
+    assert service.snapshot.cycle == 13
+    assert "NC program stopped" in service.errors()[-1]["message"]

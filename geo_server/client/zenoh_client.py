@@ -140,6 +140,9 @@ class ZenohClient:
     def reload(self) -> dict[str, Any]:
         return json.loads(self._one(f"cnc/{self.machine}/cmd/reload", b"{}", JSON))
 
+    def reset(self) -> dict[str, Any]:
+        return json.loads(self._one(f"cnc/{self.machine}/cmd/reset", b"{}", JSON))
+
     def save(self) -> dict[str, Any]:
         return json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
 

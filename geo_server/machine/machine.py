@@ -128,29 +128,50 @@ class Machine:
 
     def run_cycle(self) -> Snapshot:
         """Run one GEO cycle (SPEC §5) and return the snapshot it published."""
-        with self._cycle_lock:
-            applied = self._apply_queue()
-            if self.player is not None and self.player.running:
-                self.player.step()
-            self.motion.step()
-            self.motion.reversal_in(self._reversal)
-            k = self.kernel
-            k.step(
-                self.motion.pos, self.motion.vel, self.motion.acc, self.motion.homed, self._reversal
-            )
-            self.cycle += 1
-            snap = self._build_snapshot()
-            self.snapshot = snap
-        # Acknowledge the writes only now: a read right after an acknowledged write
-        # sees its effect (the snapshot of the cycle that applied it is published).
-        for fut, result, exc in applied:
-            if exc is None:
-                fut.set_result(result)
-            else:
-                fut.set_exception(exc)
+        applied: list[tuple[Future, Any, BaseException | None]] = []
+        try:
+            with self._cycle_lock:
+                applied = self._apply_queue()
+                self._step_program()
+                self.motion.step()
+                self.motion.reversal_in(self._reversal)
+                k = self.kernel
+                k.step(
+                    self.motion.pos,
+                    self.motion.vel,
+                    self.motion.acc,
+                    self.motion.homed,
+                    self._reversal,
+                )
+                self.cycle += 1
+                snap = self._build_snapshot()
+                self.snapshot = snap
+        finally:
+            # Acknowledge the writes only now: a read right after an acknowledged write
+            # sees its effect (the snapshot of the cycle that applied it is published).
+            # Even a failed cycle answers them, so no client waits for nothing.
+            for fut, result, exc in applied:
+                if not fut.set_running_or_notify_cancel():
+                    continue  # the caller stopped waiting
+                if exc is None:
+                    fut.set_result(result)
+                else:
+                    fut.set_exception(exc)
         for listener in self.listeners:
             listener(snap)
         return snap
+
+    def _step_program(self) -> None:
+        """Advance the NC program; a command the machine cannot carry out ends the program
+        with an error event instead of failing the cycle."""
+        player = self.player
+        if player is None or not player.running:
+            return
+        try:
+            player.step()
+        except (MotionError, AdsError) as exc:
+            player.abort()
+            self.report(0, f"NC program stopped: {exc}", player.line)
 
     def step(self, n: int = 1) -> Snapshot:
         """Run `n` cycles now (stepped mode)."""
@@ -348,10 +369,22 @@ class Machine:
         prog = parse_program(text, self.names, mdi=mdi)
         self.start(prog, mdi)
 
+    def reset(self) -> None:
+        """CNC reset: stop the program and every axis (controlled stop), deselect the
+        manual-activation compensations (manual §5.1)."""
+        if self.player is not None and self.player.running:
+            self.player.abort()
+        self.motion.stop()
+        self.program_end()
+
     def start(self, prog: Program, mdi: bool = False) -> None:
         """Run a parsed program (or MDI lines) from the next cycle on."""
         if self.player is not None and self.player.running:
-            self.player.abort()
+            raise AdsError(
+                AdsErrorCode.DEVICE_BUSY,
+                f"an NC program is running (line {self.player.line}); wait for its end",
+                "nc",
+            )
         for w in prog.warnings:
             self._record(w)
         self.player = Player(prog, self, self.cycle_s, mdi=mdi)

@@ -56,6 +56,7 @@ class KeySpace:
             f"{self.prefix}/nc": Route("nc"),
             f"{self.prefix}/cmd/reload": Route("reload"),
             f"{self.prefix}/cmd/save": Route("save"),
+            f"{self.prefix}/cmd/reset": Route("reset"),
             f"{self.prefix}/status": Route("status"),
             f"{self.prefix}/errors": Route("errors"),
         }

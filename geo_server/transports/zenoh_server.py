@@ -31,6 +31,7 @@ OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
 JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
 WRITE_TIMEOUT_S = 2.0
+ADSERR_TIMEOUT = 0x719  # ADS DEVICE_TIMEOUT: a write not applied within WRITE_TIMEOUT_S
 
 
 @dataclass
@@ -65,7 +66,9 @@ def _error_payload(exc: AdsError) -> bytes:
 def _json_value(payload: bytes, obj: ObjectDef) -> Any:
     try:
         value = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    # RecursionError: deeply nested JSON ("[[[[…]]]]", well within MAX_PAYLOAD) is bad
+    # data like any other (0x706), not an internal error (found by tests/test_robust_fuzz.py)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise AdsError(
             AdsErrorCode.INVALID_DATA, f"{obj.name}: payload is not JSON ({exc})", obj.name
         ) from None
@@ -221,6 +224,10 @@ class ZenohInterface:
         elif route.kind == "nc":
             result = await self._run_nc(payload)
             query.reply(key, json.dumps(result).encode(), encoding=JSON)
+        elif route.kind == "reset":
+            await self._applied(self.service.reset())
+            body = {"ok": True, "command": "reset", "cycle": self.service.snapshot.cycle}
+            query.reply(key, json.dumps(body).encode(), encoding=JSON)
         else:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{key} cannot be written")
 
@@ -242,7 +249,14 @@ class ZenohInterface:
             fut.result()
             return
         if self.service.scheduler.running:
-            await asyncio.wait_for(asyncio.wrap_future(fut), WRITE_TIMEOUT_S)
+            try:
+                await asyncio.wait_for(asyncio.wrap_future(fut), WRITE_TIMEOUT_S)
+            except TimeoutError:
+                # Like the ADS interface (0x719 DEVICE_TIMEOUT), not an anonymous 0x700
+                # "internal error: " (found by tests/test_robust_fuzz.py).
+                raise AdsError(
+                    ADSERR_TIMEOUT, f"write not applied within {WRITE_TIMEOUT_S} s"
+                ) from None
 
     # ------------------------------------------------------------------ publications
 

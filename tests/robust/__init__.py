@@ -1,0 +1,1 @@
+"""Helpers of the robustness tests (`tests/test_robust_*.py`)."""

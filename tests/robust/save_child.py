@@ -1,0 +1,54 @@
+"""Child of tests/test_robust_save_kill.py: saves TEMPC values in a loop until killed.
+
+Imports geo-server once, then, per line `go <coefA> <offA> <coefB> <offB>` on stdin,
+forks a worker that loads the machine from the start-up list given as argv[1] (the
+current state of the lists), prints `ready <pid>`, and then alternately writes the A and
+the B values of axis 1 and calls `ObjectService.save()` — as fast as it can, until the
+parent kills it with SIGKILL. The zygote reaps the worker and prints `dead <signal>`.
+Forking keeps the 30 rounds cheap (no interpreter start and numpy import per kill).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.service import ObjectService
+
+
+def worker(startup: str, a: tuple[float, int], b: tuple[float, int]) -> None:
+    service = ObjectService(Machine(load_machine(startup), homed=True))
+    print(f"ready {os.getpid()}", flush=True)
+    for j in range(100_000):  # killed long before the end
+        coef, off = a if j % 2 == 0 else b
+        service.write_name("TEMPC::coefficient", 1, coef)
+        service.write_name("TEMPC::offset_0", 1, off)
+        service.step(1)
+        result = service.save()
+        if not result.ok:
+            print(f"save failed: {result.errors}", flush=True)
+            os._exit(3)
+    os._exit(0)
+
+
+def main() -> None:
+    startup = sys.argv[1]
+    print("zygote", flush=True)
+    for line in sys.stdin:
+        _go, ca, oa, cb, ob = line.split()
+        sys.stdout.flush()
+        pid = os.fork()
+        if pid == 0:
+            try:
+                worker(startup, (float(ca), int(oa)), (float(cb), int(ob)))
+            finally:
+                os._exit(4)
+        _pid, status = os.waitpid(pid, 0)
+        sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else -os.WEXITSTATUS(status)
+        print(f"dead {sig}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -110,3 +110,39 @@ def test_sin2_weight_table_is_bit_identical() -> None:
         for j, n in enumerate(ns[0]):
             want = 0.0 if n == 0 else math.cos(math.pi * min(k, n) / (2 * n)) ** 2
             assert f.w[0, j] == want
+
+
+def test_sin2_successor_table_restarts_and_reloads() -> None:
+    """The successor table (k ← min(k + 1, N) in one gather) against the plain rule,
+    with events at random cycles and a reload to new lengths mid-ramp."""
+    rng = np.random.default_rng(3)
+    ns = np.array([[0, 1, 2, 3, 7, 20, 20]])
+    f = Sin2Filter(ns)
+    k = ns.copy()  # idle: saturated
+    for cycle in range(120):
+        if cycle == 60:
+            ns = np.array([[5, 0, 2, 1, 30, 7, 20]])
+            f.set_n(ns)
+            k = np.minimum(k, np.maximum(ns, 0))
+        ev = rng.random(ns.shape) < 0.1
+        f.advance(ev)
+        k = np.minimum(np.where(ev, 0, k) + 1, np.maximum(ns, 0))
+        want = [
+            0.0 if n == 0 else math.cos(math.pi * kk / (2 * n)) ** 2
+            for kk, n in zip(k[0], ns[0], strict=True)
+        ]
+        assert list(f.w[0]) == want
+
+
+def test_lsec_rows_follow_direction_without_dneg() -> None:
+    """LSEC picks its pos/neg row from the direction gathered out of S (row 3j + 1 ± 1):
+    a bilateral table must follow every reversal like the reference."""
+    cfg = random_machine(6, 11)
+    fast, ref = Kernel(cfg), ReferenceKernel(cfg)
+    m = Motion(6, seed=5)
+    for _ in range(400):
+        m.step()
+        for k in (fast, ref):
+            k.step(m.pos, m.vel, m.acc, m.homed, m.reversal)
+        np.testing.assert_allclose(fast.actual, ref.actual, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fast.total_offset, ref.total_offset, rtol=0, atol=1e-9)

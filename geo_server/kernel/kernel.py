@@ -9,7 +9,12 @@ the cycle is a fixed, short sequence of whole-array calls, and everything that c
 decided from the configuration is decided in `_setup` (construction and reload):
 
 * the inputs are copied once into one source vector `S = [pos | vel | acc | trunc(rev)
-  | 0 | 1]`; every compensation gathers its inputs from S with one precomputed `take`;
+  | 0 | 1 | direction]`; every input that only needs this cycle's commands (crosstalk
+  state, friction sign, 1-D queries, plane, mode 3) comes from S with ONE `take` into
+  `G`, then one `sign`, one subtract and one divide (0 and 1 as neutral values);
+* LSEC's complex query (row id 3j + 1 ± direction, position) is one gather from S and
+  one add into the query's (real, imag) pairs;
+* `step` is one flat sequence of numpy calls: no helper calls in the hot path;
 * every 1-D table (cross, friction, crosstalk modes 1/2 and old model, the friction
   pre-reversal weight) is one row of a single `tables.MergedTable`: one `searchsorted`
   serves all of them; LSEC has its own (its lookup position needs this cycle's filtered
@@ -50,9 +55,14 @@ from geo_server.kernel.common import (
     initial_direction,
     initial_selection,
 )
-from geo_server.kernel.sin2 import Sin2Filter, sin2_apply
+from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.kernel.triangulation import INSIDE_EPS, Triangulation, evaluate, triangulate
+
+try:  # the clip ufunc itself (np.clip adds a Python wrapper); = min(max(x, lo), hi)
+    _clip = np._core.umath.clip
+except AttributeError:  # numpy < 2
+    _clip = np.core.umath.clip
 
 UNITS_PER_MM = 10_000.0
 UNITS_PER_UM = 10.0
@@ -224,13 +234,19 @@ class Kernel:
         self.total_offset = np.zeros(n)
         # state
         p = [cfg.axes[int(a)].params for a in self.axis_numbers]
-        self._tempc = np.zeros((3, n))
+        # backlash and temperature parameters, laid out so that both targets take one
+        # subtract and one multiply: rows [init dir, lose/2, coefficient·1e-6, (unused),
+        # coefficient, offset_0, position_0]
+        self._bt = bt = np.zeros((7, n))
+        self._init_dir, self._half_lose, self._tc6 = bt[0], bt[1], bt[2]
+        self._tempc = bt[4:7]
         self._tempc[0] = [x.temp_comp_coefficient for x in p]
         self._tempc[1] = [x.temp_comp_offset_0 for x in p]
         self._tempc[2] = [x.temp_comp_position_0 for x in p]
-        self._tc6 = self._tempc[0] * 1e-6  # coefficient·1e-6, as the reference groups it
-        self._dir = _f64([initial_direction(x.anwahl_losekomp) for x in p])
-        self._dneg = (self._dir < 0).astype(float)  # 1.0 while moving negative
+        # coefficient·1e-6, as the reference groups it
+        np.multiply(self._tempc[0], 1e-6, out=self._tc6)
+        self._bt_sub, self._bt_mul = bt[0:7:6], bt[1:3]  # (init, position_0), (lose/2, c6)
+        self._bt_t = np.zeros((2, n))
         self._path = np.full(n, np.inf)  # path since the last reversal (friction)
         self._dpos = np.zeros(n)  # |pos − previous pos| (friction path)
         self._first = True
@@ -239,11 +255,17 @@ class Kernel:
         self._ring = np.zeros((RING, n))  # friction delay line, one row per cycle
         self._ring_flat = self._ring.reshape(-1)
         self._ring_pos = 0
-        # source vector S = [pos | vel | acc | trunc(reversal_in) | 0 | 1]
-        self._S = np.zeros(4 * n + 2)
+        # source vector S = [pos | vel | acc | trunc(rev) | 0 | 1 | direction]
+        self._S = np.zeros(5 * n + 2)
         self._S[4 * n + 1] = 1.0
+        self._dir = self._S[4 * n + 2 :]  # ±1: direction held at standstill
+        self._dir[:] = [initial_direction(x.anwahl_losekomp) for x in p]
         self._S4 = self._S[: 4 * n]  # the inputs, copied with one concatenate
         self._Spos, self._Svel = self._S[:n], self._S[n : 2 * n]
+        # (direction, position) as one [2, n] view of S
+        self._dp = np.lib.stride_tricks.as_strided(
+            self._S[4 * n + 2 :], shape=(2, n), strides=(-(4 * n + 2) * 8, 8), writeable=False
+        )
         self._Sacc, self._Srev = self._S[2 * n : 3 * n], self._S[3 * n : 4 * n]
         self._zero, self._one = 4 * n, 4 * n + 1
         # scratch
@@ -265,6 +287,8 @@ class Kernel:
         # column views used every cycle
         t, a, e = self.target, self.actual, self.effective
         self._tgt_bc, self._tgt_temp, self._tgt_lead = t[:, BC], t[:, TEMP], t[:, LEAD]
+        assert (BC, TEMP) == (0, 1)
+        self._tgt_bt = t[:, 0:2].T  # (backlash, temperature) targets as [2, n]
         self._tgt_fr, self._act_fr, self._eff_fr = t[:, FRICT], a[:, FRICT], e[:, FRICT]
         self._act_lead, self._eff_lead = a[:, LEAD], e[:, LEAD]
         self._prev_lead, self._ev_lead = self._prev[:, LEAD], self._event[:, LEAD]
@@ -291,8 +315,8 @@ class Kernel:
         f = self._filter
         self._f_w_lead, self._f_j_lead = f.w[:, LEAD], f.jump[:, LEAD]
         self._t_lead = self._t7[:, LEAD]
-        self._init_dir = _f64([initial_direction(x.anwahl_losekomp) for x in p])
-        self._half_lose = _f64([x.lose for x in p]) / 2.0
+        self._init_dir[:] = _f64([initial_direction(x.anwahl_losekomp) for x in p])
+        self._half_lose[:] = _f64([x.lose for x in p]) / 2.0
         modulo = np.array([x.modulo for x in p], dtype=bool)
         period = _f64([x.modulo_period if x.modulo else 1.0 for x in p])
         self._any_modulo = bool(modulo.any())
@@ -397,6 +421,19 @@ class Kernel:
         self._build_tri(axes, tri)
         self._build_lsec(axes, lsec, modulo, period)
         self._build_frict(axes, frict)
+        self._build_gather()
+        self._fr_n = bool(self._n_l1 and len(self._fr_slots))
+        self._flags = (
+            self._nxt,
+            self._n_l1,
+            self._n_plane,
+            self._n_tri,
+            bool(len(self._g_sg)),
+            bool(len(self._g_q)),
+            self._any_fac,
+        )
+        self._not_fr = np.ones(7)
+        self._not_fr[FRICT] = 0.0
 
     def _build_xt(self, axes: list, tri: list[int], lin: list[int]) -> None:
         """Crosstalk (new model) acceleration state: column LUT and ratio inputs."""
@@ -420,11 +457,8 @@ class Kernel:
         self._xt_col = _i64(cols)  # [rows·9]
         self._xt_inv = _f64(invs)
         self._xt_rowoff = np.arange(len(rows), dtype=float) * 9 + 4
-        self._xt_av = np.zeros((2, len(rows)))
-        self._xt_sg = np.zeros((2, len(rows)))
         self._xt_code = np.zeros(len(rows))
         self._xt_idx = np.zeros(len(rows), dtype=np.int64)
-        self._xt_idx_tri, self._xt_idx_lin = self._xt_idx[: len(tri)], self._xt_idx[len(tri) :]
         self._xt_r = np.zeros(len(rows))
 
     def _build_l1(self, axes: list, lin, frict, cross, old, master_wrap) -> None:
@@ -508,7 +542,6 @@ class Kernel:
         self._l1_raw = np.zeros(self._n_l1)
         self._l1_wrap, self._l1_per = np.array(wrap, dtype=bool), _f64(per)
         self._l1_any_wrap = bool(self._l1_wrap.any())
-        self._l1_tmp = np.zeros(self._n_l1)
         # variant row ids of the crosstalk rows: base + column, tabulated per sign code
         # (indexed like the crosstalk state: mode-3 rows first, their entries unused)
         self._lin_rowid = np.zeros(self._nxt * 9)
@@ -554,7 +587,7 @@ class Kernel:
             [np.stack([base, base + step1]), np.stack([base + step2, base + step2 + step1])]
         )
         self._pl_tab = np.concatenate([t.ravel() for t in tabs])
-        self._pl_q, self._pl_tmp = np.zeros((2, P)), np.zeros((2, P))
+        self._pl_tmp = np.zeros((2, P))
         self._pl_u, self._pl_f = np.zeros((2, P)), np.zeros((2, P))
         self._pl_uv = np.zeros((2, 2, P))  # [axis u/v][1 − frac, frac]
         self._pl_frac, self._pl_gfrac = self._pl_uv[:, 1], self._pl_uv[:, 0]
@@ -595,9 +628,6 @@ class Kernel:
                     H[j, v, g] = hp[v]
                 for c in range(4):
                     VALC[j, c, g] = val[c]
-        self._tri_A = np.ascontiguousarray(H[..., 0])
-        self._tri_B = np.ascontiguousarray(H[..., 1])
-        self._tri_C = np.ascontiguousarray(H[..., 2])
         self._tri_val = VALC.reshape(-1, 3)
         # region block of (row j, column c) starts at (4·j + c)·G, tabulated per sign code
         cols = self._xt_col.reshape(-1, 9)[:T]
@@ -608,17 +638,19 @@ class Kernel:
         self._tri_src = np.array(
             [[a, b, self._one] for a, b in zip(p1, p2, strict=True)], dtype=np.int64
         )
-        self._tri_xy1 = np.zeros((T, 3))  # (x, y, 1) per row
-        self._tri_x = self._tri_xy1[:, 0, None, None]
-        self._tri_y = self._tri_xy1[:, 1, None, None]
-        self._tri_lam = np.zeros((T, 3, G))
-        self._tri_lam2 = np.zeros((T, 3, G))
+        self._tri_xy1 = np.zeros((T, 3))  # (x, y, 1) per row (a view of G, see gather)
+        # λ[j, v·G + g] = (a, b, c)[j, v, g] · (x, y, 1)[j]: one stacked matmul
+        self._tri_H = np.ascontiguousarray(H.reshape(T, 3 * G, 3))
+        self._tri_lamm = np.zeros((T, 3 * G, 1))
+        self._tri_lam = self._tri_lamm.reshape(T, 3, G)
         self._tri_l0, self._tri_l1, self._tri_l2 = (self._tri_lam[:, v] for v in range(3))
         self._tri_min = np.zeros((T, G))
         self._tri_in = np.zeros((T, G), dtype=bool)
         self._tri_sel = np.zeros(T, dtype=np.int64)
         self._tri_off_now = np.zeros(T, dtype=np.int64)
         self._tri_coef = np.zeros((T, 3))
+        self._tri_coef1 = self._tri_coef[:, None, :]
+        self._V_tri11 = self._V_tri.reshape(T, 1, 1)
 
     def _build_lsec(self, axes: list, rows: list[int], modulo, period) -> None:
         self._n_lsec = L = len(rows)
@@ -626,14 +658,23 @@ class Kernel:
             return
         ls = [axes[i].comp.lsec for i in rows]
         tables = []
-        for x in ls:  # rows 2j (pos) and 2j + 1 (neg; = pos when unilateral)
-            tables.append((x.setpoint, x.pos))
+        for x in ls:  # rows 3j (neg; = pos when unilateral), 3j + 1 (unused), 3j + 2 (pos)
             tables.append((x.setpoint, x.neg if x.bilateral else x.pos))
+            tables.append((np.zeros(1), np.zeros(1)))
+            tables.append((x.setpoint, x.pos))
         # the applied offset is −Δs: negate the values once here
         tables = [(np.asarray(k, dtype=float), -np.asarray(v, dtype=float)) for k, v in tables]
-        self._ls = Lookup(MergedTable(tables), np.arange(L, dtype=float) * 2)
-        self._ls_base = np.arange(L, dtype=float) * 2
+        self._ls = Lookup(MergedTable(tables), np.arange(L, dtype=float) * 3 + 1)
         self._ls_slots = _i64(rows)
+        # one gather of (direction, command position) and one add of (3j + 1, cross +
+        # plane) give the complex query (row id 3j + 1 ± 1, position) directly
+        n = self.n
+        self._ls_src = np.stack([self._ls_slots + 4 * n + 2, self._ls_slots], axis=1)
+        self._ls_g = np.zeros((L, 2))
+        self._ls_add = np.zeros((L, 2))
+        self._ls_add[:, 0] = np.arange(L, dtype=float) * 3 + 1
+        self._ls_t = self._ls_add[:, 1]
+        self._ls_qf = self._ls._qc_flat
         self._ls_flat = self._ls_slots * 7 + LEAD
         self._ls_all = rows == list(range(self.n))
         self._ls_cp = np.stack([self._ls_slots * 7 + CROSS, self._ls_slots * 7 + PLANE])
@@ -647,7 +688,7 @@ class Kernel:
         self._ls_per = np.where(per > 0, per, 1.0)
         self._ls_any_wrap = bool(self._ls_wrap.any())
         self._ls_cpv = np.zeros((2, L))
-        self._ls_t, self._ls_d, self._ls_val = np.zeros(L), np.zeros(L), np.zeros(L)
+        self._ls_d, self._ls_val = np.zeros(L), np.zeros(L)
 
     def _build_frict(self, axes: list, rows: list[int]) -> None:
         n = self.n
@@ -714,6 +755,80 @@ class Kernel:
         self._pending[:] = True
         self._pending_any = True
 
+    def _build_gather(self) -> None:
+        """One gather for every input that only needs this cycle's commands.
+
+        G = [xt vel | xt acc | friction vel | 1-D queries | plane (u, v) | mode 3 (x, y, 1)]
+        is taken from S with one `take`; one `sign` serves the first three parts, one
+        subtract and one divide (neutral 0 and 1 elsewhere) the last three.
+        """
+        n, nxt, F = self.n, self._nxt, len(self._fr_slots) if self._n_l1 else 0
+        L1, P, T = self._n_l1, self._n_plane, self._n_tri
+        src, sub, div, per, wrap = [], [], [], [], []
+        if nxt:
+            src += list(self._xt_src.reshape(-1))
+        if F:
+            src += [n + int(i) for i in self._fr_slots]
+        ns = len(src)
+        if L1:
+            src += list(self._l1_src)
+            sub += [0.0] * L1
+            div += list(self._l1_div)
+            per += list(self._l1_per)
+            wrap += list(self._l1_wrap)
+        if P:
+            src += list(self._pl_src.reshape(-1))
+            sub += list(self._pl_s0.reshape(-1))
+            div += list(self._pl_iv.reshape(-1))
+            per += list(self._pl_per.reshape(-1))
+            wrap += list(self._pl_wrap.reshape(-1))
+        nw = len(wrap)
+        if T:
+            src += list(self._tri_src.reshape(-1))
+            sub += [0.0] * (3 * T)
+            div += [1.0] * (3 * T)
+        self._g_src = _i64(src)
+        self._G = G = np.zeros(len(src))
+        self._g_sign_in = G[:ns]
+        self._g_sg = sg = np.zeros(ns)
+        self._g_q = G[ns:]
+        self._g_sub, self._g_div = _f64(sub), _f64(div)
+        self._g_w = G[ns : ns + nw]
+        self._g_per, self._g_wrap = _f64(per), np.array(wrap, dtype=bool)
+        self._g_any_wrap = bool(self._g_wrap.any())
+        self._g_tmp = np.zeros(nw)
+        o = ns
+        if L1:
+            self._l1_raw = G[o : o + L1]
+            o += L1
+        if P:
+            self._pl_u = G[o : o + 2 * P].reshape(2, P)
+            o += 2 * P
+        if T:
+            self._tri_xy1 = G[o : o + 3 * T].reshape(T, 3)
+            self._tri_xy1c = self._tri_xy1[:, :, None]
+        if F:
+            self._fr_s = sg[2 * nxt :]
+        if nxt:
+            # per sign code: (sign(a)·1/|a_ref|/UNITS_PER_MM, mode-3 region block, 1-D row)
+            # so that a·r = |a|/|a_ref| in mm/s² without an abs and a divide
+            self._xt_sg2 = sg[: 2 * nxt].reshape(2, nxt)
+            self._xt_a = G[nxt : 2 * nxt]
+            sa = np.tile(np.array([-1.0, 0.0, 1.0] * 3), nxt)
+            tab = np.zeros((nxt * 9, 3))
+            tab[:, 0] = sa * self._xt_inv / UNITS_PER_MM
+            if T:
+                tab[: T * 9, 1] = self._tri_off
+            if L1:
+                tab[:, 2] = self._lin_rowid
+            self._xt_tab = tab
+            self._xt_3 = np.zeros((nxt, 3))
+            self._xt_r = self._xt_3[:, 0]
+            self._tri_off_now = self._xt_3[:T, 1]
+            self._xt_lin_now = self._xt_3[T:, 2]
+            self._xt_w31 = np.array([3.0, 1.0])
+        self._xt_has_lin = bool(L1 and nxt > T)
+
     # ------------------------------------------------------------------ the cycle
 
     def step(
@@ -724,35 +839,41 @@ class Kernel:
         homed: np.ndarray,
         reversal_in: np.ndarray,
     ) -> None:
-        """One GEO cycle for every axis (SPEC §5 step 3)."""
+        """One GEO cycle for every axis (SPEC §5 step 3).
+
+        Written as one flat sequence of numpy calls on local names (attribute lookups
+        and helper calls cost as much as a small numpy call here).
+        """
+        mul, add, subtract = np.multiply, np.add, np.subtract
+        copyto, minimum = np.copyto, np.minimum
         tgt, act, eff, ev = self.target, self.actual, self.effective, self._event
-        s, rev, d, t1 = self._s, self._rev, self._dir, self._t1
-        pos = self._Spos
-        np.copyto(self._prev, act)
+        prev, t1, pos = self._prev, self._t1, self._Spos
+        copyto(prev, act)
         if self._first:
-            np.copyto(pos, cmd_pos)
+            copyto(pos, cmd_pos)
             self._first = False
-        np.subtract(cmd_pos, pos, self._dpos)  # pos still holds the previous cycle's
+        dpos = self._dpos
+        subtract(cmd_pos, pos, dpos)  # pos still holds the previous cycle's
         np.concatenate((cmd_pos, cmd_vel, cmd_acc, reversal_in), out=self._S4)
         if reversal_in.dtype.kind != "i":
             np.trunc(self._Srev, out=self._Srev)  # the reference's int(): −0.5 → 0
 
         # direction: sign of the command velocity, last one held at standstill (SPEC §3).
         # d is always ±1, so "s ≠ 0 and s ≠ d" is s·d < 0, and the update is a flip.
+        s, rev, d = self._s, self._rev, self._dir
         np.sign(self._Svel, s)
-        np.multiply(s, d, t1)
+        mul(s, d, t1)
         np.less(t1, 0.0, rev)
         np.negative(d, out=d, where=rev)
-        np.less(d, 0.0, self._dneg)
 
         # effective = selected ∧ configured ∧ homing preconditions; events on change
-        np.copyto(self._homed_in, homed)
-        self._homed.take(self._h, out=self._hb)
-        ne = self._neweff
-        np.logical_and(self._hb[0], self._hb[1], ne)
+        copyto(self._homed_in, homed)
+        hb, ne = self._hb, self._neweff
+        self._homed.take(self._h, out=hb)
+        np.logical_and(hb[0], hb[1], ne)
         np.logical_and(ne, self.selected, ne)
         np.not_equal(ne, eff, ev)
-        np.copyto(eff, ne)
+        copyto(eff, ne)
         if self._pending_any:  # TEMPC writes, reload
             np.logical_or(ev, self._pending, ev)
             self._pending.fill(False)
@@ -765,183 +886,177 @@ class Kernel:
 
         # backlash: 0 in the start-up direction, d·lose after a reversal; with d, init
         # ∈ {±1} that is (d − init)·lose/2, exactly (000 §2, SPEC §6)
-        np.subtract(d, self._init_dir, t1)
-        np.multiply(t1, self._half_lose, self._tgt_bc)
         # temperature: offset_0 + coefficient·1e-6·(s − position_0) (000 §3.1)
+        bt = self._bt_t
+        subtract(self._dp, self._bt_sub, bt)  # (d − init, s − position_0)
         if self._any_modulo:
             np.mod(pos, self._mod_period, t1)
-            np.copyto(t1, pos, where=self._not_modulo)
-            np.subtract(t1, self._tempc[2], t1)
-        else:
-            np.subtract(pos, self._tempc[2], t1)
-        np.multiply(self._tc6, t1, t1)
-        np.add(self._tempc[1], t1, self._tgt_temp)
+            copyto(t1, pos, where=self._not_modulo)
+            subtract(t1, self._tempc[2], bt[1])
+        mul(bt, self._bt_mul, self._tgt_bt)
+        add(self._tempc[1], self._tgt_temp, self._tgt_temp)
 
         # cross, plane, crosstalk, friction base: all into V, then one scatter
-        if self._nxt:
-            self._step_xt_state()
-        if self._n_l1:
-            self._step_l1()
-        if self._n_plane:
-            self._step_plane()
-        if self._n_tri:
-            self._step_tri()
-        if self._any_fac:
-            np.multiply(self._V, self._fac, self._V)
+        (nxt, n_l1, n_plane, n_tri, any_sign, nq, any_fac) = self._flags
+        if nq or any_sign:
+            G = self._G
+            self._S.take(self._g_src, out=G)
+            if any_sign:
+                np.sign(self._g_sign_in, self._g_sg)
+            if nq:
+                q = self._g_q
+                if self._g_any_wrap:  # modulo master: position wrapped into [0, period)
+                    gw, gt = self._g_w, self._g_tmp
+                    np.mod(gw, self._g_per, gt)
+                    copyto(gw, gt, where=self._g_wrap)
+                subtract(q, self._g_sub, q)
+                np.divide(q, self._g_div, q)
+        if nxt:
+            # crosstalk (000 §4.6 p.84): column by accelerate/decelerate × direction and
+            # the clamped ratio |a|/|a_ref|, for every new-model row (modes 1, 2, 3)
+            code, idx = self._xt_code, self._xt_idx
+            np.dot(self._xt_w31, self._xt_sg2, out=code)
+            add(code, self._xt_rowoff, idx, casting="unsafe")
+            self._xt_tab.take(idx, axis=0, out=self._xt_3)
+            fx = self._fac_xt
+            mul(self._xt_a, self._xt_r, fx)
+            minimum(fx, 1.0, out=fx)  # clamp beyond the reference (SPEC §12)
+            if self._xt_has_lin:
+                copyto(self._l1_rowid_lin, self._xt_lin_now)
+        if n_l1:
+            # cross (000 §4.2), friction base (§4.5), crosstalk modes 1/2 and old model
+            # (§4.6) and the friction pre-reversal weight: one merged lookup
+            lk = self._l1
+            copyto(lk.q, self._l1_raw)
+            lk.seg_table.take(lk.keys.searchsorted(lk.qc, "right"), axis=0, out=lk.seg)
+            lt = lk.tmp
+            subtract(lk.q, lk.x0, lt)
+            mul(lt, lk.slope, lt)
+            add(lt, lk.y0, self._V_l1)
+            if self._fr_n:  # friction: sign(v)·scaling_factor/1000
+                mul(self._fr_s, self._fr_scale, self._fac_fr)
+        if n_plane:
+            # plane (000 §4.3): bilinear on table[j][i] (j master 2, i master 1), clamped
+            # u = clamp((q − start)/interval, 0, last); cell = min(floor(u), last − 1)
+            u, fl = self._pl_u, self._pl_f
+            _clip(u, 0.0, self._pl_last, out=u)
+            np.floor(u, fl)
+            minimum(fl, self._pl_lim, out=fl)
+            subtract(u, fl, self._pl_frac)
+            subtract(1.0, self._pl_frac, self._pl_gfrac)
+            # weights [j, i] = (1 − fv | fv)_j · (1 − fu | fu)_i
+            pw = self._pl_w
+            mul(self._pl_V, self._pl_U, pw)
+            # corner indices: base + j0·stride + i0 + corner offset
+            pt = self._pl_tmp
+            mul(fl, self._pl_sw, pt)
+            add(pt[0], pt[1], self._pl_k00)
+            pk, pc = self._pl_k, self._pl_c
+            add(self._pl_k00b, self._pl_base4, pk, casting="unsafe")
+            self._pl_tab.take(pk, out=pc)
+            mul(pw, pc, pw)
+            add.reduce(self._pl_w4, axis=0, out=self._V_plane)
+        if n_tri:
+            # crosstalk mode 3 (000 §4.6 p.84, SPEC §12): first region containing (x, y),
+            # then its affine value in the selected column (× ratio via the factor vector)
+            xy1 = self._tri_xy1
+            # λ = a·x + b·y + c for every half-plane of every region (rounding may differ
+            # from the reference's order by an ulp: the value is continuous across
+            # region boundaries, so this moves results by ≪ 1e-9)
+            np.matmul(self._tri_H, self._tri_xy1c, out=self._tri_lamm)
+            tmin, tin, sel = self._tri_min, self._tri_in, self._tri_sel
+            minimum(self._tri_l0, self._tri_l1, out=tmin)  # cheaper than a reduce
+            minimum(tmin, self._tri_l2, out=tmin)
+            np.greater_equal(tmin, -INSIDE_EPS, tin)
+            tin.argmax(axis=1, out=sel)  # first region wins
+            add(sel, self._tri_off_now, sel, casting="unsafe")
+            coef = self._tri_coef
+            self._tri_val.take(sel, axis=0, out=coef)
+            np.matmul(self._tri_coef1, self._tri_xy1c, out=self._V_tri11)  # (α, β, γ)·(x, y, 1)
+            vt = self._V_tri
+            for j, t, cols in self._tri_slow:
+                col = int(self._tri_colv[self._xt_idx[j]])
+                vt[j] = evaluate(t, cols[col], xy1[j, 0], xy1[j, 1])
+        V = self._V
+        if any_fac:
+            mul(V, self._fac, V)
         self._tflat.put(self._V_flat, self._V_tgt)
-        np.multiply(tgt, eff, tgt)
+        mul(tgt, eff, tgt)
 
-        # sin² filter of every column (LSEC again below, once its target is known)
+        # sin² filter of every column (LSEC again below, once its target is known):
+        # k ← offset(N) on an event, then k ← min(k + 1, offset(N) + N) (one successor
+        # table), w = cos²(πk/(2N)); J ← target − out where event; out = target − J·w
         f = self._filter
-        f.advance(ev)
-        sin2_apply(tgt, self._prev, ev, f.jump, f.w, self._t7, act)
+        kidx, w, jump, t7 = f.kidx, f.w, f.jump, self._t7
+        copyto(kidx, f.off, where=ev)
+        f.succ.take(kidx, out=kidx)
+        f.table.take(kidx, out=w)
+        subtract(tgt, prev, t7)
+        copyto(jump, t7, where=ev)
+        mul(jump, w, t7)
+        subtract(tgt, t7, act)
+
         if self._n_lsec:
-            self._step_lsec()
-        self._step_frict()
+            # LSEC (000 §4.4): −Δs at command (+ cross + plane output), pos/neg by
+            # direction; then its sin² pass (reversal events were set with the others)
+            lk = self._ls
+            cp, t = self._ls_cpv, self._ls_t
+            self._aflat.take(self._ls_cp, out=cp)
+            add(cp[0], cp[1], t)
+            if not self._ls_all_wc:  # set_pos_without_comp: command position only
+                mul(t, self._ls_wc, t)
+            self._S.take(self._ls_src, out=self._ls_g)
+            add(self._ls_g, self._ls_add, self._ls_qf)  # (row id, position)
+            if self._ls_any_wrap:  # modulo table: wrap into [x0, x0 + period)
+                lq, lt = lk.q, self._ls_d
+                subtract(lq, self._ls_x0, lt)
+                np.mod(lt, self._ls_per, lt)
+                add(lt, self._ls_x0, lt)
+                copyto(lq, lt, where=self._ls_wrap)
+            lk.seg_table.take(lk.keys.searchsorted(lk.qc, "right"), axis=0, out=lk.seg)
+            lt = lk.tmp
+            subtract(lk.q, lk.x0, lt)
+            mul(lt, lk.slope, lt)
+            tl = self._tgt_lead
+            if self._ls_all:  # every axis has LSEC: straight into the target column
+                add(lt, lk.y0, tl)
+            else:
+                add(lt, lk.y0, self._ls_val)
+                self._tflat.put(self._ls_flat, self._ls_val)
+            mul(tl, self._eff_lead, tl)
+            tld, pl = self._t_lead, self._prev_lead
+            subtract(tl, pl, tld)
+            copyto(self._f_j_lead, tld, where=self._ev_lead)
+            mul(self._f_j_lead, self._f_w_lead, tld)
+            subtract(tl, tld, self._act_lead)
 
-        np.subtract(act, self._prev, self.delta)
-        np.add.reduce(act, axis=1, out=self.total_offset)
-        np.subtract(self.total_offset, self._act_fr, self.total_offset)
-
-    def _step_xt_state(self) -> None:
-        """Crosstalk (000 §4.6 p.84): column by accelerate/decelerate × direction and the
-        clamped ratio |a|/|a_ref|, for every new-model row (modes 1, 2, 3)."""
-        av, sg, code, idx = self._xt_av, self._xt_sg, self._xt_code, self._xt_idx
-        self._S.take(self._xt_src, out=av)
-        np.sign(av, sg)
-        np.multiply(sg[0], 3.0, code)
-        np.add(code, sg[1], code)
-        np.add(code, self._xt_rowoff, idx, casting="unsafe")
-        r = self._xt_r
-        self._xt_inv.take(idx, out=r)
-        np.abs(av[1], t := self._xt_code)  # |a| (code is no longer needed)
-        np.divide(t, UNITS_PER_MM, t)
-        np.multiply(t, r, t)
-        np.minimum(t, 1.0, out=self._fac_xt)  # clamp beyond the reference (SPEC §12)
-        if self._n_tri:
-            self._tri_off.take(self._xt_idx_tri, out=self._tri_off_now)
-        if len(self._xt_idx_lin):
-            self._lin_rowid.take(self._xt_idx_lin, out=self._l1_rowid_lin)
-
-    def _step_l1(self) -> None:
-        """Cross (000 §4.2), friction base (§4.5), crosstalk modes 1/2 and old model
-        (§4.6) and the friction pre-reversal weight: one merged lookup."""
-        lk, q = self._l1, self._l1_raw
-        self._S.take(self._l1_src, out=q)
-        if self._l1_any_wrap:  # modulo master: position wrapped into [0, period)
-            np.mod(q, self._l1_per, self._l1_tmp)
-            np.copyto(q, self._l1_tmp, where=self._l1_wrap)
-        np.divide(q, self._l1_div, lk.q)
-        lk(self._V_l1)
-        # friction: sign(v)·scaling_factor/1000
-        self._s.take(self._fr_slots, out=self._fr_s)
-        np.multiply(self._fr_s, self._fr_scale, self._fac_fr)
-
-    def _step_plane(self) -> None:
-        """Plane (000 §4.3): bilinear on table[j][i] (j master 2, i master 1), clamped."""
-        q, u, fl = self._pl_q, self._pl_u, self._pl_f
-        self._S.take(self._pl_src, out=q)
-        if self._pl_any_wrap:
-            np.mod(q, self._pl_per, self._pl_tmp)
-            np.copyto(q, self._pl_tmp, where=self._pl_wrap)
-        # u = clamp((q − start)/interval, 0, last); cell = min(floor(u), last − 1)
-        np.subtract(q, self._pl_s0, u)
-        np.divide(u, self._pl_iv, u)
-        np.maximum(u, 0.0, out=u)
-        np.minimum(u, self._pl_last, out=u)
-        np.floor(u, fl)
-        np.minimum(fl, self._pl_lim, out=fl)
-        np.subtract(u, fl, self._pl_frac)
-        np.subtract(1.0, self._pl_frac, self._pl_gfrac)
-        # weights [j, i] = (1 − fv | fv)_j · (1 − fu | fu)_i
-        np.multiply(self._pl_V, self._pl_U, self._pl_w)
-        # corner indices: base + j0·stride + i0 + corner offset
-        np.multiply(fl, self._pl_sw, self._pl_tmp)
-        np.add(self._pl_tmp[0], self._pl_tmp[1], self._pl_k00)
-        np.add(self._pl_k00b, self._pl_base4, self._pl_k, casting="unsafe")
-        self._pl_tab.take(self._pl_k, out=self._pl_c)
-        np.multiply(self._pl_w, self._pl_c, self._pl_w)
-        np.add.reduce(self._pl_w4, axis=0, out=self._V_plane)
-
-    def _step_tri(self) -> None:
-        """Crosstalk mode 3 (000 §4.6 p.84, SPEC §12): first region containing (x, y),
-        then its affine value in the selected column (× ratio via the factor vector)."""
-        xy1, lam, lam2 = self._tri_xy1, self._tri_lam, self._tri_lam2
-        self._S.take(self._tri_src, out=xy1)
-        # λ = a·x + b·y + c, in the reference's order
-        np.multiply(self._tri_A, self._tri_x, lam)
-        np.multiply(self._tri_B, self._tri_y, lam2)
-        np.add(lam, lam2, lam)
-        np.add(lam, self._tri_C, lam)
-        np.minimum.reduce(lam, axis=1, out=self._tri_min)
-        np.greater_equal(self._tri_min, -INSIDE_EPS, self._tri_in)
-        self._tri_in.argmax(axis=1, out=self._tri_sel)  # first region wins
-        np.add(self._tri_sel, self._tri_off_now, self._tri_sel)
-        coef = self._tri_coef
-        self._tri_val.take(self._tri_sel, axis=0, out=coef)
-        np.multiply(coef, xy1, coef)
-        np.add.reduce(coef, axis=1, out=self._V_tri)
-        for j, t, cols in self._tri_slow:
-            col = int(self._tri_colv[self._xt_idx_tri[j]])
-            self._V_tri[j] = evaluate(t, cols[col], xy1[j, 0], xy1[j, 1])
-
-    def _step_lsec(self) -> None:
-        """LSEC (000 §4.4): −Δs at command (+ cross + plane output), pos/neg by direction;
-        then its sin² pass (reversal events were set with the others)."""
-        lk = self._ls
-        cp, t = self._ls_cpv, self._ls_t
-        self._aflat.take(self._ls_cp, out=cp)
-        np.add(cp[0], cp[1], t)
-        if not self._ls_all_wc:  # set_pos_without_comp: command position only
-            np.multiply(t, self._ls_wc, t)
-        self._Spos.take(self._ls_slots, out=self._ls_d)
-        np.add(self._ls_d, t, lk.q)
-        if self._ls_any_wrap:  # modulo table: wrap into [x0, x0 + period)
-            np.subtract(lk.q, self._ls_x0, t)
-            np.mod(t, self._ls_per, t)
-            np.add(t, self._ls_x0, t)
-            np.copyto(lk.q, t, where=self._ls_wrap)
-        self._dneg.take(self._ls_slots, out=self._ls_d)
-        np.add(self._ls_base, self._ls_d, lk.rowid)  # row 2j pos, 2j + 1 neg
-        if self._ls_all:  # every axis has LSEC: straight into the target column
-            lk(self._tgt_lead)
-        else:
-            lk(self._ls_val)
-            self._tflat.put(self._ls_flat, self._ls_val)
-        np.multiply(self._tgt_lead, self._eff_lead, self._tgt_lead)
-        sin2_apply(
-            self._tgt_lead,
-            self._prev_lead,
-            self._ev_lead,
-            self._f_j_lead,
-            self._f_w_lead,
-            self._t_lead,
-            self._act_lead,
-        )
-
-    def _step_frict(self) -> None:
-        """Friction (000 §4.5): reversal weights and the delay line, for every axis (the
-        non-friction rows carry zeros, as in the reference's per-axis delay lines)."""
-        path, t1 = self._path, self._dpos
-        # path since the last reversal
-        np.copyto(path, 0.0, where=self._rev)
-        np.abs(t1, t1)
-        np.add(path, t1, path)
+        # friction (000 §4.5): reversal weights and the delay line, for every axis (the
+        # non-friction rows carry zeros, as in the reference's per-axis delay lines)
+        path = self._path
+        copyto(path, 0.0, where=rev)  # path since the last reversal
+        np.abs(dpos, dpos)
+        add(path, dpos, path)
         wpos = self._ring_pos
-        self._ring_pos = (wpos + 1) % RING
+        self._ring_pos = wpos + 1 if wpos < RING - 1 else 0
         # this cycle's value, into the delay line: sign(v)·scale·table(|v|) (0 when not
         # effective), × the pre-reversal and the post-reversal weight
         cur = self._ring[wpos]
-        if self._n_l1 and len(self._fr_slots):
+        if self._fr_n:
             # before the reversal: r/(lookahead + 1) while 0 ≤ r ≤ lookahead
-            self._wpre.put(self._fr_slots, self._V_wpre)
-            np.multiply(self._tgt_fr, self._wpre, cur)
+            wpre = self._wpre
+            wpre.put(self._fr_slots, self._V_wpre)
+            mul(self._tgt_fr, wpre, cur)
         else:
-            np.copyto(cur, self._tgt_fr)
+            copyto(cur, self._tgt_fr)
         if self._fr_any_pd:  # after the reversal: build-up over position_delay of path
-            np.divide(path, self._fr_pd, self._wpost, where=self._fr_has_pd)
-            np.minimum(self._wpost, 1.0, out=self._wpost)
-            np.multiply(cur, self._wpost, cur)
+            wp = self._wpost
+            np.divide(path, self._fr_pd, wp, where=self._fr_has_pd)
+            minimum(wp, 1.0, out=wp)
+            mul(cur, wp, cur)
         # delay line: read `delay_cycles` back; output only while effective
-        self._ring_flat.take(self._fr_ridx[wpos], out=self._fr_rv)
-        np.multiply(self._fr_rv, self._eff_fr, self._act_fr)  # = friction_current
+        rv = self._fr_rv
+        self._ring_flat.take(self._fr_ridx[wpos], out=rv)
+        mul(rv, self._eff_fr, self._act_fr)  # = friction_current
+
+        subtract(act, prev, self.delta)
+        np.dot(act, self._not_fr, out=self.total_offset)  # Σ columns but friction

@@ -52,14 +52,17 @@ class Sin2Filter:
         n_new = np.asarray(n_cycles, dtype=np.int64)
         k = self.n.copy() if idle else self.kidx - self.off
         lengths = sorted({int(v) for v in n_new.ravel()})
-        table, start = [], {}
+        table, start, succ = [], {}, []
         for m in lengths:
-            start[m] = len(table)
+            start[m] = b = len(table)
             if m <= 0:
                 table.append(0.0)  # unfiltered column
+                succ.append(b)
             else:
                 table.extend(math.cos(math.pi * float(j) / (2 * m)) ** 2 for j in range(m + 1))
+                succ.extend(b + min(j + 1, m) for j in range(m + 1))
         self.table = np.array(table)
+        self.succ = np.array(succ, dtype=np.int64)  # index of the next cycle's weight
         self.off = np.vectorize(start.__getitem__, otypes=[np.int64])(n_new)
         n_eff = np.maximum(n_new, 0)
         self.end = self.off + n_eff
@@ -71,8 +74,7 @@ class Sin2Filter:
     def advance(self, event: np.ndarray) -> None:
         """k ← 0 where an event happens, then k ← min(k + 1, N); w = cos²(πk/(2N))."""
         np.copyto(self.kidx, self.off, where=event)
-        np.add(self.kidx, 1, self.kidx)
-        np.minimum(self.kidx, self.end, out=self.kidx)
+        self.succ.take(self.kidx, out=self.kidx)  # buffered (mode "raise"): safe in place
         self.table.take(self.kidx, out=self.w)
 
 

@@ -66,6 +66,7 @@ class Lookup:
         self.keys, self.seg_table = table.keys, table.seg
         self.qc = np.zeros(n, dtype=complex)
         self.qc.real = row_ids
+        self._qc_flat = self.qc.view(float).reshape(n, 2)  # (row id, position) pairs
         self.q = self.qc.imag  # view: write the query positions here
         self.rowid = self.qc.real  # view: write per-cycle variant row ids here
         self.seg = np.zeros((n, 3))

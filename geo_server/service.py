@@ -7,6 +7,9 @@
 - `write(group, offset, data)` validates at once (0x702/0x703/0x704/0x705/0x706) and
   queues the value; it is applied at the next cycle boundary in arrival order. The
   returned future resolves when it has been applied.
+- `write_async` / `write_name_async`: the same from an asyncio loop. The command objects
+  (`SIM::reload`, `SIM::save`, see `is_command`) read and write list files; they run in
+  a worker thread so the loop (ADS, Modbus, Zenoh) keeps answering meanwhile.
 - by-name access with decoded values, change subscriptions, `status`, `errors`,
   and the commands `reload` and `save` of SPEC §4.
 
@@ -15,6 +18,7 @@ Transports never reach into the kernel or the machine; they hold an `ObjectServi
 
 from __future__ import annotations
 
+import asyncio
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
@@ -29,6 +33,7 @@ from geo_server.machine.machine import Event, Machine
 from geo_server.machine.nc import NcError, parse_program
 from geo_server.machine.scheduler import Scheduler
 from geo_server.machine.snapshot import Snapshot
+from geo_server.paths import is_packaged_data
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
@@ -40,6 +45,10 @@ SAVED_PARAMETERS = {
     "TEMPC::position_0": "lr_param.temp_comp_position_0",
     "TEMPC::activated": "lr_param.temp_comp",
 }
+
+#: Objects whose write runs a command (SPEC §2, 0x12F300 IDs 0x4/0x5) instead of queueing
+#: a value: they parse or rewrite list files and may take long, so never on an event loop.
+COMMAND_OBJECTS = frozenset({"SIM::reload", "SIM::save"})
 
 
 @dataclass
@@ -170,11 +179,40 @@ class ObjectService:
         self._check_writable(obj)
         return self._queue(obj, axis, obj.coerce(value))
 
+    def is_command(self, obj: ObjectDef) -> bool:
+        """Does writing `obj` run a command (reload/save) rather than queue a value?"""
+        return obj.name in COMMAND_OBJECTS
+
+    async def write_async(self, index_group: int, index_offset: int, data: bytes) -> Future:
+        """`write` for callers on an asyncio loop: a command object runs in a worker thread.
+
+        `write` of `SIM::reload`/`SIM::save` parses or rewrites the list files before it
+        returns; on the loop that would stall every transport sharing it (ADS, Modbus,
+        Zenoh) for the whole reload. Plain values are validated and queued in place
+        (cheap, and it keeps their arrival order).
+        """
+        obj, _axis, attr = self.resolve(index_group, index_offset)
+        if attr is None and self.is_command(obj):
+            return await asyncio.get_running_loop().run_in_executor(
+                None, self.write, index_group, index_offset, data
+            )
+        return self.write(index_group, index_offset, data)
+
+    async def write_name_async(self, name: str, axis: int, value: Any) -> Future:
+        """`write_name` for callers on an asyncio loop (see `write_async`)."""
+        if self.is_command(self.dictionary.by_name(name)):
+            return await asyncio.get_running_loop().run_in_executor(
+                None, self.write_name, name, axis, value
+            )
+        return self.write_name(name, axis, value)
+
     def _check_writable(self, obj: ObjectDef) -> None:
         if not obj.writable:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{obj.name} is read-only", obj.name)
 
     def _queue(self, obj: ObjectDef, axis: int, value: Any) -> Future:
+        # Commands run here, in the caller's thread: callers on an event loop use
+        # `write_async` / `write_name_async`, which call this in a worker thread.
         if obj.name == "SIM::reload":
             return self._done(self.reload())
         if obj.name == "SIM::save":
@@ -300,6 +338,12 @@ class ObjectService:
                 if not params.path:
                     errors.append(f"axis {axis}: no axis parameter list to save into")
                     continue
+                if is_packaged_data(params.path):
+                    errors.append(
+                        f"{params.path} belongs to the installed package; copy the machine "
+                        "with `geo-server init DIR` and run DIR/hochlauf.lis to save"
+                    )
+                    continue
                 try:
                     rewrite_values(params.path, changes)
                 except OSError as exc:
@@ -382,4 +426,4 @@ def _note_saved(params: Any, changes: dict[str, str]) -> None:
         )
 
 
-__all__ = ["ADSERR_DEVICE_SYNTAX", "CommandResult", "CompKind", "ObjectService"]
+__all__ = ["ADSERR_DEVICE_SYNTAX", "COMMAND_OBJECTS", "CommandResult", "CompKind", "ObjectService"]

@@ -114,6 +114,50 @@ class KeySpace:
             return self._unknown_named(key, rest[2])
         raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"unknown key {key}")
 
+    def no_match(self, key_expr: str) -> AdsError:
+        """The error for a wildcard key expression that matches none of our keys.
+
+        SPEC §7: every get is answered, so a wildcard that matches nothing gets a
+        `reply_err` instead of silence (the client would only see its timeout). The code
+        follows the concrete-key cases where a concrete chunk already tells what is
+        wrong: an unknown ADS port -> 0x6, an unknown index group -> 0x702, an
+        unconfigured axis -> 0x703; anything else is an unknown object -> 0x703.
+        """
+        rest = key_expr.split("/")[2:]
+
+        def concrete(i: int) -> str | None:
+            chunk = rest[i] if i < len(rest) else None
+            return None if chunk is None or "*" in chunk else chunk
+
+        axis_chunk = None  # the axis number, when the key expression names one
+        if rest[:1] == ["axis"]:
+            axis_chunk = concrete(1)
+        elif rest[:2] == ["sim", "axis"]:
+            axis_chunk = concrete(2)
+        if axis_chunk is not None and not (axis_chunk.isdigit() and int(axis_chunk) in self.axes):
+            return AdsError(
+                AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis_chunk} is not configured"
+            )
+        if rest[:1] == ["ads"]:
+            port, ig = concrete(1), concrete(2)
+            if port is not None and port != str(GEO_PORT):
+                return AdsError(
+                    AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is 551)"
+                )
+            if ig is not None:
+                try:
+                    group = int(ig, 16)
+                except ValueError:
+                    group = -1
+                if group not in GROUPS.values() and not is_attribute_group(group):
+                    return AdsError(AdsErrorCode.INVALID_INDEX_GROUP, f"unknown index group {ig}")
+                if is_attribute_group(group):
+                    return AdsError(
+                        AdsErrorCode.INVALID_INDEX_OFFSET,
+                        f"attribute groups are answered by concrete key only: {key_expr}",
+                    )
+        return AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"no object matches {key_expr}")
+
     def _parse_raw(self, key: str, parts: list[str]) -> Route:
         try:
             port, ig, io = int(parts[0]), int(parts[1], 16), int(parts[2], 16)

@@ -2,14 +2,16 @@
 
 Zenoh calls our queryable callback on one of its own threads. The callback only hands
 the query to the asyncio loop (`call_soon_threadsafe`); everything else — reading the
-snapshot, validating a write, waiting for it to be applied, running reload/save in an
-executor — happens on the loop, so Zenoh's dispatch is never blocked and the GEO cycle
-never waits on Zenoh.
+snapshot, validating a write, waiting for it to be applied — happens on the loop, so
+Zenoh's dispatch is never blocked and the GEO cycle never waits on Zenoh. Reload/save
+(by `cmd/…` key or by writing `SIM::reload`/`SIM::save`) run in a worker thread, so the
+loop, which ADS and Modbus may share, is not blocked while list files are read or written.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 from dataclasses import dataclass, field
@@ -88,7 +90,14 @@ class ZenohInterface:
         self.service = service
         self.options = options or ZenohOptions()
         self.keys = KeySpace(self.options.machine, service.dictionary, service.axes)
-        self._readable = self.keys.readable_keys()
+        # KeyExprs built once: a wildcard get intersects every readable key and the
+        # publish loop puts every cycle; building (and validating) a KeyExpr from a str
+        # each time is pure overhead on the loop the GEO cycle shares the GIL with.
+        self._readable = [
+            (zenoh.KeyExpr(key), key, route) for key, route in self.keys.readable_keys().items()
+        ]
+        self._status_ke = zenoh.KeyExpr(f"{self.keys.prefix}/status")
+        self._errors_ke = zenoh.KeyExpr(f"{self.keys.prefix}/errors")
         self._session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._tasks: set[asyncio.Task] = set()
@@ -140,7 +149,16 @@ class ZenohInterface:
         """Zenoh thread: hand the query to the loop and return at once."""
         loop = self._loop
         if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self._spawn, self._handle(query))
+            # The loop may close between the check and the hand-off (server shutting
+            # down while a query arrives): call_soon_threadsafe then raises RuntimeError
+            # on Zenoh's thread. Nobody is left to answer; the query ends when Zenoh
+            # drops it. The coroutine is created on the loop (`_accept`), so a failed
+            # hand-off leaves no never-awaited coroutine behind.
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._accept, query)
+
+    def _accept(self, query: zenoh.Query) -> None:
+        self._spawn(self._handle(query))
 
     async def _handle(self, query: zenoh.Query) -> None:
         self.queries += 1
@@ -168,13 +186,20 @@ class ZenohInterface:
             query.drop()
 
     def _answer_wildcard(self, query: zenoh.Query) -> None:
-        """One reply per concrete key the wildcard matches, all from one snapshot."""
+        """One reply per concrete key the wildcard matches, all from one snapshot.
+
+        A wildcard that matches none of our keys (an unconfigured axis, a misspelt
+        field) is answered with `reply_err` (SPEC §7: every get is answered), not with
+        silence that the client can only tell from its own timeout.
+        """
         snap = self.service.snapshot
         ke = query.key_expr
-        for key, route in self._readable.items():
-            if zenoh.KeyExpr(key).intersects(ke):
-                payload, enc = self._read(route, snap)
-                query.reply(key, payload, encoding=enc)
+        matched = [(key, route) for kexpr, key, route in self._readable if kexpr.intersects(ke)]
+        if not matched:
+            raise self.keys.no_match(str(ke))
+        for key, route in matched:
+            payload, enc = self._read(route, snap)
+            query.reply(key, payload, encoding=enc)
 
     def _read(self, route: Route, snap: Snapshot) -> tuple[bytes, zenoh.Encoding]:
         if route.kind == "raw":
@@ -200,13 +225,16 @@ class ZenohInterface:
             return
         if self.options.read_only:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, "this interface is read-only")
+        # write_async/write_name_async: SIM::reload / SIM::save run in a worker thread
         if route.kind == "raw":
-            await self._applied(self.service.write(route.index_group, route.index_offset, payload))
+            fut = await self.service.write_async(route.index_group, route.index_offset, payload)
+            await self._applied(fut)
             query.reply(key, payload, encoding=OCTET)
         elif route.kind == "named":
             assert route.obj is not None
             value = route.obj.coerce(_json_value(payload, route.obj))
-            await self._applied(self.service.write_name(route.obj.name, route.axis, value))
+            fut = await self.service.write_name_async(route.obj.name, route.axis, value)
+            await self._applied(fut)
             query.reply(key, json.dumps(value).encode(), encoding=JSON)
         elif route.kind in ("reload", "save"):
             fn = self.service.reload if route.kind == "reload" else self.service.save
@@ -278,7 +306,7 @@ class ZenohInterface:
                 machine_keys[lay.machine_index[route.obj.name]] = key
             else:
                 axis_keys[(slot[route.axis], lay.column[route.obj.name])] = key
-        objs = {key: route for key, route in routes.items()}
+        objs = {key: (zenoh.KeyExpr(key), route) for key, route in routes.items()}
         last: Snapshot | None = None
         while True:
             snap = self.service.snapshot
@@ -298,10 +326,10 @@ class ZenohInterface:
                         if i in machine_keys
                     ]
                 for key in changed:
-                    route = objs[key]
+                    kexpr, route = objs[key]
                     assert route.obj is not None
                     value = snap.value(route.obj, route.axis)
-                    self._session.put(key, json.dumps(value).encode(), encoding=JSON)
+                    self._session.put(kexpr, json.dumps(value).encode(), encoding=JSON)
                 last = snap
             await asyncio.sleep(self.options.publish_period)
 
@@ -309,9 +337,7 @@ class ZenohInterface:
         while True:
             if self._session is not None:
                 self._session.put(
-                    f"{self.keys.prefix}/status",
-                    json.dumps(self.service.status()).encode(),
-                    encoding=JSON,
+                    self._status_ke, json.dumps(self.service.status()).encode(), encoding=JSON
                 )
             await asyncio.sleep(self.options.status_period)
 
@@ -319,13 +345,15 @@ class ZenohInterface:
         """Cycle thread: hand a new warning/error to the loop for publication."""
         loop = self._loop
         if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self._put_event, event)
+            # The loop may close between the check and the hand-off; the event is still
+            # in `errors` for a later get, so dropping its publication is harmless, while
+            # a RuntimeError here would fail the cycle (or command) that raised the event.
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._put_event, event)
 
     def _put_event(self, event: Event) -> None:
         if self._session is not None:
-            self._session.put(
-                f"{self.keys.prefix}/errors", json.dumps(event.as_dict()).encode(), encoding=JSON
-            )
+            self._session.put(self._errors_ke, json.dumps(event.as_dict()).encode(), encoding=JSON)
 
 
 _MISSING = object()

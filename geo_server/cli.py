@@ -8,6 +8,7 @@ import contextlib
 import csv
 import io
 import json
+import shutil
 import signal
 import sys
 from pathlib import Path
@@ -44,6 +45,23 @@ def _modbus_map(args: argparse.Namespace) -> int:
     from geo_server.modbus.regmap import modbus_map
 
     sys.stdout.write(modbus_map(args.format))
+    return 0
+
+
+def _init(args: argparse.Namespace) -> int:
+    """Copy the default machine's lists into a folder of the user's (to edit and save)."""
+    src = default_startup_list().parent
+    dest = Path(args.directory)
+    files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix in (".lis", ".nc"))
+    clash = [p.name for p in files if (dest / p.name).exists()]
+    if clash and not args.force:
+        print(f"error: {dest} already has {', '.join(clash)} (--force overwrites)", file=sys.stderr)
+        return 2
+    dest.mkdir(parents=True, exist_ok=True)
+    for p in files:
+        shutil.copyfile(p, dest / p.name)
+    print(f"default machine copied to {dest} ({len(files)} files); run it with:")
+    print(f"  geo-server run {dest / 'hochlauf.lis'}")
     return 0
 
 
@@ -95,6 +113,9 @@ def _run(args: argparse.Namespace) -> int:
     )
     try:
         asyncio.run(_serve(args, service, scheduler))
+    except InterfaceStartError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     finally:
         scheduler.stop()
     print(f"stopped after {machine.cycle} cycles")
@@ -150,20 +171,25 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     interfaces: list[Any] = []
-    for disabled, build in (
-        (args.no_zenoh, _zenoh),
-        (args.no_modbus, _modbus),
-        (args.no_ads, _ads),
-    ):
-        if not disabled:
-            iface, describe = build(args, service)
-            await iface.start()
-            interfaces.append(iface)
-            print(describe(), flush=True)
-    # The cycle starts once every interface is up, so start-up work does not show as
-    # lateness of the first cycles.
-    scheduler.start()
     try:
+        for name, disabled, build in (
+            ("zenoh", args.no_zenoh, _zenoh),
+            ("modbus", args.no_modbus, _modbus),
+            ("ads", args.no_ads, _ads),
+        ):
+            if disabled:
+                continue
+            iface, describe = build(args, service)
+            # Registered before start() so a half-started interface is closed too.
+            interfaces.append(iface)
+            try:
+                await iface.start()
+            except Exception as exc:  # OSError (port busy), zenoh.ZError, bad config
+                raise InterfaceStartError(f"{name} interface did not start: {exc}") from exc
+            print(describe(), flush=True)
+        # The cycle starts once every interface is up, so start-up work does not show as
+        # lateness of the first cycles.
+        scheduler.start()
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), args.status_period)
@@ -177,8 +203,17 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             if args.cycles and st["cycle"] >= args.cycles:
                 break
     finally:
-        for iface in interfaces:
-            await iface.close()
+        # Reverse order of start; one interface failing to close must not keep the
+        # others (and their ports) open.
+        for iface in reversed(interfaces):
+            try:
+                await iface.close()
+            except Exception as exc:  # report and go on closing the others
+                print(f"warning: closing {type(iface).__name__}: {exc}", file=sys.stderr)
+
+
+class InterfaceStartError(RuntimeError):
+    """An interface could not start (port in use, bad address or Zenoh config)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -189,6 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
     o = sub.add_parser("objects", help="print the object dictionary")
     o.add_argument("--format", choices=("md", "csv", "json"), default="md")
     o.set_defaults(func=_objects)
+
+    i = sub.add_parser("init", help="copy the default machine's list files into DIRECTORY")
+    i.add_argument("directory", help="folder for the lists (created if missing)")
+    i.add_argument("--force", action="store_true", help="overwrite existing files")
+    i.set_defaults(func=_init)
 
     c = sub.add_parser("check", help="validate a machine's list files")
     c.add_argument("startup", nargs="?", help="start-up list (default: the default machine)")

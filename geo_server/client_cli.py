@@ -13,17 +13,32 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.client import TRANSPORTS, open_client, resolve
-from geo_server.dictionary import AdsError, ObjectDef, load_dictionary
+from geo_server.dictionary import STRING_LENGTH, AdsError, ObjectDef, load_dictionary
 
 
 def _target(args: argparse.Namespace) -> tuple[ObjectDef, int]:
     """(object, axis) from `NAME` + --axis or from `GROUP OFFSET`."""
     words = args.target
-    if len(words) >= 2 and all(_is_int(w) for w in words[:2]):
+    if _by_address(args):
         ig, io = int(words[0], 0), int(words[1], 0)
         return resolve(ig, io), io >> 16
     obj = load_dictionary().by_name(words[0])
     return obj, (0 if obj.scope == "machine" else args.axis)
+
+
+def _by_address(args: argparse.Namespace) -> bool:
+    return len(args.target) >= 2 and all(_is_int(w) for w in args.target[:2])
+
+
+def _address(args: argparse.Namespace) -> tuple[int, int, str | None]:
+    """(index group, index offset, attribute kind or None) of `GROUP OFFSET`."""
+    ig, io = int(args.target[0], 0), int(args.target[1], 0)
+    _obj, _axis, attr = load_dictionary().resolve(ig, io, [io >> 16])
+    return ig, io, attr
+
+
+def _attribute_length(kind: str) -> int:
+    return {"length": 4, "writable": 1}.get(kind, STRING_LENGTH)
 
 
 def _is_int(text: str) -> bool:
@@ -44,13 +59,27 @@ def _show(args: argparse.Namespace, obj: ObjectDef, axis: int, value: Any) -> No
 
 def _read(args: argparse.Namespace, client: Any) -> int:
     obj, axis = _target(args)
-    _show(args, obj, axis, client.read(obj.name, axis))
+    if not _by_address(args):
+        _show(args, obj, axis, client.read(obj.name, axis))
+        return 0
+    # By address the request goes out as that address, so attribute groups
+    # (0x120400 … 0x120800: name, type, length, unit, writable) read what they are.
+    ig, io, attr = _address(args)
+    if attr is None:
+        _show(args, obj, axis, obj.decode(client.read_raw(ig, io, obj.length)))
+        return 0
+    value = obj.decode_attribute(attr, client.read_raw(ig, io, _attribute_length(attr)))
+    if args.json:
+        print(json.dumps({"name": obj.name, "axis": axis, "attribute": attr, "value": value}))
+    else:
+        where = f"axis {axis} " if obj.scope == "axis" else ""
+        print(f"{where}{obj.name} {attr} = {value}")
     return 0
 
 
 def _write(args: argparse.Namespace, client: Any) -> int:
     obj, axis = _target(args)
-    by_address = len(args.target) >= 2 and all(_is_int(w) for w in args.target[:2])
+    by_address = _by_address(args)
     if len(args.target) < (3 if by_address else 2):
         print("error: write needs a value", file=sys.stderr)
         return 2
@@ -59,7 +88,14 @@ def _write(args: argparse.Namespace, client: Any) -> int:
         value: Any = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
-    _show(args, obj, axis, client.write(obj.name, axis, value))
+    if not by_address:
+        _show(args, obj, axis, client.write(obj.name, axis, value))
+        return 0
+    # The write goes to the address given, so the server judges it (an attribute
+    # group is read-only: ADS 0x704), not a by-name write to the object behind it.
+    ig, io, _attr = _address(args)
+    client.write_raw(ig, io, obj.encode(value))
+    _show(args, obj, axis, value)
     return 0
 
 

@@ -240,6 +240,14 @@ class ObjectDef:
             STRING_LENGTH, b"\0"
         )
 
+    def decode_attribute(self, kind: str, data: bytes) -> Any:
+        """Decode the bytes of an attribute group read (inverse of `attribute`)."""
+        if kind == "length":
+            return struct.unpack_from("<I", data)[0]
+        if kind == "writable":
+            return bool(data[0])
+        return data.split(b"\0", 1)[0].decode("cp1252")
+
     def as_row(self) -> dict[str, Any]:
         return {
             "name": self.name,

@@ -10,6 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 _PACKAGE = Path(__file__).resolve().parent
+#: The data folder of an installed wheel (absent in a checkout / editable install).
+PACKAGED_DATA = _PACKAGE / "_data"
 
 
 def data_dir(name: str) -> Path:
@@ -26,3 +28,13 @@ def data_dir(name: str) -> Path:
 def default_startup_list() -> Path:
     """The default machine's start-up list `lists/hochlauf.lis`."""
     return data_dir("lists") / "hochlauf.lis"
+
+
+def is_packaged_data(path: str | Path) -> bool:
+    """True for a file inside an installed wheel's data folder (site-packages), which
+    `save` must not edit: an upgrade would overwrite it and other users share it."""
+    try:
+        Path(path).resolve().relative_to(PACKAGED_DATA)
+    except ValueError:
+        return False
+    return True

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from conftest import free_port
 
 BIN = Path(sys.executable).parent
@@ -86,6 +88,59 @@ def test_run_serves_and_stops(tmp_path):
     assert f"127.0.0.1:{mport}" in r.stdout
     assert f"127.0.0.1:{aport}" in r.stdout
     assert "lateness p50" in r.stdout and "stopped after" in r.stdout
+
+
+@pytest.mark.parametrize("busy", ["modbus", "ads"])
+def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy):
+    """A port in use ends `run` with exit 2 and a clear message instead of a hang with
+    the interfaces that did start still open."""
+    zport, mport, aport = free_port(), free_port(), free_port()
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", mport if busy == "modbus" else aport))
+    blocker.listen()
+    try:
+        r = run(
+            [
+                *script("geo-server"),
+                "run",
+                "--cycles",
+                "50",
+                "--zenoh-listen",
+                f"tcp/127.0.0.1:{zport}",
+                "--modbus-port",
+                str(mport),
+                "--ads-port",
+                str(aport),
+            ],
+            tmp_path,
+            timeout=60,
+        )
+    finally:
+        blocker.close()
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"error: {busy} interface did not start" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_init_copies_the_default_machine(tmp_path):
+    """`init DIR` gives the user lists of their own (save must not edit an installed
+    package); the copy loads like the original and a second init refuses to overwrite."""
+    dest = tmp_path / "mymachine"
+    r = run([*script("geo-server"), "init", str(dest)], tmp_path)
+    assert r.returncode == 0, r.stderr
+    names = sorted(p.name for p in dest.iterdir())
+    assert names == [
+        *[f"achskw{i}.lis" for i in range(1, 5)],
+        *[f"achsmd{i}.lis" for i in range(1, 5)],
+        "demo_temperature.nc",
+        "hochlauf.lis",
+    ]
+    r = run([*script("geo-server"), "check", str(dest / "hochlauf.lis")], tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "4 axes (1=X, 2=Y, 3=Z, 4=C)" in r.stdout
+    r = run([*script("geo-server"), "init", str(dest)], tmp_path)
+    assert r.returncode == 2 and "already has" in r.stderr
+    assert run([*script("geo-server"), "init", "--force", str(dest)], tmp_path).returncode == 0
 
 
 def test_modbus_map_command(tmp_path):

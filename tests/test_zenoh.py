@@ -327,6 +327,28 @@ def test_geo_client_read_write(server, capsys):
     assert "ADS 0x704" in capsys.readouterr().err
 
 
+def test_geo_client_by_address_reads_attribute_groups(server, capsys):
+    """`GROUP OFFSET` goes out as that address: attribute groups answer their attribute
+    (SPEC §2: +0x100 name … +0x500 writable), writes to them are refused by the server."""
+    base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
+    expected = {
+        "0x120400": "axis 1 TEMPC::coefficient name = TEMPC::coefficient",
+        "0x120500": "axis 1 TEMPC::coefficient type = REAL64",
+        "0x120600": "axis 1 TEMPC::coefficient length = 8",
+        "0x120700": "axis 1 TEMPC::coefficient unit = [µm/m]",
+        "0x120800": "axis 1 TEMPC::coefficient writable = True",
+    }
+    for group, line in expected.items():
+        assert client_main([*base, "read", group, "0x10043"]) == 0
+        assert capsys.readouterr().out.strip() == line
+    assert client_main([*base, "write", "0x120400", "0x10043", "3000"]) == 1
+    assert "ADS 0x704" in capsys.readouterr().err
+    assert client_main([*base, "write", "0x120300", "0x10043", "3000"]) == 0
+    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 3000 [µm/m]"
+    server.service.step(1)
+    assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
+
+
 def test_geo_client_commands(server, capsys):
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     svc = server.service

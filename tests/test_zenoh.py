@@ -370,6 +370,11 @@ def test_geo_client_commands(server, capsys):
     )
     out = json.loads(capsys.readouterr().out)
     assert out == {"key": "cnc/t/axis/1/tempc/coefficient", "value": 4000.0}
+    # a raw ADS key: its current bytes, as hex (4000.0 as little-endian REAL64)
+    raw = "cnc/t/ads/551/0x120300/0x10043"
+    assert client_main([*base, "--json", "watch", "--count", "1", raw]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out == {"key": raw, "value": "000000000040af40"}
 
 
 # ---------------------------------------------------------------------------- exposure

@@ -152,13 +152,21 @@ class ZenohClient:
         q: queue.Queue[tuple[str, bytes]] = queue.Queue()
         self.subscribe(key_expr, lambda k, v: q.put((k, v)))
         for key, data in self.get(key_expr):
-            yield key, json.loads(data)
+            yield key, _decode(key, data)
         while True:
             key, data = q.get()
-            yield key, json.loads(data)
+            yield key, _decode(key, data)
 
     def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
         self._subs.append(self.session.declare_subscriber(key_expr, on_sample))
+
+
+def _decode(key: str, data: bytes) -> Any:
+    """JSON for named keys; raw ADS keys (`…/ads/551/…`) carry little-endian bytes,
+    shown as hex because only the dictionary knows their type."""
+    if "/ads/" in key:
+        return data.hex()
+    return json.loads(data)

@@ -40,6 +40,9 @@ class AdsErrorCode(IntEnum):
     DEVICE_NOT_READY = 0x707
     DEVICE_BUSY = 0x708
     DEVICE_SYNTAX = 0x70D
+    #: ADSERR_DEVICE_TIMEOUT: a queued write was not applied in time (the transports'
+    #: write timeout), so no transport has to spell 0x719 by hand.
+    TIMEOUT = 0x719
 
 
 class AdsError(Exception):

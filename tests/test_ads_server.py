@@ -8,11 +8,13 @@ AdsLib) keeps one route per NetId in the process, so every server gets its own N
 
 from __future__ import annotations
 
+import asyncio
 import ctypes
 import itertools
 import queue
 import socket
 import struct
+import threading
 import time
 from collections.abc import Iterator
 
@@ -155,6 +157,24 @@ def move_axes(service: ObjectService) -> None:
         service.write_name("SIM::target_position", axis, 20000 * (i + 1))
     service.write_name("TEMPC::offset_0", 1, 55)
     service.step(60)
+
+
+CYCLE_COUNT_IO = (0 << 16) | D.by_name("SIM::cycle_count").id  # machine object, axis 0
+SIM = 0x12F300
+
+
+def step_sampled(service: ObjectService, loop, n: int = 1) -> list[int]:
+    """Step `n` cycles one by one, letting the loop sample each before the next.
+
+    The cycle thread hands the loop only the newest snapshot (coalesced), so a test that
+    wants every cycle sampled waits for the loop after each step: a coroutine run on
+    the loop is queued behind the hand-off, which has therefore run when it returns.
+    """
+    cycles = []
+    for _ in range(n):
+        cycles.append(service.step(1).cycle)
+        run_in(loop, asyncio.sleep(0))
+    return cycles
 
 
 # ---------------------------------------------------------------------- pyads: basics
@@ -308,7 +328,7 @@ def test_sum_write_per_item_codes(plc, service) -> None:
 # ---------------------------------------------------------------------- pyads: notifications
 
 
-def test_on_change_notifications_follow_the_service(plc, service) -> None:
+def test_on_change_notifications_follow_the_service(plc, service, loop_thread) -> None:
     """actual_offset while offset_0 ramps: the received values are exactly the distinct
     consecutive values the service reported at the cycles after the registration."""
     q: queue.Queue = queue.Queue()
@@ -324,8 +344,8 @@ def test_on_change_notifications_follow_the_service(plc, service) -> None:
         if k % 10 == 0:
             offset_0 += 25
             plc.write(GEO, 0x10044, offset_0, pyads.PLCTYPE_DINT)
-        snap = service.step(1)
-        v = snap.value(ACTUAL_OFFSET, 1)
+        step_sampled(service, loop_thread)  # every cycle sampled (hand-offs coalesce)
+        v = service.snapshot.value(ACTUAL_OFFSET, 1)
         if not expected or v != expected[-1]:
             expected.append(v)
     assert len(expected) > 10  # the sin² ramps really produced a sequence
@@ -350,15 +370,83 @@ def test_cyclic_notifications_every_n_cycles(plc, service) -> None:
     # 5 ms cycle time = 50000 ticks of 100 ns = 5 GEO cycles of 1 ms
     attr = pyads.NotificationAttrib(8, pyads.ADSTRANS_SERVERCYCLE, max_delay=5, cycle_time=5)
     handles = plc.add_device_notification((GEO, 0x10043), attr, callback)
-    base = service.snapshot.cycle
-    sent_at = []
+    # (each pyads write is a round trip through the loop, so the loop samples every cycle)
     for k in range(1, 21):
         plc.write(GEO, 0x10043, 1000.0 + k, pyads.PLCTYPE_LREAL)
-        snap = service.step(1)
-        if k == 1 or (snap.cycle - base) % 5 == 0:
-            sent_at.append(snap.value(COEFFICIENT, 1))
+        service.step(1)
+    # the first sample one cycle after the registration, then every 5 cycles from it
+    sent_at = [1001.0, 1006.0, 1011.0, 1016.0]
     got = [q.get(timeout=TIMEOUT) for _ in sent_at]
-    assert got == sent_at == [1001.0, 1005.0, 1010.0, 1015.0, 1020.0]
+    assert got == sent_at
+    plc.del_device_notification(*handles)
+    with pytest.raises(queue.Empty):
+        q.get(timeout=0.2)
+
+
+def test_cyclic_interval_counts_from_the_last_sample(plc, service, loop_thread) -> None:
+    """Cycle time 3 ms = 30000 ticks of 100 ns = 3 GEO cycles of 1 ms (SPEC §9).
+
+    The first sample goes out at the first cycle boundary after the registration (c0+1),
+    every later one when `cycle - last_cycle >= 3`: at c0+4, c0+7, … — never at c0+3
+    (counting from the registration, the phase the old modulo rule kept).
+    """
+    q: queue.Queue = queue.Queue()
+
+    def callback(notification, _data) -> None:
+        q.put(plc.parse_notification(notification, pyads.PLCTYPE_UDINT)[2])
+
+    attr = pyads.NotificationAttrib(4, pyads.ADSTRANS_SERVERCYCLE, max_delay=0, cycle_time=3)
+    handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
+    c0 = service.snapshot.cycle
+    cycles = step_sampled(service, loop_thread, 16)
+    assert cycles == list(range(c0 + 1, c0 + 17))
+    assert service.read_name("SIM::cycle_count") == cycles[-1]  # the value is the cycle
+    expected = [c0 + 1, c0 + 4, c0 + 7, c0 + 10, c0 + 13, c0 + 16]
+    assert [q.get(timeout=TIMEOUT) for _ in expected] == expected
+    with pytest.raises(queue.Empty):
+        q.get(timeout=0.2)  # nothing in between
+    plc.del_device_notification(*handles)
+
+
+def test_cycle_hand_offs_are_coalesced(plc, ads, service, loop_thread) -> None:
+    """While the loop is busy, 50 cycles queue ONE hand-off, which samples the newest
+    snapshot; the interval then counts from that (late) sample."""
+    q: queue.Queue = queue.Queue()
+
+    def callback(notification, _data) -> None:
+        q.put(plc.parse_notification(notification, pyads.PLCTYPE_UDINT)[2])
+
+    attr = pyads.NotificationAttrib(4, pyads.ADSTRANS_SERVERCYCLE, max_delay=0, cycle_time=2)
+    handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
+    c0 = service.snapshot.cycle
+    hand_offs = []
+    on_cycle = ads._on_cycle
+
+    def counting(*args) -> None:  # (a per-cycle hand-off passed the snapshot along)
+        hand_offs.append(service.snapshot.cycle)
+        on_cycle(*args)
+
+    ads._on_cycle = counting  # what the cycle thread queues, looked up at each hand-off
+    busy, release = threading.Event(), threading.Event()
+
+    def block() -> None:
+        busy.set()
+        release.wait(TIMEOUT)
+
+    loop_thread.call_soon_threadsafe(block)
+    assert busy.wait(TIMEOUT)
+    try:
+        service.step(50)
+    finally:
+        release.set()
+    run_in(loop_thread, asyncio.sleep(0))
+    assert hand_offs == [c0 + 50]
+    assert q.get(timeout=TIMEOUT) == c0 + 50  # the first sample: late, not lost
+    assert step_sampled(service, loop_thread, 4) == [c0 + 51, c0 + 52, c0 + 53, c0 + 54]
+    assert [q.get(timeout=TIMEOUT) for _ in range(2)] == [c0 + 52, c0 + 54]
+    assert hand_offs == [c0 + 50, c0 + 51, c0 + 52, c0 + 53, c0 + 54]
+    with pytest.raises(queue.Empty):
+        q.get(timeout=0.2)
     plc.del_device_notification(*handles)
 
 

@@ -8,7 +8,10 @@ ephemeral port. Every request is bounded by the client timeout.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 
 import pytest
 from conftest import run_in
@@ -280,6 +283,75 @@ def test_writes_wait_for_the_cycle_when_running(loop_thread, machine):
     finally:
         sched.stop()
         run_in(loop_thread, iface.close())
+
+
+class HandCranked(Scheduler):
+    """Reports running cycles (so the transports wait for writes to be applied, as with
+    the real-time thread), but a cycle runs only when the test calls `crank()`."""
+
+    def __init__(self, machine: Machine) -> None:
+        super().__init__(machine, mode="stepped")
+
+    @property
+    def running(self) -> bool:
+        return True
+
+    def crank(self) -> None:
+        self.machine.run_cycle()
+
+
+def test_write_reply_comes_with_the_cycle_that_applied_it(loop_thread, machine):
+    """The reply waits for exactly ONE cycle: the cycle applies the queued write (SPEC §5
+    step 1), publishes the snapshot that contains it (step 4) and only then resolves the
+    write's future (`Machine.run_cycle`). So the reply goes out after that cycle, and a
+    read sent after the reply sees the value with no further cycle. (Waiting for a
+    further snapshot as well held every reply back by a second cycle: here it would
+    never come, the exception 6 after `write_timeout`.)"""
+    sched = HandCranked(machine)
+    service = ObjectService(machine, sched)
+    iface = start(loop_thread, service, write_timeout=TIMEOUT)
+    coef, off0 = obj("TEMPC::coefficient"), obj("TEMPC::offset_0")
+    assert register_address(off0) == register_address(coef) + 4  # one FC 16 covers both
+    writes = [
+        lambda c: c.write_registers(
+            register_address(coef), encode(coef, 42.5) + encode(off0, -17), device_id=3
+        ),
+        lambda c: c.write_coil(bit_address(obj("TEMPC::activated")), True, device_id=3),
+    ]
+    pool = ThreadPoolExecutor(1)
+    try:
+        with ModbusTcpClient("127.0.0.1", port=iface.port, timeout=TIMEOUT, retries=0) as c:
+            for n, write in enumerate(writes, 1):
+                cycle = machine.cycle
+                reply = pool.submit(write, c)
+                # queued once the loop has counted the request (same loop step)
+                assert wait_until(loop_thread, lambda n=n: iface.requests == n)
+                with pytest.raises(FutureTimeout):
+                    reply.result(timeout=0.1)  # not before the cycle has applied it
+                sched.crank()
+                assert not reply.result(timeout=TIMEOUT).isError()
+                assert machine.cycle == cycle + 1
+            rr = c.read_holding_registers(register_address(coef), count=8, device_id=3)
+            assert rr.registers == encode(coef, 42.5) + encode(off0, -17) + [0, 0]
+            assert c.read_coils(bit_address(obj("TEMPC::activated")), device_id=3).bits[0]
+            assert machine.cycle == cycle + 1  # the reads needed no further cycle
+    finally:
+        pool.shutdown(wait=False)
+        run_in(loop_thread, iface.close())
+
+
+def wait_until(loop, predicate, timeout: float = TIMEOUT) -> bool:
+    """Evaluate `predicate()` on the loop thread until it is true or `timeout` passes."""
+
+    async def check() -> bool:
+        return bool(predicate())
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if run_in(loop, check()):
+            return True
+        time.sleep(0.005)
+    return False
 
 
 def test_sim_objects_move_the_axis(server, geo, service):

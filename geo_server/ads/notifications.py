@@ -7,17 +7,21 @@ sends DeviceNotification frames (command 8, no response) carrying stamps of samp
 
 - samples are taken at **GEO cycle boundaries** from the published snapshot (SPEC §5
   step 5), so every value a client sees is one the service reports at that cycle;
-- the cycle time is rounded to a whole number of GEO cycles (at least 1): cyclic modes
-  (CLIENTCYCLE, SERVERCYCLE, SERVERCYCLE2) send every interval, on-change modes
-  (CLIENTONCHA, SERVERONCHA, SERVERONCHA2) check every interval and send when the bytes
-  differ from the last ones sent. Like TwinCAT (which samples in its task cycle), the
-  first sample goes out unconditionally at the first cycle boundary after the
-  registration — never with the response itself: AdsLib creates its notification
-  dispatcher only after the calling thread has processed the AddDeviceNotification
-  response (`AmsRouter::AddNotification`), and drops samples that arrive earlier ("No
-  dispatcher found for notification"). When cycles run by themselves the server also
-  holds the first sample for a few milliseconds of wall time (`hold_until`) for the same
-  reason;
+- the cycle time is rounded to a whole number of GEO cycles (at least 1), the
+  interval: cyclic modes (CLIENTCYCLE, SERVERCYCLE, SERVERCYCLE2) send every interval,
+  on-change modes (CLIENTONCHA, SERVERONCHA, SERVERONCHA2) check every interval and send
+  when the bytes differ from the last ones sent. "Every interval" counts from the last
+  sample (or check): the next one is due when `cycle - last_cycle >= interval`, so the
+  gap is the interval from the first sample on, and a cycle the server never got to
+  sample (the event loop only looks at the newest snapshot when it falls behind) delays
+  the next sample instead of silently skipping a whole interval;
+- like TwinCAT (which samples in its task cycle), the first sample goes out
+  unconditionally at the first cycle boundary after the registration — never with the
+  response itself: AdsLib creates its notification dispatcher only after the calling
+  thread has processed the AddDeviceNotification response (`AmsRouter::AddNotification`),
+  and drops samples that arrive earlier ("No dispatcher found for notification"). When
+  cycles run by themselves the server also holds the first sample for a few milliseconds
+  of wall time (`hold_until`) for the same reason;
 - samples are sent as soon as they are taken, which honours any max delay (the max delay
   is an upper bound for batching; there is nothing to batch within one GEO cycle beyond
   what `sample` already groups);
@@ -26,7 +30,8 @@ sends DeviceNotification frames (command 8, no response) carrying stamps of samp
   one (`AmsConnection.cpp ReceiveNotification`).
 
 `NotificationTable` is driven by the server: `add`/`delete`/`drop_owner` from requests
-and disconnects, `sample(snapshot)` once per cycle on the event loop.
+and disconnects, `sample(snapshot)` on the event loop with the newest snapshot (normally
+once per cycle; fewer when the loop falls behind, see `AdsServer._on_cycle_thread`).
 """
 
 from __future__ import annotations
@@ -65,8 +70,7 @@ class Registration:
     max_delay: int
     cycle_time: int
     interval: int  # GEO cycles between samples / checks
-    base_cycle: int
-    last_cycle: int
+    last_cycle: int  # cycle of the last sample or check (at first: of the registration)
     last: bytes | None = None  # None until the first sample was sent
     hold_until: float = 0.0  # no sample before this `now` (monotonic seconds)
 
@@ -86,10 +90,16 @@ class Batch:
 
 
 def cycles_for(cycle_time_ticks: int, cycle_s: float) -> int:
-    """A cycle time in 100 ns ticks as a whole number of GEO cycles, at least 1."""
-    if cycle_s <= 0:
+    """A cycle time in 100 ns ticks as a whole number of GEO cycles (nearest, halves
+    up), at least 1.
+
+    Integer nanoseconds: in floating point 2.5 ms / 1 ms is 2.4999999999999996, which
+    would round a half-way cycle time down.
+    """
+    period_ns = round(cycle_s * 1e9)
+    if period_ns <= 0:
         return 1
-    return max(1, round(cycle_time_ticks * 1e-7 / cycle_s))
+    return max(1, (cycle_time_ticks * 100 + period_ns // 2) // period_ns)
 
 
 class NotificationTable:
@@ -162,7 +172,6 @@ class NotificationTable:
             max_delay=req.max_delay,
             cycle_time=req.cycle_time,
             interval=cycles_for(req.cycle_time, self.cycle_s),
-            base_cycle=snapshot.cycle,
             last_cycle=snapshot.cycle,
             hold_until=hold_until,
         )
@@ -190,9 +199,12 @@ class NotificationTable:
         batches: dict[tuple[Hashable, AmsAddr, AmsAddr], Batch] = {}
         cycle = snapshot.cycle
         for reg in list(self._regs.values()):
-            if cycle <= reg.last_cycle or now < reg.hold_until:
-                continue
-            if reg.last is not None and (cycle - reg.base_cycle) % reg.interval:
+            # The first sample is due at the first cycle after the registration, every
+            # later one (or on-change check) a whole interval after the previous one.
+            # `>=` rather than `==` or a phase modulo: the loop may hand us a later
+            # snapshot than the due cycle, and a sample is then late, never lost.
+            wait = reg.interval if reg.last is not None else 1
+            if cycle - reg.last_cycle < wait or now < reg.hold_until:
                 continue
             reg.last_cycle = cycle
             try:

@@ -149,6 +149,9 @@ class AdsServer:
         self._connections: set[AdsConnection] = set()
         self._unsubscribe: Callable[[], None] | None = None
         self._notify_invoke = 0
+        # Cycle thread -> loop hand-off of the newest snapshot (see `_on_cycle_thread`).
+        self._latest: tuple[Snapshot, int] | None = None
+        self._handoff_pending = False
         self._major, self._minor, self._build = _version()
 
     # ------------------------------------------------------------------ lifecycle
@@ -499,16 +502,41 @@ class AdsServer:
         return codec.add_notification_response(0, reg.handle)
 
     def _on_cycle_thread(self, snap: Snapshot) -> None:
-        """GEO cycle thread: hand the snapshot to the loop, only when someone listens."""
+        """GEO cycle thread: hand the newest snapshot to the loop, when someone listens.
+
+        At most one hand-off is queued at a time. One `call_soon_threadsafe` per cycle
+        (1000 a second, each also waking the loop through its self-pipe) piles up
+        callbacks whenever the loop is busy, and each of them would sample a snapshot
+        that is already stale. Instead the cycle thread stores the newest snapshot and
+        queues `_on_cycle` only when none is pending; `_on_cycle` samples whatever is
+        newest then. Sampling counts intervals in cycles (`NotificationTable.sample`),
+        so a snapshot the loop never saw delays a sample, it does not lose one.
+        """
         if not len(self.notifications):
             return
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        with contextlib.suppress(RuntimeError):  # the loop closed in between
-            loop.call_soon_threadsafe(self._on_cycle, snap, codec.unix_to_filetime(time.time()))
+        # Store first, then test the flag (`_on_cycle` clears it, then reads): a snapshot
+        # stored after `_on_cycle` read `_latest` finds the flag cleared and queues a new
+        # hand-off, so the newest snapshot is never left unsampled. Plain attribute
+        # stores and loads are atomic under the GIL; no lock on the cycle thread.
+        self._latest = (snap, codec.unix_to_filetime(time.time()))
+        if self._handoff_pending:
+            return
+        self._handoff_pending = True
+        try:
+            loop.call_soon_threadsafe(self._on_cycle)
+        except RuntimeError:  # the loop closed in between: nobody to notify any more
+            self._handoff_pending = False
 
-    def _on_cycle(self, snap: Snapshot, filetime: int) -> None:
+    def _on_cycle(self) -> None:
+        """Event loop: sample the newest snapshot the cycle thread handed over."""
+        self._handoff_pending = False
+        latest = self._latest
+        if latest is None:
+            return
+        snap, filetime = latest
         for batch in self.notifications.sample(snap, time.monotonic()):
             self._send_batch(batch, filetime)
 

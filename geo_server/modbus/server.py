@@ -4,9 +4,10 @@ pymodbus' `ModbusTcpServer` does the framing; one `SimDevice` per unit (unit id 
 axis number; unit 0 = the machine-wide emulator objects) describes the tables, and the
 SimDevice `action` hook moves the data: a read fills the requested registers from ONE
 published GEO-cycle snapshot (so a block read never mixes two cycles), a write is decoded
-and handed to the object service, which applies it at the next cycle boundary; in
-free-running mode the reply waits until it has been applied, in stepped mode it is sent
-at once.
+and handed to the object service, which applies it at the next cycle boundary. When
+cycles run by themselves (free-running, real time) the reply waits until the cycle that
+applied it has published its snapshot, so a read sent after the reply sees the value; in
+stepped mode it is sent at once (nobody runs the cycle until the test steps).
 
 Two checks need more than the `action` hook sees (it gets neither the unit id nor, for
 coils and discrete inputs, the bit count), so the server's datastore core is a small
@@ -300,29 +301,28 @@ class ModbusInterface:
         if not self.service.scheduler.running:
             return None  # stepped: applied at the next step; acknowledge now
         try:
-            await asyncio.wait_for(self._visible(futures), self.options.write_timeout)
+            await asyncio.wait_for(self._applied(futures), self.options.write_timeout)
         except TimeoutError:
             return ExcCodes.DEVICE_BUSY
         except AdsError as exc:
             return ExcCodes(exception_for(exc))
+        except Exception:  # the write's function failed on the cycle thread: answer, log
+            log.exception("modbus unit %d: write failed", unit)
+            return ExcCodes.DEVICE_FAILURE
         return None
 
-    async def _visible(self, futures: list[Future]) -> None:
-        """Wait until the writes are applied AND a snapshot containing them is published.
+    @staticmethod
+    async def _applied(futures: list[Future]) -> None:
+        """Wait until the object service has applied every write of the request.
 
-        The machine resolves a write's future in step 1 of a cycle and publishes that
-        cycle's snapshot in step 4; the reply waits for the snapshot, so a read sent
-        after the reply sees the written value.
+        That is already "visible": the machine publishes the snapshot of the cycle that
+        applied a write before it resolves the write's future (`Machine.run_cycle`), and
+        `_fill` reads the published snapshot, so a read sent after this reply sees the
+        written value. Waiting for yet another snapshot here only cost a GEO cycle per
+        write. The service hands out detached futures, so the cancellation a timeout
+        causes never reaches the machine's own future.
         """
-        applied_after: list[int] = []
-        for fut in futures:
-            # runs on the cycle thread when applied: the published snapshot is then the
-            # previous cycle's
-            fut.add_done_callback(lambda _f: applied_after.append(self.service.snapshot.cycle))
         await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
-        newest = max(applied_after, default=-1)
-        while self.service.snapshot.cycle <= newest:
-            await asyncio.sleep(0.0002)
 
 
 async def start_modbus(

@@ -63,3 +63,20 @@ def loop_thread() -> Iterator[asyncio.AbstractEventLoop]:
 def run_in(loop: asyncio.AbstractEventLoop, coro, timeout: float = 10.0):
     """Run a coroutine on the loop thread and wait for its result."""
     return asyncio.run_coroutine_threadsafe(coro, loop).result(timeout)
+
+
+def wait_until_routed(session, status_key: str, timeout: float = 10.0) -> None:
+    """Block until the server knows every subscriber `session` declared before this call.
+
+    A subscriber declared on a client session reaches the server asynchronously; a value
+    published before that is lost to it, and a value published on change only once is
+    then never seen. Declarations travel in order on one Zenoh link, so once a subscriber
+    declared *last* (on the server's periodic `status` key) has received a sample, the
+    earlier ones are routed too.
+    """
+    got = threading.Event()
+    sub = session.declare_subscriber(status_key, lambda _s: got.set())
+    try:
+        assert got.wait(timeout), f"no publication on {status_key} within {timeout} s"
+    finally:
+        sub.undeclare()

@@ -13,12 +13,13 @@ import json
 import queue
 import struct
 import threading
+import time
 import warnings
 from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port, run_in
+from conftest import free_port, run_in, wait_until_routed
 
 import geo_server.service as service_module
 from geo_server.listfile import load_machine
@@ -74,7 +75,9 @@ class Served:
         self.loop = loop
         self.service = service
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        opts = ZenohOptions(machine="t", listen=[self.endpoint], publish_period=0.01)
+        opts = ZenohOptions(
+            machine="t", listen=[self.endpoint], publish_period=0.01, status_period=0.05
+        )
         self.iface = ZenohInterface(service, opts)
         run_in(loop, self.iface.start())
         self.session = zenoh.open(session_config([self.endpoint]))
@@ -270,12 +273,16 @@ def test_value_status_and_error_publications(served):
         for k in ("cnc/t/axis/1/tempc/coefficient", "cnc/t/status", "cnc/t/errors")
     ]
     try:
+        # published once, on change: the server must know the subscribers before
+        wait_until_routed(served.session, "cnc/t/status")
         svc = served.service
         svc.write_name("TEMPC::coefficient", 1, 2500)
         svc.step(1)
         svc.machine.report(4242, "test error")
         seen: dict[str, object] = {}
+        deadline = time.monotonic() + TIMEOUT  # status keeps coming: bound the loop itself
         while not ({"status", "errors"} <= seen.keys() and seen.get("coefficient") == 2500.0):
+            assert time.monotonic() < deadline, f"publications missing: {seen}"
             key, value = q.get(timeout=TIMEOUT)
             seen[key.rsplit("/", 1)[1]] = value
         assert seen["errors"]["error_id"] == 4242

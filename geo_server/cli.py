@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import __version__
+from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
 from geo_server.paths import default_startup_list
 
@@ -66,8 +67,9 @@ def _init(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    """Exit 0 when the machine loads, 1 when a compensation was deactivated, 2 when the
-    lists cannot be read (issue 2)."""
+    """Exit 0 when the machine loads, 1 when a compensation was deactivated or a list had
+    to be skipped (any error: the same that makes a reload fail), 2 when the lists cannot
+    be read (issue 2)."""
     from geo_server.listfile import ListFileError, load_machine
 
     path = Path(args.startup) if args.startup else default_startup_list()
@@ -80,11 +82,12 @@ def _check(args: argparse.Namespace) -> int:
         print(d)
     names = ", ".join(f"{a}={cfg.axes[a].params.name or '?'}" for a in sorted(cfg.axes))
     deactivated = cfg.deactivated
+    errors = [d for d in cfg.diagnostics if d.severity == "error"]
     print(
         f"{path}: {len(cfg.axes)} axes ({names}), {len(cfg.diagnostics)} diagnostics, "
-        f"{len(deactivated)} compensations deactivated"
+        f"{len(deactivated)} compensations deactivated, {len(errors)} errors"
     )
-    return 1 if deactivated else 0
+    return 1 if deactivated or errors else 0
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -283,6 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@closes_quietly_on_broken_pipe
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "run" and not 0.25 <= args.cycle_ms <= 10:

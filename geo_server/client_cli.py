@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.client import TRANSPORTS, open_client, resolve
+from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import STRING_LENGTH, AdsError, ObjectDef, load_dictionary
 
 
@@ -185,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@closes_quietly_on_broken_pipe
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "objects":

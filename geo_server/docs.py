@@ -1,7 +1,8 @@
 """Generated README sections: tables come from the dictionary and the check table, never typed.
 
 `python -m geo_server.docs` rewrites every `<!-- BEGIN name -->` … `<!-- END name -->`
-block of README.md; `tests/test_docs.py` fails when the README is out of date.
+block of README.md and the whole of `docs/list_checks.md`; `tests/test_docs.py` and
+`tests/test_listfile_validation.py` fail when either is out of date.
 """
 
 from __future__ import annotations
@@ -52,13 +53,19 @@ def render(text: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    path = Path(argv[0]) if argv else Path(__file__).resolve().parent.parent / "README.md"
-    text = path.read_text(encoding="utf-8")
-    new = render(text)
-    if new != text:
+    root = Path(__file__).resolve().parent.parent
+    path = Path(argv[0]) if argv else root / "README.md"
+    _update(path, render(path.read_text(encoding="utf-8")))
+    checks = root / "docs" / "list_checks.md"
+    if not argv and checks.parent.is_dir():  # a source checkout, not an installed wheel
+        _update(checks, _checks())
+    return 0
+
+
+def _update(path: Path, new: str) -> None:
+    if not path.exists() or path.read_text(encoding="utf-8") != new:
         path.write_text(new, encoding="utf-8")
         print(f"updated {path}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -56,10 +56,33 @@ def test_check_exit_codes(tmp_path, lists_copy):
     r = run([*script("geo-server"), "check", str(lists_copy)], tmp_path)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "achskw2.lis:" in r.stdout and "110476" in r.stdout
+    # an axis list that has to be skipped (an error, as for reload) -> 1, with the line
+    comp.write_text(text, encoding="utf-8")
+    startup = lists_copy.read_text(encoding="utf-8")
+    lists_copy.write_text(
+        startup.replace("achs_mds_log_ax_nr[2] 3", "achs_mds_log_ax_nr[2] 1"), encoding="utf-8"
+    )
+    r = run([*script("geo-server"), "check", str(lists_copy)], tmp_path)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "axis 1 defined twice" in r.stdout and "1 errors" in r.stdout
     # unreadable lists -> 2
     r = run([*script("geo-server"), "check", str(tmp_path / "nope.lis")], tmp_path)
     assert r.returncode == 2
     assert "nope.lis" in r.stderr
+
+
+def test_objects_into_a_closed_pipe_ends_quietly(tmp_path):
+    """`geo-server objects | head -1`: no BrokenPipeError traceback, exit 0."""
+    r = subprocess.run(
+        f"{' '.join(script('geo-server'))} objects --format json | head -c 10",
+        shell=True,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0 and len(r.stdout) == 10
+    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
 
 
 def test_run_serves_and_stops(tmp_path):

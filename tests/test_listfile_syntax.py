@@ -247,3 +247,14 @@ def test_cp1252_fallback(tmp_path) -> None:
     assert parsed.encoding == "cp1252"
     assert [e.value for e in parsed.entries] == ["1", "ÄCHSE"]
     assert parsed.entries[1].line == 2
+
+
+def test_text_after_closing_quote_warns() -> None:
+    # 002 §1.4: after a string only `( comment` is a comment
+    parsed = parse_text('kopf.log_achs_name "A B"extra (c)\n', "q.lis")
+    assert parsed.entries[0].value == "A B"
+    [w] = parsed.warnings
+    assert (w.file, w.line, w.entry) == ("q.lis", 1, "kopf.log_achs_name")
+    assert "'extra (c)'" in w.message
+    # a `(` comment after the quote is fine
+    assert parse_text('kopf.log_achs_name "A B" (c)\n').warnings == []

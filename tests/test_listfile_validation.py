@@ -966,3 +966,67 @@ def test_docs_table_is_generated_from_checks() -> None:
     assert doc.read_text(encoding="utf-8") == checks_markdown()
     for c in CHECKS:
         assert f"`{c.key}`" in doc.read_text(encoding="utf-8")
+
+
+def test_duplicate_entry_warns_and_the_last_one_counts(tmp_path: Path) -> None:
+    text = "kopf.achs_nr 2\nlr_param.temp_comp_offset_0 10\nlr_param.temp_comp_offset_0 25\n"
+    cfg = build(tmp_path, {}, {2: text})
+    (d,) = cfg.diagnostics
+    assert (d.severity, Path(d.file).name, d.line, d.entry) == (
+        "warning",
+        "md2.lis",
+        3,
+        "lr_param.temp_comp_offset_0",
+    )
+    assert "line 2" in d.message
+    assert cfg.axes[2].params.temp_comp_offset_0 == 25
+
+
+def _startup(tmp: Path, mds: list[tuple[str, str, int | None]]) -> Path:
+    """A start-up list naming only axis lists: (file, text, achs_mds_log_ax_nr or None)."""
+    lines = [f"zahl_mds {len(mds)}"]
+    for i, (name, text, nr) in enumerate(mds):
+        (tmp / name).write_text(text)
+        lines.append(f"achs_mds[{i}] {name}")
+        if nr is not None:
+            lines.append(f"achs_mds_log_ax_nr[{i}] {nr}")
+    (tmp / "hochlauf.lis").write_text("\n".join(lines) + "\n")
+    return tmp / "hochlauf.lis"
+
+
+def test_axis_list_without_number_is_skipped_at_the_startup_line(tmp_path: Path) -> None:
+    path = _startup(tmp_path, [("a.lis", "kopf.achs_nr 1\n", None), ("b.lis", "# none\n", None)])
+    cfg = load_machine(path)
+    assert sorted(cfg.axes) == [1]
+    (d,) = cfg.diagnostics
+    # reported where the user fixes it: line 3 of the start-up list, `achs_mds[1] b.lis`
+    assert (d.severity, Path(d.file).name, d.line, d.entry) == (
+        "error",
+        "hochlauf.lis",
+        3,
+        "achs_mds",
+    )
+    assert "b.lis" in d.message and "skipped" in d.message
+
+
+def test_same_axis_twice_is_skipped_at_its_number(tmp_path: Path) -> None:
+    path = _startup(
+        tmp_path, [("a.lis", "kopf.achs_nr 1\n", None), ("b.lis", "# b\nkopf.achs_nr 1\n", None)]
+    )
+    cfg = load_machine(path)
+    (d,) = cfg.diagnostics
+    assert (d.severity, Path(d.file).name, d.line, d.entry) == ("error", "b.lis", 2, "kopf.achs_nr")
+    assert "axis 1 defined twice" in d.message
+
+
+def test_axis_number_mismatch_warns_and_the_startup_list_wins(tmp_path: Path) -> None:
+    path = _startup(tmp_path, [("a.lis", "kopf.achs_nr 7\n", 2)])
+    cfg = load_machine(path)
+    assert sorted(cfg.axes) == [2]
+    (d,) = cfg.diagnostics
+    assert (d.severity, Path(d.file).name, d.line, d.entry) == (
+        "warning",
+        "a.lis",
+        1,
+        "kopf.achs_nr",
+    )

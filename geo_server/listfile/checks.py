@@ -83,10 +83,19 @@ CHECKS: tuple[Check, ...] = (
         None,
         0,
         "axis parameter list without logical axis number, or the same axis twice: the "
-        "list is skipped",
+        "list is skipped (an error: `check` exits 1, a reload is rejected)",
         "none (emulator)",
         False,
         "error",
+    ),
+    Check(
+        "list.axis_mismatch",
+        None,
+        0,
+        "`kopf.achs_nr` of an axis parameter list differs from the number the start-up "
+        "list gives it (`achs_mds_log_ax_nr[i]`): the start-up list's number is used",
+        "none (emulator)",
+        False,
     ),
     # ---- backlash (000 §2)
     Check(

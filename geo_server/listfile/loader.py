@@ -52,7 +52,7 @@ def load_machine(startup: Path | str) -> MachineConfig:
     stup = _read(startup, ListKind.STUP, rep)
     mds = _named_lists(stup, "mds", rep)
     kws = _named_lists(stup, "kw", rep)
-    axes = _load_axes(startup.parent, mds, rep)
+    axes = _load_axes(startup.parent, startup, mds, rep)
     comp_values = [
         (nr, _read(_resolve(startup.parent, f, stup.path, ln), ListKind.COMP, rep))
         for nr, f, ln in kws
@@ -109,24 +109,35 @@ def _named_lists(stup: Values, tag: str, rep: Reporter) -> list[tuple[int, str, 
 
 
 def _load_axes(
-    folder: Path, mds: list[tuple[int, str, int]], rep: Reporter
+    folder: Path, startup: Path, mds: list[tuple[int, str, int]], rep: Reporter
 ) -> dict[int, AxisParams]:
     axes: dict[int, AxisParams] = {}
     for nr, name, line in mds:
-        path = _resolve(folder, name, "start-up list", line)
+        path = _resolve(folder, name, str(startup), line)
         values = _read(path, ListKind.AXIS, rep)
         own = axis_number(values)
+        own_entry = values.item("kopf.achs_nr")
         nr = nr or own
         if not nr or nr in axes:
             why = "no logical axis number" if not nr else f"axis {nr} defined twice"
-            rep.report("list.axis", f"{why}: list skipped", file=str(path), entry="kopf.achs_nr")
+            # where the user fixes it: the axis list's own number when it has one (a
+            # duplicate), else the start-up list line that names the list
+            if own_entry is not None:
+                rep.at("list.axis", f"{why}: list skipped", own_entry.entry)
+            else:
+                rep.report(
+                    "list.axis",
+                    f"{why} ({name}: no kopf.achs_nr, no achs_mds_log_ax_nr): list skipped",
+                    file=str(startup),
+                    line=line,
+                    entry="achs_mds",
+                )
             continue
-        if own and own != nr:
-            rep.report(
-                "list.axis",
-                f"kopf.achs_nr {own} but start-up list says {nr}; {nr} used",
-                file=str(path),
-                entry="kopf.achs_nr",
+        if own and own != nr and own_entry is not None:
+            rep.at(
+                "list.axis_mismatch",
+                f"kopf.achs_nr {own} but the start-up list says {nr}; {nr} used",
+                own_entry.entry,
             )
         axes[nr] = build_axis_params(values, nr, rep)
     return axes

@@ -166,6 +166,11 @@ def _parse_entry(content: str, file: str, number: int, warnings: list[Diagnostic
         _warn(warnings, file, number, name, "entry without a value ignored")
         return None
     (vs, ve), value = token
+    tail = content[ve:].strip()
+    if content[vs] in QUOTES and tail and not tail.startswith("("):
+        # after a string only `( c` is a comment (002 §1.4): anything else is a typo the
+        # user should see, e.g. a value split by a stray inverted comma
+        _warn(warnings, file, number, name, f"text after the closing quote ignored: {tail!r}")
     return Entry(name, base, indices, content[vs:ve], value, (vs, ve), file, number, raw_name)
 
 

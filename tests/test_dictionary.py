@@ -112,6 +112,31 @@ def test_encoding_is_little_endian(d):
 
 
 @pytest.mark.parametrize(
+    ("name", "value", "wire"),
+    [
+        # SPEC §2: BOOLEAN 1 byte, UNS16 2, UNS32 4, SGN32 4, REAL64 8, little-endian
+        ("TEMPC::activated", True, "01"),
+        ("TEMPC::activated", False, "00"),
+        ("SIM::save", 1, "0100"),  # the only UNS16 objects are commands: 1 … 1
+        ("SIM::cycle_count", 0xFFFFFFFE, "feffffff"),
+        ("TEMPC::position_0", -2_000_000_000, "006cca88"),
+        ("TEMPC::coefficient", -0.5, "000000000000e0bf"),
+    ],
+)
+def test_every_type_round_trips_with_its_bytes(d, name, value, wire):
+    obj = d.by_name(name)
+    assert obj.encode(value).hex() == wire
+    assert obj.decode(bytes.fromhex(wire)) == value
+    assert type(obj.decode(bytes.fromhex(wire))) is type(value)
+
+
+def test_string_attribute_is_256_bytes_cp1252_nul_padded(d):
+    unit = d.by_name("TEMPC::coefficient").attribute("unit")  # "[µm/m]": µ is 0xB5 in CP1252
+    assert len(unit) == 256 and unit[:7] == b"[\xb5m/m]\0" and unit[7:] == bytes(249)
+    assert d.by_name("TEMPC::coefficient").decode_attribute("unit", unit) == "[µm/m]"
+
+
+@pytest.mark.parametrize(
     "name,value",
     [
         ("TEMPC::coefficient", 10000.5),

@@ -20,15 +20,45 @@ import pytest
 
 from geo_server.config import CROSSTALK_COLUMNS, CompKind, MachineConfig
 from geo_server.listfile import load_machine, parse_list
+from geo_server.listfile.schema import ListKind
+from geo_server.listfile.values import Reporter, read_values
 from geo_server.paths import data_dir, default_startup_list
 
 EXAMPLES = data_dir("lists") / "examples"
 LIST_EXAMPLES = sorted(EXAMPLES.glob("*.lis"))
 
 
+#: The only tokenizer or reader warnings an example may give: the manuals' own misprints,
+#: accepted on purpose (`list.alias`).
+EXPECTED_WARNINGS = {
+    "000_p13_backlash_axis.lis": [(4, "lr_param.n_backlash_cyc")],  # `lr_param. n_backlash_cyc`
+    "002_s3.3.11_lsec_bilateral.lis": [(2, "kopf.log_achs_nr")],  # for kopf.achs_nr
+    "003_s3.3.11_lsec_bilateral.lis": [(2, "kopf.log_achs_nr")],
+}
+
+
+def _kind(name: str) -> ListKind | None:
+    """The kind of list an example is; None for the syntax examples (made-up names)."""
+    if "hochlauf" in name:
+        return ListKind.STUP
+    if any(k in name for k in ("axis", "temperature", "prog_movement", "backlash")):
+        return ListKind.AXIS
+    return None if "_s1." in name else ListKind.COMP
+
+
 @pytest.mark.parametrize("path", LIST_EXAMPLES, ids=lambda p: p.name)
 def test_every_example_parses(path: Path):
-    assert parse_list(path) is not None
+    """Every entry is read as its list kind knows it: no unknown entry, no defective
+    value, no malformed line — only the manuals' misprints we accept on purpose."""
+    parsed = parse_list(path)
+    assert parsed.entries
+    out: list = []
+    kind = _kind(path.name)
+    if kind is None:
+        out = list(parsed.warnings)
+    else:
+        read_values(parsed, kind, Reporter(out))
+    assert [(d.line, d.entry) for d in out] == EXPECTED_WARNINGS.get(path.name, [])
 
 
 def _machine(
@@ -108,13 +138,59 @@ def test_plane_000_p43_fig13(tmp_path):
 
 
 def test_plane_000_p49_full(tmp_path):
-    # masters 2 and 3, slave 1; 101 x 201 points > the default max_points 10201, so the
-    # loader may deactivate it - but the printed values must have been read.
+    # masters 2 and 3, slave 1; 101 x 201 points > the default max_points 10201: the
+    # printed values are read, and the plane is deactivated with the size rule's ID
     cfg = _machine(tmp_path, 1, comp="000_p49_plane_full.lis", select=("crosscomp2",))
     plane = cfg.axes[1].comp.plane
-    if plane is not None and plane.table.size:
-        assert plane.table[0, 22] == -99
-        assert plane.table[200, 100] == 49
+    assert plane.table.shape == (201, 101)  # [j: master 2 ... 200][i: master 1 ... 100]
+    assert plane.table[0, 22] == -99
+    assert plane.table[200, 71] == 45
+    assert plane.table[200, 100] == 49
+    assert not plane.valid
+    [d] = cfg.diagnostics
+    assert (d.error_id, d.line, d.entry) == (70184, 9, "kw.crosscomp2.last_index_master2")
+    assert d.deactivated == CompKind.PLANE and "20301 > max_points 10201" in d.message
+
+
+def test_plane_000_p49_max_points(tmp_path):
+    # kw.crosscomp2.max_points 50000 reserves room for 1001 x 21 = 21021 points
+    cfg = _machine(tmp_path, 1, comp="000_p49_plane_max_points.lis", select=("crosscomp2",))
+    plane = cfg.axes[1].comp.plane
+    assert plane.table.shape == (21, 1001)
+    assert (plane.table[0, 0], plane.table[0, 1]) == (-3, -1)
+    assert (plane.table[20, 999], plane.table[20, 1000]) == (58, 49)
+    assert plane.table[10, 500] == 0  # elided ("etc."): unassigned points are 0
+    # the excerpt prints no masters and no interval: deactivated for that, not for size
+    missing = sorted(d.entry for d in cfg.diagnostics if d.error_id == 70182)
+    assert missing == [
+        "kw.crosscomp2.interval",
+        "kw.crosscomp2.master1_ax_nr",
+        "kw.crosscomp2.master2_ax_nr",
+    ]
+    assert len(cfg.diagnostics) == 3 and not plane.valid
+
+
+def test_lsec_003_s3_3_11(tmp_path):
+    # ISG COMP manual: the same bilateral non-equidistant table, `kopf.log_achs_nr` header
+    cfg = _machine(tmp_path, 2, comp="003_s3.3.11_lsec_bilateral.lis", select=("ssfk",))
+    lsec = cfg.axes[2].comp.lsec
+    assert lsec.bilateral and len(lsec.setpoint) == 140
+    assert (lsec.setpoint[0], lsec.setpoint[3]) == (-200000, -198001)
+    assert (lsec.setpoint[138], lsec.setpoint[139]) == (334488, 335591)
+    assert (lsec.pos[0], lsec.pos[1], lsec.pos[139]) == (0, 24, -55)
+    assert (lsec.neg[1], lsec.neg[2], lsec.neg[139]) == (67, 80, 114)
+    assert lsec.valid
+
+
+def test_cross_003_s3_1_7(tmp_path):
+    cfg = _machine(tmp_path, 3, comp="003_s3.1.7_crosscomp.lis", select=("crosscomp",))
+    cross = cfg.axes[3].comp.cross
+    assert (cross.master_ax_nr, cross.n_cycles) == (1, 10)
+    assert len(cross.setpoint) == 100
+    assert (cross.setpoint[1], cross.correction[1]) == (11523, 5)
+    assert (cross.setpoint[3], cross.correction[3]) == (215369, 5)
+    assert (cross.setpoint[99], cross.correction[99]) == (10_000_000, 1000)
+    assert cross.valid
 
 
 def test_plane_002_s3_2_15(tmp_path):

@@ -62,8 +62,12 @@ Derivation (pure functions below, checked by hand in the tests)
 Writes: only values that changed since the last write (all of them the first time),
 in the order position_0, offset_0, coefficient; each write is logged with value,
 transport and round-trip time; transient failures (timeouts, lost connections, ADS
-0x707/0x708/0x745) are retried `retries` times. Every parameter write is a step event
-ramped with `temp_comp_n_cycles` by the server (SPEC §3).
+0x707 not ready, 0x708 busy, 0x719 device timeout, 0x745/0x746/0x748 client sync errors)
+are retried `retries` times. When a write of an axis fails for good, the rest of that
+axis is not written in that period (no half-updated parameter set: offset_0 and the
+coefficient belong to the position_0 they were derived for); the next period tries the
+whole set again. Every parameter write is a step event ramped with `temp_comp_n_cycles`
+by the server (SPEC §3).
 
 Temperature sources: `WarmUp` (a simulated warm-up curve `T(t) = T_end − (T_end −
 T_start)·exp(−t/τ)`), `CsvTemperature` (timestamped samples `time,temperature_C`,
@@ -108,8 +112,10 @@ EXAMPLE_REFERENCE = Path(__file__).resolve().parent / "data" / "reference_measur
 SGN32_MIN, SGN32_MAX = -(2**31), 2**31 - 1
 #: Unit suffixes of position-like columns: factor to increments (0.1 µm / 0.0001°).
 UNIT_FACTORS = {"": 1.0, "_incr": 1.0, "_um": 10.0, "_mm": 10_000.0}
-#: ADS codes worth a retry: device not ready, device busy, client sync timeout (pyads).
-TRANSIENT_ADS = frozenset({0x707, 0x708, 0x745, 0x746, 0x748})
+#: ADS codes worth a retry: device not ready, device busy, device timeout (a write the
+#: server could not apply in time), client sync timeout / invalid response / port locked
+#: (pyads).
+TRANSIENT_ADS = frozenset({0x707, 0x708, 0x719, 0x745, 0x746, 0x748})
 #: Writable TEMPC objects in write order (000 p.22–23).
 PARAMETER_OBJECTS = (
     ("position_0", "TEMPC::position_0"),
@@ -469,7 +475,8 @@ class CsvTemperature:
     """Timestamped samples from a CSV `time,temperature_C` (header optional).
 
     `time` is seconds since the start of the recording, or an ISO-8601 timestamp
-    (then relative to the first sample). Linear between samples, held outside.
+    (then relative to the earliest timestamp in the file, wherever its row is). Linear
+    between samples, held outside.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -478,7 +485,7 @@ class CsvTemperature:
 
     def _load(self, path: Path) -> list[tuple[float, float]]:
         out: list[tuple[float, float]] = []
-        t0: datetime | None = None
+        stamped: list[tuple[datetime, float]] = []
         for lineno, cells in enumerate(
             csv.reader(path.read_text(encoding="utf-8").splitlines()), 1
         ):
@@ -490,16 +497,21 @@ class CsvTemperature:
             try:
                 temp = float(val)
             except ValueError:
-                if not out:
+                if not out and not stamped:
                     continue  # the header
                 raise ValueError(f"{path}:{lineno}: not a temperature: {val!r}") from None
             try:
-                t = float(ts)
+                out.append((float(ts), temp))
             except ValueError:
-                stamp = datetime.fromisoformat(ts)
-                t0 = t0 or stamp
-                t = (stamp - t0).total_seconds()
-            out.append((t, temp))
+                try:
+                    stamped.append((datetime.fromisoformat(ts), temp))
+                except ValueError:
+                    raise ValueError(
+                        f"{path}:{lineno}: time must be seconds or ISO-8601: {ts!r}"
+                    ) from None
+        if stamped:
+            t0 = min(stamp for stamp, _ in stamped)
+            out += [((stamp - t0).total_seconds(), temp) for stamp, temp in stamped]
         if not out:
             raise ValueError(f"{path}: no samples")
         out.sort()
@@ -691,6 +703,13 @@ class TemperatureAdapter:
                     continue
                 rec = self._write(t, temp, axis, name, value)
                 result.writes.append(rec)
+                if not rec.ok:
+                    result.refused[axis] = (
+                        f"{name} := {value} failed ({rec.error}); the rest of the axis is "
+                        "not written this period"
+                    )
+                    log.error("t=%.3fs axis %d: %s", t, axis, result.refused[axis])
+                    break
         return result
 
     def _write(self, t: float, temp: float, axis: int, name: str, value: Any) -> WriteRecord:

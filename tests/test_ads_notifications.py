@@ -88,3 +88,20 @@ def test_same_snapshot_twice_samples_once() -> None:
     t = table()
     register(t, 10, TransMode.SERVERCYCLE, 1)
     assert sent(t, [11, 11, 12, 12]) == [11, 12]
+
+
+def test_notifications_per_connection_are_capped_with_0x716() -> None:
+    from geo_server.dictionary import AdsError
+
+    t = NotificationTable(lambda *_a: b"\0\0\0\0", cycle_s=0.001, max_per_owner=3)
+    req = AddNotificationRequest(0x12F300, 1, 4, TransMode.SERVERONCHA, 0, MS)
+    for _ in range(3):
+        t.add("conn", CLIENT, SERVER, req, Snap(1))
+    with pytest.raises(AdsError) as e:
+        t.add("conn", CLIENT, SERVER, req, Snap(1))
+    assert e.value.code == 0x716  # ADSERR_DEVICE_NOMOREHDLS
+    t.add("other", CLIENT, SERVER, req, Snap(1))  # the cap is per connection
+    assert len(t) == 4
+    t.drop_owner("conn")  # a disconnect frees its handles
+    assert len(t) == 1
+    t.add("conn", CLIENT, SERVER, req, Snap(1))

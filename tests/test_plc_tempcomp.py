@@ -157,6 +157,12 @@ def test_csv_temperature_source(tmp_path):
     assert [src.temperature(t) for t in (-5, 0, 5, 15, 20, 99)] == [20, 20, 21, 24, 26, 26]
     f.write_text("2024-05-01T08:00:00,20.0\n2024-05-01T08:01:00,23.0\n")
     assert CsvTemperature(f).temperature(30) == pytest.approx(21.5)
+    # time zero is the earliest timestamp, not the first row
+    f.write_text("time,temperature_C\n2024-05-01T08:01:00,23.0\n2024-05-01T08:00:00,20.0\n")
+    assert CsvTemperature(f).samples == [(0.0, 20.0), (60.0, 23.0)]
+    f.write_text("time,temperature_C\nyesterday,20\n")
+    with pytest.raises(ValueError, match=r"t\.csv:2: time must be seconds or ISO-8601"):
+        CsvTemperature(f)
 
 
 def test_parse_temperature():
@@ -212,7 +218,42 @@ def test_adapter_does_not_retry_permanent_errors():
     ad = TemperatureAdapter(client, table, ConstantTemperature(20), axes=[1], sleep=lambda s: None)
     r = ad.tick(0)
     assert not r.writes[0].ok and r.writes[0].attempts == 1 and "read-only" in r.writes[0].error
-    assert [w.ok for w in r.writes] == [False, True, True]
+    # no half-updated set: offset_0 and coefficient belong to the position_0 that failed
+    assert [(w.name, w.ok) for w in r.writes] == [("TEMPC::position_0", False)]
+    assert client.writes == [] and "TEMPC::position_0 := 100 failed" in r.refused[1]
+    r = ad.tick(1)  # the next period writes the whole set
+    assert client.writes == [
+        ("TEMPC::position_0", 1, 100),
+        ("TEMPC::offset_0", 1, 40),
+        ("TEMPC::coefficient", 1, 4000.0),
+    ]
+    assert r.refused == {}
+
+
+def test_adapter_run_ticks_on_the_wall_clock():
+    """`run(period, duration, speed)`: a tick every period, source time = elapsed · speed."""
+    table = load_reference(EXAMPLE_REFERENCE)
+    seen: list[float] = []
+
+    class Recording:
+        def temperature(self, t: float) -> float:
+            seen.append(t)
+            return 20.0
+
+    client = FakeClient()
+    ad = TemperatureAdapter(client, table, Recording(), axes=[1])
+    n = ad.run(period=0.05, duration=0.32, speed=100.0)
+    assert 5 <= n <= 8 and len(seen) == n  # ticks at ~0, 0.05, … 0.30 s of wall time
+    assert seen[0] < 1.0 and seen == sorted(seen)
+    # tick k is never early: at ≥ k·0.05 s of wall time, i.e. source time ≥ k·5 s
+    # (a late tick is followed by catch-up ticks, so the gaps themselves may be short)
+    assert all(t >= k * 5.0 - 0.01 for k, t in enumerate(seen))
+    # constant 20 °C: the set is written once, never again
+    assert client.writes == [
+        ("TEMPC::position_0", 1, 100),
+        ("TEMPC::offset_0", 1, 40),
+        ("TEMPC::coefficient", 1, 4000.0),
+    ]
 
 
 def test_adapter_refuses_values_out_of_range(caplog):
@@ -387,6 +428,38 @@ def test_cli_once_writes_and_logs(geo_server: GeoTestServer, via: str, tmp_path,
         ("TEMPC::coefficient", 35.0, via, True),
     ]
     assert all(r["rtt_s"] > 0 for r in records)
+
+
+def test_cli_warmup_on_the_wall_clock_over_ads(geo_server: GeoTestServer, tmp_path):
+    """`--warmup 20:35:600 --speed 600 --period 0.1 --duration 0.45` over ADS: the first
+    period writes the 20 °C set of X (000 p.17: through (100, 40) at 4000 µm/m), later
+    periods only the rising coefficient; the server ends with the last value logged."""
+    log_file = tmp_path / "writes.jsonl"
+    opts = geo_server.client_options("ads")
+    argv = [
+        *("--warmup", "20:35:600", "--speed", "600", "--period", "0.1", "--duration", "0.45"),
+        *("--axis", "1", "--via", "ads", "--connect", opts["endpoint"]),
+        *("--netid", opts["netid"], "--log-file", str(log_file)),
+    ]
+    assert main(argv) == 0
+    records = [json.loads(line) for line in log_file.read_text().splitlines()]
+    assert all(r["ok"] and r["transport"] == "ads" and r["axis"] == 1 for r in records)
+    assert [(r["name"], r["value"]) for r in records[:2]] == [
+        ("TEMPC::position_0", 100),
+        ("TEMPC::offset_0", 40),
+    ]
+    # the first tick is microseconds after the start: T a hair above 20 °C
+    assert records[2]["name"] == "TEMPC::coefficient"
+    assert 4000.0 <= records[2]["value"] < 4001.0
+    later = records[3:]
+    assert len(later) >= 2 and {r["name"] for r in later} == {"TEMPC::coefficient"}
+    # T(t) = 35 − 15·exp(−t/600) rises, and with it the coefficient (4000 + 60/K, table)
+    coefficients = [r["value"] for r in later]
+    assert coefficients == sorted(coefficients) and coefficients[0] > 4000.0
+    # source time ≤ 0.45 s · 600 = 270 s: T ≤ 35 − 15·e^(−0.45) = 25.4 °C → ≤ 4324 µm/m
+    assert coefficients[-1] < 4325.0
+    geo_server.step(25)
+    assert geo_server.read("TEMPC::coefficient", 1) == coefficients[-1]
 
 
 def test_cli_bad_reference(tmp_path, capsys):

@@ -73,8 +73,8 @@ def zs(server):
     s.close()
 
 
-def get(session, key: str, payload: bytes | None = None, encoding=None):
-    kwargs = {"timeout": TIMEOUT}
+def get(session, key: str, payload: bytes | None = None, encoding=None, timeout=TIMEOUT):
+    kwargs = {"timeout": timeout}
     if payload is not None:
         kwargs["payload"] = payload
         if encoding is not None:
@@ -389,7 +389,8 @@ ACL = """{
     default_permission: "allow",
     rules: [
       { id: "no-commands", permission: "deny", flows: ["ingress", "egress"],
-        messages: ["query", "reply"], key_exprs: ["cnc/acl/cmd/**"] },
+        messages: ["query", "reply"],
+        key_exprs: ["cnc/acl/cmd/**", "cnc/acl/axis/*/tempc/coefficient"] },
     ],
     subjects: [ { id: "loopback", interfaces: ["lo"] } ],
     policies: [ { rules: ["no-commands"], subjects: ["loopback"] } ],
@@ -407,9 +408,21 @@ def test_access_control_config_refuses_a_denied_key(loop_thread, service, tmp_pa
     run_in(loop_thread, iface.start())
     s = zenoh.open(session_config([endpoint]))
     try:
-        assert json.loads(get_one(s, "cnc/acl/axis/1/tempc/coefficient")) == 4000.0
-        oks, errs = get(s, "cnc/acl/cmd/save", b"{}")
-        assert oks == [] and errs == []  # the query never reaches the server
+        # allowed keys work: a read, and a write that the next cycle applies
+        assert json.loads(get_one(s, "cnc/acl/axis/1/tempc/offset_0")) == 40
+        assert json.loads(get_one(s, "cnc/acl/axis/1/tempc/offset_0", b"55")) is not None
+        # denied keys: the query never reaches the server (no reply at all, not even an
+        # error), so the write has no effect
+        for key, payload in [
+            ("cnc/acl/axis/1/tempc/coefficient", b"1234"),
+            ("cnc/acl/axis/1/tempc/coefficient", None),
+            ("cnc/acl/cmd/reload", b"{}"),
+        ]:
+            oks, errs = get(s, key, payload, timeout=1.0)
+            assert oks == [] and errs == [], key
+        service.step(25)
+        assert service.read_name("TEMPC::offset_0", 1) == 55
+        assert service.read_name("TEMPC::coefficient", 1) == 4000.0
     finally:
         s.close()
         run_in(loop_thread, iface.close())

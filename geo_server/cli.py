@@ -93,6 +93,7 @@ def _check(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from geo_server.listfile import ListFileError, load_machine
     from geo_server.machine.machine import Machine
+    from geo_server.machine.nc import NcError
     from geo_server.machine.scheduler import Scheduler
     from geo_server.service import ObjectService
 
@@ -105,13 +106,17 @@ def _run(args: argparse.Namespace) -> int:
     for d in cfg.diagnostics:
         print(d, file=sys.stderr)
     machine = Machine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
-    scheduler = Scheduler(machine, mode=args.mode)
+    scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
     service = ObjectService(machine, scheduler)
     if args.program:
-        machine.start_program(Path(args.program).read_text(encoding="utf-8"))
+        try:
+            machine.start_program(Path(args.program).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, NcError) as exc:
+            print(f"error: NC program {args.program}: {exc}", file=sys.stderr)
+            return 2
     print(
         f"geo-server {__version__}: {path} with axes {list(machine.axes)}, cycle "
-        f"{args.cycle_ms} ms ({args.mode}); Ctrl-C stops",
+        f"{args.cycle_ms:g} ms ({args.mode}); Ctrl-C stops",
         flush=True,
     )
     try:
@@ -193,17 +198,25 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
         scheduler.start()
+        next_status = loop.time() + args.status_period
         while not stop.is_set():
+            # With --cycles, look often whether the cycle thread has finished its cycles.
+            wait = min(args.status_period, 0.02) if args.cycles else args.status_period
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), args.status_period)
+                await asyncio.wait_for(stop.wait(), wait)
+            finished = bool(args.cycles) and not scheduler.running
+            if loop.time() < next_status and not finished:
+                continue
+            next_status = loop.time() + args.status_period
             st = service.status()
             print(
                 f"cycle {st['cycle']}  lateness p50 {st['lateness_p50_us']:.0f} µs "
                 f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  "
-                f"overruns {st['overruns']}  cycle p50 {st['cycle_p50_us']:.0f} µs",
+                f"overruns {st['overruns']}  cycle p50 {st['cycle_p50_us']:.0f} µs "
+                f"(kernel {st['kernel_p50_us']:.0f} µs)",
                 flush=True,
             )
-            if args.cycles and st["cycle"] >= args.cycles:
+            if finished:
                 break
     finally:
         # Reverse order of start; one interface failing to close must not keep the

@@ -110,7 +110,30 @@ def test_run_serves_and_stops(tmp_path):
     assert f"tcp/127.0.0.1:{zport}" in r.stdout
     assert f"127.0.0.1:{mport}" in r.stdout
     assert f"127.0.0.1:{aport}" in r.stdout
-    assert "lateness p50" in r.stdout and "stopped after" in r.stdout
+    assert "lateness p50" in r.stdout
+    assert "stopped after 300 cycles" in r.stdout  # --cycles is exact, no overshoot
+
+
+def test_run_program_option(tmp_path):
+    """`--program`: a missing or broken program is exit 2 with the reason (and the line),
+    no traceback; a good one runs (here on a 2 ms cycle, for exactly 120 cycles)."""
+    base = [*script("geo-server"), "run", "--no-zenoh", "--no-modbus", "--no-ads"]
+    r = run([*base, "--program", str(tmp_path / "missing.nc")], tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "error: NC program" in r.stderr and "missing.nc" in r.stderr
+    bad = tmp_path / "bad.nc"
+    bad.write_text("G90 G01 X10 F1000\nG01 Q?? F1000\n", encoding="utf-8")
+    r = run([*base, "--program", str(bad)], tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "error: NC program" in r.stderr and "line 2" in r.stderr
+    good = tmp_path / "good.nc"
+    good.write_text("G90 G01 X10 F1000\nM30\n", encoding="utf-8")
+    r = run(
+        [*base, "--homed", "--program", str(good), "--cycle-ms", "2", "--cycles", "120"],
+        tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "cycle 2 ms" in r.stdout and "stopped after 120 cycles" in r.stdout
 
 
 @pytest.mark.parametrize("busy", ["modbus", "ads"])

@@ -501,9 +501,14 @@ def test_crosstalk_mode2(kernel_cls: type) -> None:
         mode=2,
         acceleration=1000.0,
         deceleration=-1000.0,
+        velocity_dependent=True,
         ax_1=np.array([0.0, 1000.0, 2000.0]),
         ax_2=np.zeros(3),
-        corrections=np.array([[50.0, 50, 60, 60], [70, 70, 80, 80], [50, 50, 60, 60]]),
+        # the manual lists each record as accelerate_dir_pos, decelerate_dir_pos,
+        # accelerate_dir_neg, decelerate_dir_neg = 50, 50, 60, 60 (70, 70, 80, 80 at
+        # ax_1 1000); the array columns are accelerate_dir_pos, accelerate_dir_neg,
+        # decelerate_dir_pos, decelerate_dir_neg
+        corrections=np.array([[50.0, 60, 50, 60], [70, 80, 70, 80], [50, 60, 50, 60]]),
     )
     d = Drive(kernel_cls, xt_machine(xt))
     d.vel[0], d.acc[0] = 10.0, 500 * MM  # accelerating, ratio 0.5
@@ -511,10 +516,17 @@ def test_crosstalk_mode2(kernel_cls: type) -> None:
         d.pos[2] = p
         d.step()
         assert d.k.actual[1, XT] == pytest.approx(c_ref * 0.5), p
-    d.vel[0], d.acc[0] = 10.0, -1000 * MM  # decelerating, ratio 1: decelerate_dir_pos
     d.pos[2] = 500.0
-    d.step()
-    assert d.k.actual[1, XT] == pytest.approx(70.0)
+    # (velocity, acceleration, expected): the reference value at ax_1 500 is the mean of
+    # the records at 0 and 1000 in the selected column, times |a|/1000 mm/s²
+    for v, a, want in (
+        (10.0, -1000 * MM, 60.0),  # decelerating, positive: (50 + 70) / 2
+        (-10.0, -500 * MM, 35.0),  # accelerating, negative: (60 + 80) / 2 · 0.5
+        (-10.0, 1000 * MM, 70.0),  # decelerating, negative: (60 + 80) / 2
+    ):
+        d.vel[0], d.acc[0] = v, a
+        d.step()
+        assert d.k.actual[1, XT] == pytest.approx(want), (v, a)
 
 
 def mode3(points: list[tuple[float, float]], values: list[float]) -> CrosstalkComp:

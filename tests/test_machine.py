@@ -314,3 +314,27 @@ def test_a_move_the_machine_cannot_start_ends_the_program_not_the_cycle(service)
     service.step(3)
     assert service.snapshot.cycle == 13
     assert "NC program stopped" in service.errors()[-1]["message"]
+
+
+def _first_moving_cycle(machine: Machine, program: str) -> int:
+    """Cycles from the program start until X's command velocity is non-zero."""
+    machine.step(30)  # temperature ramp of start-up over (temp_comp_n_cycles 20)
+    svc = ObjectService(machine)
+    machine.start_program(program)
+    for n in range(1, 200):
+        machine.run_cycle()
+        if svc.read_name("SIM::velocity", 1) != 0:
+            return n
+    raise AssertionError("X never moved")
+
+
+def test_comp_switch_waits_for_the_offset_unless_no_move(default_cfg):
+    """000 §5.1: the position offset of COMP ON/OFF is executed before the program goes
+    on; NO_MOVE suppresses the wait. X's temperature ramp is temp_comp_n_cycles = 20."""
+    prog = "N10 X[COMP OFF TEMP{}]\nN20 G91 G01 X1 F6000\nN30 M30\n"
+    waited = _first_moving_cycle(Machine(default_cfg, homed=True), prog.format(""))
+    # cycle 1 issues COMP (ramp k = 1), k = 20 in cycle 20, the wait ends in cycle 21
+    # and the move starts with its first motion step in that cycle
+    assert waited == 21
+    direct = _first_moving_cycle(Machine(default_cfg, homed=True), prog.format(" NO_MOVE"))
+    assert direct == 1  # no wait: the move block runs in the same cycle as the COMP block

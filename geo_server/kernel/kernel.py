@@ -714,6 +714,11 @@ class Kernel:
     def slot_of(self, axis_number: int) -> int:
         return self._slot[int(axis_number)]
 
+    def ramping(self, slot: int) -> bool:
+        """True while a sin² ramp of the axis has cycles left or an event is pending."""
+        f = self._filter
+        return bool(np.any(f.kidx[slot] != f.end[slot]) or self._pending[slot].any())
+
     def set_selected(self, slot: int, kind: CompKind, on: bool) -> None:
         """COMP ON/OFF or a `TEMPC::activated` write (000 §5.1 p.94, §3.2 p.15)."""
         self.selected[slot, COLUMN[kind]] = bool(on)

@@ -20,6 +20,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
+from time import perf_counter_ns
 from typing import Any
 
 import numpy as np
@@ -92,6 +93,7 @@ class Machine:
                 self.motion.home(slot)
         self.cycle = 0
         self.overruns = 0
+        self.kernel_ns = 0  # time of the last cycle's compensation kernel (status)
         self.player: Player | None = None
         self.events: deque[Event] = deque(maxlen=100)
         self.last_error_id = 0
@@ -136,6 +138,7 @@ class Machine:
                 self.motion.step()
                 self.motion.reversal_in(self._reversal)
                 k = self.kernel
+                t0 = perf_counter_ns()
                 k.step(
                     self.motion.pos,
                     self.motion.vel,
@@ -143,6 +146,7 @@ class Machine:
                     self.motion.homed,
                     self._reversal,
                 )
+                self.kernel_ns = perf_counter_ns() - t0
                 self.cycle += 1
                 snap = self._build_snapshot()
                 self.snapshot = snap
@@ -422,9 +426,11 @@ class Machine:
         return self.set_comp(slot, ALL_COMPS, False)
 
     def comp_settled(self, slots: Iterable[int]) -> bool:
-        # The sin² ramps run while the next block starts; the manual's COMP with motion
-        # travels the offset with the next move (000 §5.1), which the ramp models.
-        return True
+        """000 §5.1: the offset of a COMP switch is travelled before the program goes
+        on, i.e. the program waits until the axis' sin² ramps have ended. (NO_MOVE
+        skips the wait; the emulator then ramps while the next block runs instead of
+        deferring the offset to that block's motion.)"""
+        return not any(self.kernel.ramping(s) for s in slots)
 
     def effective(self, slot: int) -> CompKind:
         row = self.kernel.effective[slot]

@@ -22,6 +22,7 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -36,18 +37,20 @@ MODES = ("stepped", "free", "realtime")
 
 
 class CycleStats:
-    """Ring buffers of lateness and kernel time (µs) for percentiles."""
+    """Ring buffers of lateness, whole-cycle time and kernel time (µs) for percentiles."""
 
     def __init__(self, size: int = 10_000) -> None:
         self.lateness = np.zeros(size)
         self.cycle_time = np.zeros(size)
+        self.kernel_time = np.zeros(size)
         self.count = 0
         self.max_lateness = 0.0
 
-    def record(self, lateness_us: float, cycle_us: float) -> None:
+    def record(self, lateness_us: float, cycle_us: float, kernel_us: float = 0.0) -> None:
         i = self.count % len(self.lateness)
         self.lateness[i] = lateness_us
         self.cycle_time[i] = cycle_us
+        self.kernel_time[i] = kernel_us
         self.count += 1
         self.max_lateness = max(self.max_lateness, lateness_us)
 
@@ -60,27 +63,46 @@ class CycleStats:
                 "lateness_max_us": 0.0,
                 "cycle_p50_us": 0.0,
                 "cycle_p99_us": 0.0,
+                "kernel_p50_us": 0.0,
+                "kernel_p99_us": 0.0,
             }
         lat50, lat99 = np.percentile(self.lateness[:n], (50, 99))
         cyc50, cyc99 = np.percentile(self.cycle_time[:n], (50, 99))
+        ker50, ker99 = np.percentile(self.kernel_time[:n], (50, 99))
         return {
             "lateness_p50_us": float(lat50),
             "lateness_p99_us": float(lat99),
             "lateness_max_us": float(self.max_lateness),
             "cycle_p50_us": float(cyc50),
             "cycle_p99_us": float(cyc99),
+            "kernel_p50_us": float(ker50),
+            "kernel_p99_us": float(ker99),
         }
 
 
 class Scheduler:
     """Runs a `Machine`'s cycles in one of `MODES`."""
 
-    def __init__(self, machine: Machine, mode: str = "realtime", max_catchup: int = 10) -> None:
+    def __init__(
+        self,
+        machine: Machine,
+        mode: str = "realtime",
+        max_catchup: int = 10,
+        clock: Callable[[], int] = time.monotonic_ns,
+        sleep: Callable[[float], None] = time.sleep,
+        max_cycles: int = 0,
+    ) -> None:
+        """`clock` (ns) and `sleep` (s) are the real-time loop's view of time; tests pass
+        a virtual clock to make catch-up and overruns deterministic. With `max_cycles` the
+        cycle thread ends by itself once the machine has run that many cycles."""
         if mode not in MODES:
             raise ValueError(f"scheduler mode must be one of {MODES}, not {mode!r}")
         self.machine = machine
         self.mode = mode
         self.max_catchup = max_catchup
+        self.max_cycles = max_cycles
+        self._clock = clock
+        self._sleep = sleep
         self.stats = CycleStats()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -125,16 +147,21 @@ class Scheduler:
         for _ in range(n):
             t0 = time.perf_counter_ns()
             self.machine.run_cycle()
-            self.stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+            self.stats.record(
+                0.0, (time.perf_counter_ns() - t0) / 1000, self.machine.kernel_ns / 1000
+            )
 
     # ------------------------------------------------------------------ loops
 
     def _run_free(self) -> None:
         rec, clock = self.stats.record, time.perf_counter_ns
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not self._done():
             t0 = clock()
             self._guarded_cycle()
-            rec(0.0, (clock() - t0) / 1000)
+            rec(0.0, (clock() - t0) / 1000, self.machine.kernel_ns / 1000)
+
+    def _done(self) -> bool:
+        return bool(self.max_cycles) and self.machine.cycle >= self.max_cycles
 
     def _guarded_cycle(self) -> None:
         """One cycle; an unexpected exception is logged and counted, the cycle goes on."""
@@ -146,9 +173,9 @@ class Scheduler:
 
     def _run_realtime(self) -> None:
         period = self.period_ns
-        clock = time.monotonic_ns
+        clock = self._clock
         deadline = clock() + period
-        while not self._stop.is_set():
+        while not self._stop.is_set() and not self._done():
             self._wait_until(deadline)
             now = clock()
             late = now - deadline
@@ -160,15 +187,17 @@ class Scheduler:
                 deadline = now
             t0 = time.perf_counter_ns()
             self._guarded_cycle()
-            self.stats.record(late / 1000, (time.perf_counter_ns() - t0) / 1000)
+            self.stats.record(
+                late / 1000, (time.perf_counter_ns() - t0) / 1000, self.machine.kernel_ns / 1000
+            )
             deadline += period
 
     def _wait_until(self, deadline: int) -> None:
-        clock = time.monotonic_ns
+        clock = self._clock
         wake = deadline - self.spin_ns
         delay = wake - clock()
         if delay > 0:
-            time.sleep(delay / 1e9)
+            self._sleep(delay / 1e9)
             self._adapt(clock() - wake)
         while clock() < deadline:
             pass

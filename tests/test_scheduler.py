@@ -1,0 +1,89 @@
+"""Real-time scheduler on a virtual clock: catch-up, overruns, skipped cycles (SPEC §5).
+
+The loop under test is the production `_run_realtime`; only its clock and sleep are
+virtual, so a stall of exactly 5 ms or 30 ms gives exactly the figures worked out below.
+"""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Scheduler
+
+P = 1_000_000  # 1 ms period in ns
+TICK = 1_000  # every clock reading advances virtual time by 1 µs (the spin loop ends)
+
+
+class VirtualTime:
+    def __init__(self) -> None:
+        self.t = 10 * P
+
+    def clock(self) -> int:
+        self.t += TICK
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += round(seconds * 1e9)
+
+
+def run_with_stall(cfg, stall_ns: int, stall_at: int = 5, cycles: int = 40):
+    """Run `cycles` real-time cycles; cycle `stall_at` takes `stall_ns` of virtual time.
+    Returns the scheduler and the virtual start time of every cycle."""
+    vt = VirtualTime()
+    machine = Machine(cfg, cycle_s=P / 1e9)
+    sched = Scheduler(machine, mode="realtime", clock=vt.clock, sleep=vt.sleep)
+    starts: list[int] = []
+    original = machine.run_cycle
+
+    def cycle():
+        starts.append(vt.t)
+        snap = original()
+        if machine.cycle == stall_at:
+            vt.t += stall_ns
+        if machine.cycle == cycles:
+            sched._stop.set()
+        return snap
+
+    machine.run_cycle = cycle  # type: ignore[method-assign]
+    t0 = vt.t
+    sched._run_realtime()  # the loop itself, in this thread, until the stop above
+    return sched, [s - t0 for s in starts]
+
+
+def test_short_stall_is_caught_up_without_overrun(default_cfg):
+    sched, starts = run_with_stall(default_cfg, 5 * P)
+    assert sched.machine.cycle == 40
+    assert sched.machine.overruns == 0 and sched.skipped == 0
+    # Cycle 5 ends 5 ms late; its successors run back to back until the schedule is met
+    # again: cycle 6 (deadline 6 ms) starts ≈ 4 ms late, cycle 10 is back on time.
+    late = [(s - (i + 1) * P) / 1000 for i, s in enumerate(starts)]  # µs
+    assert 3900 < late[5] < 4100
+    assert all(x < 100 for x in late[12:])
+    st = sched.status()
+    assert 3900 < st["lateness_max_us"] < 4100
+    assert st["overruns"] == 0 and st["skipped_cycles"] == 0
+
+
+def test_long_stall_is_one_overrun_and_the_skipped_cycles_are_counted(default_cfg):
+    sched, starts = run_with_stall(default_cfg, 30 * P)
+    # 30 ms stall: the next deadline is missed by 29 ms > max_catchup (10) periods, so the
+    # scheduler resynchronises once and reports the 29 periods it gave up.
+    assert sched.machine.overruns == 1
+    assert sched.skipped == 29
+    assert sched.machine.cycle == 40  # cycles are never dropped silently: all 40 ran
+    # After resynchronising, the schedule restarts from the late cycle's start time.
+    assert starts[5] - starts[4] > 30 * P  # starts[4] is cycle 5, the stalled one
+    assert all(abs(b - a - P) < 100_000 for a, b in pairwise(starts[5:]))
+    st = sched.status()
+    assert st["overruns"] == 1 and st["skipped_cycles"] == 29
+
+
+def test_status_reports_kernel_time(default_cfg):
+    machine = Machine(default_cfg, cycle_s=0.001, homed=True)
+    sched = Scheduler(machine, mode="stepped")
+    sched.step(50)
+    st = sched.status()
+    # The kernel is part of the cycle: it takes time, and less than the whole cycle.
+    assert 0 < st["kernel_p50_us"] <= st["cycle_p50_us"]
+    assert st["kernel_p50_us"] <= st["kernel_p99_us"]

@@ -44,9 +44,9 @@ class KeepingStats(CycleStats):
         self._t0 = 0
         self._clock = time.monotonic_ns
 
-    def record(self, lateness_us: float, cycle_us: float) -> None:
+    def record(self, lateness_us: float, cycle_us: float, kernel_us: float = 0.0) -> None:
         i = self.count
-        super().record(lateness_us, cycle_us)
+        super().record(lateness_us, cycle_us, kernel_us)
         if i < len(self.kept_lateness):
             now = self._clock()
             if i == 0:
@@ -85,7 +85,7 @@ def main() -> int:
     args = cli.build_parser().parse_args(["run", *rest])
 
     machine = build_machine(args, own.demo_axes)
-    scheduler = Scheduler(machine, mode=args.mode)
+    scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
     stats = KeepingStats(own.stats_size) if own.stats_size else None
     if stats is not None:
         scheduler.stats = stats

@@ -178,6 +178,7 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
     a = Machine(load_machine(lists_copy), homed=True)
     b = Machine(cfg, homed=True)  # the twin that never sees the reload
     svc = ObjectService(a)
+    cfg_before = a.cfg
     a.step(30)
     b.step(30)
     axis_list = Path(cfg.axes[1].params.path)
@@ -189,6 +190,7 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
     result = svc.reload()
     assert not result.ok
     assert any("achsmd1.lis" in e and "temp_comp_coefficient" in e for e in result.errors)
+    assert a.cfg is cfg_before
     a.step(40)
     b.step(40)
     np.testing.assert_array_equal(a.snapshot.values, b.snapshot.values)
@@ -338,3 +340,83 @@ def test_comp_switch_waits_for_the_offset_unless_no_move(default_cfg):
     assert waited == 21
     direct = _first_moving_cycle(Machine(default_cfg, homed=True), prog.format(" NO_MOVE"))
     assert direct == 1  # no wait: the move block runs in the same cycle as the COMP block
+
+
+def test_lsec_objects_on_y_follow_the_table_by_direction(machine):
+    """Y's bilateral LSEC table (lists/achskw2.lis) read through the objects. At
+    s = 60000 (6 mm) the table points are setpoint[68] 58446 / [69] 62475 with pos 14 /
+    15 and neg 178 / 180; the applied offset is −Δs (000 §4.4, SPEC §6). The program
+    starts before the first cycle: Y requires LEAD | TEMP, and the 70435 monitoring must
+    see them effective."""
+    svc = ObjectService(machine)
+    frac = (60000 - 58446) / (62475 - 58446)  # 0.3857
+    machine.start_program("G90 G01 Y6 F6000\nM30\n")  # from 0 in the positive direction
+    _run_until_done(machine)
+    machine.step(10)  # reversal ramp (n_backlash_cyc 5) over
+    assert svc.read_name("ssfk activated", 2) is True
+    assert svc.read_name("LSEC::active", 2) is True
+    assert svc.read_name("LSEC::sum epsilon", 2) == round(-(14 + frac * 1))  # −14.39 → −14
+    assert svc.read_name("LSEC::epsilon", 2) == 0  # standing: no change this cycle
+    machine.start_program("G90 G01 Y7 F6000\nG01 Y6\nM30\n")  # arrive from above
+    _run_until_done(machine)
+    machine.step(10)
+    assert svc.read_name("LSEC::sum epsilon", 2) == round(-(178 + frac * 2))  # −178.77 → −179
+
+
+def test_rejected_reload_of_a_broken_compensation_list_keeps_the_old_tables(lists_copy: Path):
+    """A table that would be deactivated is a reload error (SPEC §4): nothing swaps."""
+    machine = Machine(load_machine(lists_copy), homed=True)
+    svc = ObjectService(machine)
+    cfg_before = machine.cfg
+    machine.step(30)
+    before = svc.read_name("LSEC::sum epsilon", 2)
+    comp = lists_copy.parent / "achskw2.lis"
+    comp.write_text(
+        comp.read_text(encoding="utf-8").replace(
+            "kw.ssfk.table[1].setpoint -199306", "kw.ssfk.table[1].setpoint -300000"
+        ),
+        encoding="utf-8",
+    )
+    result = svc.reload()
+    assert not result.ok
+    assert any("achskw2.lis" in e for e in result.errors)
+    assert machine.cfg is cfg_before
+    machine.step(10)
+    assert svc.read_name("LSEC::active", 2) is True
+    assert svc.read_name("LSEC::sum epsilon", 2) == before == -98  # Y at 0, neg table
+
+
+def test_invalid_table_is_selected_but_not_effective(lists_copy: Path):
+    """000 §4.4.4: a defective LSEC table deactivates the function for the axis; the
+    parameter still selects it (`ssfk activated`), `LSEC::active` stays FALSE and no
+    offset is applied."""
+    comp = lists_copy.parent / "achskw2.lis"
+    comp.write_text(
+        comp.read_text(encoding="utf-8").replace(
+            "kw.ssfk.table[1].setpoint -199306", "kw.ssfk.table[1].setpoint -300000"
+        ),
+        encoding="utf-8",
+    )
+    machine = Machine(load_machine(lists_copy), homed=True)
+    svc = ObjectService(machine)
+    machine.step(20)
+    assert svc.read_name("ssfk activated", 2) is True
+    assert svc.read_name("LSEC::active", 2) is False
+    assert svc.read_name("LSEC::sum epsilon", 2) == 0
+
+
+def test_reset_deselects_manual_activation_compensations(default_cfg):
+    """000 §5.1: compensations selected by COMP ON under manual activation are
+    deselected by a CNC reset (as at program end)."""
+    default_cfg.axes[1].params.temp_comp_manual_activation = True
+    machine = Machine(default_cfg, homed=True)
+    svc = ObjectService(machine)
+    machine.start_program("N10 X[COMP ON TEMP]\nN20 G04 10\nN30 M30\n")
+    machine.step(40)
+    assert svc.read_name("TEMPC::activated", 1) is True
+    # X at 0: offset_0 + coefficient·1e-6·(s − position_0) = 40 + 4000e-6·(0 − 100) = 39.6
+    assert svc.read_name("TEMPC::actual_offset", 1) == 40
+    machine.reset()
+    machine.step(1)
+    assert svc.read_name("TEMPC::activated", 1) is False
+    assert machine.player is not None and not machine.player.running

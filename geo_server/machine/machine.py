@@ -171,6 +171,11 @@ class Machine:
         player = self.player
         if player is None or not player.running:
             return
+        if self.cycle == 0:
+            # Nothing is effective before the first kernel step: a program started
+            # before the first cycle (`run --program`) begins in the second, so the
+            # 70435 monitoring sees the compensations of the running machine.
+            return
         try:
             player.step()
         except (MotionError, AdsError) as exc:

@@ -124,6 +124,9 @@ def _run(args: argparse.Namespace) -> int:
     except InterfaceStartError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except CycleStoppedError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     finally:
         scheduler.stop()
     print(f"stopped after {machine.cycle} cycles")
@@ -205,6 +208,11 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), wait)
             finished = bool(args.cycles) and not scheduler.running
+            if not scheduler.running and not finished and not stop.is_set():
+                # Serving the last snapshot forever would look alive but be wrong.
+                raise CycleStoppedError(
+                    f"the GEO cycle thread ended unexpectedly after cycle {scheduler.machine.cycle}"
+                )
             if loop.time() < next_status and not finished:
                 continue
             next_status = loop.time() + args.status_period
@@ -230,6 +238,10 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
 
 class InterfaceStartError(RuntimeError):
     """An interface could not start (port in use, bad address or Zenoh config)."""
+
+
+class CycleStoppedError(RuntimeError):
+    """The GEO cycle thread died (a defect; its traceback is on stderr)."""
 
 
 def build_parser() -> argparse.ArgumentParser:

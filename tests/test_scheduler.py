@@ -6,10 +6,15 @@ virtual, so a stall of exactly 5 ms or 30 ms gives exactly the figures worked ou
 
 from __future__ import annotations
 
+import asyncio
 from itertools import pairwise
 
+import pytest
+
+from geo_server import cli
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
+from geo_server.service import ObjectService
 
 P = 1_000_000  # 1 ms period in ns
 TICK = 1_000  # every clock reading advances virtual time by 1 µs (the spin loop ends)
@@ -87,3 +92,25 @@ def test_status_reports_kernel_time(default_cfg):
     # The kernel is part of the cycle: it takes time, and less than the whole cycle.
     assert 0 < st["kernel_p50_us"] <= st["cycle_p50_us"]
     assert st["kernel_p50_us"] <= st["kernel_p99_us"]
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
+    """A defect that kills the cycle thread must not leave `run` serving a frozen
+    snapshot: `_serve` raises, `run` exits 1."""
+
+    class Broken:
+        count = 0
+
+        def record(self, *values: float) -> None:
+            raise RuntimeError("defect in the cycle thread")
+
+    machine = Machine(default_cfg, cycle_s=0.001)
+    sched = Scheduler(machine, mode="realtime")
+    sched.stats = Broken()  # type: ignore[assignment]
+    args = cli.build_parser().parse_args(
+        ["run", "--no-zenoh", "--no-modbus", "--no-ads", "--status-period", "0.05"]
+    )
+    with pytest.raises(cli.CycleStoppedError, match="after cycle 1"):
+        asyncio.run(cli._serve(args, ObjectService(machine, sched), sched))
+    sched.stop()

@@ -21,7 +21,10 @@ import argparse
 import asyncio
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,33 +87,55 @@ def main() -> int:
     rest = own.run_options[1:] if own.run_options[:1] == ["--"] else own.run_options
     args = cli.build_parser().parse_args(["run", *rest])
 
-    machine = build_machine(args, own.demo_axes)
-    scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
-    stats = KeepingStats(own.stats_size) if own.stats_size else None
-    if stats is not None:
-        scheduler.stats = stats
+    local = build_machine(args, own.demo_axes)
+    scheduler: Any
+    if args.cycle_in == "process":
+        from geo_server.machine.process import ProcessScheduler, RemoteMachine
+
+        machine: Any = RemoteMachine(local.cfg, cycle_s=local.cycle_s, homed=args.homed)
+        setup = partial(keep_and_dump, own.stats_size, own.dump) if own.stats_size else None
+        scheduler = ProcessScheduler(machine, args.mode, args.cycles, child_setup=setup)
+    else:
+        machine = local
+        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
+        finish = keep_and_dump(own.stats_size, own.dump, scheduler) if own.stats_size else None
     service = ObjectService(machine, scheduler)
     print(
-        f"bench server: axes {list(machine.axes)}, cycle {args.cycle_ms} ms ({args.mode})",
+        f"bench server: axes {list(machine.axes)}, cycle {args.cycle_ms} ms ({args.mode}, "
+        f"cycle in its own {args.cycle_in})",
         flush=True,
     )
     try:
         asyncio.run(cli._serve(args, service, scheduler))
     finally:
         scheduler.stop()
-    if own.dump and stats is not None:
+    if args.cycle_in == "thread" and finish is not None:
+        finish()
+    print(f"stopped after {machine.cycle} cycles", flush=True)
+    return 0
+
+
+def keep_and_dump(keep: int, dump: str | None, scheduler: Scheduler) -> Callable[[], None]:
+    """Give `scheduler` a `KeepingStats`; the returned function writes `dump` (.npz).
+    Runs where the cycle runs: in this process, or in the GEO-cycle process."""
+    stats = KeepingStats(keep)
+    scheduler.stats = stats
+
+    def finish() -> None:
+        if not dump:
+            return
         n = stats.kept()
         np.savez(
-            own.dump,
+            dump,
             lateness_us=stats.kept_lateness[:n],
             cycle_us=stats.kept_cycle[:n],
             start_us=stats.kept_start[:n],
             first_cycle=1,
-            overruns=machine.overruns,
+            overruns=scheduler.machine.overruns,
             cycle_errors=scheduler.cycle_errors,
         )
-    print(f"stopped after {machine.cycle} cycles", flush=True)
-    return 0
+
+    return finish
 
 
 if __name__ == "__main__":

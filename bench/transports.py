@@ -160,17 +160,23 @@ def bare_round(samples: dict, n: int, seconds: float) -> None:
         print(f"  bare  {label}: p50 {np.median(rtt):.0f} µs, {rps:.0f} req/s", flush=True)
 
 
-def geo_round(samples: dict, n: int, seconds: float, cycle_ms: float) -> dict[str, Any]:
+def geo_round(
+    samples: dict, n: int, seconds: float, cycle_ms: float, cycle_in: str
+) -> dict[str, Any]:
     """One round against one geo-server (real-time cycle) for every case."""
     zp, mp, ap = free_ports(3)
     ports = {"zenoh": zp, "modbus": mp, "ads": ap}
-    with ServerProcess(geo_server_argv(cycle_ms, ports), "geo-server") as srv:
+    argv = geo_server_argv(cycle_ms, ports, extra=["--cycle-in", cycle_in])
+    with ServerProcess(argv, f"geo-server-{cycle_in}") as srv:
         session = start_geo(srv, ports)
         try:
             for label, _lib, _kind, _bare, geo_factory in CASES:
                 rtt, rps = measure(lambda p, f=geo_factory: f(p), ports, n, seconds)
-                samples[label]["geo"].append((rtt, rps))
-                print(f"  geo   {label}: p50 {np.median(rtt):.0f} µs, {rps:.0f} req/s", flush=True)
+                samples[label][cycle_in].append((rtt, rps))
+                print(
+                    f"  geo ({cycle_in})  {label}: p50 {np.median(rtt):.0f} µs, {rps:.0f} req/s",
+                    flush=True,
+                )
             from common import get_status
 
             return get_status(session)
@@ -179,20 +185,28 @@ def geo_round(samples: dict, n: int, seconds: float, cycle_ms: float) -> dict[st
 
 
 def run(args: argparse.Namespace) -> str:
-    samples: dict[str, dict[str, list]] = {c[0]: {"bare": [], "geo": []} for c in CASES}
-    status: dict[str, Any] = {}
+    modes = args.cycle_in
+    samples: dict[str, dict[str, list]] = {
+        c[0]: {"bare": [], **{m: [] for m in modes}} for c in CASES
+    }
+    status: dict[str, dict[str, Any]] = {}
+
+    def geo_rounds() -> None:
+        for m in modes:
+            status[m] = geo_round(samples, args.requests, args.seconds, args.cycle_ms, m)
+
     for r in range(args.rounds):
         print(f"round {r + 1}/{args.rounds}", flush=True)
         if r % 2 == 0:
             bare_round(samples, args.requests, args.seconds)
-            status = geo_round(samples, args.requests, args.seconds, args.cycle_ms)
+            geo_rounds()
         else:
-            status = geo_round(samples, args.requests, args.seconds, args.cycle_ms)
+            geo_rounds()
             bare_round(samples, args.requests, args.seconds)
     rows = []
-    for label, lib, _kind, _b, _g in CASES:
+    for (label, lib, _kind, _b, _g), mode in [(c, m) for c in CASES for m in modes]:
         b = samples[label]["bare"]
-        g = samples[label]["geo"]
+        g = samples[label][mode]
         bs = summary_us(np.concatenate([x[0] for x in b]))
         gs = summary_us(np.concatenate([x[0] for x in g]))
         brps = float(np.median([x[1] for x in b]))
@@ -200,7 +214,7 @@ def run(args: argparse.Namespace) -> str:
         rows.append(
             [
                 label,
-                lib,
+                f"{lib}, cycle {mode}",
                 bs["p50"],
                 bs["p99"],
                 brps,
@@ -217,7 +231,9 @@ def run(args: argparse.Namespace) -> str:
         f"(geo-server cycle {args.cycle_ms} ms real time)\n\n"
         f"{args.rounds} rounds × up to {args.requests} sequential reads or {args.seconds} s "
         "per case and server, pooled; round trip in µs; ratio > 1 = geo-server slower "
-        "(target ≤ 1.15×; ADS: no slower than pyads' AdsTestServer).\n\n"
+        "(target ≤ 1.15×; ADS: no slower than pyads' AdsTestServer). *cycle thread*: the "
+        "GEO cycle on a thread of the server (default); *cycle process*: "
+        "`--cycle-in process`.\n\n"
     )
     md += table(
         [
@@ -236,11 +252,11 @@ def run(args: argparse.Namespace) -> str:
         rows,
         align="llrrrrrrrrr",
     )
-    if status:
+    for mode, st in status.items():
         md += (
-            f"\ngeo-server during the last round: lateness p50 {status['lateness_p50_us']:.0f} µs, "
-            f"p99 {status['lateness_p99_us']:.0f} µs, max {status['lateness_max_us']:.0f} µs, "
-            f"overruns {status['overruns']}, spin margin {status['spin_margin_us']} µs.\n"
+            f"\ngeo-server (cycle {mode}) during the last round: lateness p50 "
+            f"{st['lateness_p50_us']:.0f} µs, p99 {st['lateness_p99_us']:.0f} µs, max "
+            f"{st['lateness_max_us']:.0f} µs, overruns {st['overruns']}.\n"
         )
     return md
 
@@ -252,9 +268,11 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=None, help="per case (default 4; quick 1)")
     ap.add_argument("--requests", type=int, default=20_000, help="max reads per case")
     ap.add_argument("--cycle-ms", type=float, default=1.0)
+    ap.add_argument("--cycle-in", default="thread,process", help="thread, process or both")
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args()
     args.rounds = args.rounds or (1 if args.quick else 2)
+    args.cycle_in = [x for x in args.cycle_in.split(",") if x]
     args.seconds = args.seconds or (1.0 if args.quick else 4.0)
     emit(run(args), args.out)
 

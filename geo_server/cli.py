@@ -105,8 +105,16 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     for d in cfg.diagnostics:
         print(d, file=sys.stderr)
-    machine = Machine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
-    scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
+    machine: Any
+    scheduler: Any
+    if args.cycle_in == "process":
+        from geo_server.machine.process import ProcessScheduler, RemoteMachine
+
+        machine = RemoteMachine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
+        scheduler = ProcessScheduler(machine, mode=args.mode, max_cycles=args.cycles)
+    else:
+        machine = Machine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
+        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
     service = ObjectService(machine, scheduler)
     if args.program:
         try:
@@ -116,7 +124,7 @@ def _run(args: argparse.Namespace) -> int:
             return 2
     print(
         f"geo-server {__version__}: {path} with axes {list(machine.axes)}, cycle "
-        f"{args.cycle_ms:g} ms ({args.mode}); Ctrl-C stops",
+        f"{args.cycle_ms:g} ms ({args.mode}, cycle in its own {args.cycle_in}); Ctrl-C stops",
         flush=True,
     )
     try:
@@ -211,7 +219,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             if not scheduler.running and not finished and not stop.is_set():
                 # Serving the last snapshot forever would look alive but be wrong.
                 raise CycleStoppedError(
-                    f"the GEO cycle thread ended unexpectedly after cycle {scheduler.machine.cycle}"
+                    f"the GEO cycle ended unexpectedly after cycle {scheduler.machine.cycle}"
                 )
             if loop.time() < next_status and not finished:
                 continue
@@ -268,6 +276,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--program", help="NC program to run at start")
     r.add_argument("--homed", action="store_true", help="start with every axis homed")
     r.add_argument("--mode", choices=("realtime", "free"), default="realtime")
+    r.add_argument(
+        "--cycle-in",
+        choices=("process", "thread"),
+        default="process",
+        help="run the GEO cycle in its own process (default: no interpreter lock shared "
+        "with the transports, punctual under load) or in a thread of the server",
+    )
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument("--cycles", type=int, default=0, help="stop after this many cycles (0: never)")
     r.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")

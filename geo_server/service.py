@@ -217,9 +217,7 @@ class ObjectService:
             return self._done(self.reload())
         if obj.name == "SIM::save":
             return self._done(self.save())
-        return _detached(
-            self.machine.submit(lambda: self.machine.apply_write(obj.name, axis, value))
-        )
+        return _detached(self.machine.call("apply_write", obj.name, axis, value))
 
     @staticmethod
     def _done(result: CommandResult) -> Future:
@@ -289,11 +287,11 @@ class ObjectService:
             prog = parse_program(text, self.machine.names, mdi=True)
         except NcError as exc:
             raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
-        return _detached(self.machine.submit(lambda: self.machine.start(prog, mdi=True)))
+        return _detached(self.machine.call("start", prog, True))
 
     def reset(self) -> Future:
         """CNC reset at the next cycle boundary: program stopped, axes stopped."""
-        return _detached(self.machine.submit(self.machine.reset))
+        return _detached(self.machine.call("reset"))
 
     # ------------------------------------------------------------------ commands
 
@@ -320,7 +318,7 @@ class ObjectService:
             warnings = [str(d) for d in new.diagnostics if d not in problems]
             if problems:
                 return CommandResult(False, "reload", [str(p) for p in problems], warnings)
-            fut = self.machine.submit(lambda: self.machine.reload(new))
+            fut = self.machine.call("reload", new)
             self._wait_applied(fut)
             return CommandResult(True, "reload", warnings=warnings, files=_list_files(new))
 

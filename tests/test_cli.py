@@ -85,12 +85,15 @@ def test_objects_into_a_closed_pipe_ends_quietly(tmp_path):
     assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
 
 
-def test_run_serves_and_stops(tmp_path):
+@pytest.mark.parametrize("cycle_in", ["thread", "process"])
+def test_run_serves_and_stops(tmp_path, cycle_in):
     zport, mport, aport = free_port(), free_port(), free_port()
     r = run(
         [
             *script("geo-server"),
             "run",
+            "--cycle-in",
+            cycle_in,
             "--homed",
             "--cycles",
             "300",
@@ -111,6 +114,7 @@ def test_run_serves_and_stops(tmp_path):
     assert f"127.0.0.1:{mport}" in r.stdout
     assert f"127.0.0.1:{aport}" in r.stdout
     assert "lateness p50" in r.stdout
+    assert f"cycle in its own {cycle_in}" in r.stdout
     assert "stopped after 300 cycles" in r.stdout  # --cycles is exact, no overshoot
 
 

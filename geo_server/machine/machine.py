@@ -209,6 +209,17 @@ class Machine:
             self._queue.append((fn, fut))
         return fut
 
+    #: Operations a caller may queue by name (`call`); the same names cross the process
+    #: boundary when the cycle runs in its own process (`geo_server.machine.process`).
+    CALLS = frozenset({"apply_write", "start", "reset", "reload"})
+
+    def call(self, op: str, *args: Any) -> Future:
+        """Queue the method `op` with `args` for the next cycle boundary (see `CALLS`)."""
+        if op not in self.CALLS:
+            raise ValueError(f"not a queueable machine operation: {op!r}")
+        method = getattr(self, op)
+        return self.submit(lambda: method(*args))
+
     # ------------------------------------------------------------------ snapshot
 
     def _layout_sources(self) -> None:

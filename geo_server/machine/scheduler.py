@@ -101,6 +101,9 @@ class Scheduler:
         self.mode = mode
         self.max_catchup = max_catchup
         self.max_cycles = max_cycles
+        #: Called on the cycle thread right before each cycle (the process mode drains
+        #: its command channel here, so queued writes land in this cycle).
+        self.before_cycle: Callable[[], None] | None = None
         self._clock = clock
         self._sleep = sleep
         self.stats = CycleStats()
@@ -129,6 +132,12 @@ class Scheduler:
         target = self._run_free if self.mode == "free" else self._run_realtime
         self._thread = threading.Thread(target=target, name="geo-cycle", daemon=True)
         self._thread.start()
+
+    def run_here(self) -> None:
+        """Run the free / real-time loop in the calling thread until `stop()` or
+        `max_cycles` (the GEO-cycle process runs it in its main thread)."""
+        self._stop.clear()
+        (self._run_free if self.mode == "free" else self._run_realtime)()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
@@ -166,6 +175,8 @@ class Scheduler:
     def _guarded_cycle(self) -> None:
         """One cycle; an unexpected exception is logged and counted, the cycle goes on."""
         try:
+            if self.before_cycle is not None:
+                self.before_cycle()
             self.machine.run_cycle()
         except Exception:
             self.cycle_errors += 1

@@ -5,8 +5,8 @@
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
 down) with a time limit, prints its Markdown tables, and the whole report — date, machine,
-versions, then every part — goes to `bench/RESULTS.md`. Full run: about 5 minutes;
-`--quick`: about 1.5. Exit status 1 when a part failed (its section says why).
+versions, then every part — goes to `bench/RESULTS.md`. Full run: about 7 minutes;
+`--quick`: about 2. Exit status 1 when a part failed (its section says why).
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def header(quick: bool) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="short windows (about 1.5 minutes)")
+    ap.add_argument("--quick", action="store_true", help="short windows (about 2 minutes)")
     ap.add_argument("--only", default=",".join(PARTS), help="comma-separated parts")
     ap.add_argument("--results", default=str(BENCH / "RESULTS.md"), help="report file")
     args = ap.parse_args()

@@ -232,7 +232,8 @@ def run(args: argparse.Namespace) -> str:
         f"{args.rounds} rounds × up to {args.requests} sequential reads or {args.seconds} s "
         "per case and server, pooled; round trip in µs; ratio > 1 = geo-server slower "
         "(target ≤ 1.15×; ADS: no slower than pyads' AdsTestServer). *cycle thread*: the "
-        "GEO cycle on a thread of the server (default); *cycle process*: "
+        "GEO cycle on a thread of the server (`--cycle-in thread`); *cycle process* "
+        "(the default): "
         "`--cycle-in process`.\n\n"
     )
     md += table(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import pytest
 from conftest import free_port
 
 BIN = Path(sys.executable).parent
+QUICK_STATUS = ("--status-period", "0.1")
 
 
 def script(name: str) -> list[str]:
@@ -116,6 +118,31 @@ def test_run_serves_and_stops(tmp_path, cycle_in):
     assert "lateness p50" in r.stdout
     assert f"cycle in its own {cycle_in}" in r.stdout
     assert "stopped after 300 cycles" in r.stdout  # --cycles is exact, no overshoot
+
+
+def test_ctrl_c_stops_run_cleanly(tmp_path):
+    """Ctrl-C reaches the whole process group (server and GEO-cycle process): `run`
+    stops cleanly, exit 0, no traceback from either process."""
+    proc = subprocess.Popen(
+        [*script("geo-server"), "run", "--no-zenoh", "--no-modbus", "--no-ads", *QUICK_STATUS],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    try:
+        assert "Ctrl-C stops" in proc.stdout.readline()
+        assert proc.stdout.readline().startswith("cycle ")  # the cycle runs
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "stopped after" in out
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
 
 
 def test_run_program_option(tmp_path):

@@ -22,9 +22,10 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from typing import Any
 
@@ -64,6 +65,9 @@ def _child_main(
 ) -> None:
     """Entry point of the GEO-cycle process. `setup` (picklable; benchmarks) may adjust
     the scheduler before the first cycle and return a function to run after the last."""
+    # Ctrl-C in a terminal reaches the whole process group: the server stops the cycle
+    # (its `stop` message), the child must not die first of KeyboardInterrupt.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     fd = conn.fileno()
     os.set_blocking(fd, False)
     _raise_priority()
@@ -137,6 +141,20 @@ def _raise_priority() -> None:
         os.nice(-10)
     except OSError as exc:
         log.info("GEO-cycle process keeps normal priority (%s)", exc)
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ignore SIGINT while the child is created: an ignored signal stays ignored across
+    exec, so a Ctrl-C during the child's imports cannot kill it with a traceback."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 class RemoteMachine:
@@ -309,7 +327,8 @@ class ProcessScheduler:
             name="geo-cycle",
             daemon=True,
         )
-        self._proc.start()
+        with _sigint_ignored():  # inherited through exec: ignored from its first line on
+            self._proc.start()
         m.child_conn.close()  # the child holds it now; EOF reaches us when it ends
         self._pump = threading.Thread(target=m.pump, name="geo-cycle-pump", daemon=True)
         self._pump.start()

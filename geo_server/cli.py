@@ -8,6 +8,8 @@ import contextlib
 import csv
 import io
 import json
+import os
+import secrets
 import shutil
 import signal
 import sys
@@ -50,7 +52,15 @@ def _modbus_map(args: argparse.Namespace) -> int:
 
 
 def _init(args: argparse.Namespace) -> int:
-    """Copy the default machine's lists into a folder of the user's (to edit and save)."""
+    """Copy the default machine's lists into a folder of the user's (to edit and save).
+
+    All or nothing: every file is copied to a temporary name first and renamed once all
+    are complete; on any OSError (disk full, no permission, read-only folder) the
+    temporary files and the folders this command created are removed again, and one
+    line says why (exit 2).
+    """
+    from geo_server.listfile.writer import TEMP_SUFFIX, temp_prefix
+
     src = default_startup_list().parent
     dest = Path(args.directory)
     files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix in (".lis", ".nc"))
@@ -58,9 +68,28 @@ def _init(args: argparse.Namespace) -> int:
     if clash and not args.force:
         print(f"error: {dest} already has {', '.join(clash)} (--force overwrites)", file=sys.stderr)
         return 2
-    dest.mkdir(parents=True, exist_ok=True)
-    for p in files:
-        shutil.copyfile(p, dest / p.name)
+    created = [d for d in (dest, *dest.parents) if not d.exists()]
+    temps: list[Path] = []
+    try:
+        dest.mkdir(parents=True, exist_ok=True)
+        for p in files:
+            # named like save's temporaries (`remove_orphan_temps` knows them); created by
+            # copyfile, so the copy gets the mode a new file gets, as the list itself
+            tmp = dest / f"{temp_prefix(dest / p.name)}{secrets.token_hex(4)}{TEMP_SUFFIX}"
+            temps.append(tmp)
+            shutil.copyfile(p, tmp)
+        for p, tmp in zip(files, temps, strict=True):
+            os.replace(tmp, dest / p.name)
+    except OSError as exc:
+        for tmp in temps:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        for folder in created:  # deepest first
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        reason = exc.strerror or (os.strerror(exc.errno) if exc.errno else str(exc))
+        print(f"error: cannot copy the default machine to {dest}: {reason}", file=sys.stderr)
+        return 2
     print(f"default machine copied to {dest} ({len(files)} files); run it with:")
     print(f"  geo-server run {dest / 'hochlauf.lis'}")
     return 0
@@ -105,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     for d in cfg.diagnostics:
         print(d, file=sys.stderr)
+    _remove_orphans(cfg)
     machine: Any
     scheduler: Any
     if args.cycle_in == "process":
@@ -139,6 +169,18 @@ def _run(args: argparse.Namespace) -> int:
         scheduler.stop()
     print(f"stopped after {machine.cycle} cycles")
     return 0
+
+
+def _remove_orphans(cfg: Any) -> None:
+    """A save killed half-way (power loss, SIGKILL) can leave its temporary file next
+    to a list: remove those at start, before anything could be saving."""
+    from geo_server.listfile import remove_orphan_temps
+
+    lists = [cfg.startup_path]
+    for ax in cfg.axes.values():
+        lists += [p for p in (ax.params.path, ax.comp.path if ax.comp else "") if p]
+    for tmp in remove_orphan_temps(lists):
+        print(f"removed {tmp}: left over from an interrupted save", file=sys.stderr)
 
 
 def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
@@ -225,6 +267,13 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 continue
             next_status = loop.time() + args.status_period
             st = service.status()
+            if st.get("stalled"):
+                print(
+                    f"cycle {st['cycle']}  STALLED: no GEO cycle for {st['stalled_for_s']:.1f} s"
+                    " (reads answer 'not ready', writes are refused)",
+                    flush=True,
+                )
+                continue
             print(
                 f"cycle {st['cycle']}  lateness p50 {st['lateness_p50_us']:.0f} µs "
                 f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  "

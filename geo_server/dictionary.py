@@ -31,6 +31,7 @@ class AdsErrorCode(IntEnum):
 
     NOERROR = 0x000
     TARGET_PORT_NOT_FOUND = 0x006
+    DEVICE_ERROR = 0x700
     SERVICE_NOT_SUPPORTED = 0x701
     INVALID_INDEX_GROUP = 0x702
     INVALID_INDEX_OFFSET = 0x703
@@ -53,6 +54,10 @@ class AdsError(Exception):
         self.code = int(code)
         self.message = message
         self.name = name
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickles across the process boundary of the GEO cycle with its fields intact
+        return (type(self), (self.code, self.message, self.name))
 
     def as_dict(self) -> dict[str, Any]:
         """The JSON error body used by the Zenoh interface (SPEC §7)."""
@@ -125,6 +130,9 @@ class ObjectDef:
     aliases: tuple[str, ...] = ()
     min: float | None = None
     max: float | None = None
+    #: "reload" / "save": writing this object runs that command (list files are read or
+    #: written) instead of queueing a value for the next cycle.
+    command: str | None = None
 
     @property
     def index_group(self) -> int:
@@ -356,6 +364,7 @@ def _load(raw: dict[str, Any]) -> ObjectDef:
         aliases=tuple(raw.get("aliases", ())),
         min=raw.get("min"),
         max=raw.get("max"),
+        command=raw.get("command"),
     )
 
 

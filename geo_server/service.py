@@ -1,39 +1,63 @@
-"""The object service: the one API every transport calls (SPEC §2, §4, §5, §9).
+"""The object service: the one API every transport calls.
 
-- `read(group, offset, length)` answers from the latest published snapshot and returns
-  ADS bytes or raises `AdsError` with the code of SPEC §9 (0x702 group, 0x703 offset or
-  axis, 0x705 length). A read never returns more bytes than the object has.
-- `read_many(...)` answers a batch from **one** snapshot (sum reads, block reads).
-- `write(group, offset, data)` validates at once (0x702/0x703/0x704/0x705/0x706) and
-  queues the value; it is applied at the next cycle boundary in arrival order. The
-  returned future resolves when it has been applied.
-- `write_async` / `write_name_async`: the same from an asyncio loop. The command objects
-  (`SIM::reload`, `SIM::save`, see `is_command`) read and write list files; they run in
-  a worker thread so the loop (ADS, Modbus, Zenoh) keeps answering meanwhile.
-- by-name access with decoded values, change subscriptions, `status`, `errors`,
-  and the commands `reload` and `save` of SPEC §4.
+Reads
+    `read(group, offset, length)` answers from the latest published snapshot with ADS
+    bytes, or raises `AdsError` (0x702 group, 0x703 offset or axis, 0x705 length). A
+    read never returns more bytes than the object has; `read_many` answers a batch from
+    one snapshot (sum reads, block reads). While cycles run by themselves and the latest
+    snapshot is older than `ServiceLimits.stall_after`, the GEO cycle is *stalled*: reads
+    raise 0x707 (device not ready) instead of serving an ever older picture as current,
+    and `status()` says `"stalled": true` (status itself is always answered).
 
-Transports never reach into the kernel or the machine; they hold an `ObjectService`.
+Writes: the write lifecycle lives here, once, for every transport
+    `prepare`/`prepare_name` validate at once (0x702…0x706). `write_applied` /
+    `write_name_applied` / `apply_writes` queue the values for the next cycle boundary
+    and return when the cycle that applied them has published its snapshot — so a read
+    sent after the answer sees the value. In stepped mode nobody runs that cycle until
+    the test steps: they return as soon as the values are queued. A write not applied
+    within the timeout is *withdrawn* before the caller hears 0x719: a write reported as
+    failed never takes effect later. One the cycle has already taken is always
+    acknowledged, however late (it will take effect). While the cycle is stalled new
+    writes are refused at once with 0x707 and are not queued.
+
+Commands
+    Objects marked `command` in the dictionary (`SIM::reload`, `SIM::save`) run that
+    command instead of queueing a value; commands read or write list files, so
+    `*_applied` run them in a worker thread, never on an event loop. One command runs at
+    a time; another one waits at most `command_wait` and then gets 0x708 (busy).
+
+Transports never reach into the kernel or the machine; they hold an `ObjectService`
+and map its `AdsError`s to their own codes.
 """
 
 from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Callable, Iterable
-from concurrent.futures import Future
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from geo_server.config import CompKind, Diagnostic, MachineConfig
 from geo_server.dictionary import AdsError, AdsErrorCode, ObjectDef
+from geo_server.events import Event
 from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
-from geo_server.machine.machine import Event, Machine
 from geo_server.machine.nc import NcError, parse_program
-from geo_server.machine.scheduler import Scheduler
-from geo_server.machine.snapshot import Snapshot
+from geo_server.machine.port import (
+    CycleRunner,
+    MachinePort,
+    Pending,
+    Reload,
+    chained,
+    Reset,
+    StartProgram,
+    WriteObjects,
+)
 from geo_server.paths import is_packaged_data
+from geo_server.snapshot import Snapshot
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
@@ -46,9 +70,33 @@ SAVED_PARAMETERS = {
     "TEMPC::activated": "lr_param.temp_comp",
 }
 
-#: Objects whose write runs a command (SPEC §2, 0x12F300 IDs 0x4/0x5) instead of queueing
-#: a value: they parse or rewrite list files and may take long, so never on an event loop.
-COMMAND_OBJECTS = frozenset({"SIM::reload", "SIM::save"})
+
+@dataclass(frozen=True)
+class ServiceLimits:
+    """Time and size bounds of the object service (README, *Limits*)."""
+
+    #: Seconds a write may wait for the cycle that applies it; then it is withdrawn (0x719).
+    write_timeout: float = 2.0
+    #: Seconds a reload waits for the cycle that swaps the tables; then it is withdrawn.
+    swap_timeout: float = 5.0
+    #: Seconds a command waits for another command to finish; then 0x708 (busy).
+    command_wait: float = 1.0
+    #: Seconds without a new snapshot, while cycles run by themselves, after which the
+    #: GEO cycle counts as stalled.
+    stall_after: float = 0.5
+    #: Largest NC text accepted in one request (bytes, UTF-8).
+    nc_max_bytes: int = 16 * 1024
+    #: Most lines of NC text accepted in one request.
+    nc_max_lines: int = 500
+
+
+@dataclass(frozen=True)
+class PreparedWrite:
+    """A validated write: the object, the axis (0 for machine objects) and the value."""
+
+    obj: ObjectDef
+    axis: int
+    value: Any
 
 
 @dataclass
@@ -60,6 +108,8 @@ class CommandResult:
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
+    #: The ADS code of a failure: 0x70D list errors, 0x708 busy, 0x719 not applied in time.
+    code: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -69,6 +119,21 @@ class CommandResult:
             "warnings": self.warnings,
             "files": self.files,
         }
+
+    @property
+    def message(self) -> str:
+        """One line saying what happened (the reason of a rejection first)."""
+        if self.ok:
+            return f"{self.command} done" + (f": {', '.join(self.files)}" if self.files else "")
+        head = (
+            "reload rejected, machine unchanged"
+            if self.command == "reload"
+            else f"{self.command} failed"
+        )
+        return f"{head}: {'; '.join(self.errors)}"
+
+    def error(self) -> AdsError:
+        return AdsError(self.code or ADSERR_DEVICE_SYNTAX, self.message, self.command)
 
 
 def format_value(obj: ObjectDef, value: Any) -> str:
@@ -82,23 +147,70 @@ def format_value(obj: ObjectDef, value: Any) -> str:
 
 
 class ObjectService:
-    """Reads, writes, batches, subscriptions and commands over one `Machine`."""
+    """Reads, writes, batches, subscriptions and commands over one machine."""
 
-    def __init__(self, machine: Machine, scheduler: Scheduler | None = None) -> None:
+    def __init__(
+        self,
+        machine: MachinePort,
+        scheduler: CycleRunner | None = None,
+        limits: ServiceLimits | None = None,
+    ) -> None:
+        if scheduler is None:
+            from geo_server.machine.scheduler import Scheduler
+
+            scheduler = Scheduler(machine, mode="stepped")  # type: ignore[arg-type]
         self.machine = machine
-        self.scheduler = scheduler or Scheduler(machine, mode="stepped")
+        self.scheduler = scheduler
+        self.limits = limits or ServiceLimits()
         self.dictionary = machine.dictionary
         self._command_lock = threading.Lock()
+        #: Items merged into `status()` (interfaces add what they observe).
+        self.status_extra: dict[str, Any] = {}
+        self._events: deque[Event] = deque(maxlen=100)  # reported by the server itself
+        self._event_listeners: list[Callable[[Event], None]] = []
+        self._started_at = 0.0
 
-    # ------------------------------------------------------------------ addressing
+    # ------------------------------------------------------------------ state
 
     @property
     def axes(self) -> tuple[int, ...]:
         return self.machine.axes
 
     @property
+    def cycle_s(self) -> float:
+        return self.machine.cycle_s
+
+    @property
+    def running(self) -> bool:
+        """True while cycles run by themselves (real time, free-running)."""
+        return self.scheduler.running
+
+    @property
     def snapshot(self) -> Snapshot:
+        """The latest published snapshot, however old (see `current`)."""
         return self.machine.snapshot
+
+    def stalled_for(self) -> float:
+        """Seconds since the latest snapshot when the cycle is stalled, else 0."""
+        if not self.running:
+            return 0.0
+        if not self._started_at:
+            self._started_at = time.monotonic()
+        age = time.monotonic() - max(self.machine.snapshot_time, self._started_at)
+        return age if age > self.limits.stall_after else 0.0
+
+    def current(self) -> Snapshot:
+        """The latest snapshot, or 0x707 while the GEO cycle is stalled."""
+        snap = self.machine.snapshot
+        stalled = self.stalled_for()
+        if stalled:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOT_READY,
+                f"the GEO cycle is stalled: no cycle for {stalled:.1f} s (last cycle {snap.cycle})",
+            )
+        return snap
+
+    # ------------------------------------------------------------------ addressing
 
     def resolve(self, index_group: int, index_offset: int) -> tuple[ObjectDef, int, str | None]:
         return self.dictionary.resolve(index_group, index_offset, self.axes)
@@ -127,7 +239,12 @@ class ObjectService:
         (ADS returns the bytes actually read, never more than requested).
         """
         obj, axis, attr = self.resolve(index_group, index_offset)
-        data = obj.attribute(attr) if attr else (snapshot or self.snapshot).encode(obj, axis)
+        if attr:
+            data = obj.attribute(attr)
+        else:
+            if not obj.readable:
+                raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{obj.name} is write-only", obj.name)
+            data = (snapshot or self.current()).encode(obj, axis)
         if length is not None and length < len(data):
             raise AdsError(
                 AdsErrorCode.INVALID_SIZE,
@@ -138,7 +255,7 @@ class ObjectService:
 
     def read_many(self, requests: Iterable[tuple[int, int, int | None]]) -> list[bytes | AdsError]:
         """Batch read from one snapshot; each entry is bytes or the AdsError it raised."""
-        snap = self.snapshot
+        snap = self.current()
         out: list[bytes | AdsError] = []
         for ig, io, length in requests:
             try:
@@ -150,94 +267,192 @@ class ObjectService:
     def read_name(self, name: str, axis: int = 0, snapshot: Snapshot | None = None) -> Any:
         """Decoded value of an object by name."""
         obj = self.lookup(name, axis)
-        return (snapshot or self.snapshot).value(obj, axis)
+        return (snapshot or self.current()).value(obj, axis)
 
     def read_axis(self, axis: int, group: str = "geo") -> dict[str, Any]:
         """Every object of `group` for one axis, decoded, from one snapshot."""
-        snap = self.snapshot
+        snap = self.current()
         return {
             o.name: snap.value(o, axis)
             for o in self.dictionary.group_objects(group)
             if axis in self.axes
         }
 
-    # ------------------------------------------------------------------ writes
+    # ------------------------------------------------------------------ writes: validation
 
-    def write(self, index_group: int, index_offset: int, data: bytes) -> Future:
-        """Validate ADS bytes now and apply them at the next cycle boundary."""
+    def prepare(self, index_group: int, index_offset: int, data: bytes) -> PreparedWrite:
+        """Validate ADS bytes for a write (0x702/0x703/0x704/0x705/0x706)."""
         obj, axis, attr = self.resolve(index_group, index_offset)
         if attr is not None:
             raise AdsError(
                 AdsErrorCode.INVALID_ACCESS, f"attribute of {obj.name} is read-only", obj.name
             )
         self._check_writable(obj)
-        return self._queue(obj, axis, obj.decode(data))
+        return PreparedWrite(obj, axis, obj.decode(data))
 
-    def write_name(self, name: str, axis: int, value: Any) -> Future:
-        """Validate a decoded value (JSON, CLI) and apply it at the next cycle boundary."""
+    def prepare_name(self, name: str, axis: int, value: Any) -> PreparedWrite:
+        """Validate a decoded value (JSON, CLI) for a write."""
         obj = self.lookup(name, axis)
         self._check_writable(obj)
-        return self._queue(obj, axis, obj.coerce(value))
+        return PreparedWrite(obj, axis, obj.coerce(value))
 
-    def is_command(self, obj: ObjectDef) -> bool:
+    def prepare_object(self, obj: ObjectDef, axis: int, value: Any) -> PreparedWrite:
+        """Validate a value for an object the caller has already resolved."""
+        self._check_writable(obj)
+        return PreparedWrite(obj, axis, obj.coerce(value))
+
+    @staticmethod
+    def is_command(obj: ObjectDef) -> bool:
         """Does writing `obj` run a command (reload/save) rather than queue a value?"""
-        return obj.name in COMMAND_OBJECTS
-
-    async def write_async(self, index_group: int, index_offset: int, data: bytes) -> Future:
-        """`write` for callers on an asyncio loop: a command object runs in a worker thread.
-
-        `write` of `SIM::reload`/`SIM::save` parses or rewrites the list files before it
-        returns; on the loop that would stall every transport sharing it (ADS, Modbus,
-        Zenoh) for the whole reload. Plain values are validated and queued in place
-        (cheap, and it keeps their arrival order).
-        """
-        obj, _axis, attr = self.resolve(index_group, index_offset)
-        if attr is None and self.is_command(obj):
-            return await asyncio.get_running_loop().run_in_executor(
-                None, self.write, index_group, index_offset, data
-            )
-        return self.write(index_group, index_offset, data)
-
-    async def write_name_async(self, name: str, axis: int, value: Any) -> Future:
-        """`write_name` for callers on an asyncio loop (see `write_async`)."""
-        if self.is_command(self.dictionary.by_name(name)):
-            return await asyncio.get_running_loop().run_in_executor(
-                None, self.write_name, name, axis, value
-            )
-        return self.write_name(name, axis, value)
+        return obj.command is not None
 
     def _check_writable(self, obj: ObjectDef) -> None:
         if not obj.writable:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{obj.name} is read-only", obj.name)
 
-    def _queue(self, obj: ObjectDef, axis: int, value: Any) -> Future:
-        # Commands run here, in the caller's thread: callers on an event loop use
-        # `write_async` / `write_name_async`, which call this in a worker thread.
-        if obj.name == "SIM::reload":
-            return self._done(self.reload())
-        if obj.name == "SIM::save":
-            return self._done(self.save())
-        return _detached(self.machine.call("apply_write", obj.name, axis, value))
+    # ------------------------------------------------------------------ writes: queueing
 
-    @staticmethod
-    def _done(result: CommandResult) -> Future:
-        fut: Future = Future()
-        if result.ok:
-            fut.set_result(result)
-        else:
-            fut.set_exception(AdsError(ADSERR_DEVICE_SYNTAX, "; ".join(result.errors)))
-        return fut
+    def write(self, index_group: int, index_offset: int, data: bytes) -> Pending:
+        """Validate ADS bytes now and apply them at the next cycle boundary (a command
+        object runs its command here, in the caller's thread). The future's result is
+        None, or it raises the error applying the value raised."""
+        return _single(self.submit_writes([self.prepare(index_group, index_offset, data)]))
+
+    def write_name(self, name: str, axis: int, value: Any) -> Pending:
+        """Validate a decoded value (JSON, CLI) and apply it at the next cycle boundary."""
+        return _single(self.submit_writes([self.prepare_name(name, axis, value)]))
+
+    def submit_writes(self, writes: Sequence[PreparedWrite]) -> Pending:
+        """Queue validated writes as one operation (all applied in the same cycle).
+
+        The outcome is a tuple with None or the AdsError of each item. A command object
+        must be written on its own; it runs now and its outcome is the CommandResult.
+        """
+        commands = [w for w in writes if w.obj.command]
+        if commands:
+            if len(writes) != 1:
+                raise AdsError(
+                    AdsErrorCode.INVALID_ACCESS,
+                    f"{commands[0].obj.name} must be written on its own",
+                    commands[0].obj.name,
+                )
+            result = self.run_command(commands[0].obj.command or "")
+            if not result.ok:
+                raise result.error()
+            done = Pending()
+            done.set_result(result)
+            return done
+        self._refuse_when_stalled()
+        return self.machine.submit(
+            WriteObjects(tuple((w.obj.name, w.axis, w.value) for w in writes))
+        )
+
+    async def write_applied(
+        self, index_group: int, index_offset: int, data: bytes, *, timeout: float | None = None
+    ) -> None:
+        """Validate, queue and wait until applied (see the module docstring)."""
+        errors = await self.apply_writes([self.prepare(index_group, index_offset, data)], timeout)
+        if errors[0] is not None:
+            raise errors[0]
+
+    async def write_name_applied(
+        self, name: str, axis: int, value: Any, *, timeout: float | None = None
+    ) -> Any:
+        """`write_applied` by name with a decoded value; returns the value as stored."""
+        w = self.prepare_name(name, axis, value)
+        errors = await self.apply_writes([w], timeout)
+        if errors[0] is not None:
+            raise errors[0]
+        return w.value
+
+    async def apply_writes(
+        self, writes: Sequence[PreparedWrite], timeout: float | None = None
+    ) -> list[AdsError | None]:
+        """Queue validated writes as one operation and wait until the cycle applied them.
+
+        Returns one entry per write: None (applied) or the AdsError it raised when it
+        was applied (e.g. 0x708 for a move while the axis is busy). Raises AdsError for
+        the whole batch: 0x707 (stalled, nothing queued), 0x719 (not applied in time,
+        withdrawn), or the error of a command.
+        """
+        if any(w.obj.command for w in writes):
+            pending = await asyncio.to_thread(self.submit_writes, writes)
+            return [None] * len(writes)
+        pending = self.submit_writes(writes)
+        outcome = await self.settle(pending, timeout)
+        if outcome is None:  # stepped: queued, applied at the next step
+            return [None] * len(writes)
+        return [e if isinstance(e, AdsError) else None for e in outcome]
+
+    async def settle(self, pending: Pending, timeout: float | None = None) -> Any:
+        """Wait for a queued operation (running cycles only; stepped: None at once).
+
+        After `timeout` (default `write_timeout`) the operation is withdrawn and 0x719
+        raised; if a cycle has taken it already, wait on for its outcome (withdrawal is
+        retried in case the cycle process was merely stopped while taking operations).
+        """
+        if pending.done() or not self.running:
+            return pending.result() if pending.done() else None
+        limit = self.limits.write_timeout if timeout is None else timeout
+        wrapped = asyncio.wrap_future(pending)
+        done, _ = await asyncio.wait({wrapped}, timeout=limit)
+        while not done:
+            if pending.withdraw():
+                raise AdsError(
+                    AdsErrorCode.TIMEOUT,
+                    f"not applied within {limit:g} s (the GEO cycle is late or stalled); "
+                    "withdrawn, it will not take effect",
+                )
+            done, _ = await asyncio.wait({wrapped}, timeout=0.25)
+        return wrapped.result()
+
+    def settle_sync(self, pending: Pending, timeout: float) -> Any:
+        """`settle` for a caller's thread (commands)."""
+        if pending.done() or not self.running:
+            return pending.result() if pending.done() else None
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                return pending.result(timeout=max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                if pending.withdraw():
+                    raise AdsError(
+                        AdsErrorCode.TIMEOUT,
+                        f"not applied within {timeout:g} s (the GEO cycle is late or "
+                        "stalled); withdrawn, it will not take effect",
+                    ) from None
+                deadline = time.monotonic() + 0.25
+
+    def _refuse_when_stalled(self) -> None:
+        stalled = self.stalled_for()
+        if stalled:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOT_READY,
+                f"the GEO cycle is stalled (no cycle for {stalled:.1f} s): nothing queued",
+            )
+
+    async def write_async(self, index_group: int, index_offset: int, data: bytes) -> Pending:
+        """Transitional (Zenoh interface): `write` with commands off the loop."""
+        obj, _axis, attr = self.resolve(index_group, index_offset)
+        if attr is None and obj.command:
+            return await asyncio.to_thread(self.write, index_group, index_offset, data)
+        return self.write(index_group, index_offset, data)
+
+    async def write_name_async(self, name: str, axis: int, value: Any) -> Pending:
+        """Transitional (Zenoh interface): `write_name` with commands off the loop."""
+        if self.dictionary.by_name(name).command:
+            return await asyncio.to_thread(self.write_name, name, axis, value)
+        return self.write_name(name, axis, value)
 
     # ------------------------------------------------------------------ subscriptions
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
-        """Call `callback(snapshot)` after every cycle, on the cycle thread.
+        """Call `callback(snapshot)` after every cycle, on the thread that publishes it.
 
         Keep it short and hand work to your own thread or event loop. Returns a function
         that unsubscribes.
         """
-        self.machine.listeners.append(callback)
-        return lambda: self.machine.listeners.remove(callback)
+        return self.machine.subscribe(callback)
 
     def subscribe_changes(
         self,
@@ -252,7 +467,7 @@ class ObjectService:
             changed = {}
             for obj, axis in keys:
                 v = snap.value(obj, axis)
-                if last.get((obj.name, axis), _MISSING) != v:
+                if (obj.name, axis) not in last or last[(obj.name, axis)] != v:
                     last[(obj.name, axis)] = v
                     changed[(obj.name, axis)] = v
             if changed:
@@ -261,95 +476,182 @@ class ObjectService:
         return self.subscribe(on_cycle)
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
-        self.machine.event_listeners.append(callback)
-        return lambda: self.machine.event_listeners.remove(callback)
+        """Call `callback(event)` for every new warning or error (machine or server)."""
+        unsubscribe = self.machine.subscribe_events(callback)
+        self._event_listeners.append(callback)
 
-    # ------------------------------------------------------------------ status
+        def both() -> None:
+            unsubscribe()
+            if callback in self._event_listeners:
+                self._event_listeners.remove(callback)
+
+        return both
+
+    # ------------------------------------------------------------------ status, events
 
     def status(self) -> dict[str, Any]:
-        return self.scheduler.status()
+        """Cycle count, cycle time, lateness, overruns, and whether the cycle is stalled."""
+        st = dict(self.scheduler.status())
+        stalled = self.stalled_for()
+        st["stalled"] = bool(stalled)
+        st["stalled_for_s"] = round(stalled, 3)
+        st.update(self.status_extra)
+        return st
 
     def errors(self) -> list[dict[str, Any]]:
-        """The last 100 warnings and errors (SPEC §7 `errors`)."""
-        return [e.as_dict() for e in list(self.machine.events)]
+        """The last 100 warnings and errors, oldest first."""
+        merged = sorted([*self.machine.events, *self._events], key=lambda e: e.cycle)
+        return [e.as_dict() for e in merged[-100:]]
+
+    def report(self, message: str, *, severity: str = "error", error_id: int = 0) -> None:
+        """Record a warning or error the server itself found (a rejected reload, a second
+        server with this machine's name): listed by `errors()`, passed to listeners."""
+        ev = Event(self.machine.snapshot.cycle, Diagnostic(severity, message, error_id=error_id))
+        self._events.append(ev)
+        for listener in list(self._event_listeners):
+            listener(ev)
 
     def step(self, n: int = 1) -> Snapshot:
         """Run `n` cycles (stepped mode)."""
         self.scheduler.step(n)
         return self.snapshot
 
-    # ------------------------------------------------------------------ NC
+    # ------------------------------------------------------------------ NC, reset
 
-    def run_nc(self, text: str) -> Future:
-        """Parse NC lines now (bad text -> AdsError 0x70D naming the line) and start them
-        as MDI lines at the next cycle boundary."""
+    def run_nc(self, text: str) -> Pending:
+        """Parse NC lines now and start them as MDI lines at the next cycle boundary.
+
+        Bad text -> 0x70D naming the line; text over `nc_max_bytes` or `nc_max_lines`
+        -> 0x705 (a long program belongs in a file: `geo-server run --program`)."""
+        size = len(text.encode("utf-8", errors="replace"))
+        lines = text.count("\n") + 1
+        lim = self.limits
+        if size > lim.nc_max_bytes or lines > lim.nc_max_lines:
+            raise AdsError(
+                AdsErrorCode.INVALID_SIZE,
+                f"NC text of {size} bytes / {lines} lines exceeds {lim.nc_max_bytes} bytes / "
+                f"{lim.nc_max_lines} lines",
+                "nc",
+            )
         try:
             prog = parse_program(text, self.machine.names, mdi=True)
         except NcError as exc:
             raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
-        return _detached(self.machine.call("start", prog, True))
+        self._refuse_when_stalled()
+        return self.machine.submit(StartProgram(prog, True))
 
-    def reset(self) -> Future:
+    async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
+        """`run_nc` parsed in a worker thread; returns the cycle that started it."""
+        pending = await asyncio.to_thread(self.run_nc, text)
+        await self.settle(pending, timeout)
+        return self.snapshot.cycle
+
+    def reset(self) -> Pending:
         """CNC reset at the next cycle boundary: program stopped, axes stopped."""
-        return _detached(self.machine.call("reset"))
+        self._refuse_when_stalled()
+        return self.machine.submit(Reset())
+
+    async def reset_applied(self, *, timeout: float | None = None) -> int:
+        await self.settle(self.reset(), timeout)
+        return self.snapshot.cycle
 
     # ------------------------------------------------------------------ commands
 
+    def run_command(self, name: str) -> CommandResult:
+        """Run `reload` or `save` in the caller's thread (see `command`)."""
+        if name == "reload":
+            return self.reload()
+        if name == "save":
+            return self.save()
+        raise AdsError(AdsErrorCode.SERVICE_NOT_SUPPORTED, f"unknown command {name!r}")
+
+    async def command(self, name: str) -> CommandResult:
+        """Run `reload` or `save` in a worker thread (never on the event loop)."""
+        return await asyncio.to_thread(self.run_command, name)
+
     def reload(self, startup: Path | str | None = None) -> CommandResult:
-        """Reload the lists (SPEC §4): validate everything first, swap atomically or reject.
+        """Reload the lists: validate everything first, swap atomically or reject.
 
         Runs in the caller's thread up to the swap, which happens at a cycle boundary.
+        A rejected reload leaves the machine unchanged and is recorded in `errors()`.
         """
-        with self._command_lock:
-            path = Path(startup) if startup else self.machine.cfg.startup_path
-            try:
-                new = load_machine(path)
-            except ListFileError as exc:
-                return CommandResult(False, "reload", errors=[str(exc)])
-            problems = _rejecting(new) + compare_max_points(self.machine.cfg, new)
-            if set(new.axes) != set(self.machine.cfg.axes):
-                problems.append(
-                    Diagnostic(
-                        "error",
-                        f"the axes changed ({sorted(self.machine.cfg.axes)} -> "
-                        f"{sorted(new.axes)}); restart the server to change the machine layout",
-                    )
+        if not self._command_lock.acquire(timeout=self.limits.command_wait):
+            return _busy("reload")
+        try:
+            result = self._reload(startup)
+        finally:
+            self._command_lock.release()
+        if not result.ok:
+            self.report(result.message)
+        return result
+
+    def _reload(self, startup: Path | str | None) -> CommandResult:
+        path = Path(startup) if startup else self.machine.cfg.startup_path
+        try:
+            new = load_machine(path)
+        except ListFileError as exc:
+            return CommandResult(False, "reload", errors=[str(exc)], code=ADSERR_DEVICE_SYNTAX)
+        problems = _rejecting(new) + compare_max_points(self.machine.cfg, new)
+        if set(new.axes) != set(self.machine.cfg.axes):
+            problems.append(
+                Diagnostic(
+                    "error",
+                    f"the axes changed ({sorted(self.machine.cfg.axes)} -> "
+                    f"{sorted(new.axes)}); restart the server to change the machine layout",
                 )
-            warnings = [str(d) for d in new.diagnostics if d not in problems]
-            if problems:
-                return CommandResult(False, "reload", [str(p) for p in problems], warnings)
-            fut = self.machine.call("reload", new)
-            self._wait_applied(fut)
-            return CommandResult(True, "reload", warnings=warnings, files=_list_files(new))
+            )
+        warnings = [str(d) for d in new.diagnostics if d not in problems]
+        if problems:
+            return CommandResult(
+                False, "reload", [_reason(p) for p in problems], warnings, code=ADSERR_DEVICE_SYNTAX
+            )
+        try:
+            self._refuse_when_stalled()
+            self.settle_sync(self.machine.submit(Reload(new)), self.limits.swap_timeout)
+        except AdsError as exc:
+            return CommandResult(False, "reload", errors=[exc.message], code=exc.code)
+        return CommandResult(True, "reload", warnings=warnings, files=_list_files(new))
 
     def save(self) -> CommandResult:
-        """Write the live TEMPC parameters back into the axis lists (SPEC §4)."""
-        with self._command_lock:
-            snap = self.snapshot
-            files: list[str] = []
-            errors: list[str] = []
-            for axis in self.axes:
-                params = self.machine.cfg.axes[axis].params
-                changes = self._changed_parameters(snap, axis)
-                if not changes:
-                    continue
-                if not params.path:
-                    errors.append(f"axis {axis}: no axis parameter list to save into")
-                    continue
-                if is_packaged_data(params.path):
-                    errors.append(
-                        f"{params.path} belongs to the installed package; copy the machine "
-                        "with `geo-server init DIR` and run DIR/hochlauf.lis to save"
-                    )
-                    continue
-                try:
-                    rewrite_values(params.path, changes)
-                except OSError as exc:
-                    errors.append(f"{params.path}: {exc}")
-                    continue
-                _note_saved(params, changes)
-                files.append(params.path)
-            return CommandResult(not errors, "save", errors=errors, files=files)
+        """Write the live TEMPC parameters back into the axis lists (atomic rewrite)."""
+        if not self._command_lock.acquire(timeout=self.limits.command_wait):
+            return _busy("save")
+        try:
+            result = self._save()
+        finally:
+            self._command_lock.release()
+        if not result.ok:
+            self.report(result.message)
+        return result
+
+    def _save(self) -> CommandResult:
+        snap = self.snapshot
+        files: list[str] = []
+        errors: list[str] = []
+        for axis in self.axes:
+            params = self.machine.cfg.axes[axis].params
+            changes = self._changed_parameters(snap, axis)
+            if not changes:
+                continue
+            if not params.path:
+                errors.append(f"axis {axis}: no axis parameter list to save into")
+                continue
+            if is_packaged_data(params.path):
+                errors.append(
+                    f"{params.path} belongs to the installed package; copy the machine "
+                    "with `geo-server init DIR` and run DIR/hochlauf.lis to save"
+                )
+                continue
+            try:
+                rewrite_values(params.path, changes)
+            except (OSError, ListFileError) as exc:
+                errors.append(f"{params.path}: {exc}")
+                continue
+            _note_saved(params, changes)
+            files.append(params.path)
+        return CommandResult(
+            not errors, "save", errors=errors, files=files, code=AdsErrorCode.DEVICE_ERROR
+        )
 
     def _changed_parameters(self, snap: Snapshot, axis: int) -> dict[str, str]:
         params = self.machine.cfg.axes[axis].params
@@ -364,46 +666,43 @@ class ObjectService:
                 changes[entry] = format_value(obj, live)
         return changes
 
-    def _wait_applied(self, fut: Future) -> None:
-        """In stepped mode the swap waits for the next step; otherwise wait for it."""
-        if self.scheduler.running:
-            fut.result(timeout=5.0)
+
+def _single(pending: Pending) -> Pending:
+    """The outcome of a one-item `WriteObjects` as None or its error raised (a command's
+    CommandResult is passed on as it is)."""
+
+    def first(outcome: Any) -> Any:
+        if isinstance(outcome, tuple):
+            if outcome[0] is not None:
+                raise outcome[0]
+            return None
+        return outcome
+
+    return chained(pending, first)
 
 
-_MISSING = object()
-
-
-def _detached(inner: Future) -> Future:
-    """The caller's copy of a queued write's future: it follows `inner`, but cancelling
-    it never reaches `inner`.
-
-    Transports await writes with `asyncio.wait_for(asyncio.wrap_future(fut), …)`; a
-    timeout or a dropped connection cancels the asyncio future, and `wrap_future` passes
-    that on to the concurrent future. The machine still applies the queued write, but
-    then `fut.set_result` on the cancelled future raised `InvalidStateError` on the
-    cycle thread: the cycle failed (`Scheduler.cycle_errors`), the other writes of that
-    cycle were never acknowledged and the listeners missed the cycle (found by
-    tests/test_robust_fuzz.py: ADS clients that vanish while a write is pending).
-    A cancelled copy just stays cancelled; the write itself is applied as queued.
-    """
-    outer: Future = Future()
-
-    def copy(done: Future) -> None:
-        if not outer.set_running_or_notify_cancel():
-            return  # the caller gave up waiting: nobody to tell
-        exc = done.exception()
-        if exc is None:
-            outer.set_result(done.result())
-        else:
-            outer.set_exception(exc)
-
-    inner.add_done_callback(copy)
-    return outer
+def _busy(command: str) -> CommandResult:
+    return CommandResult(
+        False,
+        command,
+        errors=["another reload or save is still running; try again"],
+        code=AdsErrorCode.DEVICE_BUSY,
+    )
 
 
 def _rejecting(cfg: MachineConfig) -> list[Diagnostic]:
     """Diagnostics that make a reload fail: errors and deactivated compensations."""
     return [d for d in cfg.diagnostics if d.severity == "error" or d.deactivated is not None]
+
+
+def _reason(d: Diagnostic) -> str:
+    """`file:line: [id] entry: message` — what made a reload fail, without the severity
+    word and without "deactivated" (a rejected reload deactivates nothing)."""
+    where = f"{d.file}:{d.line}: " if d.file and d.line else (f"{d.file}: " if d.file else "")
+    ident = f"[{d.error_id}] " if d.error_id else ""
+    entry = f"{d.entry}: " if d.entry else ""
+    axis = f" (axis {d.axis})" if d.axis else ""
+    return f"{where}{ident}{entry}{d.message}{axis}"
 
 
 def _list_files(cfg: MachineConfig) -> list[str]:
@@ -424,4 +723,11 @@ def _note_saved(params: Any, changes: dict[str, str]) -> None:
         )
 
 
-__all__ = ["ADSERR_DEVICE_SYNTAX", "COMMAND_OBJECTS", "CommandResult", "CompKind", "ObjectService"]
+__all__ = [
+    "ADSERR_DEVICE_SYNTAX",
+    "CommandResult",
+    "CompKind",
+    "ObjectService",
+    "PreparedWrite",
+    "ServiceLimits",
+]

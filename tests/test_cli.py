@@ -224,3 +224,21 @@ def test_modbus_map_command(tmp_path):
     r = run([*script("geo-server"), "modbus-map", "--format", "csv"], tmp_path)
     assert r.returncode == 0
     assert any("TEMPC::coefficient" in line and "268" in line for line in r.stdout.splitlines())
+
+
+def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):
+    """A save killed between writing its temporary file and renaming it leaves
+    `.<list>.<8 chars>.tmp` beside the list; the next start removes exactly those."""
+    folder = lists_copy.parent
+    orphan = folder / ".achsmd1.lis.k3j_x9a2.tmp"
+    orphan.write_text("half a list")
+    keep = folder / ".notes.tmp"
+    keep.write_text("not ours")
+    r = run(
+        [*script("geo-server"), "run", str(lists_copy), "--no-zenoh", "--no-modbus", "--no-ads"]
+        + ["--cycle-in", "thread", "--cycles", "5"],
+        tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    assert not orphan.exists() and keep.exists()
+    assert f"removed {orphan}: left over from an interrupted save" in r.stderr

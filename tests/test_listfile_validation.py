@@ -995,7 +995,9 @@ def _startup(tmp: Path, mds: list[tuple[str, str, int | None]]) -> Path:
 
 
 def test_axis_list_without_number_is_skipped_at_the_startup_line(tmp_path: Path) -> None:
-    path = _startup(tmp_path, [("a.lis", "kopf.achs_nr 1\n", None), ("b.lis", "# none\n", None)])
+    path = _startup(
+        tmp_path, [("a.lis", "kopf.achs_nr 1\n", None), ("b.lis", "kopf.log_achs_name B\n", None)]
+    )
     cfg = load_machine(path)
     assert sorted(cfg.axes) == [1]
     (d,) = cfg.diagnostics

@@ -8,6 +8,10 @@ Public API:
 * `default_startup_list() -> Path` — `lists/hochlauf.lis` of the default machine;
 * `compare_max_points(old, new) -> list[Diagnostic]` — reload check (110638–110641);
 * `rewrite_values(path, changes)` / `apply_changes(text, changes)` — token writer for `save`;
+* `remove_orphan_temps(paths) -> list[Path]` — delete the temporary files a killed `save`
+  left next to these lists;
+* `NotAListFileError` (an OSError) — a file that is no regular text list file;
+  `MAX_LIST_BYTES` — the largest list file read;
 * `checks_markdown() -> str` — the check → error-ID table (`docs/list_checks.md`).
 """
 
@@ -15,16 +19,25 @@ from __future__ import annotations
 
 from geo_server.listfile.checks import CHECKS, EMU_TEMP_ERROR, Check, checks_markdown
 from geo_server.listfile.loader import ListFileError, compare_max_points, load_machine
-from geo_server.listfile.syntax import Entry, ParsedList, parse_list, parse_text
-from geo_server.listfile.writer import apply_changes, rewrite_values
+from geo_server.listfile.syntax import (
+    MAX_LIST_BYTES,
+    Entry,
+    NotAListFileError,
+    ParsedList,
+    parse_list,
+    parse_text,
+)
+from geo_server.listfile.writer import apply_changes, remove_orphan_temps, rewrite_values
 from geo_server.paths import default_startup_list
 
 __all__ = [
     "CHECKS",
     "EMU_TEMP_ERROR",
+    "MAX_LIST_BYTES",
     "Check",
     "Entry",
     "ListFileError",
+    "NotAListFileError",
     "ParsedList",
     "apply_changes",
     "checks_markdown",
@@ -33,5 +46,6 @@ __all__ = [
     "load_machine",
     "parse_list",
     "parse_text",
+    "remove_orphan_temps",
     "rewrite_values",
 ]

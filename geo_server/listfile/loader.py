@@ -27,13 +27,14 @@ from geo_server.config import (
 from geo_server.listfile.axislist import axis_number, build_axis_params
 from geo_server.listfile.checks import HEADER_CHECK, MAX_POINTS_IDS
 from geo_server.listfile.complist import Ctx, build_comp_list, sections_present
-from geo_server.listfile.schema import ListKind
-from geo_server.listfile.syntax import parse_list
+from geo_server.listfile.schema import ListKind, list_kinds_of, lookup
+from geo_server.listfile.syntax import NotAListFileError, ParsedList, parse_list
 from geo_server.listfile.values import Reporter, Values, read_values
 
 
 class ListFileError(Exception):
-    """The lists cannot be read at all (missing/unreadable file, no axes)."""
+    """The lists cannot be read at all: a file missing, unreadable or not a list file
+    (binary, UTF-16, a FIFO, nothing of its kind in it), or no axes."""
 
     def __init__(self, path: Path | str, line: int, message: str) -> None:
         self.path, self.line, self.message = str(path), line, message
@@ -44,7 +45,8 @@ class ListFileError(Exception):
 def load_machine(startup: Path | str) -> MachineConfig:
     """Read the start-up list and every list it names; validate; never raise on content.
 
-    Raises `ListFileError` only if a list cannot be read or no axis is defined.
+    Raises `ListFileError` only if a list cannot be read, is not a list file, or no
+    axis is defined.
     """
     startup = Path(startup)
     diags: list[Diagnostic] = []
@@ -72,13 +74,44 @@ def load_machine(startup: Path | str) -> MachineConfig:
 
 
 def _read(path: Path, kind: ListKind, rep: Reporter) -> Values:
+    """Read one list of `kind`; a file that is no list of that kind is refused whole."""
     try:
         parsed = parse_list(path)
     except FileNotFoundError:
         raise ListFileError(path, 0, f"{kind.value} not found") from None
+    except NotAListFileError as exc:
+        raise ListFileError(path, exc.line, str(exc)) from None
     except OSError as exc:
         raise ListFileError(path, 0, f"{kind.value} unreadable: {exc}") from None
+    if not any(lookup(kind, e.base) for e in parsed.entries):
+        raise ListFileError(path, 0, _nothing_known(parsed, kind))
     return read_values(parsed, kind, rep)
+
+
+def _nothing_known(parsed: ParsedList, kind: ListKind) -> str:
+    """Why a list without a single entry of its kind is refused.
+
+    002 §1.3 replaces defective entries by defaults so the controller starts; a list of
+    which nothing at all can be read is no defective list but the wrong file (or an
+    empty one), and running with every parameter defaulted would hide that. A start-up
+    list without entries names no axes, and the message says so.
+    """
+    what = f"not {_a(kind)}: none of its lines is an entry of one"
+    if kind is ListKind.STUP:
+        what = f"no axes: {what}"
+    if not parsed.entries and not parsed.warnings:
+        return f"{what} (the file is empty or all comments)"
+    first = min([e.line for e in parsed.entries] + [w.line for w in parsed.warnings])
+    others = {k for e in parsed.entries for k in list_kinds_of(e.base) if k != kind}
+    if others:
+        names = " or ".join(_a(k) for k in sorted(others, key=lambda k: k.value))
+        return f"{what}; they are entries of {names} (the first at line {first})"
+    return f"{what} (unknown names or malformed lines from line {first} on)"
+
+
+def _a(kind: ListKind) -> str:
+    """The kind of list with its article: "an axis parameter list"."""
+    return f"{'an' if kind.value[0] in 'aeiou' else 'a'} {kind.value}"
 
 
 def _resolve(folder: Path, name: str, stup: str, line: int) -> Path:

@@ -9,6 +9,8 @@ after `syntax.normalize_name`).
 
 from __future__ import annotations
 
+import difflib
+import functools
 import re
 from dataclasses import dataclass
 from enum import Enum
@@ -239,6 +241,25 @@ SPECS: dict[tuple[ListKind, str], Spec] = {(s.list, s.name): s for s in _SPECS}
 def lookup(kind: ListKind, base: str) -> Spec | None:
     """The spec of entry `base` (indices written `[]`) in a list of `kind`, if known."""
     return SPECS.get((kind, base))
+
+
+#: Names a list of each kind reads without a warning (the manuals' misprints left out).
+_NAMES: dict[ListKind, list[str]] = {
+    kind: [s.name for s in _SPECS if s.list == kind and not s.alias_warning] for kind in ListKind
+}
+
+
+@functools.lru_cache(maxsize=1024)
+def nearest_name(kind: ListKind, base: str) -> str | None:
+    """The known entry of a list of `kind` most like the unknown `base` (a misspelling,
+    e.g. `lr_param.temp_comp_coefficent`), or None if none is close."""
+    near = difflib.get_close_matches(base, _NAMES[kind], n=1, cutoff=0.8)
+    return near[0] if near else None
+
+
+def list_kinds_of(base: str) -> list[ListKind]:
+    """The kinds of list that know the entry `base` (for "wrong list" hints)."""
+    return [kind for kind in ListKind if (kind, base) in SPECS]
 
 
 _CLASS_BY_NAME: dict[str, str] = {

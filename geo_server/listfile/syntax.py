@@ -17,18 +17,31 @@ Rules (each cites where it comes from):
 * a blank after a dot (`lr_param. n_backlash_cyc`, 000 p.13, an extraction artefact) is
   accepted with a warning;
 * elision lines of the printed examples (`:`, `...`, `…`, `etc.`) are ignored;
-* files are UTF-8, falling back to CP1252 (Windows lists) and finally Latin-1.
+* a line ends in LF, CRLF or a CR alone (old Mac editors); a file may mix them;
+* list files are ASCII files (002 §1.3): read as UTF-8, else CP1252 (Windows lists).
+  Anything that is no such text — UTF-16/UTF-32, NUL bytes, control characters other
+  than TAB/LF/VT/FF/CR/SUB, bytes that are neither UTF-8 nor CP1252 — is refused with
+  `NotAListFileError`, never guessed (a guess would load a machine with every
+  parameter defaulted);
+* only regular files of at most `MAX_LIST_BYTES` are read: a FIFO, a device, a socket
+  or a folder is refused before it is opened (reading one would block or never end).
 """
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from geo_server.config import Diagnostic
 from geo_server.listfile.schema import value_class
 
+#: Largest list file read, in bytes. The largest table of the manuals (plane
+#: compensation, 10201 points) takes well under 1 MiB; the bound keeps a device or a
+#: runaway file from filling the memory.
+MAX_LIST_BYTES = 64 * 1024 * 1024
 #: Quote characters accepted around strings: ASCII and the typographic ones printed.
 QUOTES = '"\u2033\u201c\u201d\u201e'
 _END_WORDS = {"end", "ende"}
@@ -37,6 +50,36 @@ _NAME = re.compile(r"[A-Za-z_]\w*(?:\[-?\d+\])*(?:\.[A-Za-z_]\w*(?:\[-?\d+\])*)*
 _INDEX = re.compile(r"\[(-?\d+)\]")
 _MASK_VALUE = re.compile(r"[\w]+(?:\s*\|\s*[\w]+)*")
 _NUMBER_STOP = re.compile(r"#|/\*|\(|\[")
+_LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
+_BREAK = re.compile(r"\r\n|\r|\n")
+#: Control characters no text list holds (TAB LF VT FF CR are blanks and line ends; SUB
+#: is the end-of-file mark old DOS editors append).
+_CONTROL = re.compile("[\x00-\x08\x0e-\x19\x1b-\x1f\x7f]")
+_UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+_SAVE_AS_TEXT = "save it as ASCII/UTF-8"
+_FILE_TYPES = (
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+class NotAListFileError(OSError):
+    """The file cannot be a list file: not a regular file, too large, or not text.
+
+    An OSError like any file that cannot be read, so whoever reports unreadable files
+    reports this one too. `str()` is the reason alone (callers prefix the file name);
+    `filename` and `line` (1-based, 0 if no line applies) say where.
+    """
+
+    def __init__(self, path: Path | str, reason: str, line: int = 0) -> None:
+        super().__init__(reason)
+        self.filename, self.reason, self.line = str(path), reason, line
+
+    def __str__(self) -> str:
+        return self.reason
 
 
 @dataclass(frozen=True)
@@ -71,23 +114,92 @@ class ParsedList:
 
 
 def read_text(path: Path | str) -> tuple[str, str]:
-    """Decode a list file: UTF-8 (BOM kept as utf-8-sig), else CP1252, else Latin-1."""
-    data = Path(path).read_bytes()
-    for enc in ("utf-8-sig" if data.startswith(b"\xef\xbb\xbf") else "utf-8", "cp1252"):
-        try:
-            return data.decode(enc), enc
-        except UnicodeDecodeError:
-            continue
-    return data.decode("latin-1"), "latin-1"
+    """Decode a list file: UTF-8 (BOM kept as utf-8-sig), else CP1252.
+
+    Raises `NotAListFileError` for anything that is not a regular text file (see the
+    module docstring), other OSErrors if the file cannot be read.
+    """
+    return decode_list(read_bytes(path), path)
+
+
+def read_bytes(path: Path | str) -> bytes:
+    """The bytes of a regular file of at most `MAX_LIST_BYTES`.
+
+    The file type is checked before the file is opened (opening a FIFO blocks until a
+    writer comes) and again on the open file, in case the name was swapped in between.
+    """
+    _require_regular(path, os.stat(path))
+    flags = os.O_RDONLY
+    for name in ("O_NONBLOCK", "O_NOCTTY", "O_BINARY"):
+        flags |= getattr(os, name, 0)
+    with open(os.open(path, flags), "rb") as fh:
+        _require_regular(path, os.fstat(fh.fileno()))
+        data = fh.read(MAX_LIST_BYTES + 1)
+    if len(data) > MAX_LIST_BYTES:
+        raise NotAListFileError(path, _too_large())
+    return data
+
+
+def _require_regular(path: Path | str, st: os.stat_result) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((k for test, k in _FILE_TYPES if test(st.st_mode)), "a special file")
+        raise NotAListFileError(path, f"is {kind}, not a regular file")
+    if st.st_size > MAX_LIST_BYTES:
+        raise NotAListFileError(path, _too_large())
+
+
+def _too_large() -> str:
+    mib = f" ({MAX_LIST_BYTES // 2**20} MiB)" if MAX_LIST_BYTES % 2**20 == 0 else ""
+    return f"not a list file: larger than {MAX_LIST_BYTES} bytes{mib}"
+
+
+def decode_list(data: bytes, path: Path | str = "") -> tuple[str, str]:
+    """Text and encoding of list file bytes; `NotAListFileError` if they are no text."""
+    if data.startswith(_UTF16_BOMS):
+        raise NotAListFileError(
+            path, f"not a list file: UTF-16 text (byte order mark) — {_SAVE_AS_TEXT}", 1
+        )
+    nul = data.find(b"\x00")
+    if nul >= 0:
+        line = _line_of(data, nul)
+        reason = f"not a list file: contains NUL bytes (UTF-16?) — {_SAVE_AS_TEXT}"
+        raise NotAListFileError(path, reason, line)
+    text, encoding = _decode(data, path)
+    bad = _CONTROL.search(text)
+    if bad:
+        line = _line_of(text, bad.start())
+        reason = f"not a list file: control character 0x{ord(bad.group()):02X} (binary data?)"
+        raise NotAListFileError(path, reason, line)
+    return text, encoding
+
+
+def _decode(data: bytes, path: Path | str) -> tuple[str, str]:
+    encoding = "utf-8-sig" if data.startswith(b"\xef\xbb\xbf") else "utf-8"
+    try:
+        return data.decode(encoding), encoding
+    except UnicodeDecodeError:
+        pass
+    try:
+        return data.decode("cp1252"), "cp1252"
+    except UnicodeDecodeError as exc:
+        byte = data[exc.start]
+        reason = (
+            f"not a list file: byte 0x{byte:02X} is neither UTF-8 nor Windows-1252 text "
+            f"— {_SAVE_AS_TEXT}"
+        )
+        raise NotAListFileError(path, reason, _line_of(data, exc.start)) from None
+
+
+def _line_of(data: bytes | str, pos: int) -> int:
+    """1-based line of character or byte `pos` (line ends as `split_lines` counts them)."""
+    head = data[:pos]
+    text = head.decode("latin-1") if isinstance(head, bytes) else head
+    return len(_BREAK.findall(text)) + 1
 
 
 def split_lines(text: str) -> list[str]:
-    """Split after every LF, keeping the line endings (CRLF stays inside the line)."""
-    lines = text.split("\n")
-    out = [ln + "\n" for ln in lines[:-1]]
-    if lines[-1]:
-        out.append(lines[-1])
-    return out
+    """Split after every line end (CRLF, LF or a CR alone), keeping the line ends."""
+    return _LINE.findall(text)
 
 
 def normalize_name(raw: str) -> str:
@@ -120,7 +232,11 @@ def parse_text(text: str, file: str = "") -> ParsedList:
 
 
 def parse_list(path: Path | str) -> ParsedList:
-    """Read and tokenize one list file (OSError if it cannot be read)."""
+    """Read and tokenize one list file.
+
+    OSError if it cannot be read; `NotAListFileError` (an OSError) if it is no regular
+    text file.
+    """
     text, encoding = read_text(path)
     parsed = parse_text(text, str(path))
     parsed.encoding = encoding

@@ -1,15 +1,20 @@
-"""Token writer for `save` (SPEC §4): change value tokens only, keep every other byte.
+"""Token writer for `save`: change value tokens only, keep every other byte.
 
 `apply_changes` is pure (text in, text out); `rewrite_values` reads the file in its own
 encoding, applies the changes and writes it back atomically (temporary file in the same
 folder, flush, fsync, `os.replace`, fsync of the folder), so a crash leaves either the
-old or the new file.
+old or the new file. Line ends (LF, CRLF, CR) and the encoding (UTF-8 with or without
+BOM, CP1252) stay as they were; a file that is no longer a text list file is refused
+and left as it is. A temporary file is named `.<list name>.<8 characters>.tmp`; one
+that a killed process left behind is removed by `remove_orphan_temps`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
+import stat
 import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -17,6 +22,7 @@ from pathlib import Path
 from geo_server.listfile.syntax import normalize_name, parse_text, read_text, split_lines
 
 Changes = Mapping[str, str] | Iterable[tuple[int, str]]
+_LINE_ENDS = ("\r\n", "\r", "\n")  # CRLF first: it also ends in LF
 
 
 def apply_changes(text: str, changes: Changes) -> str:
@@ -54,29 +60,54 @@ def apply_changes(text: str, changes: Changes) -> str:
 def _append(lines: list[str], append: list[tuple[str, str]], end_line: int) -> str:
     if not append:
         return "".join(lines)
-    eol = "\r\n" if lines and lines[0].endswith("\r\n") else "\n"
+    eol = line_end(lines)
     new = [f"{name} {value}{eol}" for name, value in append]
     if end_line:
         lines[end_line - 1 : end_line - 1] = new
     else:
-        if lines and not lines[-1].endswith("\n"):
+        if lines and not lines[-1].endswith(_LINE_ENDS):
             lines[-1] += eol
         lines += new
     return "".join(lines)
 
 
+def line_end(lines: list[str]) -> str:
+    """The line end of the first line that has one (LF for a file without any)."""
+    for line in lines:
+        for eol in _LINE_ENDS:
+            if line.endswith(eol):
+                return eol
+    return "\n"
+
+
 def rewrite_values(path: Path | str, changes: Changes) -> None:
-    """Apply `changes` to the list file at `path` atomically, in its own encoding."""
+    """Apply `changes` to the list file at `path` atomically, in its own encoding.
+
+    Raises `syntax.NotAListFileError` (an OSError) without touching the file if it is no
+    longer a regular text list file (e.g. replaced by a UTF-16 or binary file since it
+    was loaded): writing single-byte text into it would corrupt it.
+    """
     path = Path(path)
     text, encoding = read_text(path)
     data = apply_changes(text, changes).encode(encoding)
     write_atomic(path, data)
 
 
+#: Name parts of `write_atomic`'s temporary files: `.<name>.` + 8 random characters
+#: of `tempfile` (a-z, 0-9, _) + `.tmp`.
+TEMP_SUFFIX = ".tmp"
+_TEMP_RANDOM = re.compile(r"[a-z0-9_]{8}")
+
+
+def temp_prefix(path: Path) -> str:
+    """How the temporary files of `path` begin."""
+    return f".{path.name}."
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write `data` to `path` via a temporary file + fsync + rename + directory fsync."""
     folder = path.parent
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -103,3 +134,47 @@ def _fsync_dir(folder: Path) -> None:
             os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def is_orphan_temp(name: str, path: Path) -> bool:
+    """Whether file name `name` is one `write_atomic(path, …)` creates."""
+    prefix = temp_prefix(path)
+    if not (name.startswith(prefix) and name.endswith(TEMP_SUFFIX)):
+        return False
+    middle = name[len(prefix) : len(name) - len(TEMP_SUFFIX)]
+    return _TEMP_RANDOM.fullmatch(middle) is not None
+
+
+def remove_orphan_temps(paths: Iterable[Path | str]) -> list[Path]:
+    """Remove the temporary files a killed `save` left next to the list files `paths`.
+
+    Only regular files named exactly like `write_atomic`'s temporaries of one of the
+    given lists go (`.achsmd1.lis.k3j_x9a2.tmp` for `achsmd1.lis`); anything else in the
+    folders stays. A file that cannot be removed is left (and not returned). Call it
+    when no save is writing into these folders, e.g. at start-up. Returns the removed
+    files, sorted.
+    """
+    by_folder: dict[Path, list[Path]] = {}
+    for p in map(Path, paths):
+        by_folder.setdefault(p.parent, []).append(p)
+    removed: list[Path] = []
+    for folder, lists in by_folder.items():
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            continue
+        for name in names:
+            if any(is_orphan_temp(name, p) for p in lists) and _remove_file(folder / name):
+                removed.append(folder / name)
+    return sorted(removed)
+
+
+def _remove_file(path: Path) -> bool:
+    """Unlink `path` if it is a regular file (not a link, folder or FIFO)."""
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            return False
+        os.unlink(path)
+    except OSError:
+        return False
+    return True

@@ -81,3 +81,72 @@ class OutBuffer:
             if n <= 0:
                 return
             del self._buf[:n]
+
+
+class SlotTable:
+    """Shared state of the operations in flight between the two processes.
+
+    Each queued operation owns one slot. The server marks it QUEUED before sending the
+    operation; the cycle process, when it reads the operation, takes it (QUEUED → TAKEN)
+    or finds it withdrawn (WITHDRAWN → FREE, the operation is skipped). The server
+    withdraws (QUEUED → WITHDRAWN) only under the same lock, so an operation is either
+    taken by a cycle or withdrawn, never both — even if one process is stopped (SIGSTOP)
+    at any instruction: a lock held by a stopped process makes the other side wait (the
+    server with a timeout), it never makes it guess.
+    """
+
+    FREE, QUEUED, TAKEN, WITHDRAWN = 0, 1, 2, 3
+
+    def __init__(self, ctx: Any, capacity: int = 4096) -> None:
+        self.lock = ctx.Lock()
+        self.state = ctx.RawArray("B", capacity)
+        self.capacity = capacity
+        self._next = 0  # server side: where to look for a free slot first
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"lock": self.lock, "state": self.state, "capacity": self.capacity, "_next": 0}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+
+    # server side
+
+    def allocate(self) -> int | None:
+        """A free slot, marked QUEUED; None when every slot is in flight."""
+        with self.lock:
+            for i in range(self.capacity):
+                s = (self._next + i) % self.capacity
+                if self.state[s] == self.FREE:
+                    self.state[s] = self.QUEUED
+                    self._next = (s + 1) % self.capacity
+                    return s
+        return None
+
+    def withdraw(self, slot: int, timeout: float = 0.05) -> bool:
+        """QUEUED → WITHDRAWN. False when a cycle took it, or the lock is held by a
+        stopped process (try again later)."""
+        if not self.lock.acquire(timeout=timeout):
+            return False
+        try:
+            if self.state[slot] != self.QUEUED:
+                return False
+            self.state[slot] = self.WITHDRAWN
+            return True
+        finally:
+            self.lock.release()
+
+    def release(self, slot: int) -> None:
+        """The server has the outcome of a taken operation: the slot is free again."""
+        with self.lock:
+            self.state[slot] = self.FREE
+
+    # cycle-process side
+
+    def take(self, slot: int) -> bool:
+        """True: carry the operation out. False: it was withdrawn (the slot is freed)."""
+        with self.lock:
+            if self.state[slot] == self.QUEUED:
+                self.state[slot] = self.TAKEN
+                return True
+            self.state[slot] = self.FREE
+            return False

@@ -18,47 +18,32 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import Future
-from dataclasses import dataclass
-from time import perf_counter_ns
+from time import monotonic, perf_counter_ns
 from typing import Any
 
 import numpy as np
 
-from geo_server.config import COMP_NAMES, CompKind, Diagnostic, MachineConfig
+from geo_server.config import CompKind, Diagnostic, MachineConfig
 from geo_server.dictionary import AdsError, AdsErrorCode, Dictionary, load_dictionary
+from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, parse_program
-from geo_server.machine.snapshot import ObjectLayout, Snapshot
+from geo_server.machine.port import (
+    Operation,
+    Pending,
+    Reload,
+    Reset,
+    StartProgram,
+    WriteObjects,
+)
+from geo_server.snapshot import ObjectLayout, Snapshot
 
 #: Column of each compensation in the kernel's [n, 7] arrays.
 C = {kind: i for i, kind in enumerate(COMP_ORDER)}
 #: Position compensations summed into the drive output (SPEC §3).
 UNITS_PER_UM = 10.0  # internal units (0.1 µm) per µm; also 0.001° = 10 units
 UNITS_PER_MM = 10_000.0
-
-
-@dataclass
-class Event:
-    """A warning/error the machine reports (list validation, NC program, monitoring)."""
-
-    cycle: int
-    diagnostic: Diagnostic
-
-    def as_dict(self) -> dict[str, Any]:
-        d = self.diagnostic
-        return {
-            "cycle": self.cycle,
-            "severity": d.severity,
-            "error_id": d.error_id,
-            "message": d.message,
-            "file": d.file,
-            "line": d.line,
-            "entry": d.entry,
-            "axis": d.axis,
-            "deactivated": COMP_NAMES[d.deactivated] if d.deactivated is not None else None,
-        }
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -99,7 +84,7 @@ class Machine:
         self.last_error_id = 0
         self.listeners: list[Callable[[Snapshot], None]] = []
         self.event_listeners: list[Callable[[Event], None]] = []
-        self._queue: deque[tuple[Callable[[], Any], Future]] = deque()
+        self._queue: deque[tuple[Operation, Pending]] = deque()
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
@@ -125,12 +110,13 @@ class Machine:
             self._record(d)
         self._layout_sources()
         self.snapshot: Snapshot = self._build_snapshot()
+        self.snapshot_time = monotonic()
 
     # ------------------------------------------------------------------ the cycle
 
     def run_cycle(self) -> Snapshot:
         """Run one GEO cycle (SPEC §5) and return the snapshot it published."""
-        applied: list[tuple[Future, Any, BaseException | None]] = []
+        applied: list[tuple[Pending, Any, BaseException | None]] = []
         try:
             with self._cycle_lock:
                 applied = self._apply_queue()
@@ -150,17 +136,18 @@ class Machine:
                 self.cycle += 1
                 snap = self._build_snapshot()
                 self.snapshot = snap
+                self.snapshot_time = monotonic()
         finally:
-            # Acknowledge the writes only now: a read right after an acknowledged write
-            # sees its effect (the snapshot of the cycle that applied it is published).
-            # Even a failed cycle answers them, so no client waits for nothing.
-            for fut, result, exc in applied:
-                if not fut.set_running_or_notify_cancel():
-                    continue  # the caller stopped waiting
+            # Acknowledge the operations only now: a read right after an acknowledged
+            # write sees its effect (the snapshot of the cycle that applied it is
+            # published). Even a failed cycle answers them, so no client waits for nothing.
+            for pending, result, exc in applied:
+                if not pending.set_running_or_notify_cancel():
+                    continue  # cannot happen: a withdrawn operation is not in the queue
                 if exc is None:
-                    fut.set_result(result)
+                    pending.set_result(result)
                 else:
-                    fut.set_exception(exc)
+                    pending.set_exception(exc)
         for listener in self.listeners:
             listener(snap)
         return snap
@@ -189,36 +176,66 @@ class Machine:
             snap = self.run_cycle()
         return snap
 
-    def _apply_queue(self) -> list[tuple[Future, Any, BaseException | None]]:
-        """SPEC §5 step 1: run queued writes/commands in arrival order; return outcomes."""
+    # ------------------------------------------------------------------ operations
+
+    def submit(self, op: Operation) -> Pending:
+        """Queue `op` for the next cycle boundary, in arrival order (SPEC §5 step 1)."""
+        pending = Pending(self._withdraw)
+        with self._queue_lock:
+            self._queue.append((op, pending))
+        return pending
+
+    def _withdraw(self, pending: Pending) -> bool:
+        """Take a queued operation back; False once a cycle has taken it."""
+        with self._queue_lock:
+            for i, (_op, p) in enumerate(self._queue):
+                if p is pending:
+                    del self._queue[i]
+                    return True
+        return False
+
+    def _apply_queue(self) -> list[tuple[Pending, Any, BaseException | None]]:
+        """SPEC §5 step 1: carry out queued operations in arrival order."""
         with self._queue_lock:
             items = list(self._queue)
             self._queue.clear()
-        out: list[tuple[Future, Any, BaseException | None]] = []
-        for fn, fut in items:
+        out: list[tuple[Pending, Any, BaseException | None]] = []
+        for op, pending in items:
             try:
-                out.append((fut, fn(), None))
+                out.append((pending, self.apply(op), None))
             except Exception as exc:  # the caller gets the error, the cycle goes on
-                out.append((fut, None, exc))
+                out.append((pending, None, exc))
         return out
 
-    def submit(self, fn: Callable[[], Any]) -> Future:
-        """Queue `fn` to run at the next cycle boundary, in arrival order."""
-        fut: Future = Future()
-        with self._queue_lock:
-            self._queue.append((fn, fut))
-        return fut
+    def apply(self, op: Operation) -> Any:
+        """Carry out one operation now (at a cycle boundary)."""
+        match op:
+            case WriteObjects(items):
+                return tuple(self._apply_item(*item) for item in items)
+            case StartProgram(program, mdi):
+                return self.start(program, mdi)
+            case Reset():
+                return self.reset()
+            case Reload(cfg):
+                return self.reload(cfg)
+        raise TypeError(f"not a machine operation: {op!r}")
 
-    #: Operations a caller may queue by name (`call`); the same names cross the process
-    #: boundary when the cycle runs in its own process (`geo_server.machine.process`).
-    CALLS = frozenset({"apply_write", "start", "reset", "reload"})
+    def _apply_item(self, name: str, axis: int, value: Any) -> BaseException | None:
+        try:
+            self.apply_write(name, axis, value)
+        except AdsError as exc:
+            return exc
+        return None
 
-    def call(self, op: str, *args: Any) -> Future:
-        """Queue the method `op` with `args` for the next cycle boundary (see `CALLS`)."""
-        if op not in self.CALLS:
-            raise ValueError(f"not a queueable machine operation: {op!r}")
-        method = getattr(self, op)
-        return self.submit(lambda: method(*args))
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
+        """Call `callback(snapshot)` after every cycle, on the cycle thread."""
+        self.listeners.append(callback)
+        return lambda: _discard(self.listeners, callback)
+
+    def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
+        """Call `callback(event)` for every new warning or error (on the reporting thread)."""
+        self.event_listeners.append(callback)
+        return lambda: _discard(self.event_listeners, callback)
 
     # ------------------------------------------------------------------ snapshot
 
@@ -384,10 +401,9 @@ class Machine:
         for d in cfg.diagnostics:
             self._record(d)
 
-    def start_program(self, text: str, mdi: bool = False) -> None:
+    def start_program(self, text: str, mdi: bool = False) -> Pending:
         """Parse an NC program (raises `NcError`) and run it from the next cycle on."""
-        prog = parse_program(text, self.names, mdi=mdi)
-        self.start(prog, mdi)
+        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi))
 
     def reset(self) -> None:
         """CNC reset: stop the program and every axis (controlled stop), deselect the
@@ -468,6 +484,11 @@ class Machine:
             if on
         )
         return p.prog_movement_requires_compensations & listed
+
+
+def _discard(listeners: list[Any], callback: Any) -> None:
+    if callback in listeners:
+        listeners.remove(callback)
 
 
 def _mask(kinds: Iterable[CompKind]) -> CompKind:

@@ -22,8 +22,10 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import queue
 import signal
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
@@ -33,15 +35,23 @@ import numpy as np
 
 from geo_server.config import MachineConfig
 from geo_server.dictionary import AdsError, AdsErrorCode
-from geo_server.machine.ipc import FrameDecoder, OutBuffer, encode_frame
-from geo_server.machine.machine import Event, Machine
+from geo_server.events import Event
+from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
+from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
+from geo_server.machine.port import Operation, Pending, Reload, StartProgram
 from geo_server.machine.scheduler import Scheduler
-from geo_server.machine.snapshot import Snapshot
+from geo_server.snapshot import Snapshot
 
 log = logging.getLogger(__name__)
 
 STATUS_EVERY = 100  # cycles between two status reports from the child
+#: Bytes of operations the server may have sent that the cycle process has not read yet;
+#: beyond this the cycle process is not reading (stopped, hung) and new operations are
+#: refused at once (0x707) instead of piling up.
+SEND_BACKLOG = 8 * 1024 * 1024
+#: Seconds `ProcessScheduler.start` waits for the child's first cycle.
+FIRST_FRAME_TIMEOUT = 30.0
 
 
 def _outcome(fut: Future) -> tuple[bool, Any]:
@@ -61,6 +71,7 @@ def _child_main(
     homed: bool,
     mode: str,
     max_cycles: int,
+    slots: SlotTable,
     setup: Callable[[Scheduler], Callable[[], None] | None] | None = None,
 ) -> None:
     """Entry point of the GEO-cycle process. `setup` (picklable; benchmarks) may adjust
@@ -88,19 +99,16 @@ def _child_main(
             except BlockingIOError:
                 return
             if not data:  # the server process is gone
-                sched._stop.set()
+                sched.request_stop()
                 return
             for msg in dec.feed(data):
-                if msg[0] == "call":
-                    _, seq, op, args = msg
-                    try:
-                        fut = machine.call(op, *args)
-                    except Exception as exc:  # unknown op: answer at once
-                        fut = Future()
-                        fut.set_exception(exc)
-                    fut.add_done_callback(lambda f, seq=seq: on_done(seq, f))
+                if msg[0] == "op":
+                    _, seq, slot, op = msg
+                    if slots.take(slot):  # else withdrawn: the server answered already
+                        pending = machine.submit(op)
+                        pending.add_done_callback(lambda f, seq=seq: on_done(seq, f))
                 elif msg[0] == "stop":
-                    sched._stop.set()
+                    sched.request_stop()
 
     def on_cycle(snap: Snapshot) -> None:
         status = sched.status() if snap.cycle % STATUS_EVERY == 0 else None
@@ -112,10 +120,10 @@ def _child_main(
         try:
             out.flush(lambda b: os.write(fd, b))
         except OSError:  # the server process is gone
-            sched._stop.set()
+            sched.request_stop()
 
-    machine.listeners.append(on_cycle)
-    machine.event_listeners.append(events.append)
+    machine.subscribe(on_cycle)
+    machine.subscribe_events(events.append)
     sched.before_cycle = drain
     finish = setup(sched) if setup is not None else None
     sched.run_here()
@@ -158,7 +166,8 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 class RemoteMachine:
-    """The server process's view of a machine whose cycle runs in a child process."""
+    """The server process's view of a machine whose cycle runs in a child process
+    (implements `MachinePort`)."""
 
     def __init__(self, cfg: MachineConfig, cycle_s: float = 0.001, homed: bool = False) -> None:
         # A local machine that never steps gives layout, names, the first snapshot and
@@ -172,60 +181,93 @@ class RemoteMachine:
         self.axes = local.axes
         self.names = local.names
         self.snapshot: Snapshot = local.snapshot
+        self.snapshot_time = time.monotonic()
         self._shape = local.snapshot.values.shape
         self.events: deque[Event] = deque(local.events, maxlen=100)
-        self.listeners: list[Callable[[Snapshot], None]] = []
-        self.event_listeners: list[Callable[[Event], None]] = []
+        self._listeners: list[Callable[[Snapshot], None]] = []
+        self._event_listeners: list[Callable[[Event], None]] = []
         self.status: dict[str, Any] = Scheduler(local, mode="stepped").status()
-        self._pending: dict[int, Future] = {}
+        ctx = multiprocessing.get_context("spawn")
+        self.slots = SlotTable(ctx)
+        self._pending: dict[int, tuple[Pending, int, Operation]] = {}
         self._seq = 0
         self._lock = threading.Lock()
-        self.conn, self.child_conn = multiprocessing.get_context("spawn").Pipe(duplex=True)
+        self.conn, self.child_conn = ctx.Pipe(duplex=True)
         self._fd = self.conn.fileno()
+        self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        self._backlog = 0  # bytes queued for the child and not written yet
+        self._sender = threading.Thread(target=self._send_loop, name="geo-cycle-send", daemon=True)
+        self._sender.start()
         self.closed = False
+        self.first_frame = threading.Event()
 
     @property
     def cycle(self) -> int:
         return self.snapshot.cycle
 
-    # ------------------------------------------------------------------ requests
+    # ------------------------------------------------------------------ MachinePort
 
-    def call(self, op: str, *args: Any) -> Future:
+    def submit(self, op: Operation) -> Pending:
         """Queue `op` in the cycle process; the future resolves after the cycle that
-        applied it has been received (its snapshot is then `self.snapshot`)."""
-        if op not in Machine.CALLS:
-            raise ValueError(f"not a queueable machine operation: {op!r}")
-        fut: Future = Future()
-        if op == "reload":
-            cfg = args[0]
-            fut.add_done_callback(lambda f: f.exception() is None and self._set_cfg(cfg))
+        carried it out has been received (its snapshot is then `self.snapshot`)."""
         with self._lock:
             if self.closed:
                 raise AdsError(AdsErrorCode.DEVICE_NOT_READY, "the GEO cycle process ended")
+            if self._backlog > SEND_BACKLOG:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_NOT_READY,
+                    "the GEO cycle process is not reading its commands (stopped or hung)",
+                )
+            slot = self.slots.allocate()
+            if slot is None:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_BUSY,
+                    f"{self.slots.capacity} operations are already waiting for the GEO cycle",
+                )
             self._seq += 1
-            self._pending[self._seq] = fut
-            self._send(("call", self._seq, op, args))
-        return fut
+            seq = self._seq
+            pending = Pending(lambda _p, slot=slot: self.slots.withdraw(slot))
+            self._pending[seq] = (pending, slot, op)
+            frame = encode_frame(("op", seq, slot, op))
+            self._backlog += len(frame)
+            self._outbox.put(frame)
+        return pending
 
-    def _set_cfg(self, cfg: MachineConfig) -> None:
-        self.cfg = cfg
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
+        self._listeners.append(callback)
+        return lambda: _discard(self._listeners, callback)
 
-    def start_program(self, text: str, mdi: bool = False) -> None:
-        """Parse here (raises `NcError` at once) and run in the cycle process."""
-        self.call("start", parse_program(text, self.names, mdi=mdi), mdi)
+    def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
+        self._event_listeners.append(callback)
+        return lambda: _discard(self._event_listeners, callback)
+
+    def start_program(self, text: str, mdi: bool = False) -> Pending:
+        """Parse here (raises `NcError` at once) and run it in the cycle process."""
+        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi))
 
     def stop(self) -> None:
+        """Ask the cycle process to end after its current cycle."""
         with self._lock:
             if not self.closed:
-                self._send(("stop",))
+                self._outbox.put(encode_frame(("stop",)))
 
-    def _send(self, message: Any) -> None:
-        data = memoryview(encode_frame(message))
-        try:
-            while data:
-                data = data[os.write(self._fd, data) :]
-        except OSError:  # the child is gone; pending calls fail in `pump`
-            pass
+    # ------------------------------------------------------------------ to the child
+
+    def _send_loop(self) -> None:
+        """Write queued frames to the child (blocking here, never on a caller's thread)."""
+        while True:
+            frame = self._outbox.get()
+            if frame is None:
+                return
+            data = memoryview(frame)
+            try:
+                while data:
+                    data = data[os.write(self._fd, data) :]
+            except OSError:  # the child is gone; pending operations fail in `pump`
+                return
+            finally:
+                with self._lock:
+                    self._backlog -= len(frame)
 
     # ------------------------------------------------------------------ from the child
 
@@ -243,10 +285,12 @@ class RemoteMachine:
                 for msg in dec.feed(data):
                     self._dispatch(msg)
         finally:
+            self.first_frame.set()
             with self._lock:
                 self.closed = True
                 pending, self._pending = self._pending, {}
-            for fut in pending.values():
+            self._outbox.put(None)
+            for fut, _slot, _op in pending.values():
                 if fut.set_running_or_notify_cancel():
                     fut.set_exception(
                         AdsError(AdsErrorCode.DEVICE_NOT_READY, "the GEO cycle process ended")
@@ -261,16 +305,24 @@ class RemoteMachine:
             np.frombuffer(machine),
             self.layout,
         )
+        self.snapshot_time = time.monotonic()
+        self.first_frame.set()
         if status is not None:
             self.status = status
         for ev in events:
             self.events.append(ev)
-            for listener in list(self.event_listeners):
+            for listener in list(self._event_listeners):
                 _guarded(listener, ev)
         for seq, ok, payload in acks:
             with self._lock:
-                fut = self._pending.pop(seq, None)
-            if fut is None or not fut.set_running_or_notify_cancel():
+                entry = self._pending.pop(seq, None)
+            if entry is None:
+                continue
+            fut, slot, op = entry
+            self.slots.release(slot)
+            if ok and isinstance(op, Reload):
+                self.cfg = op.cfg
+            if not fut.set_running_or_notify_cancel():
                 continue
             if ok:
                 fut.set_result(payload)
@@ -278,8 +330,13 @@ class RemoteMachine:
                 fut.set_exception(AdsError(*payload[1:]))
             else:
                 fut.set_exception(RuntimeError(payload[1]))
-        for listener in list(self.listeners):
+        for listener in list(self._listeners):
             _guarded(listener, self.snapshot)
+
+
+def _discard(listeners: list[Any], callback: Any) -> None:
+    if callback in listeners:
+        listeners.remove(callback)
 
 
 def _guarded(fn: Callable[[Any], None], arg: Any) -> None:
@@ -322,6 +379,7 @@ class ProcessScheduler:
                 m.homed,
                 self.mode,
                 self.max_cycles,
+                m.slots,
                 self.child_setup,
             ),
             name="geo-cycle",
@@ -332,6 +390,9 @@ class ProcessScheduler:
         m.child_conn.close()  # the child holds it now; EOF reaches us when it ends
         self._pump = threading.Thread(target=m.pump, name="geo-cycle-pump", daemon=True)
         self._pump.start()
+        # Serve from the child's snapshots only: until its first frame arrives (process
+        # start and imports take a second or more) the machine has not run a cycle.
+        m.first_frame.wait(FIRST_FRAME_TIMEOUT)
 
     def stop(self, timeout: float = 5.0) -> None:
         if self._proc is None:

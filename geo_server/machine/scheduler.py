@@ -139,6 +139,10 @@ class Scheduler:
         self._stop.clear()
         (self._run_free if self.mode == "free" else self._run_realtime)()
 
+    def request_stop(self) -> None:
+        """Ask the loop to end after its current cycle (from any thread; no waiting)."""
+        self._stop.set()
+
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
         if self._thread is not None:

@@ -95,16 +95,27 @@ class RegisterError(Exception):
         self.message = message
 
 
+#: Object-service (ADS) error → Modbus exception. "Try again later" conditions — busy,
+#: the GEO cycle stalled, a write withdrawn because it was not applied in time — are 6
+#: (server device busy); a rejected command (reload with list errors, save refused) and
+#: anything unexpected are 4 (server device failure); the reason is in the error list.
+EXCEPTIONS: dict[int, ExcCode] = {
+    AdsErrorCode.INVALID_INDEX_GROUP: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.INVALID_INDEX_OFFSET: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.INVALID_ACCESS: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.INVALID_SIZE: ExcCode.ILLEGAL_VALUE,
+    AdsErrorCode.INVALID_DATA: ExcCode.ILLEGAL_VALUE,
+    AdsErrorCode.DEVICE_NOT_READY: ExcCode.DEVICE_BUSY,
+    AdsErrorCode.DEVICE_BUSY: ExcCode.DEVICE_BUSY,
+    AdsErrorCode.TIMEOUT: ExcCode.DEVICE_BUSY,
+    AdsErrorCode.DEVICE_SYNTAX: ExcCode.DEVICE_FAILURE,
+    AdsErrorCode.DEVICE_ERROR: ExcCode.DEVICE_FAILURE,
+}
+
+
 def exception_for(exc: AdsError) -> ExcCode:
-    """The Modbus exception code for an object-service error (SPEC §8 ↔ §9)."""
-    return {
-        AdsErrorCode.INVALID_INDEX_GROUP: ExcCode.ILLEGAL_ADDRESS,
-        AdsErrorCode.INVALID_INDEX_OFFSET: ExcCode.ILLEGAL_ADDRESS,
-        AdsErrorCode.INVALID_ACCESS: ExcCode.ILLEGAL_ADDRESS,
-        AdsErrorCode.INVALID_SIZE: ExcCode.ILLEGAL_VALUE,
-        AdsErrorCode.INVALID_DATA: ExcCode.ILLEGAL_VALUE,
-        AdsErrorCode.DEVICE_BUSY: ExcCode.DEVICE_BUSY,
-    }.get(exc.code, ExcCode.DEVICE_FAILURE)
+    """The Modbus exception code for an object-service error (see `EXCEPTIONS`)."""
+    return EXCEPTIONS.get(exc.code, ExcCode.DEVICE_FAILURE)
 
 
 # ---------------------------------------------------------------------- addresses

@@ -1,162 +1,103 @@
-"""The Modbus TCP interface (SPEC §8): a thin asyncio shell around pymodbus.
+"""The Modbus TCP interface: a thin asyncio shell around the sans-I/O codec and the
+register map, over the object service.
 
-pymodbus' `ModbusTcpServer` does the framing; one `SimDevice` per unit (unit id = logical
-axis number; unit 0 = the machine-wide emulator objects) describes the tables, and the
-SimDevice `action` hook moves the data: a read fills the requested registers from ONE
-published GEO-cycle snapshot (so a block read never mixes two cycles), a write is decoded
-and handed to the object service, which applies it at the next cycle boundary. When
-cycles run by themselves (free-running, real time) the reply waits until the cycle that
-applied it has published its snapshot, so a read sent after the reply sees the value; in
-stepped mode it is sent at once (nobody runs the cycle until the test steps).
+One `asyncio.Protocol` per connection feeds received bytes to an `MbapFramer`. Requests
+on one connection are answered strictly one after the other, in arrival order, each
+with its own transaction id: a client that pipelines (sends the next request before
+the answer to the previous one) gets exactly one reply per request, in order, and every
+acknowledged write has been applied. Reads are answered from one published snapshot (a
+block read never mixes two cycles); writes are validated with the register map and the
+object service, and the reply is sent after the cycle that applied them (in stepped mode
+as soon as they are queued). Unit id = logical axis number; unit 0 = the machine-wide
+emulator objects; any other unit id → exception 11.
 
-Two checks need more than the `action` hook sees (it gets neither the unit id nor, for
-coils and discrete inputs, the bit count), so the server's datastore core is a small
-`SimCore` subclass that first validates every request with the sans-I/O register map
-(`regmap.UnitMap.check_read` / `check_write`) and answers exception 11 for an unknown
-unit id (stock pymodbus would route it to unit 0 or answer exception 4). Function codes
-other than 1–6, 15, 16 and 43 are answered with exception 1 (pymodbus would otherwise
-serve dummy file records for FC 20/21/24 and honour FC 8 "listen only").
+pymodbus' server keeps one "last request" per connection and starts handling it from a
+scheduled callback, so a second request arriving while the first waits for its cycle
+overwrites the first (duplicated or missing replies, a dropped write), and two requests
+in one TCP segment leave the second unread until more bytes arrive. None of its public
+hooks (the SimDevice `action`, `trace_packet`, `custom_pdu`) can serialise a connection,
+so the server speaks Modbus TCP itself; pymodbus stays the client library (geo-client,
+tests) and the bare floor of the benchmarks.
+
+Limits (README, *Limits*): `max_connections` (beyond: the new connection is closed at
+once), `max_pipeline` requests queued per connection (beyond: the server stops reading
+that connection until it has answered), `incomplete_frame_timeout` for a frame that
+never completes (the connection is closed). A header that is not Modbus TCP closes the
+connection after the replies already due.
 """
 
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
-from collections.abc import Sequence
-from concurrent.futures import Future
+from collections import deque
+from collections.abc import Awaitable
 from dataclasses import dataclass
 from typing import Any
 
-from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
-from pymodbus.framer import FramerType
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
-from pymodbus.pdu.device import ModbusDeviceIdentification
-from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
-from pymodbus.simulator.simcore import SimCore
-
 import geo_server
 from geo_server.dictionary import AdsError, ObjectDef
+from geo_server.modbus.codec import (
+    DeviceIdRequest,
+    Frame,
+    MbapFramer,
+    ReadRequest,
+    Refused,
+    WriteRequest,
+    adu,
+    device_id_pdu,
+    exception_pdu,
+    parse_pdu,
+    read_bits_pdu,
+    read_registers_pdu,
+    write_reply_pdu,
+)
 from geo_server.modbus.regmap import (
     MACHINE_UNIT,
-    SLOT,
     ExcCode,
     ModbusMap,
     RegisterError,
     Table,
     UnitMap,
     exception_for,
-    register_address,
 )
 from geo_server.service import ObjectService
 
 log = logging.getLogger(__name__)
 
-#: Function codes geo-server serves (43 = encapsulated interface, MEI 14 device id).
-SUPPORTED_FUNCTIONS = frozenset({1, 2, 3, 4, 5, 6, 15, 16, 43})
 #: Highest unit id a Modbus device can have.
 MAX_UNIT = 255
 
 
 @dataclass
 class ModbusOptions:
-    """Where and how the Modbus TCP interface listens (SPEC §8)."""
+    """Where and how the Modbus TCP interface listens."""
 
     host: str = "127.0.0.1"
     port: int = 5020  # 0 = an ephemeral port; `ModbusInterface.port` tells which
     read_only: bool = False  # reject every write with exception 2
-    write_timeout: float = 2.0  # free-running mode: wait this long for a write to apply
+    write_timeout: float = 2.0  # running cycles: a write not applied by then is withdrawn
+    max_connections: int = 64
+    max_pipeline: int = 32  # requests queued per connection before reading pauses
+    incomplete_frame_timeout: float = 5.0
 
 
-def identity() -> ModbusDeviceIdentification:
-    """Device identification (FC 43/14) of geo-server."""
-    return ModbusDeviceIdentification(
-        info_name={
-            "VendorName": "geo-server",
-            "ProductCode": "geo-server",
-            "ProductName": "geo-server",
-            "ModelName": "TwinCAT 3 CNC GEO task emulator",
-            "MajorMinorRevision": geo_server.__version__,
-        }
-    )
+def device_objects() -> dict[int, bytes]:
+    """Device identification objects (FC 43/14): vendor, product code, revision,
+    product and model name."""
+    return {
+        0: b"geo-server",
+        1: b"geo-server",
+        2: geo_server.__version__.encode(),
+        4: b"geo-server",
+        5: b"TwinCAT 3 CNC GEO task emulator",
+    }
 
 
-def _unsupported_pdus() -> list[type[ModbusPDU]]:
-    """Request classes answering exception 1 for every function code we do not serve."""
-
-    async def reject(self: ModbusPDU, context: Any, device_id: int) -> ModbusPDU:
-        return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_FUNCTION)
-
-    return [
-        type(
-            f"UnsupportedFunction{fc}",
-            (ModbusPDU,),
-            {"function_code": fc, "datastore_update": reject, "decode": lambda self, d: None},
-        )
-        for fc in range(1, 0x80)
-        if fc not in SUPPORTED_FUNCTIONS
-    ]
-
-
-class _GeoCore(SimCore):
-    """The datastore core: address checks by the register map, unknown unit → 11."""
-
-    def __init__(self, devices: list[SimDevice], interface: ModbusInterface) -> None:
-        super().__init__(devices)
-        self._interface = interface
-
-    def _map(self, device_id: int) -> UnitMap:
-        if device_id not in self.devices:
-            raise NoSuchIdException(f"unit id {device_id} is not an axis of this machine")
-        return self._interface.unit_maps[device_id]
-
-    async def async_getValues(
-        self, device_id: int, func_code: int, address: int, count: int = 1
-    ) -> list[int] | list[bool] | ExcCodes:
-        um = self._map(device_id)
-        if func_code not in (5, 6):  # FC 5/6 read back what they wrote: the echo
-            try:
-                um.check_read(func_code, address, count)
-            except RegisterError as exc:
-                log.debug("modbus unit %d: %s", device_id, exc)
-                return ExcCodes(exc.code)
-        return await super().async_getValues(device_id, func_code, address, count)
-
-    async def async_setValues(
-        self, device_id: int, func_code: int, address: int, values: list[int] | list[bool]
-    ) -> ExcCodes | None:
-        um = self._map(device_id)
-        try:
-            um.check_write(func_code, address, len(values))
-            if self._interface.options.read_only:
-                raise RegisterError(ExcCode.ILLEGAL_ADDRESS, "this interface is read-only")
-        except RegisterError as exc:
-            log.debug("modbus unit %d: %s", device_id, exc)
-            return ExcCodes(exc.code)
-        return await super().async_setValues(device_id, func_code, address, values)
-
-
-def _simdevice(unit: int, um: UnitMap, action: Any) -> SimDevice:
-    """The pymodbus device of one unit: four separate tables laid out like the map."""
-    regs = [
-        SimData(register_address(o), count=SLOT, datatype=DataType.REGISTERS) for o in um.objects
-    ]
-
-    def bits(table: Table) -> list[SimData]:
-        addrs = sorted(um.bits(table))
-        # pymodbus needs at least one entry per table; the register map keeps a
-        # placeholder unreachable (the machine unit has no BOOLEAN objects).
-        return [SimData(a, values=False, datatype=DataType.BITS) for a in addrs] or [
-            SimData(0, values=False, datatype=DataType.BITS)
-        ]
-
-    return SimDevice(
-        id=unit,
-        simdata=(bits(Table.COILS), bits(Table.DISCRETE_INPUTS), regs, list(regs)),
-        action=action,
-    )
+#: Conformity level: regular identification, stream and individual access.
+CONFORMITY = 0x82
+_BASIC = range(0, 3)
+_REGULAR = range(0, 0x80)
 
 
 class ModbusInterface:
@@ -175,154 +116,257 @@ class ModbusInterface:
         self.unit_maps: dict[int, UnitMap] = {
             u: self.map.machine if u == MACHINE_UNIT else self.map.axis for u in units
         }
-        self._server: ModbusTcpServer | None = None
+        self._device = device_objects()
+        self._server: asyncio.AbstractServer | None = None
+        self._connections: set[ModbusConnection] = set()
         self.requests = 0
+        self.refused_connections = 0
+        self.closed_for_framing = 0
 
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         """Listen on `options.host:options.port` (port 0: see `port`)."""
-        devices = [
-            _simdevice(u, um, functools.partial(self._action, u))
-            for u, um in self.unit_maps.items()
-        ]
-        server = ModbusTcpServer(
-            devices,
-            framer=FramerType.SOCKET,
-            identity=identity(),
-            address=(self.options.host, self.options.port),
-            custom_pdu=_unsupported_pdus(),
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            lambda: ModbusConnection(self), self.options.host, self.options.port
         )
-        server.context = _GeoCore(devices, self)
-        await server.serve_forever(background=True)
-        self._server = server
         log.info("Modbus TCP listening on %s:%d", self.options.host, self.port)
 
     async def close(self) -> None:
         """Stop listening and drop every connection."""
-        if self._server is not None:
-            server, self._server = self._server, None
-            await server.shutdown()
+        if self._server is None:
+            return
+        server, self._server = self._server, None
+        server.close()
+        for conn in list(self._connections):
+            conn.abort()
+        await server.wait_closed()
 
     @property
     def port(self) -> int:
         """The bound TCP port (useful with `port=0`)."""
-        if self._server is None or self._server.transport is None:
+        if self._server is None or not self._server.sockets:
             return self.options.port
-        return self._server.transport.sockets[0].getsockname()[1]
+        return int(self._server.sockets[0].getsockname()[1])
 
     @property
     def endpoint(self) -> str:
         return f"{self.options.host}:{self.port}"
 
-    # ------------------------------------------------------------------ data
+    @property
+    def connection_count(self) -> int:
+        return len(self._connections)
 
-    async def _action(
-        self,
-        unit: int,
-        function_code: int,
-        start_address: int,
-        address: int,
-        count: int,
-        registers: list[int],
-        values: list[int] | list[bool] | None,
-    ) -> ExcCodes | None:
-        """pymodbus `SimDevice` hook: fill a read from one snapshot or route a write.
+    # ------------------------------------------------------------------ requests
 
-        For coils and discrete inputs `address` is the bit address, `registers` holds
-        16 bits per word and `count` is the number of words the request touches.
-        """
-        if values is None:
-            if function_code in (5, 6):
-                return None  # read-back of a single write: keep the echo
-            self.requests += 1
-            self._fill(unit, function_code, start_address, address, count, registers)
-            return None
+    def handle(self, frame: Frame) -> bytes | Awaitable[bytes]:
+        """The reply ADU to one request: bytes now (reads), or an awaitable (writes)."""
         self.requests += 1
-        return await self._write(unit, function_code, address, values)
+        req = parse_pdu(frame.pdu)
+        fc = frame.pdu[0] if frame.pdu else 0
+        try:
+            if isinstance(req, Refused):
+                log.debug("modbus unit %d: %s", frame.unit, req.reason)
+                return adu(frame.transaction, frame.unit, exception_pdu(fc, req.code))
+            um = self.unit_maps.get(frame.unit)
+            if um is None:
+                code = ExcCode.GATEWAY_NO_RESPONSE  # an unknown unit id (axis)
+                return adu(frame.transaction, frame.unit, exception_pdu(fc, code))
+            if isinstance(req, ReadRequest):
+                pdu = self._read(frame.unit, um, req)
+            elif isinstance(req, DeviceIdRequest):
+                pdu = self._device_id(req)
+            else:
+                return self._write(frame, um, req)
+        except RegisterError as exc:
+            log.debug("modbus unit %d: %s", frame.unit, exc.message)
+            pdu = exception_pdu(fc, exc.code)
+        except AdsError as exc:
+            log.debug("modbus unit %d: %s", frame.unit, exc.message)
+            pdu = exception_pdu(fc, exception_for(exc))
+        return adu(frame.transaction, frame.unit, pdu)
 
-    def _fill(
-        self,
-        unit: int,
-        function_code: int,
-        start_address: int,
-        address: int,
-        count: int,
-        registers: list[int],
-    ) -> None:
-        um = self.unit_maps[unit]
-        snap = self.service.snapshot  # ONE snapshot for the whole request
+    def _read(self, unit: int, um: UnitMap, req: ReadRequest) -> bytes:
+        table = um.check_read(req.function, req.address, req.count)
+        snap = self.service.current()  # ONE snapshot for the whole request
 
         def value_of(obj: ObjectDef) -> Any:
             return snap.value(obj, unit)
 
-        table = Table(function_code)
         if table >= Table.HOLDING_REGISTERS:
-            offset = address - start_address
-            registers[offset : offset + count] = um.read_registers(address, count, value_of)
+            regs = um.read_registers(req.address, req.count, value_of)
+            return read_registers_pdu(req.function, regs)
+        return read_bits_pdu(req.function, um.read_bits(table, req.address, req.count, value_of))
+
+    def _device_id(self, req: DeviceIdRequest) -> bytes:
+        objects = self._device
+        if req.code == 4:
+            if req.object_id not in objects:
+                raise RegisterError(
+                    ExcCode.ILLEGAL_ADDRESS, f"no device object {req.object_id}"
+                )
+            chosen = [req.object_id]
+        else:
+            span = _BASIC if req.code == 1 else _REGULAR
+            start = req.object_id if req.object_id in objects and req.object_id in span else 0
+            chosen = [i for i in sorted(objects) if i >= start and i in span]
+        return device_id_pdu(req.code, [(i, objects[i]) for i in chosen], CONFORMITY)
+
+    def _write(self, frame: Frame, um: UnitMap, req: WriteRequest) -> bytes | Awaitable[bytes]:
+        if self.options.read_only:
+            raise RegisterError(ExcCode.ILLEGAL_ADDRESS, "this interface is read-only")
+        pairs = um.decode_write(req.function, req.address, req.values)
+        svc = self.service
+        prepared = [svc.prepare_object(obj, frame.unit, value) for obj, value in pairs]
+
+        async def applied() -> bytes:
+            try:
+                errors = await svc.apply_writes(prepared, self.options.write_timeout)
+                failed = next((e for e in errors if e is not None), None)
+                if failed is not None:
+                    raise failed
+                pdu = write_reply_pdu(req)
+            except AdsError as exc:
+                log.debug("modbus unit %d: %s", frame.unit, exc.message)
+                pdu = exception_pdu(req.function, exception_for(exc))
+            return adu(frame.transaction, frame.unit, pdu)
+
+        return applied()
+
+    # ------------------------------------------------------------------ connections
+
+    def _connected(self, conn: ModbusConnection) -> bool:
+        if len(self._connections) >= self.options.max_connections:
+            self.refused_connections += 1
+            log.warning(
+                "modbus: refusing %s: %d connections open", conn.peer, len(self._connections)
+            )
+            return False
+        self._connections.add(conn)
+        return True
+
+    def _disconnected(self, conn: ModbusConnection) -> None:
+        self._connections.discard(conn)
+
+
+class ModbusConnection(asyncio.Protocol):
+    """One TCP client: frames in, replies out, strictly in order."""
+
+    def __init__(self, iface: ModbusInterface) -> None:
+        self.iface = iface
+        self.framer = MbapFramer()
+        self.transport: asyncio.Transport | None = None
+        self.peer: Any = None
+        self._queue: deque[Frame] = deque()
+        self._worker: asyncio.Task | None = None
+        self._closing = False  # framing failed: answer what is due, then close
+        self._paused = False
+        self._stale: asyncio.TimerHandle | None = None
+
+    # asyncio callbacks
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        self.peer = transport.get_extra_info("peername")
+        if not self.iface._connected(self):
+            transport.abort()
+            self.transport = None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.iface._disconnected(self)
+        self._cancel_stale()
+        if self._worker is not None:
+            self._worker.cancel()
+        self._queue.clear()
+        self.transport = None
+
+    def data_received(self, data: bytes) -> None:
+        frames = self.framer.feed(data)
+        if self.framer.error is not None and not self._closing:
+            self.iface.closed_for_framing += 1
+            log.warning("modbus: closing %s: %s", self.peer, self.framer.error)
+            self._closing = True
+        self._watch_unfinished(progress=bool(frames))
+        for frame in frames:
+            self._accept(frame)
+        if self._closing and self._worker is None and not self._queue:
+            self._close()
+
+    # request pipeline
+
+    def _accept(self, frame: Frame) -> None:
+        if self._worker is None and not self._queue:
+            reply = self.iface.handle(frame)
+            if isinstance(reply, bytes):
+                self._send(reply)
+                return
+            self._worker = asyncio.ensure_future(self._run(reply))
             return
-        offset = address // 16 - start_address
-        where = um.bits(table)
-        first_bit = (start_address + offset) * 16
-        for w in range(count):
-            word = 0
-            for i in range(16):
-                obj = where.get(first_bit + 16 * w + i)
-                if obj is not None and value_of(obj):
-                    word |= 1 << i
-            registers[offset + w] = word
+        self._queue.append(frame)
+        if len(self._queue) >= self.iface.options.max_pipeline and not self._paused:
+            self._paused = True
+            if self.transport is not None:
+                self.transport.pause_reading()
 
-    async def _write(
-        self, unit: int, function_code: int, address: int, values: Sequence[int] | Sequence[bool]
-    ) -> ExcCodes | None:
-        um = self.unit_maps[unit]
+    async def _run(self, first: Awaitable[bytes]) -> None:
+        """Answer the waiting requests one by one, in order."""
+        reply: bytes | Awaitable[bytes] = first
         try:
-            pairs = um.decode_write(function_code, address, values)
-        except RegisterError as exc:
-            log.debug("modbus unit %d: %s", unit, exc)
-            return ExcCodes(exc.code)
-        loop = asyncio.get_running_loop()
-        futures: list[Future] = []
-        try:
-            for obj, value in pairs:
-                if obj.scope == "machine":  # reload / save read files: off the loop
-                    fut = await loop.run_in_executor(
-                        None, self.service.write_name, obj.name, unit, value
-                    )
-                else:
-                    fut = self.service.write_name(obj.name, unit, value)
-                futures.append(fut)
-        except AdsError as exc:
-            log.debug("modbus unit %d: %s", unit, exc)
-            return ExcCodes(exception_for(exc))
-        for fut in futures:  # commands (reload, save) complete at once
-            if fut.done() and isinstance(fut.exception(), AdsError):
-                return ExcCodes(exception_for(fut.exception()))
-        if not self.service.scheduler.running:
-            return None  # stepped: applied at the next step; acknowledge now
-        try:
-            await asyncio.wait_for(self._applied(futures), self.options.write_timeout)
-        except TimeoutError:
-            return ExcCodes.DEVICE_BUSY
-        except AdsError as exc:
-            return ExcCodes(exception_for(exc))
-        except Exception:  # the write's function failed on the cycle thread: answer, log
-            log.exception("modbus unit %d: write failed", unit)
-            return ExcCodes.DEVICE_FAILURE
-        return None
+            while True:
+                self._send(reply if isinstance(reply, bytes) else await reply)
+                if not self._queue:
+                    break
+                reply = self.iface.handle(self._queue.popleft())
+                if self._paused and len(self._queue) < self.iface.options.max_pipeline // 2:
+                    self._paused = False
+                    if self.transport is not None and not self.transport.is_closing():
+                        self.transport.resume_reading()
+        except Exception:  # a defect: answer nothing more on this connection
+            log.exception("modbus: request failed; closing %s", self.peer)
+            self._queue.clear()
+            self._closing = True
+        finally:
+            self._worker = None
+        if self._closing:
+            self._close()
 
-    @staticmethod
-    async def _applied(futures: list[Future]) -> None:
-        """Wait until the object service has applied every write of the request.
+    # helpers
 
-        That is already "visible": the machine publishes the snapshot of the cycle that
-        applied a write before it resolves the write's future (`Machine.run_cycle`), and
-        `_fill` reads the published snapshot, so a read sent after this reply sees the
-        written value. Waiting for yet another snapshot here only cost a GEO cycle per
-        write. The service hands out detached futures, so the cancellation a timeout
-        causes never reaches the machine's own future.
-        """
-        await asyncio.gather(*(asyncio.wrap_future(f) for f in futures))
+    def _send(self, data: bytes) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write(data)
+
+    def _watch_unfinished(self, progress: bool) -> None:
+        """Close a connection whose frame stays unfinished (slow or stuck senders): the
+        clock runs from the first byte of a frame that is not complete yet."""
+        if self.framer.pending == 0 or progress:
+            self._cancel_stale()
+        if self.framer.pending and self._stale is None:
+            loop = asyncio.get_running_loop()
+            self._stale = loop.call_later(
+                self.iface.options.incomplete_frame_timeout, self._unfinished_timeout
+            )
+
+    def _unfinished_timeout(self) -> None:
+        self._stale = None
+        if self.framer.pending:
+            log.warning("modbus: closing %s: frame unfinished", self.peer)
+            self.abort()
+
+    def _cancel_stale(self) -> None:
+        if self._stale is not None:
+            self._stale.cancel()
+            self._stale = None
+
+    def _close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()  # flushes the replies already written
+
+    def abort(self) -> None:
+        if self.transport is not None:
+            self.transport.abort()
 
 
 async def start_modbus(
@@ -334,4 +378,4 @@ async def start_modbus(
     return iface
 
 
-__all__ = ["ModbusInterface", "ModbusOptions", "identity", "start_modbus"]
+__all__ = ["ModbusInterface", "ModbusOptions", "device_objects", "start_modbus"]

@@ -1,0 +1,183 @@
+"""The seam between the object service and a machine, wherever its GEO cycle runs.
+
+The object service talks to a machine only through `MachinePort` and to whatever runs
+its cycles only through `CycleRunner`. Two implementations of each exist: the machine in
+this process (`Machine` with a `Scheduler`: stepped, free-running or real time on a
+thread) and the machine in a child process (`RemoteMachine` with a `ProcessScheduler`).
+
+Everything a caller asks of a machine is one of the frozen *operations* below. It is
+queued and carried out at the next cycle boundary, in arrival order (the first step of a
+GEO cycle). `submit` returns a `Pending`: a future that resolves once the cycle that
+carried the operation out has published its snapshot, and that can be *withdrawn* as long
+as no cycle has taken it yet. Withdrawal is what makes a timeout honest: an operation
+reported as failed because it was not applied in time has been withdrawn, so it can
+never take effect later.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from geo_server.config import MachineConfig
+    from geo_server.dictionary import Dictionary
+    from geo_server.events import Event
+    from geo_server.machine.nc import Program
+    from geo_server.snapshot import Snapshot
+
+
+# ---------------------------------------------------------------------- operations
+
+
+@dataclass(frozen=True)
+class WriteObjects:
+    """Validated object writes `(object name, axis, value)`, applied in one cycle, in
+    order. The outcome is a tuple with one entry per item: None, or the exception that
+    item raised (the other items are applied all the same)."""
+
+    items: tuple[tuple[str, int, Any], ...]
+
+
+@dataclass(frozen=True)
+class StartProgram:
+    """Run a parsed NC program (or MDI lines) from the next cycle on."""
+
+    program: Program
+    mdi: bool = False
+
+
+@dataclass(frozen=True)
+class Reset:
+    """CNC reset: program stopped, axes stopped, manual-activation compensations
+    deselected (000 §5.1)."""
+
+
+@dataclass(frozen=True)
+class Reload:
+    """Swap in a validated configuration at this cycle boundary."""
+
+    cfg: MachineConfig
+
+
+Operation = WriteObjects | StartProgram | Reset | Reload
+
+
+# ---------------------------------------------------------------------- pending
+
+
+class Pending(Future):
+    """The outcome of a queued operation, which can be withdrawn until a cycle takes it.
+
+    `withdraw()` (also what `cancel()` does, so an asyncio wrapper being cancelled can
+    never leave an operation that still runs) returns True when the operation was
+    removed before any cycle took it: it will never run, and the future is cancelled.
+    False means a cycle has taken it (or it is done), or the owner cannot tell right now
+    (the cycle process is stopped in the middle of taking operations): the future will
+    tell the outcome, and the caller may try again later.
+    """
+
+    def __init__(self, withdraw: Callable[[Pending], bool] | None = None) -> None:
+        super().__init__()
+        self._withdraw = withdraw
+
+    def cancel(self) -> bool:
+        if self.done():
+            return self.cancelled()
+        if self._withdraw is None or not self._withdraw(self):
+            return False
+        return super().cancel()
+
+    def withdraw(self) -> bool:
+        return self.cancel()
+
+
+def chained(inner: Pending, transform: Callable[[Any], Any]) -> Pending:
+    """A `Pending` that follows `inner` with its result passed through `transform`
+    (which may raise); withdrawing it withdraws `inner`."""
+    outer = Pending(lambda _p: inner.withdraw())
+
+    def copy(done: Future) -> None:
+        if done.cancelled():
+            outer.cancel()
+            return
+        if not outer.set_running_or_notify_cancel():
+            return
+        exc = done.exception()
+        if exc is not None:
+            outer.set_exception(exc)
+            return
+        try:
+            outer.set_result(transform(done.result()))
+        except BaseException as err:
+            outer.set_exception(err)
+
+    inner.add_done_callback(copy)
+    return outer
+
+
+def resolved(result: Any = None, error: BaseException | None = None) -> Pending:
+    """A `Pending` that is already done (nothing was queued)."""
+    p = Pending()
+    if error is None:
+        p.set_result(result)
+    else:
+        p.set_exception(error)
+    return p
+
+
+# ---------------------------------------------------------------------- protocols
+
+
+class MachinePort(Protocol):
+    """What the object service needs of a machine."""
+
+    cfg: MachineConfig
+    axes: tuple[int, ...]
+    names: dict[str, int]
+    dictionary: Dictionary
+    cycle_s: float
+
+    @property
+    def snapshot(self) -> Snapshot:
+        """The snapshot of the latest cycle (published by swapping a reference)."""
+
+    @property
+    def snapshot_time(self) -> float:
+        """`time.monotonic()` when the current snapshot was published."""
+
+    @property
+    def events(self) -> Sequence[Event]:
+        """The latest warnings and errors, oldest first."""
+
+    def submit(self, op: Operation) -> Pending:
+        """Queue `op` for the next cycle boundary."""
+
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
+        """Call `callback(snapshot)` after every cycle (on the thread that publishes it);
+        returns the function that unsubscribes."""
+
+    def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
+        """Call `callback(event)` for every new warning or error; returns the function
+        that unsubscribes."""
+
+
+class CycleRunner(Protocol):
+    """What runs the cycles of a machine: stepped, free-running or real time."""
+
+    mode: str
+
+    @property
+    def running(self) -> bool:
+        """True while cycles run by themselves (free-running or real time)."""
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def step(self, n: int = 1) -> None:
+        """Run `n` cycles now (stepped mode only)."""
+
+    def status(self) -> dict[str, Any]: ...

@@ -1,0 +1,73 @@
+"""One consistent picture of every object after a GEO cycle (SPEC §5 step 4).
+
+The machine fills one `Snapshot` per cycle and publishes it by swapping a reference, so
+a reader on any thread sees either the old or the new snapshot, never a mix: a read, a
+sum read or a Modbus block read served from one snapshot never mixes two cycles.
+
+Values are stored as float64 (the kernel's internal values) and converted to the wire
+type only when encoded: SGN32 rounds half away from zero (SPEC §3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from geo_server.dictionary import Dictionary, ObjectDef, round_half_away
+
+
+class ObjectLayout:
+    """Column of every axis object and index of every machine object in a snapshot."""
+
+    def __init__(self, dictionary: Dictionary) -> None:
+        self.dictionary = dictionary
+        self.axis_objects = [o for o in dictionary.objects if o.scope == "axis"]
+        self.machine_objects = [o for o in dictionary.objects if o.scope == "machine"]
+        self.column = {o.name: i for i, o in enumerate(self.axis_objects)}
+        self.machine_index = {o.name: i for i, o in enumerate(self.machine_objects)}
+
+    def col(self, name: str) -> int:
+        return self.column[self.dictionary.by_name(name).name]
+
+    def mcol(self, name: str) -> int:
+        return self.machine_index[self.dictionary.by_name(name).name]
+
+
+def to_python(obj: ObjectDef, raw: float) -> Any:
+    """The decoded value of an object as a reader sees it (bool, int or float)."""
+    t = obj.type.name
+    if t == "BOOLEAN":
+        return bool(raw)
+    if t == "REAL64":
+        return float(raw)
+    return round_half_away(float(raw))
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Object values of all axes after cycle `cycle`.
+
+    `values[slot, column]` for axis objects (slot order = `axes`), `machine[i]` for the
+    machine-wide emulator objects.
+    """
+
+    cycle: int
+    axes: tuple[int, ...]
+    values: np.ndarray
+    machine: np.ndarray
+    layout: ObjectLayout
+
+    def slot(self, axis: int) -> int:
+        return self.axes.index(axis)
+
+    def value(self, obj: ObjectDef, axis: int) -> Any:
+        """Decoded value of `obj` for `axis` (axis 0 for machine objects)."""
+        if obj.scope == "machine":
+            return to_python(obj, self.machine[self.layout.machine_index[obj.name]])
+        return to_python(obj, self.values[self.slot(axis), self.layout.column[obj.name]])
+
+    def encode(self, obj: ObjectDef, axis: int) -> bytes:
+        """ADS bytes of `obj` for `axis`, as they were at the end of this cycle."""
+        return obj.encode(self.value(obj, axis))

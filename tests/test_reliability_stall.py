@@ -1,0 +1,174 @@
+"""A stalled GEO cycle: nothing reported as failed takes effect later, nothing stale is
+served as current.
+
+The cycle runs in its own process (the default of `geo-server run`); the test stops
+that process with SIGSTOP, as a debugger, an overloaded host or a paused VM would, and
+resumes it with SIGCONT. Bounded: every wait has a deadline, every request a timeout.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import struct
+import time
+from collections.abc import Iterator
+
+import pytest
+from conftest import run_in
+
+from geo_server.dictionary import AdsError, AdsErrorCode, load_dictionary
+from geo_server.listfile import load_machine
+from geo_server.machine.process import ProcessScheduler, RemoteMachine
+from geo_server.modbus.regmap import encode, register_address
+from geo_server.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.service import ObjectService, ServiceLimits
+
+pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="needs SIGSTOP")
+
+D = load_dictionary()
+COEF = D.by_name("TEMPC::coefficient")
+TIMEOUT = 10.0
+
+
+def wait_for(predicate, timeout: float = TIMEOUT) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < end, "condition not met in time"
+        time.sleep(0.01)
+
+
+class Stoppable:
+    """A machine whose cycle runs in a child process that the test can stop."""
+
+    def __init__(self, startup, limits: ServiceLimits) -> None:
+        self.machine = RemoteMachine(load_machine(startup), cycle_s=0.001, homed=True)
+        self.sched = ProcessScheduler(self.machine, mode="realtime")
+        self.service = ObjectService(self.machine, self.sched, limits)
+        self.sched.start()
+        wait_for(lambda: self.machine.cycle > 20)
+        self.stopped = False
+
+    def stop_cycle(self) -> None:
+        assert self.sched.pid is not None
+        os.kill(self.sched.pid, signal.SIGSTOP)
+        self.stopped = True
+        # a cycle already in flight may still arrive: wait until no frame comes any more
+        last = -1
+        while last != self.machine.cycle:
+            last = self.machine.cycle
+            time.sleep(0.05)
+
+    def resume_cycle(self) -> None:
+        if self.stopped and self.sched.pid is not None:
+            os.kill(self.sched.pid, signal.SIGCONT)
+            self.stopped = False
+
+    def close(self) -> None:
+        self.resume_cycle()
+        self.sched.stop()
+
+
+@pytest.fixture
+def slow_to_notice(lists_copy) -> Iterator[Stoppable]:
+    """Stall detection far away: a write queued while the cycle is stopped times out."""
+    m = Stoppable(lists_copy, ServiceLimits(write_timeout=0.5, swap_timeout=0.5, stall_after=60))
+    yield m
+    m.close()
+
+
+@pytest.fixture
+def quick_to_notice(lists_copy) -> Iterator[Stoppable]:
+    m = Stoppable(lists_copy, ServiceLimits(write_timeout=0.5, stall_after=0.3))
+    yield m
+    m.close()
+
+
+def test_a_write_that_timed_out_is_withdrawn_and_never_applied(slow_to_notice, loop_thread):
+    m = slow_to_notice
+    svc = m.service
+    before = svc.read_name("TEMPC::coefficient", 1)
+    m.stop_cycle()
+    with pytest.raises(AdsError) as err:
+        run_in(loop_thread, svc.write_name_applied("TEMPC::coefficient", 1, before + 111.0))
+    assert err.value.code == AdsErrorCode.TIMEOUT
+    m.resume_cycle()
+    resumed = m.machine.cycle
+    wait_for(lambda: m.machine.cycle > resumed + 200)
+    assert svc.read_name("TEMPC::coefficient", 1) == before  # withdrawn: never applied
+    # and the machine takes writes again
+    run_in(loop_thread, svc.write_name_applied("TEMPC::coefficient", 1, before + 1.0))
+    assert svc.read_name("TEMPC::coefficient", 1) == before + 1.0
+
+
+def test_a_modbus_write_answered_busy_never_takes_effect(slow_to_notice, loop_thread):
+    m = slow_to_notice
+    iface = ModbusInterface(m.service, ModbusOptions(port=0, write_timeout=0.5))
+    run_in(loop_thread, iface.start())
+    before = m.service.read_name("TEMPC::coefficient", 2)
+    addr = register_address(COEF)
+    pdu = struct.pack(">BHHB", 16, addr, 4, 8) + struct.pack(">4H", *encode(COEF, before - 7.5))
+    try:
+        m.stop_cycle()
+        with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
+            s.sendall(struct.pack(">HHHB", 1, 0, len(pdu) + 1, 2) + pdu)
+            assert s.recv(64) == struct.pack(">HHHB", 1, 0, 3, 2) + b"\x90\x06"
+        m.resume_cycle()
+        resumed = m.machine.cycle
+        wait_for(lambda: m.machine.cycle > resumed + 200)
+        assert m.service.read_name("TEMPC::coefficient", 2) == before
+    finally:
+        run_in(loop_thread, iface.close())
+
+
+def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, lists_copy):
+    m = slow_to_notice
+    svc = m.service
+    axis1 = lists_copy.parent / "achsmd1.lis"
+    text = axis1.read_text()
+    assert "lr_param.temp_comp_coefficient 4000" in text
+    axis1.write_text(text.replace("temp_comp_coefficient 4000", "temp_comp_coefficient 1234"))
+    cfg_before = m.machine.cfg
+    m.stop_cycle()
+    result = svc.reload()
+    assert not result.ok and result.code == AdsErrorCode.TIMEOUT
+    assert "reload rejected, machine unchanged" in result.message
+    assert any("reload rejected" in e["message"] for e in svc.errors())
+    m.resume_cycle()
+    resumed = m.machine.cycle
+    wait_for(lambda: m.machine.cycle > resumed + 200)
+    assert m.machine.cfg is cfg_before
+    assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+
+
+def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice, loop_thread):
+    m = quick_to_notice
+    svc = m.service
+    iface = ModbusInterface(svc, ModbusOptions(port=0))
+    run_in(loop_thread, iface.start())
+    addr = register_address(COEF)
+    read = struct.pack(">HHHBBHH", 4, 0, 6, 1, 3, addr, 4)
+    try:
+        assert svc.status()["stalled"] is False
+        m.stop_cycle()
+        wait_for(lambda: svc.status()["stalled"])
+        st = svc.status()
+        assert st["stalled_for_s"] > 0.3
+        with pytest.raises(AdsError) as err:
+            svc.read(0x120300, 0x10043)
+        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        with pytest.raises(AdsError) as err:  # refused at once, nothing queued
+            svc.write_name("TEMPC::coefficient", 1, 1.0)
+        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
+            s.sendall(read)
+            assert s.recv(64) == struct.pack(">HHHB", 4, 0, 3, 1) + b"\x83\x06"
+        m.resume_cycle()
+        wait_for(lambda: not svc.status()["stalled"])
+        assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+        with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
+            s.sendall(read)
+            assert s.recv(64)[7:9] == b"\x03\x08"
+    finally:
+        run_in(loop_thread, iface.close())

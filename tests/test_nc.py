@@ -408,3 +408,13 @@ def test_player_drives_real_motion_cycle_by_cycle():
     # G74 (1) + G01 issued and sampled (3000) + dwell (1 + 500) + X0 (3000); M30 in the
     # cycle after the last sample
     assert cycles == 1 + 3000 + 1 + 500 + 3000
+
+
+def test_warnings_of_one_program_are_capped():
+    """500 unclosed COMP groups: the first 20 warnings name their lines, one more line
+    counts the rest (the error list keeps 100 events; one program must not flush it)."""
+    text = "\n".join(f"N{i} X[COMP ON TEMP" for i in range(500))
+    prog = parse_program(text, {"X": 0}, mdi=True)
+    assert len(prog.warnings) == 21
+    assert [w.line for w in prog.warnings[:3]] == [1, 2, 3]
+    assert prog.warnings[-1].message == "480 more warnings not listed"

@@ -196,6 +196,8 @@ _TOKEN = re.compile(
     )""",
     re.VERBOSE,
 )
+#: Warnings of one program kept for the error list (the rest are counted in one line).
+MAX_WARNINGS = 20
 _GOTO_TARGET = re.compile(r"\s*(?:\[\s*N(\d+)\s*\]|N(\d+))")
 
 
@@ -215,6 +217,11 @@ def parse_program(text: str, axis_names: Mapping[str, int], *, mdi: bool = False
     _check_feed(prog.blocks)
     if not mdi and not any(b.end for b in prog.blocks):
         prog.warnings.append(_warning(0, "no M30: the end of the text ends the program"))
+    if len(prog.warnings) > MAX_WARNINGS:
+        # every warning becomes an event in the error list (100 deep) at the cycle that
+        # starts the program: a few tell the story, thousands would flush the list
+        more = len(prog.warnings) - MAX_WARNINGS
+        prog.warnings[MAX_WARNINGS:] = [_warning(0, f"{more} more warnings not listed")]
     return prog
 
 

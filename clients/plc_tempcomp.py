@@ -116,11 +116,11 @@ UNIT_FACTORS = {"": 1.0, "_incr": 1.0, "_um": 10.0, "_mm": 10_000.0}
 #: server could not apply in time), client sync timeout / invalid response / port locked
 #: (pyads).
 TRANSIENT_ADS = frozenset({0x707, 0x708, 0x719, 0x745, 0x746, 0x748})
-#: Writable TEMPC objects in write order (000 p.22–23).
-PARAMETER_OBJECTS = (
-    ("position_0", "TEMPC::position_0"),
-    ("offset_0", "TEMPC::offset_0"),
-    ("coefficient", "TEMPC::coefficient"),
+#: Writable TEMPC objects `(field, object name)` in write order, from the dictionary:
+#: position_0 and offset_0 before coefficient (highest element ID first, 000 p.22–23), so
+#: the line's anchor is in place before its slope changes.
+PARAMETER_OBJECTS = tuple(
+    (o.key_field, o.name) for o in reversed(load_dictionary().tempc_parameters())
 )
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import struct
+import sys
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -106,6 +107,33 @@ def round_half_away(x: float) -> int:
     return int(math.copysign(math.floor(abs(x) + 0.5), x))
 
 
+def _show(value: Any, limit: int = 40) -> str:
+    """A value for an error message, never longer than about `limit` characters.
+
+    Integers beyond 128 bits are shown by their size: Python refuses to turn an integer
+    of more than 4300 digits into text at all (the message itself would fail).
+    """
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 128:
+        return f"<an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits>"
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _json_kind(value: Any) -> str:
+    """The JSON type name of a decoded value (for error messages)."""
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, int | float):
+        return "number"
+    if isinstance(value, str):
+        return "string"
+    if isinstance(value, dict):
+        return "object"
+    if isinstance(value, list | tuple):
+        return "array"
+    return "null" if value is None else type(value).__name__
+
+
 def _key_part(text: str) -> str:
     """Zenoh key part of SPEC §7: lower case, blanks and dots to `_`, no doubled `_`."""
     out = text.strip().lower().replace(" ", "_").replace(".", "_")
@@ -133,6 +161,9 @@ class ObjectDef:
     #: "reload" / "save": writing this object runs that command (list files are read or
     #: written) instead of queueing a value for the next cycle.
     command: str | None = None
+    #: The axis-parameter-list entry (`lr_param.temp_comp_coefficient`) this object's
+    #: live value is saved to; its last segment is the `AxisParams` attribute.
+    list_key: str | None = None
 
     @property
     def index_group(self) -> int:
@@ -222,10 +253,63 @@ class ObjectDef:
                 v = int(value)
         except (TypeError, ValueError) as exc:
             raise AdsError(
-                AdsErrorCode.INVALID_DATA, f"{self.name}: {value!r} is not a valid {t}", self.name
+                AdsErrorCode.INVALID_DATA,
+                f"{self.name}: {_show(value)} is not a valid {t}",
+                self.name,
             ) from exc
         self.check_range(v)
         return v
+
+    def coerce_json(self, value: Any) -> Any:
+        """Strict `coerce` for a value decoded from JSON (the Zenoh interface's writes).
+
+        JSON carries its own types, so the value must already be of the object's kind:
+        BOOLEAN takes `true`/`false` or the numbers 0 and 1; UNS16/UNS32/SGN32 take an
+        integer (or a number without fraction such as `5.0`, which some JSON writers emit
+        for integers); REAL64 takes any number; STRING takes a string. A string, a
+        boolean or a number of the wrong kind is refused with 0x706 (invalid data), not
+        converted: a writer that sends `"12"` or `true` into a coefficient has a bug that
+        a silent conversion would hide. (`coerce` stays lenient for text typed by people,
+        e.g. on a command line.)
+
+        The range is checked before any conversion: Python compares integers of any size
+        with the limits exactly, while turning a huge one into a float (or into text, over
+        4300 digits) fails. So a 5000-digit integer is refused with 0x706 like any other
+        value out of range.
+        """
+        t = self.type.name
+        if t == "BOOLEAN":
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, int | float) and value in (0, 1):
+                return bool(value)
+            raise self._wrong_json(value, "true, false, 0 or 1")
+        if t == "STRING":
+            if isinstance(value, str):
+                return value
+            raise self._wrong_json(value, "a string")
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self._wrong_json(value, "a number" if t == "REAL64" else "an integer")
+        if t != "REAL64" and isinstance(value, float) and not value.is_integer():
+            raise self._wrong_json(value, "an integer")
+        self.check_range(value)
+        if t == "REAL64":
+            if isinstance(value, int) and abs(value) > sys.float_info.max:
+                raise AdsError(
+                    AdsErrorCode.INVALID_DATA,
+                    f"{self.name}: {_show(value)} is outside the REAL64 range",
+                    self.name,
+                )
+            return float(value)
+        return int(value)
+
+    def _wrong_json(self, value: Any, expected: str) -> AdsError:
+        got = "null" if value is None else f"{_json_kind(value)} {_show(value)}"
+        return AdsError(
+            AdsErrorCode.INVALID_DATA,
+            f"{self.name} is {self.type.name}: needs {expected}, got {got}",
+            self.name,
+        )
 
     def check_range(self, v: float) -> None:
         """Raise 0x706 when `v` is outside the type or the documented range."""
@@ -236,7 +320,7 @@ class ObjectDef:
         if not lo <= v <= hi:
             raise AdsError(
                 AdsErrorCode.INVALID_DATA,
-                f"{self.name}: {v} outside the range {lo:g} … {hi:g} {self.unit}",
+                f"{self.name}: {_show(v)} outside the range {lo:g} … {hi:g} {self.unit}",
                 self.name,
             )
 
@@ -258,6 +342,11 @@ class ObjectDef:
         if kind == "writable":
             return bool(data[0])
         return data.split(b"\0", 1)[0].decode("cp1252")
+
+    @property
+    def param_attr(self) -> str | None:
+        """The `AxisParams` attribute behind `list_key` (`temp_comp_coefficient`)."""
+        return self.list_key.split(".", 1)[1] if self.list_key else None
 
     def as_row(self) -> dict[str, Any]:
         return {
@@ -314,6 +403,16 @@ class Dictionary:
     def group_objects(self, group: str, scope: str = "axis") -> list[ObjectDef]:
         return [o for o in self.objects if o.group == group and o.scope == scope]
 
+    def saved_parameters(self) -> list[ObjectDef]:
+        """Writable objects whose live value `save` writes back into the axis list
+        (those with a `list_key`), in element-ID order."""
+        return sorted((o for o in self.objects if o.list_key), key=lambda o: o.id)
+
+    def tempc_parameters(self) -> list[ObjectDef]:
+        """The numeric TEMPC parameters a PLC retunes live (coefficient, offset_0,
+        position_0; 000 §3.2.3), in element-ID order."""
+        return [o for o in self.saved_parameters() if o.type.name != "BOOLEAN"]
+
     def resolve(
         self, index_group: int, index_offset: int, axes: Iterable[int]
     ) -> tuple[ObjectDef, int, str | None]:
@@ -365,6 +464,7 @@ def _load(raw: dict[str, Any]) -> ObjectDef:
         min=raw.get("min"),
         max=raw.get("max"),
         command=raw.get("command"),
+        list_key=raw.get("list_key"),
     )
 
 

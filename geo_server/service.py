@@ -51,24 +51,16 @@ from geo_server.machine.port import (
     MachinePort,
     Pending,
     Reload,
-    chained,
     Reset,
     StartProgram,
     WriteObjects,
+    chained,
 )
 from geo_server.paths import is_packaged_data
 from geo_server.snapshot import Snapshot
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
-
-#: Writable TEMPC objects and the axis-list parameter `save` writes them to (000 §3.2).
-SAVED_PARAMETERS = {
-    "TEMPC::coefficient": "lr_param.temp_comp_coefficient",
-    "TEMPC::offset_0": "lr_param.temp_comp_offset_0",
-    "TEMPC::position_0": "lr_param.temp_comp_position_0",
-    "TEMPC::activated": "lr_param.temp_comp",
-}
 
 
 @dataclass(frozen=True)
@@ -656,14 +648,13 @@ class ObjectService:
     def _changed_parameters(self, snap: Snapshot, axis: int) -> dict[str, str]:
         params = self.machine.cfg.axes[axis].params
         changes: dict[str, str] = {}
-        for name, entry in SAVED_PARAMETERS.items():
-            obj = self.dictionary.by_name(name)
-            if name == "TEMPC::activated" and params.temp_comp_manual_activation:
+        for obj in self.dictionary.saved_parameters():  # objects with a `list_key`
+            if obj.type.name == "BOOLEAN" and params.temp_comp_manual_activation:
                 continue  # a manual-activation selection is not a list setting (000 §3.2)
             live = snap.value(obj, axis)
-            stored = getattr(params, entry.split(".", 1)[1])
+            stored = getattr(params, obj.param_attr or "")
             if format_value(obj, live) != format_value(obj, stored):
-                changes[entry] = format_value(obj, live)
+                changes[obj.list_key or ""] = format_value(obj, live)
         return changes
 
 

@@ -9,6 +9,7 @@ Python (`reference.py`), so that the reference stays an independent oracle.
 from __future__ import annotations
 
 from geo_server.config import AxisConfig, CompKind, MachineConfig
+from geo_server.dictionary import load_dictionary
 
 #: Column index c of every per-compensation array `[n, 7]`.
 COMP_ORDER: tuple[CompKind, ...] = (
@@ -23,8 +24,12 @@ COMP_ORDER: tuple[CompKind, ...] = (
 BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
 COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}
 
-#: TEMPC parameters writable as CNC objects (000 §3.2.3, p.22).
-TEMPC_FIELDS = ("coefficient", "offset_0", "position_0")
+_TEMPC = load_dictionary().tempc_parameters()
+#: TEMPC parameters writable as CNC objects (000 §3.2.3, p.22), in element-ID order
+#: (coefficient 0x43, offset_0 0x44, position_0 0x45): their object field names and the
+#: `AxisParams` attributes (axis-list entries) they start from — both from the dictionary.
+TEMPC_FIELDS: tuple[str, ...] = tuple(o.key_field for o in _TEMPC)
+TEMPC_ATTRS: tuple[str, ...] = tuple(o.param_attr or "" for o in _TEMPC)
 
 
 def initial_direction(anwahl_losekomp: int) -> float:

@@ -50,6 +50,7 @@ from geo_server.kernel.common import (
     LEAD,
     PLANE,
     TEMP,
+    TEMPC_ATTRS,
     TEMPC_FIELDS,
     filter_cycles,
     initial_direction,
@@ -240,9 +241,8 @@ class Kernel:
         self._bt = bt = np.zeros((7, n))
         self._init_dir, self._half_lose, self._tc6 = bt[0], bt[1], bt[2]
         self._tempc = bt[4:7]
-        self._tempc[0] = [x.temp_comp_coefficient for x in p]
-        self._tempc[1] = [x.temp_comp_offset_0 for x in p]
-        self._tempc[2] = [x.temp_comp_position_0 for x in p]
+        for row, attr in enumerate(TEMPC_ATTRS):  # coefficient, offset_0, position_0
+            self._tempc[row] = [getattr(x, attr) for x in p]
         # coefficient·1e-6, as the reference groups it
         np.multiply(self._tempc[0], 1e-6, out=self._tc6)
         self._bt_sub, self._bt_mul = bt[0:7:6], bt[1:3]  # (init, position_0), (lose/2, c6)
@@ -750,12 +750,9 @@ class Kernel:
                 if so[c] != sn[c]:
                     self.selected[i, c] = sn[c]
             po, pn = o.params, nw.params
-            if po.temp_comp_coefficient != pn.temp_comp_coefficient:
-                self._tempc[0, i] = pn.temp_comp_coefficient
-            if po.temp_comp_offset_0 != pn.temp_comp_offset_0:
-                self._tempc[1, i] = pn.temp_comp_offset_0
-            if po.temp_comp_position_0 != pn.temp_comp_position_0:
-                self._tempc[2, i] = pn.temp_comp_position_0
+            for row, attr in enumerate(TEMPC_ATTRS):
+                if getattr(po, attr) != getattr(pn, attr):
+                    self._tempc[row, i] = getattr(pn, attr)
         np.multiply(self._tempc[0], 1e-6, out=self._tc6)
         self._pending[:] = True
         self._pending_any = True

@@ -35,6 +35,7 @@ from geo_server.kernel.common import (
     LEAD,
     PLANE,
     TEMP,
+    TEMPC_ATTRS,
     TEMPC_FIELDS,
     filter_cycles,
     initial_direction,
@@ -178,14 +179,7 @@ class ReferenceKernel:
         self._jump = [[0.0] * 7 for _ in range(n)]
         self._k = [list(map(float, ax.n_cycles)) for ax in self._axes]
         self._event = [[False] * 7 for _ in range(n)]
-        self._tempc = [
-            [
-                ax.p.temp_comp_coefficient,
-                float(ax.p.temp_comp_offset_0),
-                float(ax.p.temp_comp_position_0),
-            ]
-            for ax in self._axes
-        ]
+        self._tempc = [[float(getattr(ax.p, a)) for a in TEMPC_ATTRS] for ax in self._axes]
         self._path = [math.inf] * n  # path travelled since the last reversal (friction)
         self._prev_pos: list[float] | None = None
         self._ring = [[0.0] * 249 for _ in range(n)]  # friction delay line (delay < 249)
@@ -234,15 +228,9 @@ class ReferenceKernel:
                 if so[c] != sn[c]:
                     self.selected[i, c] = sn[c]
             po, pn = o.params, nw.params
-            for f, (vo, vn) in enumerate(
-                (
-                    (po.temp_comp_coefficient, pn.temp_comp_coefficient),
-                    (po.temp_comp_offset_0, pn.temp_comp_offset_0),
-                    (po.temp_comp_position_0, pn.temp_comp_position_0),
-                )
-            ):
-                if vo != vn:
-                    self._tempc[i][f] = float(vn)
+            for f, attr in enumerate(TEMPC_ATTRS):
+                if getattr(po, attr) != getattr(pn, attr):
+                    self._tempc[i][f] = float(getattr(pn, attr))
             self._event[i] = [True] * 7
 
     # ------------------------------------------------------------------ the cycle

@@ -549,9 +549,6 @@ _MBUF: dict[str, int] = {
 #: the machine buffer (`_MBUF`).
 _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "BC::conf. backlash": "lose",
-    "TEMPC::coefficient": lambda m: m.kernel.tempc_params[0],
-    "TEMPC::offset_0": lambda m: m.kernel.tempc_params[1],
-    "TEMPC::position_0": lambda m: m.kernel.tempc_params[2],
     "SIM::command_position": "display",
     "SIM::set_position": "display",
     "SIM::target_position": lambda m: m.motion.target,
@@ -563,6 +560,16 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "SIM::feed": "feed",
     "FRICT::additive_current": lambda m: m.kernel.friction_current,
 }
+
+
+def _tempc_row(row: int) -> Callable[[Machine], np.ndarray]:
+    return lambda m: m.kernel.tempc_params[row]
+
+
+# The live TEMPC parameters (coefficient, offset_0, position_0) are rows of the kernel's
+# parameter block, in the dictionary's order (`TEMPC_FIELDS`).
+for _row, _obj in enumerate(load_dictionary().tempc_parameters()):
+    _FROM_STATE[_obj.name] = _tempc_row(_row)
 
 
 def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:
@@ -588,9 +595,7 @@ def _set_homed(m: Machine, slot: int, value: Any) -> None:
 
 _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     "TEMPC::activated": lambda m, s, v: m.kernel.set_selected(s, CompKind.TEMP, bool(v)),
-    "TEMPC::coefficient": _set_tempc("coefficient"),
-    "TEMPC::offset_0": _set_tempc("offset_0"),
-    "TEMPC::position_0": _set_tempc("position_0"),
+    **{o.name: _set_tempc(o.key_field) for o in load_dictionary().tempc_parameters()},
     "SIM::target_position": lambda m, s, v: _move(m, s, float(v)),
     "SIM::homed": _set_homed,
     "SIM::feed": lambda m, s, v: m.motion.feed.__setitem__(

@@ -37,16 +37,47 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
+from geo_server.dictionary import TYPES as _dictionary_types
+
 # ---------------------------------------------------------------------- constants
 
 AMS_TCP_HEADER = struct.Struct("<HI")
 AMS_HEADER = struct.Struct("<6sH6sHHHIII")
 AMS_TCP_HEADER_SIZE = AMS_TCP_HEADER.size  # 6
 AMS_HEADER_SIZE = AMS_HEADER.size  # 32
-#: Largest AMS/TCP length accepted (AMS header + ADS data). Beyond it the connection is
-#: closed: a client that sends such a length is broken or hostile, and resynchronising an
-#: AMS/TCP stream is impossible (there is no frame marker).
+#: Default AMS/TCP length limit of a `Framer` (AMS header + ADS data): a generous
+#: ceiling for what a *client* receives (answers, notification frames of many samples).
+#: Beyond it the connection is closed: a peer that sends such a length is broken or
+#: hostile, and resynchronising an AMS/TCP stream is impossible (there is no frame marker).
 MAX_FRAME = 1 << 20
+
+# The largest request a server needs to receive. Every byte a server buffers for an
+# unfinished frame is memory a client chose to make it hold, so the server accepts no
+# AMS/TCP length beyond what the largest legal request needs:
+#
+#   AMS header + ReadWrite head (IG, IO, read length, write length)
+#   + SUM_COMMAND_LIMIT x (sum sub-request head + the largest object)
+#
+# The largest request is a sum command (a ReadWrite to 0xF08x): TwinCAT serves at most
+# 500 sub-requests in one, each with a 12-byte (0xF080/0xF081/0xF083/0xF084: IG, IO,
+# length) or 16-byte (0xF082: IG, IO, read length, write length) head, and none writes
+# more than the largest ADS type of the object dictionary (STRING, 256 bytes). Every
+# other request is smaller (a Write carries one object after a 12-byte head). A sum
+# command of more, smaller sub-requests still fits as long as its bytes do.
+
+#: TwinCAT's documented limit of sub-requests in one ADS sum command.
+SUM_COMMAND_LIMIT = 500
+#: The largest value one (sub-)request carries: the largest ADS type of the dictionary.
+LARGEST_OBJECT = max(t.size for t in _dictionary_types.values())
+#: ReadWrite request head: IG, IO, read length, write length.
+READ_WRITE_HEAD = struct.calcsize("<IIII")
+#: The largest sum sub-request head (0xF082 read-write: IG, IO, read length, write length).
+SUM_SUB_HEAD = max(struct.calcsize("<III"), struct.calcsize("<IIII"))
+#: ADS data of the largest request a server accepts.
+MAX_REQUEST_DATA = READ_WRITE_HEAD + SUM_COMMAND_LIMIT * (SUM_SUB_HEAD + LARGEST_OBJECT)
+#: AMS/TCP length limit of a server's `Framer` (AMS header + the largest request data;
+#: 136 048 bytes, 136 054 with the AMS/TCP header). The ADS server's default `max_frame`.
+MAX_REQUEST_FRAME = AMS_HEADER_SIZE + MAX_REQUEST_DATA
 
 #: AMS/TCP header `reserved` values (jisotalo/ads-server `ads-commons.ts`): 0 carries an
 #: AMS packet, the others are router commands a stand-alone server does not implement.
@@ -327,22 +358,43 @@ class Framer:
     `feed(data)` accepts any slice of the TCP stream (one byte, half a header, three
     coalesced frames…) and returns the events it completed, in order. After a
     `FramingError` the framer is `failed` and ignores further input.
+
+    Memory: only the bytes of the one unfinished frame are kept, never more than the
+    `max_frame` its header may announce (a longer announcement fails at once, before its
+    data arrives). When everything fed so far is consumed the buffer is replaced by an
+    empty one, so a framer that once held a large frame does not keep its allocation;
+    `close()` releases it for good.
+
+    Time: the framer reads no clock, but `feed(data, now)` records in
+    `incomplete_since` the `now` at which the first byte of the frame still unfinished
+    arrived (None when nothing is buffered). The caller decides how long a frame may
+    stay unfinished; counting from its first byte means a client that trickles one byte
+    at a time cannot keep a buffer alive forever.
     """
 
     def __init__(self, max_frame: int = MAX_FRAME) -> None:
         self.max_frame = max_frame
         self._buf = bytearray()
         self.failed: str | None = None
+        self.incomplete_since: float | None = None
 
     @property
     def buffered(self) -> int:
         """Bytes waiting for the rest of their frame."""
         return len(self._buf)
 
-    def feed(self, data: bytes) -> list[FrameEvent]:
+    def close(self) -> None:
+        """Release the buffer (the connection is gone); later input is ignored."""
+        self._buf = bytearray()
+        self.incomplete_since = None
+        if self.failed is None:
+            self.failed = "closed"
+
+    def feed(self, data: bytes, now: float = 0.0) -> list[FrameEvent]:
         if self.failed is not None:
             return []
         buf = self._buf
+        started_here = not buf  # the unfinished frame (if any) begins in `data`
         buf += data
         events: list[FrameEvent] = []
         pos = 0
@@ -380,13 +432,22 @@ class Framer:
                 )
                 continue
             events.append(AmsPacket(header, bytes(buf[start + AMS_HEADER_SIZE : end])))
-        if pos:
-            del buf[:pos]
+        if pos == n:
+            # Everything consumed: start afresh rather than keep the grown allocation.
+            self._buf = bytearray()
+            self.incomplete_since = None
+        else:
+            if pos:
+                del buf[:pos]
+                started_here = True  # a frame completed here: the next one began in `data`
+            if started_here or self.incomplete_since is None:
+                self.incomplete_since = now
         return events
 
     def _fail(self, events: list[FrameEvent], reason: str) -> list[FrameEvent]:
         self.failed = reason
-        self._buf.clear()
+        self._buf = bytearray()
+        self.incomplete_since = None
         events.append(FramingError(reason))
         return events
 
@@ -858,7 +919,11 @@ def parse_sum_read_ex_response(data: bytes, count: int) -> list[tuple[int, bytes
 __all__ = [
     "AMS_HEADER_SIZE",
     "AMS_TCP_HEADER_SIZE",
+    "LARGEST_OBJECT",
     "MAX_FRAME",
+    "MAX_REQUEST_DATA",
+    "MAX_REQUEST_FRAME",
+    "SUM_COMMAND_LIMIT",
     "AddNotificationRequest",
     "AdsState",
     "AmsAddr",

@@ -5,8 +5,9 @@ delay and cycle time in 100 ns ticks — AdsLib `AdsNotificationAttrib`); the se
 sends DeviceNotification frames (command 8, no response) carrying stamps of samples
 (Beckhoff "ADS Device Notification"). Here:
 
-- samples are taken at **GEO cycle boundaries** from the published snapshot (SPEC §5
-  step 5), so every value a client sees is one the service reports at that cycle;
+- samples are taken at **GEO cycle boundaries** from the published snapshot (the last
+  step of a cycle, after the snapshot is complete), so every value a client sees is one
+  the service reports at that cycle;
 - the cycle time is rounded to a whole number of GEO cycles (at least 1), the
   interval: cyclic modes (CLIENTCYCLE, SERVERCYCLE, SERVERCYCLE2) send every interval,
   on-change modes (CLIENTONCHA, SERVERONCHA, SERVERONCHA2) check every interval and send
@@ -24,14 +25,33 @@ sends DeviceNotification frames (command 8, no response) carrying stamps of samp
   of wall time (`hold_until`) for the same reason;
 - samples are sent as soon as they are taken, which honours any max delay (the max delay
   is an upper bound for batching; there is nothing to batch within one GEO cycle beyond
-  what `sample` already groups);
+  what a sampling pass already groups);
 - every sample is exactly the registered length (zero-padded when the object is
   shorter): AdsLib drops the whole stamp when a sample size differs from the registered
   one (`AmsConnection.cpp ReceiveNotification`).
 
+Cost. Every operation costs what it touches, never what the whole table holds, so that
+thousands of registrations cannot stall the event loop that also answers Modbus, Zenoh
+and ADS requests:
+
+- registrations are indexed by handle and by owner (connection): `add` and `delete` are
+  O(1), `drop_owner` is O(registrations of that owner);
+- registrations wait in **buckets keyed by the cycle at which they are next due**; a
+  sampling pass takes only the buckets up to its cycle, so a cycle costs the due
+  registrations (on-change ones compare their bytes only then), not all of them;
+- within a pass every (index group, index offset, length) is read once from the
+  snapshot, however many registrations watch it;
+- a pass is **resumable** (`SamplingPass.step(limit)`): the server works through it in
+  slices of bounded duration and answers other requests in between. A slice that runs
+  later still samples the snapshot the pass began with, so every sample keeps the
+  values (and the server the timestamp) of the cycle it was due at;
+- the number of registrations is capped per owner and in total (0x716 NOMOREHDLS
+  beyond either), which bounds the work of one pass and the memory of the table.
+
 `NotificationTable` is driven by the server: `add`/`delete`/`drop_owner` from requests
-and disconnects, `sample(snapshot)` on the event loop with the newest snapshot (normally
-once per cycle; fewer when the loop falls behind, see `AdsServer._on_cycle_thread`).
+and disconnects, `begin(snapshot)` (or `sample(snapshot)`, a whole pass at once) on the
+event loop with the newest snapshot — normally once per cycle, fewer when the loop falls
+behind (see `AdsServer._on_cycle_thread`).
 """
 
 from __future__ import annotations
@@ -42,20 +62,30 @@ from dataclasses import dataclass, field
 
 from geo_server.ads.codec import AddNotificationRequest, AmsAddr, ReturnCode, Sample, TransMode
 from geo_server.dictionary import AdsError
-from geo_server.machine.snapshot import Snapshot
+from geo_server.snapshot import Snapshot
 
 #: Modes served; the client-side ones are served like their server-side twins.
 CYCLIC_MODES = frozenset({TransMode.CLIENTCYCLE, TransMode.SERVERCYCLE, TransMode.SERVERCYCLE2})
 ON_CHANGE_MODES = frozenset({TransMode.CLIENTONCHA, TransMode.SERVERONCHA, TransMode.SERVERONCHA2})
-#: Beckhoff recommends at most 550 notifications per device; refuse beyond this per client.
-MAX_PER_OWNER = 1024
+#: Registrations all connections together may hold (0x716 NOMOREHDLS beyond): Beckhoff's
+#: recommended maximum for one ADS device, which is also what sampling on one event loop
+#: sustains at a 1 ms GEO cycle (the measurements are in `AdsOptions`).
+MAX_TOTAL = 550
+#: Registrations one connection may hold (0x716 beyond): half the total, so that one
+#: client cannot take every handle and at least two clients get their maximum. (The
+#: default machine has 136 readable values: one client can watch each twice over.)
+MAX_PER_OWNER = MAX_TOTAL // 2
 #: Largest registered length (0x717 INVALIDWATCHSIZE beyond).
 MAX_WATCH_SIZE = 64 * 1024
 
 Reader = Callable[[int, int, int, Snapshot], bytes]
+#: Given (IG, IO, length, snapshot): check the address by reading it (raising AdsError like
+#: a read would) and return a getter of its bytes in any later snapshot. Lets a server do
+#: the address resolution once per registration instead of once per sample.
+Preparer = Callable[[int, int, int, Snapshot], Callable[[Snapshot], bytes]]
 
 
-@dataclass
+@dataclass(eq=False, slots=True)
 class Registration:
     """One notification handle."""
 
@@ -73,15 +103,35 @@ class Registration:
     last_cycle: int  # cycle of the last sample or check (at first: of the registration)
     last: bytes | None = None  # None until the first sample was sent
     hold_until: float = 0.0  # no sample before this `now` (monotonic seconds)
+    on_change: bool = field(init=False)
+    #: The bucket (cycle) the registration waits in; None while a pass holds it.
+    slot: int | None = field(default=None, init=False)
+    alive: bool = field(default=True, init=False)  # False once deleted
+    key: tuple[int, int, int] = field(init=False)  # what is read: (IG, IO, length)
+    getter: Callable[[Snapshot], bytes] = field(init=False)  # its bytes in a snapshot
+    #: Samples for equal routes go into one frame; flat, so that hashing it is cheap.
+    route: tuple[Hashable, str, int, str, int] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.on_change = self.trans_mode in ON_CHANGE_MODES
+        self.key = (self.index_group, self.index_offset, self.length)
+        self.route = (
+            self.owner,
+            self.client.netid,
+            self.client.port,
+            self.server.netid,
+            self.server.port,
+        )
 
     @property
-    def on_change(self) -> bool:
-        return self.trans_mode in ON_CHANGE_MODES
+    def due(self) -> int:
+        """The cycle at which the next sample (or on-change check) is due."""
+        return self.last_cycle + (self.interval if self.last is not None else 1)
 
 
 @dataclass
 class Batch:
-    """Samples of one cycle for one (connection, client, server) route: one frame."""
+    """Samples of one pass for one (connection, client, server) route: one frame."""
 
     owner: Hashable
     client: AmsAddr
@@ -102,14 +152,126 @@ def cycles_for(cycle_time_ticks: int, cycle_s: float) -> int:
     return max(1, (cycle_time_ticks * 100 + period_ns // 2) // period_ns)
 
 
-class NotificationTable:
-    """All registrations of one server, keyed by handle (unique per server)."""
+_FAILED = b""  # cache marker: reading the address raised (a sample is never empty)
 
-    def __init__(self, read: Reader, cycle_s: float, max_per_owner: int = MAX_PER_OWNER) -> None:
+
+class SamplingPass:
+    """The registrations due at one snapshot, worked through in resumable steps.
+
+    Made by `NotificationTable.begin`. `step(limit)` samples up to `limit` of them (all
+    when None) and returns how many it looked at; `take()` hands out the batches
+    collected so far (one per route, so a slice of many steps still sends one frame per
+    connection). A registration deleted before its turn is skipped.
+    """
+
+    def __init__(
+        self, table: NotificationTable, snapshot: Snapshot, now: float, due: list[Registration]
+    ) -> None:
+        self.table = table
+        self.snapshot = snapshot
+        self.cycle = snapshot.cycle
+        self.now = now
+        self._due = due
+        self._pos = 0
+        self._cache: dict[tuple[int, int, int], bytes] = {}
+        self._batches: dict[tuple[Hashable, str, int, str, int], Batch] = {}
+
+    @property
+    def done(self) -> bool:
+        return self._pos >= len(self._due)
+
+    @property
+    def remaining(self) -> int:
+        return len(self._due) - self._pos
+
+    def step(self, limit: int | None = None) -> int:
+        start = self._pos
+        end = len(self._due) if limit is None else min(len(self._due), start + limit)
+        self._pos = end
+        cycle, now, cache, batches = self.cycle, self.now, self._cache, self._batches
+        table = self.table
+        schedule = table._schedule
+        buckets = table._buckets
+        swept = table._swept if table._swept is not None else cycle
+        # the bucket used last (the same for every registration of the same interval)
+        last_nxt = -1
+        bucket: dict[int, Registration] = {}
+        for reg in self._due[start:end]:
+            if not reg.alive:
+                continue
+            if now < reg.hold_until:
+                schedule(reg, cycle + 1)  # checked again at the next pass
+                continue
+            reg.last_cycle = cycle
+            key = reg.key
+            data = cache.get(key)
+            if data is None:
+                try:
+                    data = reg.getter(self.snapshot).ljust(reg.length, b"\0")
+                except Exception:  # the object vanished (cannot happen today: reload keeps
+                    data = _FAILED  # axes); whatever the reader raised, the pass goes on
+                cache[key] = data
+            if not data:  # _FAILED
+                schedule(reg, reg.due)
+                continue
+            # Next sample or check one interval on (inlined `_schedule`: a pass runs at
+            # the newest swept cycle, so that bucket has not been taken yet).
+            nxt = cycle + reg.interval
+            if nxt <= swept:  # a newer pass began meanwhile
+                schedule(reg, nxt)
+            else:
+                if nxt != last_nxt:
+                    last_nxt = nxt
+                    found = buckets.get(nxt)
+                    if found is None:
+                        found = buckets[nxt] = {}
+                    bucket = found
+                bucket[reg.handle] = reg
+                reg.slot = nxt
+            if reg.on_change and data == reg.last:
+                continue
+            reg.last = data
+            route = reg.route
+            batch = batches.get(route)
+            if batch is None:
+                batch = batches[route] = Batch(reg.owner, reg.client, reg.server)
+            batch.samples.append(Sample(reg.handle, data))
+        return end - start
+
+    def take(self) -> list[Batch]:
+        """The batches collected since the last `take` (and forget them)."""
+        out = list(self._batches.values())
+        self._batches = {}
+        return out
+
+
+class NotificationTable:
+    """All registrations of one server, keyed by handle (unique per server).
+
+    `max_per_owner` and `max_total` cap the registrations of one owner and of all of
+    them (AdsError 0x716 NOMOREHDLS beyond either).
+    """
+
+    def __init__(
+        self,
+        read: Reader,
+        cycle_s: float,
+        max_per_owner: int = MAX_PER_OWNER,
+        max_total: int = MAX_TOTAL,
+        prepare: Preparer | None = None,
+    ) -> None:
         self._read = read
+        self._prepare = prepare
         self.cycle_s = cycle_s
         self.max_per_owner = max_per_owner
+        self.max_total = max_total
         self._regs: dict[int, Registration] = {}
+        self._by_owner: dict[Hashable, dict[int, Registration]] = {}
+        #: cycle -> the registrations due then (insertion ordered, O(1) removal)
+        self._buckets: dict[int, dict[int, Registration]] = {}
+        #: the newest cycle a pass began at: every bucket up to it has been taken
+        self._swept: int | None = None
+        self._active: SamplingPass | None = None  # the pass begun last
         self._handles = itertools.count(1)
 
     def __len__(self) -> int:
@@ -122,10 +284,25 @@ class NotificationTable:
         return self._regs.get(handle)
 
     def owned_by(self, owner: Hashable) -> list[Registration]:
-        return [r for r in self._regs.values() if r.owner == owner]
+        return list(self._by_owner.get(owner, {}).values())
 
-    def _value(self, ig: int, io: int, length: int, snap: Snapshot) -> bytes:
-        return self._read(ig, io, length, snap).ljust(length, b"\0")
+    def count_of(self, owner: Hashable) -> int:
+        return len(self._by_owner.get(owner, ()))
+
+    @property
+    def waiting(self) -> int:
+        """Cycles with registrations waiting in them (for tests and statistics)."""
+        return len(self._buckets)
+
+    def _getter(self, ig: int, io: int, length: int, snap: Snapshot) -> Callable[[Snapshot], bytes]:
+        """Check the address by reading it from `snap`; a getter for later snapshots."""
+        if self._prepare is not None:
+            return self._prepare(ig, io, length, snap)
+        read = self._read
+        read(ig, io, length, snap)
+        return lambda later: read(ig, io, length, later)
+
+    # ------------------------------------------------------------------ registrations
 
     def add(
         self,
@@ -139,7 +316,8 @@ class NotificationTable:
         """Register (the address is checked by reading it from `snapshot`).
 
         AdsError: 0x713 unsupported mode, 0x705 zero length, 0x717 too long, 0x716 too
-        many handles, and whatever reading the address raises (0x702/0x703/0x705).
+        many handles (of this owner or in total), and whatever reading the address
+        raises (0x702/0x703/0x705).
         """
         if req.trans_mode not in CYCLIC_MODES and req.trans_mode not in ON_CHANGE_MODES:
             raise AdsError(
@@ -154,12 +332,18 @@ class NotificationTable:
                 ReturnCode.DEVICE_INVALIDWATCHSIZE,
                 f"notification length {req.length} > {MAX_WATCH_SIZE}",
             )
-        if sum(1 for r in self._regs.values() if r.owner == owner) >= self.max_per_owner:
+        own = self._by_owner.get(owner)
+        if own is not None and len(own) >= self.max_per_owner:
             raise AdsError(
                 ReturnCode.DEVICE_NOMOREHDLS,
                 f"more than {self.max_per_owner} notifications on one connection",
             )
-        self._value(req.index_group, req.index_offset, req.length, snapshot)
+        if len(self._regs) >= self.max_total:
+            raise AdsError(
+                ReturnCode.DEVICE_NOMOREHDLS,
+                f"more than {self.max_total} notifications on this server",
+            )
+        getter = self._getter(req.index_group, req.index_offset, req.length, snapshot)
         reg = Registration(
             handle=next(self._handles),
             owner=owner,
@@ -175,7 +359,12 @@ class NotificationTable:
             last_cycle=snapshot.cycle,
             hold_until=hold_until,
         )
+        reg.getter = getter
         self._regs[reg.handle] = reg
+        if own is None:
+            own = self._by_owner[owner] = {}
+        own[reg.handle] = reg
+        self._schedule(reg, reg.due)
         return reg
 
     def delete(self, owner: Hashable, handle: int) -> None:
@@ -185,38 +374,80 @@ class NotificationTable:
             raise AdsError(
                 ReturnCode.DEVICE_NOTIFYHNDINVALID, f"notification handle {handle} is unknown"
             )
-        del self._regs[handle]
+        own = self._by_owner[owner]
+        del own[handle]
+        if not own:
+            del self._by_owner[owner]
+        self._forget(reg)
 
     def drop_owner(self, owner: Hashable) -> int:
         """Forget every registration of a connection (it disconnected)."""
-        gone = [h for h, r in self._regs.items() if r.owner == owner]
-        for h in gone:
-            del self._regs[h]
-        return len(gone)
+        own = self._by_owner.pop(owner, None)
+        if not own:
+            return 0
+        for reg in own.values():
+            self._forget(reg)
+        return len(own)
+
+    def _forget(self, reg: Registration) -> None:
+        del self._regs[reg.handle]
+        reg.alive = False
+        if reg.slot is not None:
+            bucket = self._buckets.get(reg.slot)
+            if bucket is not None:
+                bucket.pop(reg.handle, None)
+                if not bucket:
+                    del self._buckets[reg.slot]
+            reg.slot = None
+
+    def _schedule(self, reg: Registration, cycle: int) -> None:
+        """Put `reg` in the bucket of `cycle` — or of the next cycle no pass has begun at
+        yet, when `cycle` has been swept already (it is then due at the next pass: late,
+        never lost)."""
+        if self._swept is not None and cycle <= self._swept:
+            cycle = self._swept + 1
+        bucket = self._buckets.get(cycle)
+        if bucket is None:
+            bucket = self._buckets[cycle] = {}
+        bucket[reg.handle] = reg
+        reg.slot = cycle
+
+    # ------------------------------------------------------------------ sampling
+
+    def begin(self, snapshot: Snapshot, now: float = 0.0) -> SamplingPass:
+        """A pass over the registrations due at `snapshot` (their bucket's cycle is at or
+        before `snapshot.cycle`; a snapshot not newer than the last pass has nothing due).
+        Registrations an unfinished earlier pass has not reached yet move to this one.
+
+        Costs the number of due registrations, plus the number of cycles skipped since
+        the last pass or of waiting buckets, whichever is smaller.
+        """
+        cycle = snapshot.cycle
+        due: list[Registration] = []
+        previous = self._active
+        if previous is not None and not previous.done:
+            # An unfinished pass is superseded: what it had not sampled yet is due now.
+            due.extend(previous._due[previous._pos :])
+            previous._pos = len(previous._due)
+        swept = self._swept
+        if swept is None or cycle > swept:
+            buckets = self._buckets
+            if swept is not None and cycle - swept <= len(buckets):
+                cycles = range(swept + 1, cycle + 1)
+            else:
+                cycles = sorted(c for c in buckets if c <= cycle)  # type: ignore[assignment]
+            for c in cycles:
+                bucket = buckets.pop(c, None)
+                if bucket:
+                    due.extend(bucket.values())
+            for reg in due:
+                reg.slot = None
+            self._swept = cycle
+        self._active = SamplingPass(self, snapshot, now, due)
+        return self._active
 
     def sample(self, snapshot: Snapshot, now: float = 0.0) -> list[Batch]:
-        """Samples due at this cycle, grouped into one batch per route."""
-        batches: dict[tuple[Hashable, AmsAddr, AmsAddr], Batch] = {}
-        cycle = snapshot.cycle
-        for reg in list(self._regs.values()):
-            # The first sample is due at the first cycle after the registration, every
-            # later one (or on-change check) a whole interval after the previous one.
-            # `>=` rather than `==` or a phase modulo: the loop may hand us a later
-            # snapshot than the due cycle, and a sample is then late, never lost.
-            wait = reg.interval if reg.last is not None else 1
-            if cycle - reg.last_cycle < wait or now < reg.hold_until:
-                continue
-            reg.last_cycle = cycle
-            try:
-                data = self._value(reg.index_group, reg.index_offset, reg.length, snapshot)
-            except AdsError:
-                continue  # the object vanished (cannot happen today: reload keeps axes)
-            if reg.on_change and data == reg.last:
-                continue
-            reg.last = data
-            key = (reg.owner, reg.client, reg.server)
-            batch = batches.get(key)
-            if batch is None:
-                batch = batches[key] = Batch(reg.owner, reg.client, reg.server)
-            batch.samples.append(Sample(reg.handle, data))
-        return list(batches.values())
+        """Samples due at this cycle, grouped into one batch per route (a whole pass)."""
+        p = self.begin(snapshot, now)
+        p.step()
+        return p.take()

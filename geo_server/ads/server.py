@@ -16,8 +16,12 @@ header with an empty payload — AdsLib returns a non-zero AMS header error code
 
 Robustness: partial and coalesced TCP segments are reassembled; a frame that is too short
 or inconsistent is answered (0xE invalid AMS length) or skipped; only an AMS/TCP length
-beyond `max_frame` or an unknown AMS/TCP header kind closes that connection. A failing
-handler answers 0x700 and is logged; other connections are never affected.
+beyond `max_frame` (the largest legal request) or an unknown AMS/TCP header kind closes
+that connection. A failing handler answers 0x700 and is logged; other connections are
+never affected. What clients can make the server hold is bounded: `max_connections`
+(one more is closed at once), `max_frame` per unfinished frame, which must complete within
+`incomplete_frame_timeout`, and `max_notifications` per connection / in total; notification
+sampling yields the event loop after `sample_budget` seconds.
 """
 
 from __future__ import annotations
@@ -54,7 +58,13 @@ from geo_server.ads.codec import (
     WriteControlRequest,
     WriteRequest,
 )
-from geo_server.ads.notifications import Batch, NotificationTable
+from geo_server.ads.notifications import (
+    MAX_PER_OWNER,
+    MAX_TOTAL,
+    Batch,
+    NotificationTable,
+    SamplingPass,
+)
 from geo_server.dictionary import AdsError
 from geo_server.machine.snapshot import Snapshot
 from geo_server.service import ObjectService
@@ -62,6 +72,8 @@ from geo_server.service import ObjectService
 log = logging.getLogger(__name__)
 
 GEO_AMS_PORT = 551
+#: Registrations sampled between two looks at the clock (keeps the budget check cheap).
+_SAMPLE_STEP = 32
 #: Objects whose write runs a command synchronously (list reload/save): run off the loop.
 _BLOCKING_WRITES = frozenset({"SIM::reload", "SIM::save"})
 
@@ -79,9 +91,38 @@ class AdsOptions:
     #: found). Off by default: a stand-alone server answers whatever NetId the client
     #: routed to it, and notifications echo that NetId so AdsLib dispatches them.
     strict_netid: bool = False
-    max_frame: int = codec.MAX_FRAME
+    #: Largest AMS/TCP length accepted: what the largest legal request needs (a sum
+    #: command of 500 sub-requests each carrying the largest object, see
+    #: `codec.MAX_REQUEST_FRAME`). A frame header announcing more closes the connection
+    #: before its data is buffered. Answers are held to the same size.
+    max_frame: int = codec.MAX_REQUEST_FRAME
     write_timeout: float = 2.0  # waiting for a write to be applied (running cycles)
-    max_notifications: int = 1024  # per connection
+    #: Notifications one connection may register (0x716 NOMOREHDLS beyond): half of
+    #: `max_notifications_total`, so one client cannot take every handle.
+    max_notifications: int = MAX_PER_OWNER
+    #: Notifications all connections together may register (0x716 beyond): 550, Beckhoff's
+    #: recommended maximum per ADS device. Sampling runs on the event loop that answers
+    #: every transport, and this is about what it sustains at a 1 ms GEO cycle. Measured
+    #: on 2 cores (bench/ads_abuse.py and a sampling micro-benchmark), with every
+    #: registration due every cycle at distinct addresses: on change (the pyads default)
+    #: 0.3 ms of sampling per cycle alone and about 0.5 ms inside the running server,
+    #: i.e. half the loop, while Modbus, Zenoh and ADS reads stay within a few ms at p99;
+    #: cyclic, every one sending every cycle, 0.65 ms alone. Twice as many (1100) took
+    #: 0.45 / 0.7 ms on change and 1.2 ms cyclic: the loop no longer sampled every cycle.
+    max_notifications_total: int = MAX_TOTAL
+    #: Longest stretch of notification sampling in one event-loop callback (seconds);
+    #: a longer pass continues in a later loop iteration, so requests of every transport
+    #: are answered in between. A late slice still sends the values and timestamp of the
+    #: cycle its samples were due at.
+    sample_budget: float = 0.002
+    #: Simultaneous ADS connections; one beyond is closed at once (counted in
+    #: `AdsStats.refused_connections`). With `max_frame` it bounds the memory clients can
+    #: make the server hold for unfinished frames to about 17 MiB.
+    max_connections: int = 128
+    #: A frame still unfinished this many seconds after its first byte arrived closes the
+    #: connection (counted in `AdsStats.closed_incomplete`): a client that stopped in the
+    #: middle of a frame must not keep its buffer alive. 0 disables the check.
+    incomplete_frame_timeout: float = 5.0
     #: Notification frames are dropped (and counted) for a client whose unsent data
     #: exceeds this: a stalled client must not make the server buffer without bound.
     notification_backlog: int = 4 * 1024 * 1024
@@ -102,7 +143,11 @@ class AdsStats:
     closed_for_framing: int = 0
     notifications_sent: int = 0
     notifications_dropped: int = 0
-    connections: int = 0
+    connections: int = 0  # accepted
+    refused_connections: int = 0  # closed at once: `max_connections` were open
+    closed_incomplete: int = 0  # a frame stayed unfinished past `incomplete_frame_timeout`
+    sampling_passes: int = 0  # notification sampling passes begun
+    sampling_slices: int = 0  # passes continued in a later loop iteration (over budget)
 
 
 def _version() -> tuple[int, int, int]:
@@ -142,7 +187,11 @@ class AdsServer:
         self.stats = AdsStats()
         cycle_s = float(getattr(service.machine, "cycle_s", 0.001))
         self.notifications = NotificationTable(
-            self._read_padded, cycle_s, self.options.max_notifications
+            self._read_padded,
+            cycle_s,
+            self.options.max_notifications,
+            self.options.max_notifications_total,
+            prepare=self._notification_getter,
         )
         self._server: asyncio.AbstractServer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -152,6 +201,10 @@ class AdsServer:
         # Cycle thread -> loop hand-off of the newest snapshot (see `_on_cycle_thread`).
         self._latest: tuple[Snapshot, int] | None = None
         self._handoff_pending = False
+        # The sampling pass under way (with its FILETIME) and what it was begun from.
+        self._pass: tuple[SamplingPass, int] | None = None
+        self._pass_from: tuple[Snapshot, int] | None = None
+        self._slice_pending = False
         self._major, self._minor, self._build = _version()
 
     # ------------------------------------------------------------------ lifecycle
@@ -175,6 +228,7 @@ class AdsServer:
             self._server.close()
         for conn in list(self._connections):
             conn.abort()
+        self._pass = self._pass_from = self._latest = None
         if self._server is not None:
             await self._server.wait_closed()
             self._server = None
@@ -501,6 +555,18 @@ class AdsServer:
         )
         return codec.add_notification_response(0, reg.handle)
 
+    def _notification_getter(
+        self, ig: int, io: int, length: int, snap: Snapshot
+    ) -> Callable[[Snapshot], bytes]:
+        """Check a notification's address by reading it (0x702…0x705 as a Read answers)
+        and resolve it once: sampling then only encodes the value of each snapshot (an
+        attribute is a constant)."""
+        data = self.service.read(ig, io, length, snap)
+        obj, axis, attr = self.service.resolve(ig, io)
+        if attr is not None:
+            return lambda _snap: data
+        return lambda later: later.encode(obj, axis)
+
     def _on_cycle_thread(self, snap: Snapshot) -> None:
         """GEO cycle thread: hand the newest snapshot to the loop, when someone listens.
 
@@ -509,7 +575,7 @@ class AdsServer:
         callbacks whenever the loop is busy, and each of them would sample a snapshot
         that is already stale. Instead the cycle thread stores the newest snapshot and
         queues `_on_cycle` only when none is pending; `_on_cycle` samples whatever is
-        newest then. Sampling counts intervals in cycles (`NotificationTable.sample`),
+        newest then. Sampling counts intervals in cycles (`NotificationTable.begin`),
         so a snapshot the loop never saw delays a sample, it does not lose one.
         """
         if not len(self.notifications):
@@ -533,12 +599,51 @@ class AdsServer:
     def _on_cycle(self) -> None:
         """Event loop: sample the newest snapshot the cycle thread handed over."""
         self._handoff_pending = False
-        latest = self._latest
-        if latest is None:
-            return
-        snap, filetime = latest
-        for batch in self.notifications.sample(snap, time.monotonic()):
+        self._sample()
+
+    def _sample_slice(self) -> None:
+        """Event loop: continue sampling in a later iteration (see `_sample`)."""
+        self._slice_pending = False
+        self._sample()
+
+    def _sample(self) -> None:
+        """Work on the sampling pass for at most `sample_budget` seconds.
+
+        A pass covers the registrations due at one snapshot; it is begun from the newest
+        snapshot when none is under way. When the budget runs out (thousands of due
+        registrations) the rest waits for `_sample_slice`, queued with `call_soon`: the
+        loop first answers the requests that arrived meanwhile on every transport. The
+        rest of the pass still samples its own snapshot and carries its timestamp —
+        values the client sees are those of the cycle they were due at, only later.
+        After a pass, a snapshot that arrived meanwhile is begun in a later iteration.
+        """
+        if self._pass is None:
+            latest = self._latest
+            if latest is None or latest is self._pass_from:
+                return  # nothing new (a hand-off raced with a slice)
+            snap, filetime = latest
+            self._pass = (self.notifications.begin(snap, time.monotonic()), filetime)
+            self._pass_from = latest
+            self.stats.sampling_passes += 1
+        samples, filetime = self._pass
+        deadline = time.perf_counter() + self.options.sample_budget
+        while not samples.done:
+            samples.step(_SAMPLE_STEP)
+            if time.perf_counter() >= deadline:
+                break
+        for batch in samples.take():
             self._send_batch(batch, filetime)
+        if samples.done:
+            self._pass = None
+            more = self._latest is not None and self._latest is not self._pass_from
+        else:
+            self.stats.sampling_slices += 1
+            more = True
+        if more and not self._slice_pending and not self._handoff_pending:
+            loop = self._loop
+            if loop is not None and not loop.is_closed():
+                self._slice_pending = True
+                loop.call_soon(self._sample_slice)
 
     def _send_batch(self, batch: Batch, filetime: int) -> None:
         conn = batch.owner
@@ -555,9 +660,15 @@ class AdsServer:
 
     # ------------------------------------------------------------------ connections
 
-    def _connected(self, conn: AdsConnection) -> None:
+    def _connected(self, conn: AdsConnection) -> bool:
+        """Admit `conn` unless `max_connections` are open already (then False: the
+        connection closes at once, before it can make the server buffer anything)."""
+        if len(self._connections) >= self.options.max_connections:
+            self.stats.refused_connections += 1
+            return False
         self._connections.add(conn)
         self.stats.connections += 1
+        return True
 
     def _disconnected(self, conn: AdsConnection) -> None:
         self._connections.discard(conn)
@@ -572,8 +683,20 @@ _SUM_GROUPS = frozenset(int(g) for g in SumGroup) - {
 }
 
 
+def _log_rarely(count: int, msg: str, *args: object) -> None:
+    """A warning for the 1st, 2nd, 4th, 8th… occurrence, debug otherwise: a flood of
+    hostile connections must not turn into a flood of log lines."""
+    log.log(logging.WARNING if count & (count - 1) == 0 else logging.DEBUG, msg, *args)
+
+
 class AdsConnection(asyncio.Protocol):
-    """One TCP client: framing in, responses and notifications out."""
+    """One TCP client: framing in, responses and notifications out.
+
+    A frame that stays unfinished for `incomplete_frame_timeout` seconds after its first
+    byte (the framer's `incomplete_since`, on the loop's clock) closes the connection:
+    one timer per connection, armed when an unfinished frame begins and cancelled when
+    it completes.
+    """
 
     def __init__(self, server: AdsServer) -> None:
         self.server = server
@@ -581,12 +704,12 @@ class AdsConnection(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.peer: Any = None
         self._tasks: set[asyncio.Task] = set()
+        self._admitted = False
+        self._frame_timer: asyncio.TimerHandle | None = None
+        self._frame_timer_since: float | None = None
 
-    def __hash__(self) -> int:
-        return id(self)
-
-    def __eq__(self, other: object) -> bool:
-        return self is other
+    # (Equality and hash are object identity, the C defaults: a connection is a key of
+    # the notification table and of every sampled route, looked up per sample.)
 
     # asyncio callbacks
 
@@ -594,16 +717,32 @@ class AdsConnection(asyncio.Protocol):
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
         self.peer = transport.get_extra_info("peername")
-        self.server._connected(self)
+        self._admitted = self.server._connected(self)
+        if not self._admitted:
+            refused = self.server.stats.refused_connections
+            _log_rarely(
+                refused,
+                "ADS refusing %s: %d connections open (%d refused so far)",
+                self.peer,
+                self.server.connection_count,
+                refused,
+            )
+            self.framer.close()
+            transport.abort()  # nothing was sent to it; free the socket at once
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.server._disconnected(self)
+        if self._admitted:
+            self.server._disconnected(self)
         for t in list(self._tasks):
             t.cancel()
+        self._cancel_frame_timer()
+        self.framer.close()  # release an unfinished frame's buffer now
         self.transport = None
 
     def data_received(self, data: bytes) -> None:
-        for ev in self.framer.feed(data):
+        loop = self.server._loop
+        now = loop.time() if loop is not None else 0.0
+        for ev in self.framer.feed(data, now):
             if isinstance(ev, AmsPacket):
                 self.server.handle_packet(self, ev)
             elif isinstance(ev, BadPacket):
@@ -617,9 +756,50 @@ class AdsConnection(asyncio.Protocol):
             elif isinstance(ev, FramingError):
                 self.server.stats.closed_for_framing += 1
                 log.warning("ADS closing %s: %s", self.peer, ev.reason)
+                self._cancel_frame_timer()
                 if self.transport is not None:
                     self.transport.close()  # flushes the answers already queued
                 return
+        self._arm_frame_timer()
+
+    def _arm_frame_timer(self) -> None:
+        """Keep the timer in step with the unfinished frame (if any) after a feed."""
+        since = self.framer.incomplete_since
+        timeout = self.server.options.incomplete_frame_timeout
+        if since is None or timeout <= 0:
+            self._cancel_frame_timer()
+            return
+        if self._frame_timer is not None and self._frame_timer_since == since:
+            return  # the same frame is still arriving: its deadline stands
+        self._cancel_frame_timer()
+        loop = self.server._loop
+        if loop is None:
+            return
+        self._frame_timer = loop.call_at(since + timeout, self._frame_timed_out)
+        self._frame_timer_since = since
+
+    def _cancel_frame_timer(self) -> None:
+        if self._frame_timer is not None:
+            self._frame_timer.cancel()
+        self._frame_timer = None
+        self._frame_timer_since = None
+
+    def _frame_timed_out(self) -> None:
+        self._frame_timer = None
+        if self.transport is None or self.framer.incomplete_since is None:
+            return
+        self.server.stats.closed_incomplete += 1
+        _log_rarely(
+            self.server.stats.closed_incomplete,
+            "ADS closing %s: a frame stayed unfinished for %g s (%d bytes buffered)",
+            self.peer,
+            self.server.options.incomplete_frame_timeout,
+            self.framer.buffered,
+        )
+        self.framer.close()
+        # abort, not close: a client that stalls mid-frame may not read either, and a
+        # graceful close would wait for its unread answers.
+        self.transport.abort()
 
     def pause_writing(self) -> None:
         # The client does not read its answers: stop reading its requests meanwhile.

@@ -1,0 +1,98 @@
+"""Notification sampling yields the event loop (reliability issue, item 6).
+
+A sampling pass that would take longer than `AdsOptions.sample_budget` continues in a
+later loop iteration, so whatever else is queued on the loop (requests of every
+transport) runs in between; the rest of the pass still sends the values and the
+timestamp of the cycle it was due at. With a budget of 0 every slice is one small step,
+which makes the interleaving deterministic: a coroutine queued behind the cycle's
+hand-off runs after the first slice. The machine is stepped by the test.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+import time
+from collections import defaultdict
+
+import pytest
+from conftest import run_in
+
+from geo_server.ads import codec
+from geo_server.ads.codec import AmsAddr, AmsPacket, Command, Framer, TransMode
+from geo_server.ads.server import AdsOptions, AdsServer
+from geo_server.dictionary import load_dictionary
+
+TIMEOUT = 5.0
+SIM = 0x12F300
+CYCLE_COUNT_IO = load_dictionary().by_name("SIM::cycle_count").id  # machine object, axis 0
+SERVER = AmsAddr("127.0.0.1.1.1", 551)
+CLIENT = AmsAddr("10.5.5.5.1.1", 32100)
+N = 100  # registrations: several slices of the sampling pass
+
+
+@pytest.fixture
+def ads(loop_thread, service):
+    srv = AdsServer(service, AdsOptions(port=0, sample_budget=0.0))
+    run_in(loop_thread, srv.start())
+    yield srv
+    run_in(loop_thread, srv.close())
+
+
+def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_thread) -> None:
+    sock = socket.create_connection(("127.0.0.1", ads.port), timeout=TIMEOUT)
+    framer = Framer()
+    try:
+        add = codec.add_notification_request(SIM, CYCLE_COUNT_IO, 4, TransMode.SERVERCYCLE, 0, 1)
+        sock.sendall(
+            b"".join(
+                codec.request_frame(SERVER, CLIENT, Command.ADD_DEVICE_NOTIFICATION, add, i)
+                for i in range(N)
+            )
+        )
+        handles = []
+        while len(handles) < N:
+            for ev in framer.feed(sock.recv(65536)):
+                assert isinstance(ev, AmsPacket)
+                code, handle = codec.parse_add_notification_response(ev.data)
+                assert code == 0
+                handles.append(handle)
+        c1 = service.step(1).cycle  # every registration is due now: one hand-off queued
+        seen: dict = {}
+
+        async def probe() -> None:
+            # queued behind the hand-off: runs once its first slice has yielded
+            seen["pass_unfinished"] = ads._pass is not None
+            seen["sent"] = ads.stats.notifications_sent
+            seen["c6"] = service.step(5).cycle  # the cycle moves on meanwhile
+
+        run_in(loop_thread, probe())
+        assert seen["pass_unfinished"], "the whole pass ran in one loop callback"
+        assert 0 < seen["sent"] < N
+
+        # all N samples of the first pass carry cycle c1's value and one timestamp; the
+        # next pass samples the newest snapshot (c1 + 5): late, never lost
+        by_value: dict[int, list[tuple[int, int]]] = defaultdict(list)
+        deadline = time.monotonic() + TIMEOUT
+        while sum(len(v) for v in by_value.values()) < 2 * N and time.monotonic() < deadline:
+            for ev in framer.feed(sock.recv(65536)):
+                assert isinstance(ev, AmsPacket)
+                assert ev.header.command == Command.DEVICE_NOTIFICATION
+                for stamp in codec.parse_device_notification(ev.data):
+                    for s in stamp.samples:
+                        (value,) = struct.unpack("<I", s.data)
+                        by_value[value].append((s.handle, stamp.timestamp))
+        assert sorted(by_value) == [c1, seen["c6"]]
+        for value in by_value:
+            samples = by_value[value]
+            assert sorted(h for h, _ts in samples) == sorted(handles)  # once per handle
+            assert len({ts for _h, ts in samples}) == 1  # the cycle's timestamp
+        assert by_value[c1][0][1] <= by_value[seen["c6"]][0][1]
+        assert ads.stats.sampling_slices >= 2
+        run_in(loop_thread, asyncio.sleep(0.05))
+        sock.settimeout(0.2)
+        with pytest.raises(TimeoutError):
+            sock.recv(65536)  # nothing more: no cycle was sampled twice
+    finally:
+        sock.close()

@@ -172,3 +172,55 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
             assert s.recv(64)[7:9] == b"\x03\x08"
     finally:
         run_in(loop_thread, iface.close())
+
+
+def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, loop_thread):
+    import pyads
+
+    from geo_server.ads.server import AdsOptions, AdsServer
+
+    m = slow_to_notice
+    ads = AdsServer(m.service, AdsOptions(port=0, netid="127.0.0.1.1.1", write_timeout=0.5))
+    run_in(loop_thread, ads.start())
+    conn = pyads.Connection("127.91.0.1.1.1", 551, ads.address)
+    conn.open()
+    try:
+        before = conn.read(0x120300, 0x30043, pyads.PLCTYPE_LREAL)
+        m.stop_cycle()
+        with pytest.raises(pyads.ADSError) as err:
+            conn.write(0x120300, 0x30043, before + 5.0, pyads.PLCTYPE_LREAL)
+        assert err.value.err_code == AdsErrorCode.TIMEOUT
+        m.resume_cycle()
+        resumed = m.machine.cycle
+        wait_for(lambda: m.machine.cycle > resumed + 200)
+        assert conn.read(0x120300, 0x30043, pyads.PLCTYPE_LREAL) == before
+    finally:
+        conn.close()
+        run_in(loop_thread, ads.close())
+
+
+def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thread):
+    import pyads
+
+    from geo_server.ads.server import AdsOptions, AdsServer
+
+    m = quick_to_notice
+    ads = AdsServer(m.service, AdsOptions(port=0, netid="127.0.0.1.1.1"))
+    run_in(loop_thread, ads.start())
+    conn = pyads.Connection("127.91.0.2.1.1", 551, ads.address)
+    conn.open()
+    try:
+        assert conn.read(0x120300, 0x10043, pyads.PLCTYPE_LREAL) == 4000.0
+        m.stop_cycle()
+        wait_for(lambda: m.service.status()["stalled"])
+        with pytest.raises(pyads.ADSError) as err:
+            conn.read(0x120300, 0x10043, pyads.PLCTYPE_LREAL)
+        assert err.value.err_code == AdsErrorCode.DEVICE_NOT_READY
+        # attributes are constants of the dictionary: still answered
+        assert conn.read(0x120600, 0x10043, pyads.PLCTYPE_UDINT) == 8  # length
+        m.resume_cycle()
+        wait_for(lambda: not m.service.status()["stalled"])
+        assert conn.read(0x120300, 0x10043, pyads.PLCTYPE_LREAL) == 4000.0
+    finally:
+        conn.close()
+        run_in(loop_thread, ads.close())

@@ -31,7 +31,6 @@ import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable, Sequence
-from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,16 +65,14 @@ from geo_server.ads.notifications import (
     SamplingPass,
 )
 from geo_server.dictionary import AdsError
-from geo_server.machine.snapshot import Snapshot
-from geo_server.service import ObjectService
+from geo_server.service import ObjectService, PreparedWrite
+from geo_server.snapshot import Snapshot
 
 log = logging.getLogger(__name__)
 
 GEO_AMS_PORT = 551
 #: Registrations sampled between two looks at the clock (keeps the budget check cheap).
 _SAMPLE_STEP = 32
-#: Objects whose write runs a command synchronously (list reload/save): run off the loop.
-_BLOCKING_WRITES = frozenset({"SIM::reload", "SIM::save"})
 
 
 @dataclass
@@ -185,7 +182,7 @@ class AdsServer:
         self.service = service
         self.options = options or AdsOptions()
         self.stats = AdsStats()
-        cycle_s = float(getattr(service.machine, "cycle_s", 0.001))
+        cycle_s = service.cycle_s
         self.notifications = NotificationTable(
             self._read_padded,
             cycle_s,
@@ -356,23 +353,17 @@ class AdsServer:
             return self._sum(req)
         if not req.data:
             return codec.read_response(0, self.service.read(ig, io, req.read_length))
-        # Write, then read the object back (after it was applied when cycles run; in
-        # stepped mode the value read back is still the one of the current snapshot).
+        # Write, then read the object back once the write is applied (stepped mode: the
+        # value read back is still the one of the current snapshot).
         write = self._write_reply(ig, io, req.data)
 
-        def read_back(write_answer: bytes) -> bytes:
-            result = codec.parse_result(write_answer)
+        async def read_back() -> bytes:
+            result = codec.parse_result(await write)
             if result:
                 return codec.read_response(result)
             return codec.read_response(0, self.service.read(ig, io, req.read_length))
 
-        if isinstance(write, bytes):
-            return read_back(write)
-
-        async def later(pending: Awaitable[bytes]) -> bytes:
-            return read_back(await pending)
-
-        return later(write)
+        return read_back()
 
     def _sum(self, req: ReadWriteRequest) -> Reply:
         group, count, data = req.index_group, req.index_offset, req.data
@@ -384,7 +375,7 @@ class AdsServer:
                 head = 4 if group == SumGroup.READ else 8
                 self._fit_size(head * len(subs) + sum(s.length for s in subs), req.read_length)
             items = [(s.index_group, s.index_offset, s.length) for s in subs]
-            results = self._read_codes(items, self.service.snapshot)
+            results = self._read_codes(items, self.service.current())
             if group == SumGroup.READ_EX2:
                 out = codec.sum_read_ex_response(results)
             elif group == SumGroup.READ_EX:
@@ -394,26 +385,21 @@ class AdsServer:
             return self._fit(out, req.read_length)
         if group == SumGroup.WRITE:
             writes = codec.parse_sum_write(count, data)
-            codes, futures = self._queue_writes(
-                [(w.index_group, w.index_offset, w.data) for w in writes]
-            )
-            if not self._must_wait(futures):
-                return self._fit(codec.sum_write_response(codes), req.read_length)
+            pending = self._write_many([(w.index_group, w.index_offset, w.data) for w in writes])
 
-            async def done() -> bytes:
-                final = await self._await_writes(codes, futures)
-                return self._fit(codec.sum_write_response(final), req.read_length)
+            async def written() -> bytes:
+                return self._fit(codec.sum_write_response(await pending), req.read_length)
 
-            return done()
+            return written()
         if group == SumGroup.READ_WRITE:
             subs_rw = codec.parse_sum_read_write(count, data)
-            to_write = [
-                (s.index_group, s.index_offset, s.data) if s.data else None for s in subs_rw
-            ]
-            codes, futures = self._queue_writes(to_write)
+            pending = self._write_many(
+                [(s.index_group, s.index_offset, s.data) if s.data else None for s in subs_rw]
+            )
 
-            def finish(write_codes: list[int]) -> bytes:
-                snap = self.service.snapshot
+            async def written_then_read() -> bytes:
+                write_codes = await pending
+                snap = self.service.current()
                 results: list[tuple[int, bytes]] = []
                 for s, code in zip(subs_rw, write_codes, strict=True):
                     if code:
@@ -424,13 +410,7 @@ class AdsServer:
                         )
                 return self._fit(codec.sum_read_ex_response(results), req.read_length)
 
-            if not self._must_wait(futures):
-                return finish(codes)
-
-            async def done_rw() -> bytes:
-                return finish(await self._await_writes(codes, futures))
-
-            return done_rw()
+            return written_then_read()
         raise AdsError(ReturnCode.DEVICE_SRVNOTSUPP, f"sum command 0x{group:X} is not supported")
 
     def _fit_size(self, size: int, read_length: int) -> None:
@@ -453,94 +433,53 @@ class AdsServer:
         if self.options.read_only:
             raise AdsError(ReturnCode.DEVICE_INVALIDACCESS, "the ADS interface is read-only")
 
-    def _write_reply(self, ig: int, io: int, data: bytes) -> Reply:
+    def _write_reply(self, ig: int, io: int, data: bytes) -> Awaitable[bytes]:
+        """Validate now (an invalid write raises at once), answer once applied."""
         self._check_writes_allowed()
-        obj, _axis, attr = self.service.resolve(ig, io)
-        if attr is None and obj.name in _BLOCKING_WRITES:
-            loop = asyncio.get_running_loop()
+        prepared = self.service.prepare(ig, io, data)
 
-            async def off_loop() -> bytes:
-                fut = await loop.run_in_executor(None, self.service.write, ig, io, data)
-                await self._applied(fut)
-                return codec.result_response(0)
+        async def applied() -> bytes:
+            (error,) = await self.service.apply_writes([prepared], self.options.write_timeout)
+            return codec.result_response(error.code if error is not None else 0)
 
-            return off_loop()
-        fut = self.service.write(ig, io, data)
-        if not self._must_wait([fut]):
-            return self._settled(fut)
+        return applied()
 
-        async def wait() -> bytes:
-            await self._applied(fut)
-            return codec.result_response(0)
-
-        return wait()
-
-    @staticmethod
-    def _settled(fut: Future) -> bytes:
-        if fut.done() and fut.exception() is not None:
-            exc = fut.exception()
-            code = exc.code if isinstance(exc, AdsError) else ReturnCode.DEVICE_ERROR
-            return codec.result_response(code)
-        return codec.result_response(0)
-
-    def _must_wait(self, futures: Sequence[Future | None]) -> bool:
-        """Wait for queued writes only when cycles run by themselves (not stepped)."""
-        return self.service.scheduler.running and any(
-            f is not None and not f.done() for f in futures
-        )
-
-    async def _applied(self, fut: Future) -> None:
-        if fut.done():
-            fut.result()
-        elif self.service.scheduler.running:
-            try:
-                await asyncio.wait_for(asyncio.wrap_future(fut), self.options.write_timeout)
-            except TimeoutError:
-                raise AdsError(
-                    ReturnCode.DEVICE_TIMEOUT,
-                    f"write not applied within {self.options.write_timeout} s",
-                ) from None
-
-    def _queue_writes(
-        self, items: Sequence[tuple[int, int, bytes] | None]
-    ) -> tuple[list[int], list[Future | None]]:
-        """Validate and queue each write; per item a code (0 = queued) and its future."""
+    def _write_many(self, items: Sequence[tuple[int, int, bytes] | None]) -> Awaitable[list[int]]:
+        """Sum write: validate each item (its own code), apply the valid ones together
+        in one cycle; per item 0 or the ADS code it earned. A command object (reload,
+        save) must be written on its own, not inside a sum command (0x704)."""
         codes: list[int] = []
-        futures: list[Future | None] = []
-        for item in items:
+        valid: list[tuple[int, PreparedWrite]] = []
+        for i, item in enumerate(items):
+            codes.append(0)
             if item is None:
-                codes.append(0)
-                futures.append(None)
                 continue
             try:
                 self._check_writes_allowed()
-                ig, io, data = item
-                obj, _axis, attr = self.service.resolve(ig, io)
-                if attr is None and obj.name in _BLOCKING_WRITES:
+                w = self.service.prepare(*item)
+                if w.obj.command:
                     raise AdsError(
                         ReturnCode.DEVICE_INVALIDACCESS,
-                        f"{obj.name} cannot be written inside a sum command",
+                        f"{w.obj.name} cannot be written inside a sum command",
                     )
-                futures.append(self.service.write(ig, io, data))
-                codes.append(0)
+                valid.append((i, w))
             except AdsError as exc:
-                codes.append(exc.code)
-                futures.append(None)
-        return codes, futures
+                codes[i] = exc.code
 
-    async def _await_writes(self, codes: list[int], futures: list[Future | None]) -> list[int]:
-        out = list(codes)
-        for i, fut in enumerate(futures):
-            if fut is None:
-                continue
+        async def applied() -> list[int]:
+            if not valid:
+                return codes
             try:
-                await self._applied(fut)
-            except AdsError as exc:
-                out[i] = exc.code
-            except Exception:
-                log.exception("sum write item failed")
-                out[i] = ReturnCode.DEVICE_ERROR
-        return out
+                errors = await self.service.apply_writes(
+                    [w for _, w in valid], self.options.write_timeout
+                )
+            except AdsError as exc:  # the whole batch: stalled (0x707), withdrawn (0x719)
+                errors = [exc] * len(valid)
+            for (i, _w), err in zip(valid, errors, strict=True):
+                codes[i] = err.code if err is not None else 0
+            return codes
+
+        return applied()
 
     # ------------------------------------------------------------------ notifications
 
@@ -548,7 +487,7 @@ class AdsServer:
         self, conn: AdsConnection, h: AmsHeader, req: AddNotificationRequest
     ) -> bytes:
         hold = 0.0
-        if self.service.scheduler.running:
+        if self.service.running:
             hold = time.monotonic() + self.options.first_sample_hold
         reg = self.notifications.add(
             conn, h.source, h.target, req, self.service.snapshot, hold_until=hold

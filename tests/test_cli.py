@@ -215,6 +215,14 @@ def test_init_copies_the_default_machine(tmp_path):
     r = run([*script("geo-server"), "check", str(dest / "hochlauf.lis")], tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "4 axes (1=X, 2=Y, 3=Z, 4=C)" in r.stdout
+    # the copies are the user's: no "generated, edit the script" advice in them
+    for p in dest.glob("*.lis"):
+        text = p.read_text(encoding="utf-8")
+        assert "edit the script, not this file" not in text, p.name
+    header = (dest / "achsmd1.lis").read_text(encoding="utf-8").splitlines()[3]
+    assert (
+        header == "# Copied from geo-server's default machine by `geo-server init`: yours to edit."
+    )
     r = run([*script("geo-server"), "init", str(dest)], tmp_path)
     assert r.returncode == 2 and "already has" in r.stderr
     assert run([*script("geo-server"), "init", "--force", str(dest)], tmp_path).returncode == 0
@@ -234,11 +242,20 @@ def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):
     orphan.write_text("half a list")
     keep = folder / ".notes.tmp"
     keep.write_text("not ours")
-    r = run(
-        [*script("geo-server"), "run", str(lists_copy), "--no-zenoh", "--no-modbus", "--no-ads"]
-        + ["--cycle-in", "thread", "--cycles", "5"],
-        tmp_path,
-    )
+    quiet = ("--no-zenoh", "--no-modbus", "--no-ads", "--cycle-in", "thread", "--cycles", "5")
+    r = run([*script("geo-server"), "run", str(lists_copy), *quiet], tmp_path)
     assert r.returncode == 0, r.stderr
     assert not orphan.exists() and keep.exists()
     assert f"removed {orphan}: left over from an interrupted save" in r.stderr
+
+
+def test_where_the_cycle_runs_by_default_and_priority_without_os_nice(monkeypatch):
+    """Linux and macOS: its own process; Windows (no fd pipes, no os.nice): a thread; and
+    asking for priority where os.nice does not exist is not an error."""
+    from geo_server.cli import default_cycle_in
+    from geo_server.machine import process
+
+    assert default_cycle_in("posix") == "process"
+    assert default_cycle_in("nt") == "thread"
+    monkeypatch.delattr(process.os, "nice", raising=False)
+    process._raise_priority()  # logs "keeps normal priority", raises nothing

@@ -139,14 +139,25 @@ def _child_main(
         out.flush(lambda b: os.write(fd, b))
 
 
+#: The cycle process exchanges frames over an OS pipe with plain file descriptors
+#: (`os.read`/`os.write`, non-blocking): POSIX systems (Linux, macOS). On Windows a
+#: multiprocessing pipe is a named-pipe handle, so the cycle runs in a thread there.
+SUPPORTED = os.name == "posix"
+
+
 def _raise_priority() -> None:
     """Ask the OS to prefer the cycle over the transports and clients (nice −10).
 
     With fewer cores than busy threads the OS, not the interpreter lock, decides when the
-    cycle runs. Raising priority needs CAP_SYS_NICE (root); without it the cycle runs at
-    normal priority and this says so once."""
+    cycle runs. Raising priority needs CAP_SYS_NICE (root) on Linux, root on macOS;
+    without it, or where `os.nice` does not exist, the cycle runs at normal priority and
+    this says so once."""
+    nice = getattr(os, "nice", None)
+    if nice is None:
+        log.info("GEO-cycle process keeps normal priority (no os.nice here)")
+        return
     try:
-        os.nice(-10)
+        nice(-10)
     except OSError as exc:
         log.info("GEO-cycle process keeps normal priority (%s)", exc)
 

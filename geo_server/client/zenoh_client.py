@@ -1,8 +1,18 @@
-"""Zenoh client for geo-server (SPEC §7): gets with a timeout, writes as gets with payload."""
+"""Zenoh client for geo-server (SPEC §7): gets with a timeout, writes as gets with payload.
+
+One machine name must mean one server. Every get goes to all matching queryables without
+consolidation, so the client sees each reply with the Zenoh id of the session that sent
+it (`Reply.replier_id`); replies from two different sessions for one machine (an
+impostor, or a second server started with the same machine name) fail with
+`ServerConflictError`, which names both ids, instead of handing out whichever answer came
+first. A client may pick one server by its Zenoh id (`server_id`, or the environment
+variable `GEO_ZENOH_SERVER_ID`); replies from any other session are then ignored.
+"""
 
 from __future__ import annotations
 
 import json
+import os
 import queue
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -14,13 +24,50 @@ from geo_server.transports.keys import KeySpace
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
+#: Environment variable with the Zenoh id of the server to talk to (see `ZenohClient`).
+SERVER_ID_ENV = "GEO_ZENOH_SERVER_ID"
+
+
+class ServerConflictError(AdsError):
+    """Two or more Zenoh sessions answered for one machine.
+
+    An `AdsError` (0x700, a general device error) so that every caller that reports
+    refused requests reports this one too; `zenoh_ids` lists the sessions that answered.
+    """
+
+    def __init__(self, machine: str, key: str, zenoh_ids: list[str]) -> None:
+        self.machine, self.key, self.zenoh_ids = machine, key, zenoh_ids
+        listed = " and ".join(zenoh_ids)
+        super().__init__(
+            0x700,
+            f"{len(zenoh_ids)} Zenoh sessions answered {key} for machine {machine!r}: "
+            f"{listed}. Only one may serve a machine name: one of them is an impostor or "
+            "a second geo-server with the same --machine. Stop it or give each server its "
+            "own machine name; admit only known sessions (Zenoh access control, TLS, "
+            f"user/password authentication); or choose a server by its Zenoh id "
+            f"(environment variable {SERVER_ID_ENV}=<id>, or ZenohClient(server_id=<id>); "
+            "a server logs its id at start and shows it as zenoh_id in its status).",
+        )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (self.machine, self.key, self.zenoh_ids))
 
 
 def client_config(
     connect: list[str], mode: str = "peer", config_file: str | None = None
 ) -> zenoh.Config:
-    """A Zenoh config that connects to explicit endpoints with multicast scouting off."""
-    cfg = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    """A Zenoh config that connects to explicit endpoints with multicast scouting off.
+
+    TLS certificates, user/password and the like come from `config_file`, or else from
+    the file named by Zenoh's own environment variable `ZENOH_CONFIG` (so `geo-client`
+    can join a locked-down network); mode, endpoints and scouting are always set here.
+    """
+    if config_file:
+        cfg = zenoh.Config.from_file(config_file)
+    elif os.environ.get("ZENOH_CONFIG"):
+        cfg = zenoh.Config.from_env()
+    else:
+        cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("listen/endpoints", "[]")
@@ -50,9 +97,12 @@ class ZenohClient:
         mode: str = "peer",
         config_file: str | None = None,
         session: zenoh.Session | None = None,
+        server_id: str | None = None,
     ) -> None:
         self.machine = machine
         self.timeout = timeout
+        #: Only replies from this Zenoh session count (None: any one session, but only one).
+        self.server_id = server_id or os.environ.get(SERVER_ID_ENV) or None
         self._own = session is None
         self.session = session or zenoh.open(
             client_config(connect or ["tcp/127.0.0.1:7447"], mode, config_file)
@@ -81,20 +131,39 @@ class ZenohClient:
     def get(
         self, key: str, payload: bytes | None = None, encoding: Any = None
     ) -> list[tuple[str, bytes]]:
-        """All OK replies of a get as (key, payload); the first error raises AdsError."""
-        kwargs: dict[str, Any] = {"timeout": self.timeout}
+        """All OK replies of a get as (key, payload); the first error raises AdsError.
+
+        Replies from more than one Zenoh session raise `ServerConflictError` (unless
+        `server_id` picks one). A write (a get with payload) reaches every session that
+        answers, so a conflict there is reported after the fact: the server's value may
+        have been written, and the other session has seen it.
+        """
+        kwargs: dict[str, Any] = {
+            "timeout": self.timeout,
+            # every matching queryable, every reply: the only way to see a second server
+            "target": zenoh.QueryTarget.ALL,
+            "consolidation": zenoh.ConsolidationMode.NONE,
+        }
         if payload is not None:
             kwargs["payload"] = payload
             kwargs["encoding"] = encoding or JSON
+        replies = [(_replier(reply), reply) for reply in self.session.get(key, **kwargs)]
+        if self.server_id is not None:
+            replies = [(zid, r) for zid, r in replies if zid == self.server_id]
+        else:
+            sessions = sorted({zid for zid, _ in replies if zid is not None})
+            if len(sessions) > 1:
+                raise ServerConflictError(self.machine, key, sessions)
         out: list[tuple[str, bytes]] = []
-        for reply in self.session.get(key, **kwargs):
+        for _zid, reply in replies:
             if reply.ok is not None:
                 out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
             else:
                 raise _error(reply.err)
         if not out:
+            chosen = f" from Zenoh session {self.server_id}" if self.server_id else ""
             raise TimeoutError(
-                f"no reply for {key} within {self.timeout} s (is the server "
+                f"no reply for {key}{chosen} within {self.timeout} s (is the server "
                 f"running with machine name {self.machine!r}?)"
             )
         return out
@@ -162,6 +231,12 @@ class ZenohClient:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
         self._subs.append(self.session.declare_subscriber(key_expr, on_sample))
+
+
+def _replier(reply: zenoh.Reply) -> str | None:
+    """The Zenoh id of the session that sent `reply` (None for Zenoh's own, e.g. a timeout)."""
+    rid = reply.replier_id
+    return str(rid.zid) if rid is not None else None
 
 
 def _decode(key: str, data: bytes) -> Any:

@@ -33,7 +33,7 @@ GEO_PORT = 551
 class Route:
     """What a concrete key addresses."""
 
-    kind: str  # "raw" | "named" | "nc" | "reload" | "save" | "status" | "errors"
+    kind: str  # "raw" | "named" | "nc" | "reload" | "save" | "reset" | "status" | "errors"
     obj: ObjectDef | None = None
     axis: int = 0
     index_group: int = 0
@@ -82,10 +82,19 @@ class KeySpace:
         return self._named
 
     def readable_keys(self) -> dict[str, Route]:
-        """Every concrete key a wildcard `get` may answer: named, raw value keys, status,
-        errors (attribute groups are answered only when asked for by concrete key)."""
-        keys = dict(self._named)
+        """Every concrete key a wildcard `get` answers: named and raw value keys of the
+        readable objects, status and errors.
+
+        Write-only objects (access "w": the commands `SIM::reload`/`SIM::save`,
+        `SIM::set_position`) are left out: a wildcard asks for values, and a write-only
+        object has none to give (asked for by its own key, it is answered as the object
+        service decides). Attribute groups are answered only when asked for by concrete
+        key.
+        """
+        keys = {key: route for key, route in self._named.items() if _readable(route)}
         for route in self._named.values():
+            if not _readable(route):
+                continue
             assert route.obj is not None
             ig = route.obj.index_group
             io = route.obj.index_offset(route.axis)
@@ -179,6 +188,10 @@ class KeySpace:
         if axis not in self.axes:
             raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis_text} is not configured")
         raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"no object at {key}")
+
+
+def _readable(route: Route) -> bool:
+    return route.obj is not None and route.obj.readable
 
 
 def is_attribute_group(index_group: int) -> bool:

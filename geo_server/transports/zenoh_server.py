@@ -5,7 +5,18 @@ the query to the asyncio loop (`call_soon_threadsafe`); everything else — read
 snapshot, validating a write, waiting for it to be applied — happens on the loop, so
 Zenoh's dispatch is never blocked and the GEO cycle never waits on Zenoh. Reload/save
 (by `cmd/…` key or by writing `SIM::reload`/`SIM::save`) run in a worker thread, so the
-loop, which ADS and Modbus may share, is not blocked while list files are read or written.
+loop, which ADS and Modbus may share, is not blocked while list files are read or written;
+NC text is parsed in a worker thread too.
+
+Limits: the Zenoh transport itself is bounded (`ZenohOptions`: handshake time, pending
+handshakes, sessions, links), so idle connections cannot lock new sessions out for long;
+payloads, NC text and JSON numbers are bounded before they are parsed.
+
+Rivals: another Zenoh session that answers queries for this machine's keys (an impostor,
+or a second server started with the same machine name) is looked for at start, whenever
+Zenoh reports a matching queryable or a liveliness change on `cnc/<m>/alive`, and every
+`rival_check_period`; one found is listed under `zenoh_rivals` in the status JSON and
+reported once in the errors list.
 """
 
 from __future__ import annotations
@@ -32,13 +43,29 @@ log = logging.getLogger(__name__)
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
 JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
+#: Most characters a JSON integer may have. More than any object type can hold (a REAL64
+#: ends near 1.8e308, 309 digits), so a longer one is refused (0x706) before Python
+#: converts it: that conversion is quadratic in the length and fails over 4300 digits.
+MAX_JSON_INT_CHARS = 330
 WRITE_TIMEOUT_S = 2.0
 ADSERR_TIMEOUT = 0x719  # ADS DEVICE_TIMEOUT: a write not applied within WRITE_TIMEOUT_S
+#: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
+PROBE_TIMEOUT_S = 1.0
+#: Least seconds between two rival probes, however often Zenoh reports changes.
+PROBE_MIN_GAP_S = 0.25
+
+#: `ZenohOptions` field -> Zenoh configuration key of the transport limits.
+TRANSPORT_LIMITS = {
+    "accept_timeout_ms": "transport/unicast/accept_timeout",
+    "accept_pending": "transport/unicast/accept_pending",
+    "max_sessions": "transport/unicast/max_sessions",
+    "max_links": "transport/unicast/max_links",
+}
 
 
 @dataclass
 class ZenohOptions:
-    """How the server joins a Zenoh network (SPEC §7)."""
+    """How the server joins a Zenoh network (SPEC §7), and the limits it keeps."""
 
     machine: str = "local"
     mode: str = "peer"  # "peer" | "client"
@@ -49,8 +76,38 @@ class ZenohOptions:
     publish_period: float = 0.05
     status_period: float = 1.0
     read_only: bool = False
+    #: Milliseconds a new connection has to complete the Zenoh handshake before it is
+    #: closed (Zenoh's own default: 10000). A connection that connects and never speaks
+    #: holds one of the `accept_pending` slots that long; once they are all taken, every
+    #: new session is turned away, so this bounds how long idle sockets lock clients out.
+    #: A handshake is a few round trips (a few more with TLS): milliseconds on a LAN;
+    #: 2 s leaves room for a slow link.
+    accept_timeout_ms: int = 2000
+    #: Connections in the handshake at once; more are closed at once (Zenoh's default).
+    accept_pending: int = 100
+    #: Sessions connected at once (Zenoh's default: 1000). A CNC cell has a few HMIs, PLC
+    #: programs and test tools; 64 is far above that and bounds the memory and threads
+    #: the Zenoh transport may take next to the GEO cycle.
+    max_sessions: int = 64
+    #: Links per session (Zenoh's default: no multilink).
+    max_links: int = 1
+    #: Largest NC text in one `cnc/<m>/nc` request, in bytes (UTF-8); larger -> 0x705.
+    #: MDI lines and the manuals' test programs are well under 1 kB; a long program
+    #: belongs in a file (`geo-server run --program`), not in one request that parses
+    #: while the GEO cycle waits for the interpreter.
+    max_nc_bytes: int = 16 * 1024
+    #: Seconds between two looks for another session answering for this machine (also
+    #: done at once when Zenoh reports a matching queryable or a liveliness change).
+    rival_check_period: float = 5.0
 
     def zenoh_config(self) -> zenoh.Config:
+        """The Zenoh configuration: the config file (if any), then our options.
+
+        Mode, endpoints and scouting are always set from the options. The transport
+        limits (`TRANSPORT_LIMITS`) are set from the options unless the config file sets
+        that key to something other than Zenoh's own default: a limit written in the
+        config file wins over the option's default.
+        """
         cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         cfg.insert_json5("mode", json.dumps(self.mode))
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
@@ -58,6 +115,14 @@ class ZenohOptions:
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         if self.connect:
             cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        zenoh_defaults = zenoh.Config()
+        for name, key in TRANSPORT_LIMITS.items():
+            value = getattr(self, name)
+            # Zenoh takes -1 for a millisecond count without complaint (as 0): check here
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"ZenohOptions.{name} must be a positive integer, not {value!r}")
+            if cfg.get_json(key) == zenoh_defaults.get_json(key):
+                cfg.insert_json5(key, json.dumps(value))
         return cfg
 
 
@@ -65,22 +130,44 @@ def _error_payload(exc: AdsError) -> bytes:
     return json.dumps(exc.as_dict()).encode()
 
 
+def _bounded_int(text: str) -> int:
+    """`parse_int` of `json.loads`: refuse an integer too long for any object first."""
+    if len(text) > MAX_JSON_INT_CHARS:
+        raise AdsError(
+            AdsErrorCode.INVALID_DATA,
+            f"a JSON integer of {len(text)} characters is out of range for every object type",
+        )
+    return int(text)
+
+
 def _json_value(payload: bytes, obj: ObjectDef) -> Any:
+    """The value of a JSON write, in the object's type (`ObjectDef.coerce_json`).
+
+    The payload is a JSON value of the object's type, or `{"value": <that>}` (the form
+    a sensor publishing JSON objects uses); an object with any other key is refused.
+    Every refusal is 0x706 (invalid data): a value of the wrong JSON type is invalid
+    data, like one out of range; 0x705 stays for payloads of the wrong size.
+    """
     try:
-        value = json.loads(payload)
+        value = json.loads(payload, parse_int=_bounded_int)
     # RecursionError: deeply nested JSON ("[[[[…]]]]", well within MAX_PAYLOAD) is bad
-    # data like any other (0x706), not an internal error (found by tests/test_robust_fuzz.py)
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+    # data like any other (0x706), not an internal error (found by tests/test_robust_fuzz.py).
+    # ValueError: Python's own limit on long numbers, should one get past `_bounded_int`.
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
         raise AdsError(
             AdsErrorCode.INVALID_DATA, f"{obj.name}: payload is not JSON ({exc})", obj.name
         ) from None
+    except AdsError as exc:
+        raise AdsError(exc.code, f"{obj.name}: {exc.message}", obj.name) from None
     if isinstance(value, dict):
-        if "value" not in value:
-            raise AdsError(AdsErrorCode.INVALID_DATA, 'JSON object needs a "value"', obj.name)
+        if set(value) != {"value"}:
+            raise AdsError(
+                AdsErrorCode.INVALID_DATA,
+                f'{obj.name}: a JSON object must be {{"value": …}} and nothing else',
+                obj.name,
+            )
         value = value["value"]
-    if isinstance(value, list | dict) or value is None:
-        raise AdsError(AdsErrorCode.INVALID_DATA, f"{obj.name}: not a scalar: {value!r}", obj.name)
-    return value
+    return obj.coerce_json(value)
 
 
 class ZenohInterface:
@@ -104,21 +191,54 @@ class ZenohInterface:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: list[Any] = []
         self.queries = 0
+        #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
+        self.zenoh_id = ""
+        #: Other sessions found answering for this machine: key (their Zenoh id, or
+        #: "token"/"queryable" when the id is unknown) -> (Zenoh id or None, evidence).
+        self._rivals: dict[str, tuple[str | None, str]] = {}
+        self._matching = False  # a remote queryable covers all of cnc/<m>/**
+        self._probe_wanted: asyncio.Event | None = None
+        self._probes_started = 0
+        self._probes_applied = 0
 
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
+        self._probe_wanted = asyncio.Event()
         self._session = await self._loop.run_in_executor(
             None, zenoh.open, self.options.zenoh_config()
         )
         s = self._session
         prefix = self.keys.prefix
-        self._entities.append(s.declare_queryable(f"{prefix}/**", self._on_query))
-        self._entities.append(s.liveliness().declare_token(self.keys.alive_key))
+        alive = self.keys.alive_key
+        self.zenoh_id = str(s.info.zid())
+        log.info("zenoh session %s serves %s/**", self.zenoh_id, prefix)
+        self.service.status_extra["zenoh_id"] = self.zenoh_id
+        self._publish_rivals()
         self._unsubscribe.append(self.service.subscribe_events(self._on_event))
+        self._entities.append(s.declare_queryable(f"{prefix}/**", self._on_query))
+        # Zenoh merges the liveliness tokens of one key: once ours is declared, a second
+        # one on `alive` is invisible as such. So look for one before declaring ours.
+        if await self._loop.run_in_executor(None, self._token_held):
+            self._add_rival("token", None, f"held the liveliness token {alive} first")
+        self._entities.append(s.liveliness().declare_token(alive))
+        # Liveliness changes on our key (another token coming or going) call for a look.
+        self._entities.append(s.liveliness().declare_subscriber(alive, self._on_alive))
+        # A remote queryable covering all of cnc/<m>/** (as a second server, or an
+        # impostor copying one, declares it) turns this querier's matching status on.
+        querier = s.declare_querier(
+            f"{prefix}/**",
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            allowed_destination=zenoh.Locality.REMOTE,
+            timeout=PROBE_TIMEOUT_S,
+        )
+        self._entities.append(querier)
+        self._entities.append(querier.declare_matching_listener(self._on_matching))
         self._spawn(self._publish_loop())
         self._spawn(self._status_loop())
+        self._spawn(self._rival_loop())
 
     async def close(self) -> None:
         for unsub in self._unsubscribe:
@@ -130,6 +250,8 @@ class ZenohInterface:
         for ent in reversed(self._entities):
             ent.undeclare()
         self._entities.clear()
+        for key in ("zenoh_id", "zenoh_rivals"):
+            self.service.status_extra.pop(key, None)
         if self._session is not None:
             session, self._session = self._session, None
             await asyncio.get_running_loop().run_in_executor(None, session.close)
@@ -186,7 +308,14 @@ class ZenohInterface:
             query.drop()
 
     def _answer_wildcard(self, query: zenoh.Query) -> None:
-        """One reply per concrete key the wildcard matches, all from one snapshot.
+        """One reply per readable key the wildcard matches, all from one snapshot.
+
+        The candidates are `KeySpace.readable_keys`: write-only objects (the commands
+        `SIM::reload`/`SIM::save`, `SIM::set_position`) are not among them, so a wildcard
+        skips them silently, and `status`/`errors` are answered when it matches them.
+        Should one key still fail to read, it is skipped and logged: the keys after it
+        are answered all the same (one bad object must not hide the rest, which a
+        `reply_err` in the middle would, since clients stop at the first error).
 
         A wildcard that matches none of our keys (an unconfigured axis, a misspelt
         field) is answered with `reply_err` (SPEC §7: every get is answered), not with
@@ -198,7 +327,11 @@ class ZenohInterface:
         if not matched:
             raise self.keys.no_match(str(ke))
         for key, route in matched:
-            payload, enc = self._read(route, snap)
+            try:
+                payload, enc = self._read(route, snap)
+            except AdsError as exc:
+                log.warning("wildcard %s: %s skipped: %s", ke, key, exc.message)
+                continue
             query.reply(key, payload, encoding=enc)
 
     def _read(self, route: Route, snap: Snapshot) -> tuple[bytes, zenoh.Encoding]:
@@ -232,7 +365,7 @@ class ZenohInterface:
             query.reply(key, payload, encoding=OCTET)
         elif route.kind == "named":
             assert route.obj is not None
-            value = route.obj.coerce(_json_value(payload, route.obj))
+            value = _json_value(payload, route.obj)
             fut = await self.service.write_name_async(route.obj.name, route.axis, value)
             await self._applied(fut)
             query.reply(key, json.dumps(value).encode(), encoding=JSON)
@@ -260,11 +393,27 @@ class ZenohInterface:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{key} cannot be written")
 
     async def _run_nc(self, payload: bytes) -> dict[str, Any]:
+        """Run NC text: at most `max_nc_bytes` (else 0x705), parsed in a worker thread.
+
+        Parsing and queueing a program takes time in proportion to its length, and on the
+        loop that would hold up every other query (and, in one process, the GEO cycle's
+        share of the interpreter); so the service's NC entry point runs off the loop, and
+        the size is checked first, before the text is even decoded.
+        """
+        limit = self.options.max_nc_bytes
+        if len(payload) > limit:
+            raise AdsError(
+                AdsErrorCode.INVALID_SIZE,
+                f"NC text of {len(payload)} bytes exceeds {limit} bytes on this interface "
+                "(run a long program from a file: geo-server run --program)",
+                "nc",
+            )
         try:
             text = payload.decode("utf-8")
         except UnicodeDecodeError:
             raise AdsError(ADSERR_DEVICE_SYNTAX, "NC text must be UTF-8") from None
-        await self._applied(self.service.run_nc(text))
+        fut = await asyncio.to_thread(self.service.run_nc, text)
+        await self._applied(fut)
         return {"ok": True, "lines": text.count("\n") + 1, "cycle": self.service.snapshot.cycle}
 
     async def _applied(self, fut: Any) -> None:
@@ -285,6 +434,144 @@ class ZenohInterface:
                 raise AdsError(
                     ADSERR_TIMEOUT, f"write not applied within {WRITE_TIMEOUT_S} s"
                 ) from None
+
+    # ------------------------------------------------------------------ rivals
+
+    def _token_held(self) -> bool:
+        """Worker thread: does another session hold our liveliness token already?"""
+        session = self._session
+        if session is None:
+            return False
+        replies = session.liveliness().get(self.keys.alive_key, timeout=PROBE_TIMEOUT_S)
+        return any(r.ok is not None for r in replies)
+
+    def _to_loop(self, fn: Any, *args: Any) -> None:
+        """Zenoh thread: run `fn(*args)` on the loop (dropped once the loop is gone)."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(fn, *args)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        self._to_loop(self._alive_changed, sample.kind == zenoh.SampleKind.DELETE)
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self._to_loop(self._matching_changed, bool(status.matching))
+
+    def _alive_changed(self, deleted: bool) -> None:
+        # Our own token lives as long as this interface: a DELETE while we run is
+        # another session's token going away.
+        if deleted:
+            self._drop_rival("token")
+        self._want_probe()
+
+    def _matching_changed(self, matching: bool) -> None:
+        self._matching = matching
+        if not matching:
+            self._drop_rival("queryable")
+        self._want_probe()
+
+    def _want_probe(self) -> None:
+        if self._probe_wanted is not None:
+            self._probe_wanted.set()
+
+    async def _rival_loop(self) -> None:
+        """Look for rivals now, on every hint from Zenoh, and every `rival_check_period`."""
+        assert self._probe_wanted is not None
+        while True:
+            self._probe_wanted.clear()
+            self._start_probe()
+            await asyncio.sleep(PROBE_MIN_GAP_S)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._probe_wanted.wait(), self.options.rival_check_period)
+
+    def _start_probe(self) -> None:
+        """Ask every *other* session's queryables for `cnc/<m>/status` (no waiting).
+
+        The replies name their sender (`Reply.replier_id`); the answer is evaluated
+        when Zenoh ends the query (all answered, or `PROBE_TIMEOUT_S`).
+        """
+        session = self._session
+        if session is None:
+            return
+        self._probes_started += 1
+        number = self._probes_started
+        found: set[str] = set()
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            rid = reply.replier_id
+            if rid is not None:
+                found.add(str(rid.zid))
+
+        def on_done() -> None:
+            self._to_loop(self._probe_done, number, frozenset(found))
+
+        session.get(
+            f"{self.keys.prefix}/status",
+            zenoh.handlers.Callback(on_reply, on_done),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            allowed_destination=zenoh.Locality.REMOTE,
+            timeout=PROBE_TIMEOUT_S,
+        )
+
+    def _probe_done(self, number: int, found: frozenset[str]) -> None:
+        if number < self._probes_applied:
+            return  # a later probe has answered already
+        self._probes_applied = number
+        status_key = f"{self.keys.prefix}/status"
+        others = {zid for zid in found if zid != self.zenoh_id}
+        for zid in sorted(others):
+            self._add_rival(zid, zid, f"answered {status_key}")
+        for key, (zid, _evidence) in list(self._rivals.items()):
+            if zid is not None and zid not in others:
+                self._drop_rival(key)
+        if others:
+            # the id-less hints (a token, a queryable) most likely came from the sessions
+            # now known by id: keep the identified entries only
+            self._drop_rival("token", explained=True)
+            self._drop_rival("queryable", explained=True)
+        elif self._matching:
+            self._add_rival(
+                "queryable",
+                None,
+                f"declared a queryable on {self.keys.prefix}/** (and did not answer {status_key})",
+            )
+
+    def _add_rival(self, key: str, zid: str | None, evidence: str) -> None:
+        """Record a rival; the first time, report it in the errors list."""
+        if key in self._rivals:
+            return
+        self._rivals[key] = (zid, evidence)
+        self._publish_rivals()
+        who = f"Zenoh session {zid}" if zid else "Zenoh session (id unknown)"
+        self.service.report(
+            f"another {who} {evidence}: it claims machine {self.keys.machine!r}, so clients "
+            f"may get its answers instead of this server's ({self.zenoh_id}). Stop it or give "
+            "each server its own machine name (--machine); on a shared network, admit only "
+            "known sessions (Zenoh access control, TLS, user/password authentication)",
+            severity="error",
+        )
+
+    def _drop_rival(self, key: str, *, explained: bool = False) -> None:
+        """Forget a rival: reported as gone, unless `explained` by an entry with an id."""
+        entry = self._rivals.pop(key, None)
+        if entry is None:
+            return
+        self._publish_rivals()
+        if explained:
+            return
+        who = f"Zenoh session {entry[0]}" if entry[0] else "the other Zenoh session"
+        self.service.report(
+            f"{who} no longer claims machine {self.keys.machine!r} (it {entry[1]} earlier)",
+            severity="warning",
+        )
+
+    def _publish_rivals(self) -> None:
+        """`zenoh_rivals` of the status JSON: one entry per rival, a new list each time."""
+        self.service.status_extra["zenoh_rivals"] = [
+            {"zenoh_id": zid, "evidence": evidence} for zid, evidence in self._rivals.values()
+        ]
 
     # ------------------------------------------------------------------ publications
 

@@ -423,19 +423,6 @@ class ObjectService:
                 f"the GEO cycle is stalled (no cycle for {stalled:.1f} s): nothing queued",
             )
 
-    async def write_async(self, index_group: int, index_offset: int, data: bytes) -> Pending:
-        """Transitional (Zenoh interface): `write` with commands off the loop."""
-        obj, _axis, attr = self.resolve(index_group, index_offset)
-        if attr is None and obj.command:
-            return await asyncio.to_thread(self.write, index_group, index_offset, data)
-        return self.write(index_group, index_offset, data)
-
-    async def write_name_async(self, name: str, axis: int, value: Any) -> Pending:
-        """Transitional (Zenoh interface): `write_name` with commands off the loop."""
-        if self.dictionary.by_name(name).command:
-            return await asyncio.to_thread(self.write_name, name, axis, value)
-        return self.write_name(name, axis, value)
-
     # ------------------------------------------------------------------ subscriptions
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:

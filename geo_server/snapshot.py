@@ -68,6 +68,23 @@ class Snapshot:
             return to_python(obj, self.machine[self.layout.machine_index[obj.name]])
         return to_python(obj, self.values[self.slot(axis), self.layout.column[obj.name]])
 
+    def changed(self, prev: Snapshot | None) -> list[tuple[ObjectDef, int]]:
+        """`(object, axis)` of every value that differs from `prev` (all of them when
+        `prev` is None; axis 0 for machine objects). One array comparison: an idle
+        machine costs almost nothing."""
+        lay = self.layout
+        if prev is None:
+            return [(o, a) for a in self.axes for o in lay.axis_objects] + [
+                (o, 0) for o in lay.machine_objects
+            ]
+        rows, cols = np.nonzero(self.values != prev.values)
+        out = [
+            (lay.axis_objects[c], self.axes[r])
+            for r, c in zip(rows.tolist(), cols.tolist(), strict=True)
+        ]
+        out += [(lay.machine_objects[i], 0) for i in np.nonzero(self.machine != prev.machine)[0]]
+        return out
+
     def encode(self, obj: ObjectDef, axis: int) -> bytes:
         """ADS bytes of `obj` for `axis`, as they were at the end of this cycle."""
         return obj.encode(self.value(obj, axis))

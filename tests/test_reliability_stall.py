@@ -224,3 +224,36 @@ def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thr
     finally:
         conn.close()
         run_in(loop_thread, ads.close())
+
+
+def test_over_zenoh_stalled_reads_and_a_withdrawn_write(lists_copy, loop_thread):
+    """While stalled, Zenoh reads answer reply_err 0x707, status says so, and a write is
+    refused at once (0x707, nothing queued); after resuming, values are served again."""
+    from conftest import free_port
+
+    from geo_server.client.zenoh_client import ZenohClient
+    from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+
+    m = Stoppable(lists_copy, ServiceLimits(write_timeout=0.5, stall_after=0.3))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    iface = ZenohInterface(m.service, ZenohOptions(machine="stall", listen=[endpoint]))
+    run_in(loop_thread, iface.start())
+    client = ZenohClient(machine="stall", connect=[endpoint], timeout=TIMEOUT)
+    try:
+        assert client.read("TEMPC::coefficient", 1) == 4000.0
+        m.stop_cycle()
+        wait_for(lambda: m.service.status()["stalled"])
+        with pytest.raises(AdsError) as err:
+            client.read("TEMPC::coefficient", 1)
+        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        assert client.status()["stalled"] is True  # status is always answered
+        with pytest.raises(AdsError) as err:  # refused at once: nothing queued
+            client.write("TEMPC::coefficient", 1, 17.0)
+        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        m.resume_cycle()
+        wait_for(lambda: not m.service.status()["stalled"])
+        assert client.read("TEMPC::coefficient", 1) == 4000.0
+    finally:
+        client.close()
+        run_in(loop_thread, iface.close())
+        m.close()

@@ -181,7 +181,7 @@ def test_command_write_keeps_its_error_codes(served_lists, key, payload, encodin
 
 
 def test_service_async_writes_run_commands_in_a_worker_thread(loop_thread, service, monkeypatch):
-    """Every transport gets it: `ObjectService.write_async`/`write_name_async`."""
+    """Every transport gets it: `ObjectService.write_applied`/`write_name_applied`."""
     threads: list[str] = []
     assert service.is_command(service.dictionary.by_name("SIM::reload"))
     assert service.is_command(service.dictionary.by_name("SIM::save"))
@@ -192,15 +192,14 @@ def test_service_async_writes_run_commands_in_a_worker_thread(loop_thread, servi
         return service_module.CommandResult(True, "save")
 
     monkeypatch.setattr(ObjectService, "save", fake_save)
-    fut = run_in(loop_thread, service.write_name_async("SIM::save", 0, 1))
-    assert fut.done() and fut.result().ok
-    fut = run_in(loop_thread, service.write_async(0x12F300, 0x5, struct.pack("<H", 1)))
-    assert fut.done() and fut.result().ok
+    assert run_in(loop_thread, service.write_name_applied("SIM::save", 0, 1)) == 1
+    run_in(loop_thread, service.write_applied(0x12F300, 0x5, struct.pack("<H", 1)))
     assert len(threads) == 2 and LOOP_THREAD not in threads, threads
-    # plain values are still queued (in order) and applied at the next cycle
-    fut = run_in(loop_thread, service.write_name_async("TEMPC::coefficient", 1, 1500))
+    # plain values are queued (stepped: acknowledged at once) and applied at the next cycle
+    run_in(loop_thread, service.write_name_applied("TEMPC::coefficient", 1, 1500))
+    assert service.read_name("TEMPC::coefficient", 1) == 4000.0
     service.step(1)
-    assert fut.done() and service.read_name("TEMPC::coefficient", 1) == 1500.0
+    assert service.read_name("TEMPC::coefficient", 1) == 1500.0
 
 
 # ---------------------------------------------------------------------------- 2. hand-off

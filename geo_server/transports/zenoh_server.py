@@ -26,16 +26,14 @@ import contextlib
 import json
 import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from geo_server.dictionary import AdsError, AdsErrorCode, ObjectDef
-from geo_server.machine.machine import Event
-from geo_server.machine.snapshot import Snapshot
-from geo_server.service import ADSERR_DEVICE_SYNTAX, ObjectService
+from geo_server.events import Event
+from geo_server.service import ObjectService
+from geo_server.snapshot import Snapshot
 from geo_server.transports.keys import KeySpace, Route
 
 log = logging.getLogger(__name__)
@@ -47,8 +45,6 @@ MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
 #: ends near 1.8e308, 309 digits), so a longer one is refused (0x706) before Python
 #: converts it: that conversion is quadratic in the length and fails over 4300 digits.
 MAX_JSON_INT_CHARS = 330
-WRITE_TIMEOUT_S = 2.0
-ADSERR_TIMEOUT = 0x719  # ADS DEVICE_TIMEOUT: a write not applied within WRITE_TIMEOUT_S
 #: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
 PROBE_TIMEOUT_S = 1.0
 #: Least seconds between two rival probes, however often Zenoh reports changes.
@@ -315,36 +311,53 @@ class ZenohInterface:
         skips them silently, and `status`/`errors` are answered when it matches them.
         Should one key still fail to read, it is skipped and logged: the keys after it
         are answered all the same (one bad object must not hide the rest, which a
-        `reply_err` in the middle would, since clients stop at the first error).
+        `reply_err` in the middle would, since clients stop at the first error). While
+        the GEO cycle is stalled the object keys are not served as current: `status`
+        and `errors` are answered, then one `reply_err` 0x707 stands for the rest.
 
         A wildcard that matches none of our keys (an unconfigured axis, a misspelt
-        field) is answered with `reply_err` (SPEC §7: every get is answered), not with
-        silence that the client can only tell from its own timeout.
+        field) is answered with `reply_err` (every get is answered), not with silence
+        that the client can only tell from its own timeout.
         """
-        snap = self.service.snapshot
         ke = query.key_expr
         matched = [(key, route) for kexpr, key, route in self._readable if kexpr.intersects(ke)]
         if not matched:
             raise self.keys.no_match(str(ke))
+        try:
+            snap: Snapshot | None = self.service.current()
+            stalled: AdsError | None = None
+        except AdsError as exc:
+            snap, stalled = None, exc
         for key, route in matched:
+            if snap is None and route.kind in ("raw", "named"):
+                continue
             try:
                 payload, enc = self._read(route, snap)
             except AdsError as exc:
                 log.warning("wildcard %s: %s skipped: %s", ke, key, exc.message)
                 continue
             query.reply(key, payload, encoding=enc)
+        if stalled is not None:
+            query.reply_err(_error_payload(stalled), encoding=JSON)
 
-    def _read(self, route: Route, snap: Snapshot) -> tuple[bytes, zenoh.Encoding]:
+    def _read(self, route: Route, snap: Snapshot | None) -> tuple[bytes, zenoh.Encoding]:
+        """A read-only route's reply; `snap` (object values) is None only for the
+        status and errors routes, which are answered even while the cycle is stalled."""
+        if route.kind == "status":
+            return json.dumps(self.service.status()).encode(), JSON
+        if route.kind == "errors":
+            return json.dumps(self.service.errors()).encode(), JSON
+        snap = snap or self.service.current()
         if route.kind == "raw":
             data = self.service.read(route.index_group, route.index_offset, None, snap)
             return data, OCTET
         if route.kind == "named":
             assert route.obj is not None
+            if not route.obj.readable:
+                raise AdsError(
+                    AdsErrorCode.INVALID_ACCESS, f"{route.obj.name} is write-only", route.obj.name
+                )
             return json.dumps(snap.value(route.obj, route.axis)).encode(), JSON
-        if route.kind == "status":
-            return json.dumps(self.service.status()).encode(), JSON
-        if route.kind == "errors":
-            return json.dumps(self.service.errors()).encode(), JSON
         raise AdsError(
             AdsErrorCode.INVALID_ACCESS, f"{route.kind} needs a payload (get with payload runs it)"
         )
@@ -353,41 +366,33 @@ class ZenohInterface:
         self, query: zenoh.Query, key: str, route: Route, payload: bytes | None
     ) -> None:
         if payload is None:
-            data, enc = self._read(route, self.service.snapshot)
+            data, enc = self._read(route, None)
             query.reply(key, data, encoding=enc)
             return
         if self.options.read_only:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, "this interface is read-only")
-        # write_async/write_name_async: SIM::reload / SIM::save run in a worker thread
+        svc = self.service
         if route.kind == "raw":
-            fut = await self.service.write_async(route.index_group, route.index_offset, payload)
-            await self._applied(fut)
+            await svc.write_applied(route.index_group, route.index_offset, payload)
             query.reply(key, payload, encoding=OCTET)
         elif route.kind == "named":
             assert route.obj is not None
             value = _json_value(payload, route.obj)
-            fut = await self.service.write_name_async(route.obj.name, route.axis, value)
-            await self._applied(fut)
-            query.reply(key, json.dumps(value).encode(), encoding=JSON)
+            stored = await svc.write_name_applied(route.obj.name, route.axis, value)
+            query.reply(key, json.dumps(stored).encode(), encoding=JSON)
         elif route.kind in ("reload", "save"):
-            fn = self.service.reload if route.kind == "reload" else self.service.save
-            result = await asyncio.get_running_loop().run_in_executor(None, fn)
+            result = await svc.command(route.kind)
             if not result.ok:
-                body = {
-                    "ads_error": ADSERR_DEVICE_SYNTAX,
-                    "name": route.kind,
-                    "message": "; ".join(result.errors),
-                    **result.as_dict(),
-                }
-                query.reply_err(json.dumps(body).encode(), encoding=JSON)
+                body = {"ads_error": result.code, "name": route.kind, "message": result.message}
+                query.reply_err(json.dumps({**body, **result.as_dict()}).encode(), encoding=JSON)
                 return
             query.reply(key, json.dumps(result.as_dict()).encode(), encoding=JSON)
         elif route.kind == "nc":
             result = await self._run_nc(payload)
             query.reply(key, json.dumps(result).encode(), encoding=JSON)
         elif route.kind == "reset":
-            await self._applied(self.service.reset())
-            body = {"ok": True, "command": "reset", "cycle": self.service.snapshot.cycle}
+            cycle = await svc.reset_applied()
+            body = {"ok": True, "command": "reset", "cycle": cycle}
             query.reply(key, json.dumps(body).encode(), encoding=JSON)
         else:
             raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{key} cannot be written")
@@ -396,9 +401,8 @@ class ZenohInterface:
         """Run NC text: at most `max_nc_bytes` (else 0x705), parsed in a worker thread.
 
         Parsing and queueing a program takes time in proportion to its length, and on the
-        loop that would hold up every other query (and, in one process, the GEO cycle's
-        share of the interpreter); so the service's NC entry point runs off the loop, and
-        the size is checked first, before the text is even decoded.
+        loop that would hold up every other query; so the service parses it off the loop
+        (`run_nc_applied`), and the size is checked first, before the text is decoded.
         """
         limit = self.options.max_nc_bytes
         if len(payload) > limit:
@@ -411,29 +415,9 @@ class ZenohInterface:
         try:
             text = payload.decode("utf-8")
         except UnicodeDecodeError:
-            raise AdsError(ADSERR_DEVICE_SYNTAX, "NC text must be UTF-8") from None
-        fut = await asyncio.to_thread(self.service.run_nc, text)
-        await self._applied(fut)
-        return {"ok": True, "lines": text.count("\n") + 1, "cycle": self.service.snapshot.cycle}
-
-    async def _applied(self, fut: Any) -> None:
-        """Wait until a queued write has been applied (real-time and free-running modes).
-
-        In stepped mode nobody runs the next cycle until the test steps, so the write is
-        acknowledged as soon as it is validated and queued.
-        """
-        if fut.done():
-            fut.result()
-            return
-        if self.service.scheduler.running:
-            try:
-                await asyncio.wait_for(asyncio.wrap_future(fut), WRITE_TIMEOUT_S)
-            except TimeoutError:
-                # Like the ADS interface (0x719 DEVICE_TIMEOUT), not an anonymous 0x700
-                # "internal error: " (found by tests/test_robust_fuzz.py).
-                raise AdsError(
-                    ADSERR_TIMEOUT, f"write not applied within {WRITE_TIMEOUT_S} s"
-                ) from None
+            raise AdsError(AdsErrorCode.DEVICE_SYNTAX, "NC text must be UTF-8") from None
+        cycle = await self.service.run_nc_applied(text)
+        return {"ok": True, "lines": text.count("\n") + 1, "cycle": cycle}
 
     # ------------------------------------------------------------------ rivals
 
@@ -576,47 +560,25 @@ class ZenohInterface:
     # ------------------------------------------------------------------ publications
 
     async def _publish_loop(self) -> None:
-        """Put changed named values at most every `publish_period` (SPEC §7).
+        """Put changed named values at most every `publish_period`.
 
-        Changes are found with one array comparison against the last published
-        snapshot, so an idle machine costs almost nothing (the GEO cycle thread shares
-        the GIL with this loop).
+        `Snapshot.changed` finds what changed since the last publication with one array
+        comparison, so an idle machine costs almost nothing.
         """
-        routes = self.keys.named_routes()
-        lay = self.service.snapshot.layout
-        slot = {a: i for i, a in enumerate(self.service.axes)}
-        axis_keys: dict[tuple[int, int], str] = {}
-        machine_keys: dict[int, str] = {}
-        for key, route in routes.items():
-            assert route.obj is not None
-            if route.obj.scope == "machine":
-                machine_keys[lay.machine_index[route.obj.name]] = key
-            else:
-                axis_keys[(slot[route.axis], lay.column[route.obj.name])] = key
-        objs = {key: (zenoh.KeyExpr(key), route) for key, route in routes.items()}
+        named = {
+            (route.obj.name, route.axis): (zenoh.KeyExpr(key), route.obj)
+            for key, route in self.keys.named_routes().items()
+            if route.obj is not None
+        }
         last: Snapshot | None = None
         while True:
             snap = self.service.snapshot
             if self._session is not None and (last is None or snap.cycle != last.cycle):
-                if last is None:
-                    changed = list(objs)
-                else:
-                    rows, cols = np.nonzero(snap.values != last.values)
-                    changed = [
-                        axis_keys[(r, c)]
-                        for r, c in zip(rows.tolist(), cols.tolist(), strict=True)
-                        if (r, c) in axis_keys
-                    ]
-                    changed += [
-                        machine_keys[i]
-                        for i in np.nonzero(snap.machine != last.machine)[0].tolist()
-                        if i in machine_keys
-                    ]
-                for key in changed:
-                    kexpr, route = objs[key]
-                    assert route.obj is not None
-                    value = snap.value(route.obj, route.axis)
-                    self._session.put(kexpr, json.dumps(value).encode(), encoding=JSON)
+                for obj, axis in snap.changed(last):
+                    entry = named.get((obj.name, axis))
+                    if entry is not None:
+                        value = snap.value(entry[1], axis)
+                        self._session.put(entry[0], json.dumps(value).encode(), encoding=JSON)
                 last = snap
             await asyncio.sleep(self.options.publish_period)
 
@@ -641,12 +603,3 @@ class ZenohInterface:
     def _put_event(self, event: Event) -> None:
         if self._session is not None:
             self._session.put(self._errors_ke, json.dumps(event.as_dict()).encode(), encoding=JSON)
-
-
-_MISSING = object()
-
-
-def load_config_file(path: str | Path) -> str:
-    """Validate that a Zenoh JSON5 config file can be read (clear error at start-up)."""
-    zenoh.Config.from_file(str(path))
-    return str(path)

@@ -56,7 +56,12 @@ from common import (
 )
 
 from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, AmsPacket, Command, TransMode
+from geo_server.ads.codec import (
+    AmsAddr,
+    AmsPacket,
+    Command,
+    TransMode,
+)
 from geo_server.dictionary import load_dictionary
 
 SERVER_NETID = "127.0.0.1.1.1"

@@ -98,7 +98,7 @@ class _AdsResponder(asyncio.Protocol):
                 if h.command == c.Command.READ:
                     payload = c.read_response(0, VALUE)
                 else:
-                    payload = c.result_response(c.ReturnCode.DEVICE_SRVNOTSUPP)
+                    payload = c.result_response(c.AdsErrorCode.DEVICE_SRVNOTSUPP)
                 self.transport.write(c.response_frame(h, payload))  # type: ignore[attr-defined]
 
 

@@ -102,7 +102,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from clients.common import add_transport_arguments, client_from_args, transport_name
-from geo_server.dictionary import AdsError, load_dictionary, round_half_away
+from geo_server.dictionary import load_dictionary, round_half_away
+from geo_server.errors import AdsError, GeoError
 
 log = logging.getLogger("clients.plc_tempcomp")
 
@@ -124,7 +125,7 @@ PARAMETER_OBJECTS = tuple(
 )
 
 
-class ReferenceTableError(ValueError):
+class ReferenceTableError(GeoError, ValueError):
     """The reference-measurement file cannot be used (names file and line)."""
 
 

@@ -36,7 +36,8 @@ from typing import Any
 
 from clients.common import open_client
 from geo_server.client import GeoClient
-from geo_server.dictionary import AdsError, ObjectDef, load_dictionary
+from geo_server.dictionary import ObjectDef, load_dictionary
+from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.snapshot import Snapshot

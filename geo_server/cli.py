@@ -19,6 +19,7 @@ from typing import Any
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
+from geo_server.errors import GeoError
 from geo_server.paths import default_startup_list
 
 
@@ -318,11 +319,11 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 print(f"warning: closing {type(iface).__name__}: {exc}", file=sys.stderr)
 
 
-class InterfaceStartError(RuntimeError):
+class InterfaceStartError(GeoError):
     """An interface could not start (port in use, bad address or Zenoh config)."""
 
 
-class CycleStoppedError(RuntimeError):
+class CycleStoppedError(GeoError):
     """The GEO cycle thread died (a defect; its traceback is on stderr)."""
 
 

@@ -14,7 +14,8 @@ from typing import Any
 
 from geo_server.client import TRANSPORTS, open_client, resolve
 from geo_server.console import closes_quietly_on_broken_pipe
-from geo_server.dictionary import STRING_LENGTH, AdsError, ObjectDef, load_dictionary
+from geo_server.dictionary import STRING_LENGTH, ObjectDef, load_dictionary
+from geo_server.errors import AdsError
 
 
 def _target(args: argparse.Namespace) -> tuple[ObjectDef, int]:

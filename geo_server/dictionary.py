@@ -20,50 +20,11 @@ import sys
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from enum import IntEnum
 from functools import cache
 from typing import Any
 
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.paths import data_dir
-
-
-class AdsErrorCode(IntEnum):
-    """ADS/AMS return codes used by geo-server (SPEC §9; Beckhoff ADS return codes)."""
-
-    NOERROR = 0x000
-    TARGET_PORT_NOT_FOUND = 0x006
-    DEVICE_ERROR = 0x700
-    SERVICE_NOT_SUPPORTED = 0x701
-    INVALID_INDEX_GROUP = 0x702
-    INVALID_INDEX_OFFSET = 0x703
-    INVALID_ACCESS = 0x704
-    INVALID_SIZE = 0x705
-    INVALID_DATA = 0x706
-    DEVICE_NOT_READY = 0x707
-    DEVICE_BUSY = 0x708
-    DEVICE_SYNTAX = 0x70D
-    #: ADSERR_DEVICE_TIMEOUT: a queued write was not applied in time (the transports'
-    #: write timeout), so no transport has to spell 0x719 by hand.
-    TIMEOUT = 0x719
-
-
-class AdsError(Exception):
-    """A request failed with an ADS return code; `message` says precisely why."""
-
-    def __init__(self, code: int, message: str, name: str = "") -> None:
-        super().__init__(f"ADS error 0x{code:X}: {message}")
-        self.code = int(code)
-        self.message = message
-        self.name = name
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        # pickles across the process boundary of the GEO cycle with its fields intact
-        return (type(self), (self.code, self.message, self.name))
-
-    def as_dict(self) -> dict[str, Any]:
-        """The JSON error body used by the Zenoh interface (SPEC §7)."""
-        return {"ads_error": self.code, "name": self.name, "message": self.message}
-
 
 #: Index groups of the object groups (SPEC §2).
 GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300}
@@ -214,7 +175,7 @@ class ObjectDef:
         """Decode ADS bytes; wrong length -> 0x705, invalid BOOLEAN/NaN -> 0x706."""
         if len(data) != self.length:
             raise AdsError(
-                AdsErrorCode.INVALID_SIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"{self.name} is {self.type.name} of {self.length} bytes, got {len(data)}",
                 self.name,
             )
@@ -224,7 +185,7 @@ class ObjectDef:
         if self.type.name == "BOOLEAN":
             if v > 1:
                 raise AdsError(
-                    AdsErrorCode.INVALID_DATA, f"{self.name}: BOOLEAN must be 0 or 1, got {v}"
+                    AdsErrorCode.DEVICE_INVALIDDATA, f"{self.name}: BOOLEAN must be 0 or 1, got {v}"
                 )
             return bool(v)
         self.check_range(v)
@@ -253,7 +214,7 @@ class ObjectDef:
                 v = int(value)
         except (TypeError, ValueError) as exc:
             raise AdsError(
-                AdsErrorCode.INVALID_DATA,
+                AdsErrorCode.DEVICE_INVALIDDATA,
                 f"{self.name}: {_show(value)} is not a valid {t}",
                 self.name,
             ) from exc
@@ -296,7 +257,7 @@ class ObjectDef:
         if t == "REAL64":
             if isinstance(value, int) and abs(value) > sys.float_info.max:
                 raise AdsError(
-                    AdsErrorCode.INVALID_DATA,
+                    AdsErrorCode.DEVICE_INVALIDDATA,
                     f"{self.name}: {_show(value)} is outside the REAL64 range",
                     self.name,
                 )
@@ -306,7 +267,7 @@ class ObjectDef:
     def _wrong_json(self, value: Any, expected: str) -> AdsError:
         got = "null" if value is None else f"{_json_kind(value)} {_show(value)}"
         return AdsError(
-            AdsErrorCode.INVALID_DATA,
+            AdsErrorCode.DEVICE_INVALIDDATA,
             f"{self.name} is {self.type.name}: needs {expected}, got {got}",
             self.name,
         )
@@ -316,10 +277,12 @@ class ObjectDef:
         lo = self.type.lo if self.min is None else self.min
         hi = self.type.hi if self.max is None else self.max
         if isinstance(v, float) and not math.isfinite(v):
-            raise AdsError(AdsErrorCode.INVALID_DATA, f"{self.name}: {v} is not finite", self.name)
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDDATA, f"{self.name}: {v} is not finite", self.name
+            )
         if not lo <= v <= hi:
             raise AdsError(
-                AdsErrorCode.INVALID_DATA,
+                AdsErrorCode.DEVICE_INVALIDDATA,
                 f"{self.name}: {_show(v)} outside the range {lo:g} … {hi:g} {self.unit}",
                 self.name,
             )
@@ -397,7 +360,7 @@ class Dictionary:
             return self._by_name[_normalize_name(name)]
         except KeyError:
             raise AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET, f"unknown object name {name!r}", name
+                AdsErrorCode.DEVICE_INVALIDOFFSET, f"unknown object name {name!r}", name
             ) from None
 
     def group_objects(self, group: str, scope: str = "axis") -> list[ObjectDef]:
@@ -428,21 +391,19 @@ class Dictionary:
                     group, attr = g, ATTRIBUTES[index_group - ig]
                     break
         if group is None:
-            raise AdsError(
-                AdsErrorCode.INVALID_INDEX_GROUP, f"unknown index group 0x{index_group:X}"
-            )
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group 0x{index_group:X}")
         axis, oid = index_offset >> 16, index_offset & 0xFFFF
         scope = "machine" if axis == 0 else "axis"
         obj = self._by_id.get((group, oid, scope))
         if obj is None:
             raise AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET,
+                AdsErrorCode.DEVICE_INVALIDOFFSET,
                 f"no object 0x{oid:04X} in group 0x{GROUPS[group]:X} for "
                 + ("the machine (axis 0)" if axis == 0 else f"axis {axis}"),
             )
         if scope == "axis" and axis not in set(axes):
             raise AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET,
+                AdsErrorCode.DEVICE_INVALIDOFFSET,
                 f"axis {axis} is not configured (offset 0x{index_offset:X})",
                 obj.name,
             )

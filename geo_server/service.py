@@ -42,7 +42,8 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.config import CompKind, Diagnostic, MachineConfig
-from geo_server.dictionary import AdsError, AdsErrorCode, ObjectDef
+from geo_server.dictionary import ObjectDef
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
 from geo_server.machine.nc import NcError, parse_program
@@ -197,7 +198,7 @@ class ObjectService:
         stalled = self.stalled_for()
         if stalled:
             raise AdsError(
-                AdsErrorCode.DEVICE_NOT_READY,
+                AdsErrorCode.DEVICE_NOTREADY,
                 f"the GEO cycle is stalled: no cycle for {stalled:.1f} s (last cycle {snap.cycle})",
             )
         return snap
@@ -212,7 +213,7 @@ class ObjectService:
         obj = self.dictionary.by_name(name)
         if obj.scope == "axis" and axis not in self.axes:
             raise AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis} is not configured", obj.name
+                AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis} is not configured", obj.name
             )
         return obj
 
@@ -235,11 +236,13 @@ class ObjectService:
             data = obj.attribute(attr)
         else:
             if not obj.readable:
-                raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{obj.name} is write-only", obj.name)
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is write-only", obj.name
+                )
             data = (snapshot or self.current()).encode(obj, axis)
         if length is not None and length < len(data):
             raise AdsError(
-                AdsErrorCode.INVALID_SIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"{obj.name}: read of {length} bytes, the value has {len(data)}",
                 obj.name,
             )
@@ -277,7 +280,7 @@ class ObjectService:
         obj, axis, attr = self.resolve(index_group, index_offset)
         if attr is not None:
             raise AdsError(
-                AdsErrorCode.INVALID_ACCESS, f"attribute of {obj.name} is read-only", obj.name
+                AdsErrorCode.DEVICE_INVALIDACCESS, f"attribute of {obj.name} is read-only", obj.name
             )
         self._check_writable(obj)
         return PreparedWrite(obj, axis, obj.decode(data))
@@ -300,7 +303,7 @@ class ObjectService:
 
     def _check_writable(self, obj: ObjectDef) -> None:
         if not obj.writable:
-            raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{obj.name} is read-only", obj.name)
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is read-only", obj.name)
 
     # ------------------------------------------------------------------ writes: queueing
 
@@ -324,7 +327,7 @@ class ObjectService:
         if commands:
             if len(writes) != 1:
                 raise AdsError(
-                    AdsErrorCode.INVALID_ACCESS,
+                    AdsErrorCode.DEVICE_INVALIDACCESS,
                     f"{commands[0].obj.name} must be written on its own",
                     commands[0].obj.name,
                 )
@@ -391,7 +394,7 @@ class ObjectService:
         while not done:
             if pending.withdraw():
                 raise AdsError(
-                    AdsErrorCode.TIMEOUT,
+                    AdsErrorCode.DEVICE_TIMEOUT,
                     f"not applied within {limit:g} s (the GEO cycle is late or stalled); "
                     "withdrawn, it will not take effect",
                 )
@@ -409,7 +412,7 @@ class ObjectService:
             except TimeoutError:
                 if pending.withdraw():
                     raise AdsError(
-                        AdsErrorCode.TIMEOUT,
+                        AdsErrorCode.DEVICE_TIMEOUT,
                         f"not applied within {timeout:g} s (the GEO cycle is late or "
                         "stalled); withdrawn, it will not take effect",
                     ) from None
@@ -419,7 +422,7 @@ class ObjectService:
         stalled = self.stalled_for()
         if stalled:
             raise AdsError(
-                AdsErrorCode.DEVICE_NOT_READY,
+                AdsErrorCode.DEVICE_NOTREADY,
                 f"the GEO cycle is stalled (no cycle for {stalled:.1f} s): nothing queued",
             )
 
@@ -507,7 +510,7 @@ class ObjectService:
         lim = self.limits
         if size > lim.nc_max_bytes or lines > lim.nc_max_lines:
             raise AdsError(
-                AdsErrorCode.INVALID_SIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"NC text of {size} bytes / {lines} lines exceeds {lim.nc_max_bytes} bytes / "
                 f"{lim.nc_max_lines} lines",
                 "nc",
@@ -542,7 +545,7 @@ class ObjectService:
             return self.reload()
         if name == "save":
             return self.save()
-        raise AdsError(AdsErrorCode.SERVICE_NOT_SUPPORTED, f"unknown command {name!r}")
+        raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}")
 
     async def command(self, name: str) -> CommandResult:
         """Run `reload` or `save` in a worker thread (never on the event loop)."""

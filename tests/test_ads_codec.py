@@ -18,7 +18,6 @@ from geo_server.ads.codec import (
     DeviceNotificationRequest,
     Dropped,
     Framer,
-    FramingError,
     PayloadError,
     ReadDeviceInfoRequest,
     ReadRequest,
@@ -27,10 +26,12 @@ from geo_server.ads.codec import (
     Sample,
     Stamp,
     StateFlags,
+    StreamError,
     UnknownCommandRequest,
     WriteControlRequest,
     WriteRequest,
 )
+from geo_server.errors import AdsErrorCode
 
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
 CLIENT = AmsAddr("10.0.0.7.1.1", 30001)
@@ -133,21 +134,21 @@ def test_oversized_length_is_fatal_and_sticky() -> None:
     f = Framer(max_frame=1024)
     events = f.feed(read_frame(invoke=1) + struct.pack("<HI", 0, 1025) + b"x" * 10)
     assert isinstance(events[0], AmsPacket)
-    assert isinstance(events[1], FramingError) and "1025" in events[1].reason
+    assert isinstance(events[1], StreamError) and "1025" in events[1].reason
     assert f.failed is not None
     assert f.feed(read_frame()) == []
 
 
 def test_default_limit_is_one_mebibyte() -> None:
     assert codec.MAX_FRAME == 1 << 20
-    assert isinstance(Framer().feed(struct.pack("<HI", 0, (1 << 20) + 1))[0], FramingError)
+    assert isinstance(Framer().feed(struct.pack("<HI", 0, (1 << 20) + 1))[0], StreamError)
     # exactly at the limit: waits for the data
     assert Framer().feed(struct.pack("<HI", 0, 1 << 20)) == []
 
 
 def test_unknown_tcp_header_kind_is_fatal() -> None:
     (ev,) = Framer().feed(b"\xde\xad" + b"\x00" * 40)
-    assert isinstance(ev, FramingError)
+    assert isinstance(ev, StreamError)
 
 
 def test_router_command_is_skipped() -> None:
@@ -168,7 +169,7 @@ def test_inconsistent_ams_length_is_answered_with_0xE() -> None:
     struct.pack_into("<I", raw, 6 + 20, 99)  # AMS header data length lies
     events = Framer().feed(bytes(raw) + read_frame(invoke=4))
     assert isinstance(events[0], BadPacket)
-    assert events[0].error_code == codec.ReturnCode.INVALID_AMS_LENGTH
+    assert events[0].error_code == AdsErrorCode.INVALID_AMS_LENGTH
     assert events[0].header.invoke_id == 3
     assert packets(events)[0].header.invoke_id == 4
 

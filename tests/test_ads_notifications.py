@@ -12,6 +12,7 @@ import pytest
 
 from geo_server.ads.codec import AddNotificationRequest, AmsAddr, TransMode
 from geo_server.ads.notifications import NotificationTable, cycles_for
+from geo_server.errors import AdsError
 
 CLIENT = AmsAddr("10.1.2.3.1.1", 32905)
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
@@ -91,7 +92,6 @@ def test_same_snapshot_twice_samples_once() -> None:
 
 
 def test_notifications_per_connection_are_capped_with_0x716() -> None:
-    from geo_server.dictionary import AdsError
 
     t = NotificationTable(lambda *_a: b"\0\0\0\0", cycle_s=0.001, max_per_owner=3)
     req = AddNotificationRequest(0x12F300, 1, 4, TransMode.SERVERONCHA, 0, MS)

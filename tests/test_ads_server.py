@@ -24,10 +24,17 @@ from conftest import run_in
 from pyads.errorcodes import ERROR_CODES
 
 from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, AmsPacket, Command, Framer, SumGroup
+from geo_server.ads.codec import (
+    AmsAddr,
+    AmsPacket,
+    Command,
+    Framer,
+    SumGroup,
+)
 from geo_server.ads.server import AdsOptions, AdsServer
 from geo_server.client.ads_client import AdsClient, close_port_first
-from geo_server.dictionary import AdsError, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError
 from geo_server.machine.scheduler import Scheduler
 from geo_server.service import ObjectService
 

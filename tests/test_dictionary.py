@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from geo_server.dictionary import AdsError, dictionary_markdown, load_dictionary, round_half_away
+from geo_server.dictionary import dictionary_markdown, load_dictionary, round_half_away
+from geo_server.errors import AdsError
 
 # A copy of shared/research/objects.csv (every CNC object of the manuals), kept with the
 # tests so the check runs in any clone; `test_research_copy_is_current` keeps it in step.

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler

@@ -8,7 +8,8 @@ import math
 
 import pytest
 
-from geo_server.dictionary import AdsError, AdsErrorCode, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.modbus.regmap import (
     ExcCode,
     ModbusMap,
@@ -245,10 +246,10 @@ def test_machine_write_exceptions():
 
 
 def test_exception_for_ads_codes():
-    assert exception_for(AdsError(AdsErrorCode.INVALID_ACCESS, "")) == 2
-    assert exception_for(AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, "")) == 2
-    assert exception_for(AdsError(AdsErrorCode.INVALID_DATA, "")) == 3
-    assert exception_for(AdsError(AdsErrorCode.INVALID_SIZE, "")) == 3
+    assert exception_for(AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "")) == 2
+    assert exception_for(AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, "")) == 2
+    assert exception_for(AdsError(AdsErrorCode.DEVICE_INVALIDDATA, "")) == 3
+    assert exception_for(AdsError(AdsErrorCode.DEVICE_INVALIDSIZE, "")) == 3
     assert exception_for(AdsError(AdsErrorCode.DEVICE_SYNTAX, "")) == 4
 
 

@@ -18,7 +18,8 @@ from conftest import run_in
 from pymodbus.client import ModbusTcpClient
 
 from geo_server.client.modbus_client import ModbusClient
-from geo_server.dictionary import AdsError, AdsErrorCode, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
 from geo_server.modbus.regmap import (
@@ -122,7 +123,7 @@ def test_client_read_matches_service(server, geo, service):
     assert geo.read_raw(0x120400, io, 256).rstrip(b"\0") == b"TEMPC::coefficient"
     with pytest.raises(AdsError) as info:
         geo.read("TEMPC::coefficient", 77)
-    assert info.value.code == AdsErrorCode.INVALID_INDEX_OFFSET
+    assert info.value.code == AdsErrorCode.DEVICE_INVALIDOFFSET
 
 
 def test_block_read_across_objects(server, client, service):
@@ -264,10 +265,10 @@ def test_client_write_and_raw(server, geo, service):
     assert service.read_name("TEMPC::offset_0", 1) == -7
     with pytest.raises(AdsError) as info:
         geo.write("TEMPC::actual_offset", 1, 5)
-    assert info.value.code == AdsErrorCode.INVALID_ACCESS
+    assert info.value.code == AdsErrorCode.DEVICE_INVALIDACCESS
     with pytest.raises(AdsError) as info:
         geo.write("TEMPC::coefficient", 1, 1e6)  # refused by the client's own check
-    assert info.value.code == AdsErrorCode.INVALID_DATA
+    assert info.value.code == AdsErrorCode.DEVICE_INVALIDDATA
 
 
 def test_writes_wait_for_the_cycle_when_running(loop_thread, machine):

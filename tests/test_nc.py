@@ -10,8 +10,6 @@ import pytest
 from geo_server.config import AxisParams, CompKind
 from geo_server.machine.motion import Motion
 from geo_server.machine.nc import (
-    ERR_FRICT_NOT_SELECTED,
-    ERR_REQUIRED_COMP,
     MAX_BLOCKS_PER_CYCLE,
     MachinePort,
     NcError,
@@ -62,7 +60,7 @@ class FakePort:
     def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
         self.calls.append(("comp", slot, on, kinds, no_move))
         if on and kinds & K.FRICT and slot not in self.frict_allowed:
-            return ERR_FRICT_NOT_SELECTED
+            return 70495  # P-ERR-70495 (000 p.73)
         cur = self.active.get(slot, K(0))
         self.active[slot] = cur | kinds if on else cur & ~kinds
         return 0
@@ -298,7 +296,7 @@ def test_friction_example_000_p73_and_70495():
 
     player, port = play(text, FakePort(frict_allowed=set()))
     assert not player.running and not player.finished
-    assert (player.error.error_id, player.error.line) == (ERR_FRICT_NOT_SELECTED, 1)
+    assert (player.error.error_id, player.error.line) == (70495, 1)
     assert "P-AXIS-00522" in player.error.message
     assert port.kinds("report") == [("report", 70495, 1)]
     assert port.kinds("move") == [] and port.kinds("end") == []
@@ -309,7 +307,7 @@ def test_70435_required_compensation_not_effective():
     text = "G74 X1\nX[COMP ON LEAD]\nN30 X10\nM30"
     player, port = play(text, port)
     assert port.kinds("home") == [("home", (0,))]  # homing is not monitored
-    assert player.error.error_id == ERR_REQUIRED_COMP and player.error.line == 3
+    assert player.error.error_id == 70435 and player.error.line == 3
     assert "TEMP" in player.error.message and "CROSS" not in player.error.message
     assert port.kinds("move") == [] and port.kinds("report") == [("report", 70435, 3)]
 

@@ -37,7 +37,8 @@ from clients.plc_tempcomp import (
     warmup_temperature,
 )
 from clients.testing import GeoTestServer
-from geo_server.dictionary import AdsError, round_half_away
+from geo_server.dictionary import round_half_away
+from geo_server.errors import AdsError
 
 pytest_plugins = ["clients.pytest_plugin"]
 

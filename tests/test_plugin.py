@@ -13,7 +13,7 @@ import struct
 import pytest
 
 from clients.testing import GeoTestServer, ServiceClient
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError
 from geo_server.paths import data_dir
 
 pytest_plugins = ["pytester", "clients.pytest_plugin"]

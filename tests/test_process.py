@@ -19,9 +19,9 @@ import pytest
 from conftest import run_in
 
 from geo_server.ads.server import AdsOptions, AdsServer
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
-from geo_server.machine.ipc import FrameDecoder, FramingError, OutBuffer, encode_frame
+from geo_server.machine.ipc import ChannelError, FrameDecoder, OutBuffer, encode_frame
 from geo_server.machine.machine import Machine
 from geo_server.machine.process import ProcessScheduler, RemoteMachine
 from geo_server.service import ObjectService
@@ -44,7 +44,7 @@ def test_frame_header_is_length_then_pickle():
     frame = encode_frame(("stop",))
     assert int.from_bytes(frame[:4], "little") == len(frame) - 4
     assert pickle.loads(frame[4:]) == ("stop",)
-    with pytest.raises(FramingError):
+    with pytest.raises(ChannelError):
         FrameDecoder().feed((200 * 1024 * 1024).to_bytes(4, "little"))
 
 

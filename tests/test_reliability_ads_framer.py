@@ -8,7 +8,14 @@ import struct
 import tracemalloc
 
 from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, AmsPacket, Command, Framer, FramingError, SumGroup
+from geo_server.ads.codec import (
+    AmsAddr,
+    AmsPacket,
+    Command,
+    Framer,
+    StreamError,
+    SumGroup,
+)
 from geo_server.ads.server import AdsOptions
 from geo_server.dictionary import TYPES, load_dictionary
 
@@ -51,7 +58,7 @@ def test_the_largest_legal_request_fits_exactly() -> None:
 def test_a_header_announcing_more_fails_before_any_data() -> None:
     f = Framer(codec.MAX_REQUEST_FRAME)
     (ev,) = f.feed(struct.pack("<HI", 0, codec.MAX_REQUEST_FRAME + 1))
-    assert isinstance(ev, FramingError)
+    assert isinstance(ev, StreamError)
     assert f.buffered == 0 and f.incomplete_since is None
     assert f.feed(b"\0" * 1000) == []  # and nothing more is kept
 

@@ -26,7 +26,12 @@ import pytest
 from robust.harness import TIMEOUT, FullServer, Reader
 
 from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, AmsPacket, Command, TransMode
+from geo_server.ads.codec import (
+    AmsAddr,
+    AmsPacket,
+    Command,
+    TransMode,
+)
 from geo_server.dictionary import load_dictionary
 
 FLOOD_CYCLES = 1500  # GEO cycles the readers run while the flood is registered

@@ -20,7 +20,13 @@ import pytest
 from conftest import run_in
 
 from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, AmsPacket, Command, Framer, TransMode
+from geo_server.ads.codec import (
+    AmsAddr,
+    AmsPacket,
+    Command,
+    Framer,
+    TransMode,
+)
 from geo_server.ads.server import AdsOptions, AdsServer
 from geo_server.dictionary import load_dictionary
 

@@ -14,7 +14,7 @@ import pytest
 from geo_server.ads.codec import AddNotificationRequest, AmsAddr, TransMode
 from geo_server.ads.notifications import MAX_PER_OWNER, MAX_TOTAL, NotificationTable
 from geo_server.ads.server import AdsOptions
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError
 
 CLIENT = AmsAddr("10.1.2.3.1.1", 32905)
 SERVER = AmsAddr("127.0.0.1.1.1", 551)

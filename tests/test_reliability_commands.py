@@ -13,7 +13,7 @@ import time
 import pytest
 from conftest import run_in
 
-from geo_server.dictionary import AdsError, AdsErrorCode
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.modbus.server import ModbusInterface, ModbusOptions

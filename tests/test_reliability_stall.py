@@ -18,7 +18,8 @@ from collections.abc import Iterator
 import pytest
 from conftest import run_in
 
-from geo_server.dictionary import AdsError, AdsErrorCode, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.process import ProcessScheduler, RemoteMachine
 from geo_server.modbus.regmap import encode, register_address
@@ -92,7 +93,7 @@ def test_a_write_that_timed_out_is_withdrawn_and_never_applied(slow_to_notice, l
     m.stop_cycle()
     with pytest.raises(AdsError) as err:
         run_in(loop_thread, svc.write_name_applied("TEMPC::coefficient", 1, before + 111.0))
-    assert err.value.code == AdsErrorCode.TIMEOUT
+    assert err.value.code == AdsErrorCode.DEVICE_TIMEOUT
     m.resume_cycle()
     resumed = m.machine.cycle
     wait_for(lambda: m.machine.cycle > resumed + 200)
@@ -132,7 +133,7 @@ def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, li
     cfg_before = m.machine.cfg
     m.stop_cycle()
     result = svc.reload()
-    assert not result.ok and result.code == AdsErrorCode.TIMEOUT
+    assert not result.ok and result.code == AdsErrorCode.DEVICE_TIMEOUT
     assert "reload rejected, machine unchanged" in result.message
     assert any("reload rejected" in e["message"] for e in svc.errors())
     m.resume_cycle()
@@ -157,10 +158,10 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
         assert st["stalled_for_s"] > 0.3
         with pytest.raises(AdsError) as err:
             svc.read(0x120300, 0x10043)
-        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         with pytest.raises(AdsError) as err:  # refused at once, nothing queued
             svc.write_name("TEMPC::coefficient", 1, 1.0)
-        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
             s.sendall(read)
             assert s.recv(64) == struct.pack(">HHHB", 4, 0, 3, 1) + b"\x83\x06"
@@ -189,7 +190,7 @@ def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, l
         m.stop_cycle()
         with pytest.raises(pyads.ADSError) as err:
             conn.write(0x120300, 0x30043, before + 5.0, pyads.PLCTYPE_LREAL)
-        assert err.value.err_code == AdsErrorCode.TIMEOUT
+        assert err.value.err_code == AdsErrorCode.DEVICE_TIMEOUT
         m.resume_cycle()
         resumed = m.machine.cycle
         wait_for(lambda: m.machine.cycle > resumed + 200)
@@ -215,7 +216,7 @@ def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thr
         wait_for(lambda: m.service.status()["stalled"])
         with pytest.raises(pyads.ADSError) as err:
             conn.read(0x120300, 0x10043, pyads.PLCTYPE_LREAL)
-        assert err.value.err_code == AdsErrorCode.DEVICE_NOT_READY
+        assert err.value.err_code == AdsErrorCode.DEVICE_NOTREADY
         # attributes are constants of the dictionary: still answered
         assert conn.read(0x120600, 0x10043, pyads.PLCTYPE_UDINT) == 8  # length
         m.resume_cycle()
@@ -245,11 +246,11 @@ def test_over_zenoh_stalled_reads_and_a_withdrawn_write(lists_copy, loop_thread)
         wait_for(lambda: m.service.status()["stalled"])
         with pytest.raises(AdsError) as err:
             client.read("TEMPC::coefficient", 1)
-        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         assert client.status()["stalled"] is True  # status is always answered
         with pytest.raises(AdsError) as err:  # refused at once: nothing queued
             client.write("TEMPC::coefficient", 1, 17.0)
-        assert err.value.code == AdsErrorCode.DEVICE_NOT_READY
+        assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         m.resume_cycle()
         wait_for(lambda: not m.service.status()["stalled"])
         assert client.read("TEMPC::coefficient", 1) == 4000.0

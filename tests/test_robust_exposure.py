@@ -35,7 +35,7 @@ from geo_server.cli import build_parser
 from geo_server.client import DEFAULT_ENDPOINTS
 from geo_server.client.ads_client import AdsClient
 from geo_server.client.zenoh_client import client_config
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError
 from geo_server.modbus.server import ModbusOptions
 from geo_server.transports.zenoh_server import ZenohOptions
 

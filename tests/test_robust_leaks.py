@@ -140,9 +140,7 @@ def test_vanishing_clients_leak_nothing(full, loop_thread):
 
     def settled() -> bool:
         return (
-            ads.connection_count == 0
-            and len(ads.notifications) == 0
-            and mb.connection_count == 0
+            ads.connection_count == 0 and len(ads.notifications) == 0 and mb.connection_count == 0
         )
 
     # -- warm-up: one round of everything, small

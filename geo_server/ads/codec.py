@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 from geo_server.dictionary import TYPES as _dictionary_types
+from geo_server.errors import AdsErrorCode, GeoError
 
 # ---------------------------------------------------------------------- constants
 
@@ -149,33 +150,6 @@ class AdsState(IntEnum):
     RUN = 5
     STOP = 6
     ERROR = 11
-
-
-class ReturnCode(IntEnum):
-    """The ADS/AMS return codes this codec and server produce (AdsDef.h; SPEC §9)."""
-
-    NOERROR = 0x000
-    INTERNAL = 0x001
-    TARGET_PORT_NOT_FOUND = 0x006
-    TARGET_MACHINE_NOT_FOUND = 0x007
-    UNKNOWN_COMMAND_ID = 0x008
-    INVALID_AMS_LENGTH = 0x00E
-    DEVICE_ERROR = 0x700
-    DEVICE_SRVNOTSUPP = 0x701
-    DEVICE_INVALIDGRP = 0x702
-    DEVICE_INVALIDOFFSET = 0x703
-    DEVICE_INVALIDACCESS = 0x704
-    DEVICE_INVALIDSIZE = 0x705
-    DEVICE_INVALIDDATA = 0x706
-    DEVICE_NOTREADY = 0x707
-    DEVICE_BUSY = 0x708
-    DEVICE_NOMEMORY = 0x70A
-    DEVICE_INVALIDPARM = 0x70B
-    DEVICE_TRANSMODENOTSUPP = 0x713
-    DEVICE_NOTIFYHNDINVALID = 0x714
-    DEVICE_NOMOREHDLS = 0x716
-    DEVICE_INVALIDWATCHSIZE = 0x717
-    DEVICE_TIMEOUT = 0x719
 
 
 # ---------------------------------------------------------------------- addresses
@@ -343,13 +317,13 @@ class BadPacket:
 
 
 @dataclass(frozen=True, slots=True)
-class FramingError:
+class StreamError:
     """Unrecoverable: the byte stream can no longer be delimited. Close the connection."""
 
     reason: str
 
 
-FrameEvent = AmsPacket | BadPacket | Dropped | FramingError
+FrameEvent = AmsPacket | BadPacket | Dropped | StreamError
 
 
 class Framer:
@@ -357,7 +331,7 @@ class Framer:
 
     `feed(data)` accepts any slice of the TCP stream (one byte, half a header, three
     coalesced frames…) and returns the events it completed, in order. After a
-    `FramingError` the framer is `failed` and ignores further input.
+    `StreamError` the framer is `failed` and ignores further input.
 
     Memory: only the bytes of the one unfinished frame are kept, never more than the
     `max_frame` its header may announce (a longer announcement fails at once, before its
@@ -427,7 +401,7 @@ class Framer:
                         header,
                         f"AMS data length {header.data_length} but AMS/TCP carries "
                         f"{length - AMS_HEADER_SIZE} bytes",
-                        ReturnCode.INVALID_AMS_LENGTH,
+                        AdsErrorCode.INVALID_AMS_LENGTH,
                     )
                 )
                 continue
@@ -448,14 +422,14 @@ class Framer:
         self.failed = reason
         self._buf = bytearray()
         self.incomplete_since = None
-        events.append(FramingError(reason))
+        events.append(StreamError(reason))
         return events
 
 
 # ---------------------------------------------------------------------- requests
 
 
-class PayloadError(Exception):
+class PayloadError(GeoError):
     """The ADS data of a request does not fit its command (truncated, wrong length)."""
 
     def __init__(self, code: int, message: str) -> None:
@@ -555,7 +529,7 @@ _ADD_NOTIFICATION = struct.Struct("<IIIIII16s")
 def _need(data: bytes, size: int, what: str, exact: bool = True) -> None:
     if len(data) < size or (exact and len(data) != size):
         raise PayloadError(
-            ReturnCode.DEVICE_INVALIDSIZE,
+            AdsErrorCode.DEVICE_INVALIDSIZE,
             f"{what}: {len(data)} bytes of ADS data, expected {size}",
         )
 
@@ -763,7 +737,7 @@ def parse_device_notification(data: bytes) -> list[Stamp]:
             pos += size
         stamps.append(Stamp(ts, tuple(samples)))
     if pos != len(data):
-        raise PayloadError(ReturnCode.DEVICE_INVALIDSIZE, "DeviceNotification: trailing bytes")
+        raise PayloadError(AdsErrorCode.DEVICE_INVALIDSIZE, "DeviceNotification: trailing bytes")
     return stamps
 
 
@@ -813,7 +787,7 @@ class SubReadWrite:
 def _check_count(count: int) -> None:
     if count > MAX_SUM_REQUESTS:
         raise PayloadError(
-            ReturnCode.DEVICE_INVALIDSIZE,
+            AdsErrorCode.DEVICE_INVALIDSIZE,
             f"sum command with {count} sub-requests (limit {MAX_SUM_REQUESTS})",
         )
 
@@ -936,17 +910,16 @@ __all__ = [
     "Dropped",
     "FrameEvent",
     "Framer",
-    "FramingError",
     "PayloadError",
     "ReadDeviceInfoRequest",
     "ReadRequest",
     "ReadStateRequest",
     "ReadWriteRequest",
     "Request",
-    "ReturnCode",
     "Sample",
     "Stamp",
     "StateFlags",
+    "StreamError",
     "SubRead",
     "SubReadWrite",
     "SubWrite",

@@ -60,8 +60,13 @@ import itertools
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 
-from geo_server.ads.codec import AddNotificationRequest, AmsAddr, ReturnCode, Sample, TransMode
-from geo_server.dictionary import AdsError
+from geo_server.ads.codec import (
+    AddNotificationRequest,
+    AmsAddr,
+    Sample,
+    TransMode,
+)
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.snapshot import Snapshot
 
 #: Modes served; the client-side ones are served like their server-side twins.
@@ -321,26 +326,26 @@ class NotificationTable:
         """
         if req.trans_mode not in CYCLIC_MODES and req.trans_mode not in ON_CHANGE_MODES:
             raise AdsError(
-                ReturnCode.DEVICE_TRANSMODENOTSUPP,
+                AdsErrorCode.DEVICE_TRANSMODENOTSUPP,
                 f"transmission mode {req.trans_mode} is not supported (cyclic 1/3/5, "
                 "on-change 2/4/6)",
             )
         if req.length == 0:
-            raise AdsError(ReturnCode.DEVICE_INVALIDSIZE, "notification length 0")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDSIZE, "notification length 0")
         if req.length > MAX_WATCH_SIZE:
             raise AdsError(
-                ReturnCode.DEVICE_INVALIDWATCHSIZE,
+                AdsErrorCode.DEVICE_INVALIDWATCHSIZE,
                 f"notification length {req.length} > {MAX_WATCH_SIZE}",
             )
         own = self._by_owner.get(owner)
         if own is not None and len(own) >= self.max_per_owner:
             raise AdsError(
-                ReturnCode.DEVICE_NOMOREHDLS,
+                AdsErrorCode.DEVICE_NOMOREHDLS,
                 f"more than {self.max_per_owner} notifications on one connection",
             )
         if len(self._regs) >= self.max_total:
             raise AdsError(
-                ReturnCode.DEVICE_NOMOREHDLS,
+                AdsErrorCode.DEVICE_NOMOREHDLS,
                 f"more than {self.max_total} notifications on this server",
             )
         getter = self._getter(req.index_group, req.index_offset, req.length, snapshot)
@@ -372,7 +377,7 @@ class NotificationTable:
         reg = self._regs.get(handle)
         if reg is None or reg.owner != owner:
             raise AdsError(
-                ReturnCode.DEVICE_NOTIFYHNDINVALID, f"notification handle {handle} is unknown"
+                AdsErrorCode.DEVICE_NOTIFYHNDINVALID, f"notification handle {handle} is unknown"
             )
         own = self._by_owner[owner]
         del own[handle]

@@ -45,14 +45,13 @@ from geo_server.ads.codec import (
     Command,
     DeleteNotificationRequest,
     Dropped,
-    FramingError,
     PayloadError,
     ReadDeviceInfoRequest,
     ReadRequest,
     ReadStateRequest,
     ReadWriteRequest,
-    ReturnCode,
     Stamp,
+    StreamError,
     SumGroup,
     WriteControlRequest,
     WriteRequest,
@@ -64,7 +63,7 @@ from geo_server.ads.notifications import (
     NotificationTable,
     SamplingPass,
 )
-from geo_server.dictionary import AdsError
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
 
@@ -265,11 +264,11 @@ class AdsServer:
         self.stats.requests += 1
         if h.target.port not in self.options.ams_ports:
             self.stats.errors += 1
-            conn.send(codec.response_frame(h, b"", ReturnCode.TARGET_PORT_NOT_FOUND))
+            conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_PORT_NOT_FOUND))
             return
         if self.options.strict_netid and h.target.netid != self.options.netid:
             self.stats.errors += 1
-            conn.send(codec.response_frame(h, b"", ReturnCode.TARGET_MACHINE_NOT_FOUND))
+            conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
             return
         try:
             reply = self._dispatch(conn, packet)
@@ -279,7 +278,7 @@ class AdsServer:
             reply = error_payload(h.command, exc.code)
         except Exception:
             log.exception("ADS %s request failed", h.command)
-            reply = error_payload(h.command, ReturnCode.DEVICE_ERROR)
+            reply = error_payload(h.command, AdsErrorCode.DEVICE_ERROR)
         if isinstance(reply, bytes):
             self._respond(conn, h, reply)
         else:
@@ -290,7 +289,7 @@ class AdsServer:
             self.stats.errors += 1
         # An unknown command id also carries 0x701 in the AMS header: a client cannot
         # know the layout of a response to a command it should not have sent.
-        error = 0 if h.command in _KNOWN_COMMANDS else ReturnCode.DEVICE_SRVNOTSUPP
+        error = 0 if h.command in _KNOWN_COMMANDS else AdsErrorCode.DEVICE_SRVNOTSUPP
         conn.send(codec.response_frame(h, payload, error))
 
     async def _respond_later(
@@ -302,7 +301,7 @@ class AdsServer:
             payload = error_payload(h.command, exc.code)
         except Exception:
             log.exception("ADS %s request failed", h.command)
-            payload = error_payload(h.command, ReturnCode.DEVICE_ERROR)
+            payload = error_payload(h.command, AdsErrorCode.DEVICE_ERROR)
         self._respond(conn, h, payload)
 
     def _dispatch(self, conn: AdsConnection, packet: AmsPacket) -> Reply:
@@ -328,8 +327,8 @@ class AdsServer:
             )
         if isinstance(req, WriteControlRequest):
             # The CNC object interface offers Read, Write and ReadWrite only (TF5200).
-            return codec.result_response(ReturnCode.DEVICE_SRVNOTSUPP)
-        return codec.result_response(ReturnCode.DEVICE_SRVNOTSUPP)
+            return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
+        return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
 
     # ------------------------------------------------------------------ reads
 
@@ -411,7 +410,7 @@ class AdsServer:
                 return self._fit(codec.sum_read_ex_response(results), req.read_length)
 
             return written_then_read()
-        raise AdsError(ReturnCode.DEVICE_SRVNOTSUPP, f"sum command 0x{group:X} is not supported")
+        raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"sum command 0x{group:X} is not supported")
 
     def _fit_size(self, size: int, read_length: int) -> None:
         """Never more bytes than requested: a too small read buffer is 0x705; so is an
@@ -419,7 +418,7 @@ class AdsServer:
         limit = min(read_length, self.options.max_frame - codec.AMS_HEADER_SIZE - 8)
         if size > limit:
             raise AdsError(
-                ReturnCode.DEVICE_INVALIDSIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"the answer has {size} bytes, the read length is {read_length}",
             )
 
@@ -431,7 +430,7 @@ class AdsServer:
 
     def _check_writes_allowed(self) -> None:
         if self.options.read_only:
-            raise AdsError(ReturnCode.DEVICE_INVALIDACCESS, "the ADS interface is read-only")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "the ADS interface is read-only")
 
     def _write_reply(self, ig: int, io: int, data: bytes) -> Awaitable[bytes]:
         """Validate now (an invalid write raises at once), answer once applied."""
@@ -459,7 +458,7 @@ class AdsServer:
                 w = self.service.prepare(*item)
                 if w.obj.command:
                     raise AdsError(
-                        ReturnCode.DEVICE_INVALIDACCESS,
+                        AdsErrorCode.DEVICE_INVALIDACCESS,
                         f"{w.obj.name} cannot be written inside a sum command",
                     )
                 valid.append((i, w))
@@ -692,7 +691,7 @@ class AdsConnection(asyncio.Protocol):
             elif isinstance(ev, Dropped):
                 self.server.stats.dropped_frames += 1
                 log.debug("ADS frame dropped from %s: %s", self.peer, ev.reason)
-            elif isinstance(ev, FramingError):
+            elif isinstance(ev, StreamError):
                 self.server.stats.closed_for_framing += 1
                 log.warning("ADS closing %s: %s", self.peer, ev.reason)
                 self._cancel_frame_timer()

@@ -30,7 +30,8 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from geo_server.dictionary import AdsError, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError
 
 GEO_AMS_PORT = 551
 SUMUP_READ = 0xF080

@@ -16,7 +16,8 @@ from typing import Any
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
-from geo_server.dictionary import AdsError, AdsErrorCode, ObjectDef, load_dictionary
+from geo_server.dictionary import ObjectDef, load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.modbus.regmap import (
     ExcCode,
     decode,
@@ -34,15 +35,15 @@ def ads_error(code: int, obj: ObjectDef, axis: int, write: bool) -> AdsError:
     where = f"{obj.name} (unit {axis})"
     if code == ExcCode.GATEWAY_NO_RESPONSE:
         return AdsError(
-            AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis} is not configured", obj.name
+            AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis} is not configured", obj.name
         )
     if code == ExcCode.ILLEGAL_ADDRESS:
         if write:
-            return AdsError(AdsErrorCode.INVALID_ACCESS, f"{where}: write refused", obj.name)
-        return AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"{where}: no such address", obj.name)
+            return AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{where}: write refused", obj.name)
+        return AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, f"{where}: no such address", obj.name)
     if code == ExcCode.ILLEGAL_VALUE:
         return AdsError(
-            AdsErrorCode.INVALID_DATA if write else AdsErrorCode.INVALID_SIZE,
+            AdsErrorCode.DEVICE_INVALIDDATA if write else AdsErrorCode.DEVICE_INVALIDSIZE,
             f"{where}: illegal data value",
             obj.name,
         )
@@ -117,7 +118,7 @@ class ModbusClient:
         data = obj.attribute(attr) if attr else obj.encode(self.read_value(obj, axis))
         if length and length < len(data):
             raise AdsError(
-                AdsErrorCode.INVALID_SIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"{obj.name}: read of {length} bytes, the value has {len(data)}",
                 obj.name,
             )
@@ -128,7 +129,7 @@ class ModbusClient:
         obj, axis, attr = self.dictionary.resolve(index_group, index_offset, [index_offset >> 16])
         if attr is not None:
             raise AdsError(
-                AdsErrorCode.INVALID_ACCESS, f"attribute of {obj.name} is read-only", obj.name
+                AdsErrorCode.DEVICE_INVALIDACCESS, f"attribute of {obj.name} is read-only", obj.name
             )
         self.write_value(obj, axis, obj.decode(data))
 

@@ -19,7 +19,8 @@ from typing import Any
 
 import zenoh
 
-from geo_server.dictionary import AdsError, load_dictionary
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError
 from geo_server.transports.keys import KeySpace
 
 JSON = zenoh.Encoding.APPLICATION_JSON

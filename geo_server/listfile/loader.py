@@ -24,6 +24,7 @@ from geo_server.config import (
     Diagnostic,
     MachineConfig,
 )
+from geo_server.errors import GeoError
 from geo_server.listfile.axislist import axis_number, build_axis_params
 from geo_server.listfile.checks import HEADER_CHECK, MAX_POINTS_IDS
 from geo_server.listfile.complist import Ctx, build_comp_list, sections_present
@@ -32,7 +33,7 @@ from geo_server.listfile.syntax import NotAListFileError, ParsedList, parse_list
 from geo_server.listfile.values import Reporter, Values, read_values
 
 
-class ListFileError(Exception):
+class ListFileError(GeoError):
     """The lists cannot be read at all: a file missing, unreadable or not a list file
     (binary, UTF-16, a FIFO, nothing of its kind in it), or no axes."""
 

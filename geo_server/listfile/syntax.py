@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from geo_server.config import Diagnostic
+from geo_server.errors import GeoError
 from geo_server.listfile.schema import value_class
 
 #: Largest list file read, in bytes. The largest table of the manuals (plane
@@ -66,7 +67,7 @@ _FILE_TYPES = (
 )
 
 
-class NotAListFileError(OSError):
+class NotAListFileError(GeoError, OSError):
     """The file cannot be a list file: not a regular file, too large, or not text.
 
     An OSError like any file that cannot be read, so whoever reports unreadable files

@@ -17,18 +17,21 @@ import struct
 from collections.abc import Callable
 from typing import Any
 
+from geo_server.errors import GeoError
+
 _LEN = struct.Struct("<I")
 MAX_FRAME = 64 * 1024 * 1024  # a reload carries a whole machine configuration
 
 
-class FramingError(ValueError):
-    """The byte stream is not a sequence of frames (a defect, never user input)."""
+class ChannelError(GeoError, ValueError):
+    """The byte stream between the two processes is not a sequence of frames (a defect,
+    never user input)."""
 
 
 def encode_frame(message: Any) -> bytes:
     body = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
     if len(body) > MAX_FRAME:
-        raise FramingError(f"message of {len(body)} bytes exceeds {MAX_FRAME}")
+        raise ChannelError(f"message of {len(body)} bytes exceeds {MAX_FRAME}")
     return _LEN.pack(len(body)) + body
 
 
@@ -44,7 +47,7 @@ class FrameDecoder:
         while len(self._buf) >= _LEN.size:
             (n,) = _LEN.unpack_from(self._buf)
             if n > MAX_FRAME:
-                raise FramingError(f"frame length {n} exceeds {MAX_FRAME}")
+                raise ChannelError(f"frame length {n} exceeds {MAX_FRAME}")
             end = _LEN.size + n
             if len(self._buf) < end:
                 break

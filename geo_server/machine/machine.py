@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from geo_server.config import CompKind, Diagnostic, MachineConfig
-from geo_server.dictionary import AdsError, AdsErrorCode, Dictionary, load_dictionary
+from geo_server.dictionary import Dictionary, load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
 from geo_server.machine.motion import Motion, MotionError
@@ -363,7 +364,7 @@ class Machine:
         `lr_param.frict_comp`, else 0."""
         params = self.cfg.axes[self.axes[slot]].params
         if on and kinds & CompKind.FRICT and not params.frict_comp:
-            return 70495
+            return CncErrorId.FRICT_NOT_SELECTED
         for kind in COMP_ORDER:
             if kinds & kind:
                 self.kernel.set_selected(slot, kind, on)

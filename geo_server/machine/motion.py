@@ -38,6 +38,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from geo_server.config import AxisParams
+from geo_server.errors import GeoError
 
 #: Internal units per mm (linear) or per degree (rotary): 0.1 µm / 0.0001°.
 UNITS_PER_MM = 10_000.0
@@ -50,7 +51,7 @@ _CYCLE_EPS = 1e-6
 _SCALAR_MAX = 6
 
 
-class MotionError(ValueError):
+class MotionError(GeoError, ValueError):
     """A motion command that cannot be executed (busy axis, bad feed, bad slot)."""
 
 

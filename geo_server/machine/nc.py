@@ -39,14 +39,11 @@ from functools import partial
 from typing import Protocol
 
 from geo_server.config import CompKind, Diagnostic
+from geo_server.errors import CncErrorId, GeoError
 
 #: Internal units per mm / degree (SPEC §3).
 UNITS_PER_MM = 10_000.0
 
-#: P-ERR-70435: axis moved in automatic mode without the required compensations (000 p.97).
-ERR_REQUIRED_COMP = 70435
-#: P-ERR-70495: `COMP ON FRICT` while P-AXIS-00522 `lr_param.frict_comp` is not set.
-ERR_FRICT_NOT_SELECTED = 70495
 #: Emulator-internal NC runtime errors (runaway `$GOTO` loop, missing feed) carry ID 0.
 ERR_NC_RUNTIME = 0
 
@@ -64,11 +61,13 @@ KIND_WORDS: dict[str, CompKind] = {
 }
 
 _KNOWN_ERRORS = {
-    ERR_FRICT_NOT_SELECTED: "COMP ON FRICT but lr_param.frict_comp (P-AXIS-00522) is not set",
+    CncErrorId.FRICT_NOT_SELECTED: (
+        "COMP ON FRICT but lr_param.frict_comp (P-AXIS-00522) is not set"
+    ),
 }
 
 
-class NcError(ValueError):
+class NcError(GeoError, ValueError):
     """An error in the NC program text, with the 1-based line number."""
 
     def __init__(self, line: int, message: str) -> None:
@@ -625,7 +624,7 @@ class Player:
                 names = " ".join(k.name or "" for k in CompKind if k & missing)
                 axis = self._axis_name(s)
                 msg = f"P-ERR-70435: axis {axis} moved without required compensations {names}"
-                self._fail(ERR_REQUIRED_COMP, msg)
+                self._fail(CncErrorId.REQUIRED_COMP_MISSING, msg)
                 return False
         return True
 

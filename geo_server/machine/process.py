@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from geo_server.config import MachineConfig
-from geo_server.dictionary import AdsError, AdsErrorCode
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
 from geo_server.machine.machine import Machine
@@ -223,10 +223,10 @@ class RemoteMachine:
         carried it out has been received (its snapshot is then `self.snapshot`)."""
         with self._lock:
             if self.closed:
-                raise AdsError(AdsErrorCode.DEVICE_NOT_READY, "the GEO cycle process ended")
+                raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the GEO cycle process ended")
             if self._backlog > SEND_BACKLOG:
                 raise AdsError(
-                    AdsErrorCode.DEVICE_NOT_READY,
+                    AdsErrorCode.DEVICE_NOTREADY,
                     "the GEO cycle process is not reading its commands (stopped or hung)",
                 )
             slot = self.slots.allocate()
@@ -304,7 +304,7 @@ class RemoteMachine:
             for fut, _slot, _op in pending.values():
                 if fut.set_running_or_notify_cancel():
                     fut.set_exception(
-                        AdsError(AdsErrorCode.DEVICE_NOT_READY, "the GEO cycle process ended")
+                        AdsError(AdsErrorCode.DEVICE_NOTREADY, "the GEO cycle process ended")
                     )
 
     def _dispatch(self, msg: tuple) -> None:

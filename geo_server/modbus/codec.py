@@ -237,9 +237,7 @@ def read_bits_pdu(function: int, bits: list[bool]) -> bytes:
 
 
 def read_registers_pdu(function: int, registers: list[int]) -> bytes:
-    return bytes((function, 2 * len(registers))) + struct.pack(
-        f">{len(registers)}H", *registers
-    )
+    return bytes((function, 2 * len(registers))) + struct.pack(f">{len(registers)}H", *registers)
 
 
 def write_reply_pdu(req: WriteRequest) -> bytes:

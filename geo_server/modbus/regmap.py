@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
-from geo_server.dictionary import AdsError, AdsErrorCode, Dictionary, ObjectDef, load_dictionary
+from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
+from geo_server.errors import AdsError, AdsErrorCode, GeoError
 
 #: First address of the emulator group `0x12F300` (registers and bits).
 SIM_BASE = 0x4000
@@ -86,7 +87,7 @@ FUNCTIONS: dict[int, tuple[Table, bool]] = {
 }
 
 
-class RegisterError(Exception):
+class RegisterError(GeoError):
     """A request earns Modbus exception `code`; `message` says precisely why."""
 
     def __init__(self, code: int, message: str) -> None:
@@ -100,14 +101,14 @@ class RegisterError(Exception):
 #: (server device busy); a rejected command (reload with list errors, save refused) and
 #: anything unexpected are 4 (server device failure); the reason is in the error list.
 EXCEPTIONS: dict[int, ExcCode] = {
-    AdsErrorCode.INVALID_INDEX_GROUP: ExcCode.ILLEGAL_ADDRESS,
-    AdsErrorCode.INVALID_INDEX_OFFSET: ExcCode.ILLEGAL_ADDRESS,
-    AdsErrorCode.INVALID_ACCESS: ExcCode.ILLEGAL_ADDRESS,
-    AdsErrorCode.INVALID_SIZE: ExcCode.ILLEGAL_VALUE,
-    AdsErrorCode.INVALID_DATA: ExcCode.ILLEGAL_VALUE,
-    AdsErrorCode.DEVICE_NOT_READY: ExcCode.DEVICE_BUSY,
+    AdsErrorCode.DEVICE_INVALIDGRP: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.DEVICE_INVALIDOFFSET: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.DEVICE_INVALIDACCESS: ExcCode.ILLEGAL_ADDRESS,
+    AdsErrorCode.DEVICE_INVALIDSIZE: ExcCode.ILLEGAL_VALUE,
+    AdsErrorCode.DEVICE_INVALIDDATA: ExcCode.ILLEGAL_VALUE,
+    AdsErrorCode.DEVICE_NOTREADY: ExcCode.DEVICE_BUSY,
     AdsErrorCode.DEVICE_BUSY: ExcCode.DEVICE_BUSY,
-    AdsErrorCode.TIMEOUT: ExcCode.DEVICE_BUSY,
+    AdsErrorCode.DEVICE_TIMEOUT: ExcCode.DEVICE_BUSY,
     AdsErrorCode.DEVICE_SYNTAX: ExcCode.DEVICE_FAILURE,
     AdsErrorCode.DEVICE_ERROR: ExcCode.DEVICE_FAILURE,
 }

@@ -36,7 +36,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import geo_server
-from geo_server.dictionary import AdsError, ObjectDef
+from geo_server.dictionary import ObjectDef
+from geo_server.errors import AdsError
 from geo_server.modbus.codec import (
     DeviceIdRequest,
     Frame,
@@ -203,9 +204,7 @@ class ModbusInterface:
         objects = self._device
         if req.code == 4:
             if req.object_id not in objects:
-                raise RegisterError(
-                    ExcCode.ILLEGAL_ADDRESS, f"no device object {req.object_id}"
-                )
+                raise RegisterError(ExcCode.ILLEGAL_ADDRESS, f"no device object {req.object_id}")
             chosen = [req.object_id]
         else:
             span = _BASIC if req.code == 1 else _REGULAR

@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from geo_server.dictionary import (
     ATTRIBUTES,
     GROUPS,
-    AdsError,
-    AdsErrorCode,
     Dictionary,
     ObjectDef,
 )
+from geo_server.errors import AdsError, AdsErrorCode
 
 GEO_PORT = 551
 
@@ -113,7 +112,7 @@ class KeySpace:
             return self._fixed[key]
         parts = key.split("/")
         if parts[:2] != ["cnc", self.machine]:
-            raise AdsError(AdsErrorCode.INVALID_INDEX_GROUP, f"not a key of this machine: {key}")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"not a key of this machine: {key}")
         rest = parts[2:]
         if len(rest) == 4 and rest[0] == "ads":
             return self._parse_raw(key, rest[1:])
@@ -121,7 +120,7 @@ class KeySpace:
             return self._unknown_named(key, rest[1])
         if rest[:2] == ["sim", "axis"] and len(rest) == 4:
             return self._unknown_named(key, rest[2])
-        raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"unknown key {key}")
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, f"unknown key {key}")
 
     def no_match(self, key_expr: str) -> AdsError:
         """The error for a wildcard key expression that matches none of our keys.
@@ -145,7 +144,7 @@ class KeySpace:
             axis_chunk = concrete(2)
         if axis_chunk is not None and not (axis_chunk.isdigit() and int(axis_chunk) in self.axes):
             return AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis_chunk} is not configured"
+                AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis_chunk} is not configured"
             )
         if rest[:1] == ["ads"]:
             port, ig = concrete(1), concrete(2)
@@ -159,20 +158,20 @@ class KeySpace:
                 except ValueError:
                     group = -1
                 if group not in GROUPS.values() and not is_attribute_group(group):
-                    return AdsError(AdsErrorCode.INVALID_INDEX_GROUP, f"unknown index group {ig}")
+                    return AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group {ig}")
                 if is_attribute_group(group):
                     return AdsError(
-                        AdsErrorCode.INVALID_INDEX_OFFSET,
+                        AdsErrorCode.DEVICE_INVALIDOFFSET,
                         f"attribute groups are answered by concrete key only: {key_expr}",
                     )
-        return AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"no object matches {key_expr}")
+        return AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, f"no object matches {key_expr}")
 
     def _parse_raw(self, key: str, parts: list[str]) -> Route:
         try:
             port, ig, io = int(parts[0]), int(parts[1], 16), int(parts[2], 16)
         except ValueError:
             raise AdsError(
-                AdsErrorCode.INVALID_INDEX_OFFSET,
+                AdsErrorCode.DEVICE_INVALIDOFFSET,
                 f"raw key needs <port>/<0xgroup>/<0xoffset>: {key}",
             ) from None
         if port != GEO_PORT:
@@ -186,8 +185,8 @@ class KeySpace:
         except ValueError:
             axis = -1
         if axis not in self.axes:
-            raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"axis {axis_text} is not configured")
-        raise AdsError(AdsErrorCode.INVALID_INDEX_OFFSET, f"no object at {key}")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis_text} is not configured")
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDOFFSET, f"no object at {key}")
 
 
 def _readable(route: Route) -> bool:

@@ -30,7 +30,8 @@ from typing import Any
 
 import zenoh
 
-from geo_server.dictionary import AdsError, AdsErrorCode, ObjectDef
+from geo_server.dictionary import ObjectDef
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.service import ObjectService
 from geo_server.snapshot import Snapshot
@@ -130,7 +131,7 @@ def _bounded_int(text: str) -> int:
     """`parse_int` of `json.loads`: refuse an integer too long for any object first."""
     if len(text) > MAX_JSON_INT_CHARS:
         raise AdsError(
-            AdsErrorCode.INVALID_DATA,
+            AdsErrorCode.DEVICE_INVALIDDATA,
             f"a JSON integer of {len(text)} characters is out of range for every object type",
         )
     return int(text)
@@ -151,14 +152,14 @@ def _json_value(payload: bytes, obj: ObjectDef) -> Any:
     # ValueError: Python's own limit on long numbers, should one get past `_bounded_int`.
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
         raise AdsError(
-            AdsErrorCode.INVALID_DATA, f"{obj.name}: payload is not JSON ({exc})", obj.name
+            AdsErrorCode.DEVICE_INVALIDDATA, f"{obj.name}: payload is not JSON ({exc})", obj.name
         ) from None
     except AdsError as exc:
         raise AdsError(exc.code, f"{obj.name}: {exc.message}", obj.name) from None
     if isinstance(value, dict):
         if set(value) != {"value"}:
             raise AdsError(
-                AdsErrorCode.INVALID_DATA,
+                AdsErrorCode.DEVICE_INVALIDDATA,
                 f'{obj.name}: a JSON object must be {{"value": …}} and nothing else',
                 obj.name,
             )
@@ -285,12 +286,14 @@ class ZenohInterface:
             key = str(query.key_expr)
             if payload is not None and len(payload) > MAX_PAYLOAD:
                 raise AdsError(
-                    AdsErrorCode.INVALID_SIZE,
+                    AdsErrorCode.DEVICE_INVALIDSIZE,
                     f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}",
                 )
             if "*" in key:
                 if payload is not None:
-                    raise AdsError(AdsErrorCode.INVALID_ACCESS, "a write needs a concrete key")
+                    raise AdsError(
+                        AdsErrorCode.DEVICE_INVALIDACCESS, "a write needs a concrete key"
+                    )
                 self._answer_wildcard(query)
             else:
                 await self._answer(query, key, self.keys.parse(key), payload)
@@ -298,7 +301,7 @@ class ZenohInterface:
             query.reply_err(_error_payload(exc), encoding=JSON)
         except Exception as exc:  # never let one bad query take the interface down
             log.exception("zenoh query failed")
-            err = AdsError(0x700, f"internal error: {exc}")
+            err = AdsError(AdsErrorCode.DEVICE_ERROR, f"internal error: {exc}")
             query.reply_err(_error_payload(err), encoding=JSON)
         finally:
             query.drop()
@@ -355,11 +358,14 @@ class ZenohInterface:
             assert route.obj is not None
             if not route.obj.readable:
                 raise AdsError(
-                    AdsErrorCode.INVALID_ACCESS, f"{route.obj.name} is write-only", route.obj.name
+                    AdsErrorCode.DEVICE_INVALIDACCESS,
+                    f"{route.obj.name} is write-only",
+                    route.obj.name,
                 )
             return json.dumps(snap.value(route.obj, route.axis)).encode(), JSON
         raise AdsError(
-            AdsErrorCode.INVALID_ACCESS, f"{route.kind} needs a payload (get with payload runs it)"
+            AdsErrorCode.DEVICE_INVALIDACCESS,
+            f"{route.kind} needs a payload (get with payload runs it)",
         )
 
     async def _answer(
@@ -370,7 +376,7 @@ class ZenohInterface:
             query.reply(key, data, encoding=enc)
             return
         if self.options.read_only:
-            raise AdsError(AdsErrorCode.INVALID_ACCESS, "this interface is read-only")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "this interface is read-only")
         svc = self.service
         if route.kind == "raw":
             await svc.write_applied(route.index_group, route.index_offset, payload)
@@ -395,7 +401,7 @@ class ZenohInterface:
             body = {"ok": True, "command": "reset", "cycle": cycle}
             query.reply(key, json.dumps(body).encode(), encoding=JSON)
         else:
-            raise AdsError(AdsErrorCode.INVALID_ACCESS, f"{key} cannot be written")
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{key} cannot be written")
 
     async def _run_nc(self, payload: bytes) -> dict[str, Any]:
         """Run NC text: at most `max_nc_bytes` (else 0x705), parsed in a worker thread.
@@ -407,7 +413,7 @@ class ZenohInterface:
         limit = self.options.max_nc_bytes
         if len(payload) > limit:
             raise AdsError(
-                AdsErrorCode.INVALID_SIZE,
+                AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"NC text of {len(payload)} bytes exceeds {limit} bytes on this interface "
                 "(run a long program from a file: geo-server run --program)",
                 "nc",

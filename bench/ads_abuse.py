@@ -55,14 +55,14 @@ from common import (
     wait_port,
 )
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
     TransMode,
 )
-from geo_server.dictionary import load_dictionary
 
 SERVER_NETID = "127.0.0.1.1.1"
 FLOOD_AXES = 4  # the default machine's axes
@@ -421,7 +421,7 @@ def _without_options(argv: list[str], options: tuple[str, ...]) -> list[str]:
 def _server_max_frame(env: dict[str, str]) -> int:
     """The server tree's default `AdsOptions.max_frame` (1 MiB before it had a limit of
     its own)."""
-    code = "from geo_server.ads.server import AdsOptions; print(AdsOptions().max_frame)"
+    code = "from geo_server.transports.ads.server import AdsOptions; print(AdsOptions().max_frame)"
     out = subprocess.run(
         [PYTHON, "-c", code], capture_output=True, text=True, env={**os.environ, **env}, check=True
     )

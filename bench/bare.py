@@ -84,7 +84,7 @@ class _AdsResponder(asyncio.Protocol):
     """Answers every AMS Read with `VALUE` (geo-server's codec does the framing)."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        from geo_server.ads import codec
+        from geo_server.transports.ads import codec
 
         self.codec = codec
         self.framer = codec.Framer()

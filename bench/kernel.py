@@ -11,12 +11,17 @@ median and p99 µs per cycle of `Kernel` and `ReferenceKernel` as a Markdown tab
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from geo_server.kernel import Kernel, ReferenceKernel
-from geo_server.kernel.demo import Motion, full_machine
+
+# the synthetic machines are test support (tests/support/machines.py)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from support.machines import Motion, full_machine
 
 
 def run(kernel_cls: type, n: int, cycles: int) -> tuple[float, float]:

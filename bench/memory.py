@@ -2,7 +2,7 @@
 
 Starts the server in a subprocess (the default machine with `geo-server run --homed`;
 N fully configured axes with `bench/server.py --demo-axes N`, i.e.
-`geo_server.kernel.demo.full_machine(N)`), lets it run a few hundred real-time 1 ms
+`support.machines.full_machine(N)`), lets it run a few hundred real-time 1 ms
 cycles, and reads VmRSS (and the peak VmHWM) from /proc/<pid>/status; then drives 2 s
 of read load on all three transports and reads them again. A bare interpreter that
 only imports what the server imports is the baseline.
@@ -30,8 +30,9 @@ from common import (
 from scheduler import LoadProcess
 
 IMPORTS = (
-    "import numpy, zenoh, pymodbus.server, geo_server.cli, geo_server.service, "
-    "geo_server.transports.zenoh_server, geo_server.modbus.server, geo_server.ads.server, "
+    "import numpy, zenoh, geo_server.cli, geo_server.service, "
+    "geo_server.transports.zenoh.server, geo_server.transports.modbus.server, "
+    "geo_server.transports.ads.server, "
     "geo_server.listfile, geo_server.kernel, time; print('ready', flush=True); time.sleep(60)"
 )
 

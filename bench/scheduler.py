@@ -1,7 +1,7 @@
 """Scheduler benchmark (SPEC §11): GEO-cycle lateness and overruns, idle and under load.
 
 For each machine (the default 4-axis machine; `full_machine(32)` from
-`geo_server.kernel.demo`), each cycle (1 ms, 250 µs) and each condition (idle; load =
+`support.machines`), each cycle (1 ms, 250 µs) and each condition (idle; load =
 `bench/load.py` hammering Zenoh, Modbus and ADS from another process), a fresh server
 (`bench/server.py`, i.e. `geo-server run --homed` with every transport) runs for a warm-up
 and then a measured window. The server dumps every cycle's lateness and compute time

@@ -6,7 +6,7 @@ RUN-OPTIONS are those of `geo-server run` (`--homed --cycle-ms 1 --zenoh-listen 
 machine is built as `geo-server run` builds it, and the interfaces are started by the
 very same `geo_server.cli._serve`; the differences are:
 
-- `--demo-axes N` serves `geo_server.kernel.demo.full_machine(N)` (N axes, every
+- `--demo-axes N` serves `support.machines.full_machine(N)` (N axes, every
   compensation at the manuals' table sizes) instead of list files;
 - `--stats-size N` additionally keeps the first N cycles' lateness, compute time and
   start time (the scheduler's own 10 000-cycle ring and its `status()` stay as they are,
@@ -66,7 +66,8 @@ class KeepingStats(CycleStats):
 def build_machine(args: argparse.Namespace, demo_axes: int) -> Machine:
     """The default (or given) lists, or a demo machine of `demo_axes` full axes."""
     if demo_axes:
-        from geo_server.kernel.demo import full_machine
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        from support.machines import full_machine
 
         cfg = full_machine(demo_axes)
     else:

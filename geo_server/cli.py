@@ -46,7 +46,7 @@ def _objects(args: argparse.Namespace) -> int:
 
 
 def _modbus_map(args: argparse.Namespace) -> int:
-    from geo_server.modbus.regmap import modbus_map
+    from geo_server.transports.modbus.regmap import modbus_map
 
     sys.stdout.write(modbus_map(args.format))
     return 0
@@ -208,7 +208,7 @@ def _remove_orphans(cfg: Any) -> None:
 
 
 def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
     opts = ZenohOptions(
         machine=args.machine,
@@ -229,7 +229,7 @@ def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
 
 
 def _modbus(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.modbus.server import ModbusInterface, ModbusOptions
+    from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
     read_only = args.read_only or args.modbus_read_only
     mb = ModbusInterface(
@@ -239,7 +239,7 @@ def _modbus(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
 
 
 def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.ads.server import AdsOptions, AdsServer
+    from geo_server.transports.ads.server import AdsOptions, AdsServer
 
     read_only = args.read_only or args.ads_read_only
     opts = AdsOptions(

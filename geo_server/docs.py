@@ -23,7 +23,7 @@ def _checks() -> str:
 
 def _modbus() -> str:
     try:
-        from geo_server.modbus.regmap import modbus_map
+        from geo_server.transports.modbus.regmap import modbus_map
     except ImportError:  # the Modbus interface is optional in this build
         return "(the Modbus interface is not part of this build)\n"
     return modbus_map("md")

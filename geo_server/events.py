@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from geo_server.config import COMP_NAMES, Diagnostic
+from geo_server.model import COMP_NAMES, Diagnostic
 
 
 @dataclass(frozen=True)

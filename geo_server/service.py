@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geo_server.config import CompKind, Diagnostic, MachineConfig
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -57,6 +56,7 @@ from geo_server.machine.port import (
     WriteObjects,
     chained,
 )
+from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
 from geo_server.snapshot import Snapshot
 

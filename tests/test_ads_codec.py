@@ -6,8 +6,9 @@ import struct
 
 import pytest
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.errors import AdsErrorCode
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AmsAddr,
     AmsHeader,
@@ -31,7 +32,6 @@ from geo_server.ads.codec import (
     WriteControlRequest,
     WriteRequest,
 )
-from geo_server.errors import AdsErrorCode
 
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
 CLIENT = AmsAddr("10.0.0.7.1.1", 30001)

@@ -16,8 +16,11 @@ import struct
 import pytest
 from conftest import run_in
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.service import ObjectService
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
@@ -25,10 +28,7 @@ from geo_server.ads.codec import (
     PayloadError,
     StreamError,
 )
-from geo_server.ads.server import AdsOptions, AdsServer
-from geo_server.listfile import load_machine
-from geo_server.machine.machine import Machine
-from geo_server.service import ObjectService
+from geo_server.transports.ads.server import AdsOptions, AdsServer
 
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
 CLIENT = AmsAddr("10.0.0.1.1.1", 30000)

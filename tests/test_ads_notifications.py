@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import pytest
 
-from geo_server.ads.codec import AddNotificationRequest, AmsAddr, TransMode
-from geo_server.ads.notifications import NotificationTable, cycles_for
 from geo_server.errors import AdsError
+from geo_server.transports.ads.codec import AddNotificationRequest, AmsAddr, TransMode
+from geo_server.transports.ads.notifications import NotificationTable, cycles_for
 
 CLIENT = AmsAddr("10.1.2.3.1.1", 32905)
 SERVER = AmsAddr("127.0.0.1.1.1", 551)

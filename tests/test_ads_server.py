@@ -23,20 +23,20 @@ import pytest
 from conftest import run_in
 from pyads.errorcodes import ERROR_CODES
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.client.ads_client import AdsClient, close_port_first
+from geo_server.dictionary import load_dictionary
+from geo_server.errors import AdsError
+from geo_server.machine.scheduler import Scheduler
+from geo_server.service import ObjectService
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
     Framer,
     SumGroup,
 )
-from geo_server.ads.server import AdsOptions, AdsServer
-from geo_server.client.ads_client import AdsClient, close_port_first
-from geo_server.dictionary import load_dictionary
-from geo_server.errors import AdsError
-from geo_server.machine.scheduler import Scheduler
-from geo_server.service import ObjectService
+from geo_server.transports.ads.server import AdsOptions, AdsServer
 
 TIMEOUT = 5.0
 D = load_dictionary()
@@ -752,7 +752,7 @@ def test_strict_netid(loop_thread, service) -> None:
 
 
 def test_geo_client_via_ads(ads, service, capsys) -> None:
-    from geo_server.client_cli import main as client_main
+    from geo_server.client.cli import main as client_main
 
     host, port = ads.address.rsplit(":", 1)
     base = ["--via", "ads", "--connect", f"{host}:{port}", "--netid", next_netid()]

@@ -22,7 +22,7 @@ def script(name: str) -> list[str]:
     exe = BIN / name
     if exe.exists():
         return [str(exe)]
-    module = {"geo-server": "geo_server.cli", "geo-client": "geo_server.client_cli"}[name]
+    module = {"geo-server": "geo_server.cli", "geo-client": "geo_server.client.cli"}[name]
     return [sys.executable, "-m", module]
 
 

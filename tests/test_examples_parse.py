@@ -7,7 +7,7 @@ artefacts included (`lr_param. n_backlash_cyc`, `Kw.crosstalk`, `table[ 0][ 1]`,
 The spot checks load an example through `load_machine`: a small start-up list in a temp
 folder names the example as the compensation value list of its axis (and minimal axis
 lists that select the compensation), so the checks read the typed `MachineConfig` of
-`geo_server/config.py` at the table indices printed in the manual.
+`geo_server/model.py` at the table indices printed in the manual.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geo_server.config import CROSSTALK_COLUMNS, CompKind, MachineConfig
 from geo_server.listfile import load_machine, parse_list
 from geo_server.listfile.schema import ListKind
 from geo_server.listfile.values import Reporter, read_values
+from geo_server.model import CROSSTALK_COLUMNS, CompKind, MachineConfig
 from geo_server.paths import data_dir, default_startup_list
 
 EXAMPLES = data_dir("lists") / "examples"

@@ -1,4 +1,4 @@
-"""HMI diagnostics readout (clients/hmi.py), headless against a stepped server over Zenoh.
+"""HMI diagnostics readout (`geo_clients.hmi`), headless against a stepped server over Zenoh.
 
 Snapshot output (`--once --format json|csv`) is checked field by field against values
 computed by hand (temperature compensation of the manual's example, 000 p.17) and read
@@ -12,8 +12,7 @@ import io
 import json
 
 import pytest
-
-from clients.hmi import (
+from geo_clients.hmi import (
     AXIS_FIELDS,
     COMPENSATIONS,
     CSV_FIELDS,
@@ -26,9 +25,9 @@ from clients.hmi import (
     run_live,
     snapshot_csv,
 )
-from clients.testing import GeoTestServer
+from geo_clients.testing import GeoTestServer
 
-pytest_plugins = ["clients.pytest_plugin"]
+pytest_plugins = ["geo_clients.pytest_plugin"]
 
 X_AT_100MM = 1_000_000
 #: 000 p.17: position_0 100, offset_0 40, coefficient 4000 µm/m; X at 100 mm:

@@ -1,6 +1,6 @@
 """The fast kernel equals the reference kernel (the oracle) on random scenarios.
 
-Random machines (`geo_server.kernel.demo.random_machine`: every compensation kind, both
+Random machines (`support.machines.random_machine`: every compensation kind, both
 crosstalk dialects and all modes, modulo axes, manual activation, missing lists) driven
 by random motion with reversals, homing, COMP ON/OFF, TEMPC writes and a reload.
 """
@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from support.machines import Motion, full_machine, random_machine
 
 from geo_server.kernel import COMP_ORDER, Kernel, ReferenceKernel
-from geo_server.kernel.demo import Motion, full_machine, random_machine
 
 OUTPUTS = ("target", "actual", "delta", "effective", "friction_current", "total_offset")
 

@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 import pytest
+from support.machines import Motion, random_machine
 
 from geo_server.kernel import Kernel, ReferenceKernel
 from geo_server.kernel import kernel as kmod
-from geo_server.kernel.demo import Motion, random_machine
 from geo_server.kernel.reference import interp
 from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable

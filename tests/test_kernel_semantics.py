@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geo_server.config import (
+from geo_server.kernel import COMP_ORDER, Kernel, ReferenceKernel
+from geo_server.model import (
     AxisConfig,
     AxisParams,
     CompKind,
@@ -24,7 +25,6 @@ from geo_server.config import (
     MachineConfig,
     PlaneComp,
 )
-from geo_server.kernel import COMP_ORDER, Kernel, ReferenceKernel
 
 KERNELS = [Kernel, ReferenceKernel]
 BC, TEMP, CROSS, PLANE, LEAD, FRICT, XT = range(7)

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geo_server.config import CompKind, MachineConfig, Source
 from geo_server.listfile import ListFileError, compare_max_points, load_machine
+from geo_server.model import CompKind, MachineConfig, Source
 
 MACHINE = Path(__file__).parent / "data" / "lists" / "machine"
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from geo_server.config import CompKind
 from geo_server.listfile import parse_list, parse_text
 from geo_server.listfile.schema import ListKind, convert, lookup
+from geo_server.model import CompKind
 
 
 def one(line: str):

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from geo_server.config import CompKind, Diagnostic, MachineConfig
 from geo_server.listfile import CHECKS, checks_markdown, load_machine
 from geo_server.listfile.checks import EMU_TEMP_ERROR
+from geo_server.model import CompKind, Diagnostic, MachineConfig
 
 AXES = {
     1: "kopf.achs_nr 1\n",

@@ -8,7 +8,7 @@ import struct
 
 import pytest
 
-from geo_server.modbus.codec import (
+from geo_server.transports.modbus.codec import (
     DeviceIdRequest,
     Frame,
     MbapFramer,

@@ -12,8 +12,8 @@ from conftest import run_in
 from pymodbus.client import ModbusTcpClient
 
 from geo_server.machine.scheduler import Scheduler
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.service import ObjectService
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 RECV_TIMEOUT = 0.3
 

@@ -15,7 +15,7 @@ import subprocess
 import pytest
 from conftest import run_in
 
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 MBPOLL = shutil.which("mbpoll")
 pytestmark = pytest.mark.skipif(

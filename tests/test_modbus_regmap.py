@@ -10,7 +10,7 @@ import pytest
 
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
-from geo_server.modbus.regmap import (
+from geo_server.transports.modbus.regmap import (
     ExcCode,
     ModbusMap,
     RegisterError,

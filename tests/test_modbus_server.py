@@ -22,15 +22,15 @@ from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
-from geo_server.modbus.regmap import (
+from geo_server.service import ObjectService
+from geo_server.transports.modbus.regmap import (
     ModbusMap,
     bit_address,
     encode,
     register_address,
     register_count,
 )
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
-from geo_server.service import ObjectService
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 D = load_dictionary()
 MM = ModbusMap.build(D)
@@ -431,7 +431,7 @@ def test_reload_over_modbus(loop_thread, lists_copy):
 
 
 def test_geo_client_via_modbus(server, capsys):
-    from geo_server.client_cli import main as client_main
+    from geo_server.client.cli import main as client_main
 
     base = ["--via", "modbus", "--connect", f"127.0.0.1:{server.port}", "--timeout", "3"]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from geo_server.config import AxisParams
 from geo_server.machine.motion import Motion, MotionError
+from geo_server.model import AxisParams
 
 DT = 0.001
 

@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from geo_server.config import AxisParams, CompKind
 from geo_server.machine.motion import Motion
 from geo_server.machine.nc import (
     MAX_BLOCKS_PER_CYCLE,
@@ -17,6 +16,7 @@ from geo_server.machine.nc import (
     parse_program,
     run_lines,
 )
+from geo_server.model import AxisParams, CompKind
 
 AXES = {"X": 0, "Y": 1, "Z": 2, "C": 3}
 DT = 0.001

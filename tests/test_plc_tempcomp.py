@@ -1,4 +1,4 @@
-"""PLC temperature adaptation (clients/plc_tempcomp.py; manual 000 §3.2, p.14–24).
+"""PLC temperature adaptation (clients/geo_clients/plc_tempcomp.py; manual 000 §3.2, p.14–24).
 
 Pure derivation checked by hand, then end to end: the adaptation client against a
 stepped server over Zenoh, Modbus and ADS. The warm-up curve is evaluated at chosen
@@ -14,8 +14,7 @@ import math
 import time
 
 import pytest
-
-from clients.plc_tempcomp import (
+from geo_clients.plc_tempcomp import (
     EXAMPLE_REFERENCE,
     ConstantTemperature,
     CsvTemperature,
@@ -36,11 +35,12 @@ from clients.plc_tempcomp import (
     virtual_intersection,
     warmup_temperature,
 )
-from clients.testing import GeoTestServer
+from geo_clients.testing import GeoTestServer
+
 from geo_server.dictionary import round_half_away
 from geo_server.errors import AdsError
 
-pytest_plugins = ["clients.pytest_plugin"]
+pytest_plugins = ["geo_clients.pytest_plugin"]
 
 TAU = 600.0
 #: warm-up 20 → 50 °C: T(t) = 50 − 30·exp(−t/τ); these times give round temperatures
@@ -261,7 +261,7 @@ def test_adapter_refuses_values_out_of_range(caplog):
     table = load_reference(EXAMPLE_REFERENCE)
     client = FakeClient()
     ad = TemperatureAdapter(client, table, ConstantTemperature(200.0), axes=[1, 2])
-    with caplog.at_level("ERROR", logger="clients.plc_tempcomp"):
+    with caplog.at_level("ERROR", logger="geo_clients.plc_tempcomp"):
         r = ad.tick(0)
     # X at 200 °C: 5000 + (200 − 40)·40 = 11400 µm/m > 10000 (000 p.21): nothing for X
     assert r.parameters[1].coefficient == 11400.0
@@ -293,7 +293,7 @@ def test_adapter_needs_every_axis_in_the_table():
 
 def hand_values(temperature: float) -> dict[int, tuple[int, int, float, int]]:
     """(position_0, offset_0, coefficient, actual_offset) of X at 100 mm and Y at 200 mm,
-    computed by hand from the example table (clients/data/reference_measurement.csv)."""
+    computed by hand from the example table (clients/geo_clients/data/reference_measurement.csv)."""
     # X: offset 40 at the virtual intersection 100; coefficient 4000/4600/5000 at 20/30/40
     # Y: position_0 0; offset 0/50/120, coefficient 23/35/40 at 20/30/40 °C
     table = {

@@ -1,7 +1,7 @@
-"""The integration-test helpers (clients/testing.py, clients/pytest_plugin.py).
+"""The integration-test helpers (`geo_clients.testing`, `geo_clients.pytest_plugin`).
 
 Used here as a user would: the fixtures of the plugin (enabled by `pytest_plugins`), and
-a pytest run in a subprocess that loads the plugin with `-p clients.pytest_plugin` and
+a pytest run in a subprocess that loads the plugin with `-p geo_clients.pytest_plugin` and
 selects the transport and the machine from the command line.
 """
 
@@ -11,12 +11,12 @@ import shutil
 import struct
 
 import pytest
+from geo_clients.testing import GeoTestServer, ServiceClient
 
-from clients.testing import GeoTestServer, ServiceClient
 from geo_server.errors import AdsError
 from geo_server.paths import data_dir
 
-pytest_plugins = ["pytester", "clients.pytest_plugin"]
+pytest_plugins = ["pytester", "geo_clients.pytest_plugin"]
 
 
 def test_machine_control(geo_server: GeoTestServer):
@@ -126,7 +126,7 @@ def test_plugin_from_the_command_line(pytester: pytest.Pytester, tmp_path):
     pytester.makepyfile(test_user=PLUGIN_USER_TEST.replace("def test_via_option", marked))
     result = pytester.runpytest_subprocess(
         "-p",
-        "clients.pytest_plugin",
+        "geo_clients.pytest_plugin",
         "--geo-via",
         "zenoh",
         "--geo-startup",

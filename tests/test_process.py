@@ -18,13 +18,13 @@ import pyads
 import pytest
 from conftest import run_in
 
-from geo_server.ads.server import AdsOptions, AdsServer
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.ipc import ChannelError, FrameDecoder, OutBuffer, encode_frame
 from geo_server.machine.machine import Machine
 from geo_server.machine.process import ProcessScheduler, RemoteMachine
 from geo_server.service import ObjectService
+from geo_server.transports.ads.server import AdsOptions, AdsServer
 
 # ---------------------------------------------------------------------- framing (no I/O)
 

@@ -7,8 +7,9 @@ from __future__ import annotations
 import struct
 import tracemalloc
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.dictionary import TYPES, load_dictionary
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
@@ -16,8 +17,7 @@ from geo_server.ads.codec import (
     StreamError,
     SumGroup,
 )
-from geo_server.ads.server import AdsOptions
-from geo_server.dictionary import TYPES, load_dictionary
+from geo_server.transports.ads.server import AdsOptions
 
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
 CLIENT = AmsAddr("10.1.2.3.1.1", 32905)

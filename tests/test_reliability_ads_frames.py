@@ -24,16 +24,16 @@ import pyads
 import pytest
 from conftest import run_in
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.client.ads_client import close_port_first
+from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
     Framer,
 )
-from geo_server.ads.server import AdsOptions, AdsServer
-from geo_server.client.ads_client import close_port_first
-from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads.server import AdsOptions, AdsServer
 
 TIMEOUT = 5.0
 GEO = 0x120300

@@ -25,14 +25,14 @@ from collections import Counter
 import pytest
 from robust.harness import TIMEOUT, FullServer, Reader
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
     TransMode,
 )
-from geo_server.dictionary import load_dictionary
 
 FLOOD_CYCLES = 1500  # GEO cycles the readers run while the flood is registered
 FLOOD_SECONDS = 30.0  # … but at most this long

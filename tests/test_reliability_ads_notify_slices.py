@@ -19,16 +19,16 @@ from collections import defaultdict
 import pytest
 from conftest import run_in
 
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AmsAddr,
     AmsPacket,
     Command,
     Framer,
     TransMode,
 )
-from geo_server.ads.server import AdsOptions, AdsServer
-from geo_server.dictionary import load_dictionary
+from geo_server.transports.ads.server import AdsOptions, AdsServer
 
 TIMEOUT = 5.0
 SIM = 0x12F300

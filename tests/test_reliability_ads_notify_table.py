@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import pytest
 
-from geo_server.ads.codec import AddNotificationRequest, AmsAddr, TransMode
-from geo_server.ads.notifications import MAX_PER_OWNER, MAX_TOTAL, NotificationTable
-from geo_server.ads.server import AdsOptions
 from geo_server.errors import AdsError
+from geo_server.transports.ads.codec import AddNotificationRequest, AmsAddr, TransMode
+from geo_server.transports.ads.notifications import MAX_PER_OWNER, MAX_TOTAL, NotificationTable
+from geo_server.transports.ads.server import AdsOptions
 
 CLIENT = AmsAddr("10.1.2.3.1.1", 32905)
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
@@ -90,13 +90,13 @@ def test_registering_deleting_and_dropping_never_scan_other_owners() -> None:
     t = NotificationTable(reader(), 0.001, max_per_owner=150)
     Owner.comparisons = 0
     regs = [t.add(o, CLIENT, SERVER, req(i), Snap(1)) for i in range(150) for o in owners]
-    assert len(t.owned_by(owners[0])) == 150
+    assert t.count_of(owners[0]) == 150
     for r in regs[:90]:
         t.delete(r.owner, r.handle)  # one comparison each: is it the caller's handle?
     assert t.drop_owner(owners[1]) == 150 - 30
     assert Owner.comparisons <= 90
     assert len(t) == 450 - 90 - 120
-    assert t.owned_by(owners[1]) == []
+    assert t.count_of(owners[1]) == 0
 
 
 def test_a_pass_looks_only_at_the_registrations_due() -> None:

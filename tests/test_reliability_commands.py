@@ -16,8 +16,8 @@ from conftest import run_in
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.service import ObjectService, ServiceLimits
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 TIMEOUT = 10.0
 RELOAD_ADDR = 0x4000 + 4 * 0x0004  # SIM::reload, unit 0 (emulator group base + 4·ID)

@@ -21,9 +21,9 @@ from conftest import run_in
 from geo_server.dictionary import load_dictionary
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
-from geo_server.modbus.regmap import encode, register_address
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.service import ObjectService, ServiceLimits
+from geo_server.transports.modbus.regmap import encode, register_address
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 D = load_dictionary()
 COEF = D.by_name("TEMPC::coefficient")

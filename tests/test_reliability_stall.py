@@ -22,9 +22,9 @@ from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.process import ProcessScheduler, RemoteMachine
-from geo_server.modbus.regmap import encode, register_address
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.service import ObjectService, ServiceLimits
+from geo_server.transports.modbus.regmap import encode, register_address
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="needs SIGSTOP")
 
@@ -178,7 +178,7 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
 def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, loop_thread):
     import pyads
 
-    from geo_server.ads.server import AdsOptions, AdsServer
+    from geo_server.transports.ads.server import AdsOptions, AdsServer
 
     m = slow_to_notice
     ads = AdsServer(m.service, AdsOptions(port=0, netid="127.0.0.1.1.1", write_timeout=0.5))
@@ -203,7 +203,7 @@ def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, l
 def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thread):
     import pyads
 
-    from geo_server.ads.server import AdsOptions, AdsServer
+    from geo_server.transports.ads.server import AdsOptions, AdsServer
 
     m = quick_to_notice
     ads = AdsServer(m.service, AdsOptions(port=0, netid="127.0.0.1.1.1"))
@@ -233,7 +233,7 @@ def test_over_zenoh_stalled_reads_and_a_withdrawn_write(lists_copy, loop_thread)
     from conftest import free_port
 
     from geo_server.client.zenoh_client import ZenohClient
-    from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
     m = Stoppable(lists_copy, ServiceLimits(write_timeout=0.5, stall_after=0.3))
     endpoint = f"tcp/127.0.0.1:{free_port()}"

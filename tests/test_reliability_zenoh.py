@@ -23,12 +23,12 @@ import zenoh
 from conftest import free_port, run_in
 from robust.harness import FullServer
 
+from geo_server.client.cli import main as client_main
 from geo_server.client.zenoh_client import ServerConflictError, ZenohClient
-from geo_server.client_cli import main as client_main
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
-from geo_server.transports.keys import KeySpace
-from geo_server.transports.zenoh_server import (
+from geo_server.transports.zenoh.keys import KeySpace
+from geo_server.transports.zenoh.server import (
     TRANSPORT_LIMITS,
     ZenohInterface,
     ZenohOptions,

@@ -30,14 +30,14 @@ from conftest import free_port
 from pymodbus.client import ModbusTcpClient
 from robust.harness import TIMEOUT, next_netid
 
-from geo_server.ads.server import AdsOptions
 from geo_server.cli import build_parser
 from geo_server.client import DEFAULT_ENDPOINTS
 from geo_server.client.ads_client import AdsClient
 from geo_server.client.zenoh_client import client_config
 from geo_server.errors import AdsError
-from geo_server.modbus.server import ModbusOptions
-from geo_server.transports.zenoh_server import ZenohOptions
+from geo_server.transports.ads.server import AdsOptions
+from geo_server.transports.modbus.server import ModbusOptions
+from geo_server.transports.zenoh.server import ZenohOptions
 
 BIN = Path(sys.executable).parent
 LOOPBACK = "127.0.0.1"

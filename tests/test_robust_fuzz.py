@@ -23,9 +23,9 @@ import pytest
 import zenoh
 from robust.harness import CHECKER_AXIS, TIMEOUT, Checker, FullServer
 
-from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, Command
 from geo_server.client.zenoh_client import client_config
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import AmsAddr, Command
 
 GEO = 0x120300
 SIM = 0x12F300

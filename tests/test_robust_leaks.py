@@ -41,9 +41,9 @@ from robust.harness import (
     socket_fds,
 )
 
-from geo_server.ads import codec
-from geo_server.ads.codec import AmsAddr, Command
 from geo_server.client.zenoh_client import client_config
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import AmsAddr, Command
 
 CHURN = 300  # TCP connections opened and dropped per transport
 ZENOH_SESSIONS = 10  # real Zenoh sessions dropped with a query in flight

@@ -16,12 +16,12 @@ import pytest
 import zenoh
 from conftest import free_port, run_in, wait_until_routed
 
-from geo_server.client_cli import main as client_main
+from geo_server.client.cli import main as client_main
 from geo_server.dictionary import load_dictionary
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
-from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
 TIMEOUT = 5.0
 D = load_dictionary()

@@ -25,7 +25,7 @@ import geo_server.service as service_module
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
-from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
 TIMEOUT = 5.0
 JSON = zenoh.Encoding.APPLICATION_JSON

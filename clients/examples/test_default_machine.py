@@ -1,7 +1,7 @@
 """Example test suite against geo-server's default machine — copy it and adapt it.
 
-It uses the fixtures of `clients.pytest_plugin` (enabled below; with the installed
-package `-p clients.pytest_plugin` or the pytest11 entry point does the same):
+It uses the fixtures of `geo_clients.pytest_plugin` (enabled below; with the installed
+package `-p geo_clients.pytest_plugin` or the pytest11 entry point does the same):
 
 - `geo_server`: the machine in stepped mode, every axis homed (nothing moves until the
   test steps, so every value is exact); `step`, `move`, `home`, `nc`.
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import pytest
 
-pytest_plugins = ["clients.pytest_plugin"]
+pytest_plugins = ["geo_clients.pytest_plugin"]
 
 ALL_TRANSPORTS = ["service", "zenoh", "modbus", "ads"]
 

@@ -18,7 +18,7 @@ from pymodbus.exceptions import ModbusException
 
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
-from geo_server.modbus.regmap import (
+from geo_server.transports.modbus.regmap import (
     ExcCode,
     decode,
     encode,

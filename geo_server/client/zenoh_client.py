@@ -21,7 +21,7 @@ import zenoh
 
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
-from geo_server.transports.keys import KeySpace
+from geo_server.transports.zenoh.keys import KeySpace
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM

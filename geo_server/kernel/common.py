@@ -8,8 +8,8 @@ Python (`reference.py`), so that the reference stays an independent oracle.
 
 from __future__ import annotations
 
-from geo_server.config import AxisConfig, CompKind, MachineConfig
 from geo_server.dictionary import load_dictionary
+from geo_server.model import AxisConfig, CompKind, MachineConfig
 
 #: Column index c of every per-compensation array `[n, 7]`.
 COMP_ORDER: tuple[CompKind, ...] = (

@@ -40,7 +40,6 @@ import math
 
 import numpy as np
 
-from geo_server.config import CompKind, MachineConfig
 from geo_server.kernel.common import (
     BC,
     COLUMN,
@@ -59,6 +58,7 @@ from geo_server.kernel.common import (
 from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.kernel.triangulation import INSIDE_EPS, Triangulation, evaluate, triangulate
+from geo_server.model import CompKind, MachineConfig
 
 try:  # the clip ufunc itself (np.clip adds a Python wrapper); = min(max(x, lo), hi)
     _clip = np._core.umath.clip

@@ -25,7 +25,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from geo_server.config import AxisConfig, CompKind, MachineConfig
 from geo_server.kernel.common import (
     BC,
     COLUMN,
@@ -42,6 +41,7 @@ from geo_server.kernel.common import (
     initial_selection,
 )
 from geo_server.kernel.triangulation import Triangulation, evaluate, triangulate
+from geo_server.model import AxisConfig, CompKind, MachineConfig
 
 UNITS_PER_MM = 10_000.0  # 0.1 µm per mm, 0.0001° per degree (SPEC §3)
 UNITS_PER_UM = 10.0  # friction tables are in µm/s (0.001°/s rotary), 000 §4.5 P-COMP-00046

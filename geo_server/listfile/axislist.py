@@ -24,9 +24,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from geo_server.config import AxisParams, CompKind, Source
 from geo_server.listfile.checks import RANGE_CHECK
 from geo_server.listfile.values import Reporter, Values, range_errors_of
+from geo_server.model import AxisParams, CompKind, Source
 
 _KINDS = {1: "T", 2: "R", 4: "S"}
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from geo_server.config import COMP_NAMES, CompKind
+from geo_server.model import COMP_NAMES, CompKind
 
 #: Emulator-chosen error ID of temperature-compensation configuration errors.
 EMU_TEMP_ERROR = 990271

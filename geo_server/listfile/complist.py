@@ -11,7 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geo_server.config import (
+from geo_server.listfile.checks import RANGE_CHECK
+from geo_server.listfile.syntax import Entry
+from geo_server.listfile.values import Reporter, Values, range_errors_of
+from geo_server.model import (
     CROSSTALK_COLUMNS,
     AxisParams,
     CompKind,
@@ -22,9 +25,6 @@ from geo_server.config import (
     LsecComp,
     PlaneComp,
 )
-from geo_server.listfile.checks import RANGE_CHECK
-from geo_server.listfile.syntax import Entry
-from geo_server.listfile.values import Reporter, Values, range_errors_of
 
 #: Section prefixes of the compensations (000 §4.1 p.27 "Body of the list").
 PREFIX: dict[CompKind, str] = {

@@ -17,13 +17,6 @@ from __future__ import annotations
 import os
 from pathlib import Path, PureWindowsPath
 
-from geo_server.config import (
-    AxisConfig,
-    AxisParams,
-    CompKind,
-    Diagnostic,
-    MachineConfig,
-)
 from geo_server.errors import GeoError
 from geo_server.listfile.axislist import axis_number, build_axis_params
 from geo_server.listfile.checks import HEADER_CHECK, MAX_POINTS_IDS
@@ -31,6 +24,13 @@ from geo_server.listfile.complist import Ctx, build_comp_list, sections_present
 from geo_server.listfile.schema import ListKind, list_kinds_of, lookup
 from geo_server.listfile.syntax import NotAListFileError, ParsedList, parse_list
 from geo_server.listfile.values import Reporter, Values, read_values
+from geo_server.model import (
+    AxisConfig,
+    AxisParams,
+    CompKind,
+    Diagnostic,
+    MachineConfig,
+)
 
 
 class ListFileError(GeoError):

@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass
 from enum import Enum
 
-from geo_server.config import CompKind
+from geo_server.model import CompKind
 
 
 class ListKind(Enum):

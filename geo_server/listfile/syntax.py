@@ -35,9 +35,9 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from geo_server.config import Diagnostic
 from geo_server.errors import GeoError
 from geo_server.listfile.schema import value_class
+from geo_server.model import Diagnostic
 
 #: Largest list file read, in bytes. The largest table of the manuals (plane
 #: compensation, 10201 points) takes well under 1 MiB; the bound keeps a device or a

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from geo_server.config import CompKind, Diagnostic
 from geo_server.listfile.checks import CHECK_BY_KEY
 from geo_server.listfile.schema import (
     ListKind,
@@ -23,6 +22,7 @@ from geo_server.listfile.schema import (
     out_of_range,
 )
 from geo_server.listfile.syntax import Entry, ParsedList
+from geo_server.model import CompKind, Diagnostic
 
 #: Unknown entries of one list that get a "did you mean" hint; the search costs about a
 #: third of a millisecond, and a list of nothing but unknown names gains nothing from more.

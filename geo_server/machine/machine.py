@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from geo_server.config import CompKind, Diagnostic, MachineConfig
 from geo_server.dictionary import Dictionary, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
@@ -38,6 +37,7 @@ from geo_server.machine.port import (
     StartProgram,
     WriteObjects,
 )
+from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot
 
 #: Column of each compensation in the kernel's [n, 7] arrays.

@@ -37,8 +37,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from geo_server.config import AxisParams
 from geo_server.errors import GeoError
+from geo_server.model import AxisParams
 
 #: Internal units per mm (linear) or per degree (rotary): 0.1 µm / 0.0001°.
 UNITS_PER_MM = 10_000.0
@@ -215,10 +215,6 @@ class Motion:
         if slots is None:
             return not (self._moving.any() or self._queued.any())
         return all(self.in_position(s) for s in slots)
-
-    def remaining_cycles(self, slot: int) -> int:
-        """Cycles until the current move of `slot` arrives (0 at rest)."""
-        return int(self._nc[slot] - self._k[slot]) if self._moving[slot] else 0
 
     def direction(self, slot: int) -> int:
         """Sign of the current or last move (0 before the first move)."""

@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Protocol
 
-from geo_server.config import CompKind, Diagnostic
 from geo_server.errors import CncErrorId, GeoError
+from geo_server.model import CompKind, Diagnostic
 
 #: Internal units per mm / degree (SPEC §3).
 UNITS_PER_MM = 10_000.0

@@ -22,10 +22,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
-    from geo_server.config import MachineConfig
     from geo_server.dictionary import Dictionary
     from geo_server.events import Event
     from geo_server.machine.nc import Program
+    from geo_server.model import MachineConfig
     from geo_server.snapshot import Snapshot
 
 

@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 
-from geo_server.config import MachineConfig
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
@@ -41,6 +40,7 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import Operation, Pending, Reload, StartProgram
 from geo_server.machine.scheduler import Scheduler
+from geo_server.model import MachineConfig
 from geo_server.snapshot import Snapshot
 
 log = logging.getLogger(__name__)

@@ -54,7 +54,7 @@ def emulator_block(nr: int, name: str, typ: int, vb_max: int, a_max: int, extra:
         "# --- axis identification and dynamics --------------------------------------",
         "# Emulator entries: NOT in the compensation manuals (000-003). kopf.achs_nr is used",
         "# in the manuals' axis-list excerpts (000 p.16); the rest are the names the emulator",
-        "# reads (TwinCAT axis-list names where they exist, see geo_server/config.py).",
+        "# reads (TwinCAT axis-list names where they exist, see geo_server/model.py).",
         f"kopf.achs_nr {nr}",
         f"kopf.log_achs_name {name}",
         f"kenngr.achs_typ {typ} ( 1 linear, 2 rotary, 4 spindle )",

@@ -11,17 +11,17 @@ from pathlib import Path
 
 from conftest import free_port, run_in
 
-from geo_server.ads.server import AdsOptions, AdsServer
 from geo_server.client.ads_client import AdsClient
 from geo_server.client.modbus_client import ModbusClient
 from geo_server.client.zenoh_client import ZenohClient
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
-from geo_server.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
-from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+from geo_server.transports.ads.server import AdsOptions, AdsServer
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
 #: Every Zenoh get / Modbus request / ADS request of these tests has this timeout (s).
 TIMEOUT = 5.0

@@ -35,8 +35,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import geo_server
-from geo_server.ads import codec
-from geo_server.ads.codec import (
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.service import ObjectService, PreparedWrite
+from geo_server.snapshot import Snapshot
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AdsState,
     AmsHeader,
@@ -56,16 +59,13 @@ from geo_server.ads.codec import (
     WriteControlRequest,
     WriteRequest,
 )
-from geo_server.ads.notifications import (
+from geo_server.transports.ads.notifications import (
     MAX_PER_OWNER,
     MAX_TOTAL,
     Batch,
     NotificationTable,
     SamplingPass,
 )
-from geo_server.errors import AdsError, AdsErrorCode
-from geo_server.service import ObjectService, PreparedWrite
-from geo_server.snapshot import Snapshot
 
 log = logging.getLogger(__name__)
 

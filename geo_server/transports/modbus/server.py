@@ -38,7 +38,8 @@ from typing import Any
 import geo_server
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError
-from geo_server.modbus.codec import (
+from geo_server.service import ObjectService
+from geo_server.transports.modbus.codec import (
     DeviceIdRequest,
     Frame,
     MbapFramer,
@@ -53,7 +54,7 @@ from geo_server.modbus.codec import (
     read_registers_pdu,
     write_reply_pdu,
 )
-from geo_server.modbus.regmap import (
+from geo_server.transports.modbus.regmap import (
     MACHINE_UNIT,
     ExcCode,
     ModbusMap,
@@ -62,7 +63,6 @@ from geo_server.modbus.regmap import (
     UnitMap,
     exception_for,
 )
-from geo_server.service import ObjectService
 
 log = logging.getLogger(__name__)
 

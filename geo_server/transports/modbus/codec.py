@@ -17,7 +17,7 @@ Modbus application protocol v1.1b3 and Modbus messaging on TCP/IP v1.0b:
   0x0000/0xFF00 → exception 3. Addresses are checked against the register map by the
   server (exception 2).
 
-Everything here is pure: the asyncio server (`geo_server.modbus.server`) feeds bytes in
+Everything here is pure: the asyncio server (`geo_server.transports.modbus.server`) feeds bytes in
 and writes the bytes these functions return.
 """
 
@@ -26,7 +26,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from geo_server.modbus.regmap import (
+from geo_server.transports.modbus.regmap import (
     MAX_READ_BITS,
     MAX_READ_REGISTERS,
     MAX_WRITE_BITS,

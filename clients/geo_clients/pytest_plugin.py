@@ -1,10 +1,10 @@
 """pytest plugin: fixtures that start a geo-server in stepped mode on free ports (SPEC §10).
 
-Enable it with `-p clients.pytest_plugin`, with `pytest_plugins = ["clients.pytest_plugin"]`
+Enable it with `-p geo_clients.pytest_plugin`, with `pytest_plugins = ["geo_clients.pytest_plugin"]`
 in a `conftest.py` / test module, or through the `pytest11` entry point of the installed
 package. Fixtures:
 
-- `geo_server` — a `clients.testing.GeoTestServer`: the machine in stepped mode (every
+- `geo_server` — a `geo_clients.testing.GeoTestServer`: the machine in stepped mode (every
   axis homed unless the marker says otherwise) with Zenoh / Modbus / ADS started on
   demand on 127.0.0.1 ephemeral ports, closed after the test. Control: `step(n)`,
   `move(axis, pos)`, `home(axis)`, `nc(text)`, `run_until(pred)`.
@@ -34,7 +34,7 @@ from typing import Any
 
 import pytest
 
-from clients.testing import VIAS, GeoTestServer, GeoView
+from geo_clients.testing import VIAS, GeoTestServer, GeoView
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -63,7 +63,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture
 def geo_server(request: pytest.FixtureRequest) -> Iterator[GeoTestServer]:
-    """A stepped geo-server for one test (see `clients.testing.GeoTestServer`)."""
+    """A stepped geo-server for one test (see `geo_clients.testing.GeoTestServer`)."""
     marker = request.node.get_closest_marker("geo_machine")
     args: tuple[Any, ...] = marker.args if marker else ()
     kwargs: dict[str, Any] = dict(marker.kwargs) if marker else {}

@@ -76,11 +76,11 @@ seconds from start or ISO-8601 times; linear between samples, held outside), and
 
 Usage (see `--help`):
 
-    python -m clients.plc_tempcomp clients/data/reference_measurement.csv \\
+    python -m geo_clients.plc_tempcomp clients/geo_clients/data/reference_measurement.csv \\
         --warmup 20:35:600 --period 1 --via zenoh
-    python -m clients.plc_tempcomp REF.csv --csv temps.csv --via modbus --connect 127.0.0.1:5020
-    python -m clients.plc_tempcomp REF.csv --zenoh-key lab/spindle/temperature --via ads
-    python -m clients.plc_tempcomp REF.csv --derive 20 25 30 45    # print, no server
+    python -m geo_clients.plc_tempcomp REF.csv --csv temps.csv --via modbus --connect 127.0.0.1:5020
+    python -m geo_clients.plc_tempcomp REF.csv --zenoh-key lab/spindle/temperature --via ads
+    python -m geo_clients.plc_tempcomp REF.csv --derive 20 25 30 45    # print, no server
 """
 
 from __future__ import annotations
@@ -101,11 +101,11 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Protocol
 
-from clients.common import add_transport_arguments, client_from_args, transport_name
+from geo_clients.common import add_transport_arguments, client_from_args, transport_name
 from geo_server.dictionary import load_dictionary, round_half_away
 from geo_server.errors import AdsError, GeoError
 
-log = logging.getLogger("clients.plc_tempcomp")
+log = logging.getLogger("geo_clients.plc_tempcomp")
 
 #: Shipped example: the default machine's axes X, Y, Z measured at several temperatures.
 EXAMPLE_REFERENCE = Path(__file__).resolve().parent / "data" / "reference_measurement.csv"

@@ -60,14 +60,14 @@ import itertools
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 
-from geo_server.ads.codec import (
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.snapshot import Snapshot
+from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AmsAddr,
     Sample,
     TransMode,
 )
-from geo_server.errors import AdsError, AdsErrorCode
-from geo_server.snapshot import Snapshot
 
 #: Modes served; the client-side ones are served like their server-side twins.
 CYCLIC_MODES = frozenset({TransMode.CLIENTCYCLE, TransMode.SERVERCYCLE, TransMode.SERVERCYCLE2})
@@ -287,9 +287,6 @@ class NotificationTable:
 
     def get(self, handle: int) -> Registration | None:
         return self._regs.get(handle)
-
-    def owned_by(self, owner: Hashable) -> list[Registration]:
-        return list(self._by_owner.get(owner, {}).values())
 
     def count_of(self, owner: Hashable) -> int:
         return len(self._by_owner.get(owner, ()))

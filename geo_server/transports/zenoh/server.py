@@ -35,7 +35,7 @@ from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.service import ObjectService
 from geo_server.snapshot import Snapshot
-from geo_server.transports.keys import KeySpace, Route
+from geo_server.transports.zenoh.keys import KeySpace, Route
 
 log = logging.getLogger(__name__)
 

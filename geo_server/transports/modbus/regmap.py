@@ -2,7 +2,7 @@
 
 Everything here is a pure function of the dictionary and of values: which object sits at
 which address, how a value becomes big-endian registers and back, and which Modbus
-exception code a request earns. The server (`geo_server.modbus.server`) is a thin shell
+exception code a request earns. The server (`geo_server.transports.modbus.server`) is a thin shell
 around these functions; tests drive them without sockets.
 
 Layout (one map per unit; unit id = logical axis number, unit 0 = the machine-wide
@@ -148,11 +148,6 @@ def is_bit(obj: ObjectDef) -> bool:
 
 def is_coil(obj: ObjectDef) -> bool:
     return is_bit(obj) and obj.writable
-
-
-def unit_scope(unit: int) -> str:
-    """Dictionary scope served on a unit: unit 0 → "machine", any other → "axis"."""
-    return "machine" if unit == MACHINE_UNIT else "axis"
 
 
 # ---------------------------------------------------------------------- value codec

@@ -18,10 +18,10 @@ value a publication already delivered.
 
 Usage:
 
-    python -m clients.hmi                                  # live view, cnc/local on :7447
-    python -m clients.hmi --connect tcp/10.0.0.5:7447 --machine mill --axis 1 --axis 3
-    python -m clients.hmi --once --format json             # one snapshot for scripts
-    python -m clients.hmi --once --format csv > snapshot.csv
+    python -m geo_clients.hmi                                  # live view, cnc/local on :7447
+    python -m geo_clients.hmi --connect tcp/10.0.0.5:7447 --machine mill --axis 1 --axis 3
+    python -m geo_clients.hmi --once --format json             # one snapshot for scripts
+    python -m geo_clients.hmi --once --format csv > snapshot.csv
 
 The live view uses `rich` when it is installed (`--plain` forces plain text).
 """

@@ -16,7 +16,7 @@ with multicast scouting off and an explicit listen endpoint, Modbus TCP, ADS/AMS
 
 `via(name)` returns a `GeoView`: reads, writes and assertions over one transport
 (`service` = in-process, `zenoh`, `modbus`, `ads`), plus the machine control of the
-server (step, move, home, NC). The pytest fixtures in `clients.pytest_plugin` build on
+server (step, move, home, NC). The pytest fixtures in `geo_clients.pytest_plugin` build on
 this module; it has no pytest dependency itself.
 
 Writes are queued by the object service and applied at the next cycle boundary (SPEC §5),
@@ -34,15 +34,15 @@ from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any
 
-from clients.common import open_client
+from geo_clients.common import open_client
 from geo_server.client import GeoClient
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
-from geo_server.machine.snapshot import Snapshot
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
+from geo_server.snapshot import Snapshot
 
 #: Transports a `GeoTestServer` can serve; `service` is the in-process object service.
 VIAS = ("service", "zenoh", "modbus", "ads")
@@ -170,7 +170,7 @@ class GeoTestServer:
             if via == "service" or via in self._interfaces:
                 continue
             if via == "zenoh":
-                from geo_server.transports.zenoh_server import ZenohInterface, ZenohOptions
+                from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
                 port = _free_port()
                 opts = ZenohOptions(
@@ -181,11 +181,11 @@ class GeoTestServer:
                 )
                 iface: Any = ZenohInterface(self.service, opts)
             elif via == "modbus":
-                from geo_server.modbus.server import ModbusInterface, ModbusOptions
+                from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
                 iface = ModbusInterface(self.service, ModbusOptions(port=0))
             elif via == "ads":
-                from geo_server.ads.server import AdsOptions, AdsServer
+                from geo_server.transports.ads.server import AdsOptions, AdsServer
 
                 iface = AdsServer(self.service, AdsOptions(port=0, netid=self.netid))
             else:
@@ -205,7 +205,7 @@ class GeoTestServer:
         return iface.address
 
     def client_options(self, via: str) -> dict[str, Any]:
-        """Keyword arguments of `clients.common.open_client` for this server."""
+        """Keyword arguments of `geo_clients.common.open_client` for this server."""
         return {
             "endpoint": self.endpoint(via),
             "machine": self.machine_name,

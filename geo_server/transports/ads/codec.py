@@ -1,7 +1,7 @@
 """Sans-I/O codec of ADS over AMS/TCP: bytes in, dataclasses out, and back.
 
 Nothing here touches a socket, a clock or a thread; the asyncio server in
-`geo_server.ads.server` is a thin shell around these functions, and tests drive them with
+`geo_server.transports.ads.server` is a thin shell around these functions, and tests drive them with
 bytes only (in the style of h11/wsproto).
 
 Wire format (Beckhoff InfoSys "AMS/TCP packet", "AMS header"; `Beckhoff/ADS:AdsLib/

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geo_server.config import (
+from geo_server.model import (
     AxisConfig,
     AxisParams,
     CompList,

@@ -1,0 +1,149 @@
+"""The layers of geo-server (docs/design.md §1), checked on the import graph.
+
+Every module of `geo_server` and `geo_clients` is parsed (not imported) and its imports
+of project modules collected — at module level and inside functions alike, so a lazy
+import cannot hide an upward arrow. The graph must have no cycle, no module may import
+one of a higher layer, and the transports may import only the object service, the
+shared types and the dictionary (besides their own package).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import geo_clients
+
+import geo_server
+
+ROOTS = {
+    "geo_server": Path(geo_server.__file__).parent,
+    "geo_clients": Path(geo_clients.__file__).parent,
+}
+
+#: Layer of each module prefix, bottom (0) to top. A module may import only modules of
+#: its own layer or below (its own package included).
+LAYERS: list[tuple[int, tuple[str, ...]]] = [
+    (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
+    (1, ("geo_server.dictionary", "geo_server.model")),
+    (2, ("geo_server.snapshot", "geo_server.events")),
+    (3, ("geo_server.listfile",)),
+    (3, ("geo_server.kernel",)),
+    (4, ("geo_server.machine",)),
+    (5, ("geo_server.service",)),
+    (6, ("geo_server.transports",)),
+    (6, ("geo_server.client",)),
+    (7, ("geo_server.cli", "geo_server.docs")),
+    (8, ("geo_clients",)),
+]
+#: What a transport may import outside its own package.
+TRANSPORT_MAY_USE = (
+    "geo_server",  # the package itself: its version
+    "geo_server.errors",
+    "geo_server.dictionary",
+    "geo_server.snapshot",
+    "geo_server.events",
+    "geo_server.service",
+)
+
+
+def module_name(root: str, path: Path) -> str:
+    rel = path.relative_to(ROOTS[root]).with_suffix("")
+    parts = [root, *rel.parts]
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def project_imports(path: Path, name: str) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                mod = ".".join([*base, node.module] if node.module else base)
+            else:
+                mod = node.module or ""
+            found.add(mod)
+            found |= {f"{mod}.{a.name}" for a in node.names}
+    return {m for m in found if m.split(".")[0] in ROOTS}
+
+
+def graph() -> dict[str, set[str]]:
+    modules: dict[str, Path] = {}
+    for root, folder in ROOTS.items():
+        for path in folder.rglob("*.py"):
+            modules[module_name(root, path)] = path
+    edges: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        targets = set()
+        for imp in project_imports(path, name):
+            # `from pkg import name` may name a module or an attribute: keep modules
+            while imp and imp not in modules:
+                imp = imp.rpartition(".")[0]
+            if imp and imp != name and not name.startswith(imp + "."):
+                targets.add(imp)
+        edges[name] = targets
+    return edges
+
+
+def layer(module: str) -> int:
+    best = (-1, 0)
+    for level, prefixes in LAYERS:
+        for p in prefixes:
+            if module == p or module.startswith(p + "."):
+                best = max(best, (len(p), level))
+    return best[1]
+
+
+def test_every_module_has_a_layer():
+    for module in graph():
+        assert module == "geo_server" or layer(module) > 0 or module in LAYERS[0][1], module
+
+
+def test_no_upward_imports():
+    upward = [
+        f"{a} (layer {layer(a)}) imports {b} (layer {layer(b)})"
+        for a, targets in graph().items()
+        for b in targets
+        if layer(b) > layer(a)
+    ]
+    assert upward == []
+
+
+def test_no_import_cycles():
+    edges = graph()
+    state: dict[str, int] = {}
+    cycles: list[list[str]] = []
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                cycles.append([*path[path.index(nxt) :], nxt] if nxt in path else [nxt])
+            elif nxt not in state:
+                visit(nxt, [*path, nxt])
+        state[node] = 2
+
+    for node in sorted(edges):
+        if node not in state:
+            visit(node, [node])
+    assert cycles == []
+
+
+def test_transports_import_only_the_service_the_shared_types_and_the_dictionary():
+    bad = []
+    for module, targets in graph().items():
+        if not module.startswith("geo_server.transports."):
+            continue
+        own = ".".join(module.split(".")[:3])  # geo_server.transports.<name>
+        for t in targets:
+            if t.startswith(own) or t == "geo_server.transports" or t in TRANSPORT_MAY_USE:
+                continue
+            bad.append(f"{module} -> {t}")
+    assert bad == []

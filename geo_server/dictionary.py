@@ -125,6 +125,9 @@ class ObjectDef:
     #: The axis-parameter-list entry (`lr_param.temp_comp_coefficient`) this object's
     #: live value is saved to; its last segment is the `AxisParams` attribute.
     list_key: str | None = None
+    #: "position" | "offset" | "velocity": how clients show the raw value in engineering
+    #: units (see `geo_server.units`); None: shown as it is.
+    quantity: str | None = None
 
     @property
     def index_group(self) -> int:
@@ -426,6 +429,7 @@ def _load(raw: dict[str, Any]) -> ObjectDef:
         max=raw.get("max"),
         command=raw.get("command"),
         list_key=raw.get("list_key"),
+        quantity=raw.get("quantity"),
     )
 
 

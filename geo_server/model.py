@@ -82,6 +82,17 @@ class Diagnostic:
     axis: int = 0
     deactivated: CompKind | None = None
 
+    def describe(self) -> str:
+        """`file:line: [id] entry: message (axis N)` without the severity word: what went
+        wrong and where (the error list's one-line text, `SIM::last_error`)."""
+        where = f"{self.file}:{self.line}: " if self.file and self.line else ""
+        if self.file and not self.line:
+            where = f"{self.file}: "
+        ident = f"[{self.error_id}] " if self.error_id else ""
+        entry = f"{self.entry}: " if self.entry else ""
+        axis = f" (axis {self.axis})" if self.axis else ""
+        return f"{where}{ident}{entry}{self.message}{axis}"
+
     def __str__(self) -> str:
         where = f"{self.file}:{self.line}: " if self.file else ""
         ident = f"[{self.error_id}] " if self.error_id else ""

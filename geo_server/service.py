@@ -33,9 +33,9 @@ and map its `AdsError`s to their own codes.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,6 +103,8 @@ class CommandResult:
     files: list[str] = field(default_factory=list)
     #: The ADS code of a failure: 0x70D list errors, 0x708 busy, 0x719 not applied in time.
     code: int = 0
+    #: The manual's error ID of the first problem (e.g. 110591), 0 if none has one.
+    error_id: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -159,8 +161,6 @@ class ObjectService:
         self._command_lock = threading.Lock()
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
-        self._events: deque[Event] = deque(maxlen=100)  # reported by the server itself
-        self._event_listeners: list[Callable[[Event], None]] = []
         self._started_at = 0.0
 
     # ------------------------------------------------------------------ state
@@ -459,15 +459,7 @@ class ObjectService:
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
         """Call `callback(event)` for every new warning or error (machine or server)."""
-        unsubscribe = self.machine.subscribe_events(callback)
-        self._event_listeners.append(callback)
-
-        def both() -> None:
-            unsubscribe()
-            if callback in self._event_listeners:
-                self._event_listeners.remove(callback)
-
-        return both
+        return self.machine.subscribe_events(callback)
 
     # ------------------------------------------------------------------ status, events
 
@@ -482,16 +474,22 @@ class ObjectService:
 
     def errors(self) -> list[dict[str, Any]]:
         """The last 100 warnings and errors, oldest first."""
-        merged = sorted([*self.machine.events, *self._events], key=lambda e: e.cycle)
-        return [e.as_dict() for e in merged[-100:]]
+        return [e.as_dict() for e in list(self.machine.events)]
 
-    def report(self, message: str, *, severity: str = "error", error_id: int = 0) -> None:
+    def report(self, message: str, *, severity: str = "error", error_id: int = 0) -> Pending:
         """Record a warning or error the server itself found (a rejected reload, a second
-        server with this machine's name): listed by `errors()`, passed to listeners."""
-        ev = Event(self.machine.snapshot.cycle, Diagnostic(severity, message, error_id=error_id))
-        self._events.append(ev)
-        for listener in list(self._event_listeners):
-            listener(ev)
+        server with this machine's name) in the machine's error list: listed by
+        `errors()`, shown by `SIM::last_error(_id)`, passed to the event listeners. Never
+        refused; with the cycle in its own process it lands at the next cycle boundary
+        (while that cycle is stalled: once it resumes)."""
+        return self.machine.record(Diagnostic(severity, message, error_id=error_id))
+
+    def _report_now(self, message: str, error_id: int = 0) -> None:
+        """`report` and, when cycles run, wait (briefly) until it is in the list, so a
+        client that asks for the errors right after the answer finds it."""
+        pending = self.report(message, error_id=error_id)
+        with contextlib.suppress(TimeoutError):
+            pending.result(timeout=self.limits.write_timeout if self.running else 0)
 
     def step(self, n: int = 1) -> Snapshot:
         """Run `n` cycles (stepped mode)."""
@@ -564,7 +562,7 @@ class ObjectService:
         finally:
             self._command_lock.release()
         if not result.ok:
-            self.report(result.message)
+            self._report_now(result.message, result.error_id)
         return result
 
     def _reload(self, startup: Path | str | None) -> CommandResult:
@@ -585,7 +583,12 @@ class ObjectService:
         warnings = [str(d) for d in new.diagnostics if d not in problems]
         if problems:
             return CommandResult(
-                False, "reload", [_reason(p) for p in problems], warnings, code=ADSERR_DEVICE_SYNTAX
+                False,
+                "reload",
+                [p.describe() for p in problems],
+                warnings,
+                code=ADSERR_DEVICE_SYNTAX,
+                error_id=next((p.error_id for p in problems if p.error_id), 0),
             )
         try:
             self._refuse_when_stalled()
@@ -603,7 +606,7 @@ class ObjectService:
         finally:
             self._command_lock.release()
         if not result.ok:
-            self.report(result.message)
+            self._report_now(result.message, result.error_id)
         return result
 
     def _save(self) -> CommandResult:
@@ -674,16 +677,6 @@ def _busy(command: str) -> CommandResult:
 def _rejecting(cfg: MachineConfig) -> list[Diagnostic]:
     """Diagnostics that make a reload fail: errors and deactivated compensations."""
     return [d for d in cfg.diagnostics if d.severity == "error" or d.deactivated is not None]
-
-
-def _reason(d: Diagnostic) -> str:
-    """`file:line: [id] entry: message` — what made a reload fail, without the severity
-    word and without "deactivated" (a rejected reload deactivates nothing)."""
-    where = f"{d.file}:{d.line}: " if d.file and d.line else (f"{d.file}: " if d.file else "")
-    ident = f"[{d.error_id}] " if d.error_id else ""
-    entry = f"{d.entry}: " if d.entry else ""
-    axis = f" (axis {d.axis})" if d.axis else ""
-    return f"{where}{ident}{entry}{d.message}{axis}"
 
 
 def _list_files(cfg: MachineConfig) -> list[str]:

@@ -24,9 +24,14 @@ class ObjectLayout:
     def __init__(self, dictionary: Dictionary) -> None:
         self.dictionary = dictionary
         self.axis_objects = [o for o in dictionary.objects if o.scope == "axis"]
-        self.machine_objects = [o for o in dictionary.objects if o.scope == "machine"]
+        machine = [o for o in dictionary.objects if o.scope == "machine"]
+        #: machine-wide numeric objects: `Snapshot.machine[i]`
+        self.machine_objects = [o for o in machine if o.type.name != "STRING"]
+        #: machine-wide text objects (`SIM::last_error`): `Snapshot.texts[i]`
+        self.text_objects = [o for o in machine if o.type.name == "STRING"]
         self.column = {o.name: i for i, o in enumerate(self.axis_objects)}
         self.machine_index = {o.name: i for i, o in enumerate(self.machine_objects)}
+        self.text_index = {o.name: i for i, o in enumerate(self.text_objects)}
 
     def col(self, name: str) -> int:
         return self.column[self.dictionary.by_name(name).name]
@@ -50,7 +55,7 @@ class Snapshot:
     """Object values of all axes after cycle `cycle`.
 
     `values[slot, column]` for axis objects (slot order = `axes`), `machine[i]` for the
-    machine-wide emulator objects.
+    machine-wide numeric emulator objects, `texts[i]` for the machine-wide text ones.
     """
 
     cycle: int
@@ -58,6 +63,7 @@ class Snapshot:
     values: np.ndarray
     machine: np.ndarray
     layout: ObjectLayout
+    texts: tuple[str, ...] = ()
 
     def slot(self, axis: int) -> int:
         return self.axes.index(axis)
@@ -65,6 +71,9 @@ class Snapshot:
     def value(self, obj: ObjectDef, axis: int) -> Any:
         """Decoded value of `obj` for `axis` (axis 0 for machine objects)."""
         if obj.scope == "machine":
+            if obj.type.name == "STRING":
+                i = self.layout.text_index[obj.name]
+                return self.texts[i] if i < len(self.texts) else ""
             return to_python(obj, self.machine[self.layout.machine_index[obj.name]])
         return to_python(obj, self.values[self.slot(axis), self.layout.column[obj.name]])
 
@@ -75,7 +84,7 @@ class Snapshot:
         lay = self.layout
         if prev is None:
             return [(o, a) for a in self.axes for o in lay.axis_objects] + [
-                (o, 0) for o in lay.machine_objects
+                (o, 0) for o in (*lay.machine_objects, *lay.text_objects)
             ]
         rows, cols = np.nonzero(self.values != prev.values)
         out = [
@@ -83,6 +92,12 @@ class Snapshot:
             for r, c in zip(rows.tolist(), cols.tolist(), strict=True)
         ]
         out += [(lay.machine_objects[i], 0) for i in np.nonzero(self.machine != prev.machine)[0]]
+        if self.texts != prev.texts:
+            out += [
+                (o, 0)
+                for i, o in enumerate(lay.text_objects)
+                if self.value(o, 0) != prev.value(o, 0)
+            ]
         return out
 
     def encode(self, obj: ObjectDef, axis: int) -> bytes:

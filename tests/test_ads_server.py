@@ -50,6 +50,7 @@ PLCTYPE = {
     "UNS32": pyads.PLCTYPE_UDINT,
     "SGN32": pyads.PLCTYPE_DINT,
     "REAL64": pyads.PLCTYPE_LREAL,
+    "STRING": pyads.PLCTYPE_STRING,
 }
 _netids = itertools.count(10)
 

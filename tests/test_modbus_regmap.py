@@ -42,7 +42,22 @@ def code_of(fn, *args) -> int:
 # ---------------------------------------------------------------------- addresses
 
 
-@pytest.mark.parametrize("o", D.objects, ids=lambda o: o.name)
+def test_text_objects_own_64_registers_at_0x6000():
+    """SIM::last_error (STRING, ID 9): registers 0x6000 + 64·9 = 0x6240 … 0x627F, two
+    CP1252 bytes each, first byte high, NUL-padded; 127 characters at most."""
+    o = D.by_name("SIM::last_error")
+    assert register_address(o) == 0x6240 and register_count(o) == 64
+    assert MM.machine.registers[0x6240] == (o, 0) and MM.machine.registers[0x627F] == (o, 63)
+    assert 0x6280 not in MM.machine.registers
+    regs = encode(o, "ab\u00b5")  # µ is 0xB5 in CP1252
+    assert regs[:3] == [0x6162, 0xB500, 0] and len(regs) == 64
+    assert decode(o, regs) == "ab\u00b5"
+    assert encode(o, "x" * 300)[63] == 0x7800  # 127 characters and the NUL
+
+
+@pytest.mark.parametrize(
+    "o", [o for o in D.objects if o.type.name != "STRING"], ids=lambda o: o.name
+)
 def test_every_object_address(o):
     base = 0 if o.group == "geo" else 0x4000
     assert register_address(o) == base + 4 * o.id

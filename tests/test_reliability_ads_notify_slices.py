@@ -64,16 +64,25 @@ def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_t
                 code, handle = codec.parse_add_notification_response(ev.data)
                 assert code == 0
                 handles.append(handle)
-        c1 = service.step(1).cycle  # every registration is due now: one hand-off queued
         seen: dict = {}
 
         async def probe() -> None:
-            # queued behind the hand-off: runs once its first slice has yielded
+            # The cycle runs here, on the loop's thread, so nothing of the loop runs
+            # between it and the iterations counted below.
+            seen["c1"] = service.step(1).cycle  # every registration due: one hand-off
+            # One loop iteration runs one slice (each slice queues the next with
+            # call_soon): wait, one iteration at a time, until the pass has begun; it
+            # must then still be unfinished (N registrations take several slices).
+            for _ in range(100):
+                if ads.stats.sampling_passes:
+                    break
+                await asyncio.sleep(0)
             seen["pass_unfinished"] = ads._pass is not None
             seen["sent"] = ads.stats.notifications_sent
             seen["c6"] = service.step(5).cycle  # the cycle moves on meanwhile
 
         run_in(loop_thread, probe())
+        c1 = seen["c1"]
         assert seen["pass_unfinished"], "the whole pass ran in one loop callback"
         assert 0 < seen["sent"] < N
 

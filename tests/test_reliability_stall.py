@@ -135,10 +135,12 @@ def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, li
     result = svc.reload()
     assert not result.ok and result.code == AdsErrorCode.DEVICE_TIMEOUT
     assert "reload rejected, machine unchanged" in result.message
-    assert any("reload rejected" in e["message"] for e in svc.errors())
     m.resume_cycle()
     resumed = m.machine.cycle
     wait_for(lambda: m.machine.cycle > resumed + 200)
+    # the cycle process owns the error list: the rejection is in it once it resumed
+    assert any("reload rejected" in e["message"] for e in svc.errors())
+    assert "reload rejected" in svc.read_name("SIM::last_error", 0)
     assert m.machine.cfg is cfg_before
     assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
 

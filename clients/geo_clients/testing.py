@@ -197,12 +197,15 @@ class GeoTestServer:
     def endpoint(self, via: str) -> str:
         """Where a client connects: `tcp/127.0.0.1:<port>` (zenoh) or `127.0.0.1:<port>`."""
         self.start(via)
-        iface = self._interfaces[via]
+        iface = self._interfaces[via]  # Any: ZenohInterface, ModbusInterface or AdsServer
+        endpoint: str
         if via == "zenoh":
-            return iface.endpoints[0]
-        if via == "modbus":
-            return iface.endpoint
-        return iface.address
+            endpoint = iface.endpoints[0]
+        elif via == "modbus":
+            endpoint = iface.endpoint
+        else:
+            endpoint = iface.address
+        return endpoint
 
     def client_options(self, via: str) -> dict[str, Any]:
         """Keyword arguments of `geo_clients.common.open_client` for this server."""

@@ -196,7 +196,8 @@ class AdsClient:
         return name, f"{version.version}.{version.revision}.{version.build}"
 
     def read_state(self) -> tuple[int, int]:
-        return self._call(self.conn.read_state)
+        state: tuple[int, int] = self._call(self.conn.read_state)
+        return state
 
     # ------------------------------------------------------------------ notifications
 
@@ -229,6 +230,7 @@ class AdsClient:
             callback(obj.decode(raw[: obj.length]), contents.nTimeStamp)
 
         address = (obj.index_group, obj.index_offset(axis))
+        handle: int
         handle, user = self._call(self.conn.add_device_notification, address, attr, on_note)
         self._notifications[handle] = (user, on_note)
         return handle

@@ -15,6 +15,7 @@ from typing import Any
 
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
+from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
@@ -146,7 +147,7 @@ class ModbusClient:
     def device_information(self) -> dict[int, bytes]:
         """FC 43/14 basic device identification: {0: vendor, 1: product code, 2: version}."""
         rr = self._client.read_device_information()
-        if rr.isError():
+        if rr.isError() or not isinstance(rr, ReadDeviceInformationResponse):
             raise AdsError(_GENERAL, f"device identification failed: {rr}")
         return dict(rr.information)
 

@@ -196,25 +196,35 @@ class ZenohClient:
 
     # ------------------------------------------------------------------ commands
 
+    # the replies are JSON documents: objects (a list of them for `errors`)
+
     def status(self) -> dict[str, Any]:
-        return json.loads(self._one(f"cnc/{self.machine}/status"))
+        status: dict[str, Any] = json.loads(self._one(f"cnc/{self.machine}/status"))
+        return status
 
     def errors(self) -> list[dict[str, Any]]:
-        return json.loads(self._one(f"cnc/{self.machine}/errors"))
+        errors: list[dict[str, Any]] = json.loads(self._one(f"cnc/{self.machine}/errors"))
+        return errors
 
     def nc(self, text: str) -> dict[str, Any]:
-        return json.loads(
+        result: dict[str, Any] = json.loads(
             self._one(f"cnc/{self.machine}/nc", text.encode(), zenoh.Encoding.TEXT_PLAIN)
         )
+        return result
 
     def reload(self) -> dict[str, Any]:
-        return json.loads(self._one(f"cnc/{self.machine}/cmd/reload", b"{}", JSON))
+        result: dict[str, Any] = json.loads(
+            self._one(f"cnc/{self.machine}/cmd/reload", b"{}", JSON)
+        )
+        return result
 
     def reset(self) -> dict[str, Any]:
-        return json.loads(self._one(f"cnc/{self.machine}/cmd/reset", b"{}", JSON))
+        result: dict[str, Any] = json.loads(self._one(f"cnc/{self.machine}/cmd/reset", b"{}", JSON))
+        return result
 
     def save(self) -> dict[str, Any]:
-        return json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
+        result: dict[str, Any] = json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
+        return result
 
     def watch(self, key_expr: str) -> Iterator[tuple[str, Any]]:
         """Yield (key, decoded JSON): the current values first, then every publication

@@ -9,7 +9,7 @@ Python (`reference.py`), so that the reference stays an independent oracle.
 from __future__ import annotations
 
 from geo_server.dictionary import load_dictionary
-from geo_server.model import AxisConfig, CompKind, MachineConfig
+from geo_server.model import AxisConfig, CompKind
 
 #: Column index c of every per-compensation array `[n, 7]`.
 COMP_ORDER: tuple[CompKind, ...] = (
@@ -33,7 +33,7 @@ TEMPC_ATTRS: tuple[str, ...] = tuple(o.param_attr or "" for o in _TEMPC)
 
 
 def initial_direction(anwahl_losekomp: int) -> float:
-    """Start-up direction state (000 §2.3.2, P-AXIS-00021; SPEC §3).
+    """Start-up direction state (000 §2.3.2, P-AXIS-00021; docs/design.md §3.6).
 
     1 = last motion positive, 2 = last motion negative; 0 (backlash off) → positive.
     """
@@ -41,7 +41,7 @@ def initial_direction(anwahl_losekomp: int) -> float:
 
 
 def initial_selection(ax: AxisConfig) -> list[bool]:
-    """What `*::activated` reports at start-up, per column (SPEC §6 "Effective flags").
+    """What `*::activated` reports at start-up, per column (docs/design.md §6.8).
 
     A compensation is selected by its axis parameter; compensations with
     `manual_activation` start deselected and need `COMP ON` (000 §5.1, p.94).
@@ -65,7 +65,8 @@ def initial_selection(ax: AxisConfig) -> list[bool]:
 
 
 def filter_cycles(ax: AxisConfig) -> list[int]:
-    """sin² length N of the step events of each column (SPEC §3; N ≤ 1 is a jump → 1).
+    """sin² length N of the step events of each column (docs/design.md §3.4, §3.5;
+    N ≤ 1 is a jump → 1).
 
     BC and LSEC use `lr_param.n_backlash_cyc` (000 §2.3.2 P-AXIS-00243, which also names
     the bilateral LSEC reversal; the manual gives LSEC no own filter length, so its
@@ -87,8 +88,3 @@ def filter_cycles(ax: AxisConfig) -> list[int]:
         n_of(comp.crosstalk) if comp else 0,
     ]
     return [max(1, int(n)) for n in ns]
-
-
-def check_axes(cfg: MachineConfig) -> list[int]:
-    """Axis numbers in slot order (sorted logical axis numbers)."""
-    return sorted(cfg.axes)

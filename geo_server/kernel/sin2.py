@@ -1,4 +1,5 @@
-"""The sin² step-event filter (SPEC §3; 000 §2.3.2 P-AXIS-00243, §3.2 p.18, Fig. 7).
+"""The sin² step-event filter (docs/design.md §3.4; 000 §2.3.2 P-AXIS-00243, §3.2 p.18,
+Fig. 7).
 
 When a step event makes the target of a compensation jump, the output follows
 
@@ -18,24 +19,19 @@ import math
 import numpy as np
 
 
-def sin2_weight(k: int, n: int) -> float:
-    """cos²(π·min(k, N)/(2N)): the share of the jump J still left in cycle k."""
-    n = max(1, n)
-    return math.cos(math.pi * min(k, n) / (2 * n)) ** 2
-
-
 class Sin2Filter:
     """Vectorised sin² filter over the kernel's `[n, 7]` columns.
 
-    The weight cos²(π·k/(2N)) only depends on the integers k and N, so it is read from a
-    precomputed table (bit-identical to `sin2_weight`) instead of evaluating cos per
-    cycle: each entry keeps `kidx = offset(N) + k`, and a cycle is "restart at the
-    offset on an event, step, saturate at offset + N, gather" — 4 numpy calls for every
-    column at once. N = 0 marks an unfiltered column (weight exactly 0: out = target).
+    The weight cos²(π·k/(2N)), the share of the jump J still left in cycle k, only
+    depends on the integers k and N, so it is read from a precomputed table (bit-identical
+    to evaluating the cosine) instead of evaluating cos per cycle: each entry keeps
+    `kidx = offset(N) + k`, and a cycle is "restart at the offset on an event, step,
+    saturate at offset + N, gather" — 3 numpy calls for every column at once. N = 0 marks
+    an unfiltered column (weight exactly 0: out = target).
 
-    The jump update and the output (`apply`) are separate from the weight step
-    (`advance`) because the kernel applies them in two passes: LSEC's target depends on
-    the filtered cross/plane outputs of the same cycle.
+    The filter holds the weights and the jumps; the kernel inlines `advance` and applies
+    J ← target − out (where event), out = target − J·w itself, in two passes: LSEC's
+    target depends on the filtered cross/plane outputs of the same cycle.
     """
 
     def __init__(self, n_cycles: np.ndarray) -> None:
@@ -43,14 +39,12 @@ class Sin2Filter:
         self.kidx = np.zeros(shape, dtype=np.int64)
         self.jump = np.zeros(shape)
         self.w = np.zeros(shape)
-        self._tmp = np.zeros(shape)
-        self.n = np.zeros(shape, dtype=np.int64)
         self.set_n(n_cycles, idle=True)
 
     def set_n(self, n_cycles: np.ndarray, idle: bool = False) -> None:
         """New filter lengths (reload); a running ramp continues with the new N."""
         n_new = np.asarray(n_cycles, dtype=np.int64)
-        k = self.n.copy() if idle else self.kidx - self.off
+        k = None if idle else self.kidx - self.off  # the running ramps' k
         lengths = sorted({int(v) for v in n_new.ravel()})
         table, start, succ = [], {}, []
         for m in lengths:
@@ -66,9 +60,8 @@ class Sin2Filter:
         self.off = np.vectorize(start.__getitem__, otypes=[np.int64])(n_new)
         n_eff = np.maximum(n_new, 0)
         self.end = self.off + n_eff
-        if idle:
+        if k is None:  # idle: every ramp done
             k = n_eff
-        np.copyto(self.n, n_eff)
         np.minimum(self.off + k, self.end, out=self.kidx)
 
     def advance(self, event: np.ndarray) -> None:
@@ -76,19 +69,3 @@ class Sin2Filter:
         np.copyto(self.kidx, self.off, where=event)
         self.succ.take(self.kidx, out=self.kidx)  # buffered (mode "raise"): safe in place
         self.table.take(self.kidx, out=self.w)
-
-
-def sin2_apply(
-    target: np.ndarray,
-    prev_out: np.ndarray,
-    event: np.ndarray,
-    jump: np.ndarray,
-    w: np.ndarray,
-    tmp: np.ndarray,
-    out: np.ndarray,
-) -> None:
-    """J ← target − prev_out where `event`; out = target − J·w (views of one filter)."""
-    np.subtract(target, prev_out, tmp)
-    np.copyto(jump, tmp, where=event)
-    np.multiply(jump, w, tmp)
-    np.subtract(target, tmp, out)

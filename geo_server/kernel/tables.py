@@ -1,4 +1,4 @@
-"""Merged table lookups for the fast kernel (SPEC §6: linear, edges held).
+"""Merged table lookups for the fast kernel (docs/design.md §6.0: linear, edges held).
 
 Per GEO cycle the kernel's cost is dominated by the *number* of numpy calls, not by the
 work, so every 1-D table of every axis and kind (cross, friction, crosstalk modes 1/2
@@ -52,7 +52,6 @@ class MergedTable:
                 seg[1:m, 0], seg[1:m, 1], seg[1:m, 2] = x[:-1], y[:-1], slope
             seg[m] = (x[-1], y[-1], 0.0)  # q ≥ x_last: held last value
             segs.append(seg)
-        self.rows = len(keys)
         self.keys = np.concatenate(keys) if keys else np.zeros(1, dtype=complex)
         self.seg = np.concatenate(segs)
 
@@ -62,11 +61,10 @@ class Lookup:
 
     def __init__(self, table: MergedTable, row_ids: np.ndarray) -> None:
         n = len(row_ids)
-        self.table = table
         self.keys, self.seg_table = table.keys, table.seg
         self.qc = np.zeros(n, dtype=complex)
         self.qc.real = row_ids
-        self._qc_flat = self.qc.view(float).reshape(n, 2)  # (row id, position) pairs
+        self.pairs = self.qc.view(float).reshape(n, 2)  # view: (row id, position) pairs
         self.q = self.qc.imag  # view: write the query positions here
         self.rowid = self.qc.real  # view: write per-cycle variant row ids here
         self.seg = np.zeros((n, 3))

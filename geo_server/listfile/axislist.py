@@ -23,15 +23,19 @@ that compensation off for the axis: `anwahl_losekomp` / `temp_comp` become 0 (00
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from geo_server.listfile.checks import RANGE_CHECK
+from geo_server.listfile.schema import Value
+from geo_server.listfile.syntax import Entry
 from geo_server.listfile.values import Reporter, Values, range_errors_of
 from geo_server.model import AxisParams, CompKind, Source
 
 _KINDS = {1: "T", 2: "R", 4: "S"}
 
-#: entry (canonical base) -> (AxisParams attribute, conversion)
-_FIELDS: dict[str, tuple[str, Callable[[object], object]]] = {
+#: entry (canonical base) -> (AxisParams attribute, conversion). The conversion takes Any:
+#: the converted value's type is that of the entry's spec (a MASK is a CompKind already).
+_FIELDS: dict[str, tuple[str, Callable[[Any], object]]] = {
     "kopf.log_achs_name": ("name", str),
     "getriebe[].lose": ("lose", int),
     "lr_param.anwahl_losekomp": ("anwahl_losekomp", int),
@@ -65,7 +69,7 @@ _SWITCH = {CompKind.BACKLASH: ("anwahl_losekomp", 0), CompKind.TEMP: ("temp_comp
 
 def axis_number(values: Values) -> int:
     """`kopf.achs_nr` of the list, 0 if absent (000 p.16 prints it in axis lists)."""
-    return int(values.get("kopf.achs_nr", 0))  # type: ignore[arg-type]
+    return int(values.get("kopf.achs_nr", 0))
 
 
 def build_axis_params(values: Values, log_nr: int, rep: Reporter) -> AxisParams:
@@ -85,7 +89,7 @@ def build_axis_params(values: Values, log_nr: int, rep: Reporter) -> AxisParams:
     return params
 
 
-def _apply(params: AxisParams, base: str, value: object, rep: Reporter, entry) -> None:
+def _apply(params: AxisParams, base: str, value: Value, rep: Reporter, entry: Entry) -> None:
     if base == "kenngr.achs_typ":
         if value not in _KINDS:
             rep.at("list.defective", f"axis type {value} is not 1, 2 or 4: T used", entry)

@@ -8,10 +8,12 @@ the other compensations of the same list are not affected (SPEC §4).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 
 from geo_server.listfile.checks import RANGE_CHECK
+from geo_server.listfile.schema import Value
 from geo_server.listfile.syntax import Entry
 from geo_server.listfile.values import Reporter, Values, range_errors_of
 from geo_server.model import (
@@ -75,7 +77,13 @@ class _Build:
     def name(self, short: str) -> str:
         return self.prefix + short
 
-    def get(self, short: str, default: object = 0) -> object:
+    @overload
+    def get(self, short: str, default: Value = 0) -> Value: ...
+
+    @overload
+    def get(self, short: str, default: None) -> Value | None: ...
+
+    def get(self, short: str, default: Value | None = 0) -> Value | None:
         return self.v.get(self.name(short), default)
 
     def entry(self, short: str) -> Entry | str:
@@ -100,7 +108,9 @@ class _Build:
             self.fail(bad, f"axis {nr} is the compensated axis itself", self.entry(short))
         return nr
 
-    def column(self, short: str, n: int | None, index_key: str, missing_key: str | None):
+    def column(
+        self, short: str, n: int | None, index_key: str, missing_key: str | None
+    ) -> np.ndarray:
         """Values `table[0..n-1].<short>` as float64; checks indices and completeness."""
         base = self.name(short)
         table = self.v.table(base)
@@ -118,7 +128,7 @@ class _Build:
             self.fail(missing_key, f"{len(missing)} of {n} values missing", where)
         for (i, *_), it in table.items():
             if 0 <= i < n:
-                out[i] = float(it.value)  # type: ignore[arg-type]
+                out[i] = float(it.value)
         return out
 
     def ascending(self, arr: np.ndarray, short: str, key: str) -> None:
@@ -216,10 +226,10 @@ def _plane_intervals(b: _Build, grid: str) -> tuple[int, int]:
     common = b.get("interval", None)
     out = []
     for short in ("interval1", "interval2"):
-        iv = b.get(short, common)
-        if iv is None:
+        value = b.get(short, common)
+        if value is None:
             b.fail("plane.missing", "required entry missing (RECTANGULAR grid)", b.name(short))
-        out.append(int(iv or 0))  # type: ignore[call-overload]
+        out.append(int(value or 0))
     return out[0], out[1]
 
 
@@ -228,7 +238,7 @@ def _plane_table(b: _Build, l1: int, l2: int) -> np.ndarray:
     for idx, it in b.v.table(b.name("table[][].correction")).items():
         j, i = idx
         if 0 <= j <= l2 and 0 <= i <= l1:
-            table[j, i] = float(it.value)  # type: ignore[arg-type]
+            table[j, i] = float(it.value)
         else:
             b.fail("plane.size", f"index [{j}][{i}] beyond [{l2}][{l1}]", it.entry)
     return table

@@ -62,7 +62,7 @@ def load_machine(startup: Path | str) -> MachineConfig:
     ]
     if not axes:
         for nr, values in comp_values:
-            nr = nr or int(values.get("kopf.achs_nr", 0))  # type: ignore[arg-type]
+            nr = nr or int(values.get("kopf.achs_nr", 0))
             if nr and nr not in axes:
                 axes[nr] = AxisParams(log_nr=nr)
     if not axes:
@@ -132,7 +132,7 @@ def _named_lists(stup: Values, tag: str, rep: Reporter) -> list[tuple[int, str, 
         if count is not None and i >= count.value:  # type: ignore[operator]
             rep.at("list.ignored", f"index {i} >= zahl_{tag} {count.value}: ignored", item.entry)
             continue
-        nr = int(stup.get(f"achs_{tag}_log_ax_nr[]", 0, (i,)))  # type: ignore[arg-type]
+        nr = int(stup.get(f"achs_{tag}_log_ax_nr[]", 0, (i,)))
         out.append((nr, str(item.value), item.entry.line))
     if count is not None and len(out) < count.value:  # type: ignore[operator]
         rep.at("list.ignored", f"zahl_{tag} {count.value} but {len(out)} lists named", count.entry)
@@ -179,7 +179,7 @@ def _load_axes(
 
 def _attach_comp(configs: dict[int, AxisConfig], nr: int, values: Values, rep: Reporter) -> None:
     """Validate one compensation list and attach it to its axis (or report its header)."""
-    own = int(values.get("kopf.achs_nr", 0))  # type: ignore[arg-type]
+    own = int(values.get("kopf.achs_nr", 0))
     nr = nr or own
     problem = ""
     if not nr:

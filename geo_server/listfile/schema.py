@@ -288,7 +288,11 @@ MASK_SYMBOLS = {
 }
 
 
-def convert(spec: Spec, text: str) -> bool | int | float | str | CompKind:
+#: A converted entry value (`convert`): BOOLEAN, the integer types, REAL64, STRING, MASK.
+Value = bool | int | float | str | CompKind
+
+
+def convert(spec: Spec, text: str) -> Value:
     """Turn value text into a Python value of the spec's type; ValueError if defective.
 
     BOOLEAN: 0/1 (002 §1.3) and TRUE/FALSE in any case (000 p.91 examples). Integers:

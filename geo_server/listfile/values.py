@@ -10,11 +10,13 @@ them with the axis number and deactivate that compensation (SPEC §4).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import overload
 
 from geo_server.listfile.checks import CHECK_BY_KEY
 from geo_server.listfile.schema import (
     ListKind,
     Spec,
+    Value,
     convert,
     list_kinds_of,
     lookup,
@@ -33,7 +35,7 @@ HINTED_UNKNOWN_ENTRIES = 100
 class Item:
     """A converted value and the line it came from."""
 
-    value: object
+    value: Value
     entry: Entry
 
 
@@ -48,7 +50,15 @@ class Values:
     def item(self, base: str, index: tuple[int, ...] = ()) -> Item | None:
         return self.data.get(base, {}).get(index)
 
-    def get(self, base: str, default: object = None, index: tuple[int, ...] = ()) -> object:
+    @overload
+    def get(self, base: str, default: None = None, index: tuple[int, ...] = ()) -> Value | None: ...
+
+    @overload
+    def get(self, base: str, default: Value, index: tuple[int, ...] = ()) -> Value: ...
+
+    def get(
+        self, base: str, default: Value | None = None, index: tuple[int, ...] = ()
+    ) -> Value | None:
         it = self.item(base, index)
         return default if it is None else it.value
 

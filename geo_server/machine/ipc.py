@@ -73,7 +73,7 @@ class OutBuffer:
             return
         self._buf += encode_frame(message)
 
-    def flush(self, write: Callable[[bytes], int]) -> None:
+    def flush(self, write: Callable[[bytearray], int]) -> None:
         """Write as much as `write` takes; `write` returns the count written and may
         raise BlockingIOError when it takes nothing."""
         while self._buf:

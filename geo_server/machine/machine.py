@@ -32,6 +32,7 @@ from geo_server.machine.nc import Player, Program, parse_program
 from geo_server.machine.port import (
     Operation,
     Pending,
+    Record,
     Reload,
     Reset,
     StartProgram,
@@ -83,6 +84,7 @@ class Machine:
         self.player: Player | None = None
         self.events: deque[Event] = deque(maxlen=100)
         self.last_error_id = 0
+        self.last_error = ""  # SIM::last_error: the latest warning or error, as text
         self.listeners: list[Callable[[Snapshot], None]] = []
         self.event_listeners: list[Callable[[Event], None]] = []
         self._queue: deque[tuple[Operation, Pending]] = deque()
@@ -107,6 +109,10 @@ class Machine:
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
         self._period = np.array([cfg.axes[a].params.modulo_period for a in self.axes])
         self._any_modulo = bool(self._modulo.any())
+        #: SIM::axis_type: kenngr.achs_typ (1 linear, 2 rotary, 4 spindle)
+        self._axis_type: np.ndarray = np.array(
+            [_ACHS_TYP[cfg.axes[a].params.kind] for a in self.axes]
+        )
         for d in cfg.diagnostics:
             self._record(d)
         self._layout_sources()
@@ -219,6 +225,9 @@ class Machine:
                 return self.reset()
             case Reload(cfg):
                 return self.reload(cfg)
+            case Record(diagnostic):
+                self._record(diagnostic)
+                return None
         raise TypeError(f"not a machine operation: {op!r}")
 
     def _apply_item(self, name: str, axis: int, value: Any) -> BaseException | None:
@@ -290,9 +299,13 @@ class Machine:
                 "SIM::cycle_time_us",
                 "SIM::overruns",
                 "SIM::last_error_id",
+                "SIM::program_running",
+                "SIM::program_line",
             )
         )
         self._mach_template = [0.0] * len(self.layout.machine_objects)
+        self._text_slot = self.layout.text_index["SIM::last_error"]
+        self._texts = [""] * len(self.layout.text_objects)
 
     def _build_snapshot(self) -> Snapshot:
         """SPEC §5 step 4: every object of every axis, from this cycle's state."""
@@ -317,12 +330,24 @@ class Machine:
         np.concatenate(self._pieces, axis=1, out=self._stack)
         v = self._stack.take(self._columns, axis=1)
         mach = self._mach_template.copy()
-        c0, c1, c2, c3 = self._mcols
+        c0, c1, c2, c3, c4, c5 = self._mcols
         mach[c0] = self.cycle & 0xFFFF_FFFF
         mach[c1] = round(self.cycle_s * 1e6)
         mach[c2] = self.overruns
         mach[c3] = self.last_error_id
-        return Snapshot(self.cycle, self.axes, v, np.array(mach, dtype=float), self.layout)
+        player = self.player
+        if player is not None:
+            mach[c4] = float(player.running)
+            mach[c5] = player.line
+        self._texts[self._text_slot] = self.last_error
+        return Snapshot(
+            self.cycle,
+            self.axes,
+            v,
+            np.array(mach, dtype=float),
+            self.layout,
+            tuple(self._texts),
+        )
 
     # ------------------------------------------------------------------ events
 
@@ -331,9 +356,18 @@ class Machine:
         self.events.append(ev)
         if d.error_id:
             self.last_error_id = d.error_id
+        self.last_error = d.describe()
         for listener in self.event_listeners:
             listener(ev)
         return ev
+
+    def record(self, diagnostic: Diagnostic) -> Pending:
+        """A warning or error the server found, into the error list now (any thread: the
+        list and the last-error fields are replaced, never half-written)."""
+        self._record(diagnostic)
+        done = Pending()
+        done.set_result(None)
+        return done
 
     def report(self, error_id: int, message: str, line: int = 0, axis: int = 0) -> None:
         """Record an error raised while running (NC program, monitoring)."""
@@ -560,7 +594,10 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "SIM::total_offset": lambda m: m.kernel.total_offset,
     "SIM::feed": "feed",
     "FRICT::additive_current": lambda m: m.kernel.friction_current,
+    "SIM::axis_type": lambda m: m._axis_type,
 }
+#: kenngr.achs_typ of each axis kind (002 P-AXIS-00018).
+_ACHS_TYP = {"T": 1.0, "R": 2.0, "S": 4.0}
 
 
 def _tempc_row(row: int) -> Callable[[Machine], np.ndarray]:

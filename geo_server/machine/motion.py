@@ -441,8 +441,8 @@ class Motion:
 
     def _start_queued(self) -> None:
         """Start the queued moves of the axes that arrived in this cycle."""
-        for s in np.flatnonzero(self._queued & self._done):
-            s = int(s)
+        for i in np.flatnonzero(self._queued & self._done):
+            s = int(i)
             self._queued[s] = False
             self._plan({s: float(self._q_target[s])}, float(self._q_feed[s]))
 

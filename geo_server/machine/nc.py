@@ -60,7 +60,7 @@ KIND_WORDS: dict[str, CompKind] = {
     "CROSSTALK": CompKind.CROSSTALK,
 }
 
-_KNOWN_ERRORS = {
+_KNOWN_ERRORS: dict[int, str] = {
     CncErrorId.FRICT_NOT_SELECTED: (
         "COMP ON FRICT but lr_param.frict_comp (P-AXIS-00522) is not set"
     ),
@@ -245,7 +245,8 @@ def _strip_comments(raw: str) -> str:
 
 def _logical_lines(text: str) -> Iterable[tuple[int, str]]:
     """Yield (first line number, block text) with `\\` continuations joined."""
-    start, parts = 0, []
+    start = 0
+    parts: list[str] = []
     for i, raw in enumerate(text.splitlines(), start=1):
         body = _strip_comments(raw)
         if not parts:
@@ -409,7 +410,7 @@ def _apply_dwell(line: int, w: _Words, b: Block) -> None:
     """`G04 <s>` (000 p.24) or `G04 X<s>`."""
     if b.home:
         raise NcError(line, "G04 and G74 in one block")
-    times = list(w.numbers)
+    times: list[float | None] = list(w.numbers)
     if len(w.axes) == 1 and w.axes[0][0] == "X" and not times:
         times = [w.axes[0][1]]
     elif w.axes:

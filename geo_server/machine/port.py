@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from geo_server.dictionary import Dictionary
     from geo_server.events import Event
     from geo_server.machine.nc import Program
-    from geo_server.model import MachineConfig
+    from geo_server.model import Diagnostic, MachineConfig
     from geo_server.snapshot import Snapshot
 
 
@@ -62,13 +62,22 @@ class Reload:
     cfg: MachineConfig
 
 
-Operation = WriteObjects | StartProgram | Reset | Reload
+@dataclass(frozen=True)
+class Record:
+    """Put a warning or error the server itself found (a rejected reload, a second
+    server with this machine's name) into the machine's error list, so that
+    `SIM::last_error_id` and `SIM::last_error` show it like every other error."""
+
+    diagnostic: Diagnostic
+
+
+Operation = WriteObjects | StartProgram | Reset | Reload | Record
 
 
 # ---------------------------------------------------------------------- pending
 
 
-class Pending(Future):
+class Pending(Future[Any]):
     """The outcome of a queued operation, which can be withdrawn until a cycle takes it.
 
     `withdraw()` (also what `cancel()` does, so an asyncio wrapper being cancelled can
@@ -99,7 +108,7 @@ def chained(inner: Pending, transform: Callable[[Any], Any]) -> Pending:
     (which may raise); withdrawing it withdraws `inner`."""
     outer = Pending(lambda _p: inner.withdraw())
 
-    def copy(done: Future) -> None:
+    def copy(done: Future[Any]) -> None:
         if done.cancelled():
             outer.cancel()
             return
@@ -154,6 +163,11 @@ class MachinePort(Protocol):
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the next cycle boundary."""
+
+    def record(self, diagnostic: Diagnostic) -> Pending:
+        """Put a warning or error the server found into the error list (done once the
+        returned future is: at once in this process, at the next cycle boundary when the
+        cycle runs in its own process)."""
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
         """Call `callback(snapshot)` after every cycle (on the thread that publishes it);

@@ -19,6 +19,7 @@ goes away (end of file on the channel), so no orphan keeps spinning.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import multiprocessing
 import os
@@ -29,7 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -38,12 +39,13 @@ from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
-from geo_server.machine.port import Operation, Pending, Reload, StartProgram
+from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram
 from geo_server.machine.scheduler import Scheduler
-from geo_server.model import MachineConfig
+from geo_server.model import Diagnostic, MachineConfig
 from geo_server.snapshot import Snapshot
 
 log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 STATUS_EVERY = 100  # cycles between two status reports from the child
 #: Bytes of operations the server may have sent that the cycle process has not read yet;
@@ -54,7 +56,7 @@ SEND_BACKLOG = 8 * 1024 * 1024
 FIRST_FRAME_TIMEOUT = 30.0
 
 
-def _outcome(fut: Future) -> tuple[bool, Any]:
+def _outcome(fut: Future[Any]) -> tuple[bool, Any]:
     """A finished future as something that pickles: (True, result) or (False, error)."""
     exc = fut.exception()
     if exc is None:
@@ -88,7 +90,7 @@ def _child_main(
     acks: list[tuple[int, bool, Any]] = []
     events: list[Event] = []
 
-    def on_done(seq: int, fut: Future) -> None:
+    def on_done(seq: int, fut: Future[Any]) -> None:
         ok, payload = _outcome(fut)
         acks.append((seq, ok, payload))
 
@@ -106,14 +108,14 @@ def _child_main(
                     _, seq, slot, op = msg
                     if slots.take(slot):  # else withdrawn: the server answered already
                         pending = machine.submit(op)
-                        pending.add_done_callback(lambda f, seq=seq: on_done(seq, f))
+                        pending.add_done_callback(functools.partial(on_done, seq))
                 elif msg[0] == "stop":
                     sched.request_stop()
 
     def on_cycle(snap: Snapshot) -> None:
         status = sched.status() if snap.cycle % STATUS_EVERY == 0 else None
         quiet = not acks and not events and status is None
-        msg = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes())
+        msg = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes(), snap.texts)
         out.add((*msg, acks[:], events[:], status), droppable=quiet)
         acks.clear()
         events.clear()
@@ -132,7 +134,7 @@ def _child_main(
     # The last cycle once more (never dropped) with the final status, then everything
     # still buffered, written blocking: the server reads until end of file.
     snap = machine.snapshot
-    final = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes())
+    final = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes(), snap.texts)
     out.add((*final, acks[:], events[:], sched.status()))
     os.set_blocking(fd, True)
     with contextlib.suppress(OSError):
@@ -237,12 +239,16 @@ class RemoteMachine:
                 )
             self._seq += 1
             seq = self._seq
-            pending = Pending(lambda _p, slot=slot: self.slots.withdraw(slot))
+            pending = Pending(lambda _p: self.slots.withdraw(slot))
             self._pending[seq] = (pending, slot, op)
             frame = encode_frame(("op", seq, slot, op))
             self._backlog += len(frame)
             self._outbox.put(frame)
         return pending
+
+    def record(self, diagnostic: Diagnostic) -> Pending:
+        """Into the child's error list at its next cycle boundary (it owns the list)."""
+        return self.submit(Record(diagnostic))
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
         self._listeners.append(callback)
@@ -307,14 +313,15 @@ class RemoteMachine:
                         AdsError(AdsErrorCode.DEVICE_NOTREADY, "the GEO cycle process ended")
                     )
 
-    def _dispatch(self, msg: tuple) -> None:
-        _, cycle, values, machine, acks, events, status = msg
+    def _dispatch(self, msg: tuple[Any, ...]) -> None:
+        _, cycle, values, machine, texts, acks, events, status = msg
         self.snapshot = Snapshot(
             cycle,
             self.axes,
             np.frombuffer(values).reshape(self._shape),
             np.frombuffer(machine),
             self.layout,
+            texts,
         )
         self.snapshot_time = time.monotonic()
         self.first_frame.set()
@@ -341,8 +348,8 @@ class RemoteMachine:
                 fut.set_exception(AdsError(*payload[1:]))
             else:
                 fut.set_exception(RuntimeError(payload[1]))
-        for listener in list(self._listeners):
-            _guarded(listener, self.snapshot)
+        for on_cycle in list(self._listeners):
+            _guarded(on_cycle, self.snapshot)
 
 
 def _discard(listeners: list[Any], callback: Any) -> None:
@@ -350,7 +357,7 @@ def _discard(listeners: list[Any], callback: Any) -> None:
         listeners.remove(callback)
 
 
-def _guarded(fn: Callable[[Any], None], arg: Any) -> None:
+def _guarded(fn: Callable[[_T], None], arg: _T) -> None:
     try:
         fn(arg)
     except Exception:  # one broken subscriber must not stop the others

@@ -645,7 +645,8 @@ def add_notification_response(result: int, handle: int = 0) -> bytes:
 def parse_result(data: bytes) -> int:
     """First u32 of a response payload (the ADS result)."""
     _need(data, 4, "response", exact=False)
-    return _U32.unpack_from(data)[0]
+    result: int = _U32.unpack_from(data)[0]
+    return result
 
 
 def parse_read_response(data: bytes) -> tuple[int, bytes]:

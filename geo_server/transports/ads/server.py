@@ -30,7 +30,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -189,7 +189,7 @@ class AdsServer:
             self.options.max_notifications_total,
             prepare=self._notification_getter,
         )
-        self._server: asyncio.AbstractServer | None = None
+        self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._connections: set[AdsConnection] = set()
         self._unsubscribe: Callable[[], None] | None = None
@@ -641,7 +641,7 @@ class AdsConnection(asyncio.Protocol):
         self.framer = codec.Framer(server.options.max_frame)
         self.transport: asyncio.Transport | None = None
         self.peer: Any = None
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
         self._admitted = False
         self._frame_timer: asyncio.TimerHandle | None = None
         self._frame_timer_since: float | None = None
@@ -758,7 +758,7 @@ class AdsConnection(asyncio.Protocol):
         if self.transport is not None and not self.transport.is_closing():
             self.transport.write(frame)
 
-    def spawn(self, coro: Awaitable[Any]) -> None:
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)

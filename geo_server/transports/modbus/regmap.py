@@ -1,4 +1,4 @@
-"""The Modbus register map (SPEC §8), generated from the object dictionary — sans-I/O.
+"""The Modbus register map, generated from the object dictionary — sans-I/O.
 
 Everything here is a pure function of the dictionary and of values: which object sits at
 which address, how a value becomes big-endian registers and back, and which Modbus
@@ -12,7 +12,9 @@ emulator objects of index offset axis 0):
   `ID` owns the four-register *slot* `4·ID … 4·ID+3` — group `0x120300` at `4·ID`,
   emulator group `0x12F300` at `0x4000 + 4·ID`. Its value fills the first registers of
   the slot, big-endian bytes and words (high word first): BOOLEAN and UNS16 one register,
-  SGN32/UNS32 two, REAL64 four. The unused registers of a slot read 0.
+  SGN32/UNS32 two, REAL64 four. The unused registers of a slot read 0. Text objects
+  (`SIM::last_error`) own 64 registers from `0x6000 + 64·ID`: two CP1252 bytes per
+  register, the first byte in the high half, NUL-padded (the first 127 characters).
 - discrete inputs (FC 2): every BOOLEAN object at address `ID` (emulator group
   `0x4000 + ID`); coils (FC 1, 5, 15): the writable BOOLEAN objects at the same address.
 
@@ -48,8 +50,20 @@ MAX_WRITE_BITS = 1968
 #: Unit id of the machine-wide emulator objects (index offset axis 0).
 MACHINE_UNIT = 0
 
-#: Registers per dictionary type (STRING objects are not mapped to Modbus).
-REGISTERS: dict[str, int] = {"BOOLEAN": 1, "UNS16": 1, "SGN32": 2, "UNS32": 2, "REAL64": 4}
+#: First register of the text (STRING) objects: each owns `TEXT_SLOT` registers from
+#: `TEXT_BASE + TEXT_SLOT·ID`, two CP1252 bytes per register (first byte high), the
+#: first 127 characters of the text and a NUL — one FC 3/4 request reads it whole.
+TEXT_BASE = 0x6000
+TEXT_SLOT = 64
+#: Registers per dictionary type.
+REGISTERS: dict[str, int] = {
+    "BOOLEAN": 1,
+    "UNS16": 1,
+    "SGN32": 2,
+    "UNS32": 2,
+    "REAL64": 4,
+    "STRING": TEXT_SLOT,
+}
 _STRUCT: dict[str, str] = {"BOOLEAN": ">H", "UNS16": ">H", "SGN32": ">i", "UNS32": ">I"}
 _BASE: dict[str, int] = {"geo": 0, "sim": SIM_BASE}
 
@@ -123,8 +137,14 @@ def exception_for(exc: AdsError) -> ExcCode:
 
 
 def mapped(obj: ObjectDef) -> bool:
-    """True when the object has a Modbus representation (every non-STRING object)."""
+    """True when the object has a Modbus representation (every object: numbers in 4-register
+    slots, texts in `TEXT_SLOT` registers)."""
     return obj.type.name in REGISTERS
+
+
+def slot_size(obj: ObjectDef) -> int:
+    """Registers the object owns (its value and the unused rest of its slot)."""
+    return TEXT_SLOT if obj.type.name == "STRING" else SLOT
 
 
 def register_count(obj: ObjectDef) -> int:
@@ -134,6 +154,8 @@ def register_count(obj: ObjectDef) -> int:
 
 def register_address(obj: ObjectDef) -> int:
     """First register of the object's slot: `4·ID` (+ 0x4000 in the emulator group)."""
+    if obj.type.name == "STRING":
+        return TEXT_BASE + TEXT_SLOT * obj.id
     return _BASE[obj.group] + SLOT * obj.id
 
 
@@ -165,7 +187,10 @@ def encode(obj: ObjectDef, value: Any) -> list[int]:
     as it is (IEEE-754).
     """
     t = obj.type.name
-    if t == "REAL64":
+    if t == "STRING":
+        text = str(value).encode("cp1252", errors="replace")[: 2 * TEXT_SLOT - 1]
+        raw = text.ljust(2 * TEXT_SLOT, b"\0")
+    elif t == "REAL64":
         raw = struct.pack(">d", float(value))
     elif t == "BOOLEAN":
         raw = struct.pack(">H", 1 if value else 0)
@@ -190,6 +215,8 @@ def decode(obj: ObjectDef, registers: Sequence[int], check: bool = True) -> Any:
         raise RegisterError(ExcCode.ILLEGAL_VALUE, f"{obj.name}: register out of 0…0xFFFF")
     raw = b"".join(int(r).to_bytes(2, "big") for r in registers)
     t = obj.type.name
+    if t == "STRING":
+        return raw.split(b"\0", 1)[0].decode("cp1252", errors="replace")
     (v,) = struct.unpack(">d" if t == "REAL64" else _STRUCT[t], raw)
     if not check:
         return bool(v) if t == "BOOLEAN" else v
@@ -229,7 +256,7 @@ class UnitMap:
         coils: dict[int, ObjectDef] = {}
         for o in objs:
             base = register_address(o)
-            for word in range(SLOT):
+            for word in range(slot_size(o)):
                 if base + word in regs:
                     raise ValueError(f"Modbus map: {o.name} overlaps {regs[base + word][0].name}")
                 regs[base + word] = (o, word)
@@ -405,8 +432,8 @@ def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
                 {
                     **common,
                     "table": _TABLE_NAMES[Table.HOLDING_REGISTERS],
-                    "address": f"{base}…{base + SLOT - 1} (0x{base:04X})",
-                    "registers": f"{n} (+{SLOT - n} unused)" if n < SLOT else str(n),
+                    "address": f"{base}…{base + slot_size(o) - 1} (0x{base:04X})",
+                    "registers": f"{n} (+{SLOT - n} unused)" if n < slot_size(o) else str(n),
                     "access": access
                     + {"r": " (FC 3/4)", "rw": " (FC 3/4, 6/16)", "w": " (FC 6/16; reads 0)"}[
                         o.access
@@ -458,6 +485,8 @@ __all__ = [
     "MACHINE_UNIT",
     "SIM_BASE",
     "SLOT",
+    "TEXT_BASE",
+    "TEXT_SLOT",
     "ExcCode",
     "ModbusMap",
     "RegisterError",

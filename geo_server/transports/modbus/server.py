@@ -118,7 +118,7 @@ class ModbusInterface:
             u: self.map.machine if u == MACHINE_UNIT else self.map.axis for u in units
         }
         self._device = device_objects()
-        self._server: asyncio.AbstractServer | None = None
+        self._server: asyncio.Server | None = None
         self._connections: set[ModbusConnection] = set()
         self.requests = 0
         self.refused_connections = 0
@@ -258,7 +258,7 @@ class ModbusConnection(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.peer: Any = None
         self._queue: deque[Frame] = deque()
-        self._worker: asyncio.Task | None = None
+        self._worker: asyncio.Task[None] | None = None
         self._closing = False  # framing failed: answer what is due, then close
         self._paused = False
         self._stale: asyncio.TimerHandle | None = None

@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -184,7 +185,7 @@ class ZenohInterface:
         self._errors_ke = zenoh.KeyExpr(f"{self.keys.prefix}/errors")
         self._session: zenoh.Session | None = None
         self._entities: list[Any] = []
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: list[Any] = []
         self.queries = 0
@@ -257,7 +258,7 @@ class ZenohInterface:
     def endpoints(self) -> list[str]:
         return list(self.options.listen)
 
-    def _spawn(self, coro: Any) -> None:
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
@@ -394,8 +395,8 @@ class ZenohInterface:
                 return
             query.reply(key, json.dumps(result.as_dict()).encode(), encoding=JSON)
         elif route.kind == "nc":
-            result = await self._run_nc(payload)
-            query.reply(key, json.dumps(result).encode(), encoding=JSON)
+            outcome = await self._run_nc(payload)
+            query.reply(key, json.dumps(outcome).encode(), encoding=JSON)
         elif route.kind == "reset":
             cycle = await svc.reset_applied()
             body = {"ok": True, "command": "reset", "cycle": cycle}
@@ -513,8 +514,8 @@ class ZenohInterface:
         others = {zid for zid in found if zid != self.zenoh_id}
         for zid in sorted(others):
             self._add_rival(zid, zid, f"answered {status_key}")
-        for key, (zid, _evidence) in list(self._rivals.items()):
-            if zid is not None and zid not in others:
+        for key, (rival_zid, _evidence) in list(self._rivals.items()):
+            if rival_zid is not None and rival_zid not in others:
                 self._drop_rival(key)
         if others:
             # the id-less hints (a token, a queryable) most likely came from the sessions

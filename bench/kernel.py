@@ -1,4 +1,4 @@
-"""Kernel benchmark (SPEC §11): cost per GEO cycle with all compensations active.
+"""Kernel benchmark (docs/design.md §11): cost per GEO cycle with all compensations active.
 
 Machines of 1, 8, 32 and 128 axes, every axis with backlash, temperature, cross (1001
 points), plane (101×101), LSEC (1500 points, bilateral), friction (20 points) and

@@ -56,7 +56,7 @@ def test_random_scenarios(seed: int) -> None:
 
 
 def test_full_machine_manual_sizes() -> None:
-    """Manual-sized tables (SPEC §11) on 3 axes, everything effective."""
+    """Manual-sized tables (docs/design.md §11) on 3 axes, everything effective."""
     n = 3
     cfg = full_machine(n)
     fast, ref = Kernel(cfg), ReferenceKernel(cfg)

@@ -1,4 +1,4 @@
-"""Compensation kernel semantics (SPEC §3, §6) on the manual's own examples.
+"""Compensation kernel semantics (docs/design.md §3, §6) on the manual's own examples.
 
 Expected values are computed by hand here from the manual's formulas; every test runs on
 both the fast `Kernel` and the `ReferenceKernel`. 000 = TF5200 axis compensation EN.

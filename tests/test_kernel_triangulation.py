@@ -1,4 +1,4 @@
-"""Delaunay triangulation for crosstalk mode 3 (000 §4.6 p.84; SPEC §12)."""
+"""Delaunay triangulation for crosstalk mode 3 (000 §4.6 p.84; docs/design.md §12)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Compensation kernel: pure computation, no I/O (SPEC §1, §3, §6, §11).
+"""Compensation kernel: pure computation, no I/O (docs/design.md §1, §3, §6, §11).
 
 `Kernel` is the fast numpy implementation used by the machine; `ReferenceKernel` is the
 per-axis pure-Python statement of the same rules, used as the test oracle. Both share

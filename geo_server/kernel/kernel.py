@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -229,17 +229,17 @@ class Rows:
     """Slots of the axes on which each compensation is configured: a valid list whose
     masters are axes of this machine (docs/design.md §6.0)."""
 
-    cross: list[int]
-    plane: list[int]
-    lsec: list[int]
-    frict: list[int]  # mode 3 (000 §4.5 p.77)
-    lin: list[int]  # crosstalk new model, modes 1 and 2 (000 §4.6)
-    tri: list[int]  # crosstalk new model, mode 3
-    old: list[int]  # crosstalk old model (001 §4.5, 003 §3.5)
+    cross: list[int] = field(default_factory=list)
+    plane: list[int] = field(default_factory=list)
+    lsec: list[int] = field(default_factory=list)
+    frict: list[int] = field(default_factory=list)  # mode 3 (000 §4.5 p.77)
+    lin: list[int] = field(default_factory=list)  # crosstalk new model, modes 1, 2 (000 §4.6)
+    tri: list[int] = field(default_factory=list)  # crosstalk new model, mode 3
+    old: list[int] = field(default_factory=list)  # crosstalk old model (001 §4.5, 003 §3.5)
 
     @classmethod
     def of(cls, axes: list[AxisConfig], slot: dict[int, int]) -> Rows:
-        r = cls([], [], [], [], [], [], [])
+        r = cls()
         for i, ax in enumerate(axes):
             comp = ax.comp
             if comp is None:
@@ -307,7 +307,18 @@ class SourceVector:
         dp = np.lib.stride_tricks.as_strided(
             S[4 * n + 2 :], shape=(2, n), strides=(-(4 * n + 2) * 8, 8), writeable=False
         )
-        return cls(n, S, S[: 4 * n], S[:n], S[n : 2 * n], S[3 * n : 4 * n], d, dp, 4 * n, 4 * n + 1)
+        return cls(
+            n=n,
+            S=S,
+            inputs=S[: 4 * n],
+            pos=S[:n],
+            vel=S[n : 2 * n],
+            rev=S[3 * n : 4 * n],
+            dir=d,
+            dp=dp,
+            zero=4 * n,
+            one=4 * n + 1,
+        )
 
     def index(self, block: int, slots: np.ndarray | int) -> np.ndarray | int:
         """Index into S of block (POS, VEL, ACC, REV) of the axes in `slots`."""
@@ -372,15 +383,15 @@ class EffectiveTables:
         homed[n + 1] = False
         hb = np.zeros((2, n, 7), dtype=bool)
         return cls(
-            h,
-            rev_mask,
-            homed,
-            homed[:n],
-            hb,
-            hb[0],
-            hb[1],
-            np.zeros((n, 7), dtype=bool),
-            np.zeros((n, 7), dtype=bool),
+            h=h,
+            rev_mask=rev_mask,
+            homed=homed,
+            homed_in=homed[:n],
+            hb=hb,
+            hb0=hb[0],
+            hb1=hb[1],
+            ne=np.zeros((n, 7), dtype=bool),
+            b7=np.zeros((n, 7), dtype=bool),
         )
 
 
@@ -428,20 +439,20 @@ class BacklashTemp:
             tempc[row] = [getattr(ax.params, attr) for ax in axes]
         t = np.zeros((2, n))
         bt = cls(
-            par,
-            par[0],
-            par[1],
-            par[2],
-            tempc,
-            tempc[0],
-            tempc[1],
-            tempc[2],
-            par[0:7:6],
-            par[1:3],
-            t,
-            t[1],
-            target[:, 0:2].T,
-            target[:, TEMP],
+            par=par,
+            init_dir=par[0],
+            half_lose=par[1],
+            tc6=par[2],
+            tempc=tempc,
+            coef=tempc[0],
+            off0=tempc[1],
+            pos0=tempc[2],
+            sub=par[0:7:6],
+            mul=par[1:3],
+            t=t,
+            t_pos=t[1],
+            out=target[:, 0:2].T,
+            out_temp=target[:, TEMP],
         )
         bt.tempc_changed()
         return bt
@@ -496,17 +507,17 @@ class TargetVector:
             + [i * 7 + CROSSTALK for i in rows.old]
         )
         return cls(
-            V,
-            fac,
-            bool(T + X + F),
-            flat,
-            V[:o_wpre],
-            V[:P],
-            V[o_tri:o_lin],
-            V[o_lin:],
-            V[o_wpre:],
-            fac[o_tri:o_fr],
-            fac[o_fr:o_cross],
+            V=V,
+            fac=fac,
+            any_fac=bool(T + X + F),
+            flat=flat,
+            tgt=V[:o_wpre],
+            plane=V[:P],
+            tri=V[o_tri:o_lin],
+            l1=V[o_lin:],
+            wpre=V[o_wpre:],
+            fac_xt=fac[o_tri:o_fr],
+            fac_fr=fac[o_fr:o_cross],
         )
 
 
@@ -552,24 +563,24 @@ class Gather:
         sub, div, per = np.zeros(ng), np.ones(ng), np.ones(ng)
         wrap = np.zeros(ng, dtype=bool)
         return cls(
-            G,
-            src,
-            sub,
-            div,
-            per,
-            wrap,
-            G[:ns],
-            np.zeros(ns),
-            G[ns:],
-            sub[ns:],
-            div[ns:],
-            G[ns : ns + nw],
-            per[ns : ns + nw],
-            wrap[ns : ns + nw],
-            np.zeros(nw),
-            bool(ng),
-            bool(ns),
-            bool(nq),
+            G=G,
+            src=src,
+            sub=sub,
+            div=div,
+            per=per,
+            wrap=wrap,
+            sign_in=G[:ns],
+            sign=np.zeros(ns),
+            q=G[ns:],
+            q_sub=sub[ns:],
+            q_div=div[ns:],
+            w=G[ns : ns + nw],
+            w_per=per[ns : ns + nw],
+            w_wrap=wrap[ns : ns + nw],
+            w_tmp=np.zeros(nw),
+            any=bool(ng),
+            any_sign=bool(ns),
+            any_q=bool(nq),
         )
 
     def finish(self) -> None:
@@ -585,13 +596,14 @@ class CrosstalkTables:
 
     The sign code 3·sign(v) + sign(a) + 4 of the dynamic master picks, per row, one row of
     `tab`: (sign(a)/(|a_ref|·UNITS_PER_MM), mode-3 region block, 1-D variant row id), so
-    that a·tab[0] = |a|/a_ref with a in mm/s², without an abs and a divide. The ratio,
+    that a·tab[0] = |a|/|a_ref| (a in units/s², a_ref in mm/s²) without an abs and a
+    divide. The ratio,
     clamped to 1 (docs/design.md §12), is the row's factor in the target vector; the
     mode-3 and 1-D builders fill columns 1 and 2 of `tab` and read `now`.
     """
 
     col: np.ndarray  # [rows·9] correction column per sign code
-    w31: np.ndarray  # (3, 1): code = 3·sign(v) + sign(a)
+    w31: np.ndarray  # code = (3, 1)·(sign(v), sign(a))
     sign: np.ndarray  # [2, rows] (sign(v), sign(a)): a view of the gather's signs
     acc: np.ndarray  # [rows] a of the dynamic master: a view of G
     code: np.ndarray
@@ -633,17 +645,17 @@ class CrosstalkTables:
         tab[:, 0] = sa * _f64(invs) / UNITS_PER_MM
         now = np.zeros((k, 3))
         return cls(
-            _i64(cols),
-            np.array([3.0, 1.0]),
-            g.sign[part].reshape(2, k),
-            g.G[part][k:],
-            np.zeros(k),
-            np.zeros(k, dtype=np.int64),
-            np.arange(k, dtype=float) * 9 + 4,
-            tab,
-            now,
-            now[:, 0],
-            fac,
+            col=_i64(cols),
+            w31=np.array([3.0, 1.0]),
+            sign=g.sign[part].reshape(2, k),
+            acc=g.G[part][k:],
+            code=np.zeros(k),
+            idx=np.zeros(k, dtype=np.int64),
+            rowoff=np.arange(k, dtype=float) * 9 + 4,
+            tab=tab,
+            now=now,
+            ratio=now[:, 0],
+            fac=fac,
         )
 
 
@@ -683,7 +695,7 @@ class Lookup1DTables:
         tables: list[tuple[np.ndarray, np.ndarray]] = []
         row_ids, qsrc, div, wrap, per = [], [], [], [], []
 
-        def row(table: tuple, s: int, d: float = 1.0, w: tuple[bool, float] = (False, 1.0)):
+        def row(table: tuple, s: int, d: float = 1.0, w: tuple[bool, float] = (False, 1.0)) -> None:
             row_ids.append(len(tables))
             tables.append(table)
             qsrc.append(s)
@@ -745,7 +757,14 @@ class Lookup1DTables:
             cols = xt.col.reshape(-1, 9)[-X:]
             rowid = np.array(lin_base, dtype=float)[:, None] + cols
             xt.tab[-X * 9 :, 2] = rowid.reshape(-1)
-        return cls(lookup, g.G[part], out, lookup.rowid[:X], xt.now[-X:, 2] if X else None, bool(X))
+        return cls(
+            lookup=lookup,
+            raw=g.G[part],
+            out=out,
+            lin_rowid=lookup.rowid[:X],
+            lin_now=xt.now[-X:, 2] if X else None,
+            has_lin=bool(X),
+        )
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -824,27 +843,27 @@ class PlaneTables:
         tmp = np.zeros((2, P))
         k00 = np.zeros(P)
         return cls(
-            g.G[part].reshape(2, P),
-            last,
-            np.maximum(last - 1, 0),
-            np.zeros((2, P)),
-            uv[:, 1],
-            uv[:, 0],
-            uv[1][:, None, :],
-            uv[0][None, :, :],
-            wts,
-            wts.reshape(4, P),
-            np.stack([np.ones(P), stride]),
-            tmp,
-            tmp[0],
-            tmp[1],
-            k00,
-            k00[None, None, :],
-            base4,
-            np.zeros((2, 2, P), dtype=np.int64),
-            np.zeros((2, 2, P)),
-            np.concatenate([t.ravel() for t in tabs]),
-            out,
+            u=g.G[part].reshape(2, P),
+            last=last,
+            lim=np.maximum(last - 1, 0),
+            fl=np.zeros((2, P)),
+            frac=uv[:, 1],
+            gfrac=uv[:, 0],
+            wv=uv[1][:, None, :],
+            wu=uv[0][None, :, :],
+            w=wts,
+            w4=wts.reshape(4, P),
+            sw=np.stack([np.ones(P), stride]),
+            tmp=tmp,
+            tmp0=tmp[0],
+            tmp1=tmp[1],
+            k00=k00,
+            k00b=k00[None, None, :],
+            base4=base4,
+            k=np.zeros((2, 2, P), dtype=np.int64),
+            c=np.zeros((2, 2, P)),
+            tab=np.concatenate([t.ravel() for t in tabs]),
+            out=out,
         )
 
 
@@ -929,24 +948,24 @@ class Mode3Tables:
         lam = lamm.reshape(T, 3, G)
         coef = np.zeros((T, 3))
         return cls(
-            xy1,
-            xy1[:, :, None],
-            np.ascontiguousarray(H.reshape(T, 3 * G, 3)),
-            lamm,
-            lam[:, 0],
-            lam[:, 1],
-            lam[:, 2],
-            np.zeros((T, G)),
-            np.zeros((T, G), dtype=bool),
-            np.zeros(T, dtype=np.int64),
-            xt.now[:T, 1],
-            VALC.reshape(-1, 3),
-            coef,
-            coef[:, None, :],
-            out,
-            out.reshape(T, 1, 1),
-            cols.reshape(-1),
-            slow,
+            xy1=xy1,
+            xy1c=xy1[:, :, None],
+            H=np.ascontiguousarray(H.reshape(T, 3 * G, 3)),
+            lamm=lamm,
+            lam0=lam[:, 0],
+            lam1=lam[:, 1],
+            lam2=lam[:, 2],
+            min=np.zeros((T, G)),
+            inside=np.zeros((T, G), dtype=bool),
+            sel=np.zeros(T, dtype=np.int64),
+            off_now=xt.now[:T, 1],
+            val=VALC.reshape(-1, 3),
+            coef=coef,
+            coef1=coef[:, None, :],
+            out=out,
+            out11=out.reshape(T, 1, 1),
+            colv=cols.reshape(-1),
+            slow=slow,
         )
 
 
@@ -1031,30 +1050,30 @@ class LsecTables:
         # first and last setpoint (000 §4.4: they are one period apart)
         spans = _f64([float(x.setpoint[-1] - x.setpoint[0]) for x in ls])
         per = np.where(modulo[slots], period[slots], spans)
-        wrap = np.array([x.modulo for x in ls], dtype=bool) & (per > 0)
+        wrap = np.logical_and([x.modulo for x in ls], per > 0)
         cpv = np.zeros((2, L))
         return cls(
-            lookup,
-            np.stack([src.dir_index(slots), src.index(POS, slots)], axis=1),
-            np.zeros((L, 2)),
-            add,
-            add[:, 1],
-            lookup.pairs,
-            np.stack([slots * 7 + CROSS, slots * 7 + PLANE]),
-            cpv,
-            cpv[0],
-            cpv[1],
-            wc,
-            bool(wc.all()),
-            x0,
-            np.where(per > 0, per, 1.0),
-            wrap,
-            bool(wrap.any()),
-            np.zeros(L),
-            rows == list(range(len(axes))),
-            slots * 7 + LEAD,
-            np.zeros(L),
-            col,
+            lookup=lookup,
+            src=np.stack([src.dir_index(slots), src.index(POS, slots)], axis=1),
+            g=np.zeros((L, 2)),
+            add=add,
+            t=add[:, 1],
+            qf=lookup.pairs,
+            cp=np.stack([slots * 7 + CROSS, slots * 7 + PLANE]),
+            cpv=cpv,
+            cp0=cpv[0],
+            cp1=cpv[1],
+            wc=wc,
+            all_wc=bool(wc.all()),
+            x0=x0,
+            per=np.where(per > 0, per, 1.0),
+            wrap=wrap,
+            any_wrap=bool(wrap.any()),
+            d=np.zeros(L),
+            all=rows == list(range(len(axes))),
+            flat=slots * 7 + LEAD,
+            val=np.zeros(L),
+            col=col,
         )
 
 
@@ -1080,15 +1099,15 @@ class FrictionState:
         n = len(target)
         ring = np.zeros((RING, n))
         return cls(
-            ring,
-            ring.reshape(-1),
-            list(ring),
-            0,
-            np.full(n, np.inf),
-            np.zeros(n),
-            target[:, FRICT],
-            actual[:, FRICT],
-            eff[:, FRICT],
+            ring=ring,
+            ring_flat=ring.reshape(-1),
+            ring_rows=list(ring),
+            ring_pos=0,
+            path=np.full(n, np.inf),
+            dpos=np.zeros(n),
+            target=target[:, FRICT],
+            actual=actual[:, FRICT],
+            effective=eff[:, FRICT],
         )
 
 
@@ -1141,19 +1160,19 @@ class FrictionTables:
         pos = np.arange(RING)[:, None]
         ridx = ((pos - delay[None, :]) % RING) * n + np.arange(n)[None, :]
         return cls(
-            bool(rows),
-            slots,
-            _f64([axes[i].comp.frict.scaling_factor / 1000.0 for i in rows]),
-            g.sign[part],
-            fac,
-            wpre_in,
-            np.ones(n),
-            pd,
-            has_pd,
-            bool(has_pd.any()),
-            np.ones(n),
-            list(ridx),
-            np.zeros(n),
+            any=bool(rows),
+            slots=slots,
+            scale=_f64([axes[i].comp.frict.scaling_factor / 1000.0 for i in rows]),
+            sign=g.sign[part],
+            fac=fac,
+            wpre_in=wpre_in,
+            wpre=np.ones(n),
+            pd=pd,
+            has_pd=has_pd,
+            any_pd=bool(has_pd.any()),
+            wpost=np.ones(n),
+            ridx_rows=list(ridx),
+            rv=np.zeros(n),
         )
 
 
@@ -1196,7 +1215,8 @@ class Kernel:
         self._rev = np.zeros(n, dtype=bool)
         self._rev_col = self._rev[:, None]
         self._tflat, self._aflat = self.target.reshape(-1), self.actual.reshape(-1)
-        self._not_fr = np.ones(7)  # total offset: Σ columns but friction (design.md §3.7)
+        # total offset: Σ columns but friction (docs/design.md §3.7)
+        self._not_fr = np.ones(7)
         self._not_fr[FRICT] = 0.0
         self._setup(cfg)
 
@@ -1227,13 +1247,9 @@ class Kernel:
         self._eff = EffectiveTables.build(axes, rows, slot)
         self._vec = vec = TargetVector.build(rows)
         # the gather's parts: [xt (vel, acc) | friction vel | 1-D | plane | mode 3]
-        nxt, F, P, T = (
-            len(rows.tri) + len(rows.lin),
-            len(rows.frict),
-            len(rows.plane),
-            len(rows.tri),
-        )
-        L1 = len(rows.lin) + 2 * F + len(rows.cross) + len(rows.old)
+        X, T, F, P = len(rows.lin), len(rows.tri), len(rows.frict), len(rows.plane)
+        nxt = T + X  # crosstalk new-model rows, mode 3 first
+        L1 = X + 2 * F + len(rows.cross) + len(rows.old)  # rows of the merged 1-D lookup
         ns = 2 * nxt + F
         o_pl = ns + L1
         o_tri = o_pl + 2 * P
@@ -1256,14 +1272,14 @@ class Kernel:
         g.finish()
         f = self._filter
         lead = ColumnViews(
-            self.target[:, LEAD],
-            self.actual[:, LEAD],
-            self.effective[:, LEAD],
-            self._prev[:, LEAD],
-            self._event[:, LEAD],
-            self._t7[:, LEAD],
-            f.jump[:, LEAD],
-            f.w[:, LEAD],
+            target=self.target[:, LEAD],
+            actual=self.actual[:, LEAD],
+            effective=self.effective[:, LEAD],
+            prev=self._prev[:, LEAD],
+            event=self._event[:, LEAD],
+            tmp=self._t7[:, LEAD],
+            jump=f.jump[:, LEAD],
+            weight=f.w[:, LEAD],
         )
         self._lsec = LsecTables.build(axes, rows.lsec, src, modulo, period, lead)
 
@@ -1359,7 +1375,8 @@ class Kernel:
         np.less(t1, 0.0, rev)
         np.negative(d, out=d, where=rev)
 
-        # effective = selected ∧ preconditions; step events on a change (design.md §3.5)
+        # effective = selected ∧ preconditions (docs/design.md §6.8); a change is a step
+        # event (§3.5)
         et = self._eff
         copyto(et.homed_in, homed)
         ne = et.ne

@@ -1,12 +1,12 @@
 """Reference compensation kernel: per axis, plain Python floats, one rule at a time.
 
-This is the readable statement of SPEC §3/§6 and the oracle the fast kernel
-(`geo_server.kernel.kernel.Kernel`) is tested against. It has the same interface.
+This is the readable statement of docs/design.md §3 and §6 and the oracle the fast
+kernel (`geo_server.kernel.kernel.Kernel`) is tested against. It has the same interface.
 Manual references: 000 = TF5200 axis compensation EN v1.51 (PDF page numbers).
 
-Per cycle and axis (SPEC §5 step 3 order: temperature, cross, plane, crosstalk, then
-LSEC, backlash, friction — backlash only depends on the direction, so its place does not
-matter):
+Per cycle and axis (docs/design.md §5.1 step 3 order: temperature, cross, plane,
+crosstalk, then LSEC, backlash, friction — backlash only depends on the direction, so its
+place does not matter):
 
 1. direction: sign of the command velocity, the last one held at standstill;
 2. effective flags (selected and preconditions);
@@ -43,12 +43,12 @@ from geo_server.kernel.common import (
 from geo_server.kernel.triangulation import Triangulation, evaluate, triangulate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
 
-UNITS_PER_MM = 10_000.0  # 0.1 µm per mm, 0.0001° per degree (SPEC §3)
+UNITS_PER_MM = 10_000.0  # 0.1 µm per mm, 0.0001° per degree (docs/design.md §3.1)
 UNITS_PER_UM = 10.0  # friction tables are in µm/s (0.001°/s rotary), 000 §4.5 P-COMP-00046
 
 
 def interp(x: Sequence[float], y: Sequence[float], q: float) -> float:
-    """Linear interpolation between table points, edge values held outside (SPEC §6)."""
+    """Linear interpolation between table points, edges held (docs/design.md §6.0)."""
     n = len(x)
     if n == 1:
         return float(y[0])
@@ -207,13 +207,15 @@ class ReferenceKernel:
         return t[:, 0].copy(), t[:, 1].copy(), t[:, 2].copy()
 
     def write_tempc(self, slot: int, field: str, value: float) -> None:
-        """A TEMPC parameter write: a step event with temp_comp_n_cycles (SPEC §3)."""
+        """A TEMPC parameter write: a step event with temp_comp_n_cycles
+        (docs/design.md §3.5)."""
         self._tempc[slot][TEMPC_FIELDS.index(field)] = float(value)
         self._event[slot][TEMP] = True
 
     def reload(self, cfg: MachineConfig) -> None:
         """Swap the tables at this cycle boundary; every column gets a step event, so an
-        active compensation ramps from its current output to the new value (SPEC §4).
+        active compensation ramps from its current output to the new value
+        (docs/design.md §4.4).
 
         Selection and live TEMPC values are re-initialised from the new parameters only
         where the new lists changed them, so a COMP OFF or a live TEMPC write survives a
@@ -270,14 +272,14 @@ class ReferenceKernel:
         prev_eff = [bool(v) for v in self.effective[i]]
         prev_out = [float(v) for v in self.actual[i]]
 
-        # 1. direction (SPEC §3): sign of the command velocity, held at standstill
+        # 1. direction (docs/design.md §3.6): sign of the command velocity, held at standstill
         s = _sign(vel[i])
         reversal = s != 0.0 and s != self._dir[i]
         if s != 0.0:
             self._dir[i] = s
         d = self._dir[i]
 
-        # 2. effective = selected and preconditions (SPEC §6 "Effective flags")
+        # 2. effective = selected and preconditions (docs/design.md §6.8)
         eff = [False] * 7
         # backlash: active from start-up, no homing (000 §2.2 p.10)
         eff[BC] = sel[BC] and p.anwahl_losekomp != 0 and p.lose != 0
@@ -297,7 +299,8 @@ class ReferenceKernel:
         # 3. unfiltered targets
         tgt = [0.0] * 7
         if eff[BC]:
-            # 0 while moving in the start-up direction, d·lose after a reversal (SPEC §6)
+            # 0 while moving in the start-up direction, d·lose after a reversal
+            # (docs/design.md §6.1)
             tgt[BC] = 0.0 if d == ax.init_dir else d * p.lose
         if eff[TEMP]:
             coef, off0, pos0 = self._tempc[i]
@@ -382,7 +385,7 @@ class ReferenceKernel:
         )
 
     def _filter(self, i: int, c: int, n: int, target: float, prev: float, event: bool) -> float:
-        """sin² filter (SPEC §3): out_k = target_k − J·cos²(π·k/(2N))."""
+        """sin² filter (docs/design.md §3.4): out_k = target_k − J·cos²(π·k/(2N))."""
         if event:
             self._jump[i][c] = target - prev
             self._k[i][c] = 0.0
@@ -429,7 +432,7 @@ class ReferenceKernel:
         neg = v < 0.0 or (v == 0.0 and a < 0.0)
         col = (0 if accelerating else 2) + (1 if (neg and x.velocity_dependent) else 0)
         inv = ax.xt_inv_acc if accelerating else ax.xt_inv_dec
-        ratio = min(abs(a) * inv, 1.0)  # clamp beyond the reference acceleration (SPEC §12)
+        ratio = min(abs(a) * inv, 1.0)  # clamped beyond a_ref (docs/design.md §12)
         if x.mode == 1:
             c_ref = ax.xt_cols[col][0]
         elif x.mode == 2:

@@ -1,8 +1,8 @@
 """Delaunay triangulation of the crosstalk mode-3 test points (000 §4.6, p.84).
 
-The manual only says "surface interpolation" over up to 15 measurement tests; SPEC §12
-fixes it as piecewise-linear interpolation over the Delaunay triangulation, and outside
-the convex hull the value at the nearest hull point.
+The manual only says "surface interpolation" over up to 15 measurement tests;
+docs/design.md §12 fixes it as piecewise-linear interpolation over the Delaunay
+triangulation, and outside the convex hull the value at the nearest hull point.
 
 For ≤ 15 points an exact brute-force construction is both small and robust, so this is
 used instead of an incremental Bowyer–Watson (whose finite super-triangle can drop

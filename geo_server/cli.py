@@ -9,6 +9,7 @@ import csv
 import io
 import json
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -272,11 +273,12 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             try:
                 await iface.start()
             except Exception as exc:  # OSError (port busy), zenoh.ZError, bad config
-                raise InterfaceStartError(f"{name} interface did not start: {exc}") from exc
+                raise InterfaceStartError(start_failure(name, exc)) from exc
             print(describe(), flush=True)
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
         scheduler.start()
+        program = ProgramReport(args.program, service) if args.program else None
         next_status = loop.time() + args.status_period
         while not stop.is_set():
             # With --cycles, look often whether the cycle thread has finished its cycles.
@@ -289,6 +291,8 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 raise CycleStoppedError(
                     f"the GEO cycle ended unexpectedly after cycle {scheduler.machine.cycle}"
                 )
+            if program is not None:
+                program.update()
             if loop.time() < next_status and not finished:
                 continue
             next_status = loop.time() + args.status_period
@@ -304,7 +308,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 f"cycle {st['cycle']}  lateness p50 {st['lateness_p50_us']:.0f} µs "
                 f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  "
                 f"overruns {st['overruns']}  cycle p50 {st['cycle_p50_us']:.0f} µs "
-                f"(kernel {st['kernel_p50_us']:.0f} µs)",
+                f"(kernel {st['kernel_p50_us']:.0f} µs)" + (program.line() if program else ""),
                 flush=True,
             )
             if finished:
@@ -317,6 +321,74 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 await iface.close()
             except Exception as exc:  # report and go on closing the others
                 print(f"warning: closing {type(iface).__name__}: {exc}", file=sys.stderr)
+
+
+#: What to change when an interface's port is taken (`start_failure`).
+_PORT_OPTION = {
+    "zenoh": "--zenoh-listen tcp/127.0.0.1:PORT",
+    "modbus": "--modbus-port PORT",
+    "ads": "--ads-port PORT",
+}
+
+
+def start_failure(name: str, exc: BaseException) -> str:
+    """One line saying why an interface did not start and what to do about it.
+
+    Zenoh's errors carry the Rust source location of every layer (`… at
+    /root/.cargo/…/tcp.rs:61.]`); that is left out, the reason stays."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?\]?", "", str(exc)).strip().rstrip(".")
+    if "in use" in text.lower() or getattr(exc, "errno", None) in (48, 98, 10048):
+        where = text.split("bound to ", 1)[1].split(":", 2) if "bound to " in text else []
+        endpoint = ":".join(where[:2]) if where else "its address"
+        return (
+            f"{name} interface did not start: {endpoint} is in use (another geo-server?); "
+            f"choose another port with {_PORT_OPTION[name]} or stop the other server"
+        )
+    return f"{name} interface did not start: {text}"
+
+
+class ProgramReport:
+    """`run --program`: say when the program starts, which line it is at (each status
+    period) and how it ends, from the machine's `SIM::program_running`/`_line` and the
+    NC errors in its error list."""
+
+    def __init__(self, path: str, service: Any) -> None:
+        self.path = path
+        self.service = service
+        d = service.dictionary
+        self._running = d.by_name("SIM::program_running")
+        self._line = d.by_name("SIM::program_line")
+        self._started = False
+        self._done = False
+        self._errors: list[str] = []  # NC errors, appended on the thread that reports them
+        self._unsubscribe = service.subscribe_events(self._on_event)
+
+    def _on_event(self, event: Any) -> None:
+        d = event.diagnostic
+        if d.severity == "error" and d.file == "<nc>":
+            self._errors.append(d.describe())
+
+    def update(self) -> None:
+        if self._done:
+            return
+        snap = self.service.snapshot
+        running = snap.value(self._running, 0)
+        line = snap.value(self._line, 0)
+        if not self._started and (running or line):  # (or it ran between two looks)
+            self._started = True
+            print(f"program {self.path}: started", flush=True)
+        if self._started and not running:
+            self._done = True
+            self._unsubscribe()
+            if self._errors:
+                print(f"program {self.path}: stopped at line {line}: {self._errors[0]}", flush=True)
+            else:
+                print(f"program {self.path}: ended at cycle {snap.cycle} (line {line})", flush=True)
+
+    def line(self) -> str:
+        if self._started and not self._done:
+            return f"  program line {self.service.snapshot.value(self._line, 0)}"
+        return ""
 
 
 class InterfaceStartError(GeoError):
@@ -356,7 +428,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--cycle-ms", type=float, default=1.0, help="GEO cycle length in ms (0.25 … 10)")
     r.add_argument("--program", help="NC program to run at start")
     r.add_argument("--homed", action="store_true", help="start with every axis homed")
-    r.add_argument("--mode", choices=("realtime", "free"), default="realtime")
+    r.add_argument(
+        "--mode",
+        choices=("realtime", "free"),
+        default="realtime",
+        help="realtime: one cycle per --cycle-ms on the clock (default); free: cycles back "
+        "to back as fast as the host can (benchmarks, fast simulations)",
+    )
     r.add_argument(
         "--cycle-in",
         choices=("process", "thread"),
@@ -414,7 +492,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run" and not 0.25 <= args.cycle_ms <= 10:
         print("error: --cycle-ms must be between 0.25 and 10", file=sys.stderr)
         return 2
-    return args.func(args)
+    return int(args.func(args))
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ sit at group + 0x100 (name), 0x200 (type name), 0x300 (length), 0x400 (unit),
 
 from __future__ import annotations
 
+import difflib
 import math
 import struct
 import sys
@@ -343,6 +344,7 @@ class Dictionary:
 
     objects: list[ObjectDef]
     _by_name: dict[str, ObjectDef] = field(default_factory=dict, repr=False)
+    _keys: dict[str, ObjectDef] | None = field(default=None, repr=False)
     _by_id: dict[tuple[str, int, str], ObjectDef] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -358,13 +360,26 @@ class Dictionary:
             self._by_id[k] = obj
 
     def by_name(self, name: str) -> ObjectDef:
-        """Resolve a name or alias (case-insensitive); unknown -> AdsError 0x703."""
-        try:
-            return self._by_name[_normalize_name(name)]
-        except KeyError:
-            raise AdsError(
-                AdsErrorCode.DEVICE_INVALIDOFFSET, f"unknown object name {name!r}", name
-            ) from None
+        """Resolve a name or alias (case-insensitive), also in the spelling of the Zenoh
+        keys (`BC::actual_backlash`, `lsec::sum_epsilon`); unknown -> AdsError 0x703
+        naming the nearest known names."""
+        key = _normalize_name(name)
+        obj = self._by_name.get(key) or self._by_key().get(key.replace("/", "::"))
+        if obj is not None:
+            return obj
+        near = difflib.get_close_matches(key, self._by_name, n=3, cutoff=0.6)
+        hint = "; did you mean " + " or ".join(repr(self._by_name[n].name) for n in near)
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDOFFSET,
+            f"unknown object name {name!r}" + (hint + "?" if near else ""),
+            name,
+        )
+
+    def _by_key(self) -> dict[str, ObjectDef]:
+        """Objects by `<group>::<field>` of their Zenoh key (`bc::actual_backlash`)."""
+        if self._keys is None:
+            self._keys = {f"{o.key_group}::{o.key_field}": o for o in self.objects}
+        return self._keys
 
     def group_objects(self, group: str, scope: str = "axis") -> list[ObjectDef]:
         return [o for o in self.objects if o.group == group and o.scope == scope]

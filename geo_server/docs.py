@@ -1,8 +1,10 @@
-"""Generated README sections: tables come from the dictionary and the check table, never typed.
+"""Generated documentation: every table comes from the code, never typed.
 
-`python -m geo_server.docs` rewrites every `<!-- BEGIN name -->` … `<!-- END name -->`
-block of README.md and the whole of `docs/list_checks.md`; `tests/test_docs.py` and
-`tests/test_listfile_validation.py` fail when either is out of date.
+`python -m geo_server.docs` writes the reference pages `docs/objects.md`,
+`docs/modbus-map.md` and `docs/list_checks.md`, and rewrites every
+`<!-- BEGIN name -->` … `<!-- END name -->` block of README.md (the *Limits* table, whose
+values are the defaults of the option classes). `tests/test_docs.py` fails when any of
+them is out of date.
 """
 
 from __future__ import annotations
@@ -10,30 +12,184 @@ from __future__ import annotations
 import re
 import sys
 from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 from geo_server.dictionary import dictionary_markdown
 
+ROOT = Path(__file__).resolve().parent.parent
 
-def _checks() -> str:
+
+def objects_page() -> str:
+    return (
+        "# Objects\n\n"
+        "Generated from `objects/objects.toml` by `python -m geo_server.docs`.\n\n"
+        "Index group `0x120300` (GEO) and `0x12F300` (emulator extension); index offset "
+        "`(axis << 16) | id`, machine-wide objects with axis 0. Attribute groups at group + "
+        "`0x100` (name), `0x200` (type), `0x300` (length), `0x400` (unit), `0x500` "
+        "(writable). Sources cite the manuals by number and page (see the legend in "
+        "[design.md](design.md)).\n\n" + dictionary_markdown()
+    )
+
+
+def modbus_page() -> str:
+    from geo_server.transports.modbus.regmap import modbus_map
+
+    return (
+        "# Modbus register map\n\n"
+        "Generated from the object dictionary by `python -m geo_server.docs` (also "
+        "`geo-server modbus-map`). Unit id = logical axis number, unit 0 = the machine-wide "
+        "objects; addresses are PDU addresses (0-based).\n\n" + modbus_map("md")
+    )
+
+
+def checks_page() -> str:
     from geo_server.listfile.checks import checks_markdown
 
     return checks_markdown()
 
 
-def _modbus() -> str:
-    try:
-        from geo_server.transports.modbus.regmap import modbus_map
-    except ImportError:  # the Modbus interface is optional in this build
-        return "(the Modbus interface is not part of this build)\n"
-    return modbus_map("md")
-
-
-SECTIONS: dict[str, Callable[[], str]] = {
-    "objects": dictionary_markdown,
-    "checks": _checks,
-    "modbus-map": _modbus,
+#: Pages under docs/ and what writes them.
+PAGES: dict[str, Callable[[], str]] = {
+    "objects.md": objects_page,
+    "modbus-map.md": modbus_page,
+    "list_checks.md": checks_page,
 }
+
+
+# ---------------------------------------------------------------------- limits
+
+#: (option class, field) -> (what, what happens past it). The value is the field's
+#: default, read from the class.
+_LIMITS: list[tuple[str, str, str, str, str]] = [
+    (
+        "service",
+        "write_timeout",
+        "s",
+        "a write waits for the cycle that applies it",
+        "withdrawn, never applied; ADS 0x719, Modbus exception 6, Zenoh reply_err 0x719",
+    ),
+    (
+        "service",
+        "swap_timeout",
+        "s",
+        "a reload waits for the cycle that swaps the tables",
+        "withdrawn, machine unchanged; 0x719",
+    ),
+    (
+        "service",
+        "command_wait",
+        "s",
+        "a reload/save waits for another one to finish",
+        "refused: 0x708 (busy), Modbus exception 6",
+    ),
+    (
+        "service",
+        "stall_after",
+        "s",
+        "no new cycle while cycles should run",
+        "stalled: reads 0x707 / exception 6 / reply_err, writes refused, status says so",
+    ),
+    ("service", "nc_max_bytes", "bytes", "NC text in one request", "refused: 0x705"),
+    ("service", "nc_max_lines", "lines", "NC text in one request", "refused: 0x705"),
+    ("ads", "max_connections", "", "ADS connections", "the new one is closed at once"),
+    (
+        "ads",
+        "max_frame",
+        "bytes",
+        "one AMS/TCP frame (the largest legal request)",
+        "connection closed before the data is read",
+    ),
+    ("ads", "incomplete_frame_timeout", "s", "a frame may stay unfinished", "connection closed"),
+    ("ads", "max_notifications", "", "notifications per connection", "0x716"),
+    ("ads", "max_notifications_total", "", "notifications of all connections", "0x716"),
+    (
+        "ads",
+        "notification_backlog",
+        "bytes",
+        "unsent data of a client that does not read",
+        "its notification samples are dropped (counted)",
+    ),
+    (
+        "ads",
+        "sample_budget",
+        "s",
+        "notification sampling in one event-loop step",
+        "continued in the next step (other requests answered in between)",
+    ),
+    ("modbus", "max_connections", "", "Modbus connections", "the new one is closed at once"),
+    (
+        "modbus",
+        "max_pipeline",
+        "",
+        "requests queued on one connection",
+        "the server stops reading that connection until it has answered",
+    ),
+    ("modbus", "incomplete_frame_timeout", "s", "a frame may stay unfinished", "connection closed"),
+    ("zenoh", "max_sessions", "", "Zenoh sessions", "new sessions refused by Zenoh"),
+    (
+        "zenoh",
+        "accept_timeout_ms",
+        "ms",
+        "a TCP connection may take to open a session",
+        "dropped by Zenoh (idle sockets cannot lock sessions out)",
+    ),
+    ("zenoh", "accept_pending", "", "connections opening a session at once", "further ones wait"),
+    ("zenoh", "max_nc_bytes", "bytes", "NC text on `cnc/<m>/nc`", "reply_err 0x705"),
+]
+
+
+def _option_classes() -> dict[str, Any]:
+    from geo_server.service import ServiceLimits
+    from geo_server.transports.ads.server import AdsOptions
+    from geo_server.transports.modbus.server import ModbusOptions
+    from geo_server.transports.zenoh.server import ZenohOptions
+
+    return {
+        "service": ServiceLimits,
+        "ads": AdsOptions,
+        "modbus": ModbusOptions,
+        "zenoh": ZenohOptions,
+    }
+
+
+def _default(cls: Any, name: str) -> Any:
+    for f in fields(cls):
+        if f.name == name:
+            return f.default
+    raise KeyError(f"{cls.__name__} has no field {name}")
+
+
+def limits_table() -> str:
+    """The README's *Limits* table: every bound with its default value."""
+    from geo_server.listfile.syntax import MAX_LIST_BYTES
+    from geo_server.transports.modbus.codec import MAX_ADU
+
+    classes = _option_classes()
+    where = {"service": "all", "ads": "ADS", "modbus": "Modbus", "zenoh": "Zenoh"}
+    lines = [
+        "| interface | limit | default | option | past it |",
+        "|---|---|---|---|---|",
+    ]
+    for key, name, unit, what, past in _LIMITS:
+        value = _default(classes[key], name)
+        shown = f"{value:g}" if isinstance(value, float) else f"{value}"
+        option = f"`{classes[key].__name__}.{name}`"
+        lines.append(f"| {where[key]} | {what} | {shown} {unit} | {option} | {past} |")
+    lines.append(
+        f"| Modbus | one frame (MBAP + PDU) | {MAX_ADU} bytes | protocol | "
+        "a header announcing more closes the connection |"
+    )
+    lines.append(
+        f"| lists | one list file | {MAX_LIST_BYTES} bytes | `MAX_LIST_BYTES` | "
+        "refused (reload rejected, machine unchanged) |"
+    )
+    return "\n".join(line.replace("  ", " ") for line in lines) + "\n"
+
+
+#: README blocks and what writes them.
+README_BLOCKS: dict[str, Callable[[], str]] = {"limits": limits_table}
 
 _BLOCK = re.compile(
     r"(<!-- BEGIN (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- END (?P=name) -->)", re.S
@@ -45,20 +201,20 @@ def render(text: str) -> str:
 
     def repl(m: re.Match[str]) -> str:
         name = m.group("name")
-        if name not in SECTIONS:
+        if name not in README_BLOCKS:
             return m.group(0)
-        return m.group(1) + SECTIONS[name]() + m.group(4)
+        return m.group(1) + README_BLOCKS[name]() + m.group(4)
 
     return _BLOCK.sub(repl, text)
 
 
 def main(argv: list[str] | None = None) -> int:
-    root = Path(__file__).resolve().parent.parent
-    path = Path(argv[0]) if argv else root / "README.md"
-    _update(path, render(path.read_text(encoding="utf-8")))
-    checks = root / "docs" / "list_checks.md"
-    if not argv and checks.parent.is_dir():  # a source checkout, not an installed wheel
-        _update(checks, _checks())
+    readme = Path(argv[0]) if argv else ROOT / "README.md"
+    _update(readme, render(readme.read_text(encoding="utf-8")))
+    docs = ROOT / "docs"
+    if not argv and docs.is_dir():  # a source checkout, not an installed wheel
+        for name, page in PAGES.items():
+            _update(docs / name, page())
     return 0
 
 

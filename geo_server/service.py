@@ -469,6 +469,7 @@ class ObjectService:
         stalled = self.stalled_for()
         st["stalled"] = bool(stalled)
         st["stalled_for_s"] = round(stalled, 3)
+        st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
         st.update(self.status_extra)
         return st
 

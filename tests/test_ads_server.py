@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import itertools
+import json
 import queue
 import socket
 import struct
@@ -758,9 +759,10 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     host, port = ads.address.rsplit(":", 1)
     base = ["--via", "ads", "--connect", f"{host}:{port}", "--netid", next_netid()]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient = 4000.0 µm/m"
     assert client_main([*base, "--json", "read", "0x120300", "0x10045"]) == 0
-    assert '"value": 100' in capsys.readouterr().out
+    row = json.loads(capsys.readouterr().out)  # position_0 100 increments = 0.01 mm
+    assert (row["value"], row["unit"], row["raw"]) == (0.01, "mm", 100)
     assert client_main([*base, "write", "--axis", "3", "TEMPC::position_0", "-5"]) == 0
     capsys.readouterr()
     service.step(1)
@@ -769,8 +771,8 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     assert "ADS 0x704" in capsys.readouterr().err
     # by address: attribute groups answer their attribute, writes to them get 0x704
     assert client_main([*base, "read", "0x120700", "0x10043"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient unit = [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient unit = [µm/m]"
     assert client_main([*base, "read", "0x120600", "0x10044"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::offset_0 length = 4"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::offset_0 length = 4"
     assert client_main([*base, "write", "0x120800", "0x10043", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err

@@ -26,7 +26,7 @@ ROOTS = {
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
     (1, ("geo_server.dictionary", "geo_server.model")),
-    (2, ("geo_server.snapshot", "geo_server.events")),
+    (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),
     (4, ("geo_server.machine",)),

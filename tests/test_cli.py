@@ -165,15 +165,23 @@ def test_run_program_option(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert "cycle 2 ms" in r.stdout and "stopped after 120 cycles" in r.stdout
+    # progress reports: 10 mm at 1000 mm/min take 0.6 s = 300 cycles, so the program
+    # is still at line 1 when run stops after 120
+    assert f"program {good}: started" in r.stdout
+    assert "program line 1" in r.stdout
 
 
-@pytest.mark.parametrize("busy", ["modbus", "ads"])
-def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy):
-    """A port in use ends `run` with exit 2 and a clear message instead of a hang with
-    the interfaces that did start still open."""
+@pytest.mark.parametrize(
+    ("busy", "option"),
+    [("zenoh", "--zenoh-listen"), ("modbus", "--modbus-port"), ("ads", "--ads-port")],
+)
+def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy, option):
+    """A port in use ends `run` with exit 2 and one clear line that names the address
+    and the option to change (no Rust source paths, no traceback), instead of a hang
+    with the interfaces that did start still open."""
     zport, mport, aport = free_port(), free_port(), free_port()
     blocker = socket.socket()
-    blocker.bind(("127.0.0.1", mport if busy == "modbus" else aport))
+    blocker.bind(("127.0.0.1", {"zenoh": zport, "modbus": mport, "ads": aport}[busy]))
     blocker.listen()
     try:
         r = run(
@@ -196,7 +204,8 @@ def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy):
         blocker.close()
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"error: {busy} interface did not start" in r.stderr
-    assert "Traceback" not in r.stderr
+    assert "is in use" in r.stderr and option in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and ".rs:" not in r.stderr
 
 
 def test_init_copies_the_default_machine(tmp_path):
@@ -232,6 +241,46 @@ def test_modbus_map_command(tmp_path):
     r = run([*script("geo-server"), "modbus-map", "--format", "csv"], tmp_path)
     assert r.returncode == 0
     assert any("TEMPC::coefficient" in line and "268" in line for line in r.stdout.splitlines())
+
+
+def test_run_program_reports_its_end(tmp_path):
+    """1 mm at 6000 mm/min takes 10 ms: the program ends long before the 300 cycles."""
+    prog = tmp_path / "short.nc"
+    prog.write_text("N10 G90 G01 X1 F6000\nN20 M30\n", encoding="utf-8")
+    quiet = ("--no-zenoh", "--no-modbus", "--no-ads", "--status-period", "0.05")
+    r = run(
+        [
+            *script("geo-server"),
+            "run",
+            *quiet,
+            "--homed",
+            "--program",
+            str(prog),
+            "--cycles",
+            "300",
+        ],
+        tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    assert f"program {prog}: started" in r.stdout
+    assert f"program {prog}: ended at cycle" in r.stdout and "(line 2)" in r.stdout
+    # Y has no lr_param.frict_comp: COMP ON FRICT is P-ERR-70495 (000 p.73), the program stops
+    prog.write_text("N10 Y[COMP ON FRICT]\nN20 M30\n", encoding="utf-8")
+    r = run(
+        [
+            *script("geo-server"),
+            "run",
+            *quiet,
+            "--homed",
+            "--program",
+            str(prog),
+            "--cycles",
+            "300",
+        ],
+        tmp_path,
+    )
+    assert r.returncode == 0, r.stderr
+    assert f"program {prog}: stopped at line 1: <nc>:1: [70495]" in r.stdout, r.stdout
 
 
 def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):

@@ -42,17 +42,18 @@ def code_of(fn, *args) -> int:
 # ---------------------------------------------------------------------- addresses
 
 
-def test_text_objects_own_64_registers_at_0x6000():
-    """SIM::last_error (STRING, ID 9): registers 0x6000 + 64·9 = 0x6240 … 0x627F, two
-    CP1252 bytes each, first byte high, NUL-padded; 127 characters at most."""
+def test_text_objects_own_128_registers_at_0x6000():
+    """SIM::last_error (STRING, ID 9): registers 0x6000 + 128·9 = 0x6480 … 0x64FF, the
+    first 125 (one request) carry two CP1252 bytes each, first byte high, NUL-padded;
+    249 characters at most."""
     o = D.by_name("SIM::last_error")
-    assert register_address(o) == 0x6240 and register_count(o) == 64
-    assert MM.machine.registers[0x6240] == (o, 0) and MM.machine.registers[0x627F] == (o, 63)
-    assert 0x6280 not in MM.machine.registers
+    assert register_address(o) == 0x6480 and register_count(o) == 125
+    assert MM.machine.registers[0x6480] == (o, 0) and MM.machine.registers[0x64FF] == (o, 127)
+    assert MM.machine.registers[0x6500][0] is D.by_name("SIM::axis_names")  # ID 10
     regs = encode(o, "ab\u00b5")  # µ is 0xB5 in CP1252
-    assert regs[:3] == [0x6162, 0xB500, 0] and len(regs) == 64
+    assert regs[:3] == [0x6162, 0xB500, 0] and len(regs) == 125
     assert decode(o, regs) == "ab\u00b5"
-    assert encode(o, "x" * 300)[63] == 0x7800  # 127 characters and the NUL
+    assert encode(o, "x" * 300)[124] == 0x7800  # 249 characters and the NUL
 
 
 @pytest.mark.parametrize(

@@ -435,13 +435,14 @@ def test_geo_client_via_modbus(server, capsys):
 
     base = ["--via", "modbus", "--connect", f"127.0.0.1:{server.port}", "--timeout", "3"]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient = 4000.0 µm/m"
     assert client_main([*base, "--json", "read", "0x120300", "0x10044"]) == 0
-    assert '"value": 40' in capsys.readouterr().out
+    assert '"raw": 40' in capsys.readouterr().out  # offset_0 40 increments = 4.0 µm
     assert client_main([*base, "write", "--axis", "2", "TEMPC::offset_0", "-250"]) == 0
     capsys.readouterr()
     server.service.step(1)
     assert server.service.read_name("TEMPC::offset_0", 2) == -250
     assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
-    assert client_main([*base, "status"]) == 2
+    assert client_main([*base, "status"]) == 0  # from the emulator objects
+    assert "axes 1 X, 2 Y, 3 Z, 4 C" in capsys.readouterr().out

@@ -319,10 +319,10 @@ def test_liveliness_token(server, zs):
 def test_geo_client_read_write(server, capsys):
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     assert client_main([*base, "read", "--axis", "1", "TEMPC::coefficient"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 4000.0 [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient = 4000.0 µm/m"
     assert client_main([*base, "--json", "read", "0x120300", "0x10044"]) == 0
-    out = json.loads(capsys.readouterr().out)
-    assert out == {"name": "TEMPC::offset_0", "axis": 1, "value": 40, "unit": "[0.1 µm]"}
+    out = json.loads(capsys.readouterr().out)  # 40 increments of 0.1 µm = 4.0 µm
+    assert out == {"name": "TEMPC::offset_0", "axis": 1, "value": 4.0, "unit": "µm", "raw": 40}
     assert client_main([*base, "write", "--axis", "1", "TEMPC::coefficient", "3000"]) == 0
     capsys.readouterr()
     server.service.step(1)
@@ -336,11 +336,11 @@ def test_geo_client_by_address_reads_attribute_groups(server, capsys):
     (SPEC §2: +0x100 name … +0x500 writable), writes to them are refused by the server."""
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     expected = {
-        "0x120400": "axis 1 TEMPC::coefficient name = TEMPC::coefficient",
-        "0x120500": "axis 1 TEMPC::coefficient type = REAL64",
-        "0x120600": "axis 1 TEMPC::coefficient length = 8",
-        "0x120700": "axis 1 TEMPC::coefficient unit = [µm/m]",
-        "0x120800": "axis 1 TEMPC::coefficient writable = True",
+        "0x120400": "axis 1 (X) TEMPC::coefficient name = TEMPC::coefficient",
+        "0x120500": "axis 1 (X) TEMPC::coefficient type = REAL64",
+        "0x120600": "axis 1 (X) TEMPC::coefficient length = 8",
+        "0x120700": "axis 1 (X) TEMPC::coefficient unit = [µm/m]",
+        "0x120800": "axis 1 (X) TEMPC::coefficient writable = True",
     }
     for group, line in expected.items():
         assert client_main([*base, "read", group, "0x10043"]) == 0
@@ -348,7 +348,7 @@ def test_geo_client_by_address_reads_attribute_groups(server, capsys):
     assert client_main([*base, "write", "0x120400", "0x10043", "3000"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
     assert client_main([*base, "write", "0x120300", "0x10043", "3000"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 TEMPC::coefficient = 3000 [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient = 3000.0 µm/m"
     server.service.step(1)
     assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
 
@@ -359,7 +359,7 @@ def test_geo_client_commands(server, capsys):
     svc.step(4)
     assert client_main([*base, "--json", "status"]) == 0
     assert json.loads(capsys.readouterr().out)["cycle"] == 4
-    assert client_main([*base, "nc", "X[COMP OFF TEMP]"]) == 0
+    assert client_main([*base, "--json", "nc", "X[COMP OFF TEMP]"]) == 0
     assert json.loads(capsys.readouterr().out)["ok"] is True
     svc.step(2)
     assert svc.read_name("TEMPC::activated", 1) is False
@@ -373,7 +373,13 @@ def test_geo_client_commands(server, capsys):
         == 0
     )
     out = json.loads(capsys.readouterr().out)
-    assert out == {"key": "cnc/t/axis/1/tempc/coefficient", "value": 4000.0}
+    assert out == {
+        "name": "TEMPC::coefficient",
+        "axis": 1,
+        "value": 4000.0,
+        "unit": "µm/m",
+        "raw": 4000.0,
+    }
     # a raw ADS key: its current bytes, as hex (4000.0 as little-endian REAL64)
     raw = "cnc/t/ads/551/0x120300/0x10043"
     assert client_main([*base, "--json", "watch", "--count", "1", raw]) == 0

@@ -20,8 +20,11 @@ package. Fixtures:
 
 Choose the machine with the marker
 `@pytest.mark.geo_machine("path/to/hochlauf.lis", homed=False, cycle_ms=2, machine_name="m")`
-(all arguments optional; no path = the default machine) or for a whole run with
-`--geo-startup PATH`. The marker is registered when the plugin loads at start-up (`-p`,
+(all arguments optional; no path = the default machine; a relative path is relative to
+the folder of the test file, so a suite finds its machine wherever pytest runs from) or
+for a whole run with `--geo-startup PATH` (relative to the directory pytest was started
+in). A path that does not exist fails the test with a message that says how to make one
+(`geo-server init DIR`). The marker is registered when the plugin loads at start-up (`-p`,
 entry point); a module that enables the plugin itself with `pytest_plugins` should use
 `geo_server_factory` instead (its marks are evaluated before the plugin is loaded).
 """
@@ -68,8 +71,17 @@ def geo_server(request: pytest.FixtureRequest) -> Iterator[GeoTestServer]:
     args: tuple[Any, ...] = marker.args if marker else ()
     kwargs: dict[str, Any] = dict(marker.kwargs) if marker else {}
     startup = args[0] if args else kwargs.pop("startup", None)
-    if startup is None:
-        startup = request.config.getoption("--geo-startup", default=None)
+    if startup is not None:
+        startup = Path(request.node.path).parent / startup  # an absolute path stays
+    else:
+        option = request.config.getoption("--geo-startup", default=None)
+        startup = Path(request.config.invocation_params.dir) / option if option else None
+    if startup is not None and not Path(startup).is_file():
+        pytest.fail(
+            f"geo_machine: no start-up list {startup}; copy the default machine there with "
+            f"`geo-server init {Path(startup).parent}` (or give the path to your own lists)",
+            pytrace=False,
+        )
     srv = GeoTestServer(startup, **kwargs)
     try:
         yield srv

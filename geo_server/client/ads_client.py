@@ -30,6 +30,7 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from geo_server.client.base import ObjectClient
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 
@@ -64,7 +65,21 @@ def _ads_error(exc: Exception) -> AdsError:
     return AdsError(code, str(getattr(exc, "msg", exc)))
 
 
-class AdsClient:
+def quiet_adslib(pyads: Any) -> None:
+    """Keep AdsLib's informational messages off stderr (warnings and errors stay).
+
+    AdsLib (inside pyads on Linux and macOS) prints "Info: connection closed by remote"
+    whenever a connection ends — every time a client closes, which reads like an error.
+    Its `Logger::logLevel` (Verbose 0, Info 1, Warn 2, Error 3) is raised to Warn. On
+    Windows pyads uses TwinCAT's own DLL, which has no such switch: nothing to do."""
+    try:
+        level = ctypes.c_size_t.in_dll(pyads.pyads_ex._adsDLL, "_ZN6Logger8logLevelE")
+    except (AttributeError, ValueError):
+        return
+    level.value = max(level.value, 2)
+
+
+class AdsClient(ObjectClient):
     """Read and write geo-server objects over ADS/AMS-TCP with pyads."""
 
     def __init__(
@@ -76,6 +91,7 @@ class AdsClient:
         timeout: float = 2.0,
     ) -> None:
         pyads = _pyads()
+        quiet_adslib(pyads)
         self._pyads = pyads
         self.host, self.port, self.netid, self.ams_port = host, port, netid, ams_port
         self.dictionary = load_dictionary()
@@ -240,4 +256,4 @@ class AdsClient:
         self._call(self.conn.del_device_notification, handle, user)
 
 
-__all__ = ["AdsClient"]
+__all__ = ["AdsClient", "quiet_adslib"]

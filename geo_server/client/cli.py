@@ -1,14 +1,20 @@
 """`geo-client`: read, write and watch a running geo-server's CNC objects.
 
-Address an object by name (`--axis 1 TEMPC::coefficient`) or by ADS address
-(`0x120300 0x10043`). Values print decoded, with their unit; `--json` prints JSON.
+Address objects by name (`--axis X TEMPC::coefficient`; the axis by number or name) or
+by ADS address (`0x120300 0x10043`). Values print in engineering units (positions in mm
+or °, offsets in µm, velocities in mm/s) unless `--raw`; `--json` prints JSON.
+`read`, `write`, `watch`, `status`, `errors`, `reload` and `save` work over all three
+transports; `nc` and `reset` need Zenoh.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,31 +22,10 @@ from geo_server.client import TRANSPORTS, open_client, resolve
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import STRING_LENGTH, ObjectDef, load_dictionary
 from geo_server.errors import AdsError
+from geo_server.units import show
 
-
-def _target(args: argparse.Namespace) -> tuple[ObjectDef, int]:
-    """(object, axis) from `NAME` + --axis or from `GROUP OFFSET`."""
-    words = args.target
-    if _by_address(args):
-        ig, io = int(words[0], 0), int(words[1], 0)
-        return resolve(ig, io), io >> 16
-    obj = load_dictionary().by_name(words[0])
-    return obj, (0 if obj.scope == "machine" else args.axis)
-
-
-def _by_address(args: argparse.Namespace) -> bool:
-    return len(args.target) >= 2 and all(_is_int(w) for w in args.target[:2])
-
-
-def _address(args: argparse.Namespace) -> tuple[int, int, str | None]:
-    """(index group, index offset, attribute kind or None) of `GROUP OFFSET`."""
-    ig, io = int(args.target[0], 0), int(args.target[1], 0)
-    _obj, _axis, attr = load_dictionary().resolve(ig, io, [io >> 16])
-    return ig, io, attr
-
-
-def _attribute_length(kind: str) -> int:
-    return {"length": 4, "writable": 1}.get(kind, STRING_LENGTH)
+#: Seconds between two polls of `watch` over Modbus (which has no notifications).
+MODBUS_WATCH_PERIOD = 0.1
 
 
 def _is_int(text: str) -> bool:
@@ -51,138 +36,324 @@ def _is_int(text: str) -> bool:
     return True
 
 
-def _show(args: argparse.Namespace, obj: ObjectDef, axis: int, value: Any) -> None:
-    if args.json:
-        print(json.dumps({"name": obj.name, "axis": axis, "value": value, "unit": obj.unit}))
-    else:
-        where = f"axis {axis} " if obj.scope == "axis" else ""
-        print(f"{where}{obj.name} = {value} {obj.unit}")
+def _by_address(words: list[str]) -> bool:
+    return len(words) >= 2 and _is_int(words[0]) and _is_int(words[1])
 
 
-def _read(args: argparse.Namespace, client: Any) -> int:
-    obj, axis = _target(args)
-    if not _by_address(args):
-        _show(args, obj, axis, client.read(obj.name, axis))
+class Shell:
+    """One command's view of the client: targets, units and output."""
+
+    def __init__(self, args: argparse.Namespace, client: Any) -> None:
+        self.args = args
+        self.client = client
+        self.dictionary = load_dictionary()
+        self._axis: int | None = None
+        self._names: dict[int, str] | None = None
+
+    # ------------------------------------------------------------------ targets
+
+    @property
+    def axis(self) -> int:
+        if self._axis is None:
+            self._axis = self.client.axis_number(self.args.axis)
+        return self._axis
+
+    def axis_label(self, axis: int) -> str:
+        if self._names is None:
+            try:
+                self._names = {a: n for n, a in self.client.axis_names().items()}
+            except AdsError:
+                self._names = {}
+        name = self._names.get(axis)
+        return f"axis {axis} ({name})" if name else f"axis {axis}"
+
+    def target(self, name: str) -> tuple[ObjectDef, int]:
+        obj = self.dictionary.by_name(name)
+        return obj, (0 if obj.scope == "machine" else self.axis)
+
+    def address(self, words: list[str]) -> tuple[ObjectDef, int, int, int, str | None]:
+        ig, io = int(words[0], 0), int(words[1], 0)
+        obj, axis, attr = self.dictionary.resolve(ig, io, [io >> 16])
+        return obj, axis, ig, io, attr
+
+    # ------------------------------------------------------------------ output
+
+    def shown(self, obj: ObjectDef, axis: int, value: Any) -> dict[str, Any]:
+        kind = self.client.axis_type(axis) if obj.quantity and obj.scope == "axis" else 1
+        s = show(obj, value, kind, raw=self.args.raw)
+        return {"name": obj.name, "axis": axis, "value": s.value, "unit": s.unit, "raw": value}
+
+    def print_value(self, obj: ObjectDef, axis: int, value: Any) -> None:
+        row = self.shown(obj, axis, value)
+        if self.args.json:
+            print(json.dumps(row, ensure_ascii=False), flush=True)
+            return
+        where = f"{self.axis_label(axis)} " if obj.scope == "axis" else ""
+        text = json.dumps(row["value"]) if isinstance(row["value"], str) else row["value"]
+        print(f"{where}{obj.name} = {text} {row['unit']}".rstrip(), flush=True)
+
+
+# ---------------------------------------------------------------------- commands
+
+
+def _read(sh: Shell) -> int:
+    words = sh.args.target
+    if _by_address(words):
+        # By address the request goes out as that address, so attribute groups
+        # (0x120400 … 0x120800: name, type, length, unit, writable) read what they are.
+        obj, axis, ig, io, attr = sh.address(words)
+        if attr is None:
+            sh.print_value(obj, axis, obj.decode(sh.client.read_raw(ig, io, obj.length)))
+            return 0
+        length = {"length": 4, "writable": 1}.get(attr, STRING_LENGTH)
+        value = obj.decode_attribute(attr, sh.client.read_raw(ig, io, length))
+        if sh.args.json:
+            print(json.dumps({"name": obj.name, "axis": axis, "attribute": attr, "value": value}))
+        else:
+            where = f"{sh.axis_label(axis)} " if obj.scope == "axis" else ""
+            print(f"{where}{obj.name} {attr} = {value}")
         return 0
-    # By address the request goes out as that address, so attribute groups
-    # (0x120400 … 0x120800: name, type, length, unit, writable) read what they are.
-    ig, io, attr = _address(args)
-    if attr is None:
-        _show(args, obj, axis, obj.decode(client.read_raw(ig, io, obj.length)))
-        return 0
-    value = obj.decode_attribute(attr, client.read_raw(ig, io, _attribute_length(attr)))
-    if args.json:
-        print(json.dumps({"name": obj.name, "axis": axis, "attribute": attr, "value": value}))
-    else:
-        where = f"axis {axis} " if obj.scope == "axis" else ""
-        print(f"{where}{obj.name} {attr} = {value}")
+    for name in words:
+        obj, axis = sh.target(name)
+        sh.print_value(obj, axis, sh.client.read(obj.name, axis))
     return 0
 
 
-def _write(args: argparse.Namespace, client: Any) -> int:
-    obj, axis = _target(args)
-    by_address = _by_address(args)
-    if len(args.target) < (3 if by_address else 2):
-        print("error: write needs a value", file=sys.stderr)
+def _write(sh: Shell) -> int:
+    words = sh.args.target
+    by_address = _by_address(words)
+    if len(words) != (3 if by_address else 2):
+        print("error: write takes NAME VALUE or GROUP OFFSET VALUE", file=sys.stderr)
         return 2
-    raw = args.target[-1]
+    raw = words[-1]
     try:
         value: Any = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
     if not by_address:
-        _show(args, obj, axis, client.write(obj.name, axis, value))
+        obj, axis = sh.target(words[0])
+        sh.print_value(obj, axis, sh.client.write(obj.name, axis, value))
         return 0
-    # The write goes to the address given, so the server judges it (an attribute
-    # group is read-only: ADS 0x704), not a by-name write to the object behind it.
-    ig, io, _attr = _address(args)
-    client.write_raw(ig, io, obj.encode(value))
-    _show(args, obj, axis, value)
+    # The write goes to the address given, so the server judges it (an attribute group
+    # is read-only: ADS 0x704), not a by-name write to the object behind it.
+    obj, axis, ig, io, _attr = sh.address(words)
+    sh.client.write_raw(ig, io, obj.encode(value))
+    sh.print_value(obj, axis, obj.coerce(value))
     return 0
 
 
-def _watch(args: argparse.Namespace, client: Any) -> int:
-    if args.target and "/" in args.target[0]:
-        key = args.target[0]
+def _watch(sh: Shell) -> int:
+    words = sh.args.target
+    if sh.args.via == "zenoh" and "/" in words[0]:
+        return _print_updates(sh, None, 0, sh.client.watch(words[0]))
+    obj, axis = sh.target(words[0])
+    updates: Iterator[Any]
+    if sh.args.via == "zenoh":
+        updates = (v for _k, v in sh.client.watch(sh.client.keyspace().named_key(obj, axis)))
+    elif sh.args.via == "ads":
+        updates = _ads_updates(sh.client, obj, axis)
     else:
-        obj, axis = _target(args)
-        key = client.keyspace().named_key(obj, axis)
+        updates = _polled(sh.client, obj, axis)
+    return _print_updates(sh, obj, axis, updates)
+
+
+def _print_updates(sh: Shell, obj: ObjectDef | None, axis: int, updates: Iterator[Any]) -> int:
     seen = 0
     try:
-        for k, v in client.watch(key):
-            print(json.dumps({"key": k, "value": v}) if args.json else f"{k} = {v}", flush=True)
+        for update in updates:
+            if obj is None:  # a Zenoh key expression: (key, value)
+                key, value = update
+                print(
+                    json.dumps({"key": key, "value": value}) if sh.args.json else f"{key} = {value}"
+                )
+            else:
+                sh.print_value(obj, axis, update)
+            sys.stdout.flush()
             seen += 1
-            if args.count and seen >= args.count:
+            if sh.args.count and seen >= sh.args.count:
                 break
     except KeyboardInterrupt:
         pass
     return 0
 
 
-def _nc(args: argparse.Namespace, client: Any) -> int:
+def _ads_updates(client: Any, obj: ObjectDef, axis: int) -> Iterator[Any]:
+    """Values from an on-change ADS notification (the first one at once)."""
+    import queue
+
+    q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    handle = client.subscribe(obj.name, axis, lambda value, _ft: q.put(value))
+    try:
+        while True:
+            yield q.get()
+    finally:
+        client.unsubscribe(handle)
+
+
+def _polled(client: Any, obj: ObjectDef, axis: int) -> Iterator[Any]:
+    """Modbus has no notifications: poll, and yield the value whenever it changed."""
+    last: Any = object()
+    while True:
+        value = client.read(obj.name, axis)
+        if value != last:
+            last = value
+            yield value
+        time.sleep(MODBUS_WATCH_PERIOD)
+
+
+def _nc(sh: Shell) -> int:
+    args = sh.args
     text = Path(args.file).read_text(encoding="utf-8") if args.file else "\n".join(args.lines)
-    print(json.dumps(client.nc(text)))
+    result = sh.client.nc(text)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"NC started at cycle {result.get('cycle')} ({result.get('lines')} lines)")
     return 0
 
 
-def _status(args: argparse.Namespace, client: Any) -> int:
-    print(json.dumps(client.status(), indent=None if args.json else 2))
+def _reset(sh: Shell) -> int:
+    result = sh.client.reset()
+    print(json.dumps(result) if sh.args.json else f"reset at cycle {result.get('cycle')}")
     return 0
 
 
-def _command(name: str):
-    def run(args: argparse.Namespace, client: Any) -> int:
-        result = getattr(client, name)()
-        print(
-            json.dumps(
-                result if result is not None else {"ok": True}, indent=None if args.json else 2
-            )
+def _status(sh: Shell) -> int:
+    st = sh.client.status()
+    if sh.args.json:
+        print(json.dumps(st))
+        return 0
+    for line in status_lines(st):
+        print(line)
+    return 0
+
+
+def status_lines(st: dict[str, Any]) -> list[str]:
+    """The status as a few readable lines (the JSON has every field)."""
+    head = f"cycle {st.get('cycle')}  {st.get('cycle_time_us')} µs"
+    if "mode" in st:
+        where = f", cycle in its own {st['cycle_in']}" if st.get("cycle_in") else ""
+        head += f"  {st['mode']}{where}"
+    lines = [head]
+    if st.get("stalled"):
+        lines.append(
+            f"STALLED: no GEO cycle for {st.get('stalled_for_s')} s (reads answer 'not "
+            "ready', writes are refused)"
         )
+    if "lateness_p50_us" in st:
+        lines.append(
+            f"lateness p50 {st['lateness_p50_us']:.0f} µs  p99 {st['lateness_p99_us']:.0f} µs  "
+            f"max {st['lateness_max_us']:.0f} µs  overruns {st.get('overruns')}  "
+            f"kernel p50 {st.get('kernel_p50_us', 0):.0f} µs"
+        )
+    else:
+        lines.append(f"overruns {st.get('overruns')}")
+    if "program_running" in st:
+        prog = f"running, line {st['program_line']}" if st["program_running"] else "not running"
+        lines.append(f"NC program {prog}")
+    axes = st.get("axes")
+    names = st.get("axis_names")
+    if isinstance(names, dict) and names:
+        lines.append("axes " + ", ".join(f"{a} {n}" for a, n in names.items()))
+    elif isinstance(axes, dict):
+        lines.append("axes " + ", ".join(f"{a} {n}" for a, n in axes.items()))
+    elif axes:
+        lines.append("axes " + ", ".join(str(a) for a in axes))
+    for rival in st.get("zenoh_rivals") or ():
+        lines.append(f"WARNING: another server answers for this machine: {rival}")
+    return lines
+
+
+def _errors(sh: Shell) -> int:
+    errors = sh.client.errors()
+    if sh.args.json:
+        print(json.dumps(errors))
+        return 0
+    if not errors:
+        print("no warnings or errors")
+    for e in errors:
+        cycle = f"cycle {e['cycle']}  " if "cycle" in e else ""
+        severity = f"{e['severity']}  " if "severity" in e else ""
+        where = f"{e['file']}:{e['line']}: " if e.get("file") and e.get("line") else ""
+        ident = f"[{e['error_id']}] " if e.get("error_id") else ""
+        print(f"{cycle}{severity}{ident}{where}{e['message']}")
+    return 0
+
+
+def _command(name: str) -> Callable[[Shell], int]:
+    def run(sh: Shell) -> int:
+        result = getattr(sh.client, name)() or {"ok": True, "command": name}
+        if sh.args.json:
+            print(json.dumps(result))
+            return 0
+        files = result.get("files") or []
+        done = {"reload": "reloaded", "save": "saved"}[name]
+        if files:
+            print(f"{done}: {', '.join(files)}")
+        elif name == "save" and "files" in result:
+            print("saved: nothing had changed")
+        else:
+            print(f"{done} (cycle {result.get('cycle')})")
+        for w in result.get("warnings") or ():
+            print(f"  {w}")
         return 0
 
     return run
+
+
+# ---------------------------------------------------------------------- parser
+
+_TARGET_HELP = (
+    "object name (TEMPC::coefficient, also in the Zenoh spelling tempc::coefficient; "
+    "several for read) or an ADS address GROUP OFFSET (0x120300 0x10043)"
+)
+#: Commands only the Zenoh interface offers.
+ZENOH_ONLY = frozenset({"nc", "reset"})
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="geo-client", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--via", choices=TRANSPORTS, default="zenoh", help="transport")
+    p.add_argument("--via", choices=TRANSPORTS, default="zenoh", help="transport (default zenoh)")
     p.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
     p.add_argument(
         "--connect",
         metavar="ENDPOINT",
         help="server endpoint: zenoh tcp/127.0.0.1:7447 (default), modbus 127.0.0.1:5020, "
-        "ads 127.0.0.1:48898",
+        "ads 127.0.0.1:48898; without it the environment variable GEO_CLIENT_ZENOH, "
+        "GEO_CLIENT_MODBUS or GEO_CLIENT_ADS, else the default",
     )
     p.add_argument("--netid", default="127.0.0.1.1.1", help="AMS NetId of the server (ADS)")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
-    sub = p.add_subparsers(dest="command", required=True)
+    p.add_argument(
+        "--raw", action="store_true", help="internal units (increments, µm/s) instead of mm, µm"
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, func, help_ in (
-        ("read", _read, "read an object: NAME or GROUP OFFSET"),
+        ("read", _read, "read objects: NAME [NAME …] or GROUP OFFSET"),
         ("write", _write, "write an object: NAME VALUE or GROUP OFFSET VALUE"),
-        ("watch", _watch, "print changes of an object or a key expression"),
+        ("watch", _watch, "print a value whenever it changes (Zenoh: also a key expression)"),
     ):
-        s = sub.add_parser(name, help=help_)
-        s.add_argument("--axis", type=int, default=1, help="logical axis number (default 1)")
-        s.add_argument("target", nargs="+")
+        s = sub.add_parser(name, help=help_, description=help_)
+        s.add_argument(
+            "--axis", default="1", help="logical axis number or name, e.g. 1 or X (default 1)"
+        )
+        s.add_argument("target", nargs="+", metavar="TARGET", help=_TARGET_HELP)
         if name == "watch":
             s.add_argument("--count", type=int, default=0, help="stop after N updates")
         s.set_defaults(func=func)
-    s = sub.add_parser("nc", help="execute NC lines")
-    s.add_argument("lines", nargs="*")
+    s = sub.add_parser("nc", help="execute NC lines (Zenoh)")
+    s.add_argument("lines", nargs="*", help="NC lines, e.g. 'G01 X10 F6000'")
     s.add_argument("-f", "--file", help="NC program file")
     s.set_defaults(func=_nc)
     sub.add_parser("status", help="cycle status").set_defaults(func=_status)
-    sub.add_parser("errors", help="latest warnings and errors").set_defaults(
-        func=_command("errors")
-    )
+    sub.add_parser("errors", help="latest warnings and errors").set_defaults(func=_errors)
     sub.add_parser("reload", help="reload the list files").set_defaults(func=_command("reload"))
     sub.add_parser("save", help="save live TEMPC parameters").set_defaults(func=_command("save"))
-    sub.add_parser("reset", help="CNC reset: stop the NC program and the axes").set_defaults(
-        func=_command("reset")
-    )
+    sub.add_parser("reset", help="CNC reset: stop the NC program and the axes (Zenoh)")
+    sub.choices["reset"].set_defaults(func=_reset)
     sub.add_parser("objects", help="print the object dictionary").set_defaults(func=None)
     return p
 
@@ -195,39 +366,38 @@ def main(argv: list[str] | None = None) -> int:
 
         sys.stdout.write(dictionary_markdown())
         return 0
+    if args.command in ZENOH_ONLY and args.via != "zenoh":
+        print(
+            f"error: `{args.command}` is available over Zenoh only (--via zenoh)", file=sys.stderr
+        )
+        return 2
+    endpoint = args.connect or os.environ.get(f"GEO_CLIENT_{args.via.upper()}")
     try:
         client = open_client(
-            args.via, args.connect, machine=args.machine, timeout=args.timeout, netid=args.netid
+            args.via, endpoint, machine=args.machine, timeout=args.timeout, netid=args.netid
         )
     except Exception as exc:
-        print(f"error: cannot open {args.via} client: {exc}", file=sys.stderr)
-        return 2
-    needs = {
-        "watch": "watch",
-        "nc": "nc",
-        "status": "status",
-        "errors": "errors",
-        "reload": "reload",
-        "save": "save",
-        "reset": "reset",
-    }.get(args.command)
-    if needs and not hasattr(client, needs):
-        client.close()
-        print(
-            f"error: `{args.command}` is not available over {args.via}; use --via zenoh",
-            file=sys.stderr,
-        )
+        print(f"error: cannot reach the server over {args.via}: {exc}", file=sys.stderr)
         return 2
     try:
-        return args.func(args, client)
+        return int(args.func(Shell(args, client)))
     except AdsError as exc:
-        print(f"error: ADS 0x{exc.code:X}: {exc.message}", file=sys.stderr)
+        if args.via == "zenoh":
+            from geo_server.client.zenoh_client import ServerConflictError
+
+            if isinstance(exc, ServerConflictError):  # not an ADS answer: no code to show
+                print(f"error: {exc.message}", file=sys.stderr)
+                return 1
+        print(f"error: {exc.message} (ADS 0x{exc.code:X})", file=sys.stderr)
         return 1
     except TimeoutError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     finally:
         client.close()
+
+
+__all__ = ["build_parser", "main", "resolve", "status_lines"]
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
+from geo_server.client.base import ObjectClient
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.transports.modbus.regmap import (
@@ -53,7 +54,7 @@ def ads_error(code: int, obj: ObjectDef, axis: int, write: bool) -> AdsError:
     return AdsError(_GENERAL, f"{where}: Modbus exception {code}", obj.name)
 
 
-class ModbusClient:
+class ModbusClient(ObjectClient):
     """Read and write geo-server objects over Modbus TCP (implements `GeoClient`)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 5020, timeout: float = 2.0) -> None:
@@ -135,14 +136,6 @@ class ModbusClient:
         self.write_value(obj, axis, obj.decode(data))
 
     # ------------------------------------------------------------------ commands
-
-    def reload(self) -> None:
-        """Reload the lists (SIM::reload on unit 0); a rejected reload raises AdsError."""
-        self.write("SIM::reload", 0, 1)
-
-    def save(self) -> None:
-        """Save the live TEMPC parameters (SIM::save on unit 0)."""
-        self.write("SIM::save", 0, 1)
 
     def device_information(self) -> dict[int, bytes]:
         """FC 43/14 basic device identification: {0: vendor, 1: product code, 2: version}."""

@@ -19,6 +19,7 @@ from typing import Any
 
 import zenoh
 
+from geo_server.client.base import ObjectClient
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 from geo_server.transports.zenoh.keys import KeySpace
@@ -87,7 +88,7 @@ def _error(reply_err: Any) -> AdsError:
         return AdsError(0x700, raw.decode("utf-8", "replace"))
 
 
-class ZenohClient:
+class ZenohClient(ObjectClient):
     """Read and write geo-server objects over Zenoh."""
 
     def __init__(

@@ -18,6 +18,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from time import monotonic, perf_counter_ns
 from typing import Any
 
@@ -306,6 +307,9 @@ class Machine:
         self._mach_template = [0.0] * len(self.layout.machine_objects)
         self._text_slot = self.layout.text_index["SIM::last_error"]
         self._texts = [""] * len(self.layout.text_objects)
+        self._texts[self.layout.text_index["SIM::axis_names"]] = " ".join(
+            f"{a}={self.cfg.axes[a].params.name or a}" for a in self.axes
+        )
 
     def _build_snapshot(self) -> Snapshot:
         """SPEC §5 step 4: every object of every axis, from this cycle's state."""
@@ -362,9 +366,20 @@ class Machine:
         return ev
 
     def record(self, diagnostic: Diagnostic) -> Pending:
-        """A warning or error the server found, into the error list now (any thread: the
-        list and the last-error fields are replaced, never half-written)."""
-        self._record(diagnostic)
+        """A warning or error the server found, into the error list now, from any thread.
+
+        The published snapshot is re-issued with the new `SIM::last_error(_id)` (same
+        cycle, same values otherwise), so a client that reads them right after the
+        server's answer sees the reason — also in stepped mode, where no cycle may come.
+        The cycle lock keeps this from replacing a newer snapshot."""
+        with self._cycle_lock:
+            self._record(diagnostic)
+            snap = self.snapshot
+            machine = snap.machine.copy()
+            machine[self._mcols[3]] = self.last_error_id
+            texts = list(snap.texts)
+            texts[self._text_slot] = self.last_error
+            self.snapshot = replace(snap, machine=machine, texts=tuple(texts))
         done = Pending()
         done.set_result(None)
         return done

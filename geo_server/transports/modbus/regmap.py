@@ -13,8 +13,9 @@ emulator objects of index offset axis 0):
   emulator group `0x12F300` at `0x4000 + 4·ID`. Its value fills the first registers of
   the slot, big-endian bytes and words (high word first): BOOLEAN and UNS16 one register,
   SGN32/UNS32 two, REAL64 four. The unused registers of a slot read 0. Text objects
-  (`SIM::last_error`) own 64 registers from `0x6000 + 64·ID`: two CP1252 bytes per
-  register, the first byte in the high half, NUL-padded (the first 127 characters).
+  (`SIM::last_error`) own 128 registers from `0x6000 + 128·ID`; the first 125 carry the
+  text, two CP1252 bytes per register, the first byte in the high half, NUL-padded (the
+  first 249 characters; one request of 125 registers reads it).
 - discrete inputs (FC 2): every BOOLEAN object at address `ID` (emulator group
   `0x4000 + ID`); coils (FC 1, 5, 15): the writable BOOLEAN objects at the same address.
 
@@ -51,10 +52,12 @@ MAX_WRITE_BITS = 1968
 MACHINE_UNIT = 0
 
 #: First register of the text (STRING) objects: each owns `TEXT_SLOT` registers from
-#: `TEXT_BASE + TEXT_SLOT·ID`, two CP1252 bytes per register (first byte high), the
-#: first 127 characters of the text and a NUL — one FC 3/4 request reads it whole.
+#: `TEXT_BASE + TEXT_SLOT·ID`; its value is the first `TEXT_REGISTERS` of them (the most
+#: one FC 3/4 request reads): two CP1252 bytes per register (first byte high), the first
+#: 249 characters of the text and a NUL.
 TEXT_BASE = 0x6000
-TEXT_SLOT = 64
+TEXT_SLOT = 128
+TEXT_REGISTERS = 125
 #: Registers per dictionary type.
 REGISTERS: dict[str, int] = {
     "BOOLEAN": 1,
@@ -62,7 +65,7 @@ REGISTERS: dict[str, int] = {
     "SGN32": 2,
     "UNS32": 2,
     "REAL64": 4,
-    "STRING": TEXT_SLOT,
+    "STRING": TEXT_REGISTERS,
 }
 _STRUCT: dict[str, str] = {"BOOLEAN": ">H", "UNS16": ">H", "SGN32": ">i", "UNS32": ">I"}
 _BASE: dict[str, int] = {"geo": 0, "sim": SIM_BASE}
@@ -188,8 +191,8 @@ def encode(obj: ObjectDef, value: Any) -> list[int]:
     """
     t = obj.type.name
     if t == "STRING":
-        text = str(value).encode("cp1252", errors="replace")[: 2 * TEXT_SLOT - 1]
-        raw = text.ljust(2 * TEXT_SLOT, b"\0")
+        text = str(value).encode("cp1252", errors="replace")[: 2 * TEXT_REGISTERS - 1]
+        raw = text.ljust(2 * TEXT_REGISTERS, b"\0")
     elif t == "REAL64":
         raw = struct.pack(">d", float(value))
     elif t == "BOOLEAN":
@@ -486,6 +489,7 @@ __all__ = [
     "SIM_BASE",
     "SLOT",
     "TEXT_BASE",
+    "TEXT_REGISTERS",
     "TEXT_SLOT",
     "ExcCode",
     "ModbusMap",

@@ -1,0 +1,118 @@
+"""What every transport client offers beyond reading and writing objects by name.
+
+Reload and save are writes of the emulator objects `SIM::reload` / `SIM::save` (group
+`0x12F300`, axis 0) on every transport; when the server refuses one, the reason is read
+back from `SIM::last_error`, so the message is the same over ADS, Modbus and Zenoh.
+Axis names ("X") come from `SIM::axis_names`, the kind of an axis (linear or rotary, for
+engineering units) from `SIM::axis_type`. Zenoh offers richer versions of `status` and
+`errors` (the server's JSON); over ADS and Modbus they are built from the emulator
+objects.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from geo_server.dictionary import Dictionary
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.units import parse_axis_names
+
+#: Machine objects the object-based `status` reads.
+_STATUS = (
+    ("cycle", "SIM::cycle_count"),
+    ("cycle_time_us", "SIM::cycle_time_us"),
+    ("overruns", "SIM::overruns"),
+    ("program_running", "SIM::program_running"),
+    ("program_line", "SIM::program_line"),
+    ("last_error_id", "SIM::last_error_id"),
+)
+
+
+class ObjectClient:
+    """Commands, axis names and status on top of `read`/`write` by name."""
+
+    dictionary: Dictionary
+
+    def read(self, name: str, axis: int = 0) -> Any:
+        raise NotImplementedError
+
+    def write(self, name: str, axis: int, value: Any) -> Any:
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ axes
+
+    def axis_names(self) -> dict[str, int]:
+        """{"X": 1, …} from the server (read once)."""
+        cached: dict[str, int] | None = getattr(self, "_axis_names", None)
+        if cached is None:
+            cached = parse_axis_names(str(self.read("SIM::axis_names", 0)))
+            self._axis_names = cached
+        return cached
+
+    def axis_number(self, axis: int | str) -> int:
+        """A logical axis number from a number or an axis name ("X", "1")."""
+        if isinstance(axis, int):
+            return axis
+        text = str(axis).strip()
+        if text.isdigit():
+            return int(text)
+        names = self.axis_names()
+        try:
+            return names[text.upper()]
+        except KeyError:
+            known = ", ".join(f"{n}={a}" for n, a in names.items())
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDOFFSET, f"no axis named {text!r} (axes: {known})"
+            ) from None
+
+    def axis_type(self, axis: int) -> int:
+        """kenngr.achs_typ of an axis: 1 linear, 2 rotary, 4 spindle (read once)."""
+        types: dict[int, int] = getattr(self, "_axis_types", {})
+        if axis not in types:
+            types[axis] = int(self.read("SIM::axis_type", axis))
+            self._axis_types = types
+        return types[axis]
+
+    # ------------------------------------------------------------------ commands
+
+    def _command(self, name: str) -> dict[str, Any]:
+        try:
+            self.write(f"SIM::{name}", 0, 1)
+        except AdsError as exc:
+            reason = self._last_error() or exc.message
+            head = "reload rejected, machine unchanged"
+            if name == "reload":  # the server's text, without the error ID before it
+                reason = reason[reason.index(head) :] if head in reason else f"{head}: {reason}"
+            raise AdsError(exc.code, reason, name) from None
+        return {"ok": True, "command": name, "cycle": self.read("SIM::cycle_count", 0)}
+
+    def _last_error(self) -> str:
+        try:
+            return str(self.read("SIM::last_error", 0))
+        except AdsError:
+            return ""
+
+    def reload(self) -> dict[str, Any]:
+        """Reload the list files; a rejection raises AdsError with the reason."""
+        return self._command("reload")
+
+    def save(self) -> dict[str, Any]:
+        """Save the live TEMPC parameters into the axis lists."""
+        return self._command("save")
+
+    def errors(self) -> list[dict[str, Any]]:
+        """The latest error only (ADS and Modbus carry no list): `SIM::last_error`."""
+        message = self._last_error()
+        if not message:
+            return []
+        error_id = int(self.read("SIM::last_error_id", 0))
+        return [{"error_id": error_id, "message": message}]
+
+    def status(self) -> dict[str, Any]:
+        """Cycle count, cycle time, overruns, the NC program and the axes."""
+        st: dict[str, Any] = {key: self.read(name, 0) for key, name in _STATUS}
+        st["axes"] = {a: n for n, a in self.axis_names().items()}
+        return st
+
+
+__all__ = ["ObjectClient"]

@@ -1,0 +1,72 @@
+"""Engineering units for people: what a raw object value means in mm, µm, ° or mm/s.
+
+The CNC objects carry internal units (docs/design.md §3): one increment is 0.1 µm on a
+linear axis and 0.0001° on a rotary axis or spindle; velocities are µm/s (0.001°/s).
+Clients show values in engineering units by default and the raw value on request. What
+an object measures comes from its `quantity` in the dictionary; whether its axis is
+linear or rotary from `SIM::axis_type` (kenngr.achs_typ: 1 linear, 2 rotary, 4 spindle).
+
+| quantity | linear axis | rotary axis / spindle |
+|---|---|---|
+| position | mm, 4 decimals (increments / 10 000) | °, 4 decimals (increments / 10 000) |
+| offset | µm, 1 decimal (increments / 10) | °, 4 decimals (increments / 10 000) |
+| velocity | mm/s, 3 decimals (µm/s / 1000) | °/s, 3 decimals (0.001°/s / 1000) |
+
+Everything else is shown as it is, with the dictionary's unit (`TEMPC::coefficient` in
+µm/m, `SIM::acceleration` in mm/s², flags, counters).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from geo_server.dictionary import ObjectDef
+
+LINEAR, ROTARY, SPINDLE = 1, 2, 4
+
+#: quantity -> (linear (divisor, unit, decimals), rotary (divisor, unit, decimals))
+_SCALES: dict[str, tuple[tuple[float, str, int], tuple[float, str, int]]] = {
+    "position": ((10_000.0, "mm", 4), (10_000.0, "°", 4)),
+    "offset": ((10.0, "µm", 1), (10_000.0, "°", 4)),
+    "velocity": ((1000.0, "mm/s", 3), (1000.0, "°/s", 3)),
+}
+
+
+@dataclass(frozen=True)
+class Shown:
+    """A value as shown: the number (or flag, text), its unit, and the text of both."""
+
+    value: Any
+    unit: str
+
+    def __str__(self) -> str:
+        return f"{self.value} {self.unit}".rstrip()
+
+
+def raw_unit(obj: ObjectDef) -> str:
+    """The dictionary's unit without brackets (`[µm/m]` -> `µm/m`, `[-]` -> ``)."""
+    unit = obj.unit.strip("[]")
+    return "" if unit == "-" else unit
+
+
+def show(obj: ObjectDef, value: Any, axis_type: int = LINEAR, raw: bool = False) -> Shown:
+    """`value` of `obj` in engineering units (or as it is with `raw`)."""
+    scales = _SCALES.get(obj.quantity or "")
+    if raw or scales is None or isinstance(value, bool) or not isinstance(value, int | float):
+        return Shown(value, raw_unit(obj) or ("Incr." if obj.quantity else ""))
+    divisor, unit, decimals = scales[0] if axis_type == LINEAR else scales[1]
+    return Shown(round(value / divisor, decimals), unit)
+
+
+def parse_axis_names(text: str) -> dict[str, int]:
+    """`SIM::axis_names` ("1=X 2=Y 3=Z 4=C") as {"X": 1, …} (names upper-case)."""
+    out: dict[str, int] = {}
+    for item in text.split():
+        number, _, name = item.partition("=")
+        if number.isdigit() and name:
+            out[name.upper()] = int(number)
+    return out
+
+
+__all__ = ["LINEAR", "ROTARY", "SPINDLE", "Shown", "parse_axis_names", "raw_unit", "show"]

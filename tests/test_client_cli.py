@@ -1,0 +1,161 @@
+"""`geo-client` as a newcomer uses it, over each of the three transports against one real
+server (stepped machine; Zenoh, Modbus and ADS on ephemeral loopback ports).
+
+Expected values come from the default machine's lists: X is axis 1, linear, at 0 mm
+after homing; TEMPC::actual_offset of X at 0 mm is 40 + 4000e-6·(0 − 100) = 39.6 →
+40 increments = 4.0 µm (000 p.15 formula); C (axis 4) is rotary.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import pytest
+from conftest import free_port, run_in
+
+from geo_server.client.cli import main
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.service import ObjectService
+from geo_server.transports.ads.server import AdsOptions, AdsServer
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+
+VIAS = ("zenoh", "modbus", "ads")
+
+
+class Servers:
+    def __init__(self, loop, startup) -> None:
+        self.loop = loop
+        self.service = ObjectService(Machine(load_machine(startup), homed=True))
+        self.service.step(25)  # ramps of the start-up selections ended
+        self.zenoh_ep = f"tcp/127.0.0.1:{free_port()}"
+        self.ifaces = [
+            ZenohInterface(self.service, ZenohOptions(machine="cli", listen=[self.zenoh_ep])),
+            ModbusInterface(self.service, ModbusOptions(port=0)),
+            AdsServer(self.service, AdsOptions(port=0)),
+        ]
+        for iface in self.ifaces:
+            run_in(loop, iface.start())
+
+    def base(self, via: str) -> list[str]:
+        if via == "zenoh":
+            return ["--via", "zenoh", "--machine", "cli", "--connect", self.zenoh_ep]
+        if via == "modbus":
+            return ["--via", "modbus", "--connect", f"127.0.0.1:{self.ifaces[1].port}"]
+        return ["--via", "ads", "--connect", f"127.0.0.1:{self.ifaces[2].port}"]
+
+    def close(self) -> None:
+        for iface in reversed(self.ifaces):
+            run_in(self.loop, iface.close())
+
+
+@pytest.fixture
+def servers(loop_thread, lists_copy) -> Iterator[Servers]:
+    s = Servers(loop_thread, lists_copy)
+    yield s
+    s.close()
+
+
+def run(servers: Servers, via: str, *args: str, capfd) -> tuple[int, str, str]:
+    code = main([*servers.base(via), "--timeout", "5", *args])
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_read_several_targets_by_axis_name_in_engineering_units(servers, via, capfd):
+    code, out, err = run(
+        servers,
+        via,
+        "read",
+        "--axis",
+        "X",
+        "TEMPC::coefficient",
+        "TEMPC::actual_offset",
+        "SIM::command_position",
+        "BC::actual_backlash",  # the Zenoh spelling of `BC::actual backlash`
+        capfd=capfd,
+    )
+    assert code == 0, err
+    assert out.splitlines() == [
+        "axis 1 (X) TEMPC::coefficient = 4000.0 µm/m",
+        "axis 1 (X) TEMPC::actual_offset = 4.0 µm",
+        "axis 1 (X) SIM::command_position = 0.0 mm",
+        "axis 1 (X) BC::actual backlash = 0.0 µm",
+    ]
+    assert "Info:" not in err  # AdsLib's "connection closed by remote" stays quiet
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_raw_units_and_a_rotary_axis(servers, via, capfd):
+    servers.service.write_name("SIM::set_position", 4, 1_234_567)  # C at 123.4567°
+    servers.service.step(1)
+    code, out, _ = run(
+        servers, via, "--raw", "read", "--axis", "1", "TEMPC::actual_offset", capfd=capfd
+    )
+    assert (code, out.strip()) == (0, "axis 1 (X) TEMPC::actual_offset = 40 Incr.")
+    code, out, _ = run(servers, via, "read", "--axis", "C", "SIM::command_position", capfd=capfd)
+    assert (code, out.strip()) == (0, "axis 4 (C) SIM::command_position = 123.4567 °")
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_unknown_names_get_a_suggestion(servers, via, capfd):
+    code, _, err = run(servers, via, "read", "TEMPC::coeficient", capfd=capfd)
+    assert code == 1
+    assert "unknown object name 'TEMPC::coeficient'; did you mean 'TEMPC::coefficient'" in err
+    code, _, err = run(servers, via, "read", "--axis", "Q", "TEMPC::coefficient", capfd=capfd)
+    assert code == 1 and "no axis named 'Q' (axes: X=1, Y=2, Z=3, C=4)" in err
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_reload_and_save_on_every_transport(servers, via, lists_copy, capfd):
+    code, out, err = run(
+        servers, via, "write", "--axis", "X", "TEMPC::coefficient", "4321", capfd=capfd
+    )
+    assert code == 0, err
+    servers.service.step(1)
+    code, out, err = run(servers, via, "save", capfd=capfd)
+    assert code == 0, err
+    assert "saved" in out
+    text = (lists_copy.parent / "achsmd1.lis").read_text(encoding="utf-8")
+    assert "lr_param.temp_comp_coefficient 4321" in text
+    code, out, err = run(servers, via, "reload", capfd=capfd)
+    assert code == 0, err
+    assert out.startswith("reloaded")
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_a_rejected_reload_says_why_on_every_transport(servers, via, lists_copy, capfd):
+    axis1 = lists_copy.parent / "achsmd1.lis"
+    text = axis1.read_text(encoding="utf-8")
+    line = 1 + text.splitlines().index(
+        next(x for x in text.splitlines() if x.startswith("lr_param.temp_comp_coefficient"))
+    )
+    axis1.write_text(text.replace("temp_comp_coefficient 4000", "temp_comp_coefficient 99999"))
+    code, out, err = run(servers, via, "reload", capfd=capfd)
+    assert code == 1
+    assert err.startswith("error: reload rejected, machine unchanged: ")
+    assert f"achsmd1.lis:{line}: " in err and "lr_param.temp_comp_coefficient" in err
+    assert "warning" not in err and "deactivated" not in err
+    servers.service.step(1)
+    code, out, err = run(servers, via, "errors", capfd=capfd)
+    assert code == 0 and "reload rejected, machine unchanged" in out
+    assert servers.service.read_name("TEMPC::coefficient", 1) == 4000.0
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_status_is_readable_text_and_json_on_request(servers, via, capfd):
+    code, out, err = run(servers, via, "status", capfd=capfd)
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0].startswith(f"cycle {servers.service.snapshot.cycle}  1000 µs")
+    assert "axes 1 X, 2 Y, 3 Z, 4 C" in lines
+    code, out, _ = run(servers, via, "--json", "status", capfd=capfd)
+    assert json.loads(out)["cycle"] == servers.service.snapshot.cycle
+
+
+def test_nc_and_reset_say_they_need_zenoh(servers, capfd):
+    code, _, err = run(servers, "modbus", "reset", capfd=capfd)
+    assert code == 2 and "available over Zenoh only" in err

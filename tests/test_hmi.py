@@ -151,8 +151,15 @@ def test_once_csv_field_by_field(srv: GeoTestServer, capsys):
 def test_once_text_and_no_server(srv: GeoTestServer, capsys):
     assert main(argv(srv, "--once", "--axis", "1")) == 0
     out = capsys.readouterr().out
-    assert "cnc/test  cycle" in out and "axis 1  homed yes  command 1000000" in out
+    # X at 100 mm (1 000 000 increments of 0.1 µm); offset_0 40 increments = 4 µm
+    assert "cnc/test  cycle" in out and "axis 1  homed yes  command 100 mm" in out
+    assert "coefficient=4000 µm/m offset_0=4 µm position_0=0.01 mm" in out
+    assert main(argv(srv, "--once", "--axis", "X", "--raw")) == 0  # by name; increments
+    out = capsys.readouterr().out
+    assert "axis 1  homed yes  command 1000000" in out
     assert "coefficient=4000 offset_0=40 position_0=100" in out
+    assert main(argv(srv, "--once", "--axis", "Q")) == 2
+    assert "no axis named 'Q'" in capsys.readouterr().err
     assert main(["--connect", srv.endpoint("zenoh"), "--machine", "nobody", "--timeout", "0.5",
                  "--once"]) == 1  # fmt: skip
     assert "no answer from cnc/nobody" in capsys.readouterr().err
@@ -174,26 +181,35 @@ def test_live_view_follows_publications(srv: GeoTestServer):
         text = render_text(model, [1])
         lines = text.splitlines()
         assert lines[0].startswith(f"cnc/test  cycle {srv.cycle}  T 1000 µs  stepped")
-        assert lines[2].startswith("axis 1  homed yes  command 1000000  output ")
+        assert lines[2].startswith("axis 1  homed yes  command 100 mm  output ")
         temp = next(ln for ln in lines if ln.strip().startswith("TEMP "))
         assert temp.split() == [
-            "TEMP", "yes", "yes", "2040", "-", "-",
-            "coefficient=2000", "offset_0=40", "position_0=100",
+            "TEMP", "yes", "yes", "204", "µm", "-", "-",
+            "coefficient=2000", "µm/m", "offset_0=4", "µm", "position_0=0.01", "mm",
         ]  # fmt: skip
         assert "[70435] axis 1 movement requires compensations" in lines[-1]
-        buf = io.StringIO()
+        buf = io.StringIO()  # not a terminal: views appended, no control codes
         run_live(hmi, [1], refresh=0.01, duration=0.05, plain=True, out=buf)
-        assert "\x1b[2J" in buf.getvalue() and "TEMP" in buf.getvalue()
+        assert "\x1b" not in buf.getvalue() and "TEMP" in buf.getvalue()
+        assert buf.getvalue().startswith("--- ")
+
+        class Tty(io.StringIO):
+            def isatty(self) -> bool:
+                return True
+
+        tty = Tty()  # a terminal: redrawn in place
+        run_live(hmi, [1], refresh=0.01, duration=0.05, plain=True, out=tty)
+        assert "\x1b[2J" in tty.getvalue()
         pytest.importorskip("rich")
         rich_out = rich_text(model, width=140, only=[1])
-        assert "axis 1  homed yes  command 1000000" in rich_out
+        assert "axis 1  homed yes  command 100 mm" in rich_out
         row = next(ln for ln in rich_out.splitlines() if " TEMP " in ln)
-        assert "2040" in row and "coefficient=2000" in row
+        assert "204 µm" in row and "coefficient=2000 µm/m" in row
         assert "[70435]" in rich_out
         # the live loop itself, for a moment, into a buffer (rich)
-        buf = io.StringIO()
+        buf = Tty()
         run_live(hmi, [1], refresh=0.01, duration=0.05, out=buf)
-        assert "coefficient=2000" in buf.getvalue()
+        assert "TEMP" in buf.getvalue() and "coefficient" in buf.getvalue()
 
 
 def test_csv_of_an_empty_model():

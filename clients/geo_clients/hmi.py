@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
+from geo_server.units import show
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,7 @@ COMPENSATIONS: tuple[CompView, ...] = (
 )
 #: Axis-level values: field -> object (SPEC §2 emulator objects).
 AXIS_FIELDS: tuple[tuple[str, str], ...] = (
+    ("axis_type", "SIM::axis_type"),
     ("homed", "SIM::homed"),
     ("command_position", "SIM::command_position"),
     ("output_position", "SIM::output_position"),
@@ -291,6 +293,24 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+class Units:
+    """How the views show values: engineering units (positions in mm or °, offsets in µm,
+    velocities in mm/s; `geo_server.units`) unless `raw`, then the CNC's increments."""
+
+    def __init__(self, raw: bool = False) -> None:
+        self.raw = raw
+        self._d = load_dictionary()
+
+    def __call__(self, name: str | None, value: Any, axis_type: Any = 1) -> str:
+        if name is None or value is None or isinstance(value, bool):
+            return _fmt(value)
+        shown = show(self._d.by_name(name), value, int(axis_type or 1), self.raw)
+        return f"{_fmt(shown.value)} {shown.unit}".rstrip() if not self.raw else _fmt(value)
+
+
+_RAW = Units(raw=True)
+
+
 def status_line(model: HmiModel) -> str:
     s = model.status
     if not s:
@@ -312,25 +332,50 @@ def error_line(e: dict[str, Any]) -> str:
     )
 
 
-def render_text(model: HmiModel, only: Iterable[int] | None = None, max_errors: int = 5) -> str:
+def _axis_title(entry: dict[str, Any], u: Units) -> str:
+    kind = entry.get("axis_type")
+    return (
+        f"axis {entry['axis']}  homed {_fmt(entry['homed'])}  "
+        f"command {u('SIM::command_position', entry['command_position'], kind)}  "
+        f"output {u('SIM::output_position', entry['output_position'], kind)}  "
+        f"total offset {u('SIM::total_offset', entry['total_offset'], kind)}  "
+        f"v {u('SIM::velocity', entry['velocity'], kind)}"
+    )
+
+
+def _cells(cv: CompView, c: dict[str, Any], kind: Any, u: Units) -> list[str]:
+    params = " ".join(f"{k}={u(name, c['parameters'][k], kind)}" for k, name in cv.parameters)
+    return [
+        _fmt(c["selected"]),
+        _fmt(c["effective"]),
+        u(cv.actual, c["actual"], kind),
+        u(cv.delta, c["delta"], kind),
+        u(cv.unfiltered, c["unfiltered"], kind),
+        params,
+    ]
+
+
+def render_text(
+    model: HmiModel,
+    only: Iterable[int] | None = None,
+    max_errors: int = 5,
+    units: Units | None = None,
+) -> str:
     """The whole view as plain text (also what `--plain` shows live)."""
+    u = units or Units()
     snap = model.snapshot(only)
     out = [status_line(model), ""]
-    head = f"  {'compensation':<12} {'sel':>4} {'eff':>4} {'actual':>10} {'delta':>8} "
-    head += f"{'unfiltered':>10}  parameters"
+    head = f"  {'compensation':<12} {'sel':>4} {'eff':>4} {'actual':>12} {'delta':>10} "
+    head += f"{'unfiltered':>12}  parameters"
     for entry in snap["axes"]:
-        out.append(
-            f"axis {entry['axis']}  homed {_fmt(entry['homed'])}  "
-            f"command {_fmt(entry['command_position'])}  output {_fmt(entry['output_position'])}"
-            f"  total offset {_fmt(entry['total_offset'])}  v {_fmt(entry['velocity'])}"
-        )
+        out.append(_axis_title(entry, u))
         out.append(head)
         for cv in COMPENSATIONS:
-            c = entry["compensations"][cv.key]
-            params = " ".join(f"{k}={_fmt(v)}" for k, v in c["parameters"].items())
+            sel, eff, actual, delta, unf, params = _cells(
+                cv, entry["compensations"][cv.key], entry.get("axis_type"), u
+            )
             out.append(
-                f"  {cv.key:<12} {_fmt(c['selected']):>4} {_fmt(c['effective']):>4} "
-                f"{_fmt(c['actual']):>10} {_fmt(c['delta']):>8} {_fmt(c['unfiltered']):>10}"
+                f"  {cv.key:<12} {sel:>4} {eff:>4} {actual:>12} {delta:>10} {unf:>12}"
                 f"  {params}".rstrip()
             )
         out.append("")
@@ -340,22 +385,22 @@ def render_text(model: HmiModel, only: Iterable[int] | None = None, max_errors: 
     return "\n".join(out) + "\n"
 
 
-def render_rich(model: HmiModel, only: Iterable[int] | None = None, max_errors: int = 5) -> Any:
+def render_rich(
+    model: HmiModel,
+    only: Iterable[int] | None = None,
+    max_errors: int = 5,
+    units: Units | None = None,
+) -> Any:
     """The view as a `rich` renderable (needs `rich`)."""
     from rich.console import Group
     from rich.table import Table
     from rich.text import Text
 
+    u = units or Units()
     snap = model.snapshot(only)
     parts: list[Any] = [Text(status_line(model), style="bold")]
     for entry in snap["axes"]:
-        t = Table(
-            title=f"axis {entry['axis']}  homed {_fmt(entry['homed'])}  command "
-            f"{_fmt(entry['command_position'])}  output {_fmt(entry['output_position'])}  "
-            f"total offset {_fmt(entry['total_offset'])}",
-            title_justify="left",
-            expand=False,
-        )
+        t = Table(title=_axis_title(entry, u), title_justify="left", expand=False)
         for col, just in (
             ("compensation", "left"),
             ("sel", "center"),
@@ -370,16 +415,7 @@ def render_rich(model: HmiModel, only: Iterable[int] | None = None, max_errors: 
             c = entry["compensations"][cv.key]
             sel, eff = c["selected"], c["effective"]
             style = "green" if eff or (eff is None and sel) else ("yellow" if sel else "dim")
-            t.add_row(
-                cv.key,
-                _fmt(sel),
-                _fmt(eff),
-                _fmt(c["actual"]),
-                _fmt(c["delta"]),
-                _fmt(c["unfiltered"]),
-                " ".join(f"{k}={_fmt(v)}" for k, v in c["parameters"].items()),
-                style=style,
-            )
+            t.add_row(cv.key, *_cells(cv, c, entry.get("axis_type"), u), style=style)
         parts.append(t)
     errors = snap["errors"][-max_errors:] if max_errors else []
     parts.append(Text("errors: none" if not errors else f"errors ({len(snap['errors'])}):"))
@@ -487,15 +523,21 @@ def run_live(
     plain: bool = False,
     out: Any = None,
     max_errors: int = 5,
+    units: Units | None = None,
 ) -> None:
-    """Redraw when the model changed, at most every `refresh` s, until Ctrl-C/`duration`."""
+    """Redraw when the model changed, at most every `refresh` s, until Ctrl-C/`duration`.
+
+    On a terminal the view is redrawn in place (rich, or plain text after a clear-screen
+    code); into a pipe or a file each new view is appended after a separator line and no
+    terminal control codes are written."""
     out = out or sys.stdout
     only = list(only) if only else None
     end = None if duration is None else time.monotonic() + duration
+    terminal = bool(getattr(out, "isatty", lambda: False)())
     try:
         import rich  # noqa: F401
 
-        have_rich = not plain
+        have_rich = not plain and terminal
     except ImportError:
         have_rich = False
     seen = -1
@@ -509,18 +551,21 @@ def run_live(
 
         console = Console(file=out)
         with Live(
-            render_rich(hmi.model, only, max_errors), console=console, auto_refresh=False
+            render_rich(hmi.model, only, max_errors, units), console=console, auto_refresh=False
         ) as live:
             while due():
                 if hmi.model.version != seen:
                     seen = hmi.model.version
-                    live.update(render_rich(hmi.model, only, max_errors), refresh=True)
+                    live.update(render_rich(hmi.model, only, max_errors, units), refresh=True)
                 time.sleep(refresh)
         return
     while due():
         if hmi.model.version != seen:
             seen = hmi.model.version
-            out.write("\x1b[H\x1b[2J" + render_text(hmi.model, only, max_errors))
+            view = render_text(hmi.model, only, max_errors, units)
+            out.write(
+                ("\x1b[H\x1b[2J" + view) if terminal else f"--- {time.strftime('%H:%M:%S')}\n{view}"
+            )
             out.flush()
         time.sleep(refresh)
 
@@ -534,11 +579,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="Zenoh endpoint")
     p.add_argument("--machine", default="local", help="machine name (key prefix cnc/<machine>)")
     p.add_argument("--timeout", type=float, default=2.0, help="seconds per get (default 2)")
-    p.add_argument("--axis", type=int, action="append", help="show only these axes")
+    p.add_argument(
+        "--axis", action="append", help="show only these axes (number or name; repeatable)"
+    )
     p.add_argument("--once", action="store_true", help="print one snapshot and exit")
     p.add_argument("--format", choices=("text", "json", "csv"), default="text")
     p.add_argument("--errors", type=int, default=5, help="latest errors shown (default 5)")
     p.add_argument("--plain", action="store_true", help="plain text live view (no rich)")
+    p.add_argument(
+        "--raw", action="store_true", help="internal units (increments) instead of mm, µm, °"
+    )
     p.add_argument("--refresh", type=float, default=0.2, help="redraw period, s (default 0.2)")
     p.add_argument("--duration", type=float, help="stop the live view after this many seconds")
     return p
@@ -551,9 +601,15 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # zenoh.ZError and friends
         print(f"error: cannot open a Zenoh session: {exc}", file=sys.stderr)
         return 2
+    units = Units(raw=args.raw)
     with hmi:
+        hmi.fill()
+        try:
+            only = axis_numbers(hmi.model, args.axis)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         if args.once:
-            hmi.fill()
             if not hmi.model.axes:
                 print(
                     f"error: no answer from cnc/{args.machine} within {args.timeout} s "
@@ -562,16 +618,32 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 return 1
             if args.format == "json":
-                sys.stdout.write(snapshot_json(hmi.model, args.axis))
+                sys.stdout.write(snapshot_json(hmi.model, only))
             elif args.format == "csv":
-                sys.stdout.write(snapshot_csv(hmi.model, args.axis))
+                sys.stdout.write(snapshot_csv(hmi.model, only))
             else:
-                sys.stdout.write(render_text(hmi.model, args.axis, args.errors))
+                sys.stdout.write(render_text(hmi.model, only, args.errors, units))
             return 0
         hmi.start()
         with contextlib.suppress(KeyboardInterrupt):
-            run_live(hmi, args.axis, args.refresh, args.duration, args.plain, None, args.errors)
+            run_live(hmi, only, args.refresh, args.duration, args.plain, None, args.errors, units)
     return 0
+
+
+def axis_numbers(model: HmiModel, wanted: list[str] | None) -> list[int] | None:
+    """`--axis` values (numbers or names, e.g. 1 or X) as axis numbers."""
+    if not wanted:
+        return None
+    names = {str(n).upper(): int(a) for a, n in (model.status.get("axis_names") or {}).items()}
+    out = []
+    for w in wanted:
+        if w.isdigit():
+            out.append(int(w))
+        elif w.upper() in names:
+            out.append(names[w.upper()])
+        else:
+            raise ValueError(f"no axis named {w!r} (axes: {', '.join(names) or 'unknown'})")
+    return out
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@
     python bench/bare.py pyads  --port P   # pyads' own AdsTestServer (AdvancedHandler)
 
 Each serves on 127.0.0.1 until SIGTERM/SIGINT. They are the denominators of the
-transport ratios (SPEC §11): the same client library talks to these and to geo-server.
+transport ratios (docs/design.md §11): the same client library talks to these and to geo-server.
 """
 
 from __future__ import annotations
@@ -122,7 +122,7 @@ def serve_ads(port: int) -> None:
 def serve_pyads(port: int) -> None:
     """pyads' `AdsTestServer` with one variable at 0x120300/0x10043 (LREAL 4000.0).
 
-    Quirks (research §2.1): thread per connection, `recvfrom(4096)` without framing, AMS
+    Quirks (pyads 3.6.0 test server): thread per connection, `recvfrom(4096)` without framing, AMS
     port ignored; an unknown index kills the connection thread. Its `request_history`
     grows with every request, so it is swapped for a bounded deque here.
     """

@@ -1,4 +1,4 @@
-"""Memory benchmark (SPEC §11): resident size of a running geo-server.
+"""Memory benchmark (docs/design.md §11): resident size of a running geo-server.
 
 Starts the server in a subprocess (the default machine with `geo-server run --homed`;
 N fully configured axes with `bench/server.py --demo-axes N`, i.e.

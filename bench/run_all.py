@@ -1,4 +1,4 @@
-"""Run every geo-server benchmark and write `bench/RESULTS.md` (SPEC §11).
+"""Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
     python bench/run_all.py [--quick] [--only kernel,scheduler,transports,memory,soak]
                             [--results FILE]

@@ -1,4 +1,4 @@
-"""Scheduler benchmark (SPEC §11): GEO-cycle lateness and overruns, idle and under load.
+"""Scheduler benchmark (docs/design.md §11): GEO-cycle lateness and overruns, idle and under load.
 
 For each machine (the default 4-axis machine; `full_machine(32)` from
 `support.machines`), each cycle (1 ms, 250 µs) and each condition (idle; load =

@@ -1,4 +1,4 @@
-"""Transport benchmark (SPEC §11): single-object read round trip vs the bare transport.
+"""Transport benchmark (docs/design.md §11): single-object read round trip vs the bare transport.
 
 For each transport the same client library reads one object back to back (closed loop,
 one request in flight) first from a trivial server of that transport (`bench/bare.py`)

@@ -114,7 +114,7 @@ def _make_yours(path: Path) -> None:
 def _check(args: argparse.Namespace) -> int:
     """Exit 0 when the machine loads, 1 when a compensation was deactivated or a list had
     to be skipped (any error: the same that makes a reload fail), 2 when the lists cannot
-    be read (issue 2)."""
+    be read."""
     from geo_server.listfile import ListFileError, load_machine
 
     path = Path(args.startup) if args.startup else default_startup_list()

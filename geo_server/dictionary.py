@@ -1,12 +1,12 @@
 """The object dictionary: every CNC object geo-server serves, loaded from `objects/`.
 
-One source of truth (SPEC §2): the TOML file in `objects/` names every object with its
+One source of truth (docs/design.md §2): the TOML file in `objects/` names every object with its
 element ID, type, access, unit and manual source. This module loads it, resolves names,
 aliases and `(index group, index offset)` pairs, encodes and decodes values in the ADS
 little-endian encoding and checks write ranges. Failures are `AdsError`s carrying the
-ADS return code of SPEC §9, so every transport maps them the same way.
+ADS return code of docs/design.md §9, so every transport maps them the same way.
 
-Addressing (SPEC §2): index group `0x120300` (GEO) or `0x12F300` (emulator), index
+Addressing (docs/design.md §2): index group `0x120300` (GEO) or `0x12F300` (emulator), index
 offset `(axis << 16) | id`; machine-wide emulator objects use axis 0. Attribute groups
 sit at group + 0x100 (name), 0x200 (type name), 0x300 (length), 0x400 (unit),
 0x500 (writable) with the same offsets.
@@ -27,9 +27,9 @@ from typing import Any
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.paths import data_dir
 
-#: Index groups of the object groups (SPEC §2).
+#: Index groups of the object groups (docs/design.md §2).
 GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300}
-#: Attribute group offsets relative to an object group (SPEC §2).
+#: Attribute group offsets relative to an object group (docs/design.md §2).
 ATTRIBUTES: dict[int, str] = {
     0x100: "name",
     0x200: "type",
@@ -65,7 +65,7 @@ TYPES: dict[str, DataType] = {
 
 
 def round_half_away(x: float) -> int:
-    """Round half away from zero (SPEC §3: SGN32 objects from the internal float64)."""
+    """Round half away from zero (docs/design.md §3: SGN32 objects from the internal float64)."""
     return int(math.copysign(math.floor(abs(x) + 0.5), x))
 
 
@@ -97,7 +97,7 @@ def _json_kind(value: Any) -> str:
 
 
 def _key_part(text: str) -> str:
-    """Zenoh key part of SPEC §7: lower case, blanks and dots to `_`, no doubled `_`."""
+    """Zenoh key part of docs/design.md §7: lower case, blanks and dots to `_`, no doubled `_`."""
     out = text.strip().lower().replace(" ", "_").replace(".", "_")
     while "__" in out:
         out = out.replace("__", "_")
@@ -147,19 +147,19 @@ class ObjectDef:
         return "w" in self.access
 
     def index_offset(self, axis: int) -> int:
-        """`(axis << 16) | id` (SPEC §2); axis 0 for machine-wide objects."""
+        """`(axis << 16) | id` (docs/design.md §2); axis 0 for machine-wide objects."""
         return (axis << 16) | self.id
 
     @property
     def key_group(self) -> str:
-        """Zenoh `<group>` (SPEC §7): `bc`, `tempc`, …; `ssfk activated` is `lsec`."""
+        """Zenoh `<group>` (docs/design.md §7): `bc`, `tempc`, …; `ssfk activated` is `lsec`."""
         if "::" not in self.name:
             return "lsec"
         return _key_part(self.name.split("::", 1)[0])
 
     @property
     def key_field(self) -> str:
-        """Zenoh `<field>` (SPEC §7): `actual_backlash`, `conf_backlash`, `sum_epsilon`."""
+        """Zenoh `<field>` (docs/design.md §7): `actual_backlash`, `sum_epsilon`, …"""
         rest = self.name.split("::", 1)[1] if "::" in self.name else self.name
         if self.group == "sim" and self.key_group != "sim":
             return _key_part(f"{self.key_group}_{rest}")
@@ -292,7 +292,7 @@ class ObjectDef:
             )
 
     def attribute(self, kind: str) -> bytes:
-        """Value of an attribute group (SPEC §2) as ADS bytes."""
+        """Value of an attribute group (docs/design.md §2) as ADS bytes."""
         if kind == "length":
             return struct.pack("<I", self.length)
         if kind == "writable":
@@ -399,7 +399,7 @@ class Dictionary:
     ) -> tuple[ObjectDef, int, str | None]:
         """Resolve an ADS address to (object, axis, attribute kind or None).
 
-        Unknown index group -> 0x702; unknown element ID or axis -> 0x703 (SPEC §9).
+        Unknown index group -> 0x702; unknown element ID or axis -> 0x703 (docs/design.md §9).
         """
         attr: str | None = None
         group = next((g for g, ig in GROUPS.items() if ig == index_group), None)

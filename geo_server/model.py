@@ -4,7 +4,7 @@ The loader (`geo_server.listfile`) turns a start-up list plus the axis parameter
 [AXIS] and compensation value lists [COMP] it names into one `MachineConfig`. The
 machine and the compensation kernel only ever see these objects, never list-file text.
 
-Units (SPEC §3): positions in internal units, 0.1 µm for linear (T) axes and 0.0001° for
+Units (docs/design.md §3): positions in internal units, 0.1 µm for linear (T) axes and 0.0001° for
 rotary (R) and spindle (S) axes; one increment [Incr.] is one internal unit, so the
 `unit` flag of the compensation lists (0 increments, 1 = 0.1 µm) changes nothing.
 Velocities in internal units per second (µm/s of the manuals = 10 units/s),
@@ -66,7 +66,7 @@ class Source:
 
 @dataclass
 class Diagnostic:
-    """A warning or error found while loading lists (SPEC §4).
+    """A warning or error found while loading lists (docs/design.md §4).
 
     `error_id` is one of the IDs the manual lists for the affected compensation (see the
     check table in the README); 0 for plain warnings such as unknown entries.
@@ -188,7 +188,7 @@ class LsecComp:
 
     `setpoint` holds the interpolation points (computed from kw_startpos + i·interval when
     equidistant). `pos`/`neg` are the *measured errors* Δs = s_ist − s_soll; the kernel
-    applies −Δs (SPEC §6). `neg` equals `pos` for unilateral tables.
+    applies −Δs (docs/design.md §6). `neg` equals `pos` for unilateral tables.
     """
 
     setpoint: np.ndarray  # float64 [kw_nr_max]

@@ -1,11 +1,11 @@
-"""One consistent picture of every object after a GEO cycle (SPEC §5 step 4).
+"""One consistent picture of every object after a GEO cycle (docs/design.md §5 step 4).
 
 The machine fills one `Snapshot` per cycle and publishes it by swapping a reference, so
 a reader on any thread sees either the old or the new snapshot, never a mix: a read, a
 sum read or a Modbus block read served from one snapshot never mixes two cycles.
 
 Values are stored as float64 (the kernel's internal values) and converted to the wire
-type only when encoded: SGN32 rounds half away from zero (SPEC §3).
+type only when encoded: SGN32 rounds half away from zero (docs/design.md §3).
 """
 
 from __future__ import annotations

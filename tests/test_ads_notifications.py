@@ -1,4 +1,4 @@
-"""`NotificationTable` without I/O: when samples are due (SPEC §9, cycle time in 100 ns).
+"""`NotificationTable` without I/O: when samples are due (docs/design.md §9, cycle time in 100 ns).
 
 The server hands the table the newest snapshot, normally every cycle but fewer when the
 event loop falls behind; these tests feed it chosen cycle numbers directly.

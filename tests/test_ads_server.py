@@ -1,9 +1,9 @@
-"""The ADS interface (SPEC §9) on loopback: raw AMS/TCP frames and pyads as a real client.
+"""The ADS interface (docs/design.md §9) on loopback: raw AMS/TCP frames and pyads as a real client.
 
 The server runs on an ephemeral port in the `loop_thread`; the machine is stepped by the
 test (deterministic) except where a running scheduler is the point. pyads (Beckhoff
 AdsLib) keeps one route per NetId in the process, so every server gets its own NetId
-(research §2.6: one NetId <-> one endpoint per process).
+(pyads 3.6.0, verified: one NetId <-> one endpoint per process).
 """
 
 from __future__ import annotations
@@ -393,7 +393,7 @@ def test_cyclic_notifications_every_n_cycles(plc, service) -> None:
 
 
 def test_cyclic_interval_counts_from_the_last_sample(plc, service, loop_thread) -> None:
-    """Cycle time 3 ms = 30000 ticks of 100 ns = 3 GEO cycles of 1 ms (SPEC §9).
+    """Cycle time 3 ms = 30000 ticks of 100 ns = 3 GEO cycles of 1 ms (docs/design.md §9).
 
     The first sample goes out at the first cycle boundary after the registration (c0+1),
     every later one when `cycle - last_cycle >= 3`: at c0+4, c0+7, … — never at c0+3

@@ -1,22 +1,46 @@
-"""The README's reference tables are generated, so they can never drift from the code."""
+"""Generated documentation never drifts from the code: the reference pages under docs/
+and the README's Limits table are what `python -m geo_server.docs` writes."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from geo_server.docs import render
+import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+from geo_server.docs import PAGES, render
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
 
 
 def test_readme_generated_sections_are_current():
     text = README.read_text(encoding="utf-8")
-    assert "<!-- BEGIN objects -->" in text
+    assert "<!-- BEGIN limits -->" in text
     assert render(text) == text, "README out of date: run `python -m geo_server.docs`"
+
+
+@pytest.mark.parametrize("name", sorted(PAGES))
+def test_reference_pages_are_current(name):
+    page = ROOT / "docs" / name
+    assert page.read_text(encoding="utf-8") == PAGES[name](), (
+        f"docs/{name} out of date: run `python -m geo_server.docs`"
+    )
 
 
 def test_readme_opens_with_the_two_commands():
     text = README.read_text(encoding="utf-8")
-    head = text[: text.index("## ", text.index("## ") + 1)]
+    head = text[: text.index("## ")]
     assert "geo-server run" in head
     assert "bash .ci/run" in head
+
+
+def test_the_limits_table_shows_the_defaults():
+    """A changed default shows up in the README (here: the ADS connection cap)."""
+    from geo_server.transports.ads.server import AdsOptions
+
+    row = next(
+        ln
+        for ln in README.read_text(encoding="utf-8").splitlines()
+        if "AdsOptions.max_connections" in ln
+    )
+    assert f"| {AdsOptions().max_connections} |" in row

@@ -7,8 +7,10 @@ elides it), must occur in the manual text, compared with runs of whitespace coll
 (the PDF text of 000 has lost its line breaks and column alignment). For 000 the line
 must occur on the cited page(s).
 
-The manuals live outside the repository (`/work/shared/seeds`, or `$GEO_SERVER_SEEDS`);
-without them these tests are skipped.
+The manuals are Beckhoff/ISG publications the repository does not ship. Point the
+environment variable `GEO_SERVER_MANUALS` at a folder with their text (`000_*.txt` …
+`004_*.txt`, `## Page N` markers as in PDF-to-text output) to run these tests; without it
+they are skipped, and the skip says so.
 """
 
 from __future__ import annotations
@@ -26,20 +28,19 @@ EXAMPLES = data_dir("lists") / "examples"
 _REPO = Path(__file__).resolve().parent.parent
 
 
-def _seeds_dir() -> Path | None:
-    candidates = [
-        os.environ.get("GEO_SERVER_SEEDS", ""),
-        _REPO.parent / "shared" / "seeds",
-        Path("/work/shared/seeds"),
-    ]
-    for c in candidates:
-        if c and Path(c).is_dir() and any(Path(c).glob("000_*.txt")):
-            return Path(c)
+def _manuals_dir() -> Path | None:
+    folder = os.environ.get("GEO_SERVER_MANUALS", "")
+    if folder and Path(folder).is_dir() and any(Path(folder).glob("000_*.txt")):
+        return Path(folder)
     return None
 
 
-SEEDS = _seeds_dir()
-pytestmark = pytest.mark.skipif(SEEDS is None, reason="manual texts (seeds) not available")
+SEEDS = _manuals_dir()
+pytestmark = pytest.mark.skipif(
+    SEEDS is None,
+    reason="the manuals' text is not part of the repository: set GEO_SERVER_MANUALS to a "
+    "folder with 000_*.txt … 004_*.txt to compare the examples with it",
+)
 
 ELISIONS = {"...", "…", ":", "#…", "etc."}
 _WS = re.compile(r"\s+")

@@ -31,7 +31,7 @@ pytest_plugins = ["geo_clients.pytest_plugin"]
 
 X_AT_100MM = 1_000_000
 #: 000 p.17: position_0 100, offset_0 40, coefficient 4000 µm/m; X at 100 mm:
-#: 40 + 4000e-6·(1 000 000 − 100) = 4039.6 -> 4040 (SPEC §3 rounding)
+#: 40 + 4000e-6·(1 000 000 − 100) = 4039.6 -> 4040 (docs/design.md §3 rounding)
 TEMPC_X = 4040
 
 
@@ -110,7 +110,7 @@ def test_once_json_field_by_field(srv: GeoTestServer, capsys):
         "parameters": {"coefficient": 4000.0, "offset_0": 40, "position_0": 100},
     }
     assert x["compensations"]["BC"]["parameters"] == {"conf_backlash": 1000}  # achsmd1.lis
-    # SPEC §3: output = command + BC + TEMPC + CROSSC + CC2 + LSEC + CROSSTALK
+    # docs/design.md §3: output = command + BC + TEMPC + CROSSC + CC2 + LSEC + CROSSTALK
     comps = x["compensations"]
     total = sum(comps[k]["actual"] for k in ("BC", "TEMP", "CROSS", "PLANE", "LSEC", "CROSSTALK"))
     assert x["total_offset"] == total

@@ -1,4 +1,4 @@
-"""List-file syntax (002/003 §1.3–1.4, digest §6.1): one test per rule."""
+"""List-file syntax (002/003 §1.3–1.4, 002 §1.3): one test per rule."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Every validation check reports its documented error ID, file, line and entry, and
-switches off only that compensation of that axis (SPEC §4, table in checks.py).
+switches off only that compensation of that axis (docs/design.md §4, table in checks.py).
 
 The scratch machine: axes 1, 2, 3 linear, 4 a spindle, 5 a rotary modulo axis. The
 compensation list under test belongs to axis 3 (or the axis the case names); it always
@@ -765,7 +765,7 @@ def test_check_reports_id_and_deactivates_only_that_compensation(
 
 
 def test_all_manual_ids_are_used() -> None:
-    """Every ID that the manual lists for a compensation has a check (digest §8)."""
+    """Every ID that the manual lists for a compensation has a check (000 §2–§4, 002)."""
     used = {c.error_id for c in CHECKS}
     listed = {110392, 110217, 110218, 110474, 110476, 110477, 110478, 110479, 110480, 110590}
     listed |= {70242, 70244, 70245, 70246, 70247, 70248, 70249, 70250, 70432}

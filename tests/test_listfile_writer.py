@@ -1,4 +1,4 @@
-"""Token writer for `save` (SPEC §4): only value tokens change, atomically."""
+"""Token writer for `save` (docs/design.md §4): only value tokens change, atomically."""
 
 from __future__ import annotations
 

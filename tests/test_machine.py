@@ -1,6 +1,6 @@
 """The machine end to end: GEO cycle, objects, COMP, monitoring, reload, save, determinism.
 
-Expected values are computed here from the manuals' formulas (000 §2, §3; SPEC §3 sin²
+Expected values are computed here from the manuals' formulas (000 §2, §3; docs/design.md §3 sin²
 rule), never by calling the code under test.
 """
 
@@ -22,12 +22,12 @@ from geo_server.service import ObjectService
 
 
 def rhaz(x: float) -> int:
-    """Round half away from zero (SPEC §3), written out independently of the code."""
+    """Round half away from zero (docs/design.md §3), written out independently of the code."""
     return math.floor(abs(x) + 0.5) * (1 if x >= 0 else -1)
 
 
 def sin2_ramp(start: float, target: float, k: int, n: int) -> float:
-    """SPEC §3: out_k = target − J·cos²(π·k/(2N)), J = target − start."""
+    """docs/design.md §3: out_k = target − J·cos²(π·k/(2N)), J = target − start."""
     return target - (target - start) * math.cos(math.pi * k / (2 * n)) ** 2
 
 
@@ -345,7 +345,7 @@ def test_comp_switch_waits_for_the_offset_unless_no_move(default_cfg):
 def test_lsec_objects_on_y_follow_the_table_by_direction(machine):
     """Y's bilateral LSEC table (lists/achskw2.lis) read through the objects. At
     s = 60000 (6 mm) the table points are setpoint[68] 58446 / [69] 62475 with pos 14 /
-    15 and neg 178 / 180; the applied offset is −Δs (000 §4.4, SPEC §6). The program
+    15 and neg 178 / 180; the applied offset is −Δs (000 §4.4, docs/design.md §6). The program
     starts before the first cycle: Y requires LEAD | TEMP, and the 70435 monitoring must
     see them effective."""
     svc = ObjectService(machine)
@@ -364,7 +364,7 @@ def test_lsec_objects_on_y_follow_the_table_by_direction(machine):
 
 
 def test_rejected_reload_of_a_broken_compensation_list_keeps_the_old_tables(lists_copy: Path):
-    """A table that would be deactivated is a reload error (SPEC §4): nothing swaps."""
+    """A table that would be deactivated is a reload error (docs/design.md §4): nothing swaps."""
     machine = Machine(load_machine(lists_copy), homed=True)
     svc = ObjectService(machine)
     cfg_before = machine.cfg

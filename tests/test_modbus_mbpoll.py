@@ -1,7 +1,7 @@
 """An independent Modbus client: Debian's `mbpoll` (libmodbus) against geo-server.
 
-Flags (research/anchors_protocols.md §4): `-m tcp -p PORT -a UNIT`, `-0` PDU addressing
-(the address is the register number of SPEC §8), `-1` poll once, `-o` timeout in
+Flags (docs/design.md §9): `-m tcp -p PORT -a UNIT`, `-0` PDU addressing
+(the address is the register number of docs/design.md §8), `-1` poll once, `-o` timeout in
 seconds, `-t 4:int -B` a 32-bit integer in holding registers with the high word first,
 `-t 0` coils. Values to write follow the host (negative ones after `--`).
 """

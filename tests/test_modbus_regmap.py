@@ -1,4 +1,4 @@
-"""The Modbus register map (SPEC §8) as pure functions: addresses, encoding, checks."""
+"""The Modbus register map (docs/design.md §8) as pure functions: addresses, encoding, checks."""
 
 from __future__ import annotations
 

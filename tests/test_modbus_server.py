@@ -1,4 +1,4 @@
-"""Modbus TCP interface (SPEC §8) against the default machine, with pymodbus' own client.
+"""Modbus TCP interface (docs/design.md §8) against the default machine, with pymodbus' own client.
 
 The server runs on an asyncio loop thread (`loop_thread`), the machine in stepped mode
 unless a test starts the real-time scheduler; clients talk over loopback to an
@@ -302,7 +302,7 @@ class HandCranked(Scheduler):
 
 
 def test_write_reply_comes_with_the_cycle_that_applied_it(loop_thread, machine):
-    """The reply waits for exactly ONE cycle: the cycle applies the queued write (SPEC §5
+    """The reply waits for exactly ONE cycle: the cycle applies the queued write (docs/design.md §5
     step 1), publishes the snapshot that contains it (step 4) and only then resolves the
     write's future (`Machine.run_cycle`). So the reply goes out after that cycle, and a
     read sent after the reply sees the value with no further cycle. (Waiting for a

@@ -1,4 +1,4 @@
-"""Motion profiles (SPEC §5): hand-computed trapezoids, synchronisation, queue, modulo.
+"""Motion profiles (docs/design.md §5): hand-computed trapezoids, synchronisation, queue, modulo.
 
 Reference axis: v_max 10000 units/s (1 mm/s), a_max 1 mm/s² = 10000 units/s², dt 1 ms.
 A 20000-unit move then accelerates 1 s (5000 units), cruises 1 s (10000 units) and

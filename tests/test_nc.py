@@ -1,4 +1,4 @@
-"""NC player (SPEC §5): parsing of the manuals' programs, sequencing, COMP, monitoring."""
+"""NC player (docs/design.md §5): parsing of the manuals' programs, sequencing, COMP, monitoring."""
 
 from __future__ import annotations
 

@@ -349,7 +349,7 @@ def test_warm_up_end_to_end(geo_server: GeoTestServer, via: str):
 
 
 def test_the_ramp_follows_a_write(geo_server: GeoTestServer):
-    """Between ticks the server ramps with sin² over temp_comp_n_cycles (SPEC §3)."""
+    """Between ticks the server ramps with sin² over temp_comp_n_cycles (docs/design.md §3)."""
     srv = geo_server
     srv.set_position("X", 1_000_000)
     ad = TemperatureAdapter(

@@ -1,4 +1,4 @@
-"""The AMS/TCP `Framer` against memory abuse, without I/O (reliability issue, item 7):
+"""The AMS/TCP `Framer` against memory abuse, without I/O:
 the request-size limit derived from the protocol, when an unfinished frame began, and
 that the framer lets go of its buffer."""
 

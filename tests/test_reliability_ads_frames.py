@@ -1,4 +1,4 @@
-"""Clients that make the ADS server hold memory (reliability issue, item 7), on loopback.
+"""Clients that make the ADS server hold memory, on loopback.
 
 Frame headers announcing more than the largest legal request, more connections than the
 server admits, frames left unfinished, and the memory of closed connections — each while

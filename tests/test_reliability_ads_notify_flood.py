@@ -1,4 +1,4 @@
-"""A notification flood against the complete server (reliability issue, item 6).
+"""A notification flood against the complete server.
 
 One geo-server in this process (real-time 1 ms GEO cycle, Zenoh, Modbus and ADS on
 ephemeral loopback ports, default ADS options). Flood connections register as many

@@ -1,4 +1,4 @@
-"""Notification sampling yields the event loop (reliability issue, item 6).
+"""Notification sampling yields the event loop.
 
 A sampling pass that would take longer than `AdsOptions.sample_budget` continues in a
 later loop iteration, so whatever else is queued on the loop (requests of every

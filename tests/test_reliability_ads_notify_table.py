@@ -1,5 +1,5 @@
 """`NotificationTable` at scale, without I/O: caps, per-owner costs, due buckets, sliced
-passes (reliability issue, item 6).
+passes.
 
 Costs are asserted as counts of work done (registrations a pass looks at, owner
 comparisons, waiting buckets), never as times.

@@ -1,5 +1,4 @@
-"""Concurrent writers on all three transports at once against a running GEO cycle
-(issue 8, part 2, item 2).
+"""Concurrent writers on all three transports at once against a running GEO cycle.
 
 Design (so that the result is checkable):
 

@@ -1,4 +1,4 @@
-"""Safety of exposure (issue 8, part 2, item 6).
+"""Safety of exposure.
 
 - Every interface binds to 127.0.0.1 by default: the option defaults of every transport
   and of `geo-server run`, and the sockets a real `geo-server run` (default hosts,

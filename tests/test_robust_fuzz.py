@@ -1,5 +1,4 @@
-"""Bounded fuzzing of every transport against a server whose GEO cycle runs in real time
-(issue 8, part 2, item 1).
+"""Bounded fuzzing of every transport against a server whose GEO cycle runs in real time.
 
 `tests/test_modbus_fuzz.py` and `tests/test_ads_fuzz.py` already fuzz the Modbus decoder
 and the ADS codec/server; what they do not show is that, *while* the junk arrives, other

@@ -1,5 +1,5 @@
 """Clients that vanish: half frames, requests abandoned mid-flight, hundreds of dropped
-connections per transport, ADS notifications never deleted (issue 8, part 2, item 3).
+connections per transport, ADS notifications never deleted.
 
 Against one server with all three transports and a running GEO cycle. After a warm-up
 (so that lazily created things — executor threads, pymodbus and Zenoh internals — exist

@@ -1,5 +1,5 @@
-"""`save` killed with SIGKILL at random moments (issue 8, part 2, item 4; SPEC §4: "a crash
-at any moment leaves either the old or the new file").
+"""`save` killed with SIGKILL at random moments (docs/design.md §4: a crash at any moment
+leaves either the old or the new file).
 
 A child process (`tests/robust/save_child.py`) loads a private copy of the default lists
 and saves new `TEMPC::coefficient` / `TEMPC::offset_0` values of axis 1 in a loop,

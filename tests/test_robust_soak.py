@@ -1,5 +1,5 @@
 """A bounded soak: mixed load on all transports for `SOAK_S` seconds against the real-time
-GEO cycle (issue 8, part 2, item 5).
+GEO cycle.
 
 The server runs in this process (cycle thread + transports on the loop thread), an NC
 program keeps axis X travelling, and the load comes from another process

@@ -1,4 +1,4 @@
-"""Real-time scheduler on a virtual clock: catch-up, overruns, skipped cycles (SPEC §5).
+"""Real-time scheduler on a virtual clock: catch-up, overruns, skipped cycles (docs/design.md §5).
 
 The loop under test is the production `_run_realtime`; only its clock and sleep are
 virtual, so a stall of exactly 5 ms or 30 ms gives exactly the figures worked out below.

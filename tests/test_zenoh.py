@@ -1,4 +1,4 @@
-"""The Zenoh interface (SPEC §7) with real Zenoh sessions on loopback.
+"""The Zenoh interface (docs/design.md §7) with real Zenoh sessions on loopback.
 
 The server runs in stepped mode; an independent plain `zenoh` session (not the project's
 client) asks the questions. Peer mode, multicast scouting off, explicit endpoints, a
@@ -333,7 +333,7 @@ def test_geo_client_read_write(server, capsys):
 
 def test_geo_client_by_address_reads_attribute_groups(server, capsys):
     """`GROUP OFFSET` goes out as that address: attribute groups answer their attribute
-    (SPEC §2: +0x100 name … +0x500 writable), writes to them are refused by the server."""
+    (docs/design.md §2: +0x100 name … +0x500 writable), writes to them are refused by the server."""
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     expected = {
         "0x120400": "axis 1 (X) TEMPC::coefficient name = TEMPC::coefficient",

@@ -231,7 +231,7 @@ def test_callbacks_survive_a_loop_that_closes_during_the_hand_off(service):
 @pytest.mark.parametrize(
     "key,code,words",
     [
-        ("cnc/t/axis/99/**", 0x703, "axis 99"),  # unknown axis (SPEC §9: 0x703)
+        ("cnc/t/axis/99/**", 0x703, "axis 99"),  # unknown axis (docs/design.md §9: 0x703)
         ("cnc/t/axis/99/tempc/*", 0x703, "axis 99"),
         ("cnc/t/sim/axis/99/*", 0x703, "axis 99"),
         ("cnc/t/axis/1/nothing/*", 0x703, "no object"),  # matches no object

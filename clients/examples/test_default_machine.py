@@ -40,7 +40,7 @@ def test_temperature_compensation_example_of_the_manual(geo):
     geo.step(20)  # the move's own change is not filtered; give the ramp its 20 cycles
     geo.assert_value("TEMPC::actual_offset", "X", 4040)
     geo.assert_value("SIM::command_position", "X", 1_000_000)  # display: no compensation
-    # the same object by index group / index offset (axis 1 -> 0x10042), SPEC §2
+    # the same object by index group / index offset (axis 1 -> 0x10042), docs/design.md §2
     geo.assert_raw(0x120300, 0x10042, 4040)
 
 
@@ -101,7 +101,7 @@ def test_temperature_compensation_needs_homing(geo_server_factory):
 
 @pytest.mark.parametrize("geo_via", ALL_TRANSPORTS)
 def test_errors_carry_the_ads_codes(geo):
-    # SPEC §9: out of range 0x706 (coefficient −10000…10000, 000 p.21); read-only 0x704
+    # docs/design.md §9: out of range 0x706 (coefficient −10000…10000, 000 p.21); read-only 0x704
     geo.expect_error(0x706, lambda: geo.write("TEMPC::coefficient", "X", 20000.0))
     geo.expect_error(0x704, lambda: geo.write("BC::actual backlash", "X", 1))
     geo.assert_value("TEMPC::coefficient", "X", 4000.0)

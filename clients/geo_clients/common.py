@@ -3,7 +3,7 @@
 `open_client("zenoh" | "modbus" | "ads", endpoint, ...)` returns an object with the
 `geo_server.client.GeoClient` protocol (`read`, `write`, `read_raw`, `write_raw`,
 `close`), so the PLC temperature adaptation and the test helpers switch transports with
-one argument (SPEC §10). Endpoints are written as the transports name them:
+one argument (docs/design.md §10). Endpoints are written as the transports name them:
 
 - zenoh: a Zenoh endpoint, `tcp/127.0.0.1:7447` (default)
 - modbus: `host:port`, `127.0.0.1:5020` (default)

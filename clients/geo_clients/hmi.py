@@ -1,7 +1,7 @@
-"""HMI diagnostics readout: every compensation of every axis, live over Zenoh (SPEC §10).
+"""HMI diagnostics readout: every compensation of every axis, live over Zenoh (docs/design.md §10).
 
 Per axis: command position, output position (what the drive gets, `dig_cmd_pos` of
-000 p.19) and the total offset of all position compensations (SPEC §3); per
+000 p.19) and the total offset of all position compensations (docs/design.md §3); per
 compensation: selected flag (`*::activated`, `ssfk activated`), effective flag
 (`TEMPC::f_is_active`, `CROSSC::f_is_active`, `LSEC::active`: selected **and** all
 preconditions such as homing met, 000 p.22), the actual (filtered) value, its change in
@@ -9,7 +9,7 @@ this cycle (delta) and the unfiltered value where the manual has an object for i
 (`BC::sum backlash` 000 p.12, `CROSSTALK::end_offset` 000 p.91); the TEMPC parameters
 (000 p.22–23); and the server's cycle status and latest warnings/errors.
 
-Traffic (SPEC §7): one wildcard `get` per area fills the table at start —
+Traffic (docs/design.md §7): one wildcard `get` per area fills the table at start —
 `cnc/<m>/axis/**`, `cnc/<m>/sim/**`, `cnc/<m>/status`, `cnc/<m>/errors`, each with a
 timeout — and subscriptions to the same four key expressions keep it current (the server
 publishes on change, at most every 50 ms, and the status every second). There is no
@@ -59,7 +59,7 @@ class CompView:
     parameters: tuple[tuple[str, str], ...] = ()
 
 
-#: The compensations in the order of the GEO cycle (SPEC §5) and their objects (000).
+#: The compensations in the order of the GEO cycle (docs/design.md §5) and their objects (000).
 COMPENSATIONS: tuple[CompView, ...] = (
     CompView(
         "TEMP",
@@ -115,7 +115,7 @@ COMPENSATIONS: tuple[CompView, ...] = (
     ),
     CompView("FRICT", "friction", None, None, "FRICT::additive_current", None, None),
 )
-#: Axis-level values: field -> object (SPEC §2 emulator objects).
+#: Axis-level values: field -> object (docs/design.md §2 emulator objects).
 AXIS_FIELDS: tuple[tuple[str, str], ...] = (
     ("axis_type", "SIM::axis_type"),
     ("homed", "SIM::homed"),
@@ -138,7 +138,7 @@ CSV_FIELDS = (
 
 
 class KeyParser:
-    """Map the named keys of SPEC §7 back to (object, axis); pure, no session."""
+    """Map the named keys of docs/design.md §7 back to (object, axis); pure, no session."""
 
     def __init__(self, machine: str, dictionary: Dictionary | None = None) -> None:
         self.machine = machine

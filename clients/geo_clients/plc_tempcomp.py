@@ -1,11 +1,11 @@
-"""PLC temperature adaptation: retune `TEMPC::*` live from a temperature (SPEC §10).
+"""PLC temperature adaptation: retune `TEMPC::*` live from a temperature (docs/design.md §10).
 
 What a PLC does for the temperature compensation of the TF5200 manual (000 §3, p.14–24):
 the compensation value is the straight line
 
     Δs(T, s) = offset_0(T) + coefficient(T) · 1e-6 · (s − position_0)        (000 p.15)
 
-(positions and offsets in 0.1 µm — rotary axes 0.0001° — coefficient in µm/m, SPEC §3).
+(positions and offsets in 0.1 µm — rotary axes 0.0001° — coefficient in µm/m, docs/design.md §3).
 A **reference measurement** (000 p.16, "Reference measurement", Fig. 5) records the
 deviation of the axis position against an external measuring system at several
 temperatures; each temperature gives an error line. "Temperatures that are not measured
@@ -67,7 +67,7 @@ are retried `retries` times. When a write of an axis fails for good, the rest of
 axis is not written in that period (no half-updated parameter set: offset_0 and the
 coefficient belong to the position_0 they were derived for); the next period tries the
 whole set again. Every parameter write is a step event ramped with `temp_comp_n_cycles`
-by the server (SPEC §3).
+by the server (docs/design.md §3).
 
 Temperature sources: `WarmUp` (a simulated warm-up curve `T(t) = T_end − (T_end −
 T_start)·exp(−t/τ)`), `CsvTemperature` (timestamped samples `time,temperature_C`,
@@ -176,7 +176,7 @@ class Parameters:
 
 
 def compensation(p: Parameters, s: float) -> float:
-    """`Δs = offset_0 + coefficient·1e-6·(s − position_0)` (000 p.15; SPEC §6)."""
+    """`Δs = offset_0 + coefficient·1e-6·(s − position_0)` (000 p.15; docs/design.md §6)."""
     return p.offset_0 + p.coefficient * 1e-6 * (s - p.position_0)
 
 

@@ -1,4 +1,4 @@
-"""pytest plugin: fixtures that start a geo-server in stepped mode on free ports (SPEC §10).
+"""pytest plugin: fixtures that start a stepped geo-server on free ports (docs/design.md §10).
 
 Enable it with `-p geo_clients.pytest_plugin`, with `pytest_plugins = ["geo_clients.pytest_plugin"]`
 in a `conftest.py` / test module, or through the `pytest11` entry point of the installed

@@ -1,8 +1,8 @@
-"""Integration-test helpers: a geo-server in stepped mode on free loopback ports (SPEC §10).
+"""Integration-test helpers: a stepped geo-server on free loopback ports (docs/design.md §10).
 
 `GeoTestServer` owns a machine (the default machine or any start-up list), its object
 service in **stepped** mode (no cycle runs until the test steps, so every value is
-deterministic: SPEC §5) and an asyncio loop thread on which the transports run. The
+deterministic: docs/design.md §5) and an asyncio loop thread on which the transports run. The
 transports start on demand, each on an ephemeral port of 127.0.0.1: Zenoh in peer mode
 with multicast scouting off and an explicit listen endpoint, Modbus TCP, ADS/AMS-TCP.
 
@@ -19,7 +19,7 @@ with multicast scouting off and an explicit listen endpoint, Modbus TCP, ADS/AMS
 server (step, move, home, NC). The pytest fixtures in `geo_clients.pytest_plugin` build on
 this module; it has no pytest dependency itself.
 
-Writes are queued by the object service and applied at the next cycle boundary (SPEC §5),
+Writes are queued by the object service and applied at the next cycle boundary (docs/design.md §5),
 so `GeoView.write(..., apply=True)` (the default) steps one cycle after the write.
 """
 
@@ -96,7 +96,7 @@ class GeoTestServer:
 
     `startup`: a start-up list (`hochlauf.lis`); None = the default machine in `lists/`.
     `homed`: start with every axis homed (temperature compensation needs it, 000 p.15).
-    `machine_name`: the Zenoh key prefix `cnc/<machine_name>` (SPEC §7).
+    `machine_name`: the Zenoh key prefix `cnc/<machine_name>` (docs/design.md §7).
     """
 
     def __init__(
@@ -295,7 +295,7 @@ class GeoTestServer:
         self.step(1)
 
     def nc(self, text: str, *, wait: bool = True, max_cycles: int = MAX_CYCLES) -> int:
-        """Run NC lines (SPEC §5 player) and, with `wait`, step until they are done."""
+        """Run NC lines (docs/design.md §5 player) and, with `wait`, step until they are done."""
         self.service.run_nc(text)
         self.step(1)
         if not wait:
@@ -362,7 +362,7 @@ class GeoView:
         return v
 
     def read_raw(self, index_group: int, index_offset: int, length: int = 0) -> bytes:
-        """ADS bytes by address (SPEC §2) over this transport."""
+        """ADS bytes by address (docs/design.md §2) over this transport."""
         return self.client.read_raw(index_group, index_offset, length)
 
     def read_address(self, index_group: int, index_offset: int) -> Any:
@@ -419,7 +419,7 @@ class GeoView:
             raise AssertionError("\n".join(problems))
 
     def expect_error(self, code: int, fn: Callable[[], Any]) -> AdsError:
-        """Run `fn` and assert it raises `AdsError` with ADS code `code` (SPEC §9)."""
+        """Run `fn` and assert it raises `AdsError` with ADS code `code` (docs/design.md §9)."""
         try:
             fn()
         except AdsError as exc:

@@ -33,7 +33,7 @@ def resolve(index_group: int, index_offset: int) -> ObjectDef:
     return obj
 
 
-#: The transports and their default endpoints (SPEC §7, §8, §9).
+#: The transports and their default endpoints (docs/design.md §7, §8, §9).
 DEFAULT_ENDPOINTS: dict[str, str] = {
     "zenoh": "tcp/127.0.0.1:7447",
     "modbus": "127.0.0.1:5020",

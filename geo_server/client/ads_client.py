@@ -1,11 +1,11 @@
-"""ADS client for geo-server (SPEC §9) on top of pyads (Beckhoff AdsLib inside).
+"""ADS client for geo-server (docs/design.md §9) on top of pyads (Beckhoff AdsLib inside).
 
     with AdsClient(port=48898) as c:
         c.read("TEMPC::coefficient", 1)          # 4000.0
         c.write("TEMPC::coefficient", 1, 4100.0)
         c.read_raw(0x120300, 0x10043, 8)         # ADS bytes
 
-pyads facts that shape this class (research §2.6, verified with pyads 3.6.0 on Linux):
+pyads facts that shape this class (pyads 3.6.0, verified, verified with pyads 3.6.0 on Linux):
 
 - `pyads.Connection(netid, 551, "host:port")` needs no TwinCAT router: `open()` adds a
   route NetId -> `host:port` in the in-process AdsLib router and opens a local AMS port

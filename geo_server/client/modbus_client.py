@@ -1,4 +1,4 @@
-"""Modbus TCP client for geo-server (SPEC §8), built on pymodbus' synchronous client.
+"""Modbus TCP client for geo-server (docs/design.md §8), built on pymodbus' synchronous client.
 
 Objects are addressed as everywhere else — by name and axis, or by ADS index group and
 offset — and translated with the register map: unit id = axis (0 for machine-wide

@@ -1,4 +1,4 @@
-"""Zenoh client for geo-server (SPEC §7): gets with a timeout, writes as gets with payload.
+"""Zenoh client (docs/design.md §7): gets with a timeout, writes as gets with payload.
 
 One machine name must mean one server. Every get goes to all matching queryables without
 consolidation, so the client sees each reply with the Zenoh id of the session that sent
@@ -229,7 +229,7 @@ class ZenohClient(ObjectClient):
 
     def watch(self, key_expr: str) -> Iterator[tuple[str, Any]]:
         """Yield (key, decoded JSON): the current values first, then every publication
-        on `key_expr` (blocking; publications arrive on change, SPEC §7)."""
+        on `key_expr` (blocking; publications arrive on change, docs/design.md §7)."""
         q: queue.Queue[tuple[str, bytes]] = queue.Queue()
         self.subscribe(key_expr, lambda k, v: q.put((k, v)))
         for key, data in self.get(key_expr):

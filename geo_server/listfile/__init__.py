@@ -3,7 +3,7 @@
 Public API:
 
 * `load_machine(startup) -> MachineConfig` — start-up list + every list it names, validated
-  (SPEC §4); raises `ListFileError` only if the lists cannot be read at all;
+  (docs/design.md §4); raises `ListFileError` only if the lists cannot be read at all;
 * `parse_list(path) -> ParsedList` — tokenized entries with value spans;
 * `default_startup_list() -> Path` — `lists/hochlauf.lis` of the default machine;
 * `compare_max_points(old, new) -> list[Diagnostic]` — reload check (110638–110641);

@@ -1,6 +1,6 @@
-"""The one table mapping every list validation check to its error ID (SPEC §4).
+"""The one table mapping every list validation check to its error ID (docs/design.md §4).
 
-The manuals list error IDs per compensation (digest §8) but give a meaning only for
+The manuals list error IDs per compensation (000 §2–§4, 002) but give a meaning only for
 110392 (backlash configuration error), 110591/110592 (friction) and 110638–110641
 (`max_points` changed). Every other assignment below is the emulator's choice, made from
 the IDs that the manual lists for that compensation. Temperature compensation has no
@@ -211,7 +211,7 @@ CHECKS: tuple[Check, ...] = (
         "lead.index",
         _LE,
         110474,
-        "a `table[i]` index outside 0…kw_nr_max−1 (SPEC §12)",
+        "a `table[i]` index outside 0…kw_nr_max−1 (docs/design.md §12)",
         _M000_LE,
     ),
     Check(
@@ -404,7 +404,7 @@ def checks_markdown() -> str:
         "Generated from `geo_server/listfile/checks.py` by `checks_markdown()`; do not edit.",
         "",
         "A check that deactivates switches the compensation off for that axis only; the",
-        "diagnostic names file, line, entry and error ID (SPEC §4). IDs with a meaning",
+        "diagnostic names file, line, entry and error ID (docs/design.md §4). IDs with a meaning",
         "stated by the manual keep it; the others are the emulator's assignment from the",
         f"IDs the manual lists for that compensation. Temperature uses {EMU_TEMP_ERROR},",
         "an emulator ID (the manuals list none).",
@@ -419,7 +419,8 @@ def checks_markdown() -> str:
         lines.append(f"| `{c.key}` | {comp} | {ident} | {deact} | {c.meaning} | {c.listed_in} |")
     lines += [
         "",
-        "Reload only (SPEC §4, 002 §3.x.1, stated meaning): a changed `max_points` rejects",
+        "Reload only (docs/design.md §4, 002 §3.x.1, stated meaning): a changed `max_points` "
+        "rejects",
         "the reload with "
         + ", ".join(f"{v} ({COMP_NAMES[k]})" for k, v in MAX_POINTS_IDS.items())
         + ".",

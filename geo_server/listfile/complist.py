@@ -2,7 +2,7 @@
 
 Every builder reads one compensation's entries, runs that compensation's checks (table
 in `checks.py`) and returns the config dataclass with `valid=False` if any check failed;
-the other compensations of the same list are not affected (SPEC §4).
+the other compensations of the same list are not affected (docs/design.md §4).
 """
 
 from __future__ import annotations
@@ -248,7 +248,7 @@ def _plane_table(b: _Build, l1: int, l2: int) -> np.ndarray:
 
 
 def build_lsec(values: Values, ctx: Ctx) -> LsecComp | None:
-    """`kw.ssfk.*` (002 §3.3, 000 §4.4): table index 0…kw_nr_max−1 (SPEC §12)."""
+    """`kw.ssfk.*` (002 §3.3, 000 §4.4): table index 0…kw_nr_max−1 (docs/design.md §12)."""
     if not values.section(PREFIX[CompKind.LEAD]):
         return None
     b = _Build(CompKind.LEAD, values, ctx)

@@ -1,6 +1,6 @@
 """Start-up list [STUP] -> axis parameter lists [AXIS] + compensation value lists [COMP].
 
-Start-up list entries (000 §4.1 p.26, digest §6.2):
+Start-up list entries (000 §4.1 p.26, 000 §4.1):
 
 * `zahl_kw`, `achs_kw[i]`, `achs_kw_log_ax_nr[i]` — compensation value lists (manual);
 * `zahl_mds`, `achs_mds[i]`, `achs_mds_log_ax_nr[i]` — axis parameter lists (emulator

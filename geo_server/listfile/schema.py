@@ -19,7 +19,7 @@ from geo_server.model import CompKind
 
 
 class ListKind(Enum):
-    """Which list an entry belongs to (002 §1.2, digest §6.2–6.4)."""
+    """Which list an entry belongs to (002 §1.2, 002 §1.2)."""
 
     STUP = "start-up list"
     AXIS = "axis parameter list"
@@ -78,7 +78,7 @@ _BL, _TE, _CR, _PL = CompKind.BACKLASH, CompKind.TEMP, CompKind.CROSS, CompKind.
 _LE, _FR, _CT = CompKind.LEAD, CompKind.FRICT, CompKind.CROSSTALK
 
 _SPECS: list[Spec] = [
-    # ---- start-up list [STUP] (000 §4.1 p.26; digest §6.2; emulator: *_mds*)
+    # ---- start-up list [STUP] (000 §4.1 p.26; 000 §4.1; emulator: *_mds*)
     Spec("zahl_kw", "UNS16", _S),
     Spec("achs_kw[]", "STRING", _S),
     Spec("achs_kw_log_ax_nr[]", "UNS16", _S, lo=1),

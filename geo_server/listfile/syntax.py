@@ -1,4 +1,4 @@
-"""Tokenizer of the ASCII list files (002/003 §1.3–1.4; digest §6.1).
+"""Tokenizer of the ASCII list files (002/003 §1.3–1.4; 002 §1.3).
 
 Rules (each cites where it comes from):
 

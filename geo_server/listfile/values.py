@@ -4,7 +4,7 @@
 values. Unknown entries are not taken over. These irregularities are displayed by
 warning messages." `read_values` implements exactly that for one list; range problems of
 compensation entries are kept aside (`Values.range_errors`) so the builder can report
-them with the axis number and deactivate that compensation (SPEC §4).
+them with the axis number and deactivate that compensation (docs/design.md §4).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The simulated machine: axes, motion, NC player and the compensation kernel in one GEO cycle.
 
-Every cycle runs, in this order (SPEC §5):
+Every cycle runs, in this order (docs/design.md §5):
 1. apply the queued writes and commands in arrival order;
 2. advance the NC program and the motion;
 3. compute the compensations (the kernel);
@@ -44,13 +44,13 @@ from geo_server.snapshot import ObjectLayout, Snapshot
 
 #: Column of each compensation in the kernel's [n, 7] arrays.
 C = {kind: i for i, kind in enumerate(COMP_ORDER)}
-#: Position compensations summed into the drive output (SPEC §3).
+#: Position compensations summed into the drive output (docs/design.md §3).
 UNITS_PER_UM = 10.0  # internal units (0.1 µm) per µm; also 0.001° = 10 units
 UNITS_PER_MM = 10_000.0
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Vectorised round half away from zero (SPEC §3), into `out`."""
+    """Vectorised round half away from zero (docs/design.md §3), into `out`."""
     np.abs(x, out=out)
     out += 0.5
     np.floor(out, out=out)
@@ -123,7 +123,7 @@ class Machine:
     # ------------------------------------------------------------------ the cycle
 
     def run_cycle(self) -> Snapshot:
-        """Run one GEO cycle (SPEC §5) and return the snapshot it published."""
+        """Run one GEO cycle (docs/design.md §5) and return the snapshot it published."""
         applied: list[tuple[Pending, Any, BaseException | None]] = []
         try:
             with self._cycle_lock:
@@ -187,7 +187,7 @@ class Machine:
     # ------------------------------------------------------------------ operations
 
     def submit(self, op: Operation) -> Pending:
-        """Queue `op` for the next cycle boundary, in arrival order (SPEC §5 step 1)."""
+        """Queue `op` for the next cycle boundary, in arrival order (docs/design.md §5 step 1)."""
         pending = Pending(self._withdraw)
         with self._queue_lock:
             self._queue.append((op, pending))
@@ -203,7 +203,7 @@ class Machine:
         return False
 
     def _apply_queue(self) -> list[tuple[Pending, Any, BaseException | None]]:
-        """SPEC §5 step 1: carry out queued operations in arrival order."""
+        """docs/design.md §5 step 1: carry out queued operations in arrival order."""
         with self._queue_lock:
             items = list(self._queue)
             self._queue.clear()
@@ -312,7 +312,7 @@ class Machine:
         )
 
     def _build_snapshot(self) -> Snapshot:
-        """SPEC §5 step 4: every object of every axis, from this cycle's state."""
+        """docs/design.md §5 step 4: every object of every axis, from this cycle's state."""
         k, mo = self.kernel, self.motion
         if self._src_owner[0] is not k or self._src_owner[1] is not mo:
             self._layout_sources()
@@ -403,7 +403,7 @@ class Machine:
         return self.axes.index(axis)
 
     def apply_write(self, name: str, axis: int, value: Any) -> None:
-        """Apply a validated object write (runs at a cycle boundary, SPEC §5 step 1)."""
+        """Apply a validated object write (runs at a cycle boundary, docs/design.md §5 step 1)."""
         obj = self.dictionary.by_name(name)
         handler = _WRITE_HANDLERS[obj.name]
         handler(self, self.slot(axis) if obj.scope == "axis" else -1, value)
@@ -440,7 +440,7 @@ class Machine:
                 self.set_comp(slot, manual, False)
 
     def reload(self, cfg: MachineConfig) -> None:
-        """Swap in a validated configuration at this cycle boundary (SPEC §4).
+        """Swap in a validated configuration at this cycle boundary (docs/design.md §4).
 
         Active compensations ramp from the old to the new value with their n_cycles
         (the kernel treats the swap as a step event).
@@ -559,7 +559,7 @@ B, T, X, P, L, K = (
     CompKind.LEAD,
     CompKind.CROSSTALK,
 )
-#: Axis objects fed by a kernel [n, 7] array: object -> (array, compensation) (SPEC §2).
+#: Axis objects fed by a kernel [n, 7] array: object -> (array, compensation) (docs/design.md §2).
 _FROM_COMP: dict[str, tuple[str, CompKind]] = {
     "BC::actual backlash": ("actual", B),
     "BC::sum backlash": ("target", B),

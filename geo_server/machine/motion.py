@@ -1,11 +1,11 @@
-"""Axis motion simulation: synchronised trapezoidal profiles (SPEC §5 "Motion").
+"""Axis motion simulation: synchronised trapezoidal profiles (docs/design.md §5 "Motion").
 
 Pure computation: no I/O, no asyncio, no wall clock. Time only advances by `Motion.step()`,
 one call per GEO cycle of length `dt` seconds. The state lives in numpy arrays indexed by
 axis *slot* (0…n−1, the order of the `AxisParams` list), so the kernel can read
 `pos`/`vel`/`acc` without copying.
 
-Units (SPEC §3): positions in internal units (0.1 µm linear, 0.0001° rotary;
+Units (docs/design.md §3): positions in internal units (0.1 µm linear, 0.0001° rotary;
 1 mm = 1° = 10000 units), velocities in units/s, accelerations in units/s².
 `AxisParams.v_max` is already units/s; `AxisParams.a_max` is mm/s² (°/s²) and is scaled
 ×10000 here.
@@ -56,7 +56,7 @@ class MotionError(GeoError, ValueError):
 
 
 class Motion:
-    """Command-position generator for all axes of the machine (SPEC §5).
+    """Command-position generator for all axes of the machine (docs/design.md §5).
 
     Public state arrays (float64 [n] unless noted; read them, do not rebind them):
     `pos` command position, `vel` velocity, `acc` acceleration, `target` end position of

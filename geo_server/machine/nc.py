@@ -1,10 +1,10 @@
-"""A small NC program player for the manuals' test programs (SPEC §5).
+"""A small NC program player for the manuals' test programs (docs/design.md §5).
 
 Pure state machine: no threads, no sleeping, no wall clock. `Player.step()` is called once
 per GEO cycle *before* motion advances and talks to the machine only through the
 `MachinePort` protocol.
 
-Supported subset (SPEC §5; TF5200 axis compensation manual, 000):
+Supported subset (docs/design.md §5; TF5200 axis compensation manual, 000):
 
 * `N<n>` block numbers, also as labels `N10:` (000 p.24); `;` comments to the end of the
   line and `( … )` comments (an unclosed `(` comments out the rest of the line);
@@ -41,7 +41,7 @@ from typing import Protocol
 from geo_server.errors import CncErrorId, GeoError
 from geo_server.model import CompKind, Diagnostic
 
-#: Internal units per mm / degree (SPEC §3).
+#: Internal units per mm / degree (docs/design.md §3).
 UNITS_PER_MM = 10_000.0
 
 #: Emulator-internal NC runtime errors (runaway `$GOTO` loop, missing feed) carry ID 0.

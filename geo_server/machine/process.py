@@ -1,4 +1,4 @@
-"""The GEO cycle in its own process (`geo-server run --cycle-in process`, SPEC §5).
+"""The GEO cycle in its own process (`geo-server run --cycle-in process`, docs/design.md §5).
 
 In one process the cycle thread and the transports share one interpreter lock, and under
 load on all transports the cycle starts late (README, *Benchmarks*). Here the cycle runs

@@ -1,14 +1,13 @@
-"""When GEO cycles run: stepped, free-running or real time (SPEC §5).
+"""When GEO cycles run: stepped, free-running or real time (docs/design.md §5).
 
 - **stepped**: no thread; cycles run only when `step(n)` is called (tests: deterministic).
 - **free**: a thread runs cycles back to back as fast as it can (benchmarks).
 - **realtime**: a thread runs one cycle per period on a monotonic-clock deadline.
-  The wait sleeps until a *spin margin* before the deadline and then spins (SPEC §5: a
-  plain `asyncio.sleep` was late by 563 µs / 1.2 ms at 1 ms on this kind of machine).
-  The margin adapts: a sleep that overshoots into the margin widens it (up to 60 % of the
-  period), a long run of punctual wake-ups narrows it again. On the VM this was built on,
-  `time.sleep` overshot by more than 150 µs often enough to put p99 lateness at 2.5 ms
-  with a fixed 150 µs margin, and at 59 µs with 400 µs. When it is late the scheduler
+  The wait sleeps until a *spin margin* before the deadline and then spins: a sleep
+  alone wakes up hundreds of µs late on a loaded host (docs/design.md §5). The margin
+  adapts, because how far `time.sleep` overshoots differs from host to host: a sleep
+  that overshoots into the margin widens it (up to 60 % of the period), a long run of
+  punctual wake-ups narrows it again. When it is late the scheduler
   runs the missed cycles back to back; beyond `max_catchup` missed cycles it
   resynchronises to the clock and counts an **overrun** — never a silent drop.
 
@@ -126,7 +125,7 @@ class Scheduler:
         if self.mode == "stepped" or self._thread is not None:
             return
         # A short GIL switch interval keeps the cycle thread from being starved by the
-        # transports' threads (SPEC §5).
+        # transports' threads (docs/design.md §5).
         sys.setswitchinterval(0.0002)
         self._stop.clear()
         target = self._run_free if self.mode == "free" else self._run_realtime
@@ -236,7 +235,7 @@ class Scheduler:
         return self._summary[1]
 
     def status(self) -> dict[str, Any]:
-        """Cycle count, cycle time, lateness percentiles, overruns (SPEC §7 `status`)."""
+        """Cycle count, cycle time, lateness percentiles, overruns (docs/design.md §7 `status`)."""
         m = self.machine
         return {
             "cycle": m.cycle,

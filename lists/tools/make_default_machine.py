@@ -8,7 +8,7 @@ It writes, next to `lists/hochlauf.lis`:
     achsmd1..4.lis          axis parameter lists [AXIS] of X, Y, Z, C
     achskw1..4.lis          compensation value lists [COMP] of X, Y, Z, C
 
-The machine (SPEC §3: 0.1 µm linear, 0.0001° rotary):
+The machine (docs/design.md §3: 0.1 µm linear, 0.0001° rotary):
 
     axis  nr  type            travel (documentation only)  compensations
     X     1   linear          -500 .. +500 mm              backlash, temperature (manual example),

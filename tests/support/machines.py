@@ -1,7 +1,7 @@
 """Synthetic machines and motion for the kernel benchmark and the randomized tests.
 
 `full_machine` builds n axes with every compensation configured at the manuals' table
-sizes (SPEC §11: LSEC 1500 points, cross 1001, plane 101×101, crosstalk mode 3 with 15
+sizes (docs/design.md §11: LSEC 1500 points, cross 1001, plane 101×101, crosstalk mode 3 with 15
 points, friction 20 points); `random_machine` varies sizes, modes and flags;
 `Motion` produces smooth moving profiles with reversals.
 """
@@ -144,7 +144,7 @@ def _axis(i: int, n: int, rng: np.random.Generator, full: bool) -> AxisConfig:
 
 
 def full_machine(n: int, seed: int = 1) -> MachineConfig:
-    """n axes, every compensation at manual table sizes (SPEC §11)."""
+    """n axes, every compensation at manual table sizes (docs/design.md §11)."""
     rng = np.random.default_rng(seed)
     return MachineConfig(Path("<bench>"), {i + 1: _axis(i, n, rng, True) for i in range(n)})
 

@@ -1,4 +1,4 @@
-"""ADS over AMS/TCP (SPEC §9): a thin asyncio shell over the codec and the object service.
+"""ADS over AMS/TCP (docs/design.md §9): a thin asyncio shell over the codec and the object service.
 
 One `asyncio.Protocol` per TCP connection feeds received bytes into a `codec.Framer`,
 dispatches each complete request to `AdsServer.handle_packet`, and writes the response
@@ -7,7 +7,7 @@ validated at once (0x702…0x706) and applied by the GEO cycle at the next bound
 running cycles the response waits until the write was applied, in stepped mode it is
 acknowledged as soon as it is queued (nobody runs the cycle until the test steps).
 
-Served (Beckhoff "ADS commands"; research §1): ReadDeviceInfo, Read, Write, ReadState,
+Served (Beckhoff "ADS commands"): ReadDeviceInfo, Read, Write, ReadState,
 ReadWrite (incl. sum commands 0xF080 read, 0xF081 write, 0xF082 read-write, 0xF083
 read-ex, 0xF084 read-ex2), AddDeviceNotification, DeleteDeviceNotification and
 server-sent DeviceNotification. WriteControl and unknown commands answer 0x701. A request
@@ -76,7 +76,7 @@ _SAMPLE_STEP = 32
 
 @dataclass
 class AdsOptions:
-    """How the ADS interface listens (SPEC §9)."""
+    """How the ADS interface listens (docs/design.md §9)."""
 
     host: str = "127.0.0.1"
     port: int = 48898  # 0 = ephemeral (tests); the bound port is `AdsServer.port`

@@ -1,4 +1,4 @@
-"""Modbus TCP interface (SPEC §8): the register map (`regmap`, sans-I/O) and the server."""
+"""Modbus TCP interface (docs/design.md §8): codec and register map (sans-I/O), server."""
 
 from geo_server.transports.modbus.regmap import ModbusMap, modbus_map
 

@@ -1,4 +1,4 @@
-"""The Zenoh key space of SPEC §7, as pure functions (no Zenoh session needed).
+"""The Zenoh key space of docs/design.md §7, as pure functions (no Zenoh session needed).
 
     cnc/<m>/ads/<port>/<ig>/<io>        raw ADS bytes (ig, io as lowercase 0x… hex)
     cnc/<m>/axis/<A>/<group>/<field>    GEO objects by name, JSON
@@ -105,7 +105,7 @@ class KeySpace:
     # ------------------------------------------------------------------ parsing
 
     def parse(self, key: str) -> Route:
-        """Route of a concrete key; unknown keys raise `AdsError` with the SPEC §9 code."""
+        """Route of a concrete key; unknown keys raise `AdsError` (codes: docs/design.md §9)."""
         if key in self._named:
             return self._named[key]
         if key in self._fixed:
@@ -125,7 +125,7 @@ class KeySpace:
     def no_match(self, key_expr: str) -> AdsError:
         """The error for a wildcard key expression that matches none of our keys.
 
-        SPEC §7: every get is answered, so a wildcard that matches nothing gets a
+        docs/design.md §7: every get is answered, so a wildcard that matches nothing gets a
         `reply_err` instead of silence (the client would only see its timeout). The code
         follows the concrete-key cases where a concrete chunk already tells what is
         wrong: an unknown ADS port -> 0x6, an unknown index group -> 0x702, an

@@ -1,4 +1,4 @@
-"""The Zenoh interface (SPEC §7): a thin shell over the object service.
+"""The Zenoh interface (docs/design.md §7): a thin shell over the object service.
 
 Zenoh calls our queryable callback on one of its own threads. The callback only hands
 the query to the asyncio loop (`call_soon_threadsafe`); everything else — reading the
@@ -63,7 +63,7 @@ TRANSPORT_LIMITS = {
 
 @dataclass
 class ZenohOptions:
-    """How the server joins a Zenoh network (SPEC §7), and the limits it keeps."""
+    """How the server joins a Zenoh network (docs/design.md §7), and the limits it keeps."""
 
     machine: str = "local"
     mode: str = "peer"  # "peer" | "client"
@@ -149,7 +149,7 @@ def _json_value(payload: bytes, obj: ObjectDef) -> Any:
     try:
         value = json.loads(payload, parse_int=_bounded_int)
     # RecursionError: deeply nested JSON ("[[[[…]]]]", well within MAX_PAYLOAD) is bad
-    # data like any other (0x706), not an internal error (found by tests/test_robust_fuzz.py).
+    # data like any other (0x706), not an internal error.
     # ValueError: Python's own limit on long numbers, should one get past `_bounded_int`.
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
         raise AdsError(

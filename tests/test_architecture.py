@@ -44,6 +44,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.snapshot",
     "geo_server.events",
     "geo_server.service",
+    "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
 )
 
 

@@ -255,7 +255,7 @@ def test_receive_buffers_are_released_when_connections_close(
             s.sendall(part)
         assert wait_until(
             loop_thread,
-            lambda: sum(c.framer.buffered for c in server._connections) >= 100 * 100_000,
+            lambda: sum(c.framer.buffered for c in server.listener.connections) >= 100 * 100_000,
         )
         held = tracemalloc.get_traced_memory()[0] - base
         assert held >= 100 * 100_000

@@ -66,6 +66,7 @@ from geo_server.transports.ads.notifications import (
     NotificationTable,
     SamplingPass,
 )
+from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
 
@@ -189,9 +190,8 @@ class AdsServer:
             self.options.max_notifications_total,
             prepare=self._notification_getter,
         )
-        self._server: asyncio.Server | None = None
+        self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._connections: set[AdsConnection] = set()
         self._unsubscribe: Callable[[], None] | None = None
         self._notify_invoke = 0
         # Cycle thread -> loop hand-off of the newest snapshot (see `_on_cycle_thread`).
@@ -208,9 +208,7 @@ class AdsServer:
     async def start(self) -> None:
         """Listen and subscribe to the GEO cycle (for notifications)."""
         self._loop = asyncio.get_running_loop()
-        self._server = await self._loop.create_server(
-            lambda: AdsConnection(self), self.options.host, self.options.port
-        )
+        await self.listener.listen(lambda: AdsConnection(self))
         self._unsubscribe = self.service.subscribe(self._on_cycle_thread)
         log.info("ADS listening on %s:%d as %s", self.options.host, self.port, self.options.netid)
 
@@ -220,14 +218,8 @@ class AdsServer:
             with contextlib.suppress(ValueError):
                 self._unsubscribe()
             self._unsubscribe = None
-        if self._server is not None:
-            self._server.close()
-        for conn in list(self._connections):
-            conn.abort()
         self._pass = self._pass_from = self._latest = None
-        if self._server is not None:
-            await self._server.wait_closed()
-            self._server = None
+        await self.listener.close()
 
     async def __aenter__(self) -> AdsServer:
         await self.start()
@@ -239,18 +231,16 @@ class AdsServer:
     @property
     def port(self) -> int:
         """The bound TCP port (useful with `port=0`)."""
-        if self._server is None or not self._server.sockets:
-            return self.options.port
-        return int(self._server.sockets[0].getsockname()[1])
+        return self.listener.port
 
     @property
     def address(self) -> str:
         """`host:port` as pyads' `Connection(netid, 551, address)` wants it."""
-        return f"{self.options.host}:{self.port}"
+        return self.listener.endpoint
 
     @property
     def connection_count(self) -> int:
-        return len(self._connections)
+        return len(self.listener.connections)
 
     # ------------------------------------------------------------------ dispatch
 
@@ -601,15 +591,14 @@ class AdsServer:
     def _connected(self, conn: AdsConnection) -> bool:
         """Admit `conn` unless `max_connections` are open already (then False: the
         connection closes at once, before it can make the server buffer anything)."""
-        if len(self._connections) >= self.options.max_connections:
+        if not self.listener.admit(conn):
             self.stats.refused_connections += 1
             return False
-        self._connections.add(conn)
         self.stats.connections += 1
         return True
 
     def _disconnected(self, conn: AdsConnection) -> None:
-        self._connections.discard(conn)
+        self.listener.forget(conn)
         n = self.notifications.drop_owner(conn)
         if n:
             log.debug("dropped %d notifications of %s", n, conn.peer)

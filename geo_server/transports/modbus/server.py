@@ -63,6 +63,7 @@ from geo_server.transports.modbus.regmap import (
     UnitMap,
     exception_for,
 )
+from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
 
@@ -118,46 +119,37 @@ class ModbusInterface:
             u: self.map.machine if u == MACHINE_UNIT else self.map.axis for u in units
         }
         self._device = device_objects()
-        self._server: asyncio.Server | None = None
-        self._connections: set[ModbusConnection] = set()
+        self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
         self.requests = 0
-        self.refused_connections = 0
         self.closed_for_framing = 0
 
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         """Listen on `options.host:options.port` (port 0: see `port`)."""
-        loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(
-            lambda: ModbusConnection(self), self.options.host, self.options.port
-        )
-        log.info("Modbus TCP listening on %s:%d", self.options.host, self.port)
+        await self.listener.listen(lambda: ModbusConnection(self))
+        log.info("Modbus TCP listening on %s", self.endpoint)
 
     async def close(self) -> None:
         """Stop listening and drop every connection."""
-        if self._server is None:
-            return
-        server, self._server = self._server, None
-        server.close()
-        for conn in list(self._connections):
-            conn.abort()
-        await server.wait_closed()
+        await self.listener.close()
 
     @property
     def port(self) -> int:
         """The bound TCP port (useful with `port=0`)."""
-        if self._server is None or not self._server.sockets:
-            return self.options.port
-        return int(self._server.sockets[0].getsockname()[1])
+        return self.listener.port
 
     @property
     def endpoint(self) -> str:
-        return f"{self.options.host}:{self.port}"
+        return self.listener.endpoint
 
     @property
     def connection_count(self) -> int:
-        return len(self._connections)
+        return len(self.listener.connections)
+
+    @property
+    def refused_connections(self) -> int:
+        return self.listener.refused
 
     # ------------------------------------------------------------------ requests
 
@@ -236,17 +228,13 @@ class ModbusInterface:
     # ------------------------------------------------------------------ connections
 
     def _connected(self, conn: ModbusConnection) -> bool:
-        if len(self._connections) >= self.options.max_connections:
-            self.refused_connections += 1
-            log.warning(
-                "modbus: refusing %s: %d connections open", conn.peer, len(self._connections)
-            )
-            return False
-        self._connections.add(conn)
-        return True
+        if self.listener.admit(conn):
+            return True
+        log.warning("modbus: refusing %s: %d connections open", conn.peer, self.connection_count)
+        return False
 
     def _disconnected(self, conn: ModbusConnection) -> None:
-        self._connections.discard(conn)
+        self.listener.forget(conn)
 
 
 class ModbusConnection(asyncio.Protocol):

@@ -65,7 +65,7 @@ def _init(args: argparse.Namespace) -> int:
 
     src = default_startup_list().parent
     dest = Path(args.directory)
-    files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix in (".lis", ".nc"))
+    files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix in (".lis", ".nc", ".toml"))
     clash = [p.name for p in files if (dest / p.name).exists()]
     if clash and not args.force:
         print(f"error: {dest} already has {', '.join(clash)} (--force overwrites)", file=sys.stderr)
@@ -163,10 +163,14 @@ def _run(args: argparse.Namespace) -> int:
             )
             return 2
 
-        machine = RemoteMachine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
+        machine = RemoteMachine(
+            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
+        )
         scheduler = ProcessScheduler(machine, mode=args.mode, max_cycles=args.cycles)
     else:
-        machine = Machine(cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed)
+        machine = Machine(
+            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
+        )
         scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
     service = ObjectService(machine, scheduler)
     if args.program:
@@ -428,6 +432,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--cycle-ms", type=float, default=1.0, help="GEO cycle length in ms (0.25 … 10)")
     r.add_argument("--program", help="NC program to run at start")
     r.add_argument("--homed", action="store_true", help="start with every axis homed")
+    r.add_argument(
+        "--time-scale",
+        type=float,
+        metavar="K",
+        help="simulated seconds of the twin per real second (default: the twin file's "
+        "time_scale): a 4-hour warm-up at K=1000 runs in 14.4 s",
+    )
     r.add_argument(
         "--mode",
         choices=("realtime", "free"),

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from geo_server.twin.model import TwinConfig
+
 
 class CompKind(IntFlag):
     """The bit mask of `lr_param.prog_movement_requires_compensations` (000 §5.3, p.97).
@@ -291,6 +293,8 @@ class MachineConfig:
     startup_path: Path
     axes: dict[int, AxisConfig]  # logical axis number -> config, ascending order
     diagnostics: list[Diagnostic] = field(default_factory=list)
+    #: The machine behind the controller (`twin.toml` beside the start-up list), if any.
+    twin: TwinConfig | None = None
 
     @property
     def deactivated(self) -> list[Diagnostic]:

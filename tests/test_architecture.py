@@ -25,10 +25,11 @@ ROOTS = {
 #: its own layer or below (its own package included).
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
-    (1, ("geo_server.dictionary", "geo_server.model")),
+    (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
     (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),
+    (3, ("geo_server.twin",)),
     (4, ("geo_server.machine",)),
     (5, ("geo_server.service",)),
     (6, ("geo_server.transports",)),

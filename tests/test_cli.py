@@ -220,6 +220,7 @@ def test_init_copies_the_default_machine(tmp_path):
         *[f"achsmd{i}.lis" for i in range(1, 5)],
         "demo_temperature.nc",
         "hochlauf.lis",
+        "twin.toml",
     ]
     r = run([*script("geo-server"), "check", str(dest / "hochlauf.lis")], tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr

@@ -277,7 +277,7 @@ def test_modbus_map_csv_is_complete():
     regs = {(r["unit"], r["object"]) for r in rows if r["table"].startswith("holding")}
     assert len(regs) == len(D.objects)
     coils = [r for r in rows if r["table"] == "coil"]
-    assert {r["object"] for r in coils} == {"TEMPC::activated", "SIM::homed"}
+    assert {r["object"] for r in coils} == {"TEMPC::activated", "SIM::homed", "TWIN::spindle_on"}
     coef = next(r for r in rows if r["object"] == "TEMPC::coefficient")
     assert coef["address"].startswith("268…271")
     assert coef["type"] == "REAL64" and coef["registers"] == "4"

@@ -525,7 +525,7 @@ def test_init_copies_have_the_mode_of_a_new_file(tmp_path: Path, capsys) -> None
     probe.touch()
     modes = {stat.S_IMODE(p.stat().st_mode) for p in dest.iterdir()}
     assert modes == {stat.S_IMODE(probe.stat().st_mode)}
-    assert len(list(dest.iterdir())) == 10  # 4 + 4 lists, hochlauf.lis, the NC demo
+    assert len(list(dest.iterdir())) == 11  # 4 + 4 lists, hochlauf.lis, the NC demo, twin.toml
 
 
 def test_init_below_a_regular_file(tmp_path: Path, capsys) -> None:

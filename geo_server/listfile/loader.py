@@ -31,6 +31,7 @@ from geo_server.model import (
     Diagnostic,
     MachineConfig,
 )
+from geo_server.twin.file import TwinFileError, find_twin
 
 
 class ListFileError(GeoError):
@@ -71,7 +72,15 @@ def load_machine(startup: Path | str) -> MachineConfig:
     for nr, values in comp_values:
         _attach_comp(configs, nr, values, rep)
     _check_selected(configs, rep)
-    return MachineConfig(startup_path=startup, axes=configs, diagnostics=diags)
+    # The twin's axis names are checked against the machine's, unless a list had to be
+    # skipped already (its axis is missing for a reason the diagnostics name).
+    skipped = any(d.severity == "error" and d.deactivated is None for d in diags)
+    names = [] if skipped else [c.params.name or str(nr) for nr, c in configs.items()]
+    try:
+        twin = find_twin(startup, names)
+    except TwinFileError as exc:
+        raise ListFileError(exc.path, exc.line, exc.message) from None
+    return MachineConfig(startup_path=startup, axes=configs, diagnostics=diags, twin=twin)
 
 
 def _read(path: Path, kind: ListKind, rep: Reporter) -> Values:

@@ -41,6 +41,8 @@ from geo_server.machine.port import (
 )
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot
+from geo_server.twin.engine import TwinEngine
+from geo_server.twin.model import TwinConfig
 
 #: Column of each compensation in the kernel's [n, 7] arrays.
 C = {kind: i for i, kind in enumerate(COMP_ORDER)}
@@ -67,14 +69,18 @@ class Machine:
         cycle_s: float = 0.001,
         dictionary: Dictionary | None = None,
         homed: bool = False,
+        time_scale: float | None = None,
     ) -> None:
         self.cfg = cfg
         self.cycle_s = float(cycle_s)
+        self.time_scale = time_scale
         self.dictionary = dictionary or load_dictionary()
         self.layout = ObjectLayout(self.dictionary)
         self.axes: tuple[int, ...] = tuple(sorted(cfg.axes))
         self.names = {cfg.axes[a].params.name.upper(): i for i, a in enumerate(self.axes)}
         self.kernel = Kernel(cfg)
+        self.twin = self._new_twin(cfg)
+        self.spindle_on = False  # TWIN::spindle_on: a heat source of the twin
         self.motion = Motion([cfg.axes[a].params for a in self.axes], self.cycle_s)
         if homed:
             for slot in range(len(self.axes)):
@@ -92,6 +98,7 @@ class Machine:
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
+        self._output = np.zeros(n)  # what the drives get: command + all compensations
         self._reversal = np.full(n, -1, dtype=np.int64)
         self._rounded = np.zeros((n, 7))  # published (rounded) actual values
         self._prev_rounded = np.zeros((n, 7))  # scratch: swapped with _rounded per cycle
@@ -141,6 +148,8 @@ class Machine:
                     self._reversal,
                 )
                 self.kernel_ns = perf_counter_ns() - t0
+                np.add(self.motion.pos, k.total_offset, out=self._output)
+                self.twin.step(self._output, self.motion.pos, self.motion.vel, self.spindle_on)
                 self.cycle += 1
                 snap = self._build_snapshot()
                 self.snapshot = snap
@@ -262,7 +271,7 @@ class Machine:
         """
         col = self.layout.col
         k, mo = self.kernel, self.motion
-        self._src_owner = (k, mo)
+        self._src_owner = (k, mo, self.twin)
         n = len(self.axes)
         pieces: dict[str, np.ndarray] = {
             "actual": k.actual,
@@ -302,6 +311,9 @@ class Machine:
                 "SIM::last_error_id",
                 "SIM::program_running",
                 "SIM::program_line",
+                "TWIN::ambient_temperature",
+                "TWIN::time",
+                "TWIN::spindle_on",
             )
         )
         self._mach_template = [0.0] * len(self.layout.machine_objects)
@@ -314,7 +326,7 @@ class Machine:
     def _build_snapshot(self) -> Snapshot:
         """docs/design.md §5 step 4: every object of every axis, from this cycle's state."""
         k, mo = self.kernel, self.motion
-        if self._src_owner[0] is not k or self._src_owner[1] is not mo:
+        if self._src_owner != (k, mo, self.twin):
             self._layout_sources()
         mb = self._mbuf_cols
         # Deltas are differences of the published (rounded) values, so that the deltas
@@ -334,7 +346,7 @@ class Machine:
         np.concatenate(self._pieces, axis=1, out=self._stack)
         v = self._stack.take(self._columns, axis=1)
         mach = self._mach_template.copy()
-        c0, c1, c2, c3, c4, c5 = self._mcols
+        c0, c1, c2, c3, c4, c5, c6, c7, c8 = self._mcols
         mach[c0] = self.cycle & 0xFFFF_FFFF
         mach[c1] = round(self.cycle_s * 1e6)
         mach[c2] = self.overruns
@@ -343,6 +355,9 @@ class Machine:
         if player is not None:
             mach[c4] = float(player.running)
             mach[c5] = player.line
+        mach[c6] = self.twin.ambient
+        mach[c7] = self.twin.time
+        mach[c8] = float(self.spindle_on)
         self._texts[self._text_slot] = self.last_error
         return Snapshot(
             self.cycle,
@@ -447,9 +462,24 @@ class Machine:
         """
         self.cfg = cfg
         self.kernel.reload(cfg)
+        twin = self._new_twin(cfg)
+        twin.take_state(self.twin)  # the machine does not cool down on a reload
+        self.twin = twin
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         for d in cfg.diagnostics:
             self._record(d)
+
+    def _new_twin(self, cfg: MachineConfig) -> TwinEngine:
+        """The machine behind the controller; without a twin file a perfect machine at
+        the reference temperature (true position = output position)."""
+        names = [cfg.axes[a].params.name or str(a) for a in self.axes]
+        periods = [
+            cfg.axes[a].params.modulo_period if cfg.axes[a].params.modulo else 0.0
+            for a in self.axes
+        ]
+        return TwinEngine(
+            cfg.twin or TwinConfig(), names, self.cycle_s, self.time_scale, modulo=periods
+        )
 
     def start_program(self, text: str, mdi: bool = False) -> Pending:
         """Parse an NC program (raises `NcError`) and run it from the next cycle on."""
@@ -610,6 +640,10 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "SIM::feed": "feed",
     "FRICT::additive_current": lambda m: m.kernel.friction_current,
     "SIM::axis_type": lambda m: m._axis_type,
+    "TWIN::sensor_temperature": lambda m: m.twin.sensor_temperature,
+    "TWIN::true_position": lambda m: m.twin.true_position,
+    "TWIN::residual": lambda m: m.twin.residual,
+    "TWIN::friction_current": lambda m: m.twin.friction_current,
 }
 #: kenngr.achs_typ of each axis kind (002 P-AXIS-00018).
 _ACHS_TYP = {"T": 1.0, "R": 2.0, "S": 4.0}
@@ -655,4 +689,5 @@ _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
         s, min(float(v) * UNITS_PER_UM, m.cfg.axes[m.axes[s]].params.v_max)
     ),
     "SIM::set_position": lambda m, s, v: m.motion.set_position(s, float(v)),
+    "TWIN::spindle_on": lambda m, s, v: setattr(m, "spindle_on", bool(v)),
 }

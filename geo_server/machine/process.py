@@ -71,6 +71,7 @@ def _child_main(
     cfg: MachineConfig,
     cycle_s: float,
     homed: bool,
+    time_scale: float | None,
     mode: str,
     max_cycles: int,
     slots: SlotTable,
@@ -84,7 +85,7 @@ def _child_main(
     fd = conn.fileno()
     os.set_blocking(fd, False)
     _raise_priority()
-    machine = Machine(cfg, cycle_s=cycle_s, homed=homed)
+    machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
     sched = Scheduler(machine, mode=mode, max_cycles=max_cycles)
     out, dec = OutBuffer(), FrameDecoder()
     acks: list[tuple[int, bool, Any]] = []
@@ -182,10 +183,17 @@ class RemoteMachine:
     """The server process's view of a machine whose cycle runs in a child process
     (implements `MachinePort`)."""
 
-    def __init__(self, cfg: MachineConfig, cycle_s: float = 0.001, homed: bool = False) -> None:
+    def __init__(
+        self,
+        cfg: MachineConfig,
+        cycle_s: float = 0.001,
+        homed: bool = False,
+        time_scale: float | None = None,
+    ) -> None:
         # A local machine that never steps gives layout, names, the first snapshot and
         # the load diagnostics exactly as the child will have them.
-        local = Machine(cfg, cycle_s=cycle_s, homed=homed)
+        local = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
+        self.time_scale = time_scale
         self.cfg = cfg
         self.cycle_s = local.cycle_s
         self.homed = homed
@@ -395,6 +403,7 @@ class ProcessScheduler:
                 m.cfg,
                 m.cycle_s,
                 m.homed,
+                m.time_scale,
                 self.mode,
                 self.max_cycles,
                 m.slots,

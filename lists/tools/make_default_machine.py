@@ -7,6 +7,7 @@ It writes, next to `lists/hochlauf.lis`:
     hochlauf.lis            start-up list [STUP]
     achsmd1..4.lis          axis parameter lists [AXIS] of X, Y, Z, C
     achskw1..4.lis          compensation value lists [COMP] of X, Y, Z, C
+    twin.toml               the machine behind the controller (docs/twin.md)
 
 The machine (docs/design.md §3: 0.1 µm linear, 0.0001° rotary):
 
@@ -452,6 +453,124 @@ def achskw4() -> list[str]:
     return out
 
 
+# ============================================================================ the twin
+
+
+def toml_list(values: list[float], per_line: int = 10, indent: str = "    ") -> str:
+    rows = [values[i : i + per_line] for i in range(0, len(values), per_line)]
+    body = ",\n".join(indent + ", ".join(f"{v:g}" for v in row) for row in rows)
+    return "[\n" + body + ",\n]"
+
+
+def twin() -> list[str]:
+    """`twin.toml`: the machine the default lists were commissioned on, at 20 °C.
+
+    Every compensation of the lists is the negative of an error here (the lists' LSEC
+    tables are measured errors and equal the pitch curves), so a commissioning at 20 °C
+    reproduces them; what no list corrects (the cyclic screw error between the LSEC
+    points, the scatter of each approach, the thermal drift, crosstalk) is the residual.
+    """
+    out = [
+        "# geo-server twin of the default machine (docs/twin.md): the machine behind the",
+        "# controller. Errors in µm (rotary axes: 0.001°), positions in mm (°).",
+        GEN,
+        "#",
+        "[twin]",
+        "reference_temperature = 20.0",
+        "time_scale = 1.0",
+        "seed = 1",
+        "# a workshop warming up in the morning: +3 K in two hours, then steady",
+        "ambient = [[0, 20.0], [7200, 23.0], [14400, 23.0]]",
+        "",
+    ]
+    nodes = (
+        ("x_screw", 1800.0, "X", 10.0, 0.0),
+        ("y_screw", 1800.0, "Y", 10.0, 0.0),
+        ("z_column", 3600.0, "Z", 5.0, 5.0),
+    )
+    for name, tau, axis, gain, spindle in nodes:
+        out += [
+            "[[node]]",
+            f'name = "{name}"',
+            f"tau = {tau}",
+            "initial = 20.0",
+            f'motion_axis = "{axis}"',
+            f"motion_gain = {gain}",
+            f"spindle_gain = {spindle}",
+            "",
+            "[[sensor]]",
+            f'name = "{name}"',
+            f'node = "{name}"',
+            f'axis = "{axis}"',
+            "noise = 0.02",
+            "resolution = 0.01",
+            "period = 0.1",
+            "",
+        ]
+    # X: the lists' temperature line (the manual's example, 000 p.24) is a scale error
+    x_pos = [(X_LSEC_START + i * X_LSEC_INTERVAL) / 10_000 for i in range(X_LSEC_N)]
+    out += [
+        "[axis.X]",
+        "linear = { offset = -4.0, slope = -4000.0, reference = 0.01 }",
+        f"pitch = {{ positions = {toml_list(x_pos)}, errors = "
+        f"{toml_list([x_lsec_pos(i) / 10 for i in range(X_LSEC_N)])} }}",
+        "periodic = { amplitude = 0.5, period = 10.0 }",
+        "reversal = 100.0",
+        "reference_direction = 1",
+        'expansion = { node = "x_screw", coefficient = -50.0, reference = 0.01 }',
+        "friction = { coulomb = 2000.0, viscous = 12.0 }",
+        "scatter = 0.3",
+        "",
+    ]
+    y_sp = [y_setpoint(i) / 10_000 for i in range(Y_N)]
+    out += [
+        "[axis.Y]",
+        "linear = { offset = 0.0, slope = -23.0, reference = 0.0 }",
+        f"pitch = {{ positions = {toml_list(y_sp)}, errors = "
+        f"{toml_list([y_pos(i) / 10 for i in range(Y_N)])} }}",
+        f"pitch_negative = {{ positions = {toml_list(y_sp)}, errors = "
+        f"{toml_list([y_neg(i) / 10 for i in range(Y_N)])} }}",
+        "reversal = 5.0",
+        "reference_direction = -1",
+        'expansion = { node = "y_screw", coefficient = -11.5, reference = 0.0 }',
+        "scatter = 0.3",
+        "",
+    ]
+    cross_pos = [(CROSS_START + i * CROSS_INTERVAL) / 10_000 for i in range(CROSS_N)]
+    grid = [
+        "    [" + ", ".join(f"{-plane_corr(j, i) / 10:g}" for i in range(PLANE_LAST + 1)) + "],"
+        for j in range(PLANE_LAST + 1)
+    ]
+    out += [
+        "[axis.Z]",
+        "linear = { offset = 2.0, slope = -15.0, reference = 0.0 }",
+        'expansion = { node = "z_column", coefficient = -11.5, reference = 0.0 }',
+        "scatter = 0.3",
+        "",
+        "[[axis.Z.straightness]]  # the Z slide sags along the X beam",
+        'over = "X"',
+        f"positions = {toml_list(cross_pos)}",
+        f"errors = {toml_list([-cross_corr(i) / 10 for i in range(CROSS_N)])}",
+        "",
+        "[[axis.Z.grid]]  # flatness of the table under X and Y",
+        'over = ["X", "Y"]',
+        f"start = [{PLANE_START / 10_000:g}, {PLANE_START / 10_000:g}]",
+        f"step = [{PLANE_INTERVAL / 10_000:g}, {PLANE_INTERVAL / 10_000:g}]",
+        "errors = [",
+        *grid,
+        "]",
+        "",
+    ]
+    c_deg = [i * C_INTERVAL / 10_000 for i in range(C_N)]
+    out += [
+        "[axis.C]",
+        f"pitch = {{ positions = {toml_list(c_deg)}, errors = "
+        f"{toml_list([c_pos(i) / 10 for i in range(C_N)])} }}",
+        "scatter = 0.2",
+    ]
+    return out
+
+
 def main() -> None:
     assert c_pos(0) == c_pos(C_N - 1)
     sp = [y_setpoint(i) for i in range(Y_N)]
@@ -462,6 +581,7 @@ def main() -> None:
                      ("achskw2.lis", achskw2), ("achsmd3.lis", achsmd3), ("achskw3.lis", achskw3),
                      ("achsmd4.lis", achsmd4), ("achskw4.lis", achskw4)):
         write(name, fn())
+    write("twin.toml", twin())
 
 
 if __name__ == "__main__":

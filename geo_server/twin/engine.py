@@ -1,0 +1,373 @@
+"""The twin per GEO cycle: true tool position, residual error, temperatures (vectorised).
+
+Every cycle, after the compensation kernel (docs/twin.md):
+
+1. simulated time advances by the cycle length × `time_scale`;
+2. the thermal nodes move towards their targets — ambient(t) plus the steady-state rises
+   of the heat sources (motion of an axis ∝ |v|, the spindle) — exactly for a first-order
+   system: T += (T_target − T)·(1 − e^(−dt/τ));
+3. the sensors due take a sample: the node's temperature plus seeded noise, rounded to
+   the resolution;
+4. every error is evaluated at the drive (output) position of the axes — where the
+   mechanics really are: linear scale error, pitch curve (per direction where given),
+   cyclic error, lost motion on reversal, straightness over other axes, grids over two
+   axes, squareness, thermal expansion, and the scatter of each approach;
+5. true position = output + error; residual = true − command (the programmed position).
+
+All positions and errors are increments here (0.1 µm, 0.0001°): the file's mm/° and
+µm/0.001° are converted once, at load. The work per cycle is a fixed number of numpy
+calls whatever the number of axes: all 1-D curves of all axes are served by one merged
+table lookup (the kernel's `MergedTable`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from geo_server.kernel.tables import Lookup, MergedTable
+from geo_server.twin.model import AxisTwin, Curve, Grid, TwinConfig
+
+#: Increments per mm (linear) or per ° (rotary).
+INCR_PER_UNIT = 10_000.0
+#: Increments per µm (linear) or per 0.001° (rotary).
+INCR_PER_MICRO = 10.0
+#: Increments per second to m/s (linear) or to 1000 °/s (rotary).
+V_SCALE = 1e-7
+
+
+def _curve_rows(c: Curve) -> tuple[np.ndarray, np.ndarray]:
+    return (
+        np.asarray(c.positions) * INCR_PER_UNIT,
+        np.asarray(c.errors) * INCR_PER_MICRO,
+    )
+
+
+class TwinEngine:
+    """The machine's errors and temperatures for the axes `names` (slot order)."""
+
+    def __init__(
+        self,
+        cfg: TwinConfig,
+        names: Sequence[str],
+        cycle_s: float,
+        time_scale: float | None = None,
+        modulo: Sequence[float] = (),
+    ) -> None:
+        """`modulo`: the period of each modulo axis in increments (0: not modulo); its
+        curves are looked up at the position within the period."""
+        self.cfg = cfg
+        self.names = [n.upper() for n in names]
+        n = len(self.names)
+        slot = {name: i for i, name in enumerate(self.names)}
+        self.time_scale = time_scale if time_scale is not None else cfg.time_scale
+        self.dt = cycle_s * self.time_scale  # simulated seconds per cycle
+        self.cycles = 0
+        self.time = 0.0  # cycles · dt (a product, never a running sum that drifts)
+        axes = [cfg.axes.get(name, AxisTwin(name)) for name in self.names]
+        self.period = np.array(list(modulo) or [0.0] * n, dtype=float)
+        self._setup_geometry(axes, slot)
+        self._setup_thermal(axes, slot)
+        # outputs (read by the machine's snapshot)
+        self.true_position = np.zeros(n)
+        self.residual = np.zeros(n)
+        self.friction_current = np.zeros(n)
+        self.error = np.zeros(n)
+        # state
+        self.direction = np.array([float(a.reference_direction) for a in axes])
+        self._moving = np.zeros(n, dtype=bool)
+        self._scatter_now = np.zeros(n)
+        self._rng = np.random.default_rng(cfg.seed)
+        self._tmp = np.zeros(n)
+
+    # ------------------------------------------------------------------ set-up
+
+    def _setup_geometry(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
+        n = len(axes)
+        self.lin_off = np.array([a.linear_offset * INCR_PER_MICRO for a in axes])
+        self.lin_slope = np.array([a.linear_slope * 1e-6 for a in axes])
+        self.lin_ref = np.array([a.linear_reference * INCR_PER_UNIT for a in axes])
+        self.per_amp = np.array([a.periodic_amplitude * INCR_PER_MICRO for a in axes])
+        self.per_k = np.array(
+            [
+                2 * math.pi / (a.periodic_period * INCR_PER_UNIT) if a.periodic_period else 0.0
+                for a in axes
+            ]
+        )
+        self.reversal = np.array([a.reversal * INCR_PER_MICRO for a in axes])
+        self.ref_dir = np.array([float(a.reference_direction) for a in axes])
+        self.scatter = np.array([a.scatter * INCR_PER_MICRO for a in axes])
+        self._any_periodic = bool(self.per_amp.any())
+        self._half_reversal = self.reversal / 2
+        self.fr_coulomb = np.array([a.friction_coulomb for a in axes])
+        self.fr_viscous = np.array([a.friction_viscous for a in axes])
+        self._fr_viscous_incr = self.fr_viscous * 1e-4  # per mm/s (°/s) -> per increment/s
+        self._any_friction = bool(self.fr_coulomb.any() or self.fr_viscous.any())
+        # every 1-D curve of every axis: (source slot, target slot, direction it holds in)
+        rows: list[tuple[np.ndarray, np.ndarray]] = []
+        links: list[tuple[int, int, int]] = []  # (source slot, target slot, direction)
+        for i, a in enumerate(axes):
+            if a.pitch is not None:
+                rows.append(_curve_rows(a.pitch))
+                links.append((i, i, 1 if a.pitch_negative else 0))
+            if a.pitch_negative is not None:
+                rows.append(_curve_rows(a.pitch_negative))
+                links.append((i, i, -1))
+            for s in a.straightness:
+                if s.over in slot:  # (an axis the machine lacks contributes nothing)
+                    rows.append(_curve_rows(s.curve))
+                    links.append((slot[s.over], i, 0))
+        src = [link[0] for link in links]
+        tgt = [link[1] for link in links]
+        kind = [link[2] for link in links]
+        self._curves = bool(rows)
+        if rows:
+            self._lookup = Lookup(MergedTable(rows), np.arange(len(rows), dtype=float))
+            self._src = np.array(src)
+            self._tgt = np.array(tgt)
+            self._kind = np.array(kind, dtype=float)
+            self._directional = bool(np.any(self._kind != 0))
+            self._w_a = 1.0 - np.abs(self._kind) / 2
+            self._w_b = self._kind / 2
+            self._w = np.zeros(len(rows))
+            self._vals = np.zeros(len(rows))
+            self._src_period = np.where(self.period[self._src] > 0, self.period[self._src], 1.0)
+            self._wrap = self.period[self._src] > 0
+            self._wrap_any = bool(self._wrap.any())
+        self.square = np.zeros((n, n))
+        for i, a in enumerate(axes):
+            for other, urad in a.squareness:
+                if other in slot:
+                    self.square[i, slot[other]] += urad * 1e-6
+        self._any_square = bool(self.square.any())
+        self.grids: list[tuple[int, int, int, _GridLookup]] = [
+            (i, slot[g.over1], slot[g.over2], _GridLookup(g))
+            for i, a in enumerate(axes)
+            for g in a.grids
+            if g.over1 in slot and g.over2 in slot
+        ]
+
+    def _setup_thermal(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
+        cfg = self.cfg
+        nodes = list(cfg.nodes)
+        index = {nd.name: k for k, nd in enumerate(nodes)}
+        self.node_names = [nd.name for nd in nodes]
+        self.node_temp = np.array([nd.initial for nd in nodes], dtype=float)
+        #: cycles between two updates of the thermal model: 10 ms of simulated time (the
+        #: time constants are minutes), at least every cycle
+        self.thermal_every = max(1, round(0.01 / self.dt)) if self.dt > 0 else 1
+        dt_thermal = self.thermal_every * self.dt
+        self._node_k = np.array([1.0 - math.exp(-dt_thermal / nd.tau) for nd in nodes])
+        self._motion_slot = np.array([slot.get(nd.motion_axis, 0) for nd in nodes], dtype=int)
+        # the mean |v| of an update is the sum over its cycles / thermal_every
+        self._motion_gain = np.array(
+            [
+                nd.motion_gain * V_SCALE / self.thermal_every if nd.motion_axis in slot else 0.0
+                for nd in nodes
+            ]
+        )
+        self._spindle_gain = np.array([nd.spindle_gain for nd in nodes])
+        self._node_target = np.zeros(len(nodes))
+        self._amb_t = np.array([p[0] for p in cfg.ambient])
+        self._amb_v = np.array([p[1] for p in cfg.ambient])
+        self.ambient = float(np.interp(0.0, self._amb_t, self._amb_v))
+        self.t_ref = cfg.reference_temperature
+        # expansion: coefficient (per K, dimensionless) and reference per axis, its node
+        self.exp_coef = np.array(
+            [a.expansion.coefficient * 1e-6 if a.expansion else 0.0 for a in axes]
+        )
+        self.exp_ref = np.array(
+            [a.expansion.reference * INCR_PER_UNIT if a.expansion else 0.0 for a in axes]
+        )
+        self.exp_node = np.array(
+            [index[a.expansion.node] if a.expansion else 0 for a in axes], dtype=int
+        )
+        self._any_expansion = bool(self.exp_coef.any()) and len(nodes) > 0
+        # sensors: the node each reads, the axis it is shown on, its noise and resolution
+        sensors = list(cfg.sensors)
+        self.sensor_names = [s.name for s in sensors]
+        self.sensor_node = np.array([index[s.node] for s in sensors], dtype=int)
+        self.sensor_noise = np.array([s.noise for s in sensors])
+        self.sensor_res = np.array([s.resolution for s in sensors])
+        self.sensor_period = np.array([s.period for s in sensors])
+        self.sensor_due = np.zeros(len(sensors))  # next sample time
+        self.sensor_value = np.array(
+            [_quantize(self.node_temp[index[s.node]], s.resolution) for s in sensors]
+        )
+        n = len(axes)
+        #: TWIN::sensor_temperature of each axis: its sensor, else the reference temperature
+        self.axis_sensor = np.full(n, -1, dtype=int)
+        for k, s in enumerate(sensors):
+            if s.axis in slot and self.axis_sensor[slot[s.axis]] < 0:
+                self.axis_sensor[slot[s.axis]] = k
+        self.sensor_temperature = np.full(n, self.t_ref)
+        self._next_sample = 0.0 if sensors else math.inf
+        self._vsum = np.zeros(n)
+        self._line_a = np.zeros(n)
+        self._line_b = np.zeros(n)
+        self._update_lines()
+
+    # ------------------------------------------------------------------ the cycle
+
+    def step(
+        self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray, spindle: bool
+    ) -> None:
+        """One GEO cycle (see the module docstring)."""
+        self.cycles += 1
+        self.time = self.cycles * self.dt
+        tmp = self._tmp
+        np.abs(velocity, out=tmp)
+        self._vsum += tmp
+        if self.cycles % self.thermal_every == 0:
+            self._thermal(spindle)
+        if self.time >= self._next_sample:
+            self._sample_sensors()
+        moving = velocity != 0.0
+        np.sign(velocity, out=tmp)
+        np.copyto(self.direction, tmp, where=moving)
+        e = self.error
+        # linear scale error and thermal expansion: one line per axis, A·pos + B, whose
+        # A and B change only with the temperatures (`_thermal`)
+        np.multiply(output, self._line_a, out=e)
+        e += self._line_b
+        if self._any_periodic:
+            np.multiply(output, self.per_k, out=tmp)
+            np.sin(tmp, out=tmp)
+            tmp *= self.per_amp
+            e += tmp
+        # lost motion while moving against the reference direction: direction is ±1, so
+        # −direction·reversal·[direction ≠ reference] = −(direction − reference)·reversal/2
+        np.subtract(self.direction, self.ref_dir, out=tmp)
+        tmp *= self._half_reversal
+        e -= tmp
+        if self._curves:
+            self._curve_errors(output, e)
+        for target, o1, o2, grid in self.grids:
+            e[target] += grid(output[o1], output[o2])
+        if self._any_square:
+            e += self.square @ output
+        # scatter: a new random error for every approach (when an axis comes to rest)
+        arrived = self._moving & ~moving
+        if arrived.any():
+            self._scatter_now[arrived] = (
+                self._rng.normal(size=int(arrived.sum())) * self.scatter[arrived]
+            )
+        self._moving = moving
+        e += self._scatter_now
+        np.add(output, e, out=self.true_position)
+        np.subtract(self.true_position, command, out=self.residual)
+        if self._any_friction:  # the current the drive needs: sign(v)·(c + k·|v|)
+            np.abs(velocity, out=tmp)
+            tmp *= self._fr_viscous_incr
+            tmp += self.fr_coulomb
+            np.sign(velocity, out=self.friction_current)
+            self.friction_current *= tmp
+
+    def _curve_errors(self, output: np.ndarray, e: np.ndarray) -> None:
+        """Every 1-D curve of every axis in one merged lookup; bilateral rows weighted
+        by the direction they hold in: w = 1 − |k|/2 + k·d/2 (1, or 0/1 for k = ±1)."""
+        q = self._lookup.q
+        output.take(self._src, out=q)
+        if self._wrap_any:
+            np.copyto(q, np.mod(q, self._src_period), where=self._wrap)
+        self._lookup(self._vals)
+        if self._directional:
+            w = self._w
+            self.direction.take(self._tgt, out=w)
+            w *= self._w_b
+            w += self._w_a
+            self._vals *= w
+        e += np.bincount(self._tgt, weights=self._vals, minlength=len(e))
+
+    def _thermal(self, spindle: bool) -> None:
+        """Advance the nodes by `thermal_every` cycles: exact for a first-order system
+        with the mean |v| of those cycles as the motion heat; then the axis lines."""
+        if len(self.node_temp):
+            self.ambient = float(np.interp(self.time, self._amb_t, self._amb_v))
+            target = self._node_target
+            self._vsum.take(self._motion_slot, out=target)
+            target *= self._motion_gain
+            target += self.ambient
+            if spindle:
+                target += self._spindle_gain
+            self.node_temp += (target - self.node_temp) * self._node_k
+        self._vsum[:] = 0.0
+        self._update_lines()
+
+    def _update_lines(self) -> None:
+        """error = slope·(pos − ref) + offset + coef·ΔT·(pos − exp_ref) = A·pos + B."""
+        dT = self.node_temp[self.exp_node] - self.t_ref if len(self.node_temp) else 0.0
+        c = self.exp_coef * dT
+        np.add(self.lin_slope, c, out=self._line_a)
+        np.subtract(
+            self.lin_off, self.lin_slope * self.lin_ref + c * self.exp_ref, out=self._line_b
+        )
+
+    def _sample_sensors(self) -> None:
+        due = self.sensor_due <= self.time
+        k = np.nonzero(due)[0]
+        noise = self._rng.normal(size=len(k)) * self.sensor_noise[k]
+        raw = self.node_temp[self.sensor_node[k]] + noise
+        self.sensor_value[k] = [
+            _quantize(v, r) for v, r in zip(raw, self.sensor_res[k], strict=True)
+        ]
+        # the next sample one period after the one due (never drifting with dt)
+        self.sensor_due[k] += self.sensor_period[k] * np.ceil(
+            (self.time - self.sensor_due[k]) / self.sensor_period[k] + 1e-12
+        )
+        self._next_sample = float(self.sensor_due.min())
+        has = self.axis_sensor >= 0
+        self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+
+    # ------------------------------------------------------------------ reload
+
+    def take_state(self, old: TwinEngine) -> None:
+        """Continue where `old` left off (a reload): time, node temperatures by name,
+        directions, the random stream."""
+        self.cycles, self.time = old.cycles, old.time
+        for k, name in enumerate(self.node_names):
+            if name in old.node_names:
+                self.node_temp[k] = old.node_temp[old.node_names.index(name)]
+        for k, name in enumerate(self.sensor_names):
+            if name in old.sensor_names:
+                j = old.sensor_names.index(name)
+                self.sensor_value[k], self.sensor_due[k] = old.sensor_value[j], old.sensor_due[j]
+        self._next_sample = float(self.sensor_due.min()) if len(self.sensor_due) else math.inf
+        has = self.axis_sensor >= 0
+        self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+        if len(self.direction) == len(old.direction):
+            self.direction[:] = old.direction
+        self._rng = old._rng
+        self._update_lines()
+
+
+def _quantize(value: float, resolution: float) -> float:
+    return round(round(value / resolution) * resolution, 12) if resolution > 0 else float(value)
+
+
+class _GridLookup:
+    """Bilinear interpolation on a grid, edges held; positions in increments."""
+
+    def __init__(self, g: Grid) -> None:
+        self.table = np.asarray(g.errors, dtype=float) * INCR_PER_MICRO
+        self.rows, self.cols = self.table.shape
+        self.u0, self.du = g.start1 * INCR_PER_UNIT, g.step1 * INCR_PER_UNIT
+        self.v0, self.dv = g.start2 * INCR_PER_UNIT, g.step2 * INCR_PER_UNIT
+        self.t = self.table.tolist()  # Python floats: a scalar lookup without numpy calls
+
+    def __call__(self, p1: float, p2: float) -> float:
+        u = min(max((p1 - self.u0) / self.du, 0.0), self.cols - 1.0)
+        v = min(max((p2 - self.v0) / self.dv, 0.0), self.rows - 1.0)
+        i = min(int(u), self.cols - 2) if self.cols > 1 else 0
+        j = min(int(v), self.rows - 2) if self.rows > 1 else 0
+        fu, fv = u - i, v - j
+        i1, j1 = min(i + 1, self.cols - 1), min(j + 1, self.rows - 1)
+        r0, r1 = self.t[j], self.t[j1]
+        top = r0[i] + (r0[i1] - r0[i]) * fu
+        bottom = r1[i] + (r1[i1] - r1[i]) * fu
+        return float(top + (bottom - top) * fv)
+
+
+__all__ = ["INCR_PER_MICRO", "INCR_PER_UNIT", "TwinEngine"]

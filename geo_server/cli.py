@@ -491,6 +491,17 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
     r.set_defaults(func=_run)
 
+    ms = sub.add_parser(
+        "measure",
+        help="ISO 230-2 positioning test on the twin; --commission closes the loop",
+        description="Measure an axis of the twin (ISO 230-2:2014 bidirectional positioning "
+        "test) in this process, stepped: figures, raw deviations, list values, reference "
+        "measurement, plots (docs/twin.md).",
+    )
+    from geo_server import commissioning
+
+    commissioning.add_arguments(ms)
+
     mm = sub.add_parser("modbus-map", help="print the Modbus register map")
     mm.add_argument("--format", choices=("md", "csv"), default="md")
     mm.set_defaults(func=_modbus_map)

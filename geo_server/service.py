@@ -59,6 +59,7 @@ from geo_server.machine.port import (
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
 from geo_server.snapshot import Snapshot
+from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
@@ -159,6 +160,7 @@ class ObjectService:
         self.limits = limits or ServiceLimits()
         self.dictionary = machine.dictionary
         self._command_lock = threading.Lock()
+        self._measure_lock = threading.Lock()
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
@@ -537,6 +539,36 @@ class ObjectService:
         return self.snapshot.cycle
 
     # ------------------------------------------------------------------ commands
+
+    def measure(self, spec: Any) -> dict[str, Any]:
+        """An ISO 230-2 positioning test on the twin (docs/twin.md), for `cmd/measure`:
+        `spec` is the JSON plan of `twin.measure.plan_from_json`; returns the evaluation
+        as a dict. Blocks until done: call it from a worker thread. On a running machine
+        it moves the axis through object writes and waits for the cycles; in stepped
+        mode it steps the machine itself. One measurement at a time (else 0x708)."""
+        try:
+            plan = plan_from_json(spec, self.machine.cfg)
+        except MeasureError as exc:
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDDATA, str(exc), "measure") from None
+        if not self._measure_lock.acquire(blocking=False):
+            raise AdsError(AdsErrorCode.DEVICE_BUSY, "a measurement is running", "measure")
+        try:
+            bench = LiveBench(self) if self.running else StepBench(self)
+            started = time.monotonic()
+            ev = run_test(bench, plan)
+        except MeasureError as exc:
+            raise AdsError(AdsErrorCode.DEVICE_BUSY, str(exc), "measure") from None
+        finally:
+            self._measure_lock.release()
+        return {
+            "ok": True,
+            "command": "measure",
+            "axis": plan.axis,
+            "runs": plan.runs,
+            "off": list(plan.compensation_off),
+            "host_s": round(time.monotonic() - started, 3),
+            **ev.as_dict(),
+        }
 
     def run_command(self, name: str) -> CommandResult:
         """Run `reload` or `save` in the caller's thread (see `command`)."""

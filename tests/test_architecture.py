@@ -34,7 +34,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (5, ("geo_server.service",)),
     (6, ("geo_server.transports",)),
     (6, ("geo_server.client",)),
-    (7, ("geo_server.cli", "geo_server.docs")),
+    (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning")),
     (8, ("geo_clients",)),
 ]
 #: What a transport may import outside its own package.

@@ -19,11 +19,8 @@ from geo_server.twin.iso230 import (
     DEVIATIONS_HEADER,
     REFERENCE_HEADER,
     Evaluation,
-    LsecTable,
-    backlash_value,
     deviations_csv,
     evaluate,
-    lsec_table,
     reference_csv,
     reference_rows,
     targets_iso,
@@ -101,15 +98,7 @@ def test_axis_figures_by_hand(hand):
     assert f == pytest.approx(expected)
 
 
-def test_commissioning_values_by_hand(hand):
-    uni = lsec_table(hand, bilateral=False)
-    assert uni == LsecTable((0.0, 50.0, 100.0), (2.5, 7.5, -1.5), None)
-    assert not uni.bilateral
-    bi = lsec_table(hand, bilateral=True)
-    assert bi == LsecTable((0.0, 50.0, 100.0), (2.0, 9.0, -1.0), (3.0, 6.0, -2.0))
-    assert bi.bilateral
-    # −B̄ = −1: this made-up axis overshoots on reversal (B̄ > 0)
-    assert backlash_value(hand) == pytest.approx(-1.0)
+def test_reference_rows_by_hand(hand):
     # what the compensation must add: −x̄_i
     assert reference_rows(2, 25.0, hand) == [
         (2, 25.0, 0.0, -2.5),
@@ -179,17 +168,12 @@ def test_pure_reversal():
     ev = evaluate(p, up, down)
     assert ev.reversal_i.tolist() == [-6.0] * 5
     assert ev.reversal == 6.0 and ev.mean_reversal == -6.0
-    assert backlash_value(ev) == 6.0
     # no scatter: s = 0, so R↑ = R↓ = 0 and R = |B| = 6 (the reversal alone)
     assert ev.repeatability_up == 0.0 and ev.repeatability_down == 0.0 and ev.repeatability == 6.0
     # x̄_i = e: M = range(e) = 5; E = max(e) + 3 − (min(e) − 3) = 5 + 6; A = E (no s)
     assert ev.mean.tolist() == e.tolist()
     assert ev.mean_error == 5.0 and ev.systematic_up == 5.0 and ev.systematic_down == 5.0
     assert ev.systematic == 11.0 and ev.accuracy == 11.0 and ev.accuracy_up == 5.0
-    # the tables: bilateral carries the lag, unilateral the mean curve
-    assert lsec_table(ev, True).pos == tuple(e - 3.0)
-    assert lsec_table(ev, True).neg == tuple(e + 3.0)
-    assert lsec_table(ev, False).pos == tuple(e)
 
 
 def test_pure_noise_same_scatter_everywhere():

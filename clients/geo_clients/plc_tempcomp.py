@@ -71,8 +71,10 @@ by the server (docs/design.md §3).
 
 Temperature sources: `WarmUp` (a simulated warm-up curve `T(t) = T_end − (T_end −
 T_start)·exp(−t/τ)`), `CsvTemperature` (timestamped samples `time,temperature_C`,
-seconds from start or ISO-8601 times; linear between samples, held outside), and
-`ZenohTemperature` (the latest JSON number published on a Zenoh key by another program).
+seconds from start or ISO-8601 times; linear between samples, held outside),
+`ZenohTemperature` (the latest JSON number published on a Zenoh key by another program)
+and `TwinSensors` (each axis' `TWIN::sensor_temperature`, the twin's sensor, read over
+the same transport: the loop a real PLC closes, docs/twin.md).
 
 Usage (see `--help`):
 
@@ -81,6 +83,8 @@ Usage (see `--help`):
     python -m geo_clients.plc_tempcomp REF.csv --csv temps.csv --via modbus --connect 127.0.0.1:5020
     python -m geo_clients.plc_tempcomp REF.csv --zenoh-key lab/spindle/temperature --via ads
     python -m geo_clients.plc_tempcomp REF.csv --derive 20 25 30 45    # print, no server
+    python -m geo_clients.plc_tempcomp clients/geo_clients/data/twin_reference_measurement.csv \\
+        --twin-sensor --period 1 --via modbus                            # the twin's sensors
 """
 
 from __future__ import annotations
@@ -551,6 +555,22 @@ class ZenohTemperature:
         self._sub.undeclare()
 
 
+class TwinSensors:
+    """The twin's temperature sensors (`TWIN::sensor_temperature`, docs/twin.md), read
+    over the client's transport like any object: each axis gets its own sensor's
+    reading (`temperature_of`); `temperature` is the first axis' (for the log)."""
+
+    def __init__(self, client: Any, axes: Iterable[int]) -> None:
+        self.client = client
+        self.axes = sorted(axes)
+
+    def temperature_of(self, axis: int, t: float) -> float:
+        return float(self.client.read("TWIN::sensor_temperature", axis))
+
+    def temperature(self, t: float) -> float | None:
+        return self.temperature_of(self.axes[0], t) if self.axes else None
+
+
 def parse_temperature(payload: bytes) -> float:
     """A temperature from a payload: `23.5`, `{"value": 23.5}`, `{"temperature_C": 23.5}`."""
     try:
@@ -640,6 +660,8 @@ class TemperatureAdapter:
         self.reference: dict[int, tuple[float, str]] = {
             a: table.axes[a].reference_position(refs.get(a), tolerance) for a in self.axes
         }
+        if isinstance(source, TwinSensors) and not source.axes:
+            source.axes = list(self.axes)
         self.coefficient_decimals = coefficient_decimals
         self.retries = retries
         self.retry_delay = retry_delay
@@ -683,15 +705,22 @@ class TemperatureAdapter:
 
     def tick(self, t: float) -> TickResult:
         """Read the temperature at time `t` [s], derive and write the changed parameters."""
-        temp = self.source.temperature(t)
+        temps = self._temperatures(t)
+        temp = next(iter(temps.values()), None)
         result = TickResult(t, temp)
         if temp is None:
             log.info("t=%.3fs: no temperature yet; nothing written", t)
             return result
-        if not math.isfinite(temp):
-            log.error("t=%.3fs: temperature %r is not finite; nothing written", t, temp)
+        if not all(v is not None and math.isfinite(v) for v in temps.values()):
+            log.error("t=%.3fs: temperature %r is not finite; nothing written", t, temps)
             return result
-        for axis, p in self.parameters(temp).items():
+        for axis in self.axes:
+            p = derive_parameters(
+                self.table.lines(axis),
+                temps[axis],  # type: ignore[arg-type]
+                self.reference[axis][0],
+                self.coefficient_decimals,
+            )
             result.parameters[axis] = p
             why = self.check(p)
             if why:
@@ -712,6 +741,15 @@ class TemperatureAdapter:
                     log.error("t=%.3fs axis %d: %s", t, axis, result.refused[axis])
                     break
         return result
+
+    def _temperatures(self, t: float) -> dict[int, float | None]:
+        """Each axis' temperature: its own where the source has one per axis
+        (`TwinSensors`), else the source's one temperature for all."""
+        of = getattr(self.source, "temperature_of", None)
+        if of is not None:
+            return {a: of(a, t) for a in self.axes}
+        temp = self.source.temperature(t)
+        return dict.fromkeys(self.axes, temp)
 
     def _write(self, t: float, temp: float, axis: int, name: str, value: Any) -> WriteRecord:
         unit = self.dictionary.by_name(name).unit
@@ -844,6 +882,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--csv", metavar="FILE", help="timestamped samples: time,temperature_C")
     g.add_argument("--zenoh-key", metavar="KEY", help="Zenoh key another program publishes on")
     g.add_argument("--constant", type=float, metavar="DEG_C", help="a fixed temperature")
+    g.add_argument(
+        "--twin-sensor",
+        action="store_true",
+        help="each axis' TWIN::sensor_temperature, read over --via from the server's twin",
+    )
     src.add_argument(
         "--temperature-connect",
         metavar="ENDPOINT",
@@ -902,6 +945,8 @@ def _source(args: argparse.Namespace, client: Any) -> tuple[TemperatureSource, C
         return src, close
     if args.constant is not None:
         return ConstantTemperature(args.constant), lambda: None
+    if args.twin_sensor:
+        return TwinSensors(client, args.axis or ()), lambda: None
     return args.warmup or WarmUp(), lambda: None
 
 

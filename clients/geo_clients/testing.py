@@ -97,6 +97,8 @@ class GeoTestServer:
     `startup`: a start-up list (`hochlauf.lis`); None = the default machine in `lists/`.
     `homed`: start with every axis homed (temperature compensation needs it, 000 p.15).
     `machine_name`: the Zenoh key prefix `cnc/<machine_name>` (docs/design.md §7).
+    `time_scale`: simulated seconds of the twin per cycle second (docs/twin.md; default:
+    the twin file's), so a warm-up of hours takes a few thousand steps.
     """
 
     def __init__(
@@ -109,10 +111,13 @@ class GeoTestServer:
         timeout: float = 5.0,
         publish_period: float = 0.01,
         status_period: float = 0.1,
+        time_scale: float | None = None,
     ) -> None:
         self.startup = Path(startup) if startup else default_startup_list()
         self.cfg = load_machine(self.startup)
-        self.machine = Machine(self.cfg, cycle_s=cycle_ms / 1000.0, homed=homed)
+        self.machine = Machine(
+            self.cfg, cycle_s=cycle_ms / 1000.0, homed=homed, time_scale=time_scale
+        )
         self.service = ObjectService(self.machine)
         self.machine_name = machine_name
         self.timeout = timeout

@@ -227,6 +227,19 @@ class ZenohClient(ObjectClient):
         result: dict[str, Any] = json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
         return result
 
+    def measure(self, plan: dict[str, Any], timeout: float | None = None) -> dict[str, Any]:
+        """`cmd/measure`: an ISO 230-2 test on the server's twin (docs/twin.md). `plan`:
+        {"axis": "X", "targets": [...], "runs": 5, ...}; the reply holds the figures. A
+        test takes minutes of machine time: `timeout` (s) replaces the client's."""
+        saved = self.timeout
+        self.timeout = timeout if timeout is not None else saved
+        try:
+            body = self._one(f"cnc/{self.machine}/cmd/measure", json.dumps(plan).encode(), JSON)
+        finally:
+            self.timeout = saved
+        result: dict[str, Any] = json.loads(body)
+        return result
+
     def watch(self, key_expr: str) -> Iterator[tuple[str, Any]]:
         """Yield (key, decoded JSON): the current values first, then every publication
         on `key_expr` (blocking; publications arrive on change, docs/design.md §7)."""

@@ -690,4 +690,6 @@ _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     ),
     "SIM::set_position": lambda m, s, v: m.motion.set_position(s, float(v)),
     "TWIN::spindle_on": lambda m, s, v: setattr(m, "spindle_on", bool(v)),
+    "TWIN::ambient_temperature": lambda m, s, v: m.twin.hold_ambient(float(v)),
+    "TWIN::soak": lambda m, s, v: m.twin.soak(),
 }

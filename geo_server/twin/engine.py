@@ -173,6 +173,8 @@ class TwinEngine:
         self._amb_t = np.array([p[0] for p in cfg.ambient])
         self._amb_v = np.array([p[1] for p in cfg.ambient])
         self.ambient = float(np.interp(0.0, self._amb_t, self._amb_v))
+        #: a climate chamber: the ambient held at this temperature instead of the profile
+        self.held_ambient: float | None = None
         self.t_ref = cfg.reference_temperature
         # expansion: coefficient (per K, dimensionless) and reference per axis, its node
         self.exp_coef = np.array(
@@ -285,7 +287,7 @@ class TwinEngine:
         """Advance the nodes by `thermal_every` cycles: exact for a first-order system
         with the mean |v| of those cycles as the motion heat; then the axis lines."""
         if len(self.node_temp):
-            self.ambient = float(np.interp(self.time, self._amb_t, self._amb_v))
+            self.ambient = self._ambient_at(self.time)
             target = self._node_target
             self._vsum.take(self._motion_slot, out=target)
             target *= self._motion_gain
@@ -294,6 +296,29 @@ class TwinEngine:
                 target += self._spindle_gain
             self.node_temp += (target - self.node_temp) * self._node_k
         self._vsum[:] = 0.0
+        self._update_lines()
+
+    def _ambient_at(self, t: float) -> float:
+        if self.held_ambient is not None:
+            return self.held_ambient
+        return float(np.interp(t, self._amb_t, self._amb_v))
+
+    # ------------------------------------------------------------------ the climate
+
+    def hold_ambient(self, temperature: float) -> None:
+        """`TWIN::ambient_temperature` written: the machine stands in a climate chamber at
+        `temperature` from now on (the twin file's profile no longer applies); the nodes
+        follow with their time constants."""
+        self.held_ambient = float(temperature)
+        self.ambient = self.held_ambient
+
+    def soak(self) -> None:
+        """`TWIN::soak`: every thermal node takes the ambient temperature at once, as after
+        a night in the hall — the start of a measurement at a known temperature. The
+        sensors read it from their next sample on."""
+        self.node_temp[:] = self.ambient
+        self.sensor_due[:] = self.time
+        self._next_sample = self.time if len(self.sensor_due) else math.inf
         self._update_lines()
 
     def _update_lines(self) -> None:
@@ -337,6 +362,8 @@ class TwinEngine:
         self._next_sample = float(self.sensor_due.min()) if len(self.sensor_due) else math.inf
         has = self.axis_sensor >= 0
         self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+        if old.held_ambient is not None:
+            self.hold_ambient(old.held_ambient)
         if len(self.direction) == len(old.direction):
             self.direction[:] = old.direction
         self._rng = old._rng

@@ -5,9 +5,9 @@ The test (ISO 230-2:2014 §4, standard test cycle) approaches every target posit
 positioning deviation x_ij = P_ij − P_i, actual position reached minus target position
 (§2.5). This module takes those deviations and computes the parameters of §2.10 … §2.24
 the way §5 (evaluation of results) and §7 (presentation of results) ask for them, and
-derives from them what a commissioning step needs: the LSEC table values, the backlash,
-target positions and the rows of a reference measurement for the PLC temperature client
-(`geo_clients.plc_tempcomp`).
+derives target positions and the rows of a reference measurement for the PLC temperature
+client (`geo_clients.plc_tempcomp`). What a commissioning makes of a test (LSEC table,
+backlash) depends on the axis' parameters and lives in `geo_server.twin.measure`.
 
 Units: target positions in mm (linear axes) or ° (rotary axes); deviations in µm, on
 rotary axes in the twin's error unit 0.001° (`geo_server.twin.model`): both are ten CNC
@@ -276,66 +276,6 @@ def evaluate(targets: ArrayLike, up: ArrayLike, down: ArrayLike) -> Evaluation:
     )
 
 
-# ============================================================================ commissioning
-
-
-@dataclass(frozen=True)
-class LsecTable:
-    """The values of a leadscrew error compensation table (TF5200 manual 000 §4.4).
-
-    `positions` are the setpoints (the targets P_i, mm or °); `pos` the table for the
-    positive direction (unilateral: the only one), `neg` the one for the negative direction
-    (None when unilateral). Values are measured errors in µm, the manual's
-    Δs = s_actual − s_programmed; the compensation applies −Δs. A list stores them in
-    0.1 µm (×10). An equidistant table (`kw_startpos + i·interval`) needs equidistant
-    targets (`targets_iso(..., equidistant=True)`).
-    """
-
-    positions: tuple[float, ...]
-    pos: tuple[float, ...]
-    neg: tuple[float, ...] | None = None
-
-    @property
-    def bilateral(self) -> bool:
-        """True when the table has a negative-direction part."""
-        return self.neg is not None
-
-
-def lsec_table(evaluation: Evaluation, bilateral: bool) -> LsecTable:
-    """The LSEC table values Δs = s_actual − s_programmed (µm) from a test.
-
-    Unilateral: Δs_i = x̄_i, the mean bidirectional positioning deviation (ISO 230-2:2014
-    §2.11); the reversal is then left to the backlash compensation (`backlash_value`).
-    Bilateral: `pos` = x̄_i↑ and `neg` = x̄_i↓ (§2.10), the reversal is inside the tables
-    (do not compensate it a second time with backlash compensation).
-
-    The deviation x_ij = actual − target (§2.5) is measured at the programmed target, the
-    position the table is looked up at, so x̄ is Δs directly. Measured with a compensation
-    already active, it is the residual: add it to the table that was active.
-    """
-    positions = tuple(float(p) for p in evaluation.targets)
-    if bilateral:
-        return LsecTable(
-            positions,
-            tuple(float(v) for v in evaluation.mean_up),
-            tuple(float(v) for v in evaluation.mean_down),
-        )
-    return LsecTable(positions, tuple(float(v) for v in evaluation.mean))
-
-
-def backlash_value(evaluation: Evaluation) -> float:
-    """The magnitude of the backlash (lost motion) in µm: −B̄ (ISO 230-2:2014 §2.14).
-
-    Sign convention: B_i = x̄_i↑ − x̄_i↓ (§2.12). An axis with lost motion stops short of
-    the target in both directions: below it moving positive (x↑ < 0), above it moving
-    negative (x↓ > 0), so B_i and B̄ are negative and the backlash is −B̄ > 0. A negative
-    result means the axis overshoots on reversal. The mean B̄ is used, not B = max |B_i|,
-    because one backlash value serves the whole axis; with this (unilateral) compensation
-    the LSEC table takes x̄_i (`lsec_table(..., bilateral=False)`).
-    """
-    return -evaluation.mean_reversal + 0.0
-
-
 def targets_iso(
     start: float,
     end: float,
@@ -457,11 +397,8 @@ __all__ = [
     "REFERENCE_HEADER",
     "STANDARD",
     "Evaluation",
-    "LsecTable",
-    "backlash_value",
     "deviations_csv",
     "evaluate",
-    "lsec_table",
     "reference_csv",
     "reference_rows",
     "targets_iso",

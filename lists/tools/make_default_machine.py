@@ -507,17 +507,25 @@ def twin() -> list[str]:
             "period = 0.1",
             "",
         ]
-    # X: the lists' temperature line (the manual's example, 000 p.24) is a scale error
+    # X: the lists' temperature line (the manual's example, 000 p.24) is a scale error.
+    # The compensation moves the drive by ds(s) = a + k·(s − r) (a = 4 µm, k = 4000 µm/m,
+    # r = 0.01 mm), up to 2 mm at the ends, and the machine's error acts where the drive
+    # is. So that the lists are exactly what a commissioning gives, the twin's errors are
+    # stated at the drive positions the lists' setpoints lead to: out = s + ds(s), the
+    # scale error e(out) = −ds(s) = −a/(1+k) − k/(1+k)·(out − r), the pitch points at
+    # out(s_i) and the cyclic error's period 10 mm·(1+k) (its zeros on the LSEC points).
+    a_um, k, r_mm = 4.0, 4000e-6, 0.01
     x_pos = [(X_LSEC_START + i * X_LSEC_INTERVAL) / 10_000 for i in range(X_LSEC_N)]
+    x_out = [round(s + (a_um / 1000 + k * (s - r_mm)), 6) for s in x_pos]
     out += [
         "[axis.X]",
-        "linear = { offset = -4.0, slope = -4000.0, reference = 0.01 }",
-        f"pitch = {{ positions = {toml_list(x_pos)}, errors = "
+        f"linear = {{ offset = {-a_um / (1 + k):.6f}, slope = {-k / (1 + k) * 1e6:.4f}, reference = {r_mm} }}",
+        f"pitch = {{ positions = {toml_list(x_out)}, errors = "
         f"{toml_list([x_lsec_pos(i) / 10 for i in range(X_LSEC_N)])} }}",
-        "periodic = { amplitude = 0.5, period = 10.0 }",
+        f"periodic = {{ amplitude = 0.5, period = {10.0 * (1 + k):g} }}",
         "reversal = 100.0",
         "reference_direction = 1",
-        'expansion = { node = "x_screw", coefficient = -50.0, reference = 0.01 }',
+        'expansion = { node = "x_screw", coefficient = 11.5, reference = 0.01 }',
         "friction = { coulomb = 2000.0, viscous = 12.0 }",
         "scatter = 0.3",
         "",

@@ -6,6 +6,7 @@
     cnc/<m>/sim/machine/<field>         emulator machine-wide objects, JSON
     cnc/<m>/nc                          execute NC lines (get with payload)
     cnc/<m>/cmd/reload, cmd/save        commands (get with payload)
+    cnc/<m>/cmd/reset, cmd/measure      (measure: a JSON test plan, docs/twin.md)
     cnc/<m>/status, cnc/<m>/errors      JSON
     cnc/<m>/alive                       liveliness token
 
@@ -32,7 +33,8 @@ GEO_PORT = 551
 class Route:
     """What a concrete key addresses."""
 
-    kind: str  # "raw" | "named" | "nc" | "reload" | "save" | "reset" | "status" | "errors"
+    #: "raw" | "named" | "nc" | "reload" | "save" | "reset" | "measure" | "status" | "errors"
+    kind: str
     obj: ObjectDef | None = None
     axis: int = 0
     index_group: int = 0
@@ -56,6 +58,7 @@ class KeySpace:
             f"{self.prefix}/cmd/reload": Route("reload"),
             f"{self.prefix}/cmd/save": Route("save"),
             f"{self.prefix}/cmd/reset": Route("reset"),
+            f"{self.prefix}/cmd/measure": Route("measure"),
             f"{self.prefix}/status": Route("status"),
             f"{self.prefix}/errors": Route("errors"),
         }

@@ -1,0 +1,410 @@
+"""An ISO 230-2 bidirectional positioning test on the twin, and what a commissioning makes
+of it (docs/twin.md).
+
+The test cycle of ISO 230-2:2014 (§5, the "standard test cycle"): per run, the axis
+comes from below the first target by the approach overrun and stops at every target
+moving positive, waits the dwell and reads the deviation (true position − target, what a
+laser interferometer reads: `TWIN::true_position`); then it goes beyond the last target by
+the overrun and stops at every target moving negative. `runs` runs (the standard asks
+for five).
+
+The procedure talks to the machine only through a `Bench` — in-process and stepped
+(`StepBench`: exact, as fast as the host computes; `geo-server measure`), or on a
+running server (`LiveBench`: the Zenoh command `cmd/measure`) — and through the object
+service's public calls (object writes, NC lines), so it measures exactly what a client
+would. Before the test the named compensations are switched off with NC `COMP OFF`
+(000 §5.1) and afterwards back on when they were on.
+
+Commissioning (`commission`): the LSEC table and the backlash from the result, written
+into the axis's lists as they are (only the value tokens), ready for `reload`:
+
+- unilateral LSEC (000 §4.4): the table holds the measured errors Δs = actual −
+  programmed *in the axis's reference direction* — the direction in which backlash
+  compensation adds nothing (`lr_param.anwahl_losekomp`: 1 positive, 2 negative) — and
+  the backlash is the mean difference of the other direction (000 §2.3);
+- bilateral LSEC: the two tables hold x̄↑ and x̄↓; the reversal is inside them, so the
+  backlash compensation has to be switched off (lose 0) or measured on.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from geo_server.errors import GeoError
+from geo_server.listfile import rewrite_values
+from geo_server.model import MachineConfig
+from geo_server.twin import iso230
+from geo_server.twin.iso230 import Evaluation
+
+INCR = 10_000.0  # increments per mm / °
+MICRO = 10.0  # increments per µm / 0.001°
+
+
+class MeasureError(GeoError):
+    """The test cannot run (axis busy, not homed, target out of reach, no twin)."""
+
+
+@dataclass(frozen=True)
+class MeasurementPlan:
+    """One bidirectional positioning test (ISO 230-2:2014 §5)."""
+
+    axis: int  # logical axis number
+    targets: tuple[float, ...]  # P_i, mm or °, ascending
+    runs: int = 5
+    overrun: float = 5.0  # mm or °, beyond the first and the last target
+    dwell_s: float = 0.2  # standstill before each reading (simulated seconds)
+    feed: float = 0.0  # mm/min (°/min); 0: the axis' maximum velocity
+    compensation_off: tuple[str, ...] = ()  # COMP kinds switched off during the test
+
+
+class Bench(Protocol):
+    """What the test needs of a machine."""
+
+    def move(self, axis: int, position: float) -> None:
+        """Move to `position` (increments) and return once the axis stands there."""
+
+    def dwell(self, seconds: float) -> None: ...
+
+    def true_position(self, axis: int) -> float:
+        """Increments."""
+
+    def nc(self, text: str) -> None:
+        """Run NC lines to their end."""
+
+    def read(self, name: str, axis: int) -> Any: ...
+
+    def write(self, name: str, axis: int, value: object) -> None:
+        """Write an object and return once it is applied."""
+
+
+def run_test(bench: Bench, plan: MeasurementPlan, name: str = "") -> Evaluation:
+    """Run the test cycle; the deviations in µm (0.001° rotary)."""
+    targets = [t * INCR for t in plan.targets]
+    if any(b <= a for a, b in itertools.pairwise(targets)) or len(targets) < 2:
+        raise MeasureError("the targets must ascend (two at least)")
+    if not bench.read("SIM::homed", plan.axis):
+        raise MeasureError(f"axis {plan.axis} is not homed")
+    label = name or _axis_name(bench, plan.axis)
+    switched = [k for k in plan.compensation_off if _selected(bench, plan.axis, k)]
+    if switched:
+        bench.nc(f"{label}[COMP OFF {' '.join(switched)}]")
+    try:
+        m = len(targets)
+        up, down = np.zeros((plan.runs, m)), np.zeros((plan.runs, m))
+        over = plan.overrun * INCR
+        for j in range(plan.runs):
+            bench.move(plan.axis, targets[0] - over)
+            for i, target in enumerate(targets):
+                bench.move(plan.axis, target)
+                bench.dwell(plan.dwell_s)
+                up[j, i] = (bench.true_position(plan.axis) - target) / MICRO
+            bench.move(plan.axis, targets[-1] + over)
+            for i in range(m - 1, -1, -1):
+                bench.move(plan.axis, targets[i])
+                bench.dwell(plan.dwell_s)
+                down[j, i] = (bench.true_position(plan.axis) - targets[i]) / MICRO
+    finally:
+        if switched:
+            bench.nc(f"{label}[COMP ON {' '.join(switched)}]")
+    return iso230.evaluate(plan.targets, up, down)
+
+
+#: COMP kind -> the object that tells whether it is selected (000 §5.1).
+_SELECTED = {
+    "LEAD": "ssfk activated",
+    "TEMP": "TEMPC::activated",
+    "CROSS": "CROSSC::activated",
+    "PLANE": "CC2::activated",
+    "CROSSTALK": "CROSSTALK::activated",
+}
+
+
+def _axis_name(bench: Bench, axis: int) -> str:
+    """The name NC uses for the axis (`SIM::axis_names`: "1=X 2=Y …")."""
+    names = dict(pair.split("=", 1) for pair in str(bench.read("SIM::axis_names", 0)).split())
+    return names.get(str(axis), str(axis))
+
+
+def _selected(bench: Bench, axis: int, kind: str) -> bool:
+    obj = _SELECTED.get(kind)
+    return True if obj is None else bool(bench.read(obj, axis))  # BACKLASH: no flag
+
+
+# ---------------------------------------------------------------------- benches
+
+
+class StepBench:
+    """A machine in stepped mode in this process: exact and as fast as the host."""
+
+    def __init__(self, service: Any, max_cycles_per_move: int = 200_000) -> None:
+        """`service`: a `geo_server.service.ObjectService` in stepped mode (duck-typed:
+        this layer sits below the service)."""
+        self.svc = service
+        self.max_cycles = max_cycles_per_move
+
+    def move(self, axis: int, position: float) -> None:
+        self.svc.write_name("SIM::target_position", axis, round(position))
+        for _ in range(self.max_cycles):
+            self.svc.step(1)
+            if self.svc.read_name("SIM::velocity", axis) == 0 and (
+                self.svc.read_name("SIM::command_position", axis) == round(position)
+            ):
+                return
+        raise MeasureError(f"axis {axis} did not reach {position} increments")
+
+    def dwell(self, seconds: float) -> None:
+        self.svc.step(max(1, round(seconds / self._seconds_per_cycle())))
+
+    def _seconds_per_cycle(self) -> float:
+        return float(self.svc.cycle_s)
+
+    def true_position(self, axis: int) -> float:
+        return float(self.svc.read_name("TWIN::true_position", axis))
+
+    def nc(self, text: str) -> None:
+        self.svc.run_nc(text)
+        for _ in range(self.max_cycles):
+            self.svc.step(1)
+            if not self.svc.read_name("SIM::program_running", 0):
+                return
+        raise MeasureError(f"NC {text!r} did not end")
+
+    def read(self, name: str, axis: int) -> Any:
+        return self.svc.read_name(name, axis)
+
+    def write(self, name: str, axis: int, value: object) -> None:
+        self.svc.write_name(name, axis, value)
+        self.svc.step(1)
+
+
+class LiveBench(StepBench):
+    """A running server (real time or free-running): moves are object writes, waits
+    watch the published cycle count; no sleep is longer than a cycle's worth of polls."""
+
+    def __init__(self, service: Any, timeout_s: float = 120.0) -> None:
+        super().__init__(service)
+        self.timeout = timeout_s
+
+    def _until(self, done: object, what: str) -> None:
+        deadline = time.monotonic() + self.timeout
+        while not done():  # type: ignore[operator]
+            if time.monotonic() > deadline:
+                raise MeasureError(f"{what} did not happen within {self.timeout} s")
+            time.sleep(max(self.svc.cycle_s, 0.0005))
+
+    def move(self, axis: int, position: float) -> None:
+        target = round(position)
+        pending = self.svc.write_name("SIM::target_position", axis, target)
+        self.svc.settle_sync(pending, self.timeout)
+        self._until(
+            lambda: (
+                self.svc.read_name("SIM::velocity", axis) == 0
+                and self.svc.read_name("SIM::command_position", axis) == target
+            ),
+            f"axis {axis} reaching {target}",
+        )
+
+    def dwell(self, seconds: float) -> None:
+        start = self.svc.snapshot.cycle
+        cycles = max(1, round(seconds / self.svc.cycle_s))
+        self._until(lambda: self.svc.snapshot.cycle >= start + cycles, "the dwell")
+
+    def write(self, name: str, axis: int, value: object) -> None:
+        self.svc.settle_sync(self.svc.write_name(name, axis, value), self.timeout)
+
+    def nc(self, text: str) -> None:
+        self.svc.settle_sync(self.svc.run_nc(text), self.timeout)
+        self._until(lambda: not self.svc.read_name("SIM::program_running", 0), f"NC {text!r}")
+
+
+# ---------------------------------------------------------------------- a plan from JSON
+
+#: Bounds of a plan that arrives over the network (a measurement holds the machine).
+MAX_TARGETS = 1500  # the LSEC table's maximum (P-COMP-00020)
+MAX_RUNS = 50
+KINDS = ("BACKLASH", "CROSS", "PLANE", "LEAD", "TEMP", "FRICT", "CROSSTALK")
+
+
+def plan_from_json(spec: Any, cfg: MachineConfig) -> MeasurementPlan:
+    """A `MeasurementPlan` from a JSON object: {"axis": 1 or "X", "targets": [mm…] (default: the
+    axis' LSEC setpoints), "runs": 5, "overrun": 5.0, "dwell_s": 0.2, "off": ["LEAD"]}.
+    MeasureError names the field that is wrong."""
+    if not isinstance(spec, dict):
+        raise MeasureError('the plan must be a JSON object, e.g. {"axis": "X"}')
+    unknown = set(spec) - {"axis", "targets", "runs", "overrun", "dwell_s", "off"}
+    if unknown:
+        raise MeasureError(f"unknown field(s) {sorted(unknown)} in the plan")
+    axis = spec.get("axis")
+    by_name = {str(a.params.name).upper(): nr for nr, a in cfg.axes.items() if a.params.name}
+    if isinstance(axis, str) and axis.upper() in by_name:
+        axis = by_name[axis.upper()]
+    if not isinstance(axis, int) or isinstance(axis, bool) or axis not in cfg.axes:
+        raise MeasureError(f"axis {spec.get('axis')!r} is not an axis of this machine")
+    targets = spec.get("targets")
+    if targets is None:
+        targets = lsec_setpoints(cfg, axis)
+    if not isinstance(targets, list | tuple) or not all(
+        isinstance(t, int | float) and not isinstance(t, bool) for t in targets
+    ):
+        raise MeasureError("targets must be a list of numbers (mm or °)")
+    if not 2 <= len(targets) <= MAX_TARGETS:
+        raise MeasureError(f"targets: 2 … {MAX_TARGETS} positions, got {len(targets)}")
+    runs = spec.get("runs", 5)
+    if not isinstance(runs, int) or isinstance(runs, bool) or not 2 <= runs <= MAX_RUNS:
+        raise MeasureError(f"runs must be an integer 2 … {MAX_RUNS}")
+    numbers = {}
+    for key, default, top in (("overrun", 5.0, 1000.0), ("dwell_s", 0.2, 60.0)):
+        v = spec.get(key, default)
+        if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v <= top:
+            raise MeasureError(f"{key} must be a number 0 … {top:g}")
+        numbers[key] = float(v)
+    off = spec.get("off", [])
+    if not isinstance(off, list) or not all(isinstance(k, str) and k.upper() in KINDS for k in off):
+        raise MeasureError(f"off must be a list of {', '.join(KINDS)}")
+    return MeasurementPlan(
+        axis=axis,
+        targets=tuple(float(t) for t in targets),
+        runs=runs,
+        overrun=numbers["overrun"],
+        dwell_s=numbers["dwell_s"],
+        compensation_off=tuple(k.upper() for k in off),
+    )
+
+
+# ---------------------------------------------------------------------- commissioning
+
+
+@dataclass(frozen=True)
+class Commissioning:
+    """What a test gives the lists: LSEC values per setpoint (0.1 µm) and the backlash."""
+
+    axis: int
+    setpoints: tuple[float, ...]  # increments
+    pos: tuple[int, ...]
+    neg: tuple[int, ...] | None
+    backlash: int | None  # increments (getriebe[0].lose), None: leave as it is
+
+
+def commission(
+    evaluation: Evaluation, axis: int, bilateral: bool, reference_direction: int
+) -> Commissioning:
+    """LSEC table and backlash from a test measured without LSEC and backlash
+    compensation (module docstring)."""
+    setpoints = tuple(round(p * INCR) for p in evaluation.targets)
+    if bilateral:
+        pos = tuple(round(v * MICRO) for v in evaluation.mean_up)
+        neg = tuple(round(v * MICRO) for v in evaluation.mean_down)
+        return Commissioning(axis, setpoints, pos, neg, None)
+    ref = evaluation.mean_up if reference_direction > 0 else evaluation.mean_down
+    other = evaluation.mean_down if reference_direction > 0 else evaluation.mean_up
+    table = tuple(round(v * MICRO) for v in ref)
+    # lost motion: how far the other direction stops beyond the reference one
+    lose = round(float(np.mean(other - ref)) * MICRO * reference_direction)
+    return Commissioning(axis, setpoints, table, None, lose)
+
+
+def write_lists(c: Commissioning, axis_list: Path | str, comp_list: Path | str) -> list[str]:
+    """Write the values into the axis's lists (only the value tokens; the table keeps its
+    layout: the setpoints must be those of the list's table). Returns the files written."""
+    changes: dict[str, str] = {}
+    for i, v in enumerate(c.pos):
+        changes[f"kw.ssfk.table[{i}].pos"] = str(v)
+    if c.neg is not None:
+        for i, v in enumerate(c.neg):
+            changes[f"kw.ssfk.table[{i}].neg"] = str(v)
+    rewrite_values(comp_list, changes)
+    written = [str(comp_list)]
+    if c.backlash is not None:
+        rewrite_values(axis_list, {"getriebe[0].lose": str(c.backlash)})
+        written.append(str(axis_list))
+    return written
+
+
+def lsec_setpoints(cfg: MachineConfig, axis: int) -> tuple[float, ...]:
+    """The setpoints (mm or °) of the axis's LSEC table, the natural targets of a test
+    whose result becomes that table."""
+    comp = cfg.axes[axis].comp
+    lsec = comp.lsec if comp is not None else None
+    if lsec is None:
+        raise MeasureError(f"axis {axis} has no LSEC table to take the targets from")
+    return tuple(float(p) / INCR for p in lsec.setpoint)
+
+
+def tempc_line(bench: Bench, axis: int) -> tuple[float, float, float]:
+    """The temperature compensation the axis applies now, as (position_0 [incr.],
+    offset_0 [µm], coefficient [µm/m]) — zero when it is not active (000 p.15)."""
+    if not bench.read("TEMPC::activated", axis):
+        return (0.0, 0.0, 0.0)
+    return (
+        float(bench.read("TEMPC::position_0", axis)),
+        float(bench.read("TEMPC::offset_0", axis)) / MICRO,
+        float(bench.read("TEMPC::coefficient", axis)),
+    )
+
+
+@dataclass(frozen=True)
+class ReferencePoint:
+    """One test of a reference measurement: the chamber temperature, the mean sensor
+    temperature during the test, the result and the compensation that was active."""
+
+    chamber: float
+    temperature: float
+    evaluation: Evaluation
+    tempc: tuple[float, float, float]
+
+    def rows(self, axis: int) -> list[tuple[int, float, float, float]]:
+        """Rows (axis, °C, position mm, deviation µm) for `geo-plc-tempcomp`: what the
+        temperature compensation must add at P_i = what it adds now − x̄_i."""
+        p0, off, coef = self.tempc
+        rows = []
+        for p, x in zip(self.evaluation.targets, self.evaluation.mean, strict=True):
+            active = off + coef * 1e-6 * (p * INCR - p0) / MICRO
+            rows.append((axis, round(self.temperature, 3), float(p), round(active - float(x), 4)))
+        return rows
+
+
+def reference_measurement(
+    bench: Bench, plan: MeasurementPlan, temperatures: Sequence[float]
+) -> list[ReferencePoint]:
+    """A reference measurement (000 §3.2, p.16): the test repeated in a climate chamber
+    at each temperature (`TWIN::ambient_temperature` held, `TWIN::soak`), the axis'
+    sensor read before and after each test. The compensations stay as they are; the
+    rows add the active temperature compensation back (`ReferencePoint.rows`), so the
+    result is the whole line the compensation needs at that temperature."""
+    points = []
+    for chamber in temperatures:
+        bench.write("TWIN::ambient_temperature", 0, float(chamber))
+        bench.write("TWIN::soak", 0, 1)
+        bench.dwell(0.2)  # the sensors sample the soaked nodes
+        t0 = float(bench.read("TWIN::sensor_temperature", plan.axis))
+        ev = run_test(bench, plan)
+        t1 = float(bench.read("TWIN::sensor_temperature", plan.axis))
+        points.append(
+            ReferencePoint(float(chamber), (t0 + t1) / 2, ev, tempc_line(bench, plan.axis))
+        )
+    return points
+
+
+__all__ = [
+    "Bench",
+    "Commissioning",
+    "LiveBench",
+    "MeasureError",
+    "MeasurementPlan",
+    "ReferencePoint",
+    "StepBench",
+    "commission",
+    "lsec_setpoints",
+    "plan_from_json",
+    "reference_measurement",
+    "run_test",
+    "tempc_line",
+    "write_lists",
+]

@@ -68,6 +68,14 @@ class TwinEngine:
         self.time = 0.0  # cycles · dt (a product, never a running sum that drifts)
         axes = [cfg.axes.get(name, AxisTwin(name)) for name in self.names]
         self.period = np.array(list(modulo) or [0.0] * n, dtype=float)
+        # state
+        self.direction = np.array([float(a.reference_direction) for a in axes])
+        self._sign_before = np.zeros(n)  # sign(v) of the last cycle
+        self._scatter_now = np.zeros(n)
+        self._offset = np.zeros(n)
+        self._rng = np.random.default_rng(cfg.seed)
+        self._tmp = np.zeros(n)
+        self._sign = np.zeros(n)
         self._setup_geometry(axes, slot)
         self._setup_thermal(axes, slot)
         # outputs (read by the machine's snapshot)
@@ -75,12 +83,6 @@ class TwinEngine:
         self.residual = np.zeros(n)
         self.friction_current = np.zeros(n)
         self.error = np.zeros(n)
-        # state
-        self.direction = np.array([float(a.reference_direction) for a in axes])
-        self._moving = np.zeros(n, dtype=bool)
-        self._scatter_now = np.zeros(n)
-        self._rng = np.random.default_rng(cfg.seed)
-        self._tmp = np.zeros(n)
 
     # ------------------------------------------------------------------ set-up
 
@@ -216,7 +218,12 @@ class TwinEngine:
     def step(
         self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray, spindle: bool
     ) -> None:
-        """One GEO cycle (see the module docstring)."""
+        """One GEO cycle (see the module docstring).
+
+        What changes only on events — the temperatures (every `thermal_every` cycles), a
+        reversal, an arrival (a new scatter draw) — is folded into one offset per axis
+        (`_update_offset`) when the event happens, so a cycle without events costs a
+        fixed, small number of numpy calls."""
         self.cycles += 1
         self.time = self.cycles * self.dt
         tmp = self._tmp
@@ -226,46 +233,62 @@ class TwinEngine:
             self._thermal(spindle)
         if self.time >= self._next_sample:
             self._sample_sensors()
-        moving = velocity != 0.0
-        np.sign(velocity, out=tmp)
-        np.copyto(self.direction, tmp, where=moving)
+        sign = self._sign
+        np.sign(velocity, out=sign)
+        # count_nonzero: a plain C call (ndarray.any() goes through Python wrappers)
+        if np.count_nonzero(np.not_equal(sign, self._sign_before)):
+            self._motion_event(sign)
         e = self.error
-        # linear scale error and thermal expansion: one line per axis, A·pos + B, whose
-        # A and B change only with the temperatures (`_thermal`)
+        # linear scale error and thermal expansion (A·pos + B, A and B from the
+        # temperatures), lost motion and scatter: A·pos + offset
         np.multiply(output, self._line_a, out=e)
-        e += self._line_b
+        e += self._offset
         if self._any_periodic:
             np.multiply(output, self.per_k, out=tmp)
             np.sin(tmp, out=tmp)
             tmp *= self.per_amp
             e += tmp
-        # lost motion while moving against the reference direction: direction is ±1, so
-        # −direction·reversal·[direction ≠ reference] = −(direction − reference)·reversal/2
-        np.subtract(self.direction, self.ref_dir, out=tmp)
-        tmp *= self._half_reversal
-        e -= tmp
         if self._curves:
             self._curve_errors(output, e)
-        for target, o1, o2, grid in self.grids:
-            e[target] += grid(output[o1], output[o2])
+        for target, o1, o2, grid in self.grids:  # Python floats: no numpy scalars
+            e[target] += grid(output.item(o1), output.item(o2))
         if self._any_square:
             e += self.square @ output
-        # scatter: a new random error for every approach (when an axis comes to rest)
-        arrived = self._moving & ~moving
-        if arrived.any():
+        np.add(output, e, out=self.true_position)
+        np.subtract(self.true_position, command, out=self.residual)
+        if self._any_friction:  # the drive's current: sign(v)·c + k·v = sign(v)·(c + k·|v|)
+            np.multiply(sign, self.fr_coulomb, out=self.friction_current)
+            np.multiply(velocity, self._fr_viscous_incr, out=tmp)
+            self.friction_current += tmp
+
+    def _motion_event(self, sign: np.ndarray) -> None:
+        """An axis started, stopped or reversed: the direction it holds (kept while it
+        stands), a new scatter draw for every axis that arrived, the offset."""
+        arrived = np.not_equal(self._sign_before, 0.0)
+        moving = np.not_equal(sign, 0.0)
+        arrived &= ~moving  # was moving, stands now
+        np.copyto(self.direction, sign, where=moving)
+        if np.count_nonzero(arrived):  # scatter: a new random error for every approach
             self._scatter_now[arrived] = (
                 self._rng.normal(size=int(arrived.sum())) * self.scatter[arrived]
             )
-        self._moving = moving
-        e += self._scatter_now
-        np.add(output, e, out=self.true_position)
-        np.subtract(self.true_position, command, out=self.residual)
-        if self._any_friction:  # the current the drive needs: sign(v)·(c + k·|v|)
-            np.abs(velocity, out=tmp)
-            tmp *= self._fr_viscous_incr
-            tmp += self.fr_coulomb
-            np.sign(velocity, out=self.friction_current)
-            self.friction_current *= tmp
+        np.copyto(self._sign_before, sign)
+        self._update_offset()
+
+    def _update_offset(self) -> None:
+        """offset = B + lost motion + scatter, and the bilateral curves' weights (after
+        a temperature update, a reversal or an arrival). Lost motion while moving
+        against the reference direction: direction is ±1, so −direction·reversal·
+        [direction ≠ reference] = −(direction − reference)·reversal/2."""
+        np.subtract(self.direction, self.ref_dir, out=self._offset)
+        self._offset *= -self._half_reversal
+        self._offset += self._line_b
+        self._offset += self._scatter_now
+        if self._curves and self._directional:
+            w = self._w
+            self.direction.take(self._tgt, out=w)
+            w *= self._w_b
+            w += self._w_a
 
     def _curve_errors(self, output: np.ndarray, e: np.ndarray) -> None:
         """Every 1-D curve of every axis in one merged lookup; bilateral rows weighted
@@ -275,12 +298,8 @@ class TwinEngine:
         if self._wrap_any:
             np.copyto(q, np.mod(q, self._src_period), where=self._wrap)
         self._lookup(self._vals)
-        if self._directional:
-            w = self._w
-            self.direction.take(self._tgt, out=w)
-            w *= self._w_b
-            w += self._w_a
-            self._vals *= w
+        if self._directional:  # weights of the direction held (`_update_offset`)
+            self._vals *= self._w
         e += np.bincount(self._tgt, weights=self._vals, minlength=len(e))
 
     def _thermal(self, spindle: bool) -> None:
@@ -329,6 +348,7 @@ class TwinEngine:
         np.subtract(
             self.lin_off, self.lin_slope * self.lin_ref + c * self.exp_ref, out=self._line_b
         )
+        self._update_offset()
 
     def _sample_sensors(self) -> None:
         due = self.sensor_due <= self.time

@@ -1,0 +1,143 @@
+"""Twin benchmark (docs/twin.md, "Cost"): what the physical twin adds to a GEO cycle.
+
+Two machines, every axis moving back and forth (reversals, arrivals: the scatter and
+the thermal model are exercised):
+
+- the default machine (4 axes, lists/ and its twin.toml);
+- 32 axes with every compensation at manual table sizes (the kernel benchmark's
+  machine) and a twin on every axis: a 101-point pitch curve, cyclic error, lost
+  motion, straightness over the next axis (101 points), expansion on one of 8 thermal
+  nodes with a sensor each, scatter and friction.
+
+For each: the median and p99 of `Machine.run_cycle` (kernel, motion, twin, snapshot)
+with the twin and with its step replaced by a no-op, interleaved in blocks so both see
+the same host; the median of `TwinEngine.step` alone; and the twin's share
+(with − without) / without, the figure the SPEC bounds at 30 %.
+
+    python bench/twin.py [--cycles N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.model import MachineConfig
+from geo_server.paths import default_startup_list
+from geo_server.service import ObjectService
+from geo_server.twin.model import (
+    AxisTwin,
+    Curve,
+    Expansion,
+    Sensor,
+    Straightness,
+    ThermalNode,
+    TwinConfig,
+)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from support.machines import full_machine
+
+
+def twin_for(n: int) -> TwinConfig:
+    """A twin with every kind of error on each of n axes named A1 … An."""
+    rng = np.random.default_rng(3)
+    positions = tuple(float(p) for p in np.linspace(-500, 500, 101))
+    nodes = tuple(ThermalNode(f"n{k}", 1800.0, 20.0, f"A{k + 1}", 10.0, 2.0) for k in range(8))
+    sensors = tuple(Sensor(f"n{k}", f"n{k}", f"A{k + 1}", 0.02, 0.01, 0.1) for k in range(8))
+    axes = {}
+    for i in range(n):
+        name = f"A{i + 1}"
+        errors = tuple(float(e) for e in np.cumsum(rng.normal(0, 0.5, 101)))
+        axes[name] = AxisTwin(
+            name,
+            linear_slope=-20.0,
+            pitch=Curve(positions, errors),
+            periodic_amplitude=0.5,
+            periodic_period=10.0,
+            reversal=5.0,
+            straightness=(Straightness(f"A{(i + 1) % n + 1}", Curve(positions, errors)),),
+            expansion=Expansion(f"n{i % 8}", 11.5),
+            friction_coulomb=2000.0,
+            friction_viscous=12.0,
+            scatter=0.3,
+        )
+    return TwinConfig(nodes=nodes, sensors=sensors, axes=axes)
+
+
+def measure(cfg: MachineConfig, cycles: int, block: int = 200) -> dict[str, float]:
+    m = Machine(cfg, homed=True)
+    svc = ObjectService(m)
+    step = m.twin.step
+    axes = list(m.axes)
+    with_twin: list[float] = []
+    without: list[float] = []
+    twin_only: list[float] = []
+    flip = 1
+
+    def stroke() -> None:
+        nonlocal flip
+        flip = -flip
+        for slot, nr in enumerate(axes):
+            span = 200_000 if cfg.axes[nr].params.kind == "T" else 100_000
+            svc.write_name("SIM::target_position", nr, flip * span * (1 + slot % 3))
+
+    def timed_step(*args: object) -> None:
+        t0 = time.perf_counter_ns()
+        step(*args)  # type: ignore[arg-type]
+        twin_only.append((time.perf_counter_ns() - t0) / 1000.0)
+
+    def noop(*args: object) -> None:
+        return None
+
+    done = 0
+    while done < cycles:
+        if done % 1000 == 0:
+            stroke()
+        for target, fn in ((with_twin, step), (without, noop)):
+            m.twin.step = fn  # type: ignore[method-assign]
+            for _ in range(block):
+                t0 = time.perf_counter_ns()
+                m.run_cycle()
+                target.append((time.perf_counter_ns() - t0) / 1000.0)
+        m.twin.step = timed_step  # type: ignore[method-assign]
+        for _ in range(20):
+            m.run_cycle()
+        done += 2 * block + 20
+    w, wo = np.median(with_twin), np.median(without)
+    return {
+        "with": float(w),
+        "with_p99": float(np.percentile(with_twin, 99)),
+        "without": float(wo),
+        "twin": float(np.median(twin_only)),
+        "share": float((w - wo) / wo * 100.0),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cycles", type=int, default=20_000)
+    args = ap.parse_args()
+    default = load_machine(default_startup_list())
+    big = full_machine(32)
+    big.twin = twin_for(32)
+    print("| machine | cycle with twin, median µs | p99 µs | without twin, median µs |", end="")
+    print(" twin step alone, median µs | twin's share |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for label, cfg in (("default (4 axes)", default), ("32 axes, full twin", big)):
+        r = measure(cfg, args.cycles)
+        print(
+            f"| {label} | {r['with']:.1f} | {r['with_p99']:.1f} | {r['without']:.1f} | "
+            f"{r['twin']:.1f} | {r['share']:+.0f} % |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -28,6 +28,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
         ["--cycles", "300", "--ref-cycles", "30"],
         600,
     ),
+    "twin": ("twin.py", ["--cycles", "20000"], ["--cycles", "4000"], 600),
     "scheduler": ("scheduler.py", [], ["--quick"], 900),
     "transports": ("transports.py", [], ["--quick"], 600),
     "memory": ("memory.py", [], ["--quick"], 300),
@@ -42,7 +43,7 @@ def run_part(name: str, quick: bool) -> str:
     t0 = time.monotonic()
     print(f"== {name}: {' '.join(argv[1:])}", flush=True)
     with tempfile.NamedTemporaryFile("r", suffix=".md", prefix=f"bench-{name}-") as out:
-        if name != "kernel":  # kernel.py only prints its table
+        if name not in ("kernel", "twin"):  # these only print their table
             argv += ["--out", out.name]
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines: list[str] = []
@@ -73,6 +74,15 @@ def run_part(name: str, quick: bool) -> str:
                 "motion, no snapshot), µs per cycle in one thread; `ReferenceKernel` is the "
                 f"plain-Python oracle. Targets: ≤ 50 µs at 8 axes, ≤ 300 µs at 128. "
                 f"({' '.join(argv[2:])}, {took:.0f} s)\n\n" + text
+            )
+        if name == "twin":
+            text = "".join(line for line in lines if line.startswith("|"))
+            return (
+                "### Twin: its share of the GEO cycle (`bench/twin.py`)\n\n"
+                "`Machine.run_cycle` (kernel, motion, twin, snapshot) with the twin and with "
+                "its step a no-op, interleaved in blocks; every axis moving. Target: the "
+                f"twin adds ≤ 30 % (docs/twin.md §7). ({' '.join(argv[2:])}, {took:.0f} s)\n\n"
+                + text
             )
         return Path(out.name).read_text(encoding="utf-8")
 

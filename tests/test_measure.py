@@ -296,3 +296,21 @@ def test_measure_over_zenoh(tmp_path):
         with pytest.raises(AdsError) as err:
             z.measure({"axis": "X", "runs": 1})
         assert err.value.code == 0x706 and "runs" in err.value.message
+
+
+def test_measure_on_a_free_running_machine(tmp_path):
+    """A running machine (free mode: cycles back to back on their own thread): the
+    service measures through object writes and waits on the cycles (`LiveBench`) — the
+    same figures as in stepped mode, since the twin counts cycles, not clocks."""
+    from geo_server.machine.scheduler import Scheduler
+
+    machine = Machine(load_machine(simple_machine(tmp_path)), homed=True)
+    sched = Scheduler(machine, mode="free")
+    svc = ObjectService(machine, sched)
+    sched.start()
+    try:
+        reply = svc.measure({"axis": "X", "runs": 2, "dwell_s": 0.01})
+    finally:
+        sched.stop()
+    assert reply["figures"]["systematic"] == pytest.approx(14.0, abs=1e-6)
+    assert reply["figures"]["reversal"] == pytest.approx(4.0, abs=1e-6)

@@ -9,6 +9,9 @@ Outputs in `--out` (default `measurement/`):
 
 - `deviations.csv` (and `deviations_after.csv`): every reading x_ij (ISO 230-2 §2.5);
 - `result.json`: the figures A, E, M, B, R of each test, the plan, the lists written;
+- a plain test: `lsec_<AXIS>.lis` (a compensation value list holding the LSEC table
+  from the result, ready to load) and `backlash_<AXIS>.lis` (the backlash entries for
+  the axis list) — the values to load when measured with `--off LEAD,BACKLASH`;
 - `reference_measurement.csv` (`--temperatures`): what `geo-plc-tempcomp` reads;
 - with `--plot`: `error_curve.png/.svg` (before/after with `--commission`) and
   `hysteresis.png/.svg`.
@@ -36,7 +39,9 @@ from geo_server.twin.measure import (
     MeasureError,
     MeasurementPlan,
     StepBench,
+    backlash_lines,
     commission,
+    lsec_list,
     lsec_setpoints,
     reference_measurement,
     run_test,
@@ -89,6 +94,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DEG_C",
         help="a reference measurement: the test in a climate chamber at each temperature "
         "(comma-separated °C), written as reference_measurement.csv for geo-plc-tempcomp",
+    )
+    w.add_argument(
+        "--bilateral",
+        action="store_true",
+        help="lsec_<AXIS>.lis as a bilateral table (default: as the axis' own LSEC table)",
     )
     w.add_argument("--out", default="measurement", help="folder for the files (created)")
     w.add_argument("--plot", action="store_true", help="PNG and SVG figures (needs matplotlib)")
@@ -237,6 +247,15 @@ def _measure(args: argparse.Namespace) -> int:
         ev = run_test(bench, plan)
         result["test"] = ev.as_dict()
         _write(out / "deviations.csv", iso230.deviations_csv(ev))
+        # list files from the result: the values to load when measured with LEAD and
+        # BACKLASH off (--off LEAD,BACKLASH); with them on, the residual
+        comp = cfg.axes[axis].comp
+        bilateral = args.bilateral or bool(comp and comp.lsec and comp.lsec.bilateral)
+        direction = -1 if cfg.axes[axis].params.anwahl_losekomp == 2 else 1
+        c = commission(ev, axis, bilateral, direction)
+        written.append(str(_write(out / f"lsec_{name}.lis", lsec_list(c, name))))
+        if c.backlash is not None:
+            written.append(str(_write(out / f"backlash_{name}.lis", backlash_lines(c, direction))))
         _print_figures(f"axis {name}", ev, unit)
         if args.plot:
             written += _plots(out, name, ev, None, unit, position_unit)

@@ -314,3 +314,32 @@ def test_measure_on_a_free_running_machine(tmp_path):
         sched.stop()
     assert reply["figures"]["systematic"] == pytest.approx(14.0, abs=1e-6)
     assert reply["figures"]["reversal"] == pytest.approx(4.0, abs=1e-6)
+
+
+def test_a_plain_measurement_writes_list_files_ready_to_load(tmp_path):
+    """`geo-server measure --off LEAD,BACKLASH` on the simple machine: lsec_X.lis is a
+    compensation value list with the table x̄↑ = 0, 5, 10 µm at 0, 50, 100 mm (explicit
+    setpoints), backlash_X.lis the 4 µm; loaded in place of the machine's own lists
+    they close the loop."""
+    startup = simple_machine(tmp_path / "m")
+    out = tmp_path / "out"
+    argv = ["measure", str(startup), "--axis", "X", "--runs", "2", "--dwell", "0.01"]
+    assert cli_main([*argv, "--off", "LEAD,BACKLASH", "--out", str(out)]) == 0
+    lsec = (out / "lsec_X.lis").read_text(encoding="utf-8")
+    for line in (
+        "kw.ssfk.interval 0",
+        "kw.ssfk.kw_nr_max 3",
+        "kw.ssfk.bilateral 0",
+        "kw.ssfk.table[1].setpoint 500000",
+        "kw.ssfk.table[1].pos 50",
+        "kw.ssfk.table[2].pos 100",
+    ):
+        assert line in lsec.splitlines(), line
+    backlash = (out / "backlash_X.lis").read_text(encoding="utf-8").splitlines()
+    assert "getriebe[0].lose 40" in backlash and "lr_param.anwahl_losekomp 1" in backlash
+    (tmp_path / "m" / "achskw1.lis").write_text(lsec, encoding="utf-8")
+    axis_list = AXIS_LIST.replace("getriebe[0].lose 0", "getriebe[0].lose 40")
+    (tmp_path / "m" / "achsmd1.lis").write_text(axis_list, encoding="utf-8")
+    assert cli_main([*argv, "--out", str(tmp_path / "after")]) == 0
+    after = json.loads((tmp_path / "after" / "result.json").read_text())["test"]["figures"]
+    assert after["accuracy"] < 0.02

@@ -327,6 +327,44 @@ def write_lists(c: Commissioning, axis_list: Path | str, comp_list: Path | str) 
     return written
 
 
+def lsec_list(c: Commissioning, name: str) -> str:
+    """A compensation value list [COMP] holding only the LSEC table of `c` (000 §4.4,
+    P-COMP-00017…00028): non-equidistant (`interval 0`, one `setpoint` per target), in
+    0.1 µm (`unit 1`), unilateral or bilateral — ready to load as the axis' list or to
+    copy into one."""
+    lines = [
+        f"# LSEC table of axis {name} ({c.axis}) measured on the twin by geo-server measure",
+        "# values: measured errors ds = s_actual - s_programmed [0.1 um] (000 §4.4)",
+        f"kopf.achs_nr {c.axis}",
+        f"kopf.log_achs_name {name}",
+        "kw.ssfk.unit 1",
+        "kw.ssfk.interval 0",
+        f"kw.ssfk.kw_startpos {c.setpoints[0]}",
+        f"kw.ssfk.kw_nr_max {len(c.setpoints)}",
+        f"kw.ssfk.bilateral {int(c.neg is not None)}",
+        "kw.ssfk.modulo 0",
+    ]
+    for i, sp in enumerate(c.setpoints):
+        lines.append(f"kw.ssfk.table[{i}].setpoint {sp}")
+        lines.append(f"kw.ssfk.table[{i}].pos {c.pos[i]}")
+        if c.neg is not None:
+            lines.append(f"kw.ssfk.table[{i}].neg {c.neg[i]}")
+    return "\n".join(lines) + "\n"
+
+
+def backlash_lines(c: Commissioning, reference_direction: int) -> str:
+    """The backlash entries of the axis parameter list (000 §2, P-AXIS-00103/00021) to
+    copy into it; empty for a bilateral table (its reversal is inside the table)."""
+    if c.backlash is None:
+        return ""
+    anwahl = 1 if reference_direction > 0 else 2
+    return (
+        f"# backlash of axis {c.axis} measured on the twin: copy into its axis list\n"
+        f"getriebe[0].lose {c.backlash}\n"
+        f"lr_param.anwahl_losekomp {anwahl}\n"
+    )
+
+
 def lsec_setpoints(cfg: MachineConfig, axis: int) -> tuple[float, ...]:
     """The setpoints (mm or °) of the axis's LSEC table, the natural targets of a test
     whose result becomes that table."""
@@ -400,7 +438,9 @@ __all__ = [
     "MeasurementPlan",
     "ReferencePoint",
     "StepBench",
+    "backlash_lines",
     "commission",
+    "lsec_list",
     "lsec_setpoints",
     "plan_from_json",
     "reference_measurement",

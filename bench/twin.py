@@ -98,8 +98,7 @@ def measure(cfg: MachineConfig, cycles: int, block: int = 200) -> dict[str, floa
 
     done = 0
     while done < cycles:
-        if done % 1000 == 0:
-            stroke()
+        stroke()  # every block pair: the axes reverse, accelerate, arrive
         for target, fn in ((with_twin, step), (without, noop)):
             m.twin.step = fn  # type: ignore[method-assign]
             for _ in range(block):

@@ -122,7 +122,7 @@ def _targets(args: argparse.Namespace, cfg: MachineConfig, axis: int) -> tuple[f
             raise MeasureError(f"--range needs START:STOP:STEP, got {args.range!r}") from None
         if step <= 0 or stop <= start:
             raise MeasureError("--range: STOP must exceed START and STEP be positive")
-        n = round((stop - start) / step)
+        n = int((stop - start) / step + 1e-9)  # the last target at or below STOP
         return tuple(start + i * step for i in range(n + 1))
     return lsec_setpoints(cfg, axis)
 
@@ -164,6 +164,11 @@ def main(args: argparse.Namespace) -> int:
 
 def _measure(args: argparse.Namespace) -> int:
     startup = Path(args.startup) if args.startup else default_startup_list()
+    if args.commission and (args.targets or args.range):
+        raise MeasureError(
+            "--commission measures at the setpoints of the axis' LSEC table: "
+            "leave out --targets/--range"
+        )
     if args.commission and not args.startup:
         raise MeasureError(
             "--commission writes into the lists: copy the default machine first "

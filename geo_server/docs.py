@@ -93,6 +93,13 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
     ),
     ("service", "nc_max_bytes", "bytes", "NC text in one request", "refused: 0x705"),
     ("service", "nc_max_lines", "lines", "NC text in one request", "refused: 0x705"),
+    (
+        "service",
+        "measure_deadline",
+        "s",
+        "a measurement (`cmd/measure`) holds a running machine",
+        "ended: reply_err 0x708; one at a time (0x708)",
+    ),
     ("ads", "max_connections", "", "ADS connections", "the new one is closed at once"),
     (
         "ads",

@@ -82,6 +82,8 @@ class ServiceLimits:
     nc_max_bytes: int = 16 * 1024
     #: Most lines of NC text accepted in one request.
     nc_max_lines: int = 500
+    #: Seconds a measurement (`cmd/measure`) may hold a running machine in all.
+    measure_deadline: float = 3600.0
 
 
 @dataclass(frozen=True)
@@ -161,6 +163,7 @@ class ObjectService:
         self.dictionary = machine.dictionary
         self._command_lock = threading.Lock()
         self._measure_lock = threading.Lock()
+        self._measure_cancel = threading.Event()
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
@@ -544,16 +547,29 @@ class ObjectService:
         """An ISO 230-2 positioning test on the twin (docs/twin.md), for `cmd/measure`:
         `spec` is the JSON plan of `twin.measure.plan_from_json`; returns the evaluation
         as a dict. Blocks until done: call it from a worker thread. On a running machine
-        it moves the axis through object writes and waits for the cycles; in stepped
-        mode it steps the machine itself. One measurement at a time (else 0x708)."""
+        it moves the axis through object writes and waits for the cycles (at most
+        `limits.measure_deadline` in all; `cancel_measure` ends it); in stepped mode it
+        steps the machine itself. A bad plan is 0x706; one measurement at a time, and a
+        test that cannot go on (axis not homed, moved by someone else, an NC error) is
+        0x708."""
         try:
             plan = plan_from_json(spec, self.machine.cfg)
         except MeasureError as exc:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDDATA, str(exc), "measure") from None
         if not self._measure_lock.acquire(blocking=False):
             raise AdsError(AdsErrorCode.DEVICE_BUSY, "a measurement is running", "measure")
+        self._measure_cancel.clear()
         try:
-            bench = LiveBench(self) if self.running else StepBench(self)
+            bench = (
+                LiveBench(
+                    self,
+                    timeout_s=self.limits.command_wait + 60.0,
+                    deadline_s=self.limits.measure_deadline,
+                    cancel=self._measure_cancel,
+                )
+                if self.running
+                else StepBench(self)
+            )
             started = time.monotonic()
             ev = run_test(bench, plan)
         except MeasureError as exc:
@@ -569,6 +585,10 @@ class ObjectService:
             "host_s": round(time.monotonic() - started, 3),
             **ev.as_dict(),
         }
+
+    def cancel_measure(self) -> None:
+        """End a running `measure` at its next wait (the server is shutting down)."""
+        self._measure_cancel.set()
 
     def run_command(self, name: str) -> CommandResult:
         """Run `reload` or `save` in the caller's thread (see `command`)."""

@@ -114,6 +114,12 @@ def test_plan_errors_are_specific(tmp_path):
     bench = StepBench(svc)
     with pytest.raises(MeasureError, match="ascend"):
         run_test(bench, plan(targets=(50.0, 0.0)))
+    with pytest.raises(MeasureError, match="finite"):
+        run_test(bench, plan(targets=(0.0, float("nan"))))
+    # without an overrun the first and the last target would be reached from the wrong
+    # side (ISO 230-2 §5): refused
+    with pytest.raises(MeasureError, match="overrun"):
+        run_test(bench, plan(overrun=0.0))
     svc.write_name("SIM::homed", 1, False)
     svc.step(1)
     with pytest.raises(MeasureError, match="not homed"):
@@ -125,6 +131,10 @@ def test_plan_errors_are_specific(tmp_path):
     )
     for spec, match in (
         ([], "JSON object"),
+        ({"axis": 1, "targets": [0, 1e400]}, "finite"),
+        ({"axis": 1, "targets": [10, 0]}, "ascend"),
+        ({"axis": 1, "overrun": 0}, "overrun"),
+        ({"axis": 1, "targets": [0, 300_000]}, "within"),
         ({"axis": "Q"}, "not an axis"),
         ({"axis": 1, "runs": 1}, "runs"),
         ({"axis": 1, "targets": [0, "a"]}, "numbers"),
@@ -274,6 +284,10 @@ def test_commissioning_the_default_machine_reproduces_its_lists(tmp_path):
 def test_measure_refuses_to_commission_the_shipped_lists(capsys):
     assert cli_main(["measure", "--axis", "X", "--commission"]) == 2
     assert "geo-server init" in capsys.readouterr().err
+    assert cli_main(["measure", "--axis", "X", "--targets", "0,nan"]) == 2
+    assert "finite" in capsys.readouterr().err
+    assert cli_main(["measure", "--axis", "X", "--overrun", "-5", "--targets", "0,10"]) == 2
+    assert "overrun" in capsys.readouterr().err
     assert cli_main(["measure", "--axis", "Q"]) == 2
     assert "no axis 'Q'" in capsys.readouterr().err
 
@@ -296,6 +310,9 @@ def test_measure_over_zenoh(tmp_path):
         with pytest.raises(AdsError) as err:
             z.measure({"axis": "X", "runs": 1})
         assert err.value.code == 0x706 and "runs" in err.value.message
+        with pytest.raises(AdsError) as err:
+            z.measure({"axis": "X", "targets": [10, 0]})
+        assert err.value.code == 0x706 and "ascend" in err.value.message
 
 
 def test_measure_on_a_free_running_machine(tmp_path):
@@ -343,3 +360,34 @@ def test_a_plain_measurement_writes_list_files_ready_to_load(tmp_path):
     assert cli_main([*argv, "--out", str(tmp_path / "after")]) == 0
     after = json.loads((tmp_path / "after" / "result.json").read_text())["test"]["figures"]
     assert after["accuracy"] < 0.02
+
+
+def test_the_compensations_are_restored_exactly(tmp_path):
+    """Only what was selected is switched off and back on, one kind a line: backlash
+    switched off before the test stays off; FRICT (not configured: `COMP ON FRICT`
+    would fail, 000 p.73) is not touched, so LSEC comes back on."""
+    svc = stepped(simple_machine(tmp_path))
+    bench = StepBench(svc)
+    bench.nc("X[COMP OFF BACKLASH]")
+    assert not svc.read_name("SIM::backlash_selected", 1)
+    assert not svc.read_name("SIM::friction_selected", 1)
+    run_test(bench, plan(compensation_off=("LEAD", "BACKLASH", "FRICT")))
+    assert svc.read_name("ssfk activated", 1)
+    assert not svc.read_name("SIM::backlash_selected", 1)
+    with pytest.raises(MeasureError, match="P-ERR-70495"):  # an NC error is not ignored
+        bench.nc("X[COMP ON FRICT]")
+
+
+def test_a_modulo_axis_is_measured(default_cfg):
+    """C of the default machine is modulo 360°: its command position reads wrapped
+    (−5° as 355°, 360° as 0°), the test still arrives and reads every target."""
+    svc = ObjectService(Machine(default_cfg, homed=True))
+    ev = run_test(StepBench(svc), MeasurementPlan(4, (0.0, 120.0, 240.0, 360.0), 2, 5.0, 0.01))
+    assert ev.m == 4 and np.abs(ev.mean).max() < 5.0  # 0.001°: the LSEC table corrects C
+
+
+def test_geo_warmup_strokes_a_modulo_axis():
+    from geo_clients.warmup import run_warmup
+
+    rec = run_warmup(hours=0.05, axis="C", stroke_mm=(400.0, 500.0), time_scale=100.0)
+    assert len(rec.times_s) >= 2 and rec.times_s[-1] >= 180.0

@@ -22,6 +22,7 @@ from geo_clients.plc_tempcomp import (
     Parameters,
     ReferenceTableError,
     TemperatureAdapter,
+    TwinSensors,
     WarmUp,
     ZenohTemperature,
     compensation,
@@ -468,3 +469,39 @@ def test_cli_bad_reference(tmp_path, capsys):
     f.write_text("axis,temperature_C,position,deviation\n1,20,1,x\n")
     assert main([str(f), "--derive", "20"]) == 2
     assert "bad.csv:2: not a number" in capsys.readouterr().err
+
+
+class _FailingSensors:
+    """A client whose reads fail: the first `transient` times with ADS 0x707 (not
+    ready), then for good if `forever`."""
+
+    def __init__(self, transient: int, forever: bool = False) -> None:
+        self.transient, self.forever, self.reads = transient, forever, 0
+        self.writes: list[tuple[str, int, object]] = []
+
+    def read(self, name: str, axis: int = 0) -> float:
+        self.reads += 1
+        if self.forever or self.reads <= self.transient:
+            raise AdsError(0x707, "GEO cycle stalled")
+        return 20.0 + axis  # axis 1: 21 °C, axis 3: 23 °C
+
+    def write(self, name: str, axis: int, value: object) -> object:
+        self.writes.append((name, axis, value))
+        return value
+
+
+def test_twin_sensors_failing_reads_are_retried_then_skip_the_period():
+    table = load_reference(EXAMPLE_REFERENCE)
+    client = _FailingSensors(transient=2)
+    adapter = TemperatureAdapter(
+        client, table, TwinSensors(client, []), axes=[1, 3], sleep=lambda s: None
+    )
+    result = adapter.tick(0.0)  # two transient failures, then both axes read
+    assert result.writes and {r.axis for r in result.writes} == {1, 3}
+    # each axis with its own temperature, also in the log records
+    assert {r.axis: r.temperature for r in result.writes} == {1: 21.0, 3: 23.0}
+    dead = _FailingSensors(transient=0, forever=True)
+    adapter = TemperatureAdapter(dead, table, TwinSensors(dead, []), axes=[1], sleep=lambda s: None)
+    result = adapter.tick(0.0)  # no exception: nothing written this period
+    assert result.temperature is None and not result.writes and not dead.writes
+    assert dead.reads == adapter.retries + 1

@@ -203,6 +203,26 @@ def test_a_reload_keeps_the_temperatures(tmp_path):
     assert value(svc, "TWIN::sensor_temperature") == pytest.approx(warm, abs=0.01)
 
 
+def test_a_reload_keeps_the_ambient_profile_and_the_chamber(tmp_path):
+    """After a reload the ambient is the profile's at the current time (not at t = 0),
+    so a soak right after it uses the right temperature; a held chamber stays held."""
+    startup = one_axis(
+        tmp_path, THERMAL.replace("ambient = [[0, 30.0]]", "ambient = [[0, 20.0], [100, 30.0]]")
+    )
+    svc = service(startup)
+    svc.step(500)  # 50 s: the profile says 25 °C
+    assert svc.reload().ok
+    assert value(svc, "TWIN::ambient_temperature", 0) == pytest.approx(25.0)
+    svc.write_name("TWIN::soak", 0, 1)
+    svc.step(2)
+    assert value(svc, "TWIN::sensor_temperature") == pytest.approx(25.0, abs=0.01)
+    svc.write_name("TWIN::ambient_temperature", 0, 40.0)
+    svc.step(1)
+    assert svc.reload().ok
+    svc.step(1000)  # 100 s later the profile would say 30 °C; the chamber holds 40
+    assert value(svc, "TWIN::ambient_temperature", 0) == 40.0
+
+
 # ---------------------------------------------------------------------- the default machine
 
 

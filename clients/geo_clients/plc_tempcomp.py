@@ -715,9 +715,10 @@ class TemperatureAdapter:
             log.error("t=%.3fs: temperature %r is not finite; nothing written", t, temps)
             return result
         for axis in self.axes:
+            temp_axis = float(temps[axis])  # type: ignore[arg-type]
             p = derive_parameters(
                 self.table.lines(axis),
-                temps[axis],  # type: ignore[arg-type]
+                temp_axis,
                 self.reference[axis][0],
                 self.coefficient_decimals,
             )
@@ -725,13 +726,15 @@ class TemperatureAdapter:
             why = self.check(p)
             if why:
                 result.refused[axis] = why
-                log.error("t=%.3fs T=%.3f°C axis %d: refused, not written: %s", t, temp, axis, why)
+                log.error(
+                    "t=%.3fs T=%.3f°C axis %d: refused, not written: %s", t, temp_axis, axis, why
+                )
                 continue
             for attr, name in PARAMETER_OBJECTS:
                 value = getattr(p, attr)
                 if not self.write_unchanged and self.written.get((axis, name)) == value:
                     continue
-                rec = self._write(t, temp, axis, name, value)
+                rec = self._write(t, temp_axis, axis, name, value)
                 result.writes.append(rec)
                 if not rec.ok:
                     result.refused[axis] = (
@@ -744,12 +747,24 @@ class TemperatureAdapter:
 
     def _temperatures(self, t: float) -> dict[int, float | None]:
         """Each axis' temperature: its own where the source has one per axis
-        (`TwinSensors`), else the source's one temperature for all."""
-        of = getattr(self.source, "temperature_of", None)
-        if of is not None:
-            return {a: of(a, t) for a in self.axes}
-        temp = self.source.temperature(t)
-        return dict.fromkeys(self.axes, temp)
+        (`TwinSensors`), else the source's one temperature for all. A source that reads
+        over the network may fail: transient failures are retried like writes; when the
+        reading fails for good, no temperature this period (nothing is written, the
+        adapter goes on)."""
+        for attempt in range(1, self.retries + 2):
+            try:
+                of = getattr(self.source, "temperature_of", None)
+                if of is not None:
+                    return {a: of(a, t) for a in self.axes}
+                return dict.fromkeys(self.axes, self.source.temperature(t))
+            except Exception as exc:
+                if is_transient(exc) and attempt <= self.retries:
+                    log.warning("t=%.3fs: reading the temperature: %s; retry %d", t, exc, attempt)
+                    self.sleep(self.retry_delay * attempt)
+                    continue
+                log.error("t=%.3fs: no temperature (%s); nothing written this period", t, exc)
+                break
+        return dict.fromkeys(self.axes)
 
     def _write(self, t: float, temp: float, axis: int, name: str, value: Any) -> WriteRecord:
         unit = self.dictionary.by_name(name).unit

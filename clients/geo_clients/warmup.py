@@ -31,6 +31,7 @@ from pathlib import Path
 
 from geo_clients.plc_tempcomp import TemperatureAdapter, TwinSensors, load_reference
 from geo_clients.testing import GeoTestServer
+from geo_server.twin.measure import StepBench
 
 #: The twin's reference measurement for the default machine (axes X, Y, Z).
 TWIN_REFERENCE = Path(__file__).resolve().parent / "data" / "twin_reference_measurement.csv"
@@ -89,17 +90,18 @@ def run_warmup(
         end = hours * 3600.0
         next_tick = 0.0
         target = hi
+        bench = StepBench(srv.service)  # its `at` knows modulo axes
         srv.write("SIM::target_position", nr, target)
-        while True:
+        # bounded: the simulated hours in cycles, and as much again for slow strokes
+        for _ in range(
+            2 * round(end / (srv.machine.cycle_s * srv.machine.twin.time_scale)) + 200_000
+        ):
             t = float(srv.read("TWIN::time"))
             if adapter is not None and t >= next_tick:
                 rec.writes += len(adapter.tick(t).writes)
                 next_tick += period_s
             srv.step(1)
-            if (
-                srv.read("SIM::velocity", nr) != 0
-                or srv.read("SIM::command_position", nr) != target
-            ):
+            if not bench.at(nr, target):
                 continue
             if target == hi:
                 rec.times_s.append(t)
@@ -110,6 +112,7 @@ def run_warmup(
                     return rec
             target = lo if target == hi else hi
             srv.write("SIM::target_position", nr, target)
+        raise RuntimeError(f"axis {axis} did not complete its strokes in time")
 
 
 def write_csv(path: Path, records: list[WarmupRecord]) -> None:

@@ -131,7 +131,11 @@ class ZenohClient(ObjectClient):
     # ------------------------------------------------------------------ primitives
 
     def get(
-        self, key: str, payload: bytes | None = None, encoding: Any = None
+        self,
+        key: str,
+        payload: bytes | None = None,
+        encoding: Any = None,
+        timeout: float | None = None,
     ) -> list[tuple[str, bytes]]:
         """All OK replies of a get as (key, payload); the first error raises AdsError.
 
@@ -140,8 +144,9 @@ class ZenohClient(ObjectClient):
         answers, so a conflict there is reported after the fact: the server's value may
         have been written, and the other session has seen it.
         """
+        wait = self.timeout if timeout is None else timeout
         kwargs: dict[str, Any] = {
-            "timeout": self.timeout,
+            "timeout": wait,
             # every matching queryable, every reply: the only way to see a second server
             "target": zenoh.QueryTarget.ALL,
             "consolidation": zenoh.ConsolidationMode.NONE,
@@ -165,7 +170,7 @@ class ZenohClient(ObjectClient):
         if not out:
             chosen = f" from Zenoh session {self.server_id}" if self.server_id else ""
             raise TimeoutError(
-                f"no reply for {key}{chosen} within {self.timeout} s (is the server "
+                f"no reply for {key}{chosen} within {wait} s (is the server "
                 f"running with machine name {self.machine!r}?)"
             )
         return out
@@ -231,12 +236,8 @@ class ZenohClient(ObjectClient):
         """`cmd/measure`: an ISO 230-2 test on the server's twin (docs/twin.md). `plan`:
         {"axis": "X", "targets": [...], "runs": 5, ...}; the reply holds the figures. A
         test takes minutes of machine time: `timeout` (s) replaces the client's."""
-        saved = self.timeout
-        self.timeout = timeout if timeout is not None else saved
-        try:
-            body = self._one(f"cnc/{self.machine}/cmd/measure", json.dumps(plan).encode(), JSON)
-        finally:
-            self.timeout = saved
+        key = f"cnc/{self.machine}/cmd/measure"
+        body = self.get(key, json.dumps(plan).encode(), JSON, timeout)[0][1]
         result: dict[str, Any] = json.loads(body)
         return result
 

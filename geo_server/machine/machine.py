@@ -581,13 +581,14 @@ def _mask(kinds: Iterable[CompKind]) -> CompKind:
 ALL_COMPS = _mask(COMP_ORDER)
 
 
-B, T, X, P, L, K = (
+B, T, X, P, L, K, F = (
     CompKind.BACKLASH,
     CompKind.TEMP,
     CompKind.CROSS,
     CompKind.PLANE,
     CompKind.LEAD,
     CompKind.CROSSTALK,
+    CompKind.FRICT,
 )
 #: Axis objects fed by a kernel [n, 7] array: object -> (array, compensation) (docs/design.md §2).
 _FROM_COMP: dict[str, tuple[str, CompKind]] = {
@@ -611,6 +612,8 @@ _FROM_COMP: dict[str, tuple[str, CompKind]] = {
     "CROSSTALK::actual_offset": ("actual", K),
     "CROSSTALK::delta_offset": ("delta", K),
     "CROSSTALK::end_offset": ("target", K),
+    "SIM::backlash_selected": ("selected", B),
+    "SIM::friction_selected": ("selected", F),
 }
 #: Columns of the machine's per-cycle buffer `Machine._mbuf`: the published deltas of
 #: the 7 compensations (from column "delta" on, kernel column order), then vectors

@@ -372,6 +372,7 @@ class TwinEngine:
         """Continue where `old` left off (a reload): time, node temperatures by name,
         directions, the random stream."""
         self.cycles, self.time = old.cycles, old.time
+        self.ambient = self._ambient_at(self.time)
         for k, name in enumerate(self.node_names):
             if name in old.node_names:
                 self.node_temp[k] = old.node_temp[old.node_names.index(name)]
@@ -384,8 +385,10 @@ class TwinEngine:
         self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
         if old.held_ambient is not None:
             self.hold_ambient(old.held_ambient)
-        if len(self.direction) == len(old.direction):
+        if len(self.direction) == len(old.direction):  # the same axes: the same motion
             self.direction[:] = old.direction
+            self._sign_before[:] = old._sign_before
+            self._scatter_now[:] = old._scatter_now
         self._rng = old._rng
         self._update_lines()
 

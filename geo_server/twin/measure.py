@@ -29,8 +29,10 @@ into the axis's lists as they are (only the value tokens), ready for `reload`:
 from __future__ import annotations
 
 import itertools
+import math
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -59,8 +61,9 @@ class MeasurementPlan:
     targets: tuple[float, ...]  # P_i, mm or °, ascending
     runs: int = 5
     overrun: float = 5.0  # mm or °, beyond the first and the last target
-    dwell_s: float = 0.2  # standstill before each reading (simulated seconds)
-    feed: float = 0.0  # mm/min (°/min); 0: the axis' maximum velocity
+    #: standstill before each reading, s of the machine's clock (cycles × cycle length;
+    #: the twin's thermal clock runs `time_scale` times faster)
+    dwell_s: float = 0.2
     compensation_off: tuple[str, ...] = ()  # COMP kinds switched off during the test
 
 
@@ -71,6 +74,9 @@ class Bench(Protocol):
         """Move to `position` (increments) and return once the axis stands there."""
 
     def dwell(self, seconds: float) -> None: ...
+
+    def at(self, axis: int, position: float) -> bool:
+        """The axis stands at `position` (increments; modulo axes: within the period)."""
 
     def true_position(self, axis: int) -> float:
         """Increments."""
@@ -84,44 +90,86 @@ class Bench(Protocol):
         """Write an object and return once it is applied."""
 
 
+#: Positions a test may reach: the SGN32 increments of `SIM::target_position`.
+MAX_POSITION = (2**31 - 1) / INCR
+
+
+def check_plan(plan: MeasurementPlan) -> None:
+    """MeasureError unless the plan is a test ISO 230-2 can evaluate: at least two
+    finite, strictly ascending targets, an overrun > 0 (every target is approached from
+    its side: without one, the first and the last are reached from the wrong direction),
+    two runs or more, a dwell ≥ 0, every position within the axis' increments."""
+    t = plan.targets
+    if len(t) < 2 or not all(math.isfinite(v) for v in t):
+        raise MeasureError("targets: two or more finite positions (mm or °)")
+    if any(b <= a for a, b in itertools.pairwise(t)):
+        raise MeasureError("targets must ascend strictly")
+    if not (math.isfinite(plan.overrun) and plan.overrun > 0):
+        raise MeasureError("overrun must be > 0 (mm or °): each target is approached from its side")
+    if max(abs(t[0] - plan.overrun), abs(t[-1] + plan.overrun)) > MAX_POSITION:
+        raise MeasureError(f"targets ± overrun must stay within ±{MAX_POSITION:.0f} mm")
+    if plan.runs < 2:
+        raise MeasureError("runs must be 2 or more (ISO 230-2 §2.15 needs n ≥ 2)")
+    if not (math.isfinite(plan.dwell_s) and plan.dwell_s >= 0):
+        raise MeasureError("dwell_s must be ≥ 0")
+    unknown = [k for k in plan.compensation_off if k not in _SELECTED]
+    if unknown:
+        raise MeasureError(f"off: unknown kind(s) {unknown}; known: {', '.join(_SELECTED)}")
+
+
 def run_test(bench: Bench, plan: MeasurementPlan, name: str = "") -> Evaluation:
-    """Run the test cycle; the deviations in µm (0.001° rotary)."""
+    """Run the test cycle; the deviations in µm (0.001° rotary).
+
+    The compensations of `plan.compensation_off` that are selected are switched off one
+    by one with NC `COMP OFF` and, whatever happens, the same ones back on after the
+    test — exactly those, one line each (a `COMP ON` line fails as a whole when one of
+    its kinds cannot be selected, 000 p.73)."""
+    check_plan(plan)
     targets = [t * INCR for t in plan.targets]
-    if any(b <= a for a, b in itertools.pairwise(targets)) or len(targets) < 2:
-        raise MeasureError("the targets must ascend (two at least)")
     if not bench.read("SIM::homed", plan.axis):
         raise MeasureError(f"axis {plan.axis} is not homed")
     label = name or _axis_name(bench, plan.axis)
-    switched = [k for k in plan.compensation_off if _selected(bench, plan.axis, k)]
-    if switched:
-        bench.nc(f"{label}[COMP OFF {' '.join(switched)}]")
+    switched: list[str] = []
     try:
+        for kind in plan.compensation_off:
+            if _selected(bench, plan.axis, kind):
+                switched.append(kind)
+                bench.nc(f"{label}[COMP OFF {kind}]")
         m = len(targets)
         up, down = np.zeros((plan.runs, m)), np.zeros((plan.runs, m))
         over = plan.overrun * INCR
         for j in range(plan.runs):
             bench.move(plan.axis, targets[0] - over)
             for i, target in enumerate(targets):
-                bench.move(plan.axis, target)
-                bench.dwell(plan.dwell_s)
-                up[j, i] = (bench.true_position(plan.axis) - target) / MICRO
+                up[j, i] = _reading(bench, plan, target)
             bench.move(plan.axis, targets[-1] + over)
             for i in range(m - 1, -1, -1):
-                bench.move(plan.axis, targets[i])
-                bench.dwell(plan.dwell_s)
-                down[j, i] = (bench.true_position(plan.axis) - targets[i]) / MICRO
+                down[j, i] = _reading(bench, plan, targets[i])
     finally:
-        if switched:
-            bench.nc(f"{label}[COMP ON {' '.join(switched)}]")
+        for kind in switched:
+            bench.nc(f"{label}[COMP ON {kind}]")
     return iso230.evaluate(plan.targets, up, down)
+
+
+def _reading(bench: Bench, plan: MeasurementPlan, target: float) -> float:
+    """Approach `target`, dwell, check the axis still stands there, read (µm)."""
+    bench.move(plan.axis, target)
+    bench.dwell(plan.dwell_s)
+    if not bench.at(plan.axis, target):
+        raise MeasureError(
+            f"axis {plan.axis} left {target:.0f} during the dwell (moved by someone else?)"
+        )
+    return (bench.true_position(plan.axis) - target) / MICRO
 
 
 #: COMP kind -> the object that tells whether it is selected (000 §5.1).
 _SELECTED = {
-    "LEAD": "ssfk activated",
+    "BACKLASH": "SIM::backlash_selected",
     "TEMP": "TEMPC::activated",
     "CROSS": "CROSSC::activated",
     "PLANE": "CC2::activated",
+    "LEAD": "ssfk activated",
+    "FRICT": "SIM::friction_selected",
     "CROSSTALK": "CROSSTALK::activated",
 }
 
@@ -133,8 +181,7 @@ def _axis_name(bench: Bench, axis: int) -> str:
 
 
 def _selected(bench: Bench, axis: int, kind: str) -> bool:
-    obj = _SELECTED.get(kind)
-    return True if obj is None else bool(bench.read(obj, axis))  # BACKLASH: no flag
+    return bool(bench.read(_SELECTED[kind], axis))
 
 
 # ---------------------------------------------------------------------- benches
@@ -149,79 +196,109 @@ class StepBench:
         self.svc = service
         self.max_cycles = max_cycles_per_move
 
+    def _period(self, axis: int) -> float:
+        """The modulo period in increments (0: not a modulo axis): the command position
+        of a modulo axis reads wrapped (docs/design.md §3.8)."""
+        params = self.svc.machine.cfg.axes[axis].params
+        return float(params.modulo_period) if params.modulo else 0.0
+
+    def at(self, axis: int, position: float) -> bool:
+        if self.svc.read_name("SIM::velocity", axis) != 0:
+            return False
+        diff = float(self.svc.read_name("SIM::command_position", axis)) - round(position)
+        period = self._period(axis)
+        if period:
+            diff = (diff + period / 2) % period - period / 2
+        return abs(diff) < 0.5
+
     def move(self, axis: int, position: float) -> None:
-        self.svc.write_name("SIM::target_position", axis, round(position))
+        self.write("SIM::target_position", axis, round(position))
         for _ in range(self.max_cycles):
-            self.svc.step(1)
-            if self.svc.read_name("SIM::velocity", axis) == 0 and (
-                self.svc.read_name("SIM::command_position", axis) == round(position)
-            ):
+            if self.at(axis, position):
                 return
-        raise MeasureError(f"axis {axis} did not reach {position} increments")
+            self.svc.step(1)
+        raise MeasureError(f"axis {axis} did not reach {position:.0f} increments")
 
     def dwell(self, seconds: float) -> None:
-        self.svc.step(max(1, round(seconds / self._seconds_per_cycle())))
-
-    def _seconds_per_cycle(self) -> float:
-        return float(self.svc.cycle_s)
+        self.svc.step(max(1, round(seconds / float(self.svc.cycle_s))))
 
     def true_position(self, axis: int) -> float:
         return float(self.svc.read_name("TWIN::true_position", axis))
 
     def nc(self, text: str) -> None:
-        self.svc.run_nc(text)
+        """Run NC lines to their end; MeasureError if they report an error."""
+        since = self.svc.snapshot.cycle
+        pending = self.svc.run_nc(text)
         for _ in range(self.max_cycles):
             self.svc.step(1)
             if not self.svc.read_name("SIM::program_running", 0):
-                return
-        raise MeasureError(f"NC {text!r} did not end")
+                break
+        else:
+            raise MeasureError(f"NC {text!r} did not end")
+        if pending.done():
+            pending.result()
+        self._check_errors(text, since)
+
+    def _check_errors(self, text: str, since: int) -> None:
+        """An NC error reported since cycle `since` (an operation is stamped with the
+        cycle completed before it was applied)."""
+        for e in self.svc.errors():
+            if e["cycle"] >= since and e["severity"] == "error" and e["file"] == "<nc>":
+                raise MeasureError(f"NC {text!r}: {e['message']}")
 
     def read(self, name: str, axis: int) -> Any:
         return self.svc.read_name(name, axis)
 
     def write(self, name: str, axis: int, value: object) -> None:
-        self.svc.write_name(name, axis, value)
+        pending = self.svc.write_name(name, axis, value)
         self.svc.step(1)
+        if pending.done():
+            pending.result()
 
 
 class LiveBench(StepBench):
     """A running server (real time or free-running): moves are object writes, waits
-    watch the published cycle count; no sleep is longer than a cycle's worth of polls."""
+    watch the published snapshots; no sleep is longer than a cycle's worth of polls.
+    `timeout_s` bounds every wait, `deadline_s` the whole test; `cancel` ends it."""
 
-    def __init__(self, service: Any, timeout_s: float = 120.0) -> None:
+    def __init__(
+        self,
+        service: Any,
+        timeout_s: float = 120.0,
+        deadline_s: float = 3600.0,
+        cancel: threading.Event | None = None,
+    ) -> None:
         super().__init__(service)
         self.timeout = timeout_s
+        self.deadline = time.monotonic() + deadline_s
+        self.cancel = cancel or threading.Event()
 
-    def _until(self, done: object, what: str) -> None:
-        deadline = time.monotonic() + self.timeout
-        while not done():  # type: ignore[operator]
+    def _until(self, done: Callable[[], bool], what: str) -> None:
+        deadline = min(time.monotonic() + self.timeout, self.deadline)
+        while not done():
+            if self.cancel.is_set():
+                raise MeasureError("the measurement was cancelled")
             if time.monotonic() > deadline:
-                raise MeasureError(f"{what} did not happen within {self.timeout} s")
-            time.sleep(max(self.svc.cycle_s, 0.0005))
+                raise MeasureError(f"{what} did not happen in time")
+            time.sleep(max(float(self.svc.cycle_s), 0.0005))
 
     def move(self, axis: int, position: float) -> None:
-        target = round(position)
-        pending = self.svc.write_name("SIM::target_position", axis, target)
-        self.svc.settle_sync(pending, self.timeout)
-        self._until(
-            lambda: (
-                self.svc.read_name("SIM::velocity", axis) == 0
-                and self.svc.read_name("SIM::command_position", axis) == target
-            ),
-            f"axis {axis} reaching {target}",
-        )
+        self.write("SIM::target_position", axis, round(position))
+        self._until(lambda: self.at(axis, position), f"axis {axis} reaching {position:.0f}")
 
     def dwell(self, seconds: float) -> None:
         start = self.svc.snapshot.cycle
-        cycles = max(1, round(seconds / self.svc.cycle_s))
-        self._until(lambda: self.svc.snapshot.cycle >= start + cycles, "the dwell")
+        cycles = max(1, round(seconds / float(self.svc.cycle_s)))
+        self._until(lambda: bool(self.svc.snapshot.cycle >= start + cycles), "the dwell")
 
     def write(self, name: str, axis: int, value: object) -> None:
         self.svc.settle_sync(self.svc.write_name(name, axis, value), self.timeout)
 
     def nc(self, text: str) -> None:
+        since = self.svc.snapshot.cycle
         self.svc.settle_sync(self.svc.run_nc(text), self.timeout)
         self._until(lambda: not self.svc.read_name("SIM::program_running", 0), f"NC {text!r}")
+        self._check_errors(text, since)
 
 
 # ---------------------------------------------------------------------- a plan from JSON
@@ -229,7 +306,7 @@ class LiveBench(StepBench):
 #: Bounds of a plan that arrives over the network (a measurement holds the machine).
 MAX_TARGETS = 1500  # the LSEC table's maximum (P-COMP-00020)
 MAX_RUNS = 50
-KINDS = ("BACKLASH", "CROSS", "PLANE", "LEAD", "TEMP", "FRICT", "CROSSTALK")
+KINDS = tuple(_SELECTED)
 
 
 def plan_from_json(spec: Any, cfg: MachineConfig) -> MeasurementPlan:
@@ -251,24 +328,24 @@ def plan_from_json(spec: Any, cfg: MachineConfig) -> MeasurementPlan:
     if targets is None:
         targets = lsec_setpoints(cfg, axis)
     if not isinstance(targets, list | tuple) or not all(
-        isinstance(t, int | float) and not isinstance(t, bool) for t in targets
+        isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t) for t in targets
     ):
-        raise MeasureError("targets must be a list of numbers (mm or °)")
+        raise MeasureError("targets must be a list of finite numbers (mm or °)")
     if not 2 <= len(targets) <= MAX_TARGETS:
         raise MeasureError(f"targets: 2 … {MAX_TARGETS} positions, got {len(targets)}")
     runs = spec.get("runs", 5)
     if not isinstance(runs, int) or isinstance(runs, bool) or not 2 <= runs <= MAX_RUNS:
         raise MeasureError(f"runs must be an integer 2 … {MAX_RUNS}")
     numbers = {}
-    for key, default, top in (("overrun", 5.0, 1000.0), ("dwell_s", 0.2, 60.0)):
+    for key, default, low, top in (("overrun", 5.0, 0.001, 1000.0), ("dwell_s", 0.2, 0.0, 10.0)):
         v = spec.get(key, default)
-        if not isinstance(v, int | float) or isinstance(v, bool) or not 0 <= v <= top:
-            raise MeasureError(f"{key} must be a number 0 … {top:g}")
+        if not isinstance(v, int | float) or isinstance(v, bool) or not low <= v <= top:
+            raise MeasureError(f"{key} must be a number {low:g} … {top:g}")
         numbers[key] = float(v)
     off = spec.get("off", [])
     if not isinstance(off, list) or not all(isinstance(k, str) and k.upper() in KINDS for k in off):
         raise MeasureError(f"off must be a list of {', '.join(KINDS)}")
-    return MeasurementPlan(
+    plan = MeasurementPlan(
         axis=axis,
         targets=tuple(float(t) for t in targets),
         runs=runs,
@@ -276,6 +353,8 @@ def plan_from_json(spec: Any, cfg: MachineConfig) -> MeasurementPlan:
         dwell_s=numbers["dwell_s"],
         compensation_off=tuple(k.upper() for k in off),
     )
+    check_plan(plan)
+    return plan
 
 
 # ---------------------------------------------------------------------- commissioning
@@ -312,17 +391,25 @@ def commission(
 
 def write_lists(c: Commissioning, axis_list: Path | str, comp_list: Path | str) -> list[str]:
     """Write the values into the axis's lists (only the value tokens; the table keeps its
-    layout: the setpoints must be those of the list's table). Returns the files written."""
+    layout: the setpoints must be those of the list's table). Both files or neither: if
+    the second cannot be written, the first gets its old text back. Returns the files
+    written."""
     changes: dict[str, str] = {}
     for i, v in enumerate(c.pos):
         changes[f"kw.ssfk.table[{i}].pos"] = str(v)
     if c.neg is not None:
         for i, v in enumerate(c.neg):
             changes[f"kw.ssfk.table[{i}].neg"] = str(v)
-    rewrite_values(comp_list, changes)
+    comp_path = Path(comp_list)
+    before = comp_path.read_bytes()
+    rewrite_values(comp_path, changes)
     written = [str(comp_list)]
     if c.backlash is not None:
-        rewrite_values(axis_list, {"getriebe[0].lose": str(c.backlash)})
+        try:
+            rewrite_values(axis_list, {"getriebe[0].lose": str(c.backlash)})
+        except BaseException:
+            comp_path.write_bytes(before)
+            raise
         written.append(str(axis_list))
     return written
 

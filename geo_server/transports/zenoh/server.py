@@ -256,6 +256,7 @@ class ZenohInterface:
         for unsub in self._unsubscribe:
             unsub()
         self._unsubscribe.clear()
+        self.service.cancel_measure()  # a worker thread driving the machine for cmd/measure
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)

@@ -61,12 +61,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--axis", required=True, help="axis name or logical number (e.g. X or 1)")
     t = p.add_argument_group("test (ISO 230-2:2014 §5)")
     g = t.add_mutually_exclusive_group()
-    g.add_argument("--targets", help="target positions, mm or °, comma-separated")
+    g.add_argument(
+        "--targets",
+        help="target positions, mm or °, comma-separated (a negative first one: "
+        "--targets=-500,0,500)",
+    )
     g.add_argument(
         "--range",
         metavar="START:STOP:STEP",
-        help="equidistant targets from START to STOP (mm or °); default: the setpoints of "
-        "the axis' LSEC table",
+        help="equidistant targets from START to STOP (mm or °; a negative START: "
+        "--range=-500:500:100); default: the setpoints of the axis' LSEC table",
     )
     t.add_argument("--runs", type=int, default=5, help="runs (default 5, as the standard asks)")
     t.add_argument(

@@ -55,7 +55,8 @@ from common import (
     wait_port,
 )
 
-from geo_server.dictionary import load_dictionary
+from geo_server.dictionary import GEO_AMS_PORT, load_dictionary
+from geo_server.errors import AdsErrorCode
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import (
     AmsAddr,
@@ -107,7 +108,11 @@ def flood_child(port: int, connections: int, per_connection: int, cyclic: bool) 
             data = codec.add_notification_request(ig, io, n, mode, 0, 1)  # 100 ns: every cycle
             reqs.append(
                 codec.request_frame(
-                    AmsAddr(SERVER_NETID, 551), source, Command.ADD_DEVICE_NOTIFICATION, data, i
+                    AmsAddr(SERVER_NETID, GEO_AMS_PORT),
+                    source,
+                    Command.ADD_DEVICE_NOTIFICATION,
+                    data,
+                    i,
                 )
             )
         framer = codec.Framer()
@@ -128,7 +133,7 @@ def flood_child(port: int, connections: int, per_connection: int, cyclic: bool) 
                     code, _handle = codec.parse_add_notification_response(ev.data)
                     if code == 0:
                         granted += 1
-                    elif code == 0x716:
+                    elif code == AdsErrorCode.DEVICE_NOMOREHDLS:
                         refused += 1
                     else:
                         other += 1

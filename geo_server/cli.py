@@ -19,7 +19,7 @@ from typing import Any
 
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
-from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
+from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
 from geo_server.errors import GeoError
 from geo_server.paths import default_startup_list
 
@@ -251,7 +251,7 @@ def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
         host=args.ads_host, port=args.ads_port, netid=args.ads_netid, read_only=read_only
     )
     ads = AdsServer(service, opts)
-    return ads, lambda: f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port 551"
+    return ads, lambda: f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"
 
 
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:

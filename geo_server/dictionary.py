@@ -27,6 +27,8 @@ from typing import Any
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.paths import data_dir
 
+#: The AMS port of the GEO task: every object is served there (docs/design.md §2).
+GEO_AMS_PORT = 551
 #: Index groups of the object groups (docs/design.md §2).
 GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300}
 #: Attribute group offsets relative to an object group (docs/design.md §2).

@@ -23,12 +23,21 @@ from typing import Any
 
 from geo_server.dictionary import ObjectDef
 
+#: kenngr.achs_typ (P-AXIS-00018): linear, rotary, spindle.
 LINEAR, ROTARY, SPINDLE = 1, 2, 4
+#: kenngr.achs_typ by the model's axis kind (`AxisParams.kind`: "T", "R", "S").
+ACHS_TYP = {"T": LINEAR, "R": ROTARY, "S": SPINDLE}
+
+#: Increments per mm (linear) or per ° (rotary): one increment is 0.1 µm / 0.0001°
+#: (docs/design.md §3.1). The one definition; every module takes it from here.
+UNITS_PER_MM = 10_000.0
+#: Increments per µm (linear) or per 0.001° (rotary); also µm/s per increment/s.
+UNITS_PER_UM = 10.0
 
 #: quantity -> (linear (divisor, unit, decimals), rotary (divisor, unit, decimals))
 _SCALES: dict[str, tuple[tuple[float, str, int], tuple[float, str, int]]] = {
-    "position": ((10_000.0, "mm", 4), (10_000.0, "°", 4)),
-    "offset": ((10.0, "µm", 1), (10_000.0, "°", 4)),
+    "position": ((UNITS_PER_MM, "mm", 4), (UNITS_PER_MM, "°", 4)),
+    "offset": ((UNITS_PER_UM, "µm", 1), (UNITS_PER_MM, "°", 4)),
     "velocity": ((1000.0, "mm/s", 3), (1000.0, "°/s", 3)),
 }
 
@@ -69,4 +78,15 @@ def parse_axis_names(text: str) -> dict[str, int]:
     return out
 
 
-__all__ = ["LINEAR", "ROTARY", "SPINDLE", "Shown", "parse_axis_names", "raw_unit", "show"]
+__all__ = [
+    "ACHS_TYP",
+    "LINEAR",
+    "ROTARY",
+    "SPINDLE",
+    "UNITS_PER_MM",
+    "UNITS_PER_UM",
+    "Shown",
+    "parse_axis_names",
+    "raw_unit",
+    "show",
+]

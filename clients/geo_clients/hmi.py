@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
-from geo_server.units import show
+from geo_server.units import LINEAR, show
 
 
 @dataclass(frozen=True)
@@ -301,14 +301,11 @@ class Units:
         self.raw = raw
         self._d = load_dictionary()
 
-    def __call__(self, name: str | None, value: Any, axis_type: Any = 1) -> str:
+    def __call__(self, name: str | None, value: Any, axis_type: Any = LINEAR) -> str:
         if name is None or value is None or isinstance(value, bool):
             return _fmt(value)
-        shown = show(self._d.by_name(name), value, int(axis_type or 1), self.raw)
+        shown = show(self._d.by_name(name), value, int(axis_type or LINEAR), self.raw)
         return f"{_fmt(shown.value)} {shown.unit}".rstrip() if not self.raw else _fmt(value)
-
-
-_RAW = Units(raw=True)
 
 
 def status_line(model: HmiModel) -> str:

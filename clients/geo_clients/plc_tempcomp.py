@@ -108,6 +108,7 @@ from typing import Any, Protocol
 from geo_clients.common import add_transport_arguments, client_from_args, transport_name
 from geo_server.dictionary import load_dictionary, round_half_away
 from geo_server.errors import AdsError, GeoError
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 log = logging.getLogger("geo_clients.plc_tempcomp")
 
@@ -116,7 +117,7 @@ EXAMPLE_REFERENCE = Path(__file__).resolve().parent / "data" / "reference_measur
 
 SGN32_MIN, SGN32_MAX = -(2**31), 2**31 - 1
 #: Unit suffixes of position-like columns: factor to increments (0.1 µm / 0.0001°).
-UNIT_FACTORS = {"": 1.0, "_incr": 1.0, "_um": 10.0, "_mm": 10_000.0}
+UNIT_FACTORS = {"": 1.0, "_incr": 1.0, "_um": UNITS_PER_UM, "_mm": UNITS_PER_MM}
 #: ADS codes worth a retry: device not ready, device busy, device timeout (a write the
 #: server could not apply in time), client sync timeout / invalid response / port locked
 #: (pyads).

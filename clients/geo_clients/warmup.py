@@ -32,10 +32,10 @@ from pathlib import Path
 from geo_clients.plc_tempcomp import TemperatureAdapter, TwinSensors, load_reference
 from geo_clients.testing import GeoTestServer
 from geo_server.twin.measure import StepBench
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 #: The twin's reference measurement for the default machine (axes X, Y, Z).
 TWIN_REFERENCE = Path(__file__).resolve().parent / "data" / "twin_reference_measurement.csv"
-INCR_PER_MM = 10_000.0
 
 
 @dataclass
@@ -78,7 +78,7 @@ def run_warmup(
     simulated seconds per cycle second (1 ms cycles: 0.25 s each at 250)."""
     with GeoTestServer(startup, time_scale=time_scale) as srv:
         nr = srv.axis(axis)
-        lo, hi = (round(p * INCR_PER_MM) for p in stroke_mm)
+        lo, hi = (round(p * UNITS_PER_MM) for p in stroke_mm)
         rec = WarmupRecord(nr, stroke_mm[1], plc)
         adapter = None
         if plc:
@@ -105,7 +105,7 @@ def run_warmup(
                 continue
             if target == hi:
                 rec.times_s.append(t)
-                rec.residual_um.append(float(srv.read("TWIN::residual", nr)) / 10.0)
+                rec.residual_um.append(float(srv.read("TWIN::residual", nr)) / UNITS_PER_UM)
                 rec.sensor_C.append(float(srv.read("TWIN::sensor_temperature", nr)))
                 rec.ambient_C.append(float(srv.read("TWIN::ambient_temperature")))
                 if t >= end:

@@ -31,10 +31,9 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from geo_server.client.base import ObjectClient
-from geo_server.dictionary import load_dictionary
+from geo_server.dictionary import GEO_AMS_PORT, load_dictionary
 from geo_server.errors import AdsError
 
-GEO_AMS_PORT = 551
 SUMUP_READ = 0xF080
 
 

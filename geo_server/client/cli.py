@@ -22,7 +22,7 @@ from geo_server.client import TRANSPORTS, open_client, resolve
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import STRING_LENGTH, ObjectDef, load_dictionary
 from geo_server.errors import AdsError
-from geo_server.units import show
+from geo_server.units import LINEAR, show
 
 #: Seconds between two polls of `watch` over Modbus (which has no notifications).
 MODBUS_WATCH_PERIOD = 0.1
@@ -79,7 +79,7 @@ class Shell:
     # ------------------------------------------------------------------ output
 
     def shown(self, obj: ObjectDef, axis: int, value: Any) -> dict[str, Any]:
-        kind = self.client.axis_type(axis) if obj.quantity and obj.scope == "axis" else 1
+        kind = self.client.axis_type(axis) if obj.quantity and obj.scope == "axis" else LINEAR
         s = show(obj, value, kind, raw=self.args.raw)
         return {"name": obj.name, "axis": axis, "value": s.value, "unit": s.unit, "raw": value}
 

@@ -65,9 +65,8 @@ from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.kernel.triangulation import INSIDE_EPS, Triangulation, evaluate, triangulate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
-UNITS_PER_MM = 10_000.0  # 0.1 µm per mm, 0.0001° per degree (docs/design.md §3.1)
-UNITS_PER_UM = 10.0  # friction tables are in µm/s (000 §4.5, P-COMP-00046)
 RING = 249  # friction delay line length: delay_cycles < 249 (000 p.79)
 #: Outside the hull, neighbouring regions overlap by this distance [units] so that
 #: rounding can never leave a point in no region; the value there is continuous, so the

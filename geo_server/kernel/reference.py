@@ -42,9 +42,7 @@ from geo_server.kernel.common import (
 )
 from geo_server.kernel.triangulation import Triangulation, evaluate, triangulate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
-
-UNITS_PER_MM = 10_000.0  # 0.1 µm per mm, 0.0001° per degree (docs/design.md §3.1)
-UNITS_PER_UM = 10.0  # friction tables are in µm/s (0.001°/s rotary), 000 §4.5 P-COMP-00046
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 
 def interp(x: Sequence[float], y: Sequence[float], q: float) -> float:

@@ -30,8 +30,9 @@ from geo_server.listfile.schema import Value
 from geo_server.listfile.syntax import Entry
 from geo_server.listfile.values import Reporter, Values, range_errors_of
 from geo_server.model import AxisParams, CompKind, Source
+from geo_server.units import ACHS_TYP, UNITS_PER_UM
 
-_KINDS = {1: "T", 2: "R", 4: "S"}
+_KINDS = {typ: kind for kind, typ in ACHS_TYP.items()}  # kenngr.achs_typ -> kind
 
 #: entry (canonical base) -> (AxisParams attribute, conversion). The conversion takes Any:
 #: the converted value's type is that of the entry's spec (a MASK is a CompKind already).
@@ -57,7 +58,7 @@ _FIELDS: dict[str, tuple[str, Callable[[Any], object]]] = {
     ),
     "kenngr.modulo_calc": ("modulo", bool),
     "kenngr.modulo_wert": ("modulo_period", float),
-    "getriebe[].vb_max": ("v_max", lambda v: float(v) * 10.0),  # µm/s -> 0.1 µm/s
+    "getriebe[].vb_max": ("v_max", lambda v: float(v) * UNITS_PER_UM),  # µm/s -> 0.1 µm/s
     "getriebe[].a_max": ("a_max", float),
     "sim.homed": ("homed", bool),
     "sim.start_position": ("start_position", float),

@@ -43,12 +43,11 @@ from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
+from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
 
 #: Column of each compensation in the kernel's [n, 7] arrays.
 C = {kind: i for i, kind in enumerate(COMP_ORDER)}
 #: Position compensations summed into the drive output (docs/design.md §3).
-UNITS_PER_UM = 10.0  # internal units (0.1 µm) per µm; also 0.001° = 10 units
-UNITS_PER_MM = 10_000.0
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -119,7 +118,7 @@ class Machine:
         self._any_modulo = bool(self._modulo.any())
         #: SIM::axis_type: kenngr.achs_typ (1 linear, 2 rotary, 4 spindle)
         self._axis_type: np.ndarray = np.array(
-            [_ACHS_TYP[cfg.axes[a].params.kind] for a in self.axes]
+            [float(ACHS_TYP[cfg.axes[a].params.kind]) for a in self.axes]
         )
         for d in cfg.diagnostics:
             self._record(d)
@@ -648,10 +647,9 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "TWIN::residual": lambda m: m.twin.residual,
     "TWIN::friction_current": lambda m: m.twin.friction_current,
 }
+
+
 #: kenngr.achs_typ of each axis kind (002 P-AXIS-00018).
-_ACHS_TYP = {"T": 1.0, "R": 2.0, "S": 4.0}
-
-
 def _tempc_row(row: int) -> Callable[[Machine], np.ndarray]:
     return lambda m: m.kernel.tempc_params[row]
 

@@ -39,9 +39,9 @@ import numpy as np
 
 from geo_server.errors import GeoError
 from geo_server.model import AxisParams
+from geo_server.units import UNITS_PER_MM
 
 #: Internal units per mm (linear) or per degree (rotary): 0.1 µm / 0.0001°.
-UNITS_PER_MM = 10_000.0
 
 #: Tolerance (in cycles) when rounding a move duration up to whole cycles, so that
 #: T/dt = 3000.0000000004 still counts as 3000 cycles.

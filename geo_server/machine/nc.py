@@ -40,9 +40,9 @@ from typing import Protocol
 
 from geo_server.errors import CncErrorId, GeoError
 from geo_server.model import CompKind, Diagnostic
+from geo_server.units import UNITS_PER_MM
 
 #: Internal units per mm / degree (docs/design.md §3).
-UNITS_PER_MM = 10_000.0
 
 #: Emulator-internal NC runtime errors (runaway `$GOTO` loop, missing feed) carry ID 0.
 ERR_NC_RUNTIME = 0

@@ -29,19 +29,16 @@ import numpy as np
 
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.twin.model import AxisTwin, Curve, Grid, TwinConfig
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
-#: Increments per mm (linear) or per ° (rotary).
-INCR_PER_UNIT = 10_000.0
-#: Increments per µm (linear) or per 0.001° (rotary).
-INCR_PER_MICRO = 10.0
 #: Increments per second to m/s (linear) or to 1000 °/s (rotary).
 V_SCALE = 1e-7
 
 
 def _curve_rows(c: Curve) -> tuple[np.ndarray, np.ndarray]:
     return (
-        np.asarray(c.positions) * INCR_PER_UNIT,
-        np.asarray(c.errors) * INCR_PER_MICRO,
+        np.asarray(c.positions) * UNITS_PER_MM,
+        np.asarray(c.errors) * UNITS_PER_UM,
     )
 
 
@@ -88,19 +85,19 @@ class TwinEngine:
 
     def _setup_geometry(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
         n = len(axes)
-        self.lin_off = np.array([a.linear_offset * INCR_PER_MICRO for a in axes])
+        self.lin_off = np.array([a.linear_offset * UNITS_PER_UM for a in axes])
         self.lin_slope = np.array([a.linear_slope * 1e-6 for a in axes])
-        self.lin_ref = np.array([a.linear_reference * INCR_PER_UNIT for a in axes])
-        self.per_amp = np.array([a.periodic_amplitude * INCR_PER_MICRO for a in axes])
+        self.lin_ref = np.array([a.linear_reference * UNITS_PER_MM for a in axes])
+        self.per_amp = np.array([a.periodic_amplitude * UNITS_PER_UM for a in axes])
         self.per_k = np.array(
             [
-                2 * math.pi / (a.periodic_period * INCR_PER_UNIT) if a.periodic_period else 0.0
+                2 * math.pi / (a.periodic_period * UNITS_PER_MM) if a.periodic_period else 0.0
                 for a in axes
             ]
         )
-        self.reversal = np.array([a.reversal * INCR_PER_MICRO for a in axes])
+        self.reversal = np.array([a.reversal * UNITS_PER_UM for a in axes])
         self.ref_dir = np.array([float(a.reference_direction) for a in axes])
-        self.scatter = np.array([a.scatter * INCR_PER_MICRO for a in axes])
+        self.scatter = np.array([a.scatter * UNITS_PER_UM for a in axes])
         self._any_periodic = bool(self.per_amp.any())
         self._half_reversal = self.reversal / 2
         self.fr_coulomb = np.array([a.friction_coulomb for a in axes])
@@ -183,7 +180,7 @@ class TwinEngine:
             [a.expansion.coefficient * 1e-6 if a.expansion else 0.0 for a in axes]
         )
         self.exp_ref = np.array(
-            [a.expansion.reference * INCR_PER_UNIT if a.expansion else 0.0 for a in axes]
+            [a.expansion.reference * UNITS_PER_MM if a.expansion else 0.0 for a in axes]
         )
         self.exp_node = np.array(
             [index[a.expansion.node] if a.expansion else 0 for a in axes], dtype=int
@@ -401,10 +398,10 @@ class _GridLookup:
     """Bilinear interpolation on a grid, edges held; positions in increments."""
 
     def __init__(self, g: Grid) -> None:
-        self.table = np.asarray(g.errors, dtype=float) * INCR_PER_MICRO
+        self.table = np.asarray(g.errors, dtype=float) * UNITS_PER_UM
         self.rows, self.cols = self.table.shape
-        self.u0, self.du = g.start1 * INCR_PER_UNIT, g.step1 * INCR_PER_UNIT
-        self.v0, self.dv = g.start2 * INCR_PER_UNIT, g.step2 * INCR_PER_UNIT
+        self.u0, self.du = g.start1 * UNITS_PER_MM, g.step1 * UNITS_PER_MM
+        self.v0, self.dv = g.start2 * UNITS_PER_MM, g.step2 * UNITS_PER_MM
         self.t = self.table.tolist()  # Python floats: a scalar lookup without numpy calls
 
     def __call__(self, p1: float, p2: float) -> float:
@@ -420,4 +417,4 @@ class _GridLookup:
         return float(top + (bottom - top) * fv)
 
 
-__all__ = ["INCR_PER_MICRO", "INCR_PER_UNIT", "TwinEngine"]
+__all__ = ["TwinEngine"]

@@ -44,9 +44,7 @@ from geo_server.listfile import rewrite_values
 from geo_server.model import MachineConfig
 from geo_server.twin import iso230
 from geo_server.twin.iso230 import Evaluation
-
-INCR = 10_000.0  # increments per mm / °
-MICRO = 10.0  # increments per µm / 0.001°
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 
 class MeasureError(GeoError):
@@ -91,7 +89,7 @@ class Bench(Protocol):
 
 
 #: Positions a test may reach: the SGN32 increments of `SIM::target_position`.
-MAX_POSITION = (2**31 - 1) / INCR
+MAX_POSITION = (2**31 - 1) / UNITS_PER_MM
 
 
 def check_plan(plan: MeasurementPlan) -> None:
@@ -125,7 +123,7 @@ def run_test(bench: Bench, plan: MeasurementPlan, name: str = "") -> Evaluation:
     test — exactly those, one line each (a `COMP ON` line fails as a whole when one of
     its kinds cannot be selected, 000 p.73)."""
     check_plan(plan)
-    targets = [t * INCR for t in plan.targets]
+    targets = [t * UNITS_PER_MM for t in plan.targets]
     if not bench.read("SIM::homed", plan.axis):
         raise MeasureError(f"axis {plan.axis} is not homed")
     label = name or _axis_name(bench, plan.axis)
@@ -137,7 +135,7 @@ def run_test(bench: Bench, plan: MeasurementPlan, name: str = "") -> Evaluation:
                 bench.nc(f"{label}[COMP OFF {kind}]")
         m = len(targets)
         up, down = np.zeros((plan.runs, m)), np.zeros((plan.runs, m))
-        over = plan.overrun * INCR
+        over = plan.overrun * UNITS_PER_MM
         for j in range(plan.runs):
             bench.move(plan.axis, targets[0] - over)
             for i, target in enumerate(targets):
@@ -159,7 +157,7 @@ def _reading(bench: Bench, plan: MeasurementPlan, target: float) -> float:
         raise MeasureError(
             f"axis {plan.axis} left {target:.0f} during the dwell (moved by someone else?)"
         )
-    return (bench.true_position(plan.axis) - target) / MICRO
+    return (bench.true_position(plan.axis) - target) / UNITS_PER_UM
 
 
 #: COMP kind -> the object that tells whether it is selected (000 §5.1).
@@ -376,16 +374,16 @@ def commission(
 ) -> Commissioning:
     """LSEC table and backlash from a test measured without LSEC and backlash
     compensation (module docstring)."""
-    setpoints = tuple(round(p * INCR) for p in evaluation.targets)
+    setpoints = tuple(round(p * UNITS_PER_MM) for p in evaluation.targets)
     if bilateral:
-        pos = tuple(round(v * MICRO) for v in evaluation.mean_up)
-        neg = tuple(round(v * MICRO) for v in evaluation.mean_down)
+        pos = tuple(round(v * UNITS_PER_UM) for v in evaluation.mean_up)
+        neg = tuple(round(v * UNITS_PER_UM) for v in evaluation.mean_down)
         return Commissioning(axis, setpoints, pos, neg, None)
     ref = evaluation.mean_up if reference_direction > 0 else evaluation.mean_down
     other = evaluation.mean_down if reference_direction > 0 else evaluation.mean_up
-    table = tuple(round(v * MICRO) for v in ref)
+    table = tuple(round(v * UNITS_PER_UM) for v in ref)
     # lost motion: how far the other direction stops beyond the reference one
-    lose = round(float(np.mean(other - ref)) * MICRO * reference_direction)
+    lose = round(float(np.mean(other - ref)) * UNITS_PER_UM * reference_direction)
     return Commissioning(axis, setpoints, table, None, lose)
 
 
@@ -459,7 +457,7 @@ def lsec_setpoints(cfg: MachineConfig, axis: int) -> tuple[float, ...]:
     lsec = comp.lsec if comp is not None else None
     if lsec is None:
         raise MeasureError(f"axis {axis} has no LSEC table to take the targets from")
-    return tuple(float(p) / INCR for p in lsec.setpoint)
+    return tuple(float(p) / UNITS_PER_MM for p in lsec.setpoint)
 
 
 def tempc_line(bench: Bench, axis: int) -> tuple[float, float, float]:
@@ -469,7 +467,7 @@ def tempc_line(bench: Bench, axis: int) -> tuple[float, float, float]:
         return (0.0, 0.0, 0.0)
     return (
         float(bench.read("TEMPC::position_0", axis)),
-        float(bench.read("TEMPC::offset_0", axis)) / MICRO,
+        float(bench.read("TEMPC::offset_0", axis)) / UNITS_PER_UM,
         float(bench.read("TEMPC::coefficient", axis)),
     )
 
@@ -490,7 +488,7 @@ class ReferencePoint:
         p0, off, coef = self.tempc
         rows = []
         for p, x in zip(self.evaluation.targets, self.evaluation.mean, strict=True):
-            active = off + coef * 1e-6 * (p * INCR - p0) / MICRO
+            active = off + coef * 1e-6 * (p * UNITS_PER_MM - p0) / UNITS_PER_UM
             rows.append((axis, round(self.temperature, 3), float(p), round(active - float(x), 4)))
         return rows
 

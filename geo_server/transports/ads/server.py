@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import geo_server
+from geo_server.dictionary import GEO_AMS_PORT
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
@@ -70,7 +71,6 @@ from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
 
-GEO_AMS_PORT = 551
 #: Registrations sampled between two looks at the clock (keeps the budget check cheap).
 _SAMPLE_STEP = 32
 

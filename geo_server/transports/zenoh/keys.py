@@ -20,13 +20,14 @@ from dataclasses import dataclass
 
 from geo_server.dictionary import (
     ATTRIBUTES,
+    GEO_AMS_PORT,
     GROUPS,
     Dictionary,
     ObjectDef,
 )
 from geo_server.errors import AdsError, AdsErrorCode
 
-GEO_PORT = 551
+GEO_PORT = GEO_AMS_PORT
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,7 @@ class KeySpace:
             port, ig = concrete(1), concrete(2)
             if port is not None and port != str(GEO_PORT):
                 return AdsError(
-                    AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is 551)"
+                    AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is {GEO_PORT})"
                 )
             if ig is not None:
                 try:
@@ -178,7 +179,9 @@ class KeySpace:
                 f"raw key needs <port>/<0xgroup>/<0xoffset>: {key}",
             ) from None
         if port != GEO_PORT:
-            raise AdsError(AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is 551)")
+            raise AdsError(
+                AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is {GEO_PORT})"
+            )
         obj, axis, _attr = self.dictionary.resolve(ig, io, self.axes)
         return Route("raw", obj, axis, ig, io)
 

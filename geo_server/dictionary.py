@@ -314,7 +314,9 @@ class ObjectDef:
 
     @property
     def param_attr(self) -> str | None:
-        """The `AxisParams` attribute behind `list_key` (`temp_comp_coefficient`)."""
+        """The `AxisParams` attribute behind `list_key` (`temp_comp_coefficient`): the
+        axis list reader stores entry `lr_param.<name>` in attribute `<name>`
+        (tests/test_dictionary.py checks this against the reader's table)."""
         return self.list_key.split(".", 1)[1] if self.list_key else None
 
     def as_row(self) -> dict[str, Any]:
@@ -394,7 +396,11 @@ class Dictionary:
     def tempc_parameters(self) -> list[ObjectDef]:
         """The numeric TEMPC parameters a PLC retunes live (coefficient, offset_0,
         position_0; 000 §3.2.3), in element-ID order."""
-        return [o for o in self.saved_parameters() if o.type.name != "BOOLEAN"]
+        return [
+            o
+            for o in self.saved_parameters()
+            if o.key_group == "tempc" and o.type.name != "BOOLEAN"
+        ]
 
     def resolve(
         self, index_group: int, index_offset: int, axes: Iterable[int]

@@ -25,10 +25,8 @@ class AdsErrorCode(IntEnum):
     `ADSERR_` prefix)."""
 
     NOERROR = 0x000
-    INTERNAL = 0x001
     TARGET_PORT_NOT_FOUND = 0x006
     TARGET_MACHINE_NOT_FOUND = 0x007
-    UNKNOWN_COMMAND_ID = 0x008
     INVALID_AMS_LENGTH = 0x00E
     DEVICE_ERROR = 0x700  # general device error (a defect: the message says what)
     DEVICE_SRVNOTSUPP = 0x701  # service / command not supported
@@ -39,8 +37,6 @@ class AdsErrorCode(IntEnum):
     DEVICE_INVALIDDATA = 0x706  # value of the wrong type or out of range
     DEVICE_NOTREADY = 0x707  # the GEO cycle is stalled or ended
     DEVICE_BUSY = 0x708  # axis busy, program running, another command running
-    DEVICE_NOMEMORY = 0x70A
-    DEVICE_INVALIDPARM = 0x70B
     DEVICE_SYNTAX = 0x70D  # list file or NC text has errors (reload rejected)
     DEVICE_TRANSMODENOTSUPP = 0x713
     DEVICE_NOTIFYHNDINVALID = 0x714

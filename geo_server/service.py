@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geo_server.dictionary import ObjectDef
+from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
@@ -55,6 +55,7 @@ from geo_server.machine.port import (
     StartProgram,
     WriteObjects,
     chained,
+    resolved,
 )
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
@@ -240,10 +241,7 @@ class ObjectService:
         if attr:
             data = obj.attribute(attr)
         else:
-            if not obj.readable:
-                raise AdsError(
-                    AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is write-only", obj.name
-                )
+            check_readable(obj)
             data = (snapshot or self.current()).encode(obj, axis)
         if length is not None and length < len(data):
             raise AdsError(
@@ -253,9 +251,13 @@ class ObjectService:
             )
         return data
 
-    def read_many(self, requests: Iterable[tuple[int, int, int | None]]) -> list[bytes | AdsError]:
+    def read_many(
+        self,
+        requests: Iterable[tuple[int, int, int | None]],
+        snapshot: Snapshot | None = None,
+    ) -> list[bytes | AdsError]:
         """Batch read from one snapshot; each entry is bytes or the AdsError it raised."""
-        snap = self.current()
+        snap = snapshot or self.current()
         out: list[bytes | AdsError] = []
         for ig, io, length in requests:
             try:
@@ -265,7 +267,8 @@ class ObjectService:
         return out
 
     def read_name(self, name: str, axis: int = 0, snapshot: Snapshot | None = None) -> Any:
-        """Decoded value of an object by name."""
+        """Decoded value of an object by name (a write-only one shows what its snapshot
+        column holds: the Modbus view; ADS and Zenoh refuse it with `check_readable`)."""
         obj = self.lookup(name, axis)
         return (snapshot or self.current()).value(obj, axis)
 
@@ -339,9 +342,7 @@ class ObjectService:
             result = self.run_command(commands[0].obj.command or "")
             if not result.ok:
                 raise result.error()
-            done = Pending()
-            done.set_result(result)
-            return done
+            return resolved(result)
         self._refuse_when_stalled()
         return self.machine.submit(
             WriteObjects(tuple((w.obj.name, w.axis, w.value) for w in writes))
@@ -375,8 +376,8 @@ class ObjectService:
         the whole batch: 0x707 (stalled, nothing queued), 0x719 (not applied in time,
         withdrawn), or the error of a command.
         """
-        if any(w.obj.command for w in writes):
-            pending = await asyncio.to_thread(self.submit_writes, writes)
+        if any(w.obj.command for w in writes):  # run in a worker thread, done on return
+            await asyncio.to_thread(self.submit_writes, writes)
             return [None] * len(writes)
         pending = self.submit_writes(writes)
         outcome = await self.settle(pending, timeout)
@@ -398,11 +399,7 @@ class ObjectService:
         done, _ = await asyncio.wait({wrapped}, timeout=limit)
         while not done:
             if pending.withdraw():
-                raise AdsError(
-                    AdsErrorCode.DEVICE_TIMEOUT,
-                    f"not applied within {limit:g} s (the GEO cycle is late or stalled); "
-                    "withdrawn, it will not take effect",
-                )
+                raise _not_applied(limit)
             done, _ = await asyncio.wait({wrapped}, timeout=0.25)
         return wrapped.result()
 
@@ -416,11 +413,7 @@ class ObjectService:
                 return pending.result(timeout=max(0.0, deadline - time.monotonic()))
             except TimeoutError:
                 if pending.withdraw():
-                    raise AdsError(
-                        AdsErrorCode.DEVICE_TIMEOUT,
-                        f"not applied within {timeout:g} s (the GEO cycle is late or "
-                        "stalled); withdrawn, it will not take effect",
-                    ) from None
+                    raise _not_applied(timeout) from None
                 deadline = time.monotonic() + 0.25
 
     def _refuse_when_stalled(self) -> None:
@@ -685,7 +678,7 @@ class ObjectService:
             except (OSError, ListFileError) as exc:
                 errors.append(f"{params.path}: {exc}")
                 continue
-            _note_saved(params, changes)
+            _note_saved(self.dictionary, params, changes)
             files.append(params.path)
         return CommandResult(
             not errors, "save", errors=errors, files=files, code=AdsErrorCode.DEVICE_ERROR
@@ -702,6 +695,21 @@ class ObjectService:
             if format_value(obj, live) != format_value(obj, stored):
                 changes[obj.list_key or ""] = format_value(obj, live)
         return changes
+
+
+def check_readable(obj: ObjectDef) -> None:
+    """0x704 for a write-only object (a read by address or by Zenoh key)."""
+    if not obj.readable:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is write-only", obj.name)
+
+
+def _not_applied(limit: float) -> AdsError:
+    """0x719: a queued operation withdrawn after `limit` seconds without its cycle."""
+    return AdsError(
+        AdsErrorCode.DEVICE_TIMEOUT,
+        f"not applied within {limit:g} s (the GEO cycle is late or stalled); "
+        "withdrawn, it will not take effect",
+    )
 
 
 def _single(pending: Pending) -> Pending:
@@ -738,10 +746,11 @@ def _list_files(cfg: MachineConfig) -> list[str]:
     return sorted(files)
 
 
-def _note_saved(params: Any, changes: dict[str, str]) -> None:
+def _note_saved(dictionary: Dictionary, params: Any, changes: dict[str, str]) -> None:
     """After a save, the lists hold the live values: remember them as the stored ones."""
+    attrs = {o.list_key: o.param_attr or "" for o in dictionary.saved_parameters()}
     for entry, text in changes.items():
-        attr = entry.split(".", 1)[1]
+        attr = attrs[entry]
         current = getattr(params, attr)
         setattr(
             params,
@@ -757,4 +766,5 @@ __all__ = [
     "ObjectService",
     "PreparedWrite",
     "ServiceLimits",
+    "check_readable",
 ]

@@ -170,3 +170,17 @@ def test_markdown_table_lists_every_object(d):
     md = dictionary_markdown(d)
     assert md.count("\n") == len(d.objects) + 2
     assert "| TEMPC::activated (alias `TEMPC::is_active`) | 0x120300 | 0x0041 |" in md
+
+
+def test_saved_parameters_name_the_attributes_the_axis_list_reader_fills():
+    """`save` and the kernels find a parameter's stored value by `param_attr`: it must be
+    the attribute the axis list reader writes the `list_key` entry into."""
+    from geo_server.listfile.axislist import _FIELDS
+
+    d = load_dictionary()
+    saved = d.saved_parameters()
+    assert len(saved) == 4  # TEMPC activated, coefficient, offset_0, position_0
+    for obj in saved:
+        assert obj.list_key in _FIELDS, obj.name
+        assert obj.param_attr == _FIELDS[obj.list_key][0], obj.name
+    assert [o.key_group for o in d.tempc_parameters()] == ["tempc"] * 3

@@ -38,6 +38,8 @@ from geo_server.machine.port import (
     Reset,
     StartProgram,
     WriteObjects,
+    listen,
+    resolved,
 )
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot
@@ -97,7 +99,6 @@ class Machine:
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
-        self._output = np.zeros(n)  # what the drives get: command + all compensations
         self._reversal = np.full(n, -1, dtype=np.int64)
         self._rounded = np.zeros((n, 7))  # published (rounded) actual values
         self._prev_rounded = np.zeros((n, 7))  # scratch: swapped with _rounded per cycle
@@ -109,8 +110,10 @@ class Machine:
             self._mbuf[:, _MBUF["velocity"]],
             self._mbuf[:, _MBUF["acceleration"]],
             self._mbuf[:, _MBUF["feed"]],
-            self._mbuf[:, _MBUF["output"]],
         )
+        #: what the drives get: command + all compensations (SIM::output_position, a
+        #: column of the snapshot buffer, computed once per cycle before the twin)
+        self._output = self._mbuf[:, _MBUF["output"]]
         self._lose = self._mbuf[:, _MBUF["lose"]]
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
@@ -123,6 +126,7 @@ class Machine:
         for d in cfg.diagnostics:
             self._record(d)
         self._layout_sources()
+        np.add(self.motion.pos, self.kernel.total_offset, out=self._output)
         self.snapshot: Snapshot = self._build_snapshot()
         self.snapshot_time = monotonic()
 
@@ -248,13 +252,11 @@ class Machine:
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
         """Call `callback(snapshot)` after every cycle, on the cycle thread."""
-        self.listeners.append(callback)
-        return lambda: _discard(self.listeners, callback)
+        return listen(self.listeners, callback)
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
         """Call `callback(event)` for every new warning or error (on the reporting thread)."""
-        self.event_listeners.append(callback)
-        return lambda: _discard(self.event_listeners, callback)
+        return listen(self.event_listeners, callback)
 
     # ------------------------------------------------------------------ snapshot
 
@@ -341,7 +343,6 @@ class Machine:
         np.divide(mo.vel, UNITS_PER_UM, out=mb[2])
         np.divide(mo.acc, UNITS_PER_MM, out=mb[3])
         np.divide(mo.feed, UNITS_PER_UM, out=mb[4])
-        np.add(mo.pos, k.total_offset, out=mb[5])
         np.concatenate(self._pieces, axis=1, out=self._stack)
         v = self._stack.take(self._columns, axis=1)
         mach = self._mach_template.copy()
@@ -394,9 +395,7 @@ class Machine:
             texts = list(snap.texts)
             texts[self._text_slot] = self.last_error
             self.snapshot = replace(snap, machine=machine, texts=tuple(texts))
-        done = Pending()
-        done.set_result(None)
-        return done
+        return resolved()
 
     def report(self, error_id: int, message: str, line: int = 0, axis: int = 0) -> None:
         """Record an error raised while running (NC program, monitoring)."""
@@ -563,11 +562,6 @@ class Machine:
             if on
         )
         return p.prog_movement_requires_compensations & listed
-
-
-def _discard(listeners: list[Any], callback: Any) -> None:
-    if callback in listeners:
-        listeners.remove(callback)
 
 
 def _mask(kinds: Iterable[CompKind]) -> CompKind:

@@ -127,6 +127,18 @@ def chained(inner: Pending, transform: Callable[[Any], Any]) -> Pending:
     return outer
 
 
+def listen(listeners: list[Any], callback: Any) -> Callable[[], None]:
+    """Add `callback` to `listeners`; returns the function that removes it again (once,
+    harmlessly twice) — the `subscribe` contract of both machine kinds."""
+    listeners.append(callback)
+
+    def unsubscribe() -> None:
+        if callback in listeners:
+            listeners.remove(callback)
+
+    return unsubscribe
+
+
 def resolved(result: Any = None, error: BaseException | None = None) -> Pending:
     """A `Pending` that is already done (nothing was queued)."""
     p = Pending()

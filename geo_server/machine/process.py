@@ -39,7 +39,7 @@ from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
-from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram
+from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import Diagnostic, MachineConfig
 from geo_server.snapshot import Snapshot
@@ -259,12 +259,10 @@ class RemoteMachine:
         return self.submit(Record(diagnostic))
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
-        self._listeners.append(callback)
-        return lambda: _discard(self._listeners, callback)
+        return listen(self._listeners, callback)
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
-        self._event_listeners.append(callback)
-        return lambda: _discard(self._event_listeners, callback)
+        return listen(self._event_listeners, callback)
 
     def start_program(self, text: str, mdi: bool = False) -> Pending:
         """Parse here (raises `NcError` at once) and run it in the cycle process."""
@@ -358,11 +356,6 @@ class RemoteMachine:
                 fut.set_exception(RuntimeError(payload[1]))
         for on_cycle in list(self._listeners):
             _guarded(on_cycle, self.snapshot)
-
-
-def _discard(listeners: list[Any], callback: Any) -> None:
-    if callback in listeners:
-        listeners.remove(callback)
 
 
 def _guarded(fn: Callable[[_T], None], arg: _T) -> None:

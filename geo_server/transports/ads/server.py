@@ -57,7 +57,6 @@ from geo_server.transports.ads.codec import (
     Stamp,
     StreamError,
     SumGroup,
-    WriteControlRequest,
     WriteRequest,
 )
 from geo_server.transports.ads.notifications import (
@@ -93,7 +92,9 @@ class AdsOptions:
     #: `codec.MAX_REQUEST_FRAME`). A frame header announcing more closes the connection
     #: before its data is buffered. Answers are held to the same size.
     max_frame: int = codec.MAX_REQUEST_FRAME
-    write_timeout: float = 2.0  # waiting for a write to be applied (running cycles)
+    #: waiting for a write to be applied, running cycles (None: the service's
+    #: `ServiceLimits.write_timeout`)
+    write_timeout: float | None = None
     #: Notifications one connection may register (0x716 NOMOREHDLS beyond): half of
     #: `max_notifications_total`, so one client cannot take every handle.
     max_notifications: int = MAX_PER_OWNER
@@ -184,7 +185,7 @@ class AdsServer:
         self.stats = AdsStats()
         cycle_s = service.cycle_s
         self.notifications = NotificationTable(
-            self._read_padded,
+            self.service.read,
             cycle_s,
             self.options.max_notifications,
             self.options.max_notifications_total,
@@ -315,26 +316,20 @@ class AdsServer:
             return codec.read_device_info_response(
                 0, self._major, self._minor, self._build, self.options.device_name
             )
-        if isinstance(req, WriteControlRequest):
-            # The CNC object interface offers Read, Write and ReadWrite only (TF5200).
-            return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
+        # WriteControl and anything else: the CNC object interface offers Read, Write and
+        # ReadWrite only (TF5200)
         return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
 
     # ------------------------------------------------------------------ reads
 
-    def _read_padded(self, ig: int, io: int, length: int, snap: Snapshot) -> bytes:
-        return self.service.read(ig, io, length, snap)
-
     def _read_codes(
         self, items: Sequence[tuple[int, int, int]], snap: Snapshot
     ) -> list[tuple[int, bytes]]:
-        out: list[tuple[int, bytes]] = []
-        for ig, io, length in items:
-            try:
-                out.append((0, self.service.read(ig, io, length, snap)))
-            except AdsError as exc:
-                out.append((exc.code, b""))
-        return out
+        """`ObjectService.read_many` as ADS (result code, data) pairs."""
+        return [
+            (r.code, b"") if isinstance(r, AdsError) else (0, r)
+            for r in self.service.read_many(items, snap)
+        ]
 
     def _read_write(self, req: ReadWriteRequest) -> Reply:
         ig, io = req.index_group, req.index_offset
@@ -592,7 +587,7 @@ class AdsServer:
         """Admit `conn` unless `max_connections` are open already (then False: the
         connection closes at once, before it can make the server buffer anything)."""
         if not self.listener.admit(conn):
-            self.stats.refused_connections += 1
+            self.stats.refused_connections = self.listener.refused
             return False
         self.stats.connections += 1
         return True

@@ -78,7 +78,9 @@ class ModbusOptions:
     host: str = "127.0.0.1"
     port: int = 5020  # 0 = an ephemeral port; `ModbusInterface.port` tells which
     read_only: bool = False  # reject every write with exception 2
-    write_timeout: float = 2.0  # running cycles: a write not applied by then is withdrawn
+    #: running cycles: a write not applied by then is withdrawn (None: the service's
+    #: `ServiceLimits.write_timeout`)
+    write_timeout: float | None = None
     max_connections: int = 64
     max_pipeline: int = 32  # requests queued per connection before reading pauses
     incomplete_frame_timeout: float = 5.0

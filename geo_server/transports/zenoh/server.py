@@ -34,7 +34,7 @@ import zenoh
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
-from geo_server.service import ObjectService
+from geo_server.service import ObjectService, check_readable
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
 
@@ -281,16 +281,11 @@ class ZenohInterface:
     # ------------------------------------------------------------------ queries
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Zenoh thread: hand the query to the loop and return at once."""
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            # The loop may close between the check and the hand-off (server shutting
-            # down while a query arrives): call_soon_threadsafe then raises RuntimeError
-            # on Zenoh's thread. Nobody is left to answer; the query ends when Zenoh
-            # drops it. The coroutine is created on the loop (`_accept`), so a failed
-            # hand-off leaves no never-awaited coroutine behind.
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._accept, query)
+        """Zenoh thread: hand the query to the loop and return at once. Once the loop is
+        gone nobody is left to answer; the query ends when Zenoh drops it. The coroutine
+        is created on the loop (`_accept`), so a failed hand-off leaves no never-awaited
+        coroutine behind."""
+        self._to_loop(self._accept, query)
 
     def _accept(self, query: zenoh.Query) -> None:
         self._spawn(self._handle(query))
@@ -372,12 +367,7 @@ class ZenohInterface:
             return data, OCTET
         if route.kind == "named":
             assert route.obj is not None
-            if not route.obj.readable:
-                raise AdsError(
-                    AdsErrorCode.DEVICE_INVALIDACCESS,
-                    f"{route.obj.name} is write-only",
-                    route.obj.name,
-                )
+            check_readable(route.obj)
             return json.dumps(snap.value(route.obj, route.axis)).encode(), JSON
         raise AdsError(
             AdsErrorCode.DEVICE_INVALIDACCESS,
@@ -405,8 +395,8 @@ class ZenohInterface:
         elif route.kind in ("reload", "save"):
             result = await svc.command(route.kind)
             if not result.ok:
-                body = {"ads_error": result.code, "name": route.kind, "message": result.message}
-                query.reply_err(json.dumps({**body, **result.as_dict()}).encode(), encoding=JSON)
+                body = {**result.error().as_dict(), **result.as_dict()}
+                query.reply_err(json.dumps(body).encode(), encoding=JSON)
                 return
             query.reply(key, json.dumps(result.as_dict()).encode(), encoding=JSON)
         elif route.kind == "nc":
@@ -457,7 +447,10 @@ class ZenohInterface:
         return any(r.ok is not None for r in replies)
 
     def _to_loop(self, fn: Any, *args: Any) -> None:
-        """Zenoh thread: run `fn(*args)` on the loop (dropped once the loop is gone)."""
+        """Another thread: run `fn(*args)` on the loop (dropped once the loop is gone).
+        The loop may close between the check and the hand-off (server shutting down):
+        call_soon_threadsafe then raises RuntimeError, which must not reach the caller's
+        thread."""
         loop = self._loop
         if loop is not None and not loop.is_closed():
             with contextlib.suppress(RuntimeError):
@@ -618,14 +611,10 @@ class ZenohInterface:
             await asyncio.sleep(self.options.status_period)
 
     def _on_event(self, event: Event) -> None:
-        """Cycle thread: hand a new warning/error to the loop for publication."""
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            # The loop may close between the check and the hand-off; the event is still
-            # in `errors` for a later get, so dropping its publication is harmless, while
-            # a RuntimeError here would fail the cycle (or command) that raised the event.
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._put_event, event)
+        """Cycle thread: hand a new warning/error to the loop for publication. Once the
+        loop is gone the event is still in `errors` for a later get, so dropping its
+        publication is harmless (raising here would fail the cycle that reported it)."""
+        self._to_loop(self._put_event, event)
 
     def _put_event(self, event: Event) -> None:
         if self._session is not None:

@@ -205,10 +205,7 @@ def _remove_orphans(cfg: Any) -> None:
     to a list: remove those at start, before anything could be saving."""
     from geo_server.listfile import remove_orphan_temps
 
-    lists = [cfg.startup_path]
-    for ax in cfg.axes.values():
-        lists += [p for p in (ax.params.path, ax.comp.path if ax.comp else "") if p]
-    for tmp in remove_orphan_temps(lists):
+    for tmp in remove_orphan_temps([cfg.startup_path, *cfg.list_files]):
         print(f"removed {tmp}: left over from an interrupted save", file=sys.stderr)
 
 

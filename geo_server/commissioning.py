@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.errors import GeoError
+from geo_server.kernel.common import initial_direction
 from geo_server.listfile import ListFileError, load_machine
 from geo_server.machine.machine import Machine
 from geo_server.model import MachineConfig
@@ -39,7 +40,9 @@ from geo_server.twin.measure import (
     MeasureError,
     MeasurementPlan,
     StepBench,
+    axis_number,
     backlash_lines,
+    check_plan,
     commission,
     lsec_list,
     lsec_setpoints,
@@ -131,14 +134,6 @@ def _targets(args: argparse.Namespace, cfg: MachineConfig, axis: int) -> tuple[f
     return lsec_setpoints(cfg, axis)
 
 
-def _axis(cfg: MachineConfig, text: str) -> int:
-    for nr, ax in cfg.axes.items():
-        if text == str(nr) or text.upper() == ax.params.name.upper():
-            return nr
-    names = ", ".join(f"{ax.params.name or nr} ({nr})" for nr, ax in cfg.axes.items())
-    raise MeasureError(f"no axis {text!r}; this machine has {names}")
-
-
 def _units(cfg: MachineConfig, axis: int) -> tuple[str, str]:
     """(deviation unit, position unit) of the axis."""
     return ("0.001°", "°") if cfg.axes[axis].params.kind == "R" else ("µm", "mm")
@@ -179,9 +174,7 @@ def _measure(args: argparse.Namespace) -> int:
             "(geo-server init DIR) and name DIR/hochlauf.lis"
         )
     cfg = load_machine(startup)
-    axis = _axis(cfg, args.axis)
-    if args.runs < 2:
-        raise MeasureError("--runs must be 2 or more (ISO 230-2 §2.15 needs n ≥ 2)")
+    axis = axis_number(cfg, args.axis)
     unit, position_unit = _units(cfg, axis)
     plan = MeasurementPlan(
         axis=axis,
@@ -191,6 +184,8 @@ def _measure(args: argparse.Namespace) -> int:
         dwell_s=args.dwell,
         compensation_off=tuple(k.upper() for k in args.off.replace(" ", "").split(",") if k),
     )
+    check_plan(plan)  # before anything is loaded or created
+    direction = int(initial_direction(cfg.axes[axis].params.anwahl_losekomp))
     machine = Machine(cfg, homed=True, time_scale=args.time_scale)
     svc = ObjectService(machine)
     bench = StepBench(svc)
@@ -229,15 +224,14 @@ def _measure(args: argparse.Namespace) -> int:
         off = OFF_BILATERAL if lsec.bilateral else OFF_UNILATERAL
         plan = replace(plan, targets=lsec_setpoints(cfg, axis), compensation_off=off)
         print(f"commissioning {label}: measuring with {' and '.join(off)} off")
-        before = run_test(bench, plan)
-        direction = -1 if cfg.axes[axis].params.anwahl_losekomp == 2 else 1
+        before = run_test(bench, plan, name)
         c = commission(before, axis, lsec.bilateral, direction)
         written += write_lists(c, cfg.axes[axis].params.path, comp.path)
         reload = svc.reload()
         if not reload.ok:
             raise MeasureError(f"the lists written do not load: {reload.message}")
         print("lists written and reloaded; measuring with every compensation on")
-        after = run_test(bench, replace(plan, compensation_off=()))
+        after = run_test(bench, replace(plan, compensation_off=()), name)
         result.update(before=before.as_dict(), after=after.as_dict())
         result["backlash"] = c.backlash
         _write(out / "deviations.csv", iso230.deviations_csv(before))
@@ -253,14 +247,13 @@ def _measure(args: argparse.Namespace) -> int:
             written += _plots(out, name, before, after, unit, position_unit)
     else:
         print(f"positioning test, {label}")
-        ev = run_test(bench, plan)
+        ev = run_test(bench, plan, name)
         result["test"] = ev.as_dict()
         _write(out / "deviations.csv", iso230.deviations_csv(ev))
         # list files from the result: the values to load when measured with LEAD and
         # BACKLASH off (--off LEAD,BACKLASH); with them on, the residual
         comp = cfg.axes[axis].comp
         bilateral = args.bilateral or bool(comp and comp.lsec and comp.lsec.bilateral)
-        direction = -1 if cfg.axes[axis].params.anwahl_losekomp == 2 else 1
         c = commission(ev, axis, bilateral, direction)
         written.append(str(_write(out / f"lsec_{name}.lis", lsec_list(c, name))))
         if c.backlash is not None:

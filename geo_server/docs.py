@@ -16,20 +16,20 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from geo_server.dictionary import dictionary_markdown
+from geo_server.dictionary import ATTRIBUTES, GROUPS, dictionary_markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def objects_page() -> str:
+    attributes = ", ".join(f"`0x{offset:X}` ({kind})" for offset, kind in ATTRIBUTES.items())
     return (
         "# Objects\n\n"
         "Generated from `objects/objects.toml` by `python -m geo_server.docs`.\n\n"
-        "Index group `0x120300` (GEO) and `0x12F300` (emulator extension); index offset "
-        "`(axis << 16) | id`, machine-wide objects with axis 0. Attribute groups at group + "
-        "`0x100` (name), `0x200` (type), `0x300` (length), `0x400` (unit), `0x500` "
-        "(writable). Sources cite the manuals by number and page (see the legend in "
-        "[design.md](design.md)).\n\n" + dictionary_markdown()
+        f"Index group `0x{GROUPS['geo']:X}` (GEO) and `0x{GROUPS['sim']:X}` (emulator "
+        "extension); index offset `(axis << 16) | id`, machine-wide objects with axis 0. "
+        f"Attribute groups at group + {attributes}. Sources cite the manuals by number and "
+        "page (see the legend in [design.md](design.md)).\n\n" + dictionary_markdown()
     )
 
 

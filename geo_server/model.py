@@ -53,6 +53,16 @@ COMP_NAMES: dict[CompKind, str] = {
     CompKind.FRICT: "FRICT",
     CompKind.CROSSTALK: "CROSSTALK",
 }
+#: The object that shows whether a compensation is selected (NC `COMP ON/OFF`, 000 §5.1).
+SELECTED_OBJECTS: dict[CompKind, str] = {
+    CompKind.BACKLASH: "SIM::backlash_selected",
+    CompKind.TEMP: "TEMPC::activated",
+    CompKind.CROSS: "CROSSC::activated",
+    CompKind.PLANE: "CC2::activated",
+    CompKind.LEAD: "ssfk activated",
+    CompKind.FRICT: "SIM::friction_selected",
+    CompKind.CROSSTALK: "CROSSTALK::activated",
+}
 
 
 @dataclass(frozen=True)
@@ -295,6 +305,14 @@ class MachineConfig:
     diagnostics: list[Diagnostic] = field(default_factory=list)
     #: The machine behind the controller (`twin.toml` beside the start-up list), if any.
     twin: TwinConfig | None = None
+
+    @property
+    def list_files(self) -> list[str]:
+        """The axis parameter and compensation value lists, sorted (without the
+        start-up list)."""
+        files = {a.params.path for a in self.axes.values()}
+        files |= {a.comp.path for a in self.axes.values() if a.comp is not None}
+        return sorted(f for f in files if f)
 
     @property
     def deactivated(self) -> list[Diagnostic]:

@@ -641,7 +641,7 @@ class ObjectService:
             self.settle_sync(self.machine.submit(Reload(new)), self.limits.swap_timeout)
         except AdsError as exc:
             return CommandResult(False, "reload", errors=[exc.message], code=exc.code)
-        return CommandResult(True, "reload", warnings=warnings, files=_list_files(new))
+        return CommandResult(True, "reload", warnings=warnings, files=new.list_files)
 
     def save(self) -> CommandResult:
         """Write the live TEMPC parameters back into the axis lists (atomic rewrite)."""
@@ -738,12 +738,6 @@ def _busy(command: str) -> CommandResult:
 def _rejecting(cfg: MachineConfig) -> list[Diagnostic]:
     """Diagnostics that make a reload fail: errors and deactivated compensations."""
     return [d for d in cfg.diagnostics if d.severity == "error" or d.deactivated is not None]
-
-
-def _list_files(cfg: MachineConfig) -> list[str]:
-    files = {a.params.path for a in cfg.axes.values() if a.params.path}
-    files |= {a.comp.path for a in cfg.axes.values() if a.comp is not None}
-    return sorted(files)
 
 
 def _note_saved(dictionary: Dictionary, params: Any, changes: dict[str, str]) -> None:

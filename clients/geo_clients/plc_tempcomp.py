@@ -103,7 +103,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from geo_clients.common import add_transport_arguments, client_from_args, transport_name
 from geo_server.dictionary import load_dictionary, round_half_away
@@ -111,6 +111,7 @@ from geo_server.errors import AdsError, GeoError
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 log = logging.getLogger("geo_clients.plc_tempcomp")
+_T = TypeVar("_T")
 
 #: Shipped example: the default machine's axes X, Y, Z measured at several temperatures.
 EXAMPLE_REFERENCE = Path(__file__).resolve().parent / "data" / "reference_measurement.csv"
@@ -752,61 +753,61 @@ class TemperatureAdapter:
         over the network may fail: transient failures are retried like writes; when the
         reading fails for good, no temperature this period (nothing is written, the
         adapter goes on)."""
+
+        def read() -> dict[int, float | None]:
+            of = getattr(self.source, "temperature_of", None)
+            if of is not None:
+                return {a: of(a, t) for a in self.axes}
+            return dict.fromkeys(self.axes, self.source.temperature(t))
+
+        temps, exc, _ = self._retrying(read, f"t={t:.3f}s: reading the temperature")
+        if exc is not None:
+            log.error("t=%.3fs: no temperature (%s); nothing written this period", t, exc)
+            return dict.fromkeys(self.axes)
+        assert temps is not None
+        return temps
+
+    def _retrying(self, fn: Callable[[], _T], what: str) -> tuple[_T | None, Exception | None, int]:
+        """`fn()` with `retries` retries of a transient failure, `retry_delay`·attempt
+        apart: (result, None, attempts) or (None, the last error, attempts)."""
         for attempt in range(1, self.retries + 2):
             try:
-                of = getattr(self.source, "temperature_of", None)
-                if of is not None:
-                    return {a: of(a, t) for a in self.axes}
-                return dict.fromkeys(self.axes, self.source.temperature(t))
+                return fn(), None, attempt
             except Exception as exc:
-                if is_transient(exc) and attempt <= self.retries:
-                    log.warning("t=%.3fs: reading the temperature: %s; retry %d", t, exc, attempt)
-                    self.sleep(self.retry_delay * attempt)
-                    continue
-                log.error("t=%.3fs: no temperature (%s); nothing written this period", t, exc)
-                break
-        return dict.fromkeys(self.axes)
+                if not (is_transient(exc) and attempt <= self.retries):
+                    return None, exc, attempt
+                delay = self.retry_delay * attempt
+                log.warning("%s: %s; retry %d/%d in %.2fs", what, exc, attempt, self.retries, delay)
+                self.sleep(delay)
+        raise AssertionError("unreachable: the last attempt returns")
 
     def _write(self, t: float, temp: float, axis: int, name: str, value: Any) -> WriteRecord:
         unit = self.dictionary.by_name(name).unit
         rec = WriteRecord(t, temp, axis, name, value, self.transport, ok=False)
-        for attempt in range(1, self.retries + 2):
-            rec.attempts = attempt
-            t0 = self.clock()
-            try:
-                self.client.write(name, axis, value)
-            except Exception as exc:
-                rec.rtt_s = self.clock() - t0
-                rec.error = str(exc)
-                if is_transient(exc) and attempt <= self.retries:
-                    log.warning(
-                        "axis %d %s := %s: %s; retry %d/%d in %.2fs",
-                        axis,
-                        name,
-                        value,
-                        exc,
-                        attempt,
-                        self.retries,
-                        self.retry_delay * attempt,
-                    )
-                    self.sleep(self.retry_delay * attempt)
-                    continue
-                log.error(
-                    "t=%.3fs T=%.3f°C axis %d %s := %s %s via %s FAILED after %d attempt(s): %s",
-                    t,
-                    temp,
-                    axis,
-                    name,
-                    value,
-                    unit,
-                    self.transport,
-                    attempt,
-                    exc,
-                )
-                break
-            rec.rtt_s = self.clock() - t0
+        started = [self.clock()]
+
+        def write() -> None:
+            started[0] = self.clock()  # the round trip of the last attempt
+            self.client.write(name, axis, value)
+
+        _, exc, rec.attempts = self._retrying(write, f"axis {axis} {name} := {value}")
+        rec.rtt_s = self.clock() - started[0]
+        if exc is not None:
+            rec.error = str(exc)
+            log.error(
+                "t=%.3fs T=%.3f°C axis %d %s := %s %s via %s FAILED after %d attempt(s): %s",
+                t,
+                temp,
+                axis,
+                name,
+                value,
+                unit,
+                self.transport,
+                rec.attempts,
+                exc,
+            )
+        else:
             rec.ok = True
-            rec.error = ""
             self.written[(axis, name)] = value
             log.info(
                 "t=%.3fs T=%.3f°C axis %d %s := %s %s via %s rtt %.2f ms (%d attempt%s)",
@@ -818,10 +819,9 @@ class TemperatureAdapter:
                 unit,
                 self.transport,
                 rec.rtt_s * 1000,
-                attempt,
-                "" if attempt == 1 else "s",
+                rec.attempts,
+                "" if rec.attempts == 1 else "s",
             )
-            break
         self.history.append(rec)
         if self.on_write is not None:
             self.on_write(rec)

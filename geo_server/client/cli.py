@@ -20,7 +20,7 @@ from typing import Any
 
 from geo_server.client import TRANSPORTS, open_client, resolve
 from geo_server.console import closes_quietly_on_broken_pipe
-from geo_server.dictionary import STRING_LENGTH, ObjectDef, load_dictionary
+from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError
 from geo_server.units import LINEAR, show
 
@@ -105,7 +105,7 @@ def _read(sh: Shell) -> int:
         if attr is None:
             sh.print_value(obj, axis, obj.decode(sh.client.read_raw(ig, io, obj.length)))
             return 0
-        length = {"length": 4, "writable": 1}.get(attr, STRING_LENGTH)
+        length = len(obj.attribute(attr))  # what the server answers for this attribute
         value = obj.decode_attribute(attr, sh.client.read_raw(ig, io, length))
         if sh.args.json:
             print(json.dumps({"name": obj.name, "axis": axis, "attribute": attr, "value": value}))
@@ -282,7 +282,7 @@ def _errors(sh: Shell) -> int:
 
 def _command(name: str) -> Callable[[Shell], int]:
     def run(sh: Shell) -> int:
-        result = getattr(sh.client, name)() or {"ok": True, "command": name}
+        result = getattr(sh.client, name)()
         if sh.args.json:
             print(json.dumps(result))
             return 0

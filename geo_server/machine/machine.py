@@ -41,7 +41,7 @@ from geo_server.machine.port import (
     listen,
     resolved,
 )
-from geo_server.model import CompKind, Diagnostic, MachineConfig
+from geo_server.model import SELECTED_OBJECTS, CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
@@ -574,39 +574,32 @@ def _mask(kinds: Iterable[CompKind]) -> CompKind:
 ALL_COMPS = _mask(COMP_ORDER)
 
 
-B, T, X, P, L, K, F = (
+B, T, X, P, L, K = (
     CompKind.BACKLASH,
     CompKind.TEMP,
     CompKind.CROSS,
     CompKind.PLANE,
     CompKind.LEAD,
     CompKind.CROSSTALK,
-    CompKind.FRICT,
 )
 #: Axis objects fed by a kernel [n, 7] array: object -> (array, compensation) (docs/design.md §2).
 _FROM_COMP: dict[str, tuple[str, CompKind]] = {
     "BC::actual backlash": ("actual", B),
     "BC::sum backlash": ("target", B),
     "BC::delta backlash": ("delta", B),
-    "TEMPC::activated": ("selected", T),
     "TEMPC::f_is_active": ("effective", T),
     "TEMPC::actual_offset": ("actual", T),
     "CROSSC::f_is_active": ("effective", X),
-    "CROSSC::activated": ("selected", X),
     "CROSSC::actual_offset": ("actual", X),
     "CROSSC::delta_offset": ("delta", X),
     "CC2::correction": ("actual", P),
-    "CC2::activated": ("selected", P),
-    "ssfk activated": ("selected", L),
     "LSEC::active": ("effective", L),
     "LSEC::epsilon": ("delta", L),
     "LSEC::sum epsilon": ("actual", L),
-    "CROSSTALK::activated": ("selected", K),
     "CROSSTALK::actual_offset": ("actual", K),
     "CROSSTALK::delta_offset": ("delta", K),
     "CROSSTALK::end_offset": ("target", K),
-    "SIM::backlash_selected": ("selected", B),
-    "SIM::friction_selected": ("selected", F),
+    **{name: ("selected", kind) for kind, name in SELECTED_OBJECTS.items()},
 }
 #: Columns of the machine's per-cycle buffer `Machine._mbuf`: the published deltas of
 #: the 7 compensations (from column "delta" on, kernel column order), then vectors

@@ -185,7 +185,6 @@ class TwinEngine:
         self.exp_node = np.array(
             [index[a.expansion.node] if a.expansion else 0 for a in axes], dtype=int
         )
-        self._any_expansion = bool(self.exp_coef.any()) and len(nodes) > 0
         # sensors: the node each reads, the axis it is shown on, its noise and resolution
         sensors = list(cfg.sensors)
         self.sensor_names = [s.name for s in sensors]

@@ -39,12 +39,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from geo_server.dictionary import load_dictionary
 from geo_server.errors import GeoError
 from geo_server.listfile import rewrite_values
-from geo_server.model import MachineConfig
+from geo_server.listfile.writer import write_atomic
+from geo_server.model import COMP_NAMES, SELECTED_OBJECTS, MachineConfig
 from geo_server.twin import iso230
 from geo_server.twin.iso230 import Evaluation
-from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM, parse_axis_names
 
 
 class MeasureError(GeoError):
@@ -88,8 +90,8 @@ class Bench(Protocol):
         """Write an object and return once it is applied."""
 
 
-#: Positions a test may reach: the SGN32 increments of `SIM::target_position`.
-MAX_POSITION = (2**31 - 1) / UNITS_PER_MM
+#: Positions a test may reach (mm or °): the range of `SIM::target_position`.
+MAX_POSITION = load_dictionary().by_name("SIM::target_position").type.hi / UNITS_PER_MM
 
 
 def check_plan(plan: MeasurementPlan) -> None:
@@ -161,21 +163,24 @@ def _reading(bench: Bench, plan: MeasurementPlan, target: float) -> float:
 
 
 #: COMP kind -> the object that tells whether it is selected (000 §5.1).
-_SELECTED = {
-    "BACKLASH": "SIM::backlash_selected",
-    "TEMP": "TEMPC::activated",
-    "CROSS": "CROSSC::activated",
-    "PLANE": "CC2::activated",
-    "LEAD": "ssfk activated",
-    "FRICT": "SIM::friction_selected",
-    "CROSSTALK": "CROSSTALK::activated",
-}
+_SELECTED = {COMP_NAMES[kind]: name for kind, name in SELECTED_OBJECTS.items()}
 
 
 def _axis_name(bench: Bench, axis: int) -> str:
-    """The name NC uses for the axis (`SIM::axis_names`: "1=X 2=Y …")."""
-    names = dict(pair.split("=", 1) for pair in str(bench.read("SIM::axis_names", 0)).split())
-    return names.get(str(axis), str(axis))
+    """The name NC uses for the axis (`SIM::axis_names`)."""
+    names = parse_axis_names(str(bench.read("SIM::axis_names", 0)))
+    return next((name for name, nr in names.items() if nr == axis), str(axis))
+
+
+def axis_number(cfg: MachineConfig, axis: object) -> int:
+    """A logical axis number from a number or a name (`X`, any case)."""
+    for nr, ax in cfg.axes.items():
+        if (axis == nr and not isinstance(axis, bool)) or (
+            isinstance(axis, str) and axis.upper() in (str(nr), ax.params.name.upper())
+        ):
+            return nr
+    names = ", ".join(f"{ax.params.name or nr} ({nr})" for nr, ax in cfg.axes.items())
+    raise MeasureError(f"no axis {axis!r}: not an axis of this machine ({names})")
 
 
 def _selected(bench: Bench, axis: int, kind: str) -> bool:
@@ -193,12 +198,15 @@ class StepBench:
         this layer sits below the service)."""
         self.svc = service
         self.max_cycles = max_cycles_per_move
+        self._periods: dict[int, float] = {}
 
     def _period(self, axis: int) -> float:
         """The modulo period in increments (0: not a modulo axis): the command position
-        of a modulo axis reads wrapped (docs/design.md §3.8)."""
-        params = self.svc.machine.cfg.axes[axis].params
-        return float(params.modulo_period) if params.modulo else 0.0
+        of a modulo axis reads wrapped (docs/design.md §3.8). Looked up once per axis."""
+        if axis not in self._periods:
+            params = self.svc.machine.cfg.axes[axis].params
+            self._periods[axis] = float(params.modulo_period) if params.modulo else 0.0
+        return self._periods[axis]
 
     def at(self, axis: int, position: float) -> bool:
         if self.svc.read_name("SIM::velocity", axis) != 0:
@@ -316,12 +324,7 @@ def plan_from_json(spec: Any, cfg: MachineConfig) -> MeasurementPlan:
     unknown = set(spec) - {"axis", "targets", "runs", "overrun", "dwell_s", "off"}
     if unknown:
         raise MeasureError(f"unknown field(s) {sorted(unknown)} in the plan")
-    axis = spec.get("axis")
-    by_name = {str(a.params.name).upper(): nr for nr, a in cfg.axes.items() if a.params.name}
-    if isinstance(axis, str) and axis.upper() in by_name:
-        axis = by_name[axis.upper()]
-    if not isinstance(axis, int) or isinstance(axis, bool) or axis not in cfg.axes:
-        raise MeasureError(f"axis {spec.get('axis')!r} is not an axis of this machine")
+    axis = axis_number(cfg, spec.get("axis"))
     targets = spec.get("targets")
     if targets is None:
         targets = lsec_setpoints(cfg, axis)
@@ -406,7 +409,7 @@ def write_lists(c: Commissioning, axis_list: Path | str, comp_list: Path | str) 
         try:
             rewrite_values(axis_list, {"getriebe[0].lose": str(c.backlash)})
         except BaseException:
-            comp_path.write_bytes(before)
+            write_atomic(comp_path, before)
             raise
         written.append(str(axis_list))
     return written
@@ -484,13 +487,15 @@ class ReferencePoint:
 
     def rows(self, axis: int) -> list[tuple[int, float, float, float]]:
         """Rows (axis, °C, position mm, deviation µm) for `geo-plc-tempcomp`: what the
-        temperature compensation must add at P_i = what it adds now − x̄_i."""
+        temperature compensation must add at P_i = what it adds now − x̄_i (the rows of
+        `iso230.reference_rows`, −x̄_i, plus the active line)."""
         p0, off, coef = self.tempc
-        rows = []
-        for p, x in zip(self.evaluation.targets, self.evaluation.mean, strict=True):
-            active = off + coef * 1e-6 * (p * UNITS_PER_MM - p0) / UNITS_PER_UM
-            rows.append((axis, round(self.temperature, 3), float(p), round(active - float(x), 4)))
-        return rows
+
+        def active(p_mm: float) -> float:  # µm the temperature compensation adds now
+            return off + coef * 1e-6 * (p_mm * UNITS_PER_MM - p0) / UNITS_PER_UM
+
+        rows = iso230.reference_rows(axis, self.temperature, self.evaluation)
+        return [(a, round(t, 3), p, round(dev + active(p), 4)) for a, t, p, dev in rows]
 
 
 def reference_measurement(
@@ -523,7 +528,9 @@ __all__ = [
     "MeasurementPlan",
     "ReferencePoint",
     "StepBench",
+    "axis_number",
     "backlash_lines",
+    "check_plan",
     "commission",
     "lsec_list",
     "lsec_setpoints",

@@ -40,6 +40,24 @@ def initial_direction(anwahl_losekomp: int) -> float:
     return -1.0 if anwahl_losekomp == 2 else 1.0
 
 
+def reload_changes(
+    old: AxisConfig, new: AxisConfig
+) -> tuple[list[tuple[int, bool]], list[tuple[int, float]]]:
+    """What a reload re-initialises for one axis (docs/design.md §12 "reload"): only
+    what the new lists changed, so a COMP OFF or a live TEMPC write survives a reload
+    that does not touch it. Returns (selection column, selected) pairs and (TEMPC row of
+    `TEMPC_ATTRS`, new value) pairs."""
+    so, sn = initial_selection(old), initial_selection(new)
+    selection = [(c, sn[c]) for c in range(len(sn)) if so[c] != sn[c]]
+    po, pn = old.params, new.params
+    tempc = [
+        (row, float(getattr(pn, attr)))
+        for row, attr in enumerate(TEMPC_ATTRS)
+        if getattr(po, attr) != getattr(pn, attr)
+    ]
+    return selection, tempc
+
+
 def initial_selection(ax: AxisConfig) -> list[bool]:
     """What `*::activated` reports at start-up, per column (docs/design.md §6.8).
 

@@ -60,6 +60,7 @@ from geo_server.kernel.common import (
     filter_cycles,
     initial_direction,
     initial_selection,
+    reload_changes,
 )
 from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable
@@ -1321,15 +1322,11 @@ class Kernel:
         self._setup(cfg)
         tempc = self._bt.tempc
         for i, a in enumerate(self.axis_numbers):
-            o, nw = old.axes[int(a)], cfg.axes[int(a)]
-            so, sn = initial_selection(o), initial_selection(nw)
-            for c in range(7):
-                if so[c] != sn[c]:
-                    self.selected[i, c] = sn[c]
-            po, pn = o.params, nw.params
-            for row, attr in enumerate(TEMPC_ATTRS):
-                if getattr(po, attr) != getattr(pn, attr):
-                    tempc[row, i] = getattr(pn, attr)
+            selection, values = reload_changes(old.axes[int(a)], cfg.axes[int(a)])
+            for c, on in selection:
+                self.selected[i, c] = on
+            for row, value in values:
+                tempc[row, i] = value
         self._bt.tempc_changed()
         self._pending[:] = True
         self._pending_any = True

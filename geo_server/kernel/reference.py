@@ -39,6 +39,7 @@ from geo_server.kernel.common import (
     filter_cycles,
     initial_direction,
     initial_selection,
+    reload_changes,
 )
 from geo_server.kernel.triangulation import Triangulation, evaluate, triangulate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
@@ -222,15 +223,11 @@ class ReferenceKernel:
         old = self.cfg
         self._setup(cfg)
         for i, a in enumerate(self.axis_numbers):
-            o, nw = old.axes[int(a)], cfg.axes[int(a)]
-            so, sn = initial_selection(o), initial_selection(nw)
-            for c in range(7):
-                if so[c] != sn[c]:
-                    self.selected[i, c] = sn[c]
-            po, pn = o.params, nw.params
-            for f, attr in enumerate(TEMPC_ATTRS):
-                if getattr(po, attr) != getattr(pn, attr):
-                    self._tempc[i][f] = float(getattr(pn, attr))
+            selection, values = reload_changes(old.axes[int(a)], cfg.axes[int(a)])
+            for c, on in selection:
+                self.selected[i, c] = on
+            for f, value in values:
+                self._tempc[i][f] = value
             self._event[i] = [True] * 7
 
     # ------------------------------------------------------------------ the cycle

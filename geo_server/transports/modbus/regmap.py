@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
-from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
+from geo_server.dictionary import TYPES, Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, GeoError
 
 #: First address of the emulator group `0x12F300` (registers and bits).
@@ -58,16 +58,16 @@ MACHINE_UNIT = 0
 TEXT_BASE = 0x6000
 TEXT_SLOT = 128
 TEXT_REGISTERS = 125
-#: Registers per dictionary type.
+#: Registers per dictionary type: the type's size in 16-bit words (a BOOLEAN takes one
+#: register), a STRING the `TEXT_REGISTERS` of its text slot.
 REGISTERS: dict[str, int] = {
-    "BOOLEAN": 1,
-    "UNS16": 1,
-    "SGN32": 2,
-    "UNS32": 2,
-    "REAL64": 4,
-    "STRING": TEXT_REGISTERS,
+    name: TEXT_REGISTERS if name == "STRING" else max(1, t.size // 2) for name, t in TYPES.items()
 }
-_STRUCT: dict[str, str] = {"BOOLEAN": ">H", "UNS16": ">H", "SGN32": ">i", "UNS32": ">I"}
+#: Big-endian struct format of each numeric type, from its ADS struct code; a BOOLEAN
+#: is a 16-bit register holding 0 or 1.
+_STRUCT: dict[str, str] = {
+    name: ">H" if name == "BOOLEAN" else ">" + t.code for name, t in TYPES.items() if t.code
+}
 _BASE: dict[str, int] = {"geo": 0, "sim": SIM_BASE}
 
 
@@ -194,7 +194,7 @@ def encode(obj: ObjectDef, value: Any) -> list[int]:
         text = str(value).encode("cp1252", errors="replace")[: 2 * TEXT_REGISTERS - 1]
         raw = text.ljust(2 * TEXT_REGISTERS, b"\0")
     elif t == "REAL64":
-        raw = struct.pack(">d", float(value))
+        raw = struct.pack(_STRUCT[t], float(value))
     elif t == "BOOLEAN":
         raw = struct.pack(">H", 1 if value else 0)
     else:
@@ -220,7 +220,7 @@ def decode(obj: ObjectDef, registers: Sequence[int], check: bool = True) -> Any:
     t = obj.type.name
     if t == "STRING":
         return raw.split(b"\0", 1)[0].decode("cp1252", errors="replace")
-    (v,) = struct.unpack(">d" if t == "REAL64" else _STRUCT[t], raw)
+    (v,) = struct.unpack(_STRUCT[t], raw)
     if not check:
         return bool(v) if t == "BOOLEAN" else v
     if t == "BOOLEAN" and v > 1:

@@ -2,7 +2,8 @@
 
 Random machines (`support.machines.random_machine`: every compensation kind, both
 crosstalk dialects and all modes, modulo axes, manual activation, missing lists) driven
-by random motion with reversals, homing, COMP ON/OFF, TEMPC writes and a reload.
+by random motion with reversals, homing, COMP ON/OFF (with and without NO_MOVE holds and
+their release), TEMPC writes and a reload.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ def assert_same(fast: Kernel, ref: ReferenceKernel, cycle: int) -> None:
         b = np.asarray(getattr(ref, name), dtype=float)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9, err_msg=f"{name} @ cycle {cycle}")
     np.testing.assert_array_equal(fast.selected, ref.selected)
+    np.testing.assert_array_equal(fast.held, ref.held)
     for x, y in zip(fast.tempc_params, ref.tempc_params, strict=True):
         np.testing.assert_array_equal(x, y)
 
@@ -40,6 +42,13 @@ def test_random_scenarios(seed: int) -> None:
             slot, kind, on = int(rng.integers(n)), COMP_ORDER[rng.integers(7)], rng.random() < 0.5
             fast.set_selected(slot, kind, on)
             ref.set_selected(slot, kind, on)
+            if rng.random() < 0.5:  # COMP … NO_MOVE: the offset waits for a motion
+                fast.hold(slot, kind)
+                ref.hold(slot, kind)
+        if rng.random() < 0.01:  # the axis' next motion (or COMP without NO_MOVE)
+            slot = int(rng.integers(n))
+            fast.release(slot)
+            ref.release(slot)
         if rng.random() < 0.02:  # TEMPC live write
             slot = int(rng.integers(n))
             field = ("coefficient", "offset_0", "position_0")[rng.integers(3)]

@@ -570,6 +570,39 @@ def test_crosstalk_mode3_triangle_and_hull(kernel_cls: type) -> None:
         assert d.k.actual[1, XT] == pytest.approx(want, abs=1e-9), (x, y)
 
 
+#: 000 p.92: the manual's 9 mode-3 test points (ax_1 varying fastest) and their
+#: acc_pos_vel_pos corrections
+P92_POINTS = [(float(x), float(y)) for y in (0, 1500, 3000) for x in (0, 1500, 3000)]
+P92_VALUES = [60.0, 58.0, 55.0, 58.0, 63.0, 52.0, 55.0, 52.0, 50.0]
+
+
+@pytest.mark.parametrize("kernel_cls", KERNELS)
+def test_crosstalk_mode3_cocircular_tie_break(kernel_cls: type) -> None:
+    """docs/design.md §12 "mode 3": the four corners of a grid cell lie on one circle, so
+    both diagonals are Delaunay. The record order decides: candidate triangles are tried
+    in lexicographic order of their record indices and the first that does not overlap an
+    accepted one is kept. With the manual's order (ax_1 fastest) every cell is cut from
+    its (ax_1 max, ax_2 min) corner to its (ax_1 min, ax_2 max) corner.
+
+    At a cell centre the value is then the mean of those two corners: (750, 750) →
+    (58 + 58)/2 = 58 (the other diagonal would give (60 + 63)/2 = 61.5); (2250, 750) →
+    (55 + 63)/2 = 59 (not (58 + 52)/2 = 55). (1000, 1000) lies in the upper triangle
+    of the first cell, (1500, 0)–(0, 1500)–(1500, 1500): λ = (1/3, 1/3, 1/3) → 59⅔."""
+    d = Drive(kernel_cls, xt_machine(mode3(P92_POINTS, P92_VALUES)))
+    d.vel[0], d.acc[0] = 10.0, 1000 * MM  # |a| = a_ref: ratio 1
+    cases = [
+        ((750.0, 750.0), 58.0),
+        ((2250.0, 750.0), 59.0),
+        ((750.0, 2250.0), (63 + 55) / 2),  # cell 3, 4, 6, 7: diagonal 4–6, not 3–7 (55)
+        ((1000.0, 1000.0), (58 + 58 + 63) / 3),
+    ]
+    for _ in range(3):  # the same every time
+        for (x, y), want in cases:
+            d.pos[0], d.pos[2] = x, y
+            d.step()
+            assert d.k.actual[1, XT] == pytest.approx(want, abs=1e-9), (x, y)
+
+
 @pytest.mark.parametrize("kernel_cls", KERNELS)
 def test_crosstalk_old_dialect(kernel_cls: type) -> None:
     xt = CrosstalkComp(

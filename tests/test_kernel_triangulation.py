@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import itertools
+import os
 import random
+import subprocess
+import sys
 
 import pytest
 
@@ -80,3 +83,24 @@ def test_degenerate_sets() -> None:
     assert evaluate(line, [0.0, 30.0, 10.0], 1500.0, 800.0) == pytest.approx(20.0)
     dup = triangulate(((0.0, 0.0), (0.0, 0.0), (10.0, 0.0), (0.0, 10.0)))
     assert len(dup.triangles) == 1
+
+
+def test_manual_grid_tie_break_is_fixed_across_runs() -> None:
+    """docs/design.md §12 "mode 3": on the manual's co-circular 9-point grid (000 p.92)
+    every cell is cut from its (ax_1 max, ax_2 min) to its (ax_1 min, ax_2 max) corner,
+    decided by the record order only: the same triangles in fresh interpreters with
+    different hash seeds."""
+    want = [(0, 1, 3), (1, 2, 4), (1, 4, 3), (2, 5, 4), (3, 4, 6), (4, 5, 7), (4, 7, 6), (5, 8, 7)]
+    pts = tuple((float(x), float(y)) for y in (0, 1500, 3000) for x in (0, 1500, 3000))
+    assert [tuple(t) for t in triangulate(pts).triangles] == want
+    code = (
+        "from geo_server.kernel.triangulation import triangulate\n"
+        f"print(list(triangulate({pts!r}).triangles))"
+    )
+    for seed in ("0", "1", "12345"):
+        env = {**os.environ, "PYTHONHASHSEED": seed}
+        out = subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
+        )
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == str(want)

@@ -82,6 +82,9 @@ class FakePort:
     def program_end(self) -> None:
         self.calls.append(("end",))
 
+    def release_axis(self, slot: int) -> None:
+        self.calls.append(("release", slot))
+
     def report(self, error_id: int, message: str, line: int) -> None:
         self.calls.append(("report", error_id, line))
 

@@ -22,7 +22,17 @@ COMP_ORDER: tuple[CompKind, ...] = (
     CompKind.CROSSTALK,
 )
 BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
+#: Every compensation (`COMP OFF_ALL`, 000 §5.1 p.94).
+ALL_KINDS = CompKind(sum(COMP_ORDER))
 COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}
+
+
+def hold_columns(kinds: CompKind) -> list[int]:
+    """Columns whose offset `COMP … NO_MOVE` holds back until the axis' next motion
+    (000 §5.1 p.94): every position compensation. Friction is a current, not a position
+    offset, so it has nothing to hold and switches at once."""
+    return [COLUMN[k] for k in COMP_ORDER if kinds & k and k is not CompKind.FRICT]
+
 
 _TEMPC = load_dictionary().tempc_parameters()
 #: TEMPC parameters writable as CNC objects (000 §3.2.3, p.22), in element-ID order

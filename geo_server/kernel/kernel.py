@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geo_server.kernel.common import (
+    ALL_KINDS,
     BC,
     COLUMN,
     CROSS,
@@ -58,6 +59,7 @@ from geo_server.kernel.common import (
     TEMPC_ATTRS,
     TEMPC_FIELDS,
     filter_cycles,
+    hold_columns,
     initial_direction,
     initial_selection,
     reload_changes,
@@ -1206,6 +1208,9 @@ class Kernel:
         self._first = True
         self._pending = np.zeros((n, 7), dtype=bool)  # step events from writes and reload
         self._pending_any = False
+        #: columns whose output is held at its last value (`hold`, COMP … NO_MOVE)
+        self.held = np.zeros((n, 7), dtype=bool)
+        self._any_held = False
         # scratch
         self._prev = np.zeros((n, 7))
         self._event = np.zeros((n, 7), dtype=bool)
@@ -1296,6 +1301,24 @@ class Kernel:
     def set_selected(self, slot: int, kind: CompKind, on: bool) -> None:
         """COMP ON/OFF or a `TEMPC::activated` write (000 §5.1 p.94, §3.2 p.15)."""
         self.selected[slot, COLUMN[kind]] = bool(on)
+
+    def hold(self, slot: int, kinds: CompKind) -> None:
+        """`COMP … NO_MOVE` (000 §5.1 p.94): the selection has changed, but the offset it
+        causes is only executed at the axis' next motion, so the output of these columns
+        stays at its present value until `release`."""
+        for c in hold_columns(kinds):
+            self.held[slot, c] = True
+        self._any_held = bool(self.held.any())
+
+    def release(self, slot: int, kinds: CompKind = ALL_KINDS) -> None:
+        """The axis' next motion (or a switch without NO_MOVE): held columns ramp from
+        their held output to the present target with their sin² length (a step event)."""
+        for c in hold_columns(kinds):
+            if self.held[slot, c]:
+                self.held[slot, c] = False
+                self._pending[slot, c] = True
+                self._pending_any = True
+        self._any_held = bool(self.held.any())
 
     @property
     def tempc_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1509,6 +1532,8 @@ class Kernel:
         copyto(jump, t7, where=ev)
         mul(jump, w, t7)
         subtract(tgt, t7, act)
+        if self._any_held:  # COMP … NO_MOVE: output held (LSEC reads the held values)
+            copyto(act, prev, where=self.held)
 
         ls = self._lsec
         if ls is not None:
@@ -1544,6 +1569,8 @@ class Kernel:
             copyto(c.jump, tld, where=c.event)
             mul(c.jump, c.weight, tld)
             subtract(tl, tld, c.actual)
+            if self._any_held:
+                copyto(c.actual, c.prev, where=self.held[:, LEAD])
 
         # friction (000 §4.5): reversal weights and the delay line, for every axis
         path = fs.path

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from geo_server.kernel.common import (
+    ALL_KINDS,
     BC,
     COLUMN,
     CROSS,
@@ -37,6 +38,7 @@ from geo_server.kernel.common import (
     TEMPC_ATTRS,
     TEMPC_FIELDS,
     filter_cycles,
+    hold_columns,
     initial_direction,
     initial_selection,
     reload_changes,
@@ -178,6 +180,7 @@ class ReferenceKernel:
         self._jump = [[0.0] * 7 for _ in range(n)]
         self._k = [list(map(float, ax.n_cycles)) for ax in self._axes]
         self._event = [[False] * 7 for _ in range(n)]
+        self.held = np.zeros((n, 7), dtype=bool)
         self._tempc = [[float(getattr(ax.p, a)) for a in TEMPC_ATTRS] for ax in self._axes]
         self._path = [math.inf] * n  # path travelled since the last reversal (friction)
         self._prev_pos: list[float] | None = None
@@ -198,6 +201,20 @@ class ReferenceKernel:
     def set_selected(self, slot: int, kind: CompKind, on: bool) -> None:
         """COMP ON/OFF or a `TEMPC::activated` write (000 §5.1, §3.2)."""
         self.selected[slot, COLUMN[kind]] = bool(on)
+
+    def hold(self, slot: int, kinds: CompKind) -> None:
+        """`COMP … NO_MOVE` (000 §5.1 p.94): the offset of the switch is only executed at
+        the axis' next motion; until then these columns keep their output."""
+        for c in hold_columns(kinds):
+            self.held[slot, c] = True
+
+    def release(self, slot: int, kinds: CompKind = ALL_KINDS) -> None:
+        """The axis' next motion: every held column ramps from its held output to its
+        target (a step event)."""
+        for c in hold_columns(kinds):
+            if self.held[slot, c]:
+                self.held[slot, c] = False
+                self._event[slot][c] = True
 
     @property
     def tempc_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -322,8 +339,11 @@ class ReferenceKernel:
         if reversal and eff[BC]:
             ev[BC] = True  # reversal: backlash spread over n_backlash_cyc (P-AXIS-00243)
         out = [0.0] * 7
+        held = [bool(v) for v in self.held[i]]
         for c in (BC, TEMP, CROSS, PLANE, CROSSTALK):
             out[c] = self._filter(i, c, ax.n_cycles[c], tgt[c], prev_out[c], ev[c])
+            if held[c]:  # COMP … NO_MOVE: the offset waits for the axis' next motion
+                out[c] = prev_out[c]
 
         # 5. LSEC (000 §4.4): lookup at command + cross + plane unless set_pos_without_comp
         if eff[LEAD]:
@@ -339,6 +359,8 @@ class ReferenceKernel:
         if eff[LEAD] != prev_eff[LEAD]:
             ev[LEAD] = True
         out[LEAD] = self._filter(i, LEAD, ax.n_cycles[LEAD], tgt[LEAD], prev_out[LEAD], ev[LEAD])
+        if held[LEAD]:
+            out[LEAD] = prev_out[LEAD]
 
         # 6. friction (000 §4.5 p.64–79)
         cur = 0.0

@@ -28,6 +28,7 @@ from geo_server.dictionary import Dictionary, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
+from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, parse_program
 from geo_server.machine.port import (
@@ -46,10 +47,6 @@ from geo_server.snapshot import ObjectLayout, Snapshot
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
 from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
-
-#: Column of each compensation in the kernel's [n, 7] arrays.
-C = {kind: i for i, kind in enumerate(COMP_ORDER)}
-#: Position compensations summed into the drive output (docs/design.md §3).
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -283,7 +280,7 @@ class Machine:
         }
         where: list[tuple[str, int] | None] = [None] * len(self.layout.axis_objects)
         for name, (attr, kind) in _FROM_COMP.items():
-            where[col(name)] = ("machine" if attr == "delta" else attr, C[kind])
+            where[col(name)] = ("machine" if attr == "delta" else attr, COLUMN[kind])
         for name, src in _FROM_STATE.items():
             if isinstance(src, str):  # a column of the machine buffer
                 where[col(name)] = ("machine", _MBUF[src])
@@ -434,23 +431,35 @@ class Machine:
 
     def program_end(self) -> None:
         """M30 / reset: manual-activation compensations are deselected (manual §5.1)."""
-        for slot, a in enumerate(self.axes):
-            ax = self.cfg.axes[a]
-            manual = CompKind(0)
-            if ax.params.temp_comp_manual_activation:
-                manual |= CompKind.TEMP
-            comp = ax.comp
-            if comp is not None:
-                for kind, part in (
-                    (CompKind.CROSS, comp.cross),
-                    (CompKind.PLANE, comp.plane),
-                    (CompKind.LEAD, comp.lsec),
-                    (CompKind.CROSSTALK, comp.crosstalk),
-                ):
-                    if part is not None and part.manual_activation:
-                        manual |= kind
-            if manual:
-                self.set_comp(slot, manual, False)
+        for slot in range(len(self.axes)):
+            self.release_axis(slot)
+
+    def release_axis(self, slot: int) -> None:
+        """Deselect the axis' manual-activation compensations: at the end of the NC
+        program, at CNC reset and on release of the axis (`#PUT AX`) (000 §3.2 p.17,
+        §4.2–4.4, §4.6 P-COMP-00065, §5.1). The offset is executed at once."""
+        manual = self._manual_kinds(slot)
+        if manual:
+            self.set_comp(slot, manual, False)
+            self.kernel.release(slot, manual)
+
+    def _manual_kinds(self, slot: int) -> CompKind:
+        """The axis' compensations configured with manual activation."""
+        ax = self.cfg.axes[self.axes[slot]]
+        manual = CompKind(0)
+        if ax.params.temp_comp_manual_activation:
+            manual |= CompKind.TEMP
+        comp = ax.comp
+        if comp is not None:
+            for kind, part in (
+                (CompKind.CROSS, comp.cross),
+                (CompKind.PLANE, comp.plane),
+                (CompKind.LEAD, comp.lsec),
+                (CompKind.CROSSTALK, comp.crosstalk),
+            ):
+                if part is not None and part.manual_activation:
+                    manual |= kind
+        return manual
 
     def reload(self, cfg: MachineConfig) -> None:
         """Swap in a validated configuration at this cycle boundary (docs/design.md §4).
@@ -518,6 +527,9 @@ class Machine:
         rapid: bool,
         next_dirs: dict[int, int],
     ) -> None:
+        for slot, target in targets.items():
+            if target != self.motion.pos[slot]:
+                self.kernel.release(slot)  # the axis' next motion (COMP … NO_MOVE)
         self.motion.move_linear(targets, feed, rapid)
         for slot, direction in next_dirs.items():
             self.motion.announce_next(slot, direction)
@@ -530,16 +542,28 @@ class Machine:
         return self.motion.all_in_position(slots)
 
     def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
-        return self.set_comp(slot, kinds, on)
+        return self._switch(slot, kinds, on, no_move)
 
     def comp_off_all(self, slot: int, no_move: bool) -> int:
-        return self.set_comp(slot, ALL_COMPS, False)
+        return self._switch(slot, ALL_KINDS, False, no_move)
+
+    def _switch(self, slot: int, kinds: CompKind, on: bool, no_move: bool) -> int:
+        """COMP ON/OFF (000 §5.1 p.94). Without NO_MOVE the offset is executed now (the
+        program waits for it), together with any offset an earlier NO_MOVE held back; with
+        NO_MOVE it is held until the axis' next motion."""
+        err = self.set_comp(slot, kinds, on)
+        if err:
+            return err
+        if no_move:
+            self.kernel.hold(slot, kinds)
+        else:
+            self.kernel.release(slot)
+        return 0
 
     def comp_settled(self, slots: Iterable[int]) -> bool:
         """000 §5.1: the offset of a COMP switch is travelled before the program goes
-        on, i.e. the program waits until the axis' sin² ramps have ended. (NO_MOVE
-        skips the wait; the emulator then ramps while the next block runs instead of
-        deferring the offset to that block's motion.)"""
+        on, i.e. the program waits until the axis' sin² ramps have ended (NO_MOVE
+        blocks do not wait: their offset is held until the axis' next motion)."""
         return not any(self.kernel.ramping(s) for s in slots)
 
     def effective(self, slot: int) -> CompKind:
@@ -569,9 +593,6 @@ def _mask(kinds: Iterable[CompKind]) -> CompKind:
     for k in kinds:
         out |= k
     return out
-
-
-ALL_COMPS = _mask(COMP_ORDER)
 
 
 B, T, X, P, L, K = (
@@ -655,10 +676,18 @@ def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:
 
 
 def _move(m: Machine, slot: int, target: float) -> None:
+    if target != m.motion.pos[slot]:
+        m.kernel.release(slot)  # a motion of the axis executes a held COMP offset
     try:
         m.motion.move_to(slot, target)
     except MotionError as exc:
         raise AdsError(AdsErrorCode.DEVICE_BUSY, f"axis {m.axes[slot]}: {exc}") from None
+
+
+def _set_tempc_activated(m: Machine, slot: int, on: bool) -> None:
+    """A selection by object acts at once, also on an offset a NO_MOVE held back."""
+    m.kernel.set_selected(slot, CompKind.TEMP, on)
+    m.kernel.release(slot, CompKind.TEMP)
 
 
 def _set_homed(m: Machine, slot: int, value: Any) -> None:
@@ -669,7 +698,7 @@ def _set_homed(m: Machine, slot: int, value: Any) -> None:
 
 
 _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
-    "TEMPC::activated": lambda m, s, v: m.kernel.set_selected(s, CompKind.TEMP, bool(v)),
+    "TEMPC::activated": lambda m, s, v: _set_tempc_activated(m, s, bool(v)),
     **{o.name: _set_tempc(o.key_field) for o in load_dictionary().tempc_parameters()},
     "SIM::target_position": lambda m, s, v: _move(m, s, float(v)),
     "SIM::homed": _set_homed,

@@ -22,6 +22,10 @@ Supported subset (docs/design.md §5; TF5200 axis compensation manual, 000):
 * `$GOTO N<n>` and `$GOTO [N<n>]`: jump to the block labelled `N<n>:`, else to the first
   block numbered `N<n>` (the temperature program of 000 p.24 numbers three blocks N10).
 * `M30` (and `M02`) program end.
+* Axis exchange, alone in its block: `#PUT AX [X, Y]`, `#PUT AX ALL`, `#AX RELEASE […]`
+  release axes from the channel (their manual-activation compensations are deselected,
+  000 §5.1); `#CALL AX [X, 1, 0]` brings an axis back. Programming a released axis is an
+  error. Every program starts with all axes in the channel.
 
 Monitoring (000 §5.3, p.97): a motion block that would move an axis whose required
 compensations (`MachinePort.required`) are not all effective raises P-ERR-70435 and stops
@@ -137,6 +141,11 @@ class MachinePort(Protocol):
         """M30: deselect manual-activation compensations (000 §5.1)."""
         ...
 
+    def release_axis(self, slot: int) -> None:
+        """`#PUT AX`: the axis leaves the channel; its manual-activation compensations
+        are deselected (000 §3.2 p.17, §5.1)."""
+        ...
+
     def report(self, error_id: int, message: str, line: int) -> None:
         """Log an NC runtime error (the player stops after reporting)."""
         ...
@@ -175,6 +184,8 @@ class Block:
     goto: int | None = None  # index of the target block
     goto_number: int | None = None
     end: bool = False
+    release: tuple[int, ...] = ()  # `#PUT AX` / `#AX RELEASE`: slots leaving the channel
+    call: tuple[int, ...] = ()  # `#CALL AX`: slots coming back
 
 
 @dataclass
@@ -198,6 +209,14 @@ _TOKEN = re.compile(
 #: Warnings of one program kept for the error list (the rest are counted in one line).
 MAX_WARNINGS = 20
 _GOTO_TARGET = re.compile(r"\s*(?:\[\s*N(\d+)\s*\]|N(\d+))")
+#: Axis exchange: `#PUT AX [X, B]`, `#PUT AX ALL`, `#AX RELEASE […]`, `#CALL AX [X, 1, 0]`,
+#: programmed alone in their block (an optional block number first).
+_AXIS_EXCHANGE = re.compile(
+    r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*(?P<cmd>PUT\s+AX|AX\s+RELEASE|CALL\s+AX)\b"
+    r"\s*(?P<rest>.*)"
+)
+_EXCHANGE_WORD = re.compile(r"#\s*(?:PUT\s+AX|AX\s+RELEASE|CALL\s+AX)\b")
+_EXCHANGE_GROUP = re.compile(r"\s*\[(?P<content>[^\]]*)\]")
 
 
 def parse_program(text: str, axis_names: Mapping[str, int], *, mdi: bool = False) -> Program:
@@ -340,6 +359,11 @@ def _parse_block(
     line: int, body: str, names: dict[str, int], warnings: list[Diagnostic]
 ) -> Block | None:
     """Interpret the words of one block."""
+    exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
+    if exchange is not None:
+        return _parse_exchange(line, body, exchange, names)
+    if _EXCHANGE_WORD.search(body.upper()):
+        raise NcError(line, "axis exchange (#PUT AX, #AX RELEASE, #CALL AX) must stand alone")
     w = _tokenize(line, body, warnings)
     b = Block(line=line, text=body, number=w.number, label=w.label)
     _apply_gcodes(line, w, b)
@@ -354,6 +378,43 @@ def _parse_block(
         if b.axes or b.dwell is not None or b.home or b.comps or b.end or w.gcodes:
             raise NcError(line, "$GOTO must stand alone in its block")
         b.goto_number = w.goto
+    return b
+
+
+def _parse_exchange(line: int, body: str, m: re.Match[str], names: dict[str, int]) -> Block:
+    """Axis exchange (TwinCAT CNC programming manual, "Axis exchange commands"; needed
+    here for "deselected on release of the axis", 000 §3.2 p.17 and §5.1).
+
+    `#PUT AX [<axis>{, <axis>}]` / `#AX RELEASE [...]` hand axes back to the axis
+    management; names that are not (or no longer) in the channel are no error. `ALL`
+    releases every axis. `#CALL AX [<axis>, <number>, <index>] {[...]}` brings axes back;
+    the emulator's axes keep their names and numbers, so only the name counts.
+    """
+    b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None, label=bool(m["colon"]))
+    cmd, rest = " ".join(m["cmd"].split()), m["rest"].strip()
+    if cmd != "CALL AX" and rest == "ALL":
+        b.release = tuple(sorted(set(names.values())))
+        return b
+    groups, pos = [], 0
+    while pos < len(rest):
+        g = _EXCHANGE_GROUP.match(rest, pos)
+        if g is None:
+            raise NcError(line, f"#{cmd}: expected [<axis>, …], got {rest[pos:].strip()[:20]!r}")
+        groups.append(g["content"])
+        pos = g.end()
+    if not groups:
+        raise NcError(
+            line, f"#{cmd} needs [<axis>{{, <axis>}}]" + ("" if cmd == "CALL AX" else " or ALL")
+        )
+    if cmd == "CALL AX":
+        b.call = tuple(_axis_slot(line, g.split(",")[0].strip(), names) for g in groups)
+        return b
+    if len(groups) > 1:
+        raise NcError(line, f"#{cmd}: name the axes in one [ ]")
+    axes = [a.strip() for a in groups[0].split(",")]
+    if not all(axes):
+        raise NcError(line, f"#{cmd}: empty axis name")
+    b.release = tuple(names[a] for a in axes if a in names)
     return b
 
 
@@ -535,6 +596,8 @@ class Player:
         self.line = 0  # line of the block executed last
         self._modal = _Modal()
         self._wait: _Wait | None = None
+        #: axes handed back by `#PUT AX` (every program starts with all axes in the channel)
+        self.released: set[int] = set()
 
     def step(self) -> None:
         """One GEO cycle: finish the waiting block if its condition holds, run blocks."""
@@ -570,6 +633,11 @@ class Player:
     def _execute(self, b: Block) -> None:
         """Run one block: modal words, G74, COMP, motion or dwell, then $GOTO/M30."""
         self._modal.update(b)
+        if b.release or b.call:
+            self._exchange(b)
+            return
+        if not self._in_channel(b):
+            return
         wait = _Wait()
         if b.home:
             self.port.home(b.home)
@@ -588,6 +656,25 @@ class Player:
         elif waits:
             wait.end = b.end
             self._wait = wait
+
+    def _exchange(self, b: Block) -> None:
+        """`#PUT AX` / `#CALL AX`: a released axis loses its manual-activation
+        compensations (000 §5.1) and cannot be programmed until it is called back."""
+        for slot in b.release:
+            if slot not in self.released:
+                self.released.add(slot)
+                self.port.release_axis(slot)
+        self.released.difference_update(b.call)
+
+    def _in_channel(self, b: Block) -> bool:
+        """Every axis the block programs must be in the channel; False after the error."""
+        used = set(b.axes) | set(b.home) | {c.slot for c in b.comps}
+        out = sorted(used & self.released)
+        if out:
+            names = ", ".join(self._axis_name(s) for s in out)
+            self._fail(ERR_NC_RUNTIME, f"axis {names} is not in the channel (#PUT AX)")
+            return False
+        return True
 
     def _run_comps(self, b: Block, wait: _Wait) -> bool:
         """Issue the COMP commands of a block; False after an error."""

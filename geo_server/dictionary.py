@@ -51,17 +51,21 @@ class DataType:
     code: str  # struct format character, "" for STRING
     lo: float
     hi: float
+    #: the IEC 61131-3 / TwinCAT type name of the ADS symbol (docs/design.md §9)
+    tc_type: str = ""
+    #: the ADS data type id of the symbol (AdsDef.h `ADST_*`)
+    ads_type: int = 0
 
 
 TYPES: dict[str, DataType] = {
     t.name: t
     for t in (
-        DataType("BOOLEAN", 1, "B", 0, 1),
-        DataType("UNS16", 2, "H", 0, 0xFFFF),
-        DataType("UNS32", 4, "I", 0, 0xFFFF_FFFF),
-        DataType("SGN32", 4, "i", -(2**31), 2**31 - 1),
-        DataType("REAL64", 8, "d", -math.inf, math.inf),
-        DataType("STRING", STRING_LENGTH, "", 0, 0),
+        DataType("BOOLEAN", 1, "B", 0, 1, "BOOL", 33),
+        DataType("UNS16", 2, "H", 0, 0xFFFF, "UINT", 18),
+        DataType("UNS32", 4, "I", 0, 0xFFFF_FFFF, "UDINT", 19),
+        DataType("SGN32", 4, "i", -(2**31), 2**31 - 1, "DINT", 3),
+        DataType("REAL64", 8, "d", -math.inf, math.inf, "LREAL", 5),
+        DataType("STRING", STRING_LENGTH, "", 0, 0, f"STRING({STRING_LENGTH - 1})", 30),
     )
 }
 

@@ -38,9 +38,11 @@ class AdsErrorCode(IntEnum):
     DEVICE_NOTREADY = 0x707  # the GEO cycle is stalled or ended
     DEVICE_BUSY = 0x708  # axis busy, program running, another command running
     DEVICE_SYNTAX = 0x70D  # list file or NC text has errors (reload rejected)
+    DEVICE_SYMBOLNOTFOUND = 0x710  # unknown symbol name or handle
+    DEVICE_INVALIDSTATE = 0x712  # the device cannot go to the requested ADS state
     DEVICE_TRANSMODENOTSUPP = 0x713
     DEVICE_NOTIFYHNDINVALID = 0x714
-    DEVICE_NOMOREHDLS = 0x716  # notification limit reached
+    DEVICE_NOMOREHDLS = 0x716  # notification or symbol handle limit reached
     DEVICE_INVALIDWATCHSIZE = 0x717
     DEVICE_TIMEOUT = 0x719  # not applied in time: withdrawn, it will not take effect
 

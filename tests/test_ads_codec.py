@@ -151,11 +151,16 @@ def test_unknown_tcp_header_kind_is_fatal() -> None:
     assert isinstance(ev, StreamError)
 
 
-def test_router_command_is_skipped() -> None:
+def test_router_command_is_its_own_event() -> None:
     router = struct.pack("<HI", 0x1000, 2) + b"\x00\x00"
     events = Framer().feed(router + read_frame(invoke=4))
-    assert isinstance(events[0], Dropped) and events[0].size == 8
+    assert events[0] == codec.RouterCommand(0x1000, b"\x00\x00")
     assert packets(events)[0].header.invoke_id == 4
+
+
+def test_router_command_longer_than_any_router_frame_fails_the_stream() -> None:
+    (ev,) = Framer().feed(struct.pack("<HI", 0x1000, 65) + b"\x00" * 65)
+    assert isinstance(ev, StreamError) and "0x1000" in ev.reason
 
 
 def test_frame_shorter_than_ams_header_is_skipped() -> None:

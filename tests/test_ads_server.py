@@ -646,7 +646,7 @@ def test_sum_read_ex2_and_sum_read_write(raw, service) -> None:
 
 def test_bad_frames_are_skipped_or_answered(raw, service) -> None:
     s = raw.sock
-    s.sendall(struct.pack("<HI", 0x1000, 2) + b"\0\0")  # router command: skipped
+    s.sendall(struct.pack("<HI", 0x1001, 2) + b"\0\0")  # router note from a client: skipped
     s.sendall(struct.pack("<HI", 0, 4) + b"abcd")  # shorter than an AMS header: skipped
     bad = bytearray(raw.frame(Command.READ, codec.read_request(GEO, 0x10043, 8), 7))
     struct.pack_into("<I", bad, 6 + 20, 1234)  # AMS data length lies

@@ -80,10 +80,18 @@ MAX_REQUEST_DATA = READ_WRITE_HEAD + SUM_COMMAND_LIMIT * (SUM_SUB_HEAD + LARGEST
 #: 136 048 bytes, 136 054 with the AMS/TCP header). The ADS server's default `max_frame`.
 MAX_REQUEST_FRAME = AMS_HEADER_SIZE + MAX_REQUEST_DATA
 
-#: AMS/TCP header `reserved` values (jisotalo/ads-server `ads-commons.ts`): 0 carries an
-#: AMS packet, the others are router commands a stand-alone server does not implement.
+#: AMS/TCP header `reserved` values (jisotalo/ads-client `ads-commons.ts`
+#: `AMS_HEADER_FLAG`): 0 carries an AMS packet, the others are commands to the AMS router.
 AMS_TCP_PORT_AMS_CMD = 0x0000
-AMS_TCP_ROUTER_COMMANDS = frozenset({0x1000, 0x1001, 0x1002})
+AMS_TCP_PORT_CLOSE = 0x0001  # u16 port: the client gives its AMS port back
+AMS_TCP_PORT_CONNECT = 0x1000  # u16 port wanted (0: any) -> NetId (6) + port (u16)
+AMS_TCP_ROUTER_NOTE = 0x1001  # router -> client only
+AMS_TCP_GET_LOCAL_NETID = 0x1002  # -> NetId (6)
+AMS_TCP_ROUTER_COMMANDS = frozenset(
+    {AMS_TCP_PORT_CLOSE, AMS_TCP_PORT_CONNECT, AMS_TCP_ROUTER_NOTE, AMS_TCP_GET_LOCAL_NETID}
+)
+#: Largest router command frame: nothing a client sends the router carries more.
+MAX_ROUTER_FRAME = 64
 
 #: Windows FILETIME epoch (1601-01-01) to Unix epoch in 100 ns ticks.
 FILETIME_UNIX_OFFSET = 116_444_736_000_000_000
@@ -298,6 +306,15 @@ def notification_frame(server: AmsAddr, client: AmsAddr, data: bytes, invoke_id:
 
 
 @dataclass(frozen=True, slots=True)
+class RouterCommand:
+    """An AMS/TCP frame for the router itself (`AMS_TCP_ROUTER_COMMANDS`), not an AMS
+    packet: `command` is the AMS/TCP header's first field, `data` what follows."""
+
+    command: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
 class Dropped:
     """A frame was skipped, framing intact (router command, too short for an AMS header,
     a response sent to the server). `size` is the number of bytes skipped."""
@@ -323,7 +340,7 @@ class StreamError:
     reason: str
 
 
-FrameEvent = AmsPacket | BadPacket | Dropped | StreamError
+FrameEvent = AmsPacket | BadPacket | RouterCommand | Dropped | StreamError
 
 
 class Framer:
@@ -377,6 +394,10 @@ class Framer:
             reserved, length = AMS_TCP_HEADER.unpack_from(buf, pos)
             if reserved != AMS_TCP_PORT_AMS_CMD and reserved not in AMS_TCP_ROUTER_COMMANDS:
                 return self._fail(events, f"unknown AMS/TCP header kind 0x{reserved:04X}")
+            if reserved != AMS_TCP_PORT_AMS_CMD and length > MAX_ROUTER_FRAME:
+                return self._fail(
+                    events, f"router command 0x{reserved:04X} announces {length} bytes"
+                )
             if length > self.max_frame:
                 return self._fail(
                     events, f"AMS/TCP length {length} exceeds the limit of {self.max_frame}"
@@ -387,9 +408,7 @@ class Framer:
             start = pos + AMS_TCP_HEADER_SIZE
             pos = end
             if reserved != AMS_TCP_PORT_AMS_CMD:
-                events.append(
-                    Dropped(f"router command 0x{reserved:04X} not supported", end - start + 6)
-                )
+                events.append(RouterCommand(reserved, bytes(buf[start:end])))
                 continue
             if length < AMS_HEADER_SIZE:
                 events.append(Dropped(f"AMS/TCP length {length} < AMS header", length + 6))
@@ -424,6 +443,38 @@ class Framer:
         self.incomplete_since = None
         events.append(StreamError(reason))
         return events
+
+
+# ---------------------------------------------------------------------- router commands
+
+
+def router_frame(command: int, data: bytes = b"") -> bytes:
+    """An AMS/TCP frame of a router command (no AMS header)."""
+    return AMS_TCP_HEADER.pack(command, len(data)) + data
+
+
+def port_connect_request(port: int = 0) -> bytes:
+    """What a client sends to get an AMS port (0: the router chooses)."""
+    return router_frame(AMS_TCP_PORT_CONNECT, _U16.pack(port))
+
+
+def port_connect_response(netid: str, port: int) -> bytes:
+    """The router's answer: the client's AMS address from now on."""
+    return router_frame(AMS_TCP_PORT_CONNECT, netid_to_bytes(netid) + _U16.pack(port))
+
+
+def local_netid_response(netid: str) -> bytes:
+    return router_frame(AMS_TCP_GET_LOCAL_NETID, netid_to_bytes(netid))
+
+
+def parse_router_port(cmd: RouterCommand) -> int:
+    """The u16 port of a port connect / close; `PayloadError` when it is not 2 bytes."""
+    if len(cmd.data) != 2:
+        raise PayloadError(
+            AdsErrorCode.DEVICE_INVALIDSIZE,
+            f"router command 0x{cmd.command:04X} carries {len(cmd.data)} bytes, not 2",
+        )
+    return int(_U16.unpack(cmd.data)[0])
 
 
 # ---------------------------------------------------------------------- requests
@@ -520,6 +571,7 @@ Request = (
 )
 
 _U32 = struct.Struct("<I")
+_U16 = struct.Struct("<H")
 _IG_IO_LEN = struct.Struct("<III")
 _READ_WRITE = struct.Struct("<IIII")
 _WRITE_CONTROL = struct.Struct("<HHI")

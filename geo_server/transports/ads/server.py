@@ -29,9 +29,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import struct
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import geo_server
@@ -39,7 +40,7 @@ from geo_server.dictionary import GEO_AMS_PORT
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
-from geo_server.transports.ads import codec
+from geo_server.transports.ads import codec, symbols
 from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AdsState,
@@ -57,6 +58,7 @@ from geo_server.transports.ads.codec import (
     Stamp,
     StreamError,
     SumGroup,
+    WriteControlRequest,
     WriteRequest,
 )
 from geo_server.transports.ads.notifications import (
@@ -125,6 +127,11 @@ class AdsOptions:
     #: exceeds this: a stalled client must not make the server buffer without bound.
     notification_backlog: int = 4 * 1024 * 1024
     device_name: str = "geo-server"
+    #: ReadDeviceInfo of the system service (AMS port 10000; 15 characters at most)
+    system_name: str = "geo-server sys"
+    #: Symbol handles one connection may hold (0x716 beyond; TwinCAT has no documented
+    #: limit, but a client that never releases must not grow the server without bound).
+    max_handles: int = 10_000
     #: With running cycles, no notification sample earlier than this many seconds after
     #: its registration (AdsLib drops samples that overtake its own bookkeeping).
     first_sample_hold: float = 0.005
@@ -144,6 +151,7 @@ class AdsStats:
     connections: int = 0  # accepted
     refused_connections: int = 0  # closed at once: `max_connections` were open
     closed_incomplete: int = 0  # a frame stayed unfinished past `incomplete_frame_timeout`
+    router_commands: int = 0  # AMS/TCP port connect, port close, get NetId answered
     sampling_passes: int = 0  # notification sampling passes begun
     sampling_slices: int = 0  # passes continued in a later loop iteration (over budget)
 
@@ -203,6 +211,10 @@ class AdsServer:
         self._pass_from: tuple[Snapshot, int] | None = None
         self._slice_pending = False
         self._major, self._minor, self._build = _version()
+        self._symbols: symbols.SymbolTable | None = None
+        #: AMS ports handed out by port connect (0x1000) -> their connection
+        self._ams_ports: dict[int, AdsConnection] = {}
+        self._next_ams_port = FIRST_CLIENT_PORT
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -253,6 +265,9 @@ class AdsServer:
             self.stats.dropped_frames += 1
             return
         self.stats.requests += 1
+        if h.target.port == SYSTEM_SERVICE_PORT:
+            self._answer(conn, h, lambda: self._system_service(conn, packet))
+            return
         if h.target.port not in self.options.ams_ports:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_PORT_NOT_FOUND))
@@ -261,8 +276,12 @@ class AdsServer:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
             return
+        self._answer(conn, h, lambda: self._dispatch(conn, packet))
+
+    def _answer(self, conn: AdsConnection, h: AmsHeader, handler: Callable[[], Reply]) -> None:
+        """Run `handler`, turning its exceptions into the command's error payload."""
         try:
-            reply = self._dispatch(conn, packet)
+            reply = handler()
         except AdsError as exc:
             reply = error_payload(h.command, exc.code)
         except PayloadError as exc:
@@ -298,13 +317,20 @@ class AdsServer:
     def _dispatch(self, conn: AdsConnection, packet: AmsPacket) -> Reply:
         req = codec.parse_request(packet)
         if isinstance(req, ReadRequest):
-            return codec.read_response(
-                0, self.service.read(req.index_group, req.index_offset, req.length)
-            )
+            fixed = self._service_read(req.index_group, req.index_offset, req.length)
+            if fixed is not None:
+                return codec.read_response(0, fixed)
+            ig, io = self._address(conn, req.index_group, req.index_offset)
+            return codec.read_response(0, self.service.read(ig, io, req.length))
         if isinstance(req, ReadWriteRequest):
-            return self._read_write(req)
+            if req.index_group in _NAME_SERVICES:
+                return self._by_name(conn, req)
+            return self._read_write(conn, req)
         if isinstance(req, WriteRequest):
-            return self._write_reply(req.index_group, req.index_offset, req.data)
+            if req.index_group == symbols.SYM_RELEASEHND:
+                return self._release_handle(conn, req.data)
+            ig, io = self._address(conn, req.index_group, req.index_offset)
+            return self._write_reply(ig, io, req.data)
         if isinstance(req, AddNotificationRequest):
             return self._add_notification(conn, packet.header, req)
         if isinstance(req, DeleteNotificationRequest):
@@ -320,6 +346,164 @@ class AdsServer:
         # ReadWrite only (TF5200)
         return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
 
+    # ------------------------------------------------------------------ the AMS router
+
+    def handle_router(self, conn: AdsConnection, cmd: codec.RouterCommand) -> None:
+        """AMS/TCP router commands (jisotalo/ads-client `registerAdsPort`): a client
+        without a router of its own asks ours for an AMS port (0x1000) and gets our NetId
+        with a port of its own; 0x0001 gives the port back (the connection closes, as
+        TwinCAT's router does); 0x1002 asks for the NetId. Anything else is dropped."""
+        try:
+            if cmd.command == codec.AMS_TCP_PORT_CONNECT:
+                port = self._assign_port(conn, codec.parse_router_port(cmd))
+                conn.send(codec.port_connect_response(self.options.netid, port))
+            elif cmd.command == codec.AMS_TCP_PORT_CLOSE:
+                codec.parse_router_port(cmd)
+                if conn.ams_port is not None:
+                    self._ams_ports.pop(conn.ams_port, None)
+                    conn.ams_port = None
+                conn.close()
+            elif cmd.command == codec.AMS_TCP_GET_LOCAL_NETID:
+                conn.send(codec.local_netid_response(self.options.netid))
+            else:
+                raise PayloadError(AdsErrorCode.DEVICE_SRVNOTSUPP, "router note from a client")
+        except PayloadError as exc:
+            self.stats.dropped_frames += 1
+            log.debug("ADS router command 0x%04X from %s dropped: %s", cmd.command, conn.peer, exc)
+            return
+        self.stats.router_commands += 1
+
+    def _assign_port(self, conn: AdsConnection, wanted: int) -> int:
+        """The port a client asked for when it is free, else the next free one."""
+        if conn.ams_port is not None:
+            return conn.ams_port  # asked twice: the same answer
+        port = wanted
+        if not port or port in self._ams_ports or port in _RESERVED_PORTS:
+            port = self._next_ams_port
+            while port in self._ams_ports:
+                port = port + 1 if port < LAST_CLIENT_PORT else FIRST_CLIENT_PORT
+            self._next_ams_port = port + 1 if port < LAST_CLIENT_PORT else FIRST_CLIENT_PORT
+        self._ams_ports[port] = conn
+        conn.ams_port = port
+        return port
+
+    # ------------------------------------------------------------------ system service
+
+    def _system_service(self, conn: AdsConnection, packet: AmsPacket) -> Reply:
+        """AMS port 10000, the TwinCAT system service: ReadState (always RUN: the
+        emulator has no config mode), ReadDeviceInfo, WriteControl to RUN (anything else
+        0x712), the ADS state at 0xF100 (read and notification)."""
+        req = codec.parse_request(packet)
+        if isinstance(req, ReadStateRequest):
+            return codec.read_state_response(0, AdsState.RUN, 0)
+        if isinstance(req, ReadDeviceInfoRequest):
+            return codec.read_device_info_response(
+                0, self._major, self._minor, self._build, self.options.system_name
+            )
+        if isinstance(req, WriteControlRequest):
+            if req.ads_state != AdsState.RUN:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDSTATE,
+                    f"ADS state {req.ads_state}: the emulator only runs",
+                )
+            return codec.result_response(0)
+        if isinstance(req, ReadRequest) and req.index_group == symbols.DEVICE_DATA:
+            return codec.read_response(0, self._device_data(req.length))
+        if isinstance(req, AddNotificationRequest) and req.index_group == symbols.DEVICE_DATA:
+            return self._add_notification(conn, packet.header, req)
+        if isinstance(req, DeleteNotificationRequest):
+            self.notifications.delete(conn, req.handle)
+            return codec.result_response(0)
+        if isinstance(req, ReadRequest | AddNotificationRequest):
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDGRP,
+                f"index group 0x{req.index_group:X} is not served on the system port",
+            )
+        return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
+
+    def _device_data(self, length: int) -> bytes:
+        """0xF100: ADS state RUN, device state 0 (u16 each)."""
+        return _fixed(struct.pack("<HH", AdsState.RUN, 0), length, "the ADS state")
+
+    # ------------------------------------------------------------------ symbols
+
+    @property
+    def symbols(self) -> symbols.SymbolTable:
+        """The machine's symbol table (built on first use: the axes are fixed)."""
+        if self._symbols is None:
+            m = self.service.machine
+            names = {m.axes[slot]: name for name, slot in sorted(m.names.items(), key=_by_slot)}
+            self._symbols = symbols.SymbolTable(self.service.dictionary, names)
+        return self._symbols
+
+    def _service_read(self, ig: int, io: int, length: int) -> bytes | None:
+        """Reads of the symbol and state services on the GEO port, None for the rest."""
+        if ig == symbols.DEVICE_DATA:
+            return self._device_data(length)
+        if ig == symbols.SYM_VERSION:
+            return _fixed(bytes([symbols.SYMBOL_VERSION]), length, "the symbol version")
+        if ig not in _UPLOADS:
+            return None
+        table = self.symbols
+        if ig == symbols.SYM_UPLOAD or ig == symbols.SYM_DT_UPLOAD:
+            blob = table.upload if ig == symbols.SYM_UPLOAD else table.datatype_upload
+            self._fit_size(len(blob), length)  # all of it or 0x705
+            return blob
+        info = table.upload_info() if ig == symbols.SYM_UPLOADINFO else table.upload_info2()
+        return _fixed(info, length, "the upload info")
+
+    def _address(self, conn: AdsConnection, ig: int, io: int) -> tuple[int, int]:
+        """The object address behind a symbol handle (0xF005, offset = handle)."""
+        if ig != symbols.SYM_VALBYHND:
+            return ig, io
+        sym = conn.handles.get(io)
+        if sym is None:
+            raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{io:X}")
+        return sym.index_group, sym.index_offset
+
+    def _sub_address(self, conn: AdsConnection, ig: int, io: int) -> tuple[int, int]:
+        """`_address` for a sum sub-request: an unknown handle becomes an address that
+        fails alone (0x710 is not a group), the others still answer."""
+        try:
+            return self._address(conn, ig, io)
+        except AdsError:
+            return symbols.SYM_VALBYHND, io
+
+    def _by_name(self, conn: AdsConnection, req: ReadWriteRequest) -> Reply:
+        """Handle by name (0xF003), value by name (0xF004), symbol info (0xF009) and
+        data type info (0xF011) by name: the write data is the name."""
+        name = symbols.decode_name(req.data)
+        ig = req.index_group
+        if ig == symbols.SYM_DT_INFOBYNAMEEX:
+            entry = symbols.datatype_entry(self.symbols.datatype(name))
+            return self._fit(entry, req.read_length)
+        sym = self.symbols.lookup(name)
+        if ig == symbols.SYM_INFOBYNAMEEX:
+            return self._fit(symbols.symbol_entry(sym), req.read_length)
+        if ig == symbols.SYM_VALBYNAME:
+            data = self.service.read(sym.index_group, sym.index_offset, req.read_length)
+            return codec.read_response(0, data)
+        # SYM_HNDBYNAME
+        self._fit_size(4, req.read_length)
+        if len(conn.handles) >= self.options.max_handles:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOMOREHDLS,
+                f"{len(conn.handles)} symbol handles are open on this connection",
+            )
+        conn.next_handle += 1
+        conn.handles[conn.next_handle] = sym
+        return codec.read_response(0, struct.pack("<I", conn.next_handle))
+
+    def _release_handle(self, conn: AdsConnection, data: bytes) -> bytes:
+        if len(data) != 4:
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDSIZE, f"a handle has 4 bytes, not {len(data)}"
+            )
+        handle = struct.unpack("<I", data)[0]
+        if conn.handles.pop(handle, None) is None:
+            raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{handle:X}")
+        return codec.result_response(0)
+
     # ------------------------------------------------------------------ reads
 
     def _read_codes(
@@ -331,10 +515,11 @@ class AdsServer:
             for r in self.service.read_many(items, snap)
         ]
 
-    def _read_write(self, req: ReadWriteRequest) -> Reply:
+    def _read_write(self, conn: AdsConnection, req: ReadWriteRequest) -> Reply:
         ig, io = req.index_group, req.index_offset
         if ig in _SUM_GROUPS:
-            return self._sum(req)
+            return self._sum(conn, req)
+        ig, io = self._address(conn, ig, io)
         if not req.data:
             return codec.read_response(0, self.service.read(ig, io, req.read_length))
         # Write, then read the object back once the write is applied (stepped mode: the
@@ -349,7 +534,7 @@ class AdsServer:
 
         return read_back()
 
-    def _sum(self, req: ReadWriteRequest) -> Reply:
+    def _sum(self, conn: AdsConnection, req: ReadWriteRequest) -> Reply:
         group, count, data = req.index_group, req.index_offset, req.data
         if group in (SumGroup.READ, SumGroup.READ_EX, SumGroup.READ_EX2):
             subs = codec.parse_sum_read(count, data)
@@ -358,7 +543,9 @@ class AdsServer:
                 # before building it (a sub-request may ask for gigabytes).
                 head = 4 if group == SumGroup.READ else 8
                 self._fit_size(head * len(subs) + sum(s.length for s in subs), req.read_length)
-            items = [(s.index_group, s.index_offset, s.length) for s in subs]
+            items = [
+                (*self._sub_address(conn, s.index_group, s.index_offset), s.length) for s in subs
+            ]
             results = self._read_codes(items, self.service.current())
             if group == SumGroup.READ_EX2:
                 out = codec.sum_read_ex_response(results)
@@ -369,7 +556,9 @@ class AdsServer:
             return self._fit(out, req.read_length)
         if group == SumGroup.WRITE:
             writes = codec.parse_sum_write(count, data)
-            pending = self._write_many([(w.index_group, w.index_offset, w.data) for w in writes])
+            pending = self._write_many(
+                [(*self._sub_address(conn, w.index_group, w.index_offset), w.data) for w in writes]
+            )
 
             async def written() -> bytes:
                 return self._fit(codec.sum_write_response(await pending), req.read_length)
@@ -377,6 +566,11 @@ class AdsServer:
             return written()
         if group == SumGroup.READ_WRITE:
             subs_rw = codec.parse_sum_read_write(count, data)
+            subs_rw = [
+                replace(s, index_group=a[0], index_offset=a[1])
+                for s in subs_rw
+                for a in [self._sub_address(conn, s.index_group, s.index_offset)]
+            ]
             pending = self._write_many(
                 [(s.index_group, s.index_offset, s.data) if s.data else None for s in subs_rw]
             )
@@ -473,6 +667,9 @@ class AdsServer:
         hold = 0.0
         if self.service.running:
             hold = time.monotonic() + self.options.first_sample_hold
+        if req.index_group == symbols.SYM_VALBYHND:
+            ig, io = self._address(conn, req.index_group, req.index_offset)
+            req = replace(req, index_group=ig, index_offset=io)
         reg = self.notifications.add(
             conn, h.source, h.target, req, self.service.snapshot, hold_until=hold
         )
@@ -484,6 +681,9 @@ class AdsServer:
         """Check a notification's address by reading it (0x702…0x705 as a Read answers)
         and resolve it once: sampling then only encodes the value of each snapshot (an
         attribute is a constant)."""
+        fixed = self._service_read(ig, io, length)
+        if fixed is not None and ig in _NOTIFIABLE_SERVICES:
+            return lambda _snap: fixed
         data = self.service.read(ig, io, length, snap)
         obj, axis, attr = self.service.resolve(ig, io)
         if attr is not None:
@@ -594,9 +794,42 @@ class AdsServer:
 
     def _disconnected(self, conn: AdsConnection) -> None:
         self.listener.forget(conn)
+        if conn.ams_port is not None:
+            self._ams_ports.pop(conn.ams_port, None)
         n = self.notifications.drop_owner(conn)
         if n:
             log.debug("dropped %d notifications of %s", n, conn.peer)
+
+
+#: AMS port of the TwinCAT system service (ReadState, ReadDeviceInfo, WriteControl).
+SYSTEM_SERVICE_PORT = 10000
+#: AMS ports the router hands to clients (TwinCAT's ADS clients get 30000 and up).
+FIRST_CLIENT_PORT, LAST_CLIENT_PORT = 32768, 65535
+_RESERVED_PORTS = frozenset({GEO_AMS_PORT, SYSTEM_SERVICE_PORT})
+_NAME_SERVICES = frozenset(
+    {
+        symbols.SYM_HNDBYNAME,
+        symbols.SYM_VALBYNAME,
+        symbols.SYM_INFOBYNAMEEX,
+        symbols.SYM_DT_INFOBYNAMEEX,
+    }
+)
+_UPLOADS = frozenset(
+    {symbols.SYM_UPLOAD, symbols.SYM_UPLOADINFO, symbols.SYM_UPLOADINFO2, symbols.SYM_DT_UPLOAD}
+)
+#: Services a notification may watch besides the objects (constant values: one sample)
+_NOTIFIABLE_SERVICES = frozenset({symbols.DEVICE_DATA, symbols.SYM_VERSION})
+
+
+def _fixed(value: bytes, length: int, what: str) -> bytes:
+    """A short fixed value: at most `length` bytes of it; 0 bytes asked is 0x705."""
+    if length <= 0:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDSIZE, f"read of {length} bytes of {what}")
+    return value[:length]
+
+
+def _by_slot(item: tuple[str, int]) -> int:
+    return item[1]
 
 
 _SUM_GROUPS = frozenset(int(g) for g in SumGroup) - {
@@ -629,6 +862,11 @@ class AdsConnection(asyncio.Protocol):
         self._admitted = False
         self._frame_timer: asyncio.TimerHandle | None = None
         self._frame_timer_since: float | None = None
+        #: AMS port the router gave this client (port connect), None without
+        self.ams_port: int | None = None
+        #: symbol handles of this connection (0xF003) -> their symbol
+        self.handles: dict[int, symbols.Symbol] = {}
+        self.next_handle = 0
 
     # (Equality and hash are object identity, the C defaults: a connection is a key of
     # the notification table and of every sampled route, looked up per sample.)
@@ -667,6 +905,8 @@ class AdsConnection(asyncio.Protocol):
         for ev in self.framer.feed(data, now):
             if isinstance(ev, AmsPacket):
                 self.server.handle_packet(self, ev)
+            elif isinstance(ev, codec.RouterCommand):
+                self.server.handle_router(self, ev)
             elif isinstance(ev, BadPacket):
                 self.server.stats.dropped_frames += 1
                 log.debug("ADS bad packet from %s: %s", self.peer, ev.reason)
@@ -750,6 +990,11 @@ class AdsConnection(asyncio.Protocol):
     def abort(self) -> None:
         if self.transport is not None:
             self.transport.abort()
+
+    def close(self) -> None:
+        """Close after the answers already queued."""
+        if self.transport is not None:
+            self.transport.close()
 
 
 __all__ = ["GEO_AMS_PORT", "AdsConnection", "AdsOptions", "AdsServer", "AdsStats", "error_payload"]

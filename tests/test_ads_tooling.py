@@ -1,0 +1,338 @@
+"""ADS for real tooling (docs/design.md §9): the AMS router's port connect, the system
+service on AMS port 10000, the ADS state and symbol version, and the symbol server on the
+GEO port (handles, info, upload), on loopback with raw frames and with pyads.
+
+Expected symbol names, sizes and types follow from the scheme in docs/design.md §9 and the
+dictionary's types (BOOLEAN -> BOOL, SGN32 -> DINT, UNS16 -> UINT, UNS32 -> UDINT,
+REAL64 -> LREAL, STRING -> STRING(255)); layouts from TwinCAT's AdsSymbolEntry /
+AdsDatatypeEntry (field by field below, independently of the encoder).
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+
+import pyads
+import pytest
+from test_ads_server import GEO, TIMEOUT, Raw, next_netid, start_server
+
+from geo_server.client.ads_client import close_port_first
+from geo_server.transports.ads import codec
+from geo_server.transports.ads.codec import AmsAddr, Command
+from geo_server.transports.ads.server import AdsServer
+
+SYSTEM = 10000
+HNDBYNAME, VALBYNAME, VALBYHND, RELEASEHND = 0xF003, 0xF004, 0xF005, 0xF006
+SYMVERSION, INFOBYNAMEEX, UPLOAD, UPLOADINFO = 0xF008, 0xF009, 0xF00B, 0xF00C
+DT_UPLOAD, UPLOADINFO2, DT_INFOBYNAMEEX, DEVICE_DATA = 0xF00E, 0xF00F, 0xF011, 0xF100
+COEFFICIENT_X = (1 << 16) | 0x43  # TEMPC::coefficient of axis 1 (X), 000 p.22
+
+
+@pytest.fixture
+def ads(loop_thread, service) -> Iterator[AdsServer]:
+    from conftest import run_in
+
+    srv = start_server(loop_thread, service)
+    yield srv
+    run_in(loop_thread, srv.close())
+
+
+@pytest.fixture
+def raw(ads) -> Iterator[Raw]:
+    c = Raw(ads.port)
+    yield c
+    c.close()
+
+
+def router_reply(raw: Raw) -> tuple[int, bytes]:
+    head = b""
+    while len(head) < 6:
+        head += raw.sock.recv(6 - len(head))
+    cmd, length = struct.unpack("<HI", head)
+    data = b""
+    while len(data) < length:
+        data += raw.sock.recv(length - len(data))
+    return cmd, data
+
+
+def read_on(raw: Raw, port: int, ig: int, io: int, n: int) -> tuple[int, bytes]:
+    pkt = raw.ask(Command.READ, codec.read_request(ig, io, n), port=port)
+    return codec.parse_read_response(pkt.data)
+
+
+def name(text: str) -> bytes:
+    return text.encode() + b"\0"
+
+
+# ---------------------------------------------------------------------- the router
+
+
+def test_port_connect_gives_each_client_its_own_port(ads) -> None:
+    a, b = Raw(ads.port), Raw(ads.port)
+    try:
+        a.sock.sendall(codec.port_connect_request(0))
+        b.sock.sendall(codec.port_connect_request(0))
+        (ca, da), (cb, db) = router_reply(a), router_reply(b)
+        assert ca == cb == 0x1000 and len(da) == len(db) == 8
+        assert da[:6] == db[:6] == bytes([127, 0, 0, 1, 1, 1])  # the router's NetId
+        pa, pb = struct.unpack("<H", da[6:])[0], struct.unpack("<H", db[6:])[0]
+        assert pa != pb and pa >= 32768 and pb >= 32768
+        # each talks from its own address and gets its own answers
+        for raw, port in ((a, pa), (b, pb)):
+            raw.source = AmsAddr("127.0.0.1.1.1", port)
+            pkt = raw.ask(Command.READ, codec.read_request(GEO, COEFFICIENT_X, 8))
+            assert pkt.header.target == raw.source
+            assert struct.unpack("<d", pkt.data[8:])[0] == 4000.0  # 000 p.24
+        # a wanted port that is free is granted
+        c = Raw(ads.port)
+        c.sock.sendall(codec.port_connect_request(40000))
+        assert router_reply(c) == (0x1000, bytes([127, 0, 0, 1, 1, 1]) + struct.pack("<H", 40000))
+        c.sock.sendall(codec.router_frame(0x1002, b"\0\0\0\0"))
+        assert router_reply(c) == (0x1002, bytes([127, 0, 0, 1, 1, 1]))
+        # port close: the router closes the connection, the others go on
+        c.sock.sendall(codec.router_frame(0x0001, struct.pack("<H", 40000)))
+        assert c.wait_closed()
+        assert a.read(GEO, COEFFICIENT_X, 8)[0] == 0
+    finally:
+        a.close()
+        b.close()
+    assert ads.stats.router_commands == 5
+
+
+def test_bad_router_frames(raw, ads) -> None:
+    raw.sock.sendall(codec.router_frame(0x1000, b"\0"))  # port connect needs 2 bytes
+    raw.sock.sendall(codec.router_frame(0x1001, b"\0\0"))  # a router note from a client
+    assert raw.read(GEO, COEFFICIENT_X, 8)[0] == 0  # both skipped, the stream goes on
+    assert ads.stats.dropped_frames == 2
+    raw.sock.sendall(codec.router_frame(0x1000, b"\0" * 100))  # longer than any router frame
+    assert raw.wait_closed()
+
+
+# ---------------------------------------------------------------------- system service
+
+
+def test_system_service_on_port_10000(raw) -> None:
+    state = raw.ask(Command.READ_STATE, port=SYSTEM)
+    assert codec.parse_read_state_response(state.data) == (0, 5, 0)  # RUN
+    info = raw.ask(Command.READ_DEVICE_INFO, port=SYSTEM)
+    result, _major, _minor, _build, device = codec.parse_read_device_info_response(info.data)
+    assert result == 0 and device == "geo-server sys"  # 15 characters at most
+    run = struct.pack("<HHI", 5, 0, 0)
+    assert codec.parse_result(raw.ask(Command.WRITE_CONTROL, run, port=SYSTEM).data) == 0
+    config = struct.pack("<HHI", 15, 0, 0)  # ADSSTATE_CONFIG
+    assert codec.parse_result(raw.ask(Command.WRITE_CONTROL, config, port=SYSTEM).data) == 0x712
+    # ADS state at 0xF100 on both ports; other groups are not the system port's
+    for port in (SYSTEM, 551):
+        assert read_on(raw, port, DEVICE_DATA, 0, 4) == (0, struct.pack("<HH", 5, 0))
+    assert read_on(raw, SYSTEM, GEO, COEFFICIENT_X, 8)[0] == 0x702
+    assert raw.read(SYMVERSION, 0, 1) == (0, b"\x01")
+    assert raw.read(SYMVERSION, 0, 0)[0] == 0x705
+    # a write to the system port is not served
+    pkt = raw.ask(Command.WRITE, codec.write_request(DEVICE_DATA, 0, b"\0\0\0\0"), port=SYSTEM)
+    assert codec.parse_result(pkt.data) == 0x701
+
+
+def test_state_notifications(raw) -> None:
+    req = codec.add_notification_request(DEVICE_DATA, 0, 4, 4, 0, 0)
+    pkt = raw.ask(Command.ADD_DEVICE_NOTIFICATION, req)
+    result, handle = codec.parse_add_notification_response(pkt.data)
+    assert result == 0 and handle
+    req = codec.add_notification_request(SYMVERSION, 0, 1, 4, 0, 0)
+    result, handle2 = codec.parse_add_notification_response(
+        raw.ask(Command.ADD_DEVICE_NOTIFICATION, req).data
+    )
+    assert result == 0 and handle2 != handle
+
+
+# ---------------------------------------------------------------------- symbols
+
+
+def parse_symbol(entry: bytes) -> dict:
+    """AdsSymbolEntry, field by field."""
+    length, ig, io, size, adst, flags, dims, ln, lt, lc = struct.unpack_from("<IIIIIHHHHH", entry)
+    pos = 30
+    nm = entry[pos : pos + ln].decode()
+    pos += ln + 1
+    tp = entry[pos : pos + lt].decode()
+    pos += lt + 1
+    cm = entry[pos : pos + lc].decode()
+    assert entry[30 + ln] == 0 and length % 4 == 0 and length >= pos + lc + 1
+    return dict(length=length, ig=ig, io=io, size=size, adst=adst, flags=flags, dims=dims,
+                name=nm, type=tp, comment=cm)  # fmt: skip
+
+
+def test_symbol_info_by_name(raw) -> None:
+    code, data = raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("GEO.X.TEMPC.coefficient"))
+    assert code == 0
+    s = parse_symbol(data)
+    assert (s["ig"], s["io"], s["size"], s["adst"]) == (GEO, COEFFICIENT_X, 8, 5)  # LREAL
+    assert s["type"] == "LREAL" and s["flags"] == 0 and s["dims"] == 0
+    assert s["name"] == "GEO.X.TEMPC.coefficient" and "TEMPC::coefficient" in s["comment"]
+    assert s["length"] == len(data)
+    code, data = raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("geo.z.lsec.SUM_EPSILON"))
+    s = parse_symbol(data)  # names are case-insensitive
+    assert s["name"] == "GEO.Z.LSEC.sum_epsilon" and s["io"] == (3 << 16) | 0x1D
+    assert s["type"] == "DINT" and s["flags"] == 0x20  # read-only
+    code, data = raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("GEO.SIM.last_error"))
+    s = parse_symbol(data)
+    assert (s["type"], s["size"], s["adst"], s["io"]) == ("STRING(255)", 256, 30, 9)
+    assert raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("GEO.Q.TEMPC.coefficient"))[0] == 0x710
+
+
+def test_handles(raw, service) -> None:
+    code, data = raw.read_write(HNDBYNAME, 0, 4, name("GEO.Y.TEMPC.coefficient"))
+    assert code == 0 and len(data) == 4
+    handle = struct.unpack("<I", data)[0]
+    assert raw.read(VALBYHND, handle, 8) == (0, service.read(GEO, (2 << 16) | 0x43))
+    # writes by handle: the same range checks and codes as by address
+    pkt = raw.ask(Command.WRITE, codec.write_request(VALBYHND, handle, struct.pack("<d", 12.5)))
+    assert codec.parse_result(pkt.data) == 0
+    service.step(1)
+    assert service.read_name("TEMPC::coefficient", 2) == 12.5
+    bad = raw.ask(Command.WRITE, codec.write_request(VALBYHND, handle, b"\0\0\0\0"))
+    assert codec.parse_result(bad.data) == 0x705  # 4 bytes for an LREAL
+    nan = raw.ask(
+        Command.WRITE, codec.write_request(VALBYHND, handle, struct.pack("<d", float("nan")))
+    )
+    assert codec.parse_result(nan.data) == 0x706
+    code, ro = raw.read_write(HNDBYNAME, 0, 4, name("GEO.X.TEMPC.actual_offset"))
+    ro_handle = struct.unpack("<I", ro)[0]
+    denied = raw.ask(Command.WRITE, codec.write_request(VALBYHND, ro_handle, b"\0\0\0\0"))
+    assert codec.parse_result(denied.data) == 0x704
+    assert raw.read(VALBYHND, 0xDEAD, 8)[0] == 0x710  # unknown handle
+    assert raw.read(VALBYHND, handle, 4)[0] == 0x705  # too short
+    # value by name, release, and the handle is gone
+    assert raw.read_write(VALBYNAME, 0, 8, name("GEO.Y.TEMPC.coefficient")) == (
+        0,
+        struct.pack("<d", 12.5),
+    )
+    rel = raw.ask(Command.WRITE, codec.write_request(RELEASEHND, 0, struct.pack("<I", handle)))
+    assert codec.parse_result(rel.data) == 0
+    assert raw.read(VALBYHND, handle, 8)[0] == 0x710
+    rel = raw.ask(Command.WRITE, codec.write_request(RELEASEHND, 0, struct.pack("<I", handle)))
+    assert codec.parse_result(rel.data) == 0x710
+    assert raw.read_write(HNDBYNAME, 0, 4, name("GEO.X.NO.such"))[0] == 0x710
+    assert raw.read_write(HNDBYNAME, 0, 2, name("GEO.X.TEMPC.coefficient"))[0] == 0x705
+
+
+def test_handles_belong_to_their_connection(ads, raw) -> None:
+    _, data = raw.read_write(HNDBYNAME, 0, 4, name("GEO.X.TEMPC.coefficient"))
+    other = Raw(ads.port)
+    try:
+        assert other.read(VALBYHND, struct.unpack("<I", data)[0], 8)[0] == 0x710
+    finally:
+        other.close()
+
+
+def test_upload(raw, service) -> None:
+    code, info = raw.read(UPLOADINFO, 0, 8)
+    assert code == 0
+    count, size = struct.unpack("<II", info)
+    axis_objects = sum(1 for o in service.dictionary.objects if o.scope == "axis")
+    machine_objects = len(service.dictionary.objects) - axis_objects
+    assert count == axis_objects * 4 + machine_objects  # X, Y, Z, C
+    code, info2 = raw.read(UPLOADINFO2, 0, 64)
+    assert code == 0 and len(info2) == 24
+    assert struct.unpack("<II", info2[:8]) == (count, size)
+    n_types, dt_size = struct.unpack_from("<II", info2, 8)
+    assert n_types == 6  # BOOL, DINT, LREAL, STRING(255), UDINT, UINT
+    code, blob = raw.read(UPLOAD, 0, size)
+    assert code == 0 and len(blob) == size
+    names, pos = [], 0
+    for _ in range(count):
+        s = parse_symbol(blob[pos:])
+        names.append(s["name"])
+        pos += s["length"]
+    assert pos == size
+    assert "GEO.C.SIM.axis_type" in names and "GEO.TWIN.time" in names
+    assert len(set(names)) == count
+    assert raw.read(UPLOAD, 0, size - 1)[0] == 0x705  # all of it or nothing
+    code, dts = raw.read(DT_UPLOAD, 0, dt_size)
+    assert code == 0 and len(dts) == dt_size
+    types, pos = {}, 0
+    for _ in range(n_types):
+        length, _v, _h, _th, tsize, _o, adst, _f, ln, _lt, _lc, dims, subs = struct.unpack_from(
+            "<IIIIIIIIHHHHH", dts, pos
+        )
+        types[dts[pos + 42 : pos + 42 + ln].decode()] = (tsize, adst, dims, subs)
+        pos += length
+    assert types == {
+        "BOOL": (1, 33, 0, 0),
+        "DINT": (4, 3, 0, 0),
+        "LREAL": (8, 5, 0, 0),
+        "STRING(255)": (256, 30, 0, 0),
+        "UDINT": (4, 19, 0, 0),
+        "UINT": (2, 18, 0, 0),
+    }
+    code, one = raw.read_write(DT_INFOBYNAMEEX, 0, 0xFFFF, name("lreal"))
+    assert code == 0 and one[42:48] == b"LREAL\0"
+    assert raw.read_write(DT_INFOBYNAMEEX, 0, 0xFFFF, name("ST_Unknown"))[0] == 0x710
+
+
+# ---------------------------------------------------------------------- pyads
+
+
+@pytest.fixture
+def plc(ads) -> Iterator[pyads.Connection]:
+    conn = pyads.Connection(next_netid(), 551, ads.address)
+    conn.open()
+    conn.set_timeout(int(TIMEOUT * 1000))
+    yield conn
+    close_port_first(conn)
+
+
+def test_pyads_by_name(plc, service) -> None:
+    assert plc.read_by_name("GEO.X.TEMPC.coefficient") == 4000.0  # type from 0xF009
+    assert plc.read_by_name("GEO.X.TEMPC.activated") is True
+    assert plc.read_by_name("GEO.SIM.axis_names") == "1=X 2=Y 3=Z 4=C"
+    plc.write_by_name("GEO.X.TEMPC.offset_0", 55)
+    service.step(1)
+    assert service.read_name("TEMPC::offset_0", 1) == 55
+    with pytest.raises(pyads.ADSError) as err:
+        plc.write_by_name("GEO.X.TEMPC.coefficient", float("inf"))
+    assert err.value.err_code == 0x706
+    with pytest.raises(pyads.ADSError) as err:
+        plc.read_by_name("GEO.X.TEMPC.nothing")
+    assert err.value.err_code == 0x710
+
+
+def test_pyads_symbols(plc) -> None:
+    symbols = plc.get_all_symbols()
+    by_name = {s.name: s for s in symbols}
+    s = by_name["GEO.Z.TEMPC.coefficient"]
+    assert (s.index_group, s.index_offset, s.symbol_type) == (GEO, (3 << 16) | 0x43, "LREAL")
+    sym = plc.get_symbol("GEO.X.TEMPC.coefficient")
+    assert sym.read() == 4000.0
+    assert (sym.index_group, sym.index_offset) == (GEO, COEFFICIENT_X)
+
+
+def test_pyads_state_info_and_notification_by_name(ads, plc, service) -> None:
+    system = pyads.Connection(plc.ams_netid, SYSTEM, ads.address)
+    system.open()
+    try:
+        assert system.read_state() == (5, 0)
+        name_, _version = system.read_device_info()
+        assert name_ == "geo-server sys"
+    finally:
+        system.close()
+    assert plc.read_state() == (5, 0)
+    got: list[float] = []
+    attr = pyads.NotificationAttrib(8)
+
+    @plc.notification(pyads.PLCTYPE_LREAL)
+    def on_change(handle, name_, timestamp, value) -> None:
+        got.append(value)
+
+    handles = plc.add_device_notification("GEO.X.TEMPC.coefficient", attr, on_change)
+    try:
+        service.step(1)
+        import time
+
+        deadline = time.monotonic() + TIMEOUT
+        while not got and time.monotonic() < deadline:
+            service.step(1)
+            time.sleep(0.01)
+        assert got and got[0] == 4000.0
+    finally:
+        plc.del_device_notification(*handles)

@@ -110,7 +110,8 @@ def test_temp_off_no_move_holds_the_offset_through_a_dwell(machine, svc):
     )  # fmt: skip
     dwell = [r for r in rows if r.line == 2]
     assert len(dwell) == 50  # round(0.05 s / 1 ms) cycles, the last one ends the wait
-    for r in rows[: rows.index(dwell[-1]) + 1]:
+    last = max(i for i, r in enumerate(rows) if r.line == 2)
+    for r in rows[: last + 1]:
         assert not r.selected and r.extra["TEMPC::f_is_active@1"] is False
         assert r.value == 4040  # held: not ramped out during the dwell
         assert r.extra["SIM::output_position@1"] == output
@@ -252,26 +253,99 @@ def test_crosstalk_on_no_move_is_held_while_the_master_accelerates(machine, svc)
 
 def test_frict_switches_at_once(machine, svc):
     """Friction is a current, not a position offset: NO_MOVE has nothing to hold, the
-    switch acts at once (docs/design.md §12)."""
+    switch acts at once (docs/design.md §12): off before the move, no current during it
+    (with the switch the current would follow the velocity, 000 §4.5)."""
     prog = "N10 X[COMP OFF FRICT NO_MOVE]\nN20 G91 G01 X1 F6000\nN30 M30\n"
     rows = run(
         machine, svc, prog, X, "FRICT::additive_current", "SIM::friction_selected",
     )  # fmt: skip
+    assert not machine.kernel.held.any()
     assert all(not r.selected and r.value == 0 for r in rows)
-    assert any(r.velocity != 0 for r in rows)
+    assert sum(r.velocity != 0 for r in rows) > 20
+
+
+def test_frict_current_without_the_switch(machine, svc):
+    """The control for the test above: the same move with friction on has a current."""
+    rows = run(
+        machine, svc, "N20 G91 G01 X1 F6000\nN30 M30\n", X, "FRICT::additive_current",
+        "SIM::friction_selected",
+    )  # fmt: skip
+    assert any(r.value != 0 for r in rows)
 
 
 def test_comp_without_no_move_executes_a_held_offset(machine, svc):
     """A later COMP without NO_MOVE on the same axis executes everything outstanding: the
-    program waits for the ramps of both switches."""
+    offset held through the dwell ramps out with that COMP, which waits for it."""
     svc.write_name("SIM::set_position", X, 1_000_000)
     machine.step(25)
-    prog = "N10 X[COMP OFF TEMP NO_MOVE]\nN20 X[COMP OFF LEAD]\nN30 M30\n"
+    prog = "N10 X[COMP OFF TEMP NO_MOVE]\nN20 G04 0.03\nN30 X[COMP OFF LEAD]\nN40 M30\n"
     rows = run(machine, svc, prog, X, "TEMPC::actual_offset", "TEMPC::activated")
+    dwell = [i for i, r in enumerate(rows) if r.line == 2]
+    assert len(dwell) == 30 and all(rows[i].value == 4040 for i in dwell)
+    at = dwell[-1] + 1  # the COMP runs in the cycle the dwell ends
+    held = 40 + 4000e-6 * (1_000_000 - 100)
+    assert rows[at].line == 3
+    for k in range(1, 21):
+        assert rows[at + k - 1].value == rhaz(held * cos2(k, 20)), k
+    assert rows[-1].line == 4 and len(rows) - at == 21
+
+
+def test_tempc_activated_write_executes_a_held_offset(machine, svc):
+    """`TEMPC::activated` written acts at once, also on an offset a NO_MOVE held back."""
+    svc.write_name("SIM::set_position", X, 1_000_000)
+    machine.step(25)
+    run(
+        machine,
+        svc,
+        "X[COMP OFF TEMP NO_MOVE]\nM30\n",
+        X,
+        "TEMPC::actual_offset",
+        "TEMPC::activated",
+    )
+    machine.step(50)
+    assert svc.read_name("TEMPC::actual_offset", X) == 4040
+    svc.write_name("TEMPC::activated", X, False)  # already off: only the release
     held = 40 + 4000e-6 * (1_000_000 - 100)
     for k in range(1, 21):
-        assert rows[k - 1].value == rhaz(held * cos2(k, 20)), k
-    assert len(rows) == 21  # the COMP wait ends in cycle 21 (20-cycle TEMP ramp), then M30
+        machine.run_cycle()
+        assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k
+
+
+def test_a_comp_that_changes_nothing_holds_nothing(machine, svc):
+    """Z's cross compensation is on: `Z[COMP ON CROSS NO_MOVE]` switches nothing, so its
+    value keeps following the master X (000 §4.2)."""
+    before = svc.read_name("CROSSC::actual_offset", Z)
+    prog = "N10 Z[COMP ON CROSS NO_MOVE]\nN20 G90 G01 X-300 F60000\nN30 M30\n"
+    run(machine, svc, prog, Z, "CROSSC::actual_offset", "CROSSC::activated")
+    assert not machine.kernel.held.any()
+    machine.step(30)
+    assert svc.read_name("CROSSC::actual_offset", Z) != before
+
+
+def test_no_move_while_the_axis_moves_is_executed_with_that_motion(machine, svc):
+    """The axis is jogging when the COMP arrives: its offset is executed with that
+    motion (there is no standstill to hold it through)."""
+    svc.write_name("SIM::set_position", X, 1_000_000)
+    machine.step(25)
+    svc.write_name("SIM::target_position", X, 2_000_000)
+    machine.step(5)
+    machine.start_program("X[COMP OFF TEMP NO_MOVE]\n", mdi=True)
+    machine.step(25)
+    assert not machine.kernel.held.any()
+    assert svc.read_name("TEMPC::actual_offset", X) == 0
+
+
+def test_monitoring_sees_a_no_move_switch_of_the_same_cycle(machine, svc):
+    """Y requires LEAD | TEMP (lists/achsmd2.lis, 000 §5.3 p.97). `Y[COMP OFF TEMP NO_MOVE]`
+    does not wait, so the next block runs in the same cycle: its Y move raises 70435 —
+    and after `Y[COMP ON TEMP NO_MOVE]` a Y move is allowed."""
+    machine.start_program("N10 Y[COMP OFF TEMP NO_MOVE]\nN20 G91 G01 Y1 F6000\nN30 M30\n")
+    machine.step(3)
+    assert machine.player is not None and machine.player.error is not None
+    assert machine.player.error.error_id == 70435 and machine.player.error.line == 2
+    prog = "N10 Y[COMP OFF TEMP]\nN20 Y[COMP ON TEMP NO_MOVE]\nN30 G91 G01 Y1 F6000\nN40 M30\n"
+    rows = run(machine, svc, prog, Y, "TEMPC::actual_offset", "TEMPC::activated")
+    assert rows[-1].line == 4  # ran to its end (run() asserts no error)
 
 
 def test_a_manual_move_executes_a_held_offset(machine, svc):

@@ -419,3 +419,42 @@ def test_warnings_of_one_program_are_capped():
     assert len(prog.warnings) == 21
     assert [w.line for w in prog.warnings[:3]] == [1, 2, 3]
     assert prog.warnings[-1].message == "480 more warnings not listed"
+
+
+# --------------------------------------------------------------------------- axis exchange
+
+
+def test_axis_exchange_parsing():
+    prog = parse_program(
+        "N10 #PUT AX [X, B]\n"
+        "n20: #put ax [y]\n"
+        "N30 #AX RELEASE ALL ; every axis\n"
+        "N40 #CALL AX [X, 1, 0], [Y, 2, 1] [Z, 3, 2]\n"
+        "N50 #PUT AX [ALL]\n"
+        "N60 #PUT AX \\\n  [Z]\n"
+        "M30\n",
+        AXES,
+    )
+    b = prog.blocks
+    assert b[0].release == (0,) and b[0].number == 10
+    assert b[1].release == (1,) and b[1].label
+    assert b[2].release == tuple(sorted(AXES.values()))
+    assert b[3].call == (0, 1, 2)
+    assert b[4].release == () and b[5].release == (2,)
+    # no error for names the machine does not have (the programming manual), but a warning
+    messages = [w.message for w in prog.warnings]
+    assert any("B is not an axis" in m for m in messages)
+    assert any("#PUT AX ALL, without brackets" in m for m in messages)
+
+
+def test_axis_exchange_in_the_player():
+    """A released axis is released once, cannot be programmed until it is called back,
+    and `$GOTO` into an exchange block works."""
+    player, port = play(
+        "N10 #PUT AX [X]\nN20 #PUT AX [X]\nN30 #CALL AX [X, 1, 0]\nN40 X5\n"
+        "N50 $GOTO N70\nN60 X9\nN70 #AX RELEASE [X]\nN80 X1\nM30"
+    )
+    assert port.kinds("release") == [("release", 0), ("release", 0)]
+    assert len(port.kinds("move")) == 1  # N40; N80 fails
+    assert player.error is not None and player.error.line == 8
+    assert "axis X is not in the channel" in player.error.message

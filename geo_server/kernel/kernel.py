@@ -1211,6 +1211,9 @@ class Kernel:
         #: columns whose output is held at its last value (`hold`, COMP … NO_MOVE)
         self.held = np.zeros((n, 7), dtype=bool)
         self._any_held = False
+        #: what besides the selection makes each column effective, as of the last step
+        #: (homing, valid tables): the NC's 70435 check combines it with the selection
+        self.preconditions = np.zeros((n, 7), dtype=bool)
         # scratch
         self._prev = np.zeros((n, 7))
         self._event = np.zeros((n, 7), dtype=bool)
@@ -1401,6 +1404,7 @@ class Kernel:
         ne = et.ne
         et.homed.take(et.h, out=et.hb)
         np.logical_and(et.hb0, et.hb1, ne)
+        copyto(self.preconditions, ne)
         np.logical_and(ne, self.selected, ne)
         np.not_equal(ne, eff, ev)
         copyto(eff, ne)

@@ -181,6 +181,8 @@ class ReferenceKernel:
         self._k = [list(map(float, ax.n_cycles)) for ax in self._axes]
         self._event = [[False] * 7 for _ in range(n)]
         self.held = np.zeros((n, 7), dtype=bool)
+        #: what besides the selection makes each column effective, as of the last step
+        self.preconditions = np.zeros((n, 7), dtype=bool)
         self._tempc = [[float(getattr(ax.p, a)) for a in TEMPC_ATTRS] for ax in self._axes]
         self._path = [math.inf] * n  # path travelled since the last reversal (friction)
         self._prev_pos: list[float] | None = None
@@ -292,21 +294,22 @@ class ReferenceKernel:
         d = self._dir[i]
 
         # 2. effective = selected and preconditions (docs/design.md §6.8)
-        eff = [False] * 7
+        pre = [False] * 7
         # backlash: active from start-up, no homing (000 §2.2 p.10)
-        eff[BC] = sel[BC] and p.anwahl_losekomp != 0 and p.lose != 0
-        # temperature: selected and homed (000 §3.2 p.17, P-AXIS-00482)
-        eff[TEMP] = sel[TEMP] and hom[i]
+        pre[BC] = p.anwahl_losekomp != 0 and p.lose != 0
+        # temperature: homed (000 §3.2 p.17, P-AXIS-00482)
+        pre[TEMP] = hom[i]
         # cross: table valid and master referenced (000 §4.2 p.29)
-        eff[CROSS] = sel[CROSS] and ax.cross_ok and hom[ax.cross_master]
+        pre[CROSS] = ax.cross_ok and hom[ax.cross_master]
         # plane: both masters referenced (000 §5.3 p.97 item 3)
-        eff[PLANE] = sel[PLANE] and ax.plane_ok and hom[ax.plane_m1] and hom[ax.plane_m2]
+        pre[PLANE] = ax.plane_ok and hom[ax.plane_m1] and hom[ax.plane_m2]
         # LSEC: axis referenced (000 §5.3 p.97 item 2)
-        eff[LEAD] = sel[LEAD] and ax.lsec_ok and hom[i]
+        pre[LEAD] = ax.lsec_ok and hom[i]
         # friction: P-AXIS-00522 and mode 3, no homing (000 §4.5 p.77)
-        eff[FRICT] = sel[FRICT] and ax.frict_ok
-        # crosstalk: selected and list provided, no homing (000 §4.6 p.82)
-        eff[CROSSTALK] = sel[CROSSTALK] and ax.xt_ok
+        pre[FRICT] = ax.frict_ok
+        # crosstalk: list provided, no homing (000 §4.6 p.82)
+        pre[CROSSTALK] = ax.xt_ok
+        eff = [sel[c] and pre[c] for c in range(7)]
 
         # 3. unfiltered targets
         tgt = [0.0] * 7
@@ -396,6 +399,7 @@ class ReferenceKernel:
             self.actual[i, c] = out[c]
             self.target[i, c] = tgt[c]
             self.effective[i, c] = eff[c]
+            self.preconditions[i, c] = pre[c]
         self.friction_current[i] = out[FRICT]
         self.total_offset[i] = (
             out[BC] + out[TEMP] + out[CROSS] + out[PLANE] + out[LEAD] + out[CROSSTALK]

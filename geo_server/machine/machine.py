@@ -432,12 +432,16 @@ class Machine:
     def program_end(self) -> None:
         """M30 / reset: manual-activation compensations are deselected (manual §5.1)."""
         for slot in range(len(self.axes)):
-            self.release_axis(slot)
+            self._deselect_manual(slot)
 
     def release_axis(self, slot: int) -> None:
+        """`#PUT AX`: the axis leaves the NC channel (000 §5.1 "release of the axis")."""
+        self._deselect_manual(slot)
+
+    def _deselect_manual(self, slot: int) -> None:
         """Deselect the axis' manual-activation compensations: at the end of the NC
-        program, at CNC reset and on release of the axis (`#PUT AX`) (000 §3.2 p.17,
-        §4.2–4.4, §4.6 P-COMP-00065, §5.1). The offset is executed at once."""
+        program, at CNC reset and on release of the axis (000 §3.2 p.17, §4.2–4.4,
+        §4.6 P-COMP-00065, §5.1). The offset is executed at once."""
         manual = self._manual_kinds(slot)
         if manual:
             self.set_comp(slot, manual, False)
@@ -527,10 +531,10 @@ class Machine:
         rapid: bool,
         next_dirs: dict[int, int],
     ) -> None:
-        for slot, target in targets.items():
-            if target != self.motion.pos[slot]:
-                self.kernel.release(slot)  # the axis' next motion (COMP … NO_MOVE)
+        moving = [slot for slot, target in targets.items() if target != self.motion.pos[slot]]
         self.motion.move_linear(targets, feed, rapid)
+        for slot in moving:
+            self.kernel.release(slot)  # the axis' next motion (COMP … NO_MOVE)
         for slot, direction in next_dirs.items():
             self.motion.announce_next(slot, direction)
 
@@ -551,11 +555,17 @@ class Machine:
         """COMP ON/OFF (000 §5.1 p.94). Without NO_MOVE the offset is executed now (the
         program waits for it), together with any offset an earlier NO_MOVE held back; with
         NO_MOVE it is held until the axis' next motion."""
+        before = self.kernel.selected[slot].copy()
         err = self.set_comp(slot, kinds, on)
         if err:
             return err
-        if no_move:
-            self.kernel.hold(slot, kinds)
+        # only a switch that changes the selection has an offset to hold; an axis in
+        # motion executes it with that motion
+        changed = _mask(
+            k for k in COMP_ORDER if before[COLUMN[k]] != self.kernel.selected[slot, COLUMN[k]]
+        )
+        if no_move and self.motion.all_in_position([slot]):
+            self.kernel.hold(slot, changed)
         else:
             self.kernel.release(slot)
         return 0
@@ -567,8 +577,14 @@ class Machine:
         return not any(self.kernel.ramping(s) for s in slots)
 
     def effective(self, slot: int) -> CompKind:
-        row = self.kernel.effective[slot]
-        return _mask(kind for i, kind in enumerate(COMP_ORDER) if row[i])
+        """Effective now: the present selection (a COMP of this cycle included) with the
+        preconditions of the last cycle (000 §5.3; docs/design.md §6.8)."""
+        k = self.kernel
+        return _mask(
+            kind
+            for i, kind in enumerate(COMP_ORDER)
+            if k.selected[slot, i] and k.preconditions[slot, i]
+        )
 
     def required(self, slot: int) -> CompKind:
         """`prog_movement_requires_compensations` ∩ compensations selected in the axis
@@ -676,12 +692,13 @@ def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:
 
 
 def _move(m: Machine, slot: int, target: float) -> None:
-    if target != m.motion.pos[slot]:
-        m.kernel.release(slot)  # a motion of the axis executes a held COMP offset
+    moves = target != m.motion.pos[slot]
     try:
         m.motion.move_to(slot, target)
     except MotionError as exc:
         raise AdsError(AdsErrorCode.DEVICE_BUSY, f"axis {m.axes[slot]}: {exc}") from None
+    if moves:
+        m.kernel.release(slot)  # a motion of the axis executes a held COMP offset
 
 
 def _set_tempc_activated(m: Machine, slot: int, on: bool) -> None:

@@ -361,7 +361,7 @@ def _parse_block(
     """Interpret the words of one block."""
     exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
     if exchange is not None:
-        return _parse_exchange(line, body, exchange, names)
+        return _parse_exchange(line, body, exchange, names, warnings)
     if _EXCHANGE_WORD.search(body.upper()):
         raise NcError(line, "axis exchange (#PUT AX, #AX RELEASE, #CALL AX) must stand alone")
     w = _tokenize(line, body, warnings)
@@ -381,22 +381,28 @@ def _parse_block(
     return b
 
 
-def _parse_exchange(line: int, body: str, m: re.Match[str], names: dict[str, int]) -> Block:
+def _parse_exchange(
+    line: int, body: str, m: re.Match[str], names: dict[str, int], warnings: list[Diagnostic]
+) -> Block:
     """Axis exchange (TwinCAT CNC programming manual, "Axis exchange commands"; needed
     here for "deselected on release of the axis", 000 §3.2 p.17 and §5.1).
 
     `#PUT AX [<axis>{, <axis>}]` / `#AX RELEASE [...]` hand axes back to the axis
     management; names that are not (or no longer) in the channel are no error. `ALL`
     releases every axis. `#CALL AX [<axis>, <number>, <index>] {[...]}` brings axes back;
-    the emulator's axes keep their names and numbers, so only the name counts.
+    the emulator's axes keep their names and numbers, so only the name counts. Releasing
+    a name the machine does not have only warns (the manual: no error message).
     """
     b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None, label=bool(m["colon"]))
     cmd, rest = " ".join(m["cmd"].split()), m["rest"].strip()
     if cmd != "CALL AX" and rest == "ALL":
         b.release = tuple(sorted(set(names.values())))
         return b
-    groups, pos = [], 0
+    groups: list[str] = []
+    pos = 0
     while pos < len(rest):
+        if groups and rest[pos] == ",":  # `[X, 1, 0], [Y, 2, 1]`
+            pos += 1
         g = _EXCHANGE_GROUP.match(rest, pos)
         if g is None:
             raise NcError(line, f"#{cmd}: expected [<axis>, …], got {rest[pos:].strip()[:20]!r}")
@@ -414,6 +420,10 @@ def _parse_exchange(line: int, body: str, m: re.Match[str], names: dict[str, int
     axes = [a.strip() for a in groups[0].split(",")]
     if not all(axes):
         raise NcError(line, f"#{cmd}: empty axis name")
+    for a in axes:
+        if a not in names:
+            hint = " (all axes: #PUT AX ALL, without brackets)" if a == "ALL" else ""
+            warnings.append(_warning(line, f"#{cmd}: {a} is not an axis of this machine{hint}"))
     b.release = tuple(names[a] for a in axes if a in names)
     return b
 

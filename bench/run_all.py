@@ -1,6 +1,6 @@
 """Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
-    python bench/run_all.py [--quick] [--only kernel,scheduler,transports,memory,soak]
+    python bench/run_all.py [--quick] [--only kernel,scheduler,transports,ads_symbols,memory,soak]
                             [--results FILE]
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
@@ -31,6 +31,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
     "twin": ("twin.py", ["--cycles", "20000"], ["--cycles", "4000"], 600),
     "scheduler": ("scheduler.py", [], ["--quick"], 900),
     "transports": ("transports.py", [], ["--quick"], 600),
+    "ads_symbols": ("ads_symbols.py", [], ["--quick"], 300),
     "memory": ("memory.py", [], ["--quick"], 300),
     "soak": ("soak.py", [], ["--quick"], 600),
 }

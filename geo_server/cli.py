@@ -245,10 +245,21 @@ def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
 
     read_only = args.read_only or args.ads_read_only
     opts = AdsOptions(
-        host=args.ads_host, port=args.ads_port, netid=args.ads_netid, read_only=read_only
+        host=args.ads_host,
+        port=args.ads_port,
+        netid=args.ads_netid,
+        read_only=read_only,
+        udp_port=args.ads_udp_port or None,
     )
     ads = AdsServer(service, opts)
-    return ads, lambda: f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"
+
+    def banner() -> str:
+        line = f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"
+        if ads.udp_port is not None:
+            return line + f", discovery udp://{args.ads_host}:{ads.udp_port}"
+        return line + (f" (discovery off: {ads.udp_error})" if ads.udp_error else "")
+
+    return ads, banner
 
 
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
@@ -485,6 +496,12 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--ads-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
     a.add_argument("--ads-port", type=int, default=48898, help="listen port (default 48898)")
     a.add_argument("--ads-netid", default="127.0.0.1.1.1", help="own AMS NetId")
+    a.add_argument(
+        "--ads-udp-port",
+        type=int,
+        default=48899,
+        help="UDP port of ADS discovery and add-route (default 48899, 0: off)",
+    )
     a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
     r.set_defaults(func=_run)
 

@@ -39,6 +39,9 @@ ATTRIBUTES: dict[int, str] = {
     0x400: "unit",
     0x500: "writable",
 }
+#: Attribute group of the object address lookup (TF5200 "ADS access to CNC", classes:
+#: "0x600: object address: in (channel, axis), out (IndexGroup, IndexOffset)"); ReadWrite.
+ADDRESS_LOOKUP = 0x600
 STRING_LENGTH = 256
 
 
@@ -405,6 +408,28 @@ class Dictionary:
             for o in self.saved_parameters()
             if o.key_group == "tempc" and o.type.name != "BOOLEAN"
         ]
+
+    def lookup_address(
+        self, index_group: int, element: int, channel: int, axis: int, axes: Iterable[int]
+    ) -> tuple[int, int]:
+        """The address lookup (group + 0x600): the (index group, index offset) of element
+        `element` for (`channel`, `axis`), or (0, 0) when there is no such instance. The
+        GEO objects are platform-global (channel 0): another channel has no instance;
+        machine objects answer for axis 0, axis objects for a configured axis. Unknown
+        group -> 0x702, unknown element -> 0x703."""
+        group = next((g for g, ig in GROUPS.items() if ig + ADDRESS_LOOKUP == index_group), None)
+        if group is None:
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group 0x{index_group:X}")
+        scopes = {o.scope for o in self.objects if o.group == group and o.id == element}
+        if not scopes:
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDOFFSET,
+                f"no element 0x{element:04X} in group 0x{GROUPS[group]:X}",
+            )
+        scope = "machine" if axis == 0 else "axis"
+        if channel != 0 or scope not in scopes or (axis and axis not in set(axes)):
+            return 0, 0
+        return GROUPS[group], (axis << 16) | element
 
     def resolve(
         self, index_group: int, index_offset: int, axes: Iterable[int]

@@ -51,10 +51,45 @@ def checks_page() -> str:
 
 
 #: Pages under docs/ and what writes them.
+def symbols_page() -> str:
+    """Every ADS symbol pattern, from the dictionary (`transports/ads/symbols.py`)."""
+    from geo_server.dictionary import load_dictionary
+    from geo_server.transports.ads.symbols import symbol_name
+
+    rows = [
+        "| symbol | TwinCAT type | size | ADST | index group | index offset | access | object |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for obj in load_dictionary().objects:
+        axis = obj.scope == "axis"
+        name = symbol_name(obj, "<axis>" if axis else None)
+        offset = f"(axis << 16) \\| 0x{obj.id:04X}" if axis else f"0x{obj.id:X}"
+        access = (
+            "read"
+            if "w" not in obj.access
+            else ("write" if "r" not in obj.access else "read/write")
+        )
+        rows.append(
+            f"| `{name}` | {obj.type.tc_type} | {obj.type.size} | {obj.type.ads_type} | "
+            f"0x{GROUPS[obj.group]:X} | {offset} | {access} | {obj.name} |"
+        )
+    return (
+        "# ADS symbols\n\n"
+        "Generated from `objects/objects.toml` by `python -m geo_server.docs`. One symbol per "
+        "object and axis of the machine (`<axis>` is the axis name of its axis list, e.g. "
+        "`GEO.X.TEMPC.coefficient`), machine-wide objects once; names are case-insensitive. "
+        "Served on AMS port 551: handles (0xF003/0xF005/0xF006), info by name (0xF009), "
+        "uploads (0xF00B/0xF00C/0xF00E/0xF00F) — see [design.md](design.md) §9.\n\n"
+        + "\n".join(rows)
+        + "\n"
+    )
+
+
 PAGES: dict[str, Callable[[], str]] = {
     "objects.md": objects_page,
     "modbus-map.md": modbus_page,
     "list_checks.md": checks_page,
+    "ads-symbols.md": symbols_page,
 }
 
 

@@ -12,6 +12,7 @@ import contextlib
 import random
 import socket
 import struct
+import time
 
 import pytest
 from conftest import run_in
@@ -232,4 +233,57 @@ def test_server_survives_mutated_and_random_traffic(loop_thread, lists_copy, see
         assert srv.stats.requests > 0
     finally:
         good.close()
+        run_in(loop_thread, srv.close())
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_udp_parse_random_and_mutated_datagrams(seed: int) -> None:
+    """`discovery.answer` only ever raises `UdpError`."""
+    from geo_server.transports.ads import discovery
+
+    rng = random.Random(300 + seed)
+    valid = struct.pack("<III6sHI", 0x71146603, 1, 1, bytes(6), 10000, 0)
+    for _ in range(2000):
+        if rng.random() < 0.5:
+            d = bytearray(valid + bytes(rng.randrange(256) for _ in range(rng.randrange(40))))
+            for _ in range(rng.randrange(1, 4)):
+                d[rng.randrange(len(d))] = rng.randrange(256)
+            data = bytes(d)
+        else:
+            data = bytes(rng.randrange(256) for _ in range(rng.randrange(60)))
+        with contextlib.suppress(discovery.UdpError):
+            discovery.answer(data, "1.2.3.4.1.1", "h", (1, 2, 3))
+
+
+def test_udp_port_survives_garbage(loop_thread) -> None:
+    from geo_server.listfile import load_machine as _load
+    from geo_server.paths import data_dir
+
+    service = ObjectService(Machine(_load(data_dir("lists") / "hochlauf.lis"), homed=True))
+    srv = AdsServer(service, AdsOptions(port=0, udp_port=0))
+    run_in(loop_thread, srv.start())
+    rng = random.Random(5)
+    try:
+        port = srv.udp_port
+        assert port
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for i in range(300):
+                junk = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 3000)))
+                s.sendto(junk, ("127.0.0.1", port))
+                if i % 20 == 19:
+                    time.sleep(0.01)  # UDP: a full receive buffer would drop datagrams
+            s.settimeout(1)
+            request = struct.pack("<III6sHI", 0x71146603, 9, 1, bytes(6), 10000, 0)
+            reply = b""
+            for _ in range(5):  # a datagram may still be lost: ask again
+                s.sendto(request, ("127.0.0.1", port))
+                with contextlib.suppress(TimeoutError):
+                    while True:  # garbage that happened to be a request is answered too
+                        reply, _ = s.recvfrom(4096)
+                        if struct.unpack_from("<I", reply, 4)[0] == 9:
+                            break
+                    break
+            assert struct.unpack_from("<I", reply, 4)[0] == 9
+        assert srv.stats.udp_dropped >= 200
+    finally:
         run_in(loop_thread, srv.close())

@@ -336,3 +336,107 @@ def test_pyads_state_info_and_notification_by_name(ads, plc, service) -> None:
         assert got and got[0] == 4000.0
     finally:
         plc.del_device_notification(*handles)
+
+
+# ---------------------------------------------------------------------- UDP 48899
+
+
+@pytest.fixture
+def udp_ads(loop_thread, service) -> Iterator[AdsServer]:
+    """On 127.0.0.2 (loopback): pyads' UDP functions always send to port 48899."""
+    from conftest import run_in
+
+    srv = start_server(loop_thread, service, host="127.0.0.2", udp_port=48899, netid="5.6.7.8.1.1")
+    assert srv.udp_port == 48899, srv.udp_error
+    yield srv
+    run_in(loop_thread, srv.close())
+
+
+def test_pyads_discovery_and_add_route(udp_ads) -> None:
+    assert pyads.pyads_ex.adsGetNetIdForPLC("127.0.0.2") == "5.6.7.8.1.1"
+    ok = pyads.add_route_to_plc(
+        "10.1.2.3.1.1", "tester", "127.0.0.2", "Administrator", "1", route_name="geo-test"
+    )
+    assert ok is True
+    assert udp_ads.stats.udp_answered == 2
+
+
+def test_discovery_answer_and_garbage(udp_ads) -> None:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(0.3)
+        for junk in (
+            b"",
+            b"\x03\x66\x14\x71",
+            b"x" * 40,
+            b"\x03\x66\x14\x71" + b"\0" * 4 + b"\x06\x00\x00\x80" + b"\0" * 8,
+        ):
+            s.sendto(junk, ("127.0.0.2", 48899))
+            with pytest.raises(TimeoutError):
+                s.recvfrom(2048)
+        s.settimeout(TIMEOUT)
+        request = struct.pack("<III6sHI", 0x71146603, 77, 1, bytes([1] * 6), 10000, 0)
+        s.sendto(request, ("127.0.0.2", 48899))
+        reply, _ = s.recvfrom(2048)
+    magic, invoke, service, netid, port, count = struct.unpack_from("<III6sHI", reply)
+    assert (magic, invoke, service, port) == (0x71146603, 77, 0x80000001, 10000)
+    assert netid == bytes([5, 6, 7, 8, 1, 1]) and count == 3
+    tags, pos = {}, 24
+    for _ in range(count):
+        tag, length = struct.unpack_from("<HH", reply, pos)
+        tags[tag] = reply[pos + 4 : pos + 4 + length]
+        pos += 4 + length
+    assert pos == len(reply)
+    assert tags[5] == b"geo-server\0"  # host name
+    assert udp_ads.stats.udp_dropped == 4
+
+
+def test_discovery_port_in_use_leaves_ads_running(loop_thread, service, udp_ads) -> None:
+    """A second server on the same host and UDP port: TCP works, discovery is off."""
+    from conftest import run_in
+
+    srv = start_server(loop_thread, service, host="127.0.0.2", udp_port=48899)
+    try:
+        assert srv.udp_port is None and "48899" in srv.udp_error
+        raw = Raw.__new__(Raw)
+        import socket
+
+        raw.sock = socket.create_connection(("127.0.0.2", srv.port), timeout=TIMEOUT)
+        raw.target, raw.framer, raw.pending = AmsAddr("127.0.0.1.1.1", 551), codec.Framer(), []
+        import itertools
+
+        raw.invoke = itertools.count(1)
+        assert raw.read(GEO, COEFFICIENT_X, 8)[0] == 0
+        raw.close()
+    finally:
+        run_in(loop_thread, srv.close())
+
+
+# ---------------------------------------------------------------------- address lookup
+
+
+def test_address_lookup_attribute_group(raw) -> None:
+    """Group + 0x600 (TF5200 "ADS access to CNC": in (channel, axis), out (IndexGroup,
+    IndexOffset)); the position controller's objects are platform-global, channel 0."""
+
+    def lookup(ig: int, element: int, channel: int, axis: int) -> tuple[int, bytes]:
+        return raw.read_write(ig, element, 8, struct.pack("<II", channel, axis))
+
+    def addr(data: bytes) -> tuple[int, int]:
+        return struct.unpack("<II", data)
+
+    code, data = lookup(0x120900, 0x43, 0, 2)  # TEMPC::coefficient of Y
+    assert code == 0 and addr(data) == (0x120300, 0x20043)
+    assert addr(lookup(0x120900, 0x43, 0, 9)[1]) == (0, 0)  # no axis 9
+    assert addr(lookup(0x120900, 0x43, 1, 2)[1]) == (0, 0)  # no channel instance
+    assert addr(lookup(0x120900, 0x43, 0, 0)[1]) == (0, 0)  # an axis object
+    assert addr(lookup(0x12F900, 0x1, 0, 0)[1]) == (0x12F300, 0x1)  # SIM::cycle_count
+    assert addr(lookup(0x12F900, 0x1, 0, 3)[1]) == (0x12F300, 0x30001)  # SIM::command_position
+    assert lookup(0x120900, 0x7777, 0, 1)[0] == 0x703
+    assert raw.read_write(0x120900, 0x43, 8, b"\0\0")[0] == 0x705
+    assert raw.read_write(0x120900, 0x43, 4, struct.pack("<II", 0, 1))[0] == 0x705
+    assert raw.read(0x120900, 0x10043, 8)[0] == 0x702  # ReadWrite only
+    # the 16-bit form of (channel, axis)
+    code, data = raw.read_write(0x120900, 0x43, 8, struct.pack("<HH", 0, 4))
+    assert addr(data) == (0x120300, 0x40043)

@@ -128,8 +128,8 @@ def test_option_defaults_are_loopback():
     assert all("127.0.0.1" in ep for ep in DEFAULT_ENDPOINTS.values())
 
 
-def _inet_sockets(pid: int) -> tuple[list[tuple[str, int]], int]:
-    """(listening TCP (address, port) of process `pid`, number of its UDP sockets)."""
+def _inet_sockets(pid: int) -> tuple[list[tuple[str, int]], list[tuple[str, int]]]:
+    """(listening TCP (address, port), bound UDP (address, port)) of process `pid`."""
     inodes = set()
     for fd in os.listdir(f"/proc/{pid}/fd"):
         try:
@@ -138,7 +138,8 @@ def _inet_sockets(pid: int) -> tuple[list[tuple[str, int]], int]:
             continue
         if target.startswith("socket:["):
             inodes.add(target[8:-1])
-    listening, udp = [], 0
+    listening: list[tuple[str, int]] = []
+    udp: list[tuple[str, int]] = []
     for table in ("tcp", "tcp6", "udp", "udp6"):
         try:
             lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
@@ -149,18 +150,16 @@ def _inet_sockets(pid: int) -> tuple[list[tuple[str, int]], int]:
             local, state, inode = f[1], f[3], f[9]
             if inode not in inodes:
                 continue
-            if table.startswith("udp"):
-                udp += 1
-                continue
-            if state != "0A":  # TCP_LISTEN
+            is_udp = table.startswith("udp")
+            if not is_udp and state != "0A":  # TCP_LISTEN
                 continue
             hexaddr, hexport = local.split(":")
-            if table == "tcp":
+            if table in ("tcp", "udp"):
                 addr = socket.inet_ntop(socket.AF_INET, bytes.fromhex(hexaddr)[::-1])
             else:  # four little-endian 32-bit words
                 raw = b"".join(bytes.fromhex(hexaddr[i : i + 8])[::-1] for i in range(0, 32, 8))
                 addr = socket.inet_ntop(socket.AF_INET6, raw)
-            listening.append((addr, int(hexport, 16)))
+            (udp if is_udp else listening).append((addr, int(hexport, 16)))
     return listening, udp
 
 
@@ -170,7 +169,8 @@ def test_running_server_listens_on_loopback_only(run_server):
     ports = {p for _a, p in listening}
     assert {srv.zport, srv.mport, srv.aport} <= ports, listening
     assert all(addr == LOOPBACK for addr, _p in listening), listening
-    assert udp == 0  # no multicast scouting socket
+    # ADS discovery (UDP 48899) on loopback only, no multicast scouting socket
+    assert udp == [(LOOPBACK, 48899)] or udp == [], udp
 
 
 # ---------------------------------------------------------------------------- read-only

@@ -33,14 +33,14 @@ import struct
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import geo_server
-from geo_server.dictionary import GEO_AMS_PORT
+from geo_server.dictionary import ADDRESS_LOOKUP, GEO_AMS_PORT, GROUPS
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
-from geo_server.transports.ads import codec, symbols
+from geo_server.transports.ads import codec, discovery, symbols
 from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AdsState,
@@ -129,6 +129,10 @@ class AdsOptions:
     device_name: str = "geo-server"
     #: ReadDeviceInfo of the system service (AMS port 10000; 15 characters at most)
     system_name: str = "geo-server sys"
+    #: UDP port of discovery and add-route (48899 for real tools), on `host`; None: off
+    udp_port: int | None = None
+    #: host name the discovery answer gives
+    host_name: str = "geo-server"
     #: Symbol handles one connection may hold (0x716 beyond; TwinCAT has no documented
     #: limit, but a client that never releases must not grow the server without bound).
     max_handles: int = 10_000
@@ -152,6 +156,8 @@ class AdsStats:
     refused_connections: int = 0  # closed at once: `max_connections` were open
     closed_incomplete: int = 0  # a frame stayed unfinished past `incomplete_frame_timeout`
     router_commands: int = 0  # AMS/TCP port connect, port close, get NetId answered
+    udp_answered: int = 0  # discovery and add-route datagrams answered
+    udp_dropped: int = 0  # datagrams that were not ADS UDP requests
     sampling_passes: int = 0  # notification sampling passes begun
     sampling_slices: int = 0  # passes continued in a later loop iteration (over budget)
 
@@ -212,6 +218,9 @@ class AdsServer:
         self._slice_pending = False
         self._major, self._minor, self._build = _version()
         self._symbols: symbols.SymbolTable | None = None
+        self._udp: asyncio.DatagramTransport | None = None
+        #: why discovery is off although a UDP port was asked for ("" when it runs)
+        self.udp_error = ""
         #: AMS ports handed out by port connect (0x1000) -> their connection
         self._ams_ports: dict[int, AdsConnection] = {}
         self._next_ams_port = FIRST_CLIENT_PORT
@@ -222,6 +231,18 @@ class AdsServer:
         """Listen and subscribe to the GEO cycle (for notifications)."""
         self._loop = asyncio.get_running_loop()
         await self.listener.listen(lambda: AdsConnection(self))
+        if self.options.udp_port is not None:
+            # Discovery is a convenience: with its port taken (another emulator or a
+            # TwinCAT router on this host) the ADS interface still starts, without it.
+            try:
+                transport, _ = await self._loop.create_datagram_endpoint(
+                    lambda: _Discovery(self), local_addr=(self.options.host, self.options.udp_port)
+                )
+            except OSError as exc:
+                self.udp_error = f"UDP {self.options.host}:{self.options.udp_port}: {exc.strerror}"
+                log.warning("ADS discovery off: %s", self.udp_error)
+            else:
+                self._udp = transport
         self._unsubscribe = self.service.subscribe(self._on_cycle_thread)
         log.info("ADS listening on %s:%d as %s", self.options.host, self.port, self.options.netid)
 
@@ -232,6 +253,9 @@ class AdsServer:
                 self._unsubscribe()
             self._unsubscribe = None
         self._pass = self._pass_from = self._latest = None
+        if self._udp is not None:
+            self._udp.close()
+            self._udp = None
         await self.listener.close()
 
     async def __aenter__(self) -> AdsServer:
@@ -250,6 +274,29 @@ class AdsServer:
     def address(self) -> str:
         """`host:port` as pyads' `Connection(netid, 551, address)` wants it."""
         return self.listener.endpoint
+
+    @property
+    def udp_port(self) -> int | None:
+        """The bound UDP port of discovery (None when off)."""
+        if self._udp is None:
+            return None
+        return int(self._udp.get_extra_info("sockname")[1])
+
+    def answer_datagram(self, data: bytes) -> bytes | None:
+        """The answer to one UDP datagram (discovery, add route), None to stay silent."""
+        try:
+            reply = discovery.answer(
+                data,
+                self.options.netid,
+                self.options.host_name,
+                (self._major, self._minor, self._build),
+            )
+        except discovery.UdpError as exc:
+            self.stats.udp_dropped += 1
+            log.debug("ADS UDP datagram dropped: %s", exc)
+            return None
+        self.stats.udp_answered += 1
+        return reply
 
     @property
     def connection_count(self) -> int:
@@ -494,6 +541,24 @@ class AdsServer:
         conn.handles[conn.next_handle] = sym
         return codec.read_response(0, struct.pack("<I", conn.next_handle))
 
+    def _lookup_address(self, req: ReadWriteRequest) -> bytes:
+        """Group + 0x600: in (channel, axis) as two UNS32 (or two UNS16), the element in
+        the index offset's low word; out (IndexGroup, IndexOffset), (0, 0) for none."""
+        if len(req.data) == 8:
+            channel, axis = struct.unpack("<II", req.data)
+        elif len(req.data) == 4:
+            channel, axis = struct.unpack("<HH", req.data)
+        else:
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDSIZE,
+                f"address lookup: (channel, axis) has 8 bytes, not {len(req.data)}",
+            )
+        self._fit_size(8, req.read_length)
+        ig, io = self.service.dictionary.lookup_address(
+            req.index_group, req.index_offset & 0xFFFF, channel, axis, self.service.axes
+        )
+        return codec.read_response(0, struct.pack("<II", ig, io))
+
     def _release_handle(self, conn: AdsConnection, data: bytes) -> bytes:
         if len(data) != 4:
             raise AdsError(
@@ -519,6 +584,8 @@ class AdsServer:
         ig, io = req.index_group, req.index_offset
         if ig in _SUM_GROUPS:
             return self._sum(conn, req)
+        if ig in _LOOKUPS:
+            return self._lookup_address(req)
         ig, io = self._address(conn, ig, io)
         if not req.data:
             return codec.read_response(0, self.service.read(ig, io, req.read_length))
@@ -814,6 +881,7 @@ _NAME_SERVICES = frozenset(
         symbols.SYM_DT_INFOBYNAMEEX,
     }
 )
+_LOOKUPS = frozenset(ig + ADDRESS_LOOKUP for ig in GROUPS.values())
 _UPLOADS = frozenset(
     {symbols.SYM_UPLOAD, symbols.SYM_UPLOADINFO, symbols.SYM_UPLOADINFO2, symbols.SYM_DT_UPLOAD}
 )
@@ -842,6 +910,24 @@ def _log_rarely(count: int, msg: str, *args: object) -> None:
     """A warning for the 1st, 2nd, 4th, 8th… occurrence, debug otherwise: a flood of
     hostile connections must not turn into a flood of log lines."""
     log.log(logging.WARNING if count & (count - 1) == 0 else logging.DEBUG, msg, *args)
+
+
+class _Discovery(asyncio.DatagramProtocol):
+    """UDP 48899: one answer per request datagram, to its sender."""
+
+    def __init__(self, server: AdsServer) -> None:
+        self.server = server
+        self.transport: asyncio.DatagramTransport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # (the selector loop's datagram transport is not an asyncio.DatagramTransport
+        # subclass on every Python: no isinstance check)
+        self.transport = cast(asyncio.DatagramTransport, transport)
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        reply = self.server.answer_datagram(data)
+        if reply is not None and self.transport is not None:
+            self.transport.sendto(reply, addr)
 
 
 class AdsConnection(asyncio.Protocol):

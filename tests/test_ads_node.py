@@ -59,7 +59,10 @@ def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None
     assert conn["connected"] is True and conn["localAmsNetId"] == "127.0.0.1.1.1"
     assert conn["localAdsPort"] >= 32768  # a port of its own from the router
     info = out["uploadInfo"]
-    assert info["version"] == 2 and info["symbolCount"] == len(srv.symbols)
+    axis_objects = sum(1 for o in machine.dictionary.objects if o.scope == "axis")
+    machine_objects = len(machine.dictionary.objects) - axis_objects
+    assert info["version"] == 2
+    assert info["symbolCount"] == 4 * axis_objects + machine_objects  # X, Y, Z, C
     assert info["dataTypeCount"] == 6
     assert out["symbolVersion"] == 1
     assert out["readRaw"] == 4000.0  # TEMPC::coefficient of X, 000 p.24
@@ -67,6 +70,9 @@ def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None
     assert out["readBool"] is True
     assert out["readString"] == "1=X 2=Y 3=Z 4=C"
     assert out["afterWrite"] == 77
+    assert out["handle"] == {"size": 8, "dataType": "LREAL"}
+    assert out["readByHandle"] == 12.5
+    assert out["multi"] == ["DINT", 0x710]
     assert out["badWrite"] == 0x706  # the same range check as by address
     assert out["unknown"] == 0x710
     samples = out["samples"]

@@ -17,6 +17,7 @@ import pyads
 import pytest
 from test_ads_server import GEO, TIMEOUT, Raw, next_netid, start_server
 
+import geo_server
 from geo_server.client.ads_client import close_port_first
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsAddr, Command
@@ -128,12 +129,18 @@ def test_system_service_on_port_10000(raw) -> None:
     assert read_on(raw, SYSTEM, GEO, COEFFICIENT_X, 8)[0] == 0x702
     assert raw.read(SYMVERSION, 0, 1) == (0, b"\x01")
     assert raw.read(SYMVERSION, 0, 0)[0] == 0x705
-    # a write to the system port is not served
+    # a write or read-write to the system port is not served, in the command's own layout
     pkt = raw.ask(Command.WRITE, codec.write_request(DEVICE_DATA, 0, b"\0\0\0\0"), port=SYSTEM)
     assert codec.parse_result(pkt.data) == 0x701
+    rw = codec.read_write_request(DEVICE_DATA, 0, 4, b"\0")
+    pkt = raw.ask(Command.READ_WRITE, rw, port=SYSTEM)
+    assert codec.parse_read_response(pkt.data) == (0x701, b"")
+    assert raw.ask(Command.READ_STATE, port=SYSTEM).header.error_code == 0  # still served
 
 
-def test_state_notifications(raw) -> None:
+def test_state_notifications(raw, service) -> None:
+    """0xF100 (ADS state RUN, device state 0) and 0xF008 (symbol version 1) on change:
+    one first sample each, then nothing (they do not change)."""
     req = codec.add_notification_request(DEVICE_DATA, 0, 4, 4, 0, 0)
     pkt = raw.ask(Command.ADD_DEVICE_NOTIFICATION, req)
     result, handle = codec.parse_add_notification_response(pkt.data)
@@ -143,6 +150,15 @@ def test_state_notifications(raw) -> None:
         raw.ask(Command.ADD_DEVICE_NOTIFICATION, req).data
     )
     assert result == 0 and handle2 != handle
+    service.step(1)
+    got: dict[int, bytes] = {}
+    while len(got) < 2:
+        pkt = raw.packet()
+        assert pkt.header.command == Command.DEVICE_NOTIFICATION
+        for stamp in codec.parse_device_notification(pkt.data):
+            for sample in stamp.samples:
+                got[sample.handle] = sample.data
+    assert got == {handle: struct.pack("<HH", 5, 0), handle2: b"\x01"}
 
 
 # ---------------------------------------------------------------------- symbols
@@ -151,12 +167,12 @@ def test_state_notifications(raw) -> None:
 def parse_symbol(entry: bytes) -> dict:
     """AdsSymbolEntry, field by field."""
     length, ig, io, size, adst, flags, dims, ln, lt, lc = struct.unpack_from("<IIIIIHHHHH", entry)
-    pos = 30
-    nm = entry[pos : pos + ln].decode()
+    pos = 30  # strings are CP1252, as pyads and ads-client decode them
+    nm = entry[pos : pos + ln].decode("cp1252")
     pos += ln + 1
-    tp = entry[pos : pos + lt].decode()
+    tp = entry[pos : pos + lt].decode("cp1252")
     pos += lt + 1
-    cm = entry[pos : pos + lc].decode()
+    cm = entry[pos : pos + lc].decode("cp1252")
     assert entry[30 + ln] == 0 and length % 4 == 0 and length >= pos + lc + 1
     return dict(length=length, ig=ig, io=io, size=size, adst=adst, flags=flags, dims=dims,
                 name=nm, type=tp, comment=cm)  # fmt: skip
@@ -168,7 +184,7 @@ def test_symbol_info_by_name(raw) -> None:
     s = parse_symbol(data)
     assert (s["ig"], s["io"], s["size"], s["adst"]) == (GEO, COEFFICIENT_X, 8, 5)  # LREAL
     assert s["type"] == "LREAL" and s["flags"] == 0 and s["dims"] == 0
-    assert s["name"] == "GEO.X.TEMPC.coefficient" and "TEMPC::coefficient" in s["comment"]
+    assert s["name"] == "GEO.X.TEMPC.coefficient" and s["comment"] == "TEMPC::coefficient [µm/m]"
     assert s["length"] == len(data)
     code, data = raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("geo.z.lsec.SUM_EPSILON"))
     s = parse_symbol(data)  # names are case-insensitive
@@ -216,6 +232,40 @@ def test_handles(raw, service) -> None:
     assert raw.read_write(HNDBYNAME, 0, 2, name("GEO.X.TEMPC.coefficient"))[0] == 0x705
 
 
+def test_handles_and_services_inside_sum_commands(raw) -> None:
+    """Sum sub-requests answer as the plain requests do: an unknown handle 0x710, the ADS
+    state and symbol version readable, handles created (0xF082 + 0xF003) and released
+    (0xF081 + 0xF006) in one request (ads-client's createVariableHandleMulti)."""
+    names = [name("GEO.X.TEMPC.coefficient"), name("GEO.NO.such")]
+    subs = b"".join(struct.pack("<IIII", HNDBYNAME, 0, 4, len(n)) for n in names) + b"".join(names)
+    code, data = raw.read_write(0xF082, 2, 1000, subs)
+    assert code == 0
+    results = codec.parse_sum_read_ex_response(data, 2)
+    assert results[0][0] == 0 and len(results[0][1]) == 4 and results[1] == (0x710, b"")
+    handle = struct.unpack("<I", results[0][1])[0]
+    items = [(VALBYHND, handle, 8), (VALBYHND, 0xBAD, 8), (DEVICE_DATA, 0, 4), (SYMVERSION, 0, 1)]
+    code, data = raw.read_write(0xF080, 4, 1000, codec.sum_read_request(items))
+    assert code == 0
+    codes = struct.unpack_from("<4I", data)
+    assert codes == (0, 0x710, 0, 0)
+    assert data[16:24] == struct.pack("<d", 4000.0)
+    assert data[32:36] == struct.pack("<HH", 5, 0) and data[36:37] == b"\x01"
+    release = struct.pack("<III", RELEASEHND, 0, 4) * 2 + struct.pack("<II", handle, 0xBAD)
+    code, data = raw.read_write(0xF081, 2, 8, release)
+    assert code == 0 and struct.unpack("<II", data) == (0, 0x710)
+    assert raw.read(VALBYHND, handle, 8)[0] == 0x710  # released
+
+
+def test_handle_with_its_type(raw) -> None:
+    """A handle asked for with a long read length comes with size, type decoration and
+    type name (what ads-client's createVariableHandle parses)."""
+    code, data = raw.read_write(HNDBYNAME, 0, 0xFFFFFFFF, name("GEO.Z.LSEC.sum_epsilon"))
+    assert code == 0
+    handle, size, decoration, tlen = struct.unpack_from("<IIIH", data)
+    assert (size, decoration, data[14 : 14 + tlen], data[14 + tlen :]) == (4, 0, b"DINT", b"\0")
+    assert raw.read(VALBYHND, handle, 4)[0] == 0
+
+
 def test_handles_belong_to_their_connection(ads, raw) -> None:
     _, data = raw.read_write(HNDBYNAME, 0, 4, name("GEO.X.TEMPC.coefficient"))
     other = Raw(ads.port)
@@ -248,6 +298,7 @@ def test_upload(raw, service) -> None:
     assert "GEO.C.SIM.axis_type" in names and "GEO.TWIN.time" in names
     assert len(set(names)) == count
     assert raw.read(UPLOAD, 0, size - 1)[0] == 0x705  # all of it or nothing
+    assert raw.read(UPLOADINFO2, 0, 12)[0] == 0x705  # never cut (clients read its version)
     code, dts = raw.read(DT_UPLOAD, 0, dt_size)
     assert code == 0 and len(dts) == dt_size
     types, pos = {}, 0
@@ -347,7 +398,9 @@ def udp_ads(loop_thread, service) -> Iterator[AdsServer]:
     from conftest import run_in
 
     srv = start_server(loop_thread, service, host="127.0.0.2", udp_port=48899, netid="5.6.7.8.1.1")
-    assert srv.udp_port == 48899, srv.udp_error
+    if srv.udp_port != 48899:
+        run_in(loop_thread, srv.close())
+        pytest.skip(f"UDP 48899 is taken on this host: {srv.udp_error}")
     yield srv
     run_in(loop_thread, srv.close())
 
@@ -381,7 +434,7 @@ def test_discovery_answer_and_garbage(udp_ads) -> None:
         reply, _ = s.recvfrom(2048)
     magic, invoke, service, netid, port, count = struct.unpack_from("<III6sHI", reply)
     assert (magic, invoke, service, port) == (0x71146603, 77, 0x80000001, 10000)
-    assert netid == bytes([5, 6, 7, 8, 1, 1]) and count == 3
+    assert netid == bytes([5, 6, 7, 8, 1, 1]) and count == 2
     tags, pos = {}, 24
     for _ in range(count):
         tag, length = struct.unpack_from("<HH", reply, pos)
@@ -389,6 +442,9 @@ def test_discovery_answer_and_garbage(udp_ads) -> None:
         pos += 4 + length
     assert pos == len(reply)
     assert tags[5] == b"geo-server\0"  # host name
+    # tag 3: TwinCAT version major, minor (u8), build (u16), as TwinCAT sends it
+    major, minor, build = struct.unpack("<BBH", tags[3])
+    assert (major, minor, build) == tuple(int(x) for x in geo_server.__version__.split(".")[:3])
     assert udp_ads.stats.udp_dropped == 4
 
 

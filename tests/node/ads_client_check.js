@@ -32,6 +32,14 @@ async function main() {
   } catch (err) {
     out.badWrite = err.adsError ? err.adsError.errorCode : String(err);
   }
+  const handle = await client.createVariableHandle("GEO.Y.TEMPC.coefficient");
+  out.handle = { size: handle.size, dataType: handle.dataType };
+  await client.writeRawByHandle(handle, Buffer.from(new Float64Array([12.5]).buffer));
+  out.readByHandle = (await client.readRawByHandle(handle)).readDoubleLE(0);
+  await client.deleteVariableHandle(handle);
+  const multi = await client.createVariableHandleMulti(["GEO.Z.LSEC.sum_epsilon", "GEO.NO.such"]);
+  out.multi = multi.map((r) => (r.success ? r.handle.dataType : r.errorCode));
+  await client.deleteVariableHandleMulti([multi[0].handle]);
   try {
     await client.readValue("GEO.X.NO.such");
     out.unknown = "found";

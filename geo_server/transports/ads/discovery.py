@@ -8,9 +8,10 @@ datagram is
     tag count u32 | tags: id u16, length u16, data
 
 (little-endian; a response has bit 31 of the service set). Services: 1 discovery, 6 add
-route. Tags answered: 1 status (u32 ADS error code), 3 OS version, 4 TwinCAT version
-(major u8, minor u8, build u16), 5 host name. The request's tags are read generously (a
-bad one ends the list); nothing but `UdpError` is raised on garbage.
+route. Tags answered: 1 status (u32 ADS error code), 3 TwinCAT version (major u8, minor u8,
+build u16), 5 host name (tag 4, Windows' OS version structure, is left out). The
+request's tags are read generously (a bad one ends the list); nothing but `UdpError` is
+raised on garbage.
 """
 
 from __future__ import annotations
@@ -26,8 +27,7 @@ SERVICE_DISCOVERY = 1
 SERVICE_ADD_ROUTE = 6
 RESPONSE = 0x8000_0000
 TAG_STATUS = 1
-TAG_OS_VERSION = 3
-TAG_TC_VERSION = 4
+TAG_TC_VERSION = 3
 TAG_HOST_NAME = 5
 #: The AMS port the datagrams name (the system service).
 SYSTEM_SERVICE_PORT = 10000
@@ -91,7 +91,8 @@ def _response(req: UdpRequest, netid: str, tags: list[bytes]) -> bytes:
 def discovery_response(
     req: UdpRequest, netid: str, host_name: str, version: tuple[int, int, int]
 ) -> bytes:
-    """Who we are: NetId in the header, host name and version as tags."""
+    """Who we are: NetId in the header, host name and version as tags (real captures,
+    e.g. nmap's twincat-scan: tag 3 `03 01 b8 0f` = 3.1.4024)."""
     major, minor, build = version
     return _response(
         req,
@@ -99,7 +100,6 @@ def discovery_response(
         [
             _tag(TAG_HOST_NAME, host_name.encode("utf-8")[:255] + b"\0"),
             _tag(TAG_TC_VERSION, struct.pack("<BBH", major & 0xFF, minor & 0xFF, build & 0xFFFF)),
-            _tag(TAG_OS_VERSION, b"geo-server\0"),
         ],
     )
 

@@ -94,6 +94,9 @@ class AdsOptions:
     #: `codec.MAX_REQUEST_FRAME`). A frame header announcing more closes the connection
     #: before its data is buffered. Answers are held to the same size.
     max_frame: int = codec.MAX_REQUEST_FRAME
+    #: Largest answer payload (the client's read length bounds each one): room for the
+    #: symbol upload of a machine with 128 axes (about 480 kB)
+    max_answer: int = 1 << 20
     #: waiting for a write to be applied, running cycles (None: the service's
     #: `ServiceLimits.write_timeout`)
     write_timeout: float | None = None
@@ -312,16 +315,16 @@ class AdsServer:
             self.stats.dropped_frames += 1
             return
         self.stats.requests += 1
+        if self.options.strict_netid and h.target.netid != self.options.netid:
+            self.stats.errors += 1
+            conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
+            return
         if h.target.port == SYSTEM_SERVICE_PORT:
             self._answer(conn, h, lambda: self._system_service(conn, packet))
             return
         if h.target.port not in self.options.ams_ports:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_PORT_NOT_FOUND))
-            return
-        if self.options.strict_netid and h.target.netid != self.options.netid:
-            self.stats.errors += 1
-            conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
             return
         self._answer(conn, h, lambda: self._dispatch(conn, packet))
 
@@ -425,9 +428,12 @@ class AdsServer:
         if conn.ams_port is not None:
             return conn.ams_port  # asked twice: the same answer
         port = wanted
-        if not port or port in self._ams_ports or port in _RESERVED_PORTS:
+        taken = self._ams_ports
+        reserved = _RESERVED_PORTS | set(self.options.ams_ports)
+        if not port or port in taken or port in reserved:
+            # at most max_connections ports are taken: a free one is found within that many
             port = self._next_ams_port
-            while port in self._ams_ports:
+            while port in taken or port in reserved:
                 port = port + 1 if port < LAST_CLIENT_PORT else FIRST_CLIENT_PORT
             self._next_ams_port = port + 1 if port < LAST_CLIENT_PORT else FIRST_CLIENT_PORT
         self._ams_ports[port] = conn
@@ -466,7 +472,8 @@ class AdsServer:
                 AdsErrorCode.DEVICE_INVALIDGRP,
                 f"index group 0x{req.index_group:X} is not served on the system port",
             )
-        return codec.result_response(AdsErrorCode.DEVICE_SRVNOTSUPP)
+        # (raised, so that the error payload has the layout of the command's response)
+        raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, "not served on the system port")
 
     def _device_data(self, length: int) -> bytes:
         """0xF100: ADS state RUN, device state 0 (u16 each)."""
@@ -497,7 +504,8 @@ class AdsServer:
             self._fit_size(len(blob), length)  # all of it or 0x705
             return blob
         info = table.upload_info() if ig == symbols.SYM_UPLOADINFO else table.upload_info2()
-        return _fixed(info, length, "the upload info")
+        self._fit_size(len(info), length)  # never cut: clients tell its version by length
+        return info
 
     def _address(self, conn: AdsConnection, ig: int, io: int) -> tuple[int, int]:
         """The object address behind a symbol handle (0xF005, offset = handle)."""
@@ -508,30 +516,55 @@ class AdsServer:
             raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{io:X}")
         return sym.index_group, sym.index_offset
 
-    def _sub_address(self, conn: AdsConnection, ig: int, io: int) -> tuple[int, int]:
-        """`_address` for a sum sub-request: an unknown handle becomes an address that
-        fails alone (0x710 is not a group), the others still answer."""
+    def _sub_read(
+        self, conn: AdsConnection, ig: int, io: int, length: int, snap: Snapshot
+    ) -> tuple[int, bytes]:
+        """One sub-request of a sum read, as a plain Read would answer it."""
         try:
-            return self._address(conn, ig, io)
-        except AdsError:
-            return symbols.SYM_VALBYHND, io
+            fixed = self._service_read(ig, io, length)
+            if fixed is not None:
+                return 0, fixed
+            ig, io = self._address(conn, ig, io)
+            return 0, self.service.read(ig, io, length, snap)
+        except AdsError as exc:
+            return exc.code, b""
+
+    def _sub_write(self, conn: AdsConnection, ig: int, io: int, data: bytes) -> WriteItem:
+        """One sub-request of a sum write: the object address to write, or the code it
+        earned already (a handle released here, an unknown handle)."""
+        try:
+            if ig == symbols.SYM_RELEASEHND:
+                return codec.parse_result(self._release_handle(conn, data))
+            ig, io = self._address(conn, ig, io)
+        except AdsError as exc:
+            return int(exc.code)
+        return ig, io, data
 
     def _by_name(self, conn: AdsConnection, req: ReadWriteRequest) -> Reply:
+        return codec.read_response(
+            0, self._name_service(conn, req.index_group, req.data, req.read_length)
+        )
+
+    def _name_service(self, conn: AdsConnection, ig: int, data: bytes, read_length: int) -> bytes:
         """Handle by name (0xF003), value by name (0xF004), symbol info (0xF009) and
-        data type info (0xF011) by name: the write data is the name."""
-        name = symbols.decode_name(req.data)
-        ig = req.index_group
+        data type info (0xF011) by name: the write data is the name. A handle asked for
+        with more than 4 bytes of read length comes with size, type decoration and type
+        name (as ads-client's `createVariableHandle` reads it)."""
+        name = symbols.decode_name(data)
         if ig == symbols.SYM_DT_INFOBYNAMEEX:
             entry = symbols.datatype_entry(self.symbols.datatype(name))
-            return self._fit(entry, req.read_length)
+            self._fit_size(len(entry), read_length)
+            return entry
         sym = self.symbols.lookup(name)
         if ig == symbols.SYM_INFOBYNAMEEX:
-            return self._fit(symbols.symbol_entry(sym), req.read_length)
+            entry = symbols.symbol_entry(sym)
+            self._fit_size(len(entry), read_length)
+            return entry
         if ig == symbols.SYM_VALBYNAME:
-            data = self.service.read(sym.index_group, sym.index_offset, req.read_length)
-            return codec.read_response(0, data)
+            return self.service.read(sym.index_group, sym.index_offset, read_length)
         # SYM_HNDBYNAME
-        self._fit_size(4, req.read_length)
+        answer = symbols.handle_answer(conn.next_handle + 1, sym, extended=read_length > 4)
+        self._fit_size(len(answer), read_length)
         if len(conn.handles) >= self.options.max_handles:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOMOREHDLS,
@@ -539,7 +572,7 @@ class AdsServer:
             )
         conn.next_handle += 1
         conn.handles[conn.next_handle] = sym
-        return codec.read_response(0, struct.pack("<I", conn.next_handle))
+        return answer
 
     def _lookup_address(self, req: ReadWriteRequest) -> bytes:
         """Group + 0x600: in (channel, axis) as two UNS32 (or two UNS16), the element in
@@ -560,6 +593,8 @@ class AdsServer:
         return codec.read_response(0, struct.pack("<II", ig, io))
 
     def _release_handle(self, conn: AdsConnection, data: bytes) -> bytes:
+        """0xF006: give a handle back (unknown -> 0x710). A notification registered on
+        it keeps its object address: it stays until it is deleted itself."""
         if len(data) != 4:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDSIZE, f"a handle has 4 bytes, not {len(data)}"
@@ -570,15 +605,6 @@ class AdsServer:
         return codec.result_response(0)
 
     # ------------------------------------------------------------------ reads
-
-    def _read_codes(
-        self, items: Sequence[tuple[int, int, int]], snap: Snapshot
-    ) -> list[tuple[int, bytes]]:
-        """`ObjectService.read_many` as ADS (result code, data) pairs."""
-        return [
-            (r.code, b"") if isinstance(r, AdsError) else (0, r)
-            for r in self.service.read_many(items, snap)
-        ]
 
     def _read_write(self, conn: AdsConnection, req: ReadWriteRequest) -> Reply:
         ig, io = req.index_group, req.index_offset
@@ -610,10 +636,10 @@ class AdsServer:
                 # before building it (a sub-request may ask for gigabytes).
                 head = 4 if group == SumGroup.READ else 8
                 self._fit_size(head * len(subs) + sum(s.length for s in subs), req.read_length)
-            items = [
-                (*self._sub_address(conn, s.index_group, s.index_offset), s.length) for s in subs
+            snap = self.service.current()
+            results = [
+                self._sub_read(conn, s.index_group, s.index_offset, s.length, snap) for s in subs
             ]
-            results = self._read_codes(items, self.service.current())
             if group == SumGroup.READ_EX2:
                 out = codec.sum_read_ex_response(results)
             elif group == SumGroup.READ_EX:
@@ -624,7 +650,7 @@ class AdsServer:
         if group == SumGroup.WRITE:
             writes = codec.parse_sum_write(count, data)
             pending = self._write_many(
-                [(*self._sub_address(conn, w.index_group, w.index_offset), w.data) for w in writes]
+                [self._sub_write(conn, w.index_group, w.index_offset, w.data) for w in writes]
             )
 
             async def written() -> bytes:
@@ -633,25 +659,39 @@ class AdsServer:
             return written()
         if group == SumGroup.READ_WRITE:
             subs_rw = codec.parse_sum_read_write(count, data)
-            subs_rw = [
-                replace(s, index_group=a[0], index_offset=a[1])
-                for s in subs_rw
-                for a in [self._sub_address(conn, s.index_group, s.index_offset)]
-            ]
+            # name services (handles by name: ads-client's createVariableHandleMulti) are
+            # answered at once; the others write, then read back
+            named: dict[int, tuple[int, bytes]] = {}
+            for i, s in enumerate(subs_rw):
+                if s.index_group in _NAME_SERVICES:
+                    try:
+                        named[i] = (
+                            0,
+                            self._name_service(conn, s.index_group, s.data, s.read_length),
+                        )
+                    except AdsError as exc:
+                        named[i] = (int(exc.code), b"")
             pending = self._write_many(
-                [(s.index_group, s.index_offset, s.data) if s.data else None for s in subs_rw]
+                [
+                    None
+                    if i in named or not s.data
+                    else self._sub_write(conn, s.index_group, s.index_offset, s.data)
+                    for i, s in enumerate(subs_rw)
+                ]
             )
 
             async def written_then_read() -> bytes:
                 write_codes = await pending
                 snap = self.service.current()
                 results: list[tuple[int, bytes]] = []
-                for s, code in zip(subs_rw, write_codes, strict=True):
-                    if code:
+                for i, (s, code) in enumerate(zip(subs_rw, write_codes, strict=True)):
+                    if i in named:
+                        results.append(named[i])
+                    elif code:
                         results.append((code, b""))
                     else:
-                        results.extend(
-                            self._read_codes([(s.index_group, s.index_offset, s.read_length)], snap)
+                        results.append(
+                            self._sub_read(conn, s.index_group, s.index_offset, s.read_length, snap)
                         )
                 return self._fit(codec.sum_read_ex_response(results), req.read_length)
 
@@ -661,7 +701,7 @@ class AdsServer:
     def _fit_size(self, size: int, read_length: int) -> None:
         """Never more bytes than requested: a too small read buffer is 0x705; so is an
         answer that would not fit one frame of `max_frame` bytes."""
-        limit = min(read_length, self.options.max_frame - codec.AMS_HEADER_SIZE - 8)
+        limit = min(read_length, self.options.max_answer)
         if size > limit:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDSIZE,
@@ -689,7 +729,7 @@ class AdsServer:
 
         return applied()
 
-    def _write_many(self, items: Sequence[tuple[int, int, bytes] | None]) -> Awaitable[list[int]]:
+    def _write_many(self, items: Sequence[WriteItem | None]) -> Awaitable[list[int]]:
         """Sum write: validate each item (its own code), apply the valid ones together
         in one cycle; per item 0 or the ADS code it earned. A command object (reload,
         save) must be written on its own, not inside a sum command (0x704)."""
@@ -698,6 +738,9 @@ class AdsServer:
         for i, item in enumerate(items):
             codes.append(0)
             if item is None:
+                continue
+            if isinstance(item, int):  # the item's code is known already
+                codes[i] = item
                 continue
             try:
                 self._check_writes_allowed()
@@ -868,6 +911,8 @@ class AdsServer:
             log.debug("dropped %d notifications of %s", n, conn.peer)
 
 
+#: A sum write item: the object address and data, or the ADS code it earned already.
+WriteItem = tuple[int, int, bytes] | int
 #: AMS port of the TwinCAT system service (ReadState, ReadDeviceInfo, WriteControl).
 SYSTEM_SERVICE_PORT = 10000
 #: AMS ports the router hands to clients (TwinCAT's ADS clients get 30000 and up).

@@ -83,8 +83,14 @@ def symbol_name(obj: ObjectDef, axis_name: str | None) -> str:
     return ".".join(p for p in ("GEO", axis_name, group, field) if p)
 
 
+def _enc(text: str) -> bytes:
+    """Symbol strings are CP1252, as every CNC string (TF5200) and as pyads and
+    ads-client decode them."""
+    return text.encode("cp1252", errors="replace")
+
+
 def _strings(*texts: str) -> bytes:
-    return b"".join(t.encode("utf-8") + b"\0" for t in texts)
+    return b"".join(_enc(t) + b"\0" for t in texts)
 
 
 def _pad4(data: bytes) -> bytes:
@@ -93,7 +99,7 @@ def _pad4(data: bytes) -> bytes:
 
 def symbol_entry(sym: Symbol) -> bytes:
     """One TwinCAT symbol entry (module docstring)."""
-    name, tc, comment = (t.encode("utf-8") for t in (sym.name, sym.type.tc_type, sym.comment))
+    name, tc, comment = (_enc(t) for t in (sym.name, sym.type.tc_type, sym.comment))
     tail = _strings(sym.name, sym.type.tc_type, sym.comment)
     flags = SYMBOL_FLAG_READONLY if sym.read_only else 0
     size = _SYMBOL_HEAD.size + len(tail)
@@ -115,7 +121,7 @@ def symbol_entry(sym: Symbol) -> bytes:
 
 def datatype_entry(t: DataType) -> bytes:
     """One TwinCAT data type entry of a base type (no array, no sub-items)."""
-    name = t.tc_type.encode("utf-8")
+    name = _enc(t.tc_type)
     tail = _strings(t.tc_type, "", "")
     size = _DATATYPE_HEAD.size + len(tail)
     size += -size % 4
@@ -191,8 +197,17 @@ class SymbolTable:
 
 
 def _comment(obj: ObjectDef) -> str:
-    unit = f" [{obj.unit}]" if obj.unit else ""
-    return f"{obj.name}{unit}"
+    unit = obj.unit if obj.unit.startswith("[") else f"[{obj.unit}]"
+    return f"{obj.name} {unit}" if obj.unit else obj.name
+
+
+def handle_answer(handle: int, sym: Symbol, extended: bool) -> bytes:
+    """0xF003: the handle (u32); extended (a read length over 4 bytes, ads-client):
+    handle, size, type decoration (0) (u32 each), type name length (u16), type name."""
+    if not extended:
+        return struct.pack("<I", handle)
+    tc = _enc(sym.type.tc_type)
+    return struct.pack("<IIIH", handle, sym.type.size, 0, len(tc)) + tc + b"\0"
 
 
 def _type_key(t: DataType) -> str:

@@ -529,7 +529,6 @@ def run_live(
     terminal control codes are written."""
     out = out or sys.stdout
     only = list(only) if only else None
-    end = None if duration is None else time.monotonic() + duration
     terminal = bool(getattr(out, "isatty", lambda: False)())
     try:
         import rich  # noqa: F401
@@ -538,9 +537,13 @@ def run_live(
     except ImportError:
         have_rich = False
     seen = -1
+    # the duration counts from here (importing rich can take a while) and the first view
+    # is always drawn, however short the duration
+    end = None if duration is None else time.monotonic() + duration
+    drawn = False
 
     def due() -> bool:
-        return end is None or time.monotonic() < end
+        return not drawn or end is None or time.monotonic() < end
 
     if have_rich:
         from rich.console import Console
@@ -554,6 +557,7 @@ def run_live(
                 if hmi.model.version != seen:
                     seen = hmi.model.version
                     live.update(render_rich(hmi.model, only, max_errors, units), refresh=True)
+                drawn = True
                 time.sleep(refresh)
         return
     while due():
@@ -564,6 +568,7 @@ def run_live(
                 ("\x1b[H\x1b[2J" + view) if terminal else f"--- {time.strftime('%H:%M:%S')}\n{view}"
             )
             out.flush()
+        drawn = True
         time.sleep(refresh)
 
 

@@ -260,14 +260,20 @@ class ZenohInterface:
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        for ent in reversed(self._entities):
-            ent.undeclare()
-        self._entities.clear()
         for key in ("zenoh_id", "zenoh_rivals"):
             self.service.status_extra.pop(key, None)
-        if self._session is not None:
-            session, self._session = self._session, None
-            await asyncio.get_running_loop().run_in_executor(None, session.close)
+        entities, self._entities = list(reversed(self._entities)), []
+        session, self._session = self._session, None
+
+        def shut() -> None:
+            # Undeclaring waits for Zenoh callbacks in flight, which hand work to this
+            # loop: never block the loop on it (nor on closing the session).
+            for ent in entities:
+                ent.undeclare()
+            if session is not None:
+                session.close()
+
+        await asyncio.get_running_loop().run_in_executor(None, shut)
 
     @property
     def endpoints(self) -> list[str]:

@@ -321,6 +321,13 @@ class RemoteMachine:
 
     def _dispatch(self, msg: tuple[Any, ...]) -> None:
         _, cycle, values, machine, texts, acks, events, status = msg
+        # Events first, as in the cycle itself (an event is recorded while its cycle runs,
+        # before that cycle's snapshot is published): whoever sees the snapshot of a program
+        # that stopped has already been told why (the `run --program` report relies on it).
+        for ev in events:
+            self.events.append(ev)
+            for listener in list(self._event_listeners):
+                _guarded(listener, ev)
         self.snapshot = Snapshot(
             cycle,
             self.axes,
@@ -333,10 +340,6 @@ class RemoteMachine:
         self.first_frame.set()
         if status is not None:
             self.status = status
-        for ev in events:
-            self.events.append(ev)
-            for listener in list(self._event_listeners):
-                _guarded(listener, ev)
         for seq, ok, payload in acks:
             with self._lock:
                 entry = self._pending.pop(seq, None)

@@ -1,6 +1,7 @@
 """Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
-    python bench/run_all.py [--quick] [--only kernel,scheduler,transports,ads_symbols,memory,soak]
+    python bench/run_all.py [--quick] [--only kernel,twin,scheduler,transports,ads_symbols,
+                                              cpu,memory,soak]
                             [--results FILE]
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
@@ -32,6 +33,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
     "scheduler": ("scheduler.py", [], ["--quick"], 900),
     "transports": ("transports.py", [], ["--quick"], 600),
     "ads_symbols": ("ads_symbols.py", [], ["--quick"], 300),
+    "cpu": ("cpu.py", [], ["--quick"], 300),
     "memory": ("memory.py", [], ["--quick"], 300),
     "soak": ("soak.py", [], ["--quick"], 600),
 }

@@ -289,8 +289,10 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             print(describe(), flush=True)
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
-        scheduler.start()
+        # Listen for the program's events before its first cycle can run: an error in
+        # the program's first block comes in the second cycle.
         program = ProgramReport(args.program, service) if args.program else None
+        scheduler.start()
         next_status = loop.time() + args.status_period
         while not stop.is_set():
             # With --cycles, look often whether the cycle thread has finished its cycles.

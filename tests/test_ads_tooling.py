@@ -15,10 +15,10 @@ from collections.abc import Iterator
 
 import pyads
 import pytest
-from test_ads_server import GEO, TIMEOUT, Raw, next_netid, start_server
+import test_ads_server
+from test_ads_server import GEO, TIMEOUT, Raw, start_server
 
 import geo_server
-from geo_server.client.ads_client import close_port_first
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsAddr, Command
 from geo_server.transports.ads.server import AdsServer
@@ -29,21 +29,9 @@ SYMVERSION, INFOBYNAMEEX, UPLOAD, UPLOADINFO = 0xF008, 0xF009, 0xF00B, 0xF00C
 DT_UPLOAD, UPLOADINFO2, DT_INFOBYNAMEEX, DEVICE_DATA = 0xF00E, 0xF00F, 0xF011, 0xF100
 COEFFICIENT_X = (1 << 16) | 0x43  # TEMPC::coefficient of axis 1 (X), 000 p.22
 
-
-@pytest.fixture
-def ads(loop_thread, service) -> Iterator[AdsServer]:
-    from conftest import run_in
-
-    srv = start_server(loop_thread, service)
-    yield srv
-    run_in(loop_thread, srv.close())
-
-
-@pytest.fixture
-def raw(ads) -> Iterator[Raw]:
-    c = Raw(ads.port)
-    yield c
-    c.close()
+# the ADS tests' fixtures: an ADS server on the stepped default machine, a raw client and a
+# pyads client on it
+ads, raw, plc = test_ads_server.ads, test_ads_server.raw, test_ads_server.plc
 
 
 def router_reply(raw: Raw) -> tuple[int, bytes]:
@@ -322,15 +310,6 @@ def test_upload(raw, service) -> None:
 
 
 # ---------------------------------------------------------------------- pyads
-
-
-@pytest.fixture
-def plc(ads) -> Iterator[pyads.Connection]:
-    conn = pyads.Connection(next_netid(), 551, ads.address)
-    conn.open()
-    conn.set_timeout(int(TIMEOUT * 1000))
-    yield conn
-    close_port_first(conn)
 
 
 def test_pyads_by_name(plc, service) -> None:

@@ -88,6 +88,29 @@ def svc(machine: Machine) -> ObjectService:
     return ObjectService(machine)
 
 
+#: X's temperature offset at 100 mm, 000 p.17: position_0 100, offset_0 40, coefficient
+#: 4000 µm/m: 40 + 4000e-6·(1 000 000 − 100) = 4039.6 (published 4040)
+HELD_X = 40 + 4000e-6 * (1_000_000 - 100)
+
+
+def x_at_100_mm(machine: Machine, svc: ObjectService) -> None:
+    svc.write_name("SIM::set_position", X, 1_000_000)
+    machine.step(25)  # temp_comp_n_cycles 20: the ramp of the new position is over
+
+
+def hold_x_temp(machine: Machine, svc: ObjectService) -> None:
+    """X at 100 mm, then `X[COMP OFF TEMP NO_MOVE]` run to its end: 4040 held."""
+    x_at_100_mm(machine, svc)
+    run(
+        machine,
+        svc,
+        "X[COMP OFF TEMP NO_MOVE]\nM30\n",
+        X,
+        "TEMPC::actual_offset",
+        "TEMPC::activated",
+    )
+
+
 # --------------------------------------------------------------------- the manual's numbers
 
 
@@ -96,9 +119,8 @@ def test_temp_off_no_move_holds_the_offset_through_a_dwell(machine, svc):
     40 + 4000e-6·(1 000 000 − 100) = 4039.6 → 4040. `X[COMP OFF TEMP NO_MOVE]`, a 50 ms
     dwell, then an X move: the offset stays through the dwell and ramps out over
     temp_comp_n_cycles = 20 from the first cycle of the move."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
-    held = 40 + 4000e-6 * (1_000_000 - 100)
+    x_at_100_mm(machine, svc)
+    held = HELD_X
     assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held) == 4040
     output = svc.read_name("SIM::output_position", X)
     # X's LSEC at 100 mm is −table[60].pos = 42 (lists/achskw1.lis): the issue's 1 004 082
@@ -124,8 +146,7 @@ def test_temp_off_no_move_holds_the_offset_through_a_dwell(machine, svc):
 def test_temp_on_no_move_ramps_in_with_the_move(machine, svc):
     """`X[COMP ON TEMP NO_MOVE]`: 0 through the dwell although active; from the move's
     first cycle out_k = t_k − t_1·cos²(πk/40) with t = 40 + 4000e-6·(s − 100) (000 p.15)."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
+    x_at_100_mm(machine, svc)
     prog = (
         "N10 X[COMP OFF TEMP]\nN20 X[COMP ON TEMP NO_MOVE]\nN30 G04 0.05\n"
         "N40 G91 G01 X1 F6000\nN50 M30\n"
@@ -276,14 +297,13 @@ def test_frict_current_without_the_switch(machine, svc):
 def test_comp_without_no_move_executes_a_held_offset(machine, svc):
     """A later COMP without NO_MOVE on the same axis executes everything outstanding: the
     offset held through the dwell ramps out with that COMP, which waits for it."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
+    x_at_100_mm(machine, svc)
     prog = "N10 X[COMP OFF TEMP NO_MOVE]\nN20 G04 0.03\nN30 X[COMP OFF LEAD]\nN40 M30\n"
     rows = run(machine, svc, prog, X, "TEMPC::actual_offset", "TEMPC::activated")
     dwell = [i for i, r in enumerate(rows) if r.line == 2]
     assert len(dwell) == 30 and all(rows[i].value == 4040 for i in dwell)
     at = dwell[-1] + 1  # the COMP runs in the cycle the dwell ends
-    held = 40 + 4000e-6 * (1_000_000 - 100)
+    held = HELD_X
     assert rows[at].line == 3
     for k in range(1, 21):
         assert rows[at + k - 1].value == rhaz(held * cos2(k, 20)), k
@@ -292,20 +312,11 @@ def test_comp_without_no_move_executes_a_held_offset(machine, svc):
 
 def test_tempc_activated_write_executes_a_held_offset(machine, svc):
     """`TEMPC::activated` written acts at once, also on an offset a NO_MOVE held back."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
-    run(
-        machine,
-        svc,
-        "X[COMP OFF TEMP NO_MOVE]\nM30\n",
-        X,
-        "TEMPC::actual_offset",
-        "TEMPC::activated",
-    )
+    hold_x_temp(machine, svc)
     machine.step(50)
     assert svc.read_name("TEMPC::actual_offset", X) == 4040
     svc.write_name("TEMPC::activated", X, False)  # already off: only the release
-    held = 40 + 4000e-6 * (1_000_000 - 100)
+    held = HELD_X
     for k in range(1, 21):
         machine.run_cycle()
         assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k
@@ -325,8 +336,7 @@ def test_a_comp_that_changes_nothing_holds_nothing(machine, svc):
 def test_no_move_while_the_axis_moves_is_executed_with_that_motion(machine, svc):
     """The axis is jogging when the COMP arrives: its offset is executed with that
     motion (there is no standstill to hold it through)."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
+    x_at_100_mm(machine, svc)
     svc.write_name("SIM::target_position", X, 2_000_000)
     machine.step(5)
     machine.start_program("X[COMP OFF TEMP NO_MOVE]\n", mdi=True)
@@ -351,20 +361,11 @@ def test_monitoring_sees_a_no_move_switch_of_the_same_cycle(machine, svc):
 def test_a_manual_move_executes_a_held_offset(machine, svc):
     """The next axis motion need not come from the program: a `SIM::target_position`
     write (jog) moves the axis and executes the held offset."""
-    svc.write_name("SIM::set_position", X, 1_000_000)
-    machine.step(25)
-    run(
-        machine,
-        svc,
-        "X[COMP OFF TEMP NO_MOVE]\nM30\n",
-        X,
-        "TEMPC::actual_offset",
-        "TEMPC::activated",
-    )
+    hold_x_temp(machine, svc)
     machine.step(100)
     assert svc.read_name("TEMPC::actual_offset", X) == 4040  # still held
     svc.write_name("SIM::target_position", X, 1_010_000)  # applied at the next cycle
-    held = 40 + 4000e-6 * (1_000_000 - 100)
+    held = HELD_X
     for k in range(1, 21):
         machine.run_cycle()
         assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k

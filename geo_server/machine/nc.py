@@ -209,13 +209,14 @@ _TOKEN = re.compile(
 #: Warnings of one program kept for the error list (the rest are counted in one line).
 MAX_WARNINGS = 20
 _GOTO_TARGET = re.compile(r"\s*(?:\[\s*N(\d+)\s*\]|N(\d+))")
+#: The axis exchange commands, as a regular expression alternative.
+_EXCHANGE_COMMANDS = r"PUT\s+AX|AX\s+RELEASE|CALL\s+AX"
 #: Axis exchange: `#PUT AX [X, B]`, `#PUT AX ALL`, `#AX RELEASE […]`, `#CALL AX [X, 1, 0]`,
 #: programmed alone in their block (an optional block number first).
 _AXIS_EXCHANGE = re.compile(
-    r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*(?P<cmd>PUT\s+AX|AX\s+RELEASE|CALL\s+AX)\b"
-    r"\s*(?P<rest>.*)"
+    rf"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*(?P<cmd>{_EXCHANGE_COMMANDS})\b\s*(?P<rest>.*)"
 )
-_EXCHANGE_WORD = re.compile(r"#\s*(?:PUT\s+AX|AX\s+RELEASE|CALL\s+AX)\b")
+_EXCHANGE_WORD = re.compile(rf"#\s*(?:{_EXCHANGE_COMMANDS})\b")
 _EXCHANGE_GROUP = re.compile(r"\s*\[(?P<content>[^\]]*)\]")
 
 

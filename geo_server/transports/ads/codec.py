@@ -93,6 +93,10 @@ AMS_TCP_ROUTER_COMMANDS = frozenset(
 #: Largest router command frame: nothing a client sends the router carries more.
 MAX_ROUTER_FRAME = 64
 
+#: AMS port of the TwinCAT system service (ReadState, ReadDeviceInfo, WriteControl; the
+#: port UDP discovery names).
+SYSTEM_SERVICE_PORT = 10000
+
 #: Windows FILETIME epoch (1601-01-01) to Unix epoch in 100 ns ticks.
 FILETIME_UNIX_OFFSET = 116_444_736_000_000_000
 

@@ -20,7 +20,7 @@ import struct
 from dataclasses import dataclass, field
 
 from geo_server.errors import GeoError
-from geo_server.transports.ads.codec import netid_from_bytes, netid_to_bytes
+from geo_server.transports.ads.codec import SYSTEM_SERVICE_PORT, netid_from_bytes, netid_to_bytes
 
 MAGIC = 0x71146603
 SERVICE_DISCOVERY = 1
@@ -29,8 +29,6 @@ RESPONSE = 0x8000_0000
 TAG_STATUS = 1
 TAG_TC_VERSION = 3
 TAG_HOST_NAME = 5
-#: The AMS port the datagrams name (the system service).
-SYSTEM_SERVICE_PORT = 10000
 #: Largest datagram looked at (an add-route request is about 100 bytes).
 MAX_DATAGRAM = 2048
 

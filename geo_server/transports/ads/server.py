@@ -42,6 +42,7 @@ from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
 from geo_server.transports.ads import codec, discovery, symbols
 from geo_server.transports.ads.codec import (
+    SYSTEM_SERVICE_PORT,
     AddNotificationRequest,
     AdsState,
     AmsHeader,
@@ -913,8 +914,6 @@ class AdsServer:
 
 #: A sum write item: the object address and data, or the ADS code it earned already.
 WriteItem = tuple[int, int, bytes] | int
-#: AMS port of the TwinCAT system service (ReadState, ReadDeviceInfo, WriteControl).
-SYSTEM_SERVICE_PORT = 10000
 #: AMS ports the router hands to clients (TwinCAT's ADS clients get 30000 and up).
 FIRST_CLIENT_PORT, LAST_CLIENT_PORT = 32768, 65535
 _RESERVED_PORTS = frozenset({GEO_AMS_PORT, SYSTEM_SERVICE_PORT})

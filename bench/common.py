@@ -128,13 +128,21 @@ class ServerProcess:
 
 
 def geo_server_argv(
-    cycle_ms: float, ports: dict[str, int], machine: str = "local", extra: Sequence[str] = ()
+    cycle_ms: float,
+    ports: dict[str, int],
+    machine: str = "local",
+    extra: Sequence[str] = (),
+    engine: str = "punctual",
 ) -> list[str]:
-    """`geo-server run --homed` on the given ports (zenoh, modbus, ads)."""
+    """`geo-server run --homed` on the given ports (zenoh, modbus, ads). The benchmarks
+    of cycle lateness and request latency measure the punctual engine unless told
+    otherwise (`bench/cpu.py` and `bench/engine.py` compare the two)."""
     return [
         str(Path(PYTHON).with_name("geo-server")),
         "run",
         "--homed",
+        "--engine",
+        engine,
         "--cycle-ms",
         str(cycle_ms),
         "--machine",

@@ -95,10 +95,12 @@ def main() -> int:
 
         machine: Any = RemoteMachine(local.cfg, cycle_s=local.cycle_s, homed=args.homed)
         setup = partial(keep_and_dump, own.stats_size, own.dump) if own.stats_size else None
-        scheduler = ProcessScheduler(machine, args.mode, args.cycles, child_setup=setup)
+        scheduler = ProcessScheduler(
+            machine, args.mode, args.cycles, child_setup=setup, engine=args.engine
+        )
     else:
         machine = local
-        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
+        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
         finish = keep_and_dump(own.stats_size, own.dump, scheduler) if own.stats_size else None
     service = ObjectService(machine, scheduler)
     print(

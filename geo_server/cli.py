@@ -166,12 +166,14 @@ def _run(args: argparse.Namespace) -> int:
         machine = RemoteMachine(
             cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
         )
-        scheduler = ProcessScheduler(machine, mode=args.mode, max_cycles=args.cycles)
+        scheduler = ProcessScheduler(
+            machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine
+        )
     else:
         machine = Machine(
             cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
         )
-        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles)
+        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
     service = ObjectService(machine, scheduler)
     if args.program:
         try:
@@ -385,7 +387,7 @@ class ProgramReport:
     def update(self) -> None:
         if self._done:
             return
-        snap = self.service.snapshot
+        snap = self.service.fresh()
         running = snap.value(self._running, 0)
         line = snap.value(self._line, 0)
         if not self._started and (running or line):  # (or it ran between two looks)
@@ -455,6 +457,16 @@ def build_parser() -> argparse.ArgumentParser:
         default="realtime",
         help="realtime: one cycle per --cycle-ms on the clock (default); free: cycles back "
         "to back as fast as the host can (benchmarks, fast simulations)",
+    )
+    r.add_argument(
+        "--engine",
+        choices=("exact", "punctual"),
+        default="exact",
+        help="how real time is kept: exact (default) computes cycles late, in batches, "
+        "and skips those of a machine at rest, yet every read, write, publication and "
+        "notification sees exactly the cycle due at its wall time (a fraction of a core "
+        "instead of most of one); punctual computes every cycle on its deadline "
+        "(sleep, then spin)",
     )
     r.add_argument(
         "--cycle-in",

@@ -198,9 +198,15 @@ class ObjectService:
         age = time.monotonic() - max(self.machine.snapshot_time, self._started_at)
         return age if age > self.limits.stall_after else 0.0
 
+    def fresh(self) -> Snapshot:
+        """The snapshot of the cycle due now (docs/design.md §13): the exact engine
+        catches up first; other engines publish on their own."""
+        self.scheduler.sync()
+        return self.machine.snapshot
+
     def current(self) -> Snapshot:
-        """The latest snapshot, or 0x707 while the GEO cycle is stalled."""
-        snap = self.machine.snapshot
+        """The snapshot of the cycle due now, or 0x707 while the GEO cycle is stalled."""
+        snap = self.fresh()
         stalled = self.stalled_for()
         if stalled:
             raise AdsError(
@@ -344,7 +350,7 @@ class ObjectService:
                 raise result.error()
             return resolved(result)
         self._refuse_when_stalled()
-        return self.machine.submit(
+        return self.scheduler.submit(
             WriteObjects(tuple((w.obj.name, w.axis, w.value) for w in writes))
         )
 
@@ -517,7 +523,7 @@ class ObjectService:
         except NcError as exc:
             raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
         self._refuse_when_stalled()
-        return self.machine.submit(StartProgram(prog, True))
+        return self.scheduler.submit(StartProgram(prog, True))
 
     async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
         """`run_nc` parsed in a worker thread; returns the cycle that started it."""
@@ -528,7 +534,7 @@ class ObjectService:
     def reset(self) -> Pending:
         """CNC reset at the next cycle boundary: program stopped, axes stopped."""
         self._refuse_when_stalled()
-        return self.machine.submit(Reset())
+        return self.scheduler.submit(Reset())
 
     async def reset_applied(self, *, timeout: float | None = None) -> int:
         await self.settle(self.reset(), timeout)
@@ -638,7 +644,7 @@ class ObjectService:
             )
         try:
             self._refuse_when_stalled()
-            self.settle_sync(self.machine.submit(Reload(new)), self.limits.swap_timeout)
+            self.settle_sync(self.scheduler.submit(Reload(new)), self.limits.swap_timeout)
         except AdsError as exc:
             return CommandResult(False, "reload", errors=[exc.message], code=exc.code)
         return CommandResult(True, "reload", warnings=warnings, files=new.list_files)

@@ -10,6 +10,7 @@ type only when encoded: SGN32 rounds half away from zero (docs/design.md §3).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +41,16 @@ class ObjectLayout:
         return self.machine_index[self.dictionary.by_name(name).name]
 
 
+#: Windows FILETIME epoch (1601-01-01) to Unix epoch in 100 ns ticks: the time base of
+#: `Snapshot.stamp` and of ADS time stamps.
+FILETIME_UNIX_OFFSET = 116_444_736_000_000_000
+
+
+def filetime_now() -> int:
+    """Now as a Windows FILETIME: 100 ns ticks since 1601-01-01."""
+    return time.time_ns() // 100 + FILETIME_UNIX_OFFSET
+
+
 def to_python(obj: ObjectDef, raw: float) -> Any:
     """The decoded value of an object as a reader sees it (bool, int or float)."""
     t = obj.type.name
@@ -64,6 +75,9 @@ class Snapshot:
     machine: np.ndarray
     layout: ObjectLayout
     texts: tuple[str, ...] = ()
+    #: the cycle's place on the time line: Windows FILETIME (100 ns since 1601) of the
+    #: end of this cycle, `Machine.epoch + cycle · T` (what ADS notifications carry)
+    stamp: int = 0
 
     def slot(self, axis: int) -> int:
         return self.axes.index(axis)

@@ -417,13 +417,18 @@ def test_cyclic_interval_counts_from_the_last_sample(plc, service, loop_thread) 
     plc.del_device_notification(*handles)
 
 
-def test_cycle_hand_offs_are_coalesced(plc, ads, service, loop_thread) -> None:
-    """While the loop is busy, 50 cycles queue ONE hand-off, which samples the newest
-    snapshot; the interval then counts from that (late) sample."""
+def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
+    plc, ads, service, loop_thread
+) -> None:
+    """While the loop is busy, 50 cycles queue ONE hand-off; it then samples every
+    snapshot handed over, in cycle order, so the stream is the one a punctual loop
+    would have sent: every second cycle from the first one after the registration, each
+    sample with its own cycle's value and time stamp (docs/design.md §13)."""
     q: queue.Queue = queue.Queue()
 
     def callback(notification, _data) -> None:
-        q.put(plc.parse_notification(notification, pyads.PLCTYPE_UDINT)[2])
+        contents = notification.contents
+        q.put((plc.parse_notification(notification, pyads.PLCTYPE_UDINT)[2], contents.nTimeStamp))
 
     attr = pyads.NotificationAttrib(4, pyads.ADSTRANS_SERVERCYCLE, max_delay=0, cycle_time=2)
     handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
@@ -450,9 +455,11 @@ def test_cycle_hand_offs_are_coalesced(plc, ads, service, loop_thread) -> None:
         release.set()
     run_in(loop_thread, asyncio.sleep(0))
     assert hand_offs == [c0 + 50]
-    assert q.get(timeout=TIMEOUT) == c0 + 50  # the first sample: late, not lost
+    epoch = service.machine.epoch  # FILETIME of cycle 0; 1 ms = 10 000 ticks
+    expected = [(c, epoch + c * 10_000) for c in range(c0 + 1, c0 + 51, 2)]
+    assert [q.get(timeout=TIMEOUT) for _ in expected] == expected  # late, none lost
     assert step_sampled(service, loop_thread, 4) == [c0 + 51, c0 + 52, c0 + 53, c0 + 54]
-    assert [q.get(timeout=TIMEOUT) for _ in range(2)] == [c0 + 52, c0 + 54]
+    assert [q.get(timeout=TIMEOUT)[0] for _ in range(2)] == [c0 + 51, c0 + 53]
     assert hand_offs == [c0 + 50, c0 + 51, c0 + 52, c0 + 53, c0 + 54]
     with pytest.raises(queue.Empty):
         q.get(timeout=0.2)

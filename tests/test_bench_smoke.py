@@ -28,6 +28,8 @@ def test_bench_server_runs_and_dumps_its_cycles(tmp_path):
             "--no-modbus",
             "--no-ads",
             "--homed",
+            "--engine",
+            "punctual",  # every cycle computed on its deadline: 60 lateness records
             "--cycles",
             "60",
             "--status-period",

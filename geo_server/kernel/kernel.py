@@ -1301,6 +1301,22 @@ class Kernel:
         f = self._filter
         return bool(np.any(f.kidx[slot] != f.end[slot]) or self._pending[slot].any())
 
+    def at_rest(self) -> bool:
+        """True when a step with unchanged inputs would change nothing but the delay
+        line's write position: no sin² ramp under way, no step event pending, and the
+        friction delay line holds only zeros (so every position in it is alike)."""
+        f = self._filter
+        return (
+            not self._pending_any
+            and np.array_equal(f.kidx, f.end)
+            and not np.count_nonzero(self._fr_state.ring_flat)
+        )
+
+    def skip(self, n: int) -> None:
+        """`n` steps of a kernel `at_rest` with unchanged inputs (docs/design.md §13)."""
+        fs = self._fr_state
+        fs.ring_pos = (fs.ring_pos + n) % RING
+
     def set_selected(self, slot: int, kind: CompKind, on: bool) -> None:
         """COMP ON/OFF or a `TEMPC::activated` write (000 §5.1 p.94, §3.2 p.15)."""
         self.selected[slot, COLUMN[kind]] = bool(on)

@@ -43,7 +43,7 @@ from geo_server.machine.port import (
     resolved,
 )
 from geo_server.model import SELECTED_OBJECTS, CompKind, Diagnostic, MachineConfig
-from geo_server.snapshot import ObjectLayout, Snapshot
+from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
 from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
@@ -85,6 +85,13 @@ class Machine:
                 self.motion.home(slot)
         self.cycle = 0
         self.overruns = 0
+        #: FILETIME (100 ns ticks since 1601) of cycle 0; cycle c ends at epoch + c·T.
+        #: A real-time scheduler sets it when it starts; stepped, it is the creation time.
+        self.epoch = filetime_now()
+        self.period_ticks = round(self.cycle_s * 1e7)
+        #: cycles in a row that began at rest (`_at_rest`): from 2 on, a cycle changes
+        #: nothing but the counters and the twin's clock (`quiescent`)
+        self._rest_streak = 0
         self.kernel_ns = 0  # time of the last cycle's compensation kernel (status)
         self.player: Player | None = None
         self.events: deque[Event] = deque(maxlen=100)
@@ -134,6 +141,8 @@ class Machine:
         applied: list[tuple[Pending, Any, BaseException | None]] = []
         try:
             with self._cycle_lock:
+                rest = self._at_rest()
+                self._rest_streak = self._rest_streak + 1 if rest else 0
                 applied = self._apply_queue()
                 self._step_program()
                 self.motion.step()
@@ -165,6 +174,51 @@ class Machine:
                     pending.set_result(result)
                 else:
                     pending.set_exception(exc)
+        for listener in self.listeners:
+            listener(snap)
+        return snap
+
+    # ------------------------------------------------------------------ virtual time
+
+    def _at_rest(self) -> bool:
+        """Nothing queued, no program, no axis moving, the kernel at rest (docs/design.md
+        §13): a cycle that starts like this computes what the one before computed."""
+        if self._queue:
+            return False
+        player = self.player
+        if player is not None and player.running:
+            return False
+        if not self.motion.all_in_position():
+            return False
+        return self.kernel.at_rest()
+
+    @property
+    def quiescent(self) -> bool:
+        """True when the next cycles would publish the snapshot of this one but for the
+        counters and the twin's clock and temperatures: two cycles in a row began at
+        rest and nothing has been queued since (docs/design.md §13)."""
+        return self._rest_streak >= 2 and self._at_rest()
+
+    def skip(self, n: int) -> None:
+        """`n` cycles of a `quiescent` machine without computing them: the counter, the
+        kernel's delay line position and the twin (its thermal and sensor events, in
+        their cycles) advance exactly as `n` calls of `run_cycle` would advance them.
+        No snapshot is built; `publish` builds the one of the cycle reached."""
+        if n <= 0:
+            return
+        with self._cycle_lock:
+            self.kernel.skip(n)
+            self.twin.advance(n, self._output, self.motion.pos, self.spindle_on)
+            self.cycle += n
+
+    def publish(self) -> Snapshot:
+        """Build and hand out the snapshot of the cycle reached, when `skip` has left the
+        published one behind (else nothing to do)."""
+        with self._cycle_lock:
+            if self.snapshot.cycle == self.cycle:
+                return self.snapshot
+            snap = self.snapshot = self._build_snapshot()
+            self.snapshot_time = monotonic()
         for listener in self.listeners:
             listener(snap)
         return snap
@@ -201,6 +255,10 @@ class Machine:
         with self._queue_lock:
             self._queue.append((op, pending))
         return pending
+
+    def has_queued(self) -> bool:
+        """Operations wait for the next cycle boundary."""
+        return bool(self._queue)
 
     def _withdraw(self, pending: Pending) -> bool:
         """Take a queued operation back; False once a cycle has taken it."""
@@ -363,6 +421,7 @@ class Machine:
             np.array(mach, dtype=float),
             self.layout,
             tuple(self._texts),
+            self.epoch + self.cycle * self.period_ticks,
         )
 
     # ------------------------------------------------------------------ events

@@ -206,4 +206,16 @@ class CycleRunner(Protocol):
     def step(self, n: int = 1) -> None:
         """Run `n` cycles now (stepped mode only)."""
 
+    def sync(self) -> None:
+        """Make the machine's snapshot the one of the cycle due now (the exact engine
+        computes late; others: nothing to do)."""
+
+    def submit(self, op: Operation) -> Pending:
+        """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the
+        machine has caught up)."""
+
+    def demand_every_cycle(self) -> Callable[[], None]:
+        """Publish every cycle's snapshot until the returned function is called (an
+        observer samples every cycle: ADS notifications)."""
+
     def status(self) -> dict[str, Any]: ...

@@ -24,6 +24,7 @@ import logging
 import multiprocessing
 import os
 import queue
+import select
 import signal
 import threading
 import time
@@ -40,7 +41,7 @@ from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_fr
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
-from geo_server.machine.scheduler import Scheduler
+from geo_server.machine.scheduler import ENGINES, Scheduler
 from geo_server.model import Diagnostic, MachineConfig
 from geo_server.snapshot import Snapshot
 
@@ -54,6 +55,11 @@ STATUS_EVERY = 100  # cycles between two status reports from the child
 SEND_BACKLOG = 8 * 1024 * 1024
 #: Seconds `ProcessScheduler.start` waits for the child's first cycle.
 FIRST_FRAME_TIMEOUT = 30.0
+#: Exact engine: the longest a request waits for the cycle process to catch up, and how
+#: long without any frame (it sends one at least every `scheduler.IDLE_WAKE`) makes it
+#: count as not responding (then requests are not held up: the stall watch answers).
+SYNC_WAIT = 0.05
+SYNC_DEAD = 0.1
 
 
 def _outcome(fut: Future[Any]) -> tuple[bool, Any]:
@@ -76,9 +82,13 @@ def _child_main(
     max_cycles: int,
     slots: SlotTable,
     setup: Callable[[Scheduler], Callable[[], None] | None] | None = None,
+    engine: str = "exact",
+    wake_conn: Any = None,
 ) -> None:
     """Entry point of the GEO-cycle process. `setup` (picklable; benchmarks) may adjust
-    the scheduler before the first cycle and return a function to run after the last."""
+    the scheduler before the first cycle and return a function to run after the last.
+    With the exact engine the process sleeps on its two pipes: commands, and wake-ups
+    from a server that needs the cycle due now (`ProcessScheduler.sync`)."""
     # Ctrl-C in a terminal reaches the whole process group: the server stops the cycle
     # (its `stop` message), the child must not die first of KeyboardInterrupt.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -86,10 +96,16 @@ def _child_main(
     os.set_blocking(fd, False)
     _raise_priority()
     machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
-    sched = Scheduler(machine, mode=mode, max_cycles=max_cycles)
+    sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
     out, dec = OutBuffer(), FrameDecoder()
     acks: list[tuple[int, bool, Any]] = []
     events: list[Event] = []
+    exact = sched.exact
+    wake_fd = wake_conn.fileno() if wake_conn is not None else -1
+    if wake_fd >= 0:
+        os.set_blocking(wake_fd, False)
+    held: list[Snapshot] = []  # exact engine: the newest snapshot not framed yet
+    sent = [-1, 0]  # cycles of the last snapshot framed and of the last status
 
     def on_done(seq: int, fut: Future[Any]) -> None:
         ok, payload = _outcome(fut)
@@ -106,37 +122,89 @@ def _child_main(
                 return
             for msg in dec.feed(data):
                 if msg[0] == "op":
-                    _, seq, slot, op = msg
+                    _, seq, slot, op, arrival = msg
                     if slots.take(slot):  # else withdrawn: the server answered already
+                        if exact:  # the cycles before its arrival run without it
+                            sched.advance(min(arrival, sched.due()))
                         pending = machine.submit(op)
                         pending.add_done_callback(functools.partial(on_done, seq))
+                elif msg[0] == "every":
+                    sched._every = int(msg[1])
                 elif msg[0] == "stop":
                     sched.request_stop()
 
+    def frame(snap: Snapshot, status: dict[str, Any] | None) -> tuple[Any, ...]:
+        return (
+            "cycle",
+            snap.cycle,
+            snap.values.tobytes(),
+            snap.machine.tobytes(),
+            snap.texts,
+            acks[:],
+            events[:],
+            status,
+            snap.stamp,
+            sched.t0,
+        )
+
     def on_cycle(snap: Snapshot) -> None:
-        status = sched.status() if snap.cycle % STATUS_EVERY == 0 else None
+        # every STATUS_EVERY cycles (the exact engine skips over cycles: at the first
+        # snapshot of each new hundred)
+        status = None
+        if snap.cycle // STATUS_EVERY != sent[1] // STATUS_EVERY:
+            status = sched.status()
+            sent[1] = snap.cycle
         quiet = not acks and not events and status is None
-        msg = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes(), snap.texts)
-        out.add((*msg, acks[:], events[:], status), droppable=quiet)
+        if exact and quiet and not sched._every:
+            # framed once the batch is done (`wait`), unless a newer one comes first
+            held[:] = [snap]
+            return
+        held.clear()
+        out.add(frame(snap, status), droppable=quiet and not sched._every)
+        sent[0] = snap.cycle
         acks.clear()
         events.clear()
+        flush()
+
+    def flush() -> None:
         try:
             out.flush(lambda b: os.write(fd, b))
         except OSError:  # the server process is gone
             sched.request_stop()
 
+    def wait(seconds: float) -> None:
+        """Exact engine: frame the batch's last snapshot, then sleep until the deadline,
+        a command or a wake-up, and take the commands."""
+        if held and held[0].cycle > sent[0]:
+            out.add(frame(held[0], None), droppable=True)
+            sent[0] = held[0].cycle
+        held.clear()
+        flush()
+        fds = [fd] if wake_fd < 0 else [fd, wake_fd]
+        try:
+            ready, _, _ = select.select(fds, [], [], seconds)
+        except InterruptedError:
+            ready = []
+        if wake_fd in ready:
+            with contextlib.suppress(BlockingIOError, OSError):
+                while os.read(wake_fd, 4096):
+                    pass
+        if fd in ready:
+            drain()
+
     machine.subscribe(on_cycle)
     machine.subscribe_events(events.append)
-    sched.before_cycle = drain
+    if exact:
+        sched.waiter = wait
+    else:
+        sched.before_cycle = drain
     finish = setup(sched) if setup is not None else None
     sched.run_here()
     if finish is not None:
         finish()
     # The last cycle once more (never dropped) with the final status, then everything
     # still buffered, written blocking: the server reads until end of file.
-    snap = machine.snapshot
-    final = ("cycle", snap.cycle, snap.values.tobytes(), snap.machine.tobytes(), snap.texts)
-    out.add((*final, acks[:], events[:], sched.status()))
+    out.add(frame(machine.snapshot, sched.status()))
     os.set_blocking(fd, True)
     with contextlib.suppress(OSError):
         out.flush(lambda b: os.write(fd, b))
@@ -215,6 +283,14 @@ class RemoteMachine:
         self._lock = threading.Lock()
         self.conn, self.child_conn = ctx.Pipe(duplex=True)
         self._fd = self.conn.fileno()
+        # exact engine: a one-way pipe whose bytes only wake the cycle process up
+        self.wake_conn, self._wake_w = ctx.Pipe(duplex=False)
+        self._wake_fd = self._wake_w.fileno()
+        os.set_blocking(self._wake_fd, False)
+        #: the cycle process's time line: cycle c ends at monotonic ns t0 + c·T
+        self.t0 = 0
+        #: notified whenever a frame arrives (`ProcessScheduler.sync` waits on it)
+        self.arrived = threading.Condition()
         self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._backlog = 0  # bytes queued for the child and not written yet
         self._sender = threading.Thread(target=self._send_loop, name="geo-cycle-send", daemon=True)
@@ -228,9 +304,10 @@ class RemoteMachine:
 
     # ------------------------------------------------------------------ MachinePort
 
-    def submit(self, op: Operation) -> Pending:
+    def submit(self, op: Operation, arrival: int = 0) -> Pending:
         """Queue `op` in the cycle process; the future resolves after the cycle that
-        carried it out has been received (its snapshot is then `self.snapshot`)."""
+        carried it out has been received (its snapshot is then `self.snapshot`).
+        `arrival`: the cycle due when it arrived (exact engine: applied in the next)."""
         with self._lock:
             if self.closed:
                 raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the GEO cycle process ended")
@@ -249,7 +326,7 @@ class RemoteMachine:
             seq = self._seq
             pending = Pending(lambda _p: self.slots.withdraw(slot))
             self._pending[seq] = (pending, slot, op)
-            frame = encode_frame(("op", seq, slot, op))
+            frame = encode_frame(("op", seq, slot, op, arrival))
             self._backlog += len(frame)
             self._outbox.put(frame)
         return pending
@@ -270,9 +347,19 @@ class RemoteMachine:
 
     def stop(self) -> None:
         """Ask the cycle process to end after its current cycle."""
+        self.control(("stop",))
+        self.wake()
+
+    def control(self, message: tuple[Any, ...]) -> None:
+        """Send a message that is not an operation (stop, every-cycle demand)."""
         with self._lock:
             if not self.closed:
-                self._outbox.put(encode_frame(("stop",)))
+                self._outbox.put(encode_frame(message))
+
+    def wake(self) -> None:
+        """Wake the sleeping cycle process up: it catches up to now and publishes."""
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.write(self._wake_fd, b"\0")
 
     # ------------------------------------------------------------------ to the child
 
@@ -313,6 +400,8 @@ class RemoteMachine:
                 self.closed = True
                 pending, self._pending = self._pending, {}
             self._outbox.put(None)
+            with self.arrived:
+                self.arrived.notify_all()
             for fut, _slot, _op in pending.values():
                 if fut.set_running_or_notify_cancel():
                     fut.set_exception(
@@ -320,7 +409,8 @@ class RemoteMachine:
                     )
 
     def _dispatch(self, msg: tuple[Any, ...]) -> None:
-        _, cycle, values, machine, texts, acks, events, status = msg
+        _, cycle, values, machine, texts, acks, events, status, stamp, t0 = msg
+        self.t0 = t0
         # Events first, as in the cycle itself (an event is recorded while its cycle runs,
         # before that cycle's snapshot is published): whoever sees the snapshot of a program
         # that stopped has already been told why (the `run --program` report relies on it).
@@ -335,9 +425,12 @@ class RemoteMachine:
             np.frombuffer(machine),
             self.layout,
             texts,
+            stamp,
         )
         self.snapshot_time = time.monotonic()
         self.first_frame.set()
+        with self.arrived:
+            self.arrived.notify_all()
         if status is not None:
             self.status = status
         for seq, ok, payload in acks:
@@ -377,11 +470,17 @@ class ProcessScheduler:
         mode: str = "realtime",
         max_cycles: int = 0,
         child_setup: Callable[[Scheduler], Callable[[], None] | None] | None = None,
+        engine: str = "exact",
     ) -> None:
         if mode not in ("realtime", "free"):
             raise ValueError("the cycle process runs in real time or free-running")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, not {engine!r}")
         self.machine = machine
         self.mode = mode
+        self.engine = engine
+        self._every = 0
+        self._every_lock = threading.Lock()
         self.max_cycles = max_cycles
         self.child_setup = child_setup
         self._proc: Any = None
@@ -404,6 +503,8 @@ class ProcessScheduler:
                 self.max_cycles,
                 m.slots,
                 self.child_setup,
+                self.engine,
+                m.wake_conn,
             ),
             name="geo-cycle",
             daemon=True,
@@ -411,6 +512,7 @@ class ProcessScheduler:
         with _sigint_ignored():  # inherited through exec: ignored from its first line on
             self._proc.start()
         m.child_conn.close()  # the child holds it now; EOF reaches us when it ends
+        m.wake_conn.close()
         self._pump = threading.Thread(target=m.pump, name="geo-cycle-pump", daemon=True)
         self._pump.start()
         # Serve from the child's snapshots only: until its first frame arrives (process
@@ -439,10 +541,59 @@ class ProcessScheduler:
     def step(self, n: int = 1) -> None:
         raise RuntimeError("step() needs the stepped mode (the cycle runs in its own process)")
 
+    @property
+    def exact(self) -> bool:
+        return self.mode == "realtime" and self.engine == "exact"
+
+    def due(self) -> int:
+        """The cycle an observer must see now (the cycle process's time line)."""
+        m = self.machine
+        return (time.monotonic_ns() - m.t0) // round(m.cycle_s * 1e9)
+
+    def sync(self) -> None:
+        """Exact engine: wake the cycle process and wait (briefly) for the snapshot of
+        the cycle due now. A cycle process that has sent nothing for `SYNC_DEAD`
+        seconds (stopped, hung) is not waited for: the stall watch answers instead."""
+        if not self.exact or not self.running:
+            return
+        m = self.machine
+        target = self.due()
+        if m.snapshot.cycle >= target or time.monotonic() - m.snapshot_time > SYNC_DEAD:
+            return
+        m.wake()
+        with m.arrived:
+            m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, SYNC_WAIT)
+
+    def submit(self, op: Operation) -> Pending:
+        """Queue `op` for the cycle after the one due now (exact engine: the cycle
+        process runs the cycles up to its arrival without it)."""
+        return self.machine.submit(op, self.due() if self.exact else 0)
+
+    def demand_every_cycle(self) -> Callable[[], None]:
+        """`Scheduler.demand_every_cycle`, told to the cycle process."""
+        with self._every_lock:
+            self._every += 1
+            if self._every == 1:
+                self.machine.control(("every", 1))
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            with self._every_lock:
+                if released:
+                    return
+                released = True
+                self._every -= 1
+                if self._every == 0:
+                    self.machine.control(("every", 0))
+
+        return release
+
     def status(self) -> dict[str, Any]:
         st = dict(self.machine.status)
         st["cycle"] = self.machine.cycle
         st["mode"] = self.mode
+        st["engine"] = self.engine if self.mode == "realtime" else self.mode
         st["cycle_in"] = "process"
         st["cycle_pid"] = self.pid
         return st

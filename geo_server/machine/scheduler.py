@@ -1,8 +1,20 @@
-"""When GEO cycles run: stepped, free-running or real time (docs/design.md §5).
+"""When GEO cycles run: stepped, free-running or real time (docs/design.md §5, §13).
 
 - **stepped**: no thread; cycles run only when `step(n)` is called (tests: deterministic).
 - **free**: a thread runs cycles back to back as fast as it can (benchmarks).
-- **realtime**: a thread runs one cycle per period on a monotonic-clock deadline.
+- **realtime**, engine **exact** (the default): *observation-exact virtual time*
+  (docs/design.md §13). Cycle c belongs to the instant t0 + c·T; whoever looks at the
+  machine at wall time t — a read, a write's acknowledgement, a publication, a
+  notification sample — sees the state after cycle floor((t − t0)/T), and a write that
+  arrives at t is applied in the cycle after that one. When the cycles are computed is
+  the engine's business: it sleeps, computes in batches (`sync()` before every answer,
+  every `batch` cycles while something moves, every `idle_wake` at rest) and skips the
+  cycles of a quiescent machine without computing them (`Machine.skip`: the same
+  numbers, the cost of the twin's events only). While someone samples every cycle
+  (`demand_every_cycle`: ADS notifications) every cycle's snapshot is published, in the
+  batch, with its own time stamp.
+- **realtime**, engine **punctual**: a thread runs one cycle per period on a
+  monotonic-clock deadline.
   The wait sleeps until a *spin margin* before the deadline and then spins: a sleep
   alone wakes up hundreds of µs late on a loaded host (docs/design.md §5). The margin
   adapts, because how far `time.sleep` overshoots differs from host to host: a sleep
@@ -27,12 +39,21 @@ from typing import Any
 import numpy as np
 
 from geo_server.machine.machine import Machine
+from geo_server.machine.port import Operation, Pending
 
 log = logging.getLogger(__name__)
 
 SPIN_NS = 400_000  # initial spin margin; adapted to the sleeps this machine delivers
 SPIN_MIN_NS = 150_000
 MODES = ("stepped", "free", "realtime")
+ENGINES = ("exact", "punctual")
+#: exact engine: cycles computed per wake while the machine is not quiescent (the most
+#: a request ever waits for, docs/design.md §13)
+BATCH = 4
+#: exact engine: how long it sleeps at rest (seconds) — bounds the catch-up a request
+#: pays after a long quiet stretch (two thermal events of the twin) and keeps the
+#: published snapshot fresh for the stall watch
+IDLE_WAKE = 0.02
 
 
 class CycleStats:
@@ -90,14 +111,32 @@ class Scheduler:
         clock: Callable[[], int] = time.monotonic_ns,
         sleep: Callable[[float], None] = time.sleep,
         max_cycles: int = 0,
+        engine: str = "exact",
     ) -> None:
         """`clock` (ns) and `sleep` (s) are the real-time loop's view of time; tests pass
         a virtual clock to make catch-up and overruns deterministic. With `max_cycles` the
-        cycle thread ends by itself once the machine has run that many cycles."""
+        cycle thread ends by itself once the machine has run that many cycles. `engine`
+        chooses how real time is kept (module docstring)."""
         if mode not in MODES:
             raise ValueError(f"scheduler mode must be one of {MODES}, not {mode!r}")
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, not {engine!r}")
         self.machine = machine
         self.mode = mode
+        self.engine = engine
+        #: exact engine: the monotonic ns at which cycle 0 ended (cycle c at t0 + c·T)
+        self.t0 = 0
+        self.batch = BATCH
+        self.idle_wake = IDLE_WAKE
+        #: exact engine: called with the seconds to wait; returns early when woken (the
+        #: cycle process waits on its command pipe instead)
+        self.waiter: Callable[[float], None] | None = None
+        self._engine_lock = threading.RLock()
+        self._wake = threading.Event()
+        self._every = 0  # observers that sample every cycle (`demand_every_cycle`)
+        self._every_lock = threading.Lock()
+        self.computed = 0  # exact engine: cycles computed (the rest were skipped at rest)
+        self.wakes = 0
         self.max_catchup = max_catchup
         self.max_cycles = max_cycles
         #: Called on the cycle thread right before each cycle (the process mode drains
@@ -113,6 +152,7 @@ class Scheduler:
         self.skipped = 0
         self._summary: tuple[int, dict[str, float]] = (-1, {})
         self._punctual = 0
+        self._here = False  # the exact loop runs in the caller's thread (`run_here`)
 
     @property
     def period_ns(self) -> int:
@@ -128,22 +168,37 @@ class Scheduler:
         # transports' threads (docs/design.md §5).
         sys.setswitchinterval(0.0002)
         self._stop.clear()
-        target = self._run_free if self.mode == "free" else self._run_realtime
-        self._thread = threading.Thread(target=target, name="geo-cycle", daemon=True)
+        if self.exact:
+            self._begin_timeline()  # before any request can sync against it
+        self._thread = threading.Thread(target=self._loop(), name="geo-cycle", daemon=True)
         self._thread.start()
 
     def run_here(self) -> None:
         """Run the free / real-time loop in the calling thread until `stop()` or
         `max_cycles` (the GEO-cycle process runs it in its main thread)."""
         self._stop.clear()
-        (self._run_free if self.mode == "free" else self._run_realtime)()
+        if self.exact:
+            self._begin_timeline()
+        self._loop()()
+
+    def _loop(self) -> Callable[[], None]:
+        if self.mode == "free":
+            return self._run_free
+        return self._run_exact if self.exact else self._run_realtime
+
+    @property
+    def exact(self) -> bool:
+        """Real time kept by the observation-exact engine."""
+        return self.mode == "realtime" and self.engine == "exact"
 
     def request_stop(self) -> None:
         """Ask the loop to end after its current cycle (from any thread; no waiting)."""
         self._stop.set()
+        self._wake.set()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -162,6 +217,138 @@ class Scheduler:
             self.stats.record(
                 0.0, (time.perf_counter_ns() - t0) / 1000, self.machine.kernel_ns / 1000
             )
+
+    # ------------------------------------------------------------------ exact engine
+
+    def _begin_timeline(self) -> None:
+        """Put the machine's present cycle at now on both clocks: t0 on the monotonic
+        clock, the FILETIME epoch on the wall clock (the notification stamps)."""
+        m = self.machine
+        now, wall = self._clock(), time.time_ns()
+        self.t0 = now - m.cycle * self.period_ns
+        m.epoch = wall // 100 - m.cycle * m.period_ticks
+
+    def due(self, now: int | None = None) -> int:
+        """The cycle an observer at monotonic time `now` (ns) must see."""
+        t = self._clock() if now is None else now
+        return (t - self.t0) // self.period_ns
+
+    def sync(self) -> None:
+        """Exact engine: compute (or skip) the cycles up to now before an observer looks
+        (from any thread; the caller computes them). Other modes: nothing to do."""
+        if not self.exact or not self.running_exact:
+            return
+        with self._engine_lock:
+            self.advance(self.due())
+
+    @property
+    def running_exact(self) -> bool:
+        return self.exact and (self.running or self._here)
+
+    def submit(self, op: Operation) -> Pending:
+        """Queue `op` so that it is applied in the cycle after the one due now (docs/
+        design.md §13): the machine first catches up to now, so an op never lands in a
+        cycle that belongs to the past; the engine is then woken to run the next cycle
+        on its deadline."""
+        if not self.running_exact:
+            return self.machine.submit(op)
+        with self._engine_lock:
+            self.advance(self.due())
+            pending = self.machine.submit(op)
+        self._wake.set()
+        return pending
+
+    def demand_every_cycle(self) -> Callable[[], None]:
+        """An observer samples every cycle (ADS notifications): until the returned
+        function is called, every cycle's snapshot is published, also at rest."""
+        with self._every_lock:
+            self._every += 1
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            with self._every_lock:
+                if not released:
+                    released = True
+                    self._every -= 1
+
+        return release
+
+    def advance(self, target: int) -> None:
+        """Bring the machine to cycle `target` (call with the engine lock held): compute
+        the cycles that do something, skip those of a quiescent machine, publish the
+        snapshot reached. Behind by more than `max_lag` cycles that must be computed
+        (the host cannot keep up) the time line moves on instead: an overrun, counted
+        with the cycles given up, as the punctual engine does."""
+        m = self.machine
+        if self.max_cycles:
+            target = min(target, self.max_cycles)
+        lag = target - m.cycle
+        if lag <= 0:
+            return
+        if lag > self.max_lag and not m.quiescent:
+            give_up = lag - 1
+            self.t0 += give_up * self.period_ns
+            m.epoch += give_up * m.period_ticks
+            m.overruns += 1
+            self.skipped += give_up
+            target = m.cycle + 1
+        every = self._every
+        rec, clock = self.stats.record, time.perf_counter_ns
+        while m.cycle < target and not self._stop.is_set():
+            if m.quiescent:
+                if not every:
+                    m.skip(target - m.cycle)
+                    break
+                m.skip(1)
+                m.publish()
+                continue
+            t0 = clock()
+            self._guarded_cycle()
+            self.computed += 1
+            rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
+        m.publish()
+
+    @property
+    def max_lag(self) -> int:
+        """Cycles the exact engine computes in one catch-up before it calls it an overrun
+        (a stall of the host, not a batch): at least a second of cycles."""
+        return max(self.max_catchup, 10 * self.batch, round(1.0 / self.machine.cycle_s))
+
+    def _next_wake(self, now: int) -> int:
+        """When the engine must look again (monotonic ns): an operation waits for the
+        next cycle's deadline, a machine that moves (or an observer of every cycle)
+        for the end of the next batch; a quiescent machine only for `idle_wake`."""
+        m = self.machine
+        if m.has_queued():
+            return self.t0 + (m.cycle + 1) * self.period_ns
+        if self._every or not m.quiescent:
+            return self.t0 + (m.cycle + self.batch) * self.period_ns
+        return now + int(self.idle_wake * 1e9)
+
+    def _run_exact(self) -> None:
+        clock = self._clock
+        self._here = threading.current_thread() is not self._thread
+        try:
+            while not self._stop.is_set() and not self._done():
+                self.wakes += 1
+                with self._engine_lock:
+                    self.advance(self.due())
+                    wake = self._next_wake(clock())
+                delay = (wake - clock()) / 1e9
+                if delay > 0:
+                    self._wait(delay)
+        finally:
+            self._here = False
+
+    def _wait(self, seconds: float) -> None:
+        if self.waiter is not None:
+            self.waiter(seconds)
+        elif self._sleep is not time.sleep:  # a virtual clock (tests)
+            self._sleep(seconds)
+        else:
+            self._wake.wait(seconds)
+            self._wake.clear()
 
     # ------------------------------------------------------------------ loops
 
@@ -241,6 +428,9 @@ class Scheduler:
             "cycle": m.cycle,
             "cycle_time_us": round(m.cycle_s * 1e6),
             "mode": self.mode,
+            "engine": self.engine if self.mode == "realtime" else self.mode,
+            "computed_cycles": self.computed,
+            "engine_wakes": self.wakes,
             "overruns": m.overruns,
             "spin_margin_us": round(self.spin_ns / 1000),
             "cycle_errors": self.cycle_errors,

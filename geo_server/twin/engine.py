@@ -73,6 +73,7 @@ class TwinEngine:
         self._rng = np.random.default_rng(cfg.seed)
         self._tmp = np.zeros(n)
         self._sign = np.zeros(n)
+        self._still = np.zeros(n)  # the velocities of a machine at rest
         self._setup_geometry(axes, slot)
         self._setup_thermal(axes, slot)
         # outputs (read by the machine's snapshot)
@@ -234,6 +235,51 @@ class TwinEngine:
         # count_nonzero: a plain C call (ndarray.any() goes through Python wrappers)
         if np.count_nonzero(np.not_equal(sign, self._sign_before)):
             self._motion_event(sign)
+        self._evaluate(output, command, velocity)
+
+    def advance(self, n: int, output: np.ndarray, command: np.ndarray, spindle: bool) -> None:
+        """`n` cycles of a machine at rest (every velocity 0, the same output and command
+        positions throughout) in the numbers `n` calls of `step` give, at the cost of the
+        events only (docs/design.md §13).
+
+        At rest `step` changes state only at a thermal update (every `thermal_every`
+        cycles) and at a sensor sample (its time reached): |v| adds nothing, no sign
+        changes, and the errors are a function of the positions and of the state the
+        events leave. So the events run in their cycle order, each at its own cycle
+        and time, and the errors are evaluated once, at the end."""
+        end = self.cycles + n
+        every = self.thermal_every
+        while True:
+            nxt = min((self.cycles // every + 1) * every, self._sample_cycle())
+            if nxt > end:
+                break
+            c = int(nxt)
+            self.cycles = c
+            self.time = c * self.dt
+            if c % every == 0:
+                self._thermal(spindle)
+            if self.time >= self._next_sample:
+                self._sample_sensors()
+        self.cycles = end
+        self.time = end * self.dt
+        self._evaluate(output, command, self._still)
+
+    def _sample_cycle(self) -> float:
+        """The first cycle after this one at which `step` takes a sensor sample."""
+        due = self._next_sample
+        if due == math.inf or self.dt <= 0:
+            return math.inf
+        c = max(self.cycles + 1, math.ceil(due / self.dt))
+        # `step` compares cycles·dt (a product) with the due time: match it exactly
+        while c - 1 > self.cycles and (c - 1) * self.dt >= due:
+            c -= 1
+        while c * self.dt < due:
+            c += 1
+        return c
+
+    def _evaluate(self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray) -> None:
+        """This cycle's error, true position, residual and friction current."""
+        tmp, sign = self._tmp, self._sign
         e = self.error
         # linear scale error and thermal expansion (A·pos + B, A and B from the
         # temperatures), lost motion and scatter: A·pos + offset

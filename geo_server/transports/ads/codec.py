@@ -39,6 +39,7 @@ from enum import IntEnum
 
 from geo_server.dictionary import TYPES as _dictionary_types
 from geo_server.errors import AdsErrorCode, GeoError
+from geo_server.snapshot import FILETIME_UNIX_OFFSET
 
 # ---------------------------------------------------------------------- constants
 
@@ -96,9 +97,6 @@ MAX_ROUTER_FRAME = 64
 #: AMS port of the TwinCAT system service (ReadState, ReadDeviceInfo, WriteControl; the
 #: port UDP discovery names).
 SYSTEM_SERVICE_PORT = 10000
-
-#: Windows FILETIME epoch (1601-01-01) to Unix epoch in 100 ns ticks.
-FILETIME_UNIX_OFFSET = 116_444_736_000_000_000
 
 
 class Command(IntEnum):

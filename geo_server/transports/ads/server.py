@@ -31,6 +31,7 @@ import contextlib
 import logging
 import struct
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, cast
@@ -75,6 +76,9 @@ log = logging.getLogger(__name__)
 
 #: Registrations sampled between two looks at the clock (keeps the budget check cheap).
 _SAMPLE_STEP = 32
+#: Snapshots handed from the cycle to the event loop and not sampled yet; beyond, the
+#: oldest go (their samples are delayed to a later cycle, never lost).
+HANDOFF_MAX = 2000
 
 
 @dataclass
@@ -213,13 +217,14 @@ class AdsServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: Callable[[], None] | None = None
         self._notify_invoke = 0
-        # Cycle thread -> loop hand-off of the newest snapshot (see `_on_cycle_thread`).
-        self._latest: tuple[Snapshot, int] | None = None
+        # Cycle thread -> loop hand-off of the cycles' snapshots (see `_on_cycle_thread`).
+        self._handed: deque[Snapshot] = deque(maxlen=HANDOFF_MAX)
         self._handoff_pending = False
-        # The sampling pass under way (with its FILETIME) and what it was begun from.
+        # The sampling pass under way (with its FILETIME).
         self._pass: tuple[SamplingPass, int] | None = None
-        self._pass_from: tuple[Snapshot, int] | None = None
         self._slice_pending = False
+        # While registrations exist the cycle publishes every cycle's snapshot.
+        self._every_cycle: Callable[[], None] | None = None
         self._major, self._minor, self._build = _version()
         self._symbols: symbols.SymbolTable | None = None
         self._udp: asyncio.DatagramTransport | None = None
@@ -256,7 +261,9 @@ class AdsServer:
             with contextlib.suppress(ValueError):
                 self._unsubscribe()
             self._unsubscribe = None
-        self._pass = self._pass_from = self._latest = None
+        self._pass = None
+        self._handed.clear()
+        self._demand(False)
         if self._udp is not None:
             self._udp.close()
             self._udp = None
@@ -386,6 +393,7 @@ class AdsServer:
             return self._add_notification(conn, packet.header, req)
         if isinstance(req, DeleteNotificationRequest):
             self.notifications.delete(conn, req.handle)
+            self._demand(len(self.notifications) > 0)
             return codec.result_response(0)
         if isinstance(req, ReadStateRequest):
             return codec.read_state_response(0, AdsState.RUN, 0)
@@ -467,6 +475,7 @@ class AdsServer:
             return self._add_notification(conn, packet.header, req)
         if isinstance(req, DeleteNotificationRequest):
             self.notifications.delete(conn, req.handle)
+            self._demand(len(self.notifications) > 0)
             return codec.result_response(0)
         if isinstance(req, ReadRequest | AddNotificationRequest):
             raise AdsError(
@@ -782,9 +791,19 @@ class AdsServer:
             ig, io = self._address(conn, req.index_group, req.index_offset)
             req = replace(req, index_group=ig, index_offset=io)
         reg = self.notifications.add(
-            conn, h.source, h.target, req, self.service.snapshot, hold_until=hold
+            conn, h.source, h.target, req, self.service.fresh(), hold_until=hold
         )
+        self._demand(True)
         return codec.add_notification_response(0, reg.handle)
+
+    def _demand(self, on: bool) -> None:
+        """Ask the engine for every cycle's snapshot while registrations exist (the
+        exact engine publishes only the cycles someone looks at, docs/design.md §13)."""
+        if on and self._every_cycle is None:
+            self._every_cycle = self.service.scheduler.demand_every_cycle()
+        elif not on and self._every_cycle is not None:
+            self._every_cycle()
+            self._every_cycle = None
 
     def _notification_getter(
         self, ig: int, io: int, length: int, snap: Snapshot
@@ -802,26 +821,28 @@ class AdsServer:
         return lambda later: later.encode(obj, axis)
 
     def _on_cycle_thread(self, snap: Snapshot) -> None:
-        """GEO cycle thread: hand the newest snapshot to the loop, when someone listens.
+        """GEO cycle thread: hand the cycle's snapshot to the loop, when someone listens.
 
-        At most one hand-off is queued at a time. One `call_soon_threadsafe` per cycle
-        (1000 a second, each also waking the loop through its self-pipe) piles up
-        callbacks whenever the loop is busy, and each of them would sample a snapshot
-        that is already stale. Instead the cycle thread stores the newest snapshot and
-        queues `_on_cycle` only when none is pending; `_on_cycle` samples whatever is
-        newest then. Sampling counts intervals in cycles (`NotificationTable.begin`),
-        so a snapshot the loop never saw delays a sample, it does not lose one.
+        Every snapshot is handed over, in cycle order (the exact engine publishes a
+        batch of cycles at once, each with its own time stamp, and the samples due in
+        each must be taken from it), but at most one hand-off callback is queued at a
+        time: one `call_soon_threadsafe` per cycle (each also waking the loop through its
+        self-pipe) piles up callbacks whenever the loop is busy. `_on_cycle` works
+        through all snapshots handed over. When the loop falls `HANDOFF_MAX` cycles
+        behind the oldest ones go: sampling counts intervals in cycles
+        (`NotificationTable.begin`), so a snapshot the loop never saw delays a sample,
+        it does not lose one.
         """
         if not len(self.notifications):
             return
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        # Store first, then test the flag (`_on_cycle` clears it, then reads): a snapshot
-        # stored after `_on_cycle` read `_latest` finds the flag cleared and queues a new
-        # hand-off, so the newest snapshot is never left unsampled. Plain attribute
-        # stores and loads are atomic under the GIL; no lock on the cycle thread.
-        self._latest = (snap, codec.unix_to_filetime(time.time()))
+        # Append first, then test the flag (`_on_cycle` clears it, then reads): a
+        # snapshot appended after `_on_cycle` looked finds the flag cleared and queues a
+        # new hand-off, so no snapshot is left unsampled. deque.append and popleft are
+        # atomic; no lock on the cycle thread.
+        self._handed.append(snap)
         if self._handoff_pending:
             return
         self._handoff_pending = True
@@ -849,30 +870,35 @@ class AdsServer:
         loop first answers the requests that arrived meanwhile on every transport. The
         rest of the pass still samples its own snapshot and carries its timestamp —
         values the client sees are those of the cycle they were due at, only later.
-        After a pass, a snapshot that arrived meanwhile is begun in a later iteration.
+        Passes follow each other in cycle order, one per snapshot handed over, within
+        the same budget; what the budget leaves waits for a later iteration.
         """
-        if self._pass is None:
-            latest = self._latest
-            if latest is None or latest is self._pass_from:
-                return  # nothing new (a hand-off raced with a slice)
-            snap, filetime = latest
-            self._pass = (self.notifications.begin(snap, time.monotonic()), filetime)
-            self._pass_from = latest
-            self.stats.sampling_passes += 1
-        samples, filetime = self._pass
         deadline = time.perf_counter() + self.options.sample_budget
-        while not samples.done:
-            samples.step(_SAMPLE_STEP)
+        while True:
+            if self._pass is None:
+                try:
+                    snap = self._handed.popleft()
+                except IndexError:
+                    return  # every snapshot handed over is sampled
+                self._pass = (self.notifications.begin(snap, time.monotonic()), snap.stamp)
+                self.stats.sampling_passes += 1
+            samples, filetime = self._pass
+            while not samples.done:
+                samples.step(_SAMPLE_STEP)
+                if time.perf_counter() >= deadline:
+                    break
+            for batch in samples.take():
+                self._send_batch(batch, filetime)
+            if samples.done:
+                self._pass = None
+            else:
+                self.stats.sampling_slices += 1
             if time.perf_counter() >= deadline:
                 break
-        for batch in samples.take():
-            self._send_batch(batch, filetime)
-        if samples.done:
-            self._pass = None
-            more = self._latest is not None and self._latest is not self._pass_from
-        else:
-            self.stats.sampling_slices += 1
-            more = True
+        self._again(self._pass is not None or bool(self._handed))
+
+    def _again(self, more: bool) -> None:
+        """Continue sampling in a later loop iteration (other requests first)."""
         if more and not self._slice_pending and not self._handoff_pending:
             loop = self._loop
             if loop is not None and not loop.is_closed():
@@ -910,6 +936,8 @@ class AdsServer:
         n = self.notifications.drop_owner(conn)
         if n:
             log.debug("dropped %d notifications of %s", n, conn.peer)
+        if not len(self.notifications):
+            self._demand(False)
 
 
 #: A sum write item: the object address and data, or the ADS code it earned already.

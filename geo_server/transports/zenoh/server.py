@@ -598,7 +598,7 @@ class ZenohInterface:
         }
         last: Snapshot | None = None
         while True:
-            snap = self.service.snapshot
+            snap = self.service.fresh()  # the cycle due now (docs/design.md §13)
             if self._session is not None and (last is None or snap.cycle != last.cycle):
                 for obj, axis in snap.changed(last):
                     entry = named.get((obj.name, axis))

@@ -1301,6 +1301,11 @@ class Kernel:
         f = self._filter
         return bool(np.any(f.kidx[slot] != f.end[slot]) or self._pending[slot].any())
 
+    @property
+    def previous(self) -> np.ndarray:
+        """The actual values of the cycle before the last step ([n, 7])."""
+        return self._prev
+
     def at_rest(self) -> bool:
         """True when a step with unchanged inputs would change nothing but the delay
         line's write position: no sin² ramp under way, no step event pending, and the

@@ -104,8 +104,8 @@ class Machine:
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
-        self._rounded = np.zeros((n, 7))  # published (rounded) actual values
-        self._prev_rounded = np.zeros((n, 7))  # scratch: swapped with _rounded per cycle
+        self._rounded = np.zeros((n, 7))  # scratch: rounded actual values
+        self._prev_rounded = np.zeros((n, 7))  # scratch: rounded values of the cycle before
         # per-cycle derived snapshot values, one buffer (columns: `_MBUF`)
         self._mbuf = np.zeros((n, _MBUF["lose"] + 1))
         self._mbuf_cols = (
@@ -136,8 +136,12 @@ class Machine:
 
     # ------------------------------------------------------------------ the cycle
 
-    def run_cycle(self) -> Snapshot:
-        """Run one GEO cycle (docs/design.md §5) and return the snapshot it published."""
+    def run_cycle(self, publish: bool = True) -> Snapshot:
+        """Run one GEO cycle (docs/design.md §5) and return the snapshot it published.
+
+        With `publish=False` (the exact engine, for a cycle inside a batch that nobody
+        observes) steps 4 and 5 are left to `publish`, unless the cycle applied
+        operations: their acknowledgements wait for the snapshot that shows them."""
         applied: list[tuple[Pending, Any, BaseException | None]] = []
         try:
             with self._cycle_lock:
@@ -158,8 +162,13 @@ class Machine:
                 )
                 self.kernel_ns = perf_counter_ns() - t0
                 np.add(self.motion.pos, k.total_offset, out=self._output)
-                self.twin.step(self._output, self.motion.pos, self.motion.vel, self.spindle_on)
+                publish = publish or bool(applied)
+                self.twin.step(
+                    self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
+                )
                 self.cycle += 1
+                if not publish:
+                    return self.snapshot
                 snap = self._build_snapshot()
                 self.snapshot = snap
                 self.snapshot_time = monotonic()
@@ -208,15 +217,17 @@ class Machine:
             return
         with self._cycle_lock:
             self.kernel.skip(n)
-            self.twin.advance(n, self._output, self.motion.pos, self.spindle_on)
+            self.twin.advance(n, self._output, self.motion.pos, self.spindle_on, False)
             self.cycle += n
 
     def publish(self) -> Snapshot:
-        """Build and hand out the snapshot of the cycle reached, when `skip` has left the
-        published one behind (else nothing to do)."""
+        """Build and hand out the snapshot of the cycle reached, when `skip` or an
+        unpublished `run_cycle` has left the published one behind (else nothing to do)."""
         with self._cycle_lock:
             if self.snapshot.cycle == self.cycle:
                 return self.snapshot
+            mo = self.motion
+            self.twin.evaluate(self._output, mo.pos, mo.vel)
             snap = self.snapshot = self._build_snapshot()
             self.snapshot_time = monotonic()
         for listener in self.listeners:
@@ -385,12 +396,13 @@ class Machine:
         if self._src_owner != (k, mo, self.twin):
             self._layout_sources()
         mb = self._mbuf_cols
-        # Deltas are differences of the published (rounded) values, so that the deltas
-        # of a ramp add up to its actual value.
-        rounded = self._prev_rounded  # spare buffer; _rounded holds the last values
-        _round_half_away(k.actual, rounded)
-        np.subtract(rounded, self._rounded, out=mb[0])
-        self._prev_rounded, self._rounded = self._rounded, rounded
+        # Deltas are differences of the published (rounded) values of this cycle and
+        # the one before, so that the deltas of a ramp add up to its actual value. The
+        # kernel keeps the one before (`Kernel.previous`), so a snapshot can be built
+        # for any cycle, whether the cycle before was published or not.
+        _round_half_away(k.actual, self._rounded)
+        _round_half_away(k.previous, self._prev_rounded)
+        np.subtract(self._rounded, self._prev_rounded, out=mb[0])
         if self._any_modulo:
             mo.display_pos(mb[1])
         else:  # display_pos() is the identity without modulo axes

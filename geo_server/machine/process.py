@@ -59,7 +59,7 @@ FIRST_FRAME_TIMEOUT = 30.0
 #: long without any frame (it sends one at least every `scheduler.IDLE_WAKE`) makes it
 #: count as not responding (then requests are not held up: the stall watch answers).
 SYNC_WAIT = 0.05
-SYNC_DEAD = 0.1
+SYNC_DEAD = 0.3
 
 
 def _outcome(fut: Future[Any]) -> tuple[bool, Any]:

@@ -50,10 +50,13 @@ ENGINES = ("exact", "punctual")
 #: exact engine: cycles computed per wake while the machine is not quiescent (the most
 #: a request ever waits for, docs/design.md §13)
 BATCH = 4
-#: exact engine: how long it sleeps at rest (seconds) — bounds the catch-up a request
-#: pays after a long quiet stretch (two thermal events of the twin) and keeps the
-#: published snapshot fresh for the stall watch
-IDLE_WAKE = 0.02
+#: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs about a
+#: microsecond per skipped thermal event of the twin (one per 10 ms), so waking more
+#: often would buy a request no latency; the wake keeps the published snapshot fresh
+#: for the stall watch (`ServiceLimits.stall_after`, 0.5 s)
+IDLE_WAKE = 0.1
+#: exact engine: the longest a request waits for a catch-up another thread is running
+SYNC_WAIT = 0.05
 
 
 class CycleStats:
@@ -238,8 +241,14 @@ class Scheduler:
         (from any thread; the caller computes them). Other modes: nothing to do."""
         if not self.exact or not self.running_exact:
             return
-        with self._engine_lock:
+        # A cycle that hangs (a defect) holds the lock: the caller is not held up with
+        # it, the stall watch answers instead.
+        if not self._engine_lock.acquire(timeout=SYNC_WAIT):
+            return
+        try:
             self.advance(self.due())
+        finally:
+            self._engine_lock.release()
 
     @property
     def running_exact(self) -> bool:
@@ -304,7 +313,9 @@ class Scheduler:
                 m.publish()
                 continue
             t0 = clock()
-            self._guarded_cycle()
+            # only the last cycle of the batch is looked at (and every one while
+            # someone samples every cycle): the others need not build their snapshot
+            self._guarded_cycle(publish=bool(every) or m.cycle + 1 == target)
             self.computed += 1
             rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
         m.publish()
@@ -362,12 +373,15 @@ class Scheduler:
     def _done(self) -> bool:
         return bool(self.max_cycles) and self.machine.cycle >= self.max_cycles
 
-    def _guarded_cycle(self) -> None:
+    def _guarded_cycle(self, publish: bool = True) -> None:
         """One cycle; an unexpected exception is logged and counted, the cycle goes on."""
         try:
             if self.before_cycle is not None:
                 self.before_cycle()
-            self.machine.run_cycle()
+            if publish:
+                self.machine.run_cycle()
+            else:
+                self.machine.run_cycle(publish=False)
         except Exception:
             self.cycle_errors += 1
             log.exception("GEO cycle %d failed", self.machine.cycle)

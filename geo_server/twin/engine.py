@@ -22,6 +22,7 @@ table lookup (the kernel's `MergedTable`).
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Sequence
 
@@ -213,7 +214,12 @@ class TwinEngine:
     # ------------------------------------------------------------------ the cycle
 
     def step(
-        self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray, spindle: bool
+        self,
+        output: np.ndarray,
+        command: np.ndarray,
+        velocity: np.ndarray,
+        spindle: bool,
+        evaluate: bool = True,
     ) -> None:
         """One GEO cycle (see the module docstring).
 
@@ -235,9 +241,17 @@ class TwinEngine:
         # count_nonzero: a plain C call (ndarray.any() goes through Python wrappers)
         if np.count_nonzero(np.not_equal(sign, self._sign_before)):
             self._motion_event(sign)
-        self._evaluate(output, command, velocity)
+        if evaluate:  # (the outputs only: a cycle nobody looks at can leave them)
+            self.evaluate(output, command, velocity)
 
-    def advance(self, n: int, output: np.ndarray, command: np.ndarray, spindle: bool) -> None:
+    def advance(
+        self,
+        n: int,
+        output: np.ndarray,
+        command: np.ndarray,
+        spindle: bool,
+        evaluate: bool = True,
+    ) -> None:
         """`n` cycles of a machine at rest (every velocity 0, the same output and command
         positions throughout) in the numbers `n` calls of `step` give, at the cost of the
         events only (docs/design.md §13).
@@ -246,9 +260,13 @@ class TwinEngine:
         cycles) and at a sensor sample (its time reached): |v| adds nothing, no sign
         changes, and the errors are a function of the positions and of the state the
         events leave. So the events run in their cycle order, each at its own cycle
-        and time, and the errors are evaluated once, at the end."""
+        and time, and the errors are evaluated once, at the end. The thermal updates of
+        a machine at rest run on Python floats (`_RestNodes`: the same IEEE operations
+        in the same order as `_thermal`, a microsecond each instead of twenty numpy
+        calls); the axis lines, which only the errors read, are updated once."""
         end = self.cycles + n
         every = self.thermal_every
+        nodes = _RestNodes(self, spindle) if len(self.node_temp) else None
         while True:
             nxt = min((self.cycles // every + 1) * every, self._sample_cycle())
             if nxt > end:
@@ -257,12 +275,21 @@ class TwinEngine:
             self.cycles = c
             self.time = c * self.dt
             if c % every == 0:
-                self._thermal(spindle)
+                if nodes is None:
+                    self._vsum[:] = 0.0
+                else:
+                    nodes.update(self.time)
             if self.time >= self._next_sample:
+                if nodes is not None:
+                    nodes.store()  # the sensors read the nodes
                 self._sample_sensors()
+        if nodes is not None:
+            nodes.store()
+        self._update_lines()
         self.cycles = end
         self.time = end * self.dt
-        self._evaluate(output, command, self._still)
+        if evaluate:
+            self.evaluate(output, command, self._still)
 
     def _sample_cycle(self) -> float:
         """The first cycle after this one at which `step` takes a sensor sample."""
@@ -277,8 +304,9 @@ class TwinEngine:
             c += 1
         return c
 
-    def _evaluate(self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray) -> None:
-        """This cycle's error, true position, residual and friction current."""
+    def evaluate(self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray) -> None:
+        """This cycle's error, true position, residual and friction current (outputs
+        only: `step` keeps the state, so a cycle nobody observes may leave them)."""
         tmp, sign = self._tmp, self._sign
         e = self.error
         # linear scale error and thermal expansion (A·pos + B, A and B from the
@@ -433,6 +461,54 @@ class TwinEngine:
             self._scatter_now[:] = old._scatter_now
         self._rng = old._rng
         self._update_lines()
+
+
+class _RestNodes:
+    """`TwinEngine._thermal` for a machine at rest, on Python floats.
+
+    At rest every |v| sum is 0, so a node's target is `0·gain + ambient (+ spindle
+    gain)` = `ambient (+ spindle gain)` and its update `T + (target − T)·k`: the same
+    IEEE double operations numpy performs element by element, hence the same numbers.
+    The ambient temperature follows `np.interp`'s formula (`_interp`)."""
+
+    def __init__(self, twin: TwinEngine, spindle: bool) -> None:
+        self.twin = twin
+        self.temps = twin.node_temp.tolist()
+        self.ks = twin._node_k.tolist()
+        self.spindle = twin._spindle_gain.tolist() if spindle else None
+        self.xp = twin._amb_t.tolist()
+        self.fp = twin._amb_v.tolist()
+
+    def update(self, t: float) -> None:
+        tw = self.twin
+        held = tw.held_ambient
+        amb = held if held is not None else _interp(t, self.xp, self.fp)
+        tw.ambient = amb
+        temps, ks, sp = self.temps, self.ks, self.spindle
+        for i, k in enumerate(ks):
+            target = amb if sp is None else amb + sp[i]
+            temps[i] = temps[i] + (target - temps[i]) * k
+        tw._vsum[:] = 0.0
+
+    def store(self) -> None:
+        self.twin.node_temp[:] = self.temps
+
+
+def _interp(x: float, xp: list[float], fp: list[float]) -> float:
+    """`float(np.interp(x, xp, fp))` for one x (numpy's compiled formula: clamp outside,
+    slope·(x − xp[j]) + fp[j] inside, fp[-1] at the last point)."""
+    if x < xp[0]:
+        return fp[0]
+    if x >= xp[-1]:
+        return fp[-1]
+    j = bisect.bisect_right(xp, x) - 1
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    y = slope * (x - xp[j]) + fp[j]
+    if y != y:  # NaN (an infinite slope): numpy's fallbacks
+        y = slope * (x - xp[j + 1]) + fp[j + 1]
+        if y != y and fp[j] == fp[j + 1]:
+            y = fp[j]
+    return y
 
 
 def _quantize(value: float, resolution: float) -> float:

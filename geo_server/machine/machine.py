@@ -189,6 +189,14 @@ class Machine:
 
     # ------------------------------------------------------------------ virtual time
 
+    def set_epoch(self, epoch: int) -> None:
+        """Put cycle 0 at FILETIME `epoch` (a real-time engine starting its time line);
+        the published snapshot gets its stamp on the new time line."""
+        with self._cycle_lock:
+            self.epoch = epoch
+            snap = self.snapshot
+            self.snapshot = replace(snap, stamp=epoch + snap.cycle * self.period_ticks)
+
     def _at_rest(self) -> bool:
         """Nothing queued, no program, no axis moving, the kernel at rest (docs/design.md
         §13): a cycle that starts like this computes what the one before computed."""

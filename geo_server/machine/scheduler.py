@@ -40,6 +40,7 @@ import numpy as np
 
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import Operation, Pending
+from geo_server.snapshot import filetime_now
 
 log = logging.getLogger(__name__)
 
@@ -223,13 +224,22 @@ class Scheduler:
 
     # ------------------------------------------------------------------ exact engine
 
+    def drive(self) -> None:
+        """Exact engine without its thread: the time line starts now (on `clock`) and
+        `sync`/`submit` catch up on the caller's thread — a virtual clock makes every
+        observation deterministic (tests)."""
+        if not self.exact:
+            raise RuntimeError("drive() needs the exact engine in real-time mode")
+        self._begin_timeline()
+        self._here = True
+
     def _begin_timeline(self) -> None:
         """Put the machine's present cycle at now on both clocks: t0 on the monotonic
         clock, the FILETIME epoch on the wall clock (the notification stamps)."""
         m = self.machine
-        now, wall = self._clock(), time.time_ns()
+        now, wall = self._clock(), filetime_now()
         self.t0 = now - m.cycle * self.period_ns
-        m.epoch = wall // 100 - m.cycle * m.period_ticks
+        m.set_epoch(wall - m.cycle * m.period_ticks)
 
     def due(self, now: int | None = None) -> int:
         """The cycle an observer at monotonic time `now` (ns) must see."""

@@ -1,0 +1,215 @@
+"""The observation-exact engine (docs/design.md §13), piece by piece, without sockets.
+
+- skipping the cycles of a quiescent machine gives, bit for bit, the snapshots that
+  running them gives (twin thermal model, sensors with seeded noise, the ambient
+  profile's knots, the spindle, a climate chamber);
+- cycles computed without publishing, then published, equal cycles published one by one
+  (deltas, twin outputs) while axes move, reverse and compensations ramp;
+- driven by a virtual clock, the engine shows an observer at time t the cycle
+  floor((t − t0)/T) and applies a write arriving at t in the cycle after it: the same
+  snapshots, cycle for cycle, as stepped mode with the write queued at that cycle.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.machine.nc import parse_program
+from geo_server.machine.port import StartProgram, WriteObjects
+from geo_server.machine.scheduler import Scheduler
+from geo_server.paths import default_startup_list
+from geo_server.twin.engine import _interp
+
+P = 1_000_000  # 1 ms in ns
+MOVES = "N10 G90 G01 X120 Y-40 F6000\nN20 X-30 Y25\nN30 G04 X0.02\nN40 X60 Z-10\nM30\n"
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_machine(default_startup_list())
+
+
+def same(a, b) -> None:
+    """Two snapshots, value for value (bit for bit), counters and stamp included."""
+    assert a.cycle == b.cycle
+    assert np.array_equal(a.values, b.values), np.argwhere(a.values != b.values)[:5]
+    assert np.array_equal(a.machine, b.machine), (a.machine, b.machine)
+    assert a.texts == b.texts
+    assert a.stamp == b.stamp
+
+
+def pair(cfg, **kw) -> tuple[Machine, Machine]:
+    a, b = Machine(cfg, homed=True, **kw), Machine(cfg, homed=True, **kw)
+    b.set_epoch(a.epoch)
+    return a, b
+
+
+@pytest.mark.parametrize(
+    "time_scale, setup",
+    [
+        (None, ()),  # the twin file's own time scale: sensors every 0.1 s of 10 ms
+        (1000.0, ()),  # 2 h 40 min of twin time: every knot of the ambient profile
+        (1000.0, (("TWIN::spindle_on", 0, True),)),  # heat from the spindle
+        (50.0, (("TWIN::ambient_temperature", 0, 27.5),)),  # a climate chamber
+    ],
+)
+def test_skipping_a_quiescent_machine_is_running_it(cfg, time_scale, setup) -> None:
+    a, b = pair(cfg, time_scale=time_scale)
+    for m in (a, b):
+        if setup:
+            m.submit(WriteObjects(setup))
+        m.step(40)
+    rng = random.Random(7)
+    total = 0
+    while total < 10_000:
+        n = rng.choice((1, 2, 3, 9, 10, 11, 99, 100, 101, rng.randint(1, 3000)))
+        total += n
+        a.step(n)
+        assert b.quiescent
+        b.skip(n)
+        same(a.snapshot, b.publish())
+    assert a.twin.time == b.twin.time and a.twin.time > 0
+    # the run really had the events the skip must reproduce
+    assert len(set(a.twin.sensor_value.tolist())) > 1 or setup
+
+
+def test_a_machine_that_moves_or_ramps_is_not_quiescent(cfg) -> None:
+    m = Machine(cfg, homed=True)
+    m.step(40)
+    assert m.quiescent
+    m.start_program(MOVES)
+    assert not m.quiescent  # an operation waits
+    m.step(2)
+    assert not m.quiescent  # a program runs, axes move
+    while m.player.running and m.cycle < 30_000:
+        m.step(100)
+    assert not m.player.running
+    assert not m.quiescent  # the friction delay line still carries the last motion
+    m.step(250)  # ... for its 249 cycles (000 p.79: delay_cycles < 249)
+    assert m.quiescent
+    m.submit(WriteObjects((("TEMPC::offset_0", 1, 250),)))
+    m.step(3)
+    assert not m.quiescent  # the sin² ramp of the new offset runs
+    m.step(500)
+    assert m.quiescent
+
+
+def test_np_interp_on_python_floats() -> None:
+    xp = [0.0, 7200.0, 14400.0, 20000.5]
+    fp = [20.0, 23.0, 23.0, 19.25]
+    rng = random.Random(3)
+    xs = [*xp, -1.0, 1e9, *(rng.uniform(-100, 21000) for _ in range(5000))]
+    xs += [math.nextafter(x, math.inf) for x in xp] + [math.nextafter(x, -math.inf) for x in xp]
+    for x in xs:
+        assert _interp(x, xp, fp) == float(np.interp(x, xp, fp)), x
+    assert _interp(5.0, [1.0], [4.0]) == float(np.interp(5.0, [1.0], [4.0]))
+
+
+def test_unpublished_cycles_then_published_are_the_same_snapshots(cfg) -> None:
+    a, b = pair(cfg)
+    for m in (a, b):
+        m.step(5)
+        m.start_program(MOVES)
+        m.submit(WriteObjects((("TEMPC::offset_0", 1, 40),)))  # a ramp while moving
+    rng = random.Random(11)
+    published = 0
+    while a.player is None or a.player.running or published < 3:
+        n = rng.randint(1, 9)
+        for _ in range(n - 1):
+            b.run_cycle(publish=False)
+        b.run_cycle()
+        a.step(n)
+        same(a.snapshot, b.snapshot)
+        published += 1
+    assert np.any(a.snapshot.values != 0)
+
+
+class VirtualClock:
+    def __init__(self) -> None:
+        self.t = 1_000 * P
+
+    def clock(self) -> int:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += round(seconds * 1e9)
+
+
+def test_exact_engine_shows_the_cycle_due_and_applies_writes_in_the_next(cfg) -> None:
+    """Observations at chosen (virtual) instants against a stepped twin of the machine."""
+    vc = VirtualClock()
+    live = Machine(cfg, homed=True)
+    ref = Machine(cfg, homed=True)
+    sched = Scheduler(live, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    ref.set_epoch(live.epoch)
+    t0 = sched.t0
+    assert t0 == vc.t and live.cycle == 0
+
+    def look(at_us: int):
+        """An observer at t0 + at_us µs: the snapshot it is served."""
+        vc.t = t0 + at_us * 1000
+        sched.sync()
+        return live.snapshot
+
+    def ref_at(cycle: int):
+        ref.step(cycle - ref.cycle)
+        return ref.snapshot
+
+    # idle: cycle floor(t/T), whatever was skipped
+    for at in (999, 1000, 1001, 12_500, 250_000, 250_999):
+        snap = look(at)
+        assert snap.cycle == at // 1000
+        same(snap, ref_at(snap.cycle))
+    # a program arriving at 250.9995 ms is started in cycle 251, a write at 400.2 ms
+    # is applied in cycle 401 — in both machines
+    vc.t = t0 + 250_999_500
+    start = StartProgram(parse_program(MOVES, live.names))
+    done = sched.submit(start)
+    assert not done.done()
+    ref.submit(start)
+    snap = look(251_000)
+    assert done.done() and snap.cycle == 251
+    same(snap, ref_at(251))
+    for at in range(251_300, 400_000, 7_300):
+        snap = look(at)
+        same(snap, ref_at(at // 1000))
+    vc.t = t0 + 400_200_000
+    write = WriteObjects((("TEMPC::offset_0", 1, 75),))
+    w = sched.submit(write)
+    ref_at(400)
+    ref.submit(write)
+    assert look(400_999).cycle == 400 and not w.done()
+    snap = look(401_000)
+    assert w.done() and snap.value(live.dictionary.by_name("TEMPC::offset_0"), 1) == 75
+    same(snap, ref_at(401))
+    for at in (401_001, 402_000, 433_333, *range(900_000, 5_000_000, 777_777)):
+        snap = look(at)
+        same(snap, ref_at(at // 1000))
+
+
+def test_every_cycle_is_published_while_someone_samples_every_cycle(cfg) -> None:
+    vc = VirtualClock()
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    seen: list[tuple[int, int]] = []
+    m.subscribe(lambda snap: seen.append((snap.cycle, snap.stamp)))
+    vc.t += 50 * P
+    sched.sync()
+    assert [c for c, _ in seen] == [50]  # at rest and unobserved: one snapshot
+    release = sched.demand_every_cycle()
+    vc.t += 30 * P
+    sched.sync()
+    assert seen[1:] == [(c, m.epoch + c * 10_000) for c in range(51, 81)]
+    release()
+    release()  # (twice is harmless)
+    vc.t += 30 * P
+    sched.sync()
+    assert [c for c, _ in seen[31:]] == [110]

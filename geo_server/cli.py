@@ -9,7 +9,6 @@ import csv
 import io
 import json
 import os
-import re
 import secrets
 import shutil
 import signal
@@ -21,6 +20,7 @@ from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
 from geo_server.errors import GeoError
+from geo_server.interfaces import InterfaceStartError, start_failure
 from geo_server.paths import default_startup_list
 
 
@@ -136,6 +136,10 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.fleet or args.fleet_size:
+        from geo_server.fleet import run_fleet
+
+        return run_fleet(args)
     from geo_server.listfile import ListFileError, load_machine
     from geo_server.machine.machine import Machine
     from geo_server.machine.nc import NcError
@@ -339,30 +343,6 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 print(f"warning: closing {type(iface).__name__}: {exc}", file=sys.stderr)
 
 
-#: What to change when an interface's port is taken (`start_failure`).
-_PORT_OPTION = {
-    "zenoh": "--zenoh-listen tcp/127.0.0.1:PORT",
-    "modbus": "--modbus-port PORT",
-    "ads": "--ads-port PORT",
-}
-
-
-def start_failure(name: str, exc: BaseException) -> str:
-    """One line saying why an interface did not start and what to do about it.
-
-    Zenoh's errors carry the Rust source location of every layer (`… at
-    /root/.cargo/…/tcp.rs:61.]`); that is left out, the reason stays."""
-    text = re.sub(r"\s+at /\S+\.rs:\d+\.?\]?", "", str(exc)).strip().rstrip(".")
-    if "in use" in text.lower() or getattr(exc, "errno", None) in (48, 98, 10048):
-        where = text.split("bound to ", 1)[1].split(":", 2) if "bound to " in text else []
-        endpoint = ":".join(where[:2]) if where else "its address"
-        return (
-            f"{name} interface did not start: {endpoint} is in use (another geo-server?); "
-            f"choose another port with {_PORT_OPTION[name]} or stop the other server"
-        )
-    return f"{name} interface did not start: {text}"
-
-
 class ProgramReport:
     """`run --program`: say when the program starts, which line it is at (each status
     period) and how it ends, from the machine's `SIM::program_running`/`_line` and the
@@ -405,10 +385,6 @@ class ProgramReport:
         if self._started and not self._done:
             return f"  program line {self.service.snapshot.value(self._line, 0)}"
         return ""
-
-
-class InterfaceStartError(GeoError):
-    """An interface could not start (port in use, bad address or Zenoh config)."""
 
 
 class CycleStoppedError(GeoError):
@@ -479,6 +455,21 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument("--cycles", type=int, default=0, help="stop after this many cycles (0: never)")
     r.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
+    fl = r.add_mutually_exclusive_group()
+    fl.add_argument(
+        "--fleet",
+        metavar="FILE",
+        help="serve the machines of a fleet file (TOML: [[machine]] name, startup, netid, "
+        "modbus_port) in this process: Zenoh by machine name, ADS by AMS NetId on one "
+        "port, Modbus one port per machine",
+    )
+    fl.add_argument(
+        "--fleet-size",
+        type=int,
+        default=0,
+        metavar="N",
+        help="serve N copies of the start-up list as a fleet, named <machine>-1 … <machine>-N",
+    )
     r.add_argument("--read-only", action="store_true", help="reject every write")
     z = r.add_argument_group("zenoh")
     z.add_argument("--no-zenoh", action="store_true", help="do not start the Zenoh interface")

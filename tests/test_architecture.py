@@ -26,6 +26,7 @@ ROOTS = {
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
+    (1, ("geo_server.fleetfile", "geo_server.interfaces")),
     (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),
@@ -34,7 +35,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (5, ("geo_server.service",)),
     (6, ("geo_server.transports",)),
     (6, ("geo_server.client",)),
-    (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning")),
+    (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
     (8, ("geo_clients",)),
 ]
 #: What a transport may import outside its own package.

@@ -325,6 +325,12 @@ def build_parser() -> argparse.ArgumentParser:
         "GEO_CLIENT_MODBUS or GEO_CLIENT_ADS, else the default",
     )
     p.add_argument("--netid", default="127.0.0.1.1.1", help="AMS NetId of the server (ADS)")
+    p.add_argument(
+        "--fleet",
+        metavar="FILE",
+        help="a fleet file: address --machine by name over every transport (its AMS "
+        "NetId for ADS, its port for Modbus)",
+    )
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -372,6 +378,18 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     endpoint = args.connect or os.environ.get(f"GEO_CLIENT_{args.via.upper()}")
+    if args.fleet:  # the machine's NetId and Modbus port from the fleet file
+        from geo_server.fleetfile import FleetError, member
+
+        try:
+            found = member(Path(args.fleet), args.machine)
+        except FleetError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        args.netid = found.netid
+        if args.via == "modbus":
+            host = (endpoint or "127.0.0.1:5020").rsplit(":", 1)[0]
+            endpoint = f"{host}:{found.modbus_port}"
     try:
         client = open_client(
             args.via, endpoint, machine=args.machine, timeout=args.timeout, netid=args.netid

@@ -33,7 +33,7 @@ import struct
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, cast
 
 import geo_server
@@ -201,9 +201,20 @@ _KNOWN_COMMANDS = frozenset(int(c) for c in Command)
 class AdsServer:
     """Serve one `ObjectService` over ADS/AMS-TCP."""
 
-    def __init__(self, service: ObjectService, options: AdsOptions | None = None) -> None:
+    def __init__(
+        self,
+        service: ObjectService,
+        options: AdsOptions | None = None,
+        router: AdsServer | None = None,
+    ) -> None:
+        """`router`: the server that owns the TCP port and routes requests for this
+        server's NetId to it (a fleet: one machine per NetId, `add_device`); None: this
+        server listens itself."""
         self.service = service
         self.options = options or AdsOptions()
+        self.router = router
+        #: the devices this server routes to, by AMS NetId (itself included)
+        self.devices: dict[str, AdsServer] = {self.options.netid: self}
         self.stats = AdsStats()
         cycle_s = service.cycle_s
         self.notifications = NotificationTable(
@@ -236,9 +247,28 @@ class AdsServer:
 
     # ------------------------------------------------------------------ lifecycle
 
+    def add_device(self, service: ObjectService, options: AdsOptions) -> AdsServer:
+        """Serve another machine on this server's TCP port under its own AMS NetId, as a
+        TwinCAT router routes by target NetId (SPEC §13: a fleet). Start and close it
+        with this one."""
+        if options.netid in self.devices:
+            raise ValueError(f"AMS NetId {options.netid} is served already")
+        device = AdsServer(service, options, router=self)
+        self.devices[options.netid] = device
+        # several NetIds behind one port: requests for any other get 0x7
+        self.options = replace(self.options, strict_netid=True)
+        return device
+
     async def start(self) -> None:
-        """Listen and subscribe to the GEO cycle (for notifications)."""
+        """Listen and subscribe to the GEO cycle (for notifications); a routed device
+        only subscribes (its router listens)."""
         self._loop = asyncio.get_running_loop()
+        if self.router is not None:
+            self._unsubscribe = self.service.subscribe(self._on_cycle_thread)
+            return
+        for device in self.devices.values():
+            if device is not self:
+                await device.start()
         await self.listener.listen(lambda: AdsConnection(self))
         if self.options.udp_port is not None:
             # Discovery is a convenience: with its port taken (another emulator or a
@@ -257,6 +287,9 @@ class AdsServer:
 
     async def close(self) -> None:
         """Stop listening, drop every connection and notification."""
+        for device in self.devices.values():
+            if device is not self:
+                await device.close()
         if self._unsubscribe is not None:
             with contextlib.suppress(ValueError):
                 self._unsubscribe()
@@ -267,7 +300,8 @@ class AdsServer:
         if self._udp is not None:
             self._udp.close()
             self._udp = None
-        await self.listener.close()
+        if self.router is None:
+            await self.listener.close()
 
     async def __aenter__(self) -> AdsServer:
         await self.start()
@@ -321,6 +355,10 @@ class AdsServer:
         if h.is_response or h.command == Command.DEVICE_NOTIFICATION:
             # A response or a notification sent to us: there is nothing to answer.
             self.stats.dropped_frames += 1
+            return
+        device = self.devices.get(h.target.netid, self)
+        if device is not self:
+            device.handle_packet(conn, packet)
             return
         self.stats.requests += 1
         if self.options.strict_netid and h.target.netid != self.options.netid:
@@ -521,7 +559,7 @@ class AdsServer:
         """The object address behind a symbol handle (0xF005, offset = handle)."""
         if ig != symbols.SYM_VALBYHND:
             return ig, io
-        sym = conn.handles.get(io)
+        sym = conn.table(self).handles.get(io)
         if sym is None:
             raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{io:X}")
         return sym.index_group, sym.index_offset
@@ -573,15 +611,16 @@ class AdsServer:
         if ig == symbols.SYM_VALBYNAME:
             return self.service.read(sym.index_group, sym.index_offset, read_length)
         # SYM_HNDBYNAME
-        answer = symbols.handle_answer(conn.next_handle + 1, sym, extended=read_length > 4)
+        table = conn.table(self)
+        answer = symbols.handle_answer(table.next_handle + 1, sym, extended=read_length > 4)
         self._fit_size(len(answer), read_length)
-        if len(conn.handles) >= self.options.max_handles:
+        if len(table.handles) >= self.options.max_handles:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOMOREHDLS,
-                f"{len(conn.handles)} symbol handles are open on this connection",
+                f"{len(table.handles)} symbol handles are open on this connection",
             )
-        conn.next_handle += 1
-        conn.handles[conn.next_handle] = sym
+        table.next_handle += 1
+        table.handles[table.next_handle] = sym
         return answer
 
     def _lookup_address(self, req: ReadWriteRequest) -> bytes:
@@ -610,7 +649,7 @@ class AdsServer:
                 AdsErrorCode.DEVICE_INVALIDSIZE, f"a handle has 4 bytes, not {len(data)}"
             )
         handle = struct.unpack("<I", data)[0]
-        if conn.handles.pop(handle, None) is None:
+        if conn.table(self).handles.pop(handle, None) is None:
             raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{handle:X}")
         return codec.result_response(0)
 
@@ -930,9 +969,13 @@ class AdsServer:
         return True
 
     def _disconnected(self, conn: AdsConnection) -> None:
-        self.listener.forget(conn)
-        if conn.ams_port is not None:
-            self._ams_ports.pop(conn.ams_port, None)
+        if self.router is None:
+            self.listener.forget(conn)
+            if conn.ams_port is not None:
+                self._ams_ports.pop(conn.ams_port, None)
+            for device in self.devices.values():
+                if device is not self:
+                    device._disconnected(conn)
         n = self.notifications.drop_owner(conn)
         if n:
             log.debug("dropped %d notifications of %s", n, conn.peer)
@@ -1002,6 +1045,14 @@ class _Discovery(asyncio.DatagramProtocol):
             self.transport.sendto(reply, addr)
 
 
+@dataclass
+class HandleTable:
+    """The symbol handles one connection holds at one device (0xF003 -> symbol)."""
+
+    handles: dict[int, symbols.Symbol] = field(default_factory=dict)
+    next_handle: int = 0
+
+
 class AdsConnection(asyncio.Protocol):
     """One TCP client: framing in, responses and notifications out.
 
@@ -1022,9 +1073,16 @@ class AdsConnection(asyncio.Protocol):
         self._frame_timer_since: float | None = None
         #: AMS port the router gave this client (port connect), None without
         self.ams_port: int | None = None
-        #: symbol handles of this connection (0xF003) -> their symbol
-        self.handles: dict[int, symbols.Symbol] = {}
-        self.next_handle = 0
+        #: symbol handles of this connection (0xF003), per device (AMS NetId) it
+        #: talks to: one TCP connection may address every machine of a fleet
+        self.tables: dict[int, HandleTable] = {}
+
+    def table(self, device: AdsServer) -> HandleTable:
+        """This connection's symbol handles at `device`."""
+        t = self.tables.get(id(device))
+        if t is None:
+            t = self.tables[id(device)] = HandleTable()
+        return t
 
     # (Equality and hash are object identity, the C defaults: a connection is a key of
     # the notification table and of every sampled route, looked up per sample.)

@@ -185,9 +185,18 @@ def _no_constant(name: str) -> Any:
 class ZenohInterface:
     """Serve one machine's objects on a Zenoh session."""
 
-    def __init__(self, service: ObjectService, options: ZenohOptions | None = None) -> None:
+    def __init__(
+        self,
+        service: ObjectService,
+        options: ZenohOptions | None = None,
+        session: zenoh.Session | None = None,
+    ) -> None:
+        """`session`: a Zenoh session shared by the machines of a fleet (opened and
+        closed by its owner; `options` then only name the machine and its limits);
+        None: this interface opens its own from `options`."""
         self.service = service
         self.options = options or ZenohOptions()
+        self._shared = session
         self.keys = KeySpace(self.options.machine, service.dictionary, service.axes)
         # KeyExprs built once: a wildcard get intersects every readable key and the
         # publish loop puts every cycle; building (and validating) a KeyExpr from a str
@@ -218,9 +227,12 @@ class ZenohInterface:
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._probe_wanted = asyncio.Event()
-        self._session = await self._loop.run_in_executor(
-            None, zenoh.open, self.options.zenoh_config()
-        )
+        if self._shared is not None:
+            self._session = self._shared
+        else:
+            self._session = await self._loop.run_in_executor(
+                None, zenoh.open, self.options.zenoh_config()
+            )
         s = self._session
         prefix = self.keys.prefix
         alive = self.keys.alive_key
@@ -270,7 +282,7 @@ class ZenohInterface:
             # loop: never block the loop on it (nor on closing the session).
             for ent in entities:
                 ent.undeclare()
-            if session is not None:
+            if session is not None and session is not self._shared:
                 session.close()
 
         await asyncio.get_running_loop().run_in_executor(None, shut)

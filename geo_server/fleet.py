@@ -1,0 +1,254 @@
+"""A fleet: M machines served by one `geo-server run` process (SPEC §13, docs/design.md §13).
+
+    geo-server run --fleet fleet.toml          # machines named in a fleet file
+    geo-server run --fleet-size 50 --homed     # 50 copies of one start-up list
+
+Each machine has its own name, start-up list, GEO cycle (the exact engine on a thread of
+its own: a machine at rest costs next to nothing) and object service. The interfaces:
+
+- **Zenoh**: one session for the whole fleet; machine `m` answers on `cnc/m/**` as a
+  single machine does, and `cnc/fleet/status` (published each status period and
+  answered to a get) tells every machine's name, cycle, engine, overruns and addresses.
+- **ADS**: one TCP port; requests are routed by the target AMS NetId as a TwinCAT router
+  does (`AdsServer.add_device`), one NetId per machine; an unknown NetId gets 0x7.
+- **Modbus**: one port per machine, `--modbus-port` + i.
+
+The fleet file: `geo_server.fleetfile`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
+from geo_server.interfaces import InterfaceStartError, start_failure
+from geo_server.paths import default_startup_list
+
+
+def members_from_args(args: argparse.Namespace) -> list[Member]:
+    if args.fleet:
+        return load_fleet(Path(args.fleet), args.ads_netid, args.modbus_port)
+    startup = Path(args.startup) if args.startup else default_startup_list()
+    return copies(args.fleet_size, args.machine, startup, args.ads_netid, args.modbus_port)
+
+
+# ---------------------------------------------------------------------- serving
+
+
+@dataclass
+class Served:
+    member: Member
+    service: Any
+    scheduler: Any
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    """`geo-server run --fleet FILE | --fleet-size N` (exit code)."""
+    from geo_server import __version__
+    from geo_server.listfile import ListFileError, load_machine
+    from geo_server.machine.machine import Machine
+    from geo_server.machine.scheduler import Scheduler
+    from geo_server.service import ObjectService
+
+    try:
+        members = members_from_args(args)
+    except FleetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    served: list[Served] = []
+    configs: dict[Path, Any] = {}
+    for m in members:
+        try:
+            cfg = configs.get(m.startup) or load_machine(m.startup)
+        except ListFileError as exc:
+            print(f"error: {m.name}: {exc}", file=sys.stderr)
+            return 2
+        configs[m.startup] = cfg
+        machine = Machine(
+            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
+        )
+        sched = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
+        served.append(Served(m, ObjectService(machine, sched), sched))
+    print(
+        f"geo-server {__version__}: a fleet of {len(served)} machines "
+        f"({', '.join(s.member.name for s in served[:5])}{', …' if len(served) > 5 else ''}), "
+        f"cycle {args.cycle_ms:g} ms ({args.mode}, {args.engine} engine, cycles on threads); "
+        "Ctrl-C stops",
+        flush=True,
+    )
+    try:
+        asyncio.run(_serve(args, served))
+    except KeyboardInterrupt:
+        pass
+    except InterfaceStartError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for s in served:
+            s.scheduler.stop()
+    print(f"stopped: {len(served)} machines")
+    return 0
+
+
+def fleet_status(served: list[Served]) -> dict[str, Any]:
+    """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals."""
+    machines = []
+    for s in served:
+        st = s.service.status()
+        machines.append(
+            {
+                "name": s.member.name,
+                "cycle": st["cycle"],
+                "engine": st["engine"],
+                "overruns": st["overruns"],
+                "stalled": st["stalled"],
+                "computed_cycles": st["computed_cycles"],
+                "netid": s.member.netid,
+                "modbus_port": s.member.modbus_port,
+            }
+        )
+    return {
+        "machines": machines,
+        "count": len(machines),
+        "overruns": sum(m["overruns"] for m in machines),
+        "stalled": [m["name"] for m in machines if m["stalled"]],
+    }
+
+
+async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    closers: list[Any] = []
+    session = None
+    try:
+        if not args.no_zenoh:
+            session = await _start_zenoh(args, served, closers)
+        if not args.no_modbus:
+            await _start_modbus(args, served, closers)
+        if not args.no_ads:
+            await _start_ads(args, served, closers)
+        for s in served:
+            s.scheduler.start()
+        latest = [json.dumps(fleet_status(served)).encode()]
+        if session is not None:
+            # Zenoh thread: answer with the latest status, computed on the loop
+            queryable = session.declare_queryable(
+                FLEET_STATUS_KEY, lambda q: q.reply(FLEET_STATUS_KEY, latest[0])
+            )
+
+            async def undeclare() -> None:
+                await loop.run_in_executor(None, queryable.undeclare)
+
+            closers.append(undeclare)
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), args.status_period)
+            st = fleet_status(served)
+            latest[0] = json.dumps(st).encode()
+            if session is not None:
+                session.put(FLEET_STATUS_KEY, latest[0])
+            cycles = [m["cycle"] for m in st["machines"]]
+            print(
+                f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
+                f"overruns {st['overruns']}, stalled {len(st['stalled'])}",
+                flush=True,
+            )
+            if args.cycles and all(not s.scheduler.running for s in served):
+                break
+    except OSError as exc:
+        raise InterfaceStartError(start_failure("modbus", exc)) from exc
+    finally:
+        for close in reversed(closers):
+            try:
+                await close()
+            except Exception as exc:  # report and go on closing the others
+                print(f"warning: closing: {exc}", file=sys.stderr)
+
+
+async def _start_zenoh(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> Any:
+    import zenoh
+
+    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+
+    base = ZenohOptions(
+        mode=args.zenoh_mode,
+        listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
+        connect=args.zenoh_connect or [],
+        config_file=args.zenoh_config,
+        multicast_scouting=args.zenoh_scouting,
+        read_only=args.read_only or args.zenoh_read_only,
+    )
+    loop = asyncio.get_running_loop()
+    try:
+        session = await loop.run_in_executor(None, zenoh.open, base.zenoh_config())
+    except Exception as exc:
+        raise InterfaceStartError(start_failure("zenoh", exc)) from exc
+
+    async def close_session() -> None:
+        await loop.run_in_executor(None, session.close)
+
+    closers.append(close_session)
+    for s in served:
+        opts = ZenohOptions(**{**base.__dict__, "machine": s.member.name})
+        iface = ZenohInterface(s.service, opts, session=session)
+        closers.append(iface.close)
+        await iface.start()
+    print(
+        f"zenoh: {len(served)} machines on {', '.join(base.listen)} (keys cnc/<name>/**, "
+        f"{FLEET_STATUS_KEY})",
+        flush=True,
+    )
+    return session
+
+
+async def _start_modbus(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:
+    from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+
+    read_only = args.read_only or args.modbus_read_only
+    for s in served:
+        mb = ModbusInterface(
+            s.service,
+            ModbusOptions(host=args.modbus_host, port=s.member.modbus_port, read_only=read_only),
+        )
+        closers.append(mb.close)
+        await mb.start()
+    first, last = served[0].member.modbus_port, served[-1].member.modbus_port
+    print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
+
+
+async def _start_ads(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:
+    from geo_server.transports.ads.server import AdsOptions, AdsServer
+
+    read_only = args.read_only or args.ads_read_only
+
+    def options(m: Member, **kw: Any) -> AdsOptions:
+        return AdsOptions(host=args.ads_host, netid=m.netid, read_only=read_only, **kw)
+
+    head = served[0]
+    ads = AdsServer(
+        head.service,
+        options(head.member, port=args.ads_port, udp_port=args.ads_udp_port or None),
+    )
+    for s in served[1:]:
+        ads.add_device(s.service, options(s.member))
+    closers.append(ads.close)
+    try:
+        await ads.start()
+    except OSError as exc:
+        raise InterfaceStartError(start_failure("ads", exc)) from exc
+    print(
+        f"ads: tcp://{ads.address}, AMS NetIds {head.member.netid}…{served[-1].member.netid} "
+        "(routed by target NetId)",
+        flush=True,
+    )

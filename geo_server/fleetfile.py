@@ -1,0 +1,108 @@
+"""Fleet files (SPEC §13): which machines one `geo-server run --fleet` serves, and where.
+
+A fleet file (TOML), paths relative to the file:
+
+    [[machine]]
+    name = "mill-1"
+    startup = "mill1/hochlauf.lis"   # default: the default machine's start-up list
+    netid = "127.0.0.1.2.1"          # default: --ads-netid with its 5th byte + i
+    modbus_port = 5021               # default: --modbus-port + i
+
+The server (`geo_server.fleet`) and the clients (`geo-client --fleet FILE --machine NAME`,
+which find a machine's NetId and Modbus port here) read the same file.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from geo_server.errors import GeoError
+from geo_server.paths import default_startup_list
+
+#: The defaults of `geo-server run --ads-netid` and `--modbus-port`.
+DEFAULT_NETID = "127.0.0.1.1.1"
+DEFAULT_MODBUS_PORT = 5020
+#: A machine name is one Zenoh key chunk, without wildcards or a leading `@`.
+NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+#: The Zenoh key of the fleet's status (no machine may be called "fleet").
+FLEET_STATUS_KEY = "cnc/fleet/status"
+
+
+class FleetError(GeoError, ValueError):
+    """A fleet file or fleet option that cannot be served (file and what is wrong)."""
+
+
+@dataclass(frozen=True)
+class Member:
+    """One machine of a fleet: its name, lists and addresses."""
+
+    name: str
+    startup: Path
+    netid: str
+    modbus_port: int
+
+
+def netid_at(base: str, i: int) -> str:
+    """The i-th machine's AMS NetId: `base` with its fifth byte raised by i."""
+    parts = [int(x) for x in base.split(".")]
+    if len(parts) != 6 or parts[4] + i > 255:
+        raise FleetError(f"cannot number {i + 1} machines from AMS NetId {base}")
+    parts[4] += i
+    return ".".join(str(x) for x in parts)
+
+
+def copies(n: int, name: str, startup: Path, base_netid: str, base_port: int) -> list[Member]:
+    """`--fleet-size n`: n machines from one start-up list, named `<name>-1` … `<name>-n`."""
+    if not 1 <= n <= 250:
+        raise FleetError(f"--fleet-size must be between 1 and 250, not {n}")
+    return [
+        Member(f"{name}-{i + 1}", startup, netid_at(base_netid, i), base_port + i) for i in range(n)
+    ]
+
+
+def load_fleet(path: Path, base_netid: str, base_port: int) -> list[Member]:
+    """The machines of a fleet file, checked: names, NetIds and ports distinct."""
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise FleetError(f"{path}: {exc}") from None
+    entries = data.get("machine")
+    if not isinstance(entries, list) or not entries:
+        raise FleetError(f"{path}: no [[machine]] tables")
+    members: list[Member] = []
+    for i, entry in enumerate(entries):
+        where = f"{path}: machine {i + 1}"
+        unknown = set(entry) - {"name", "startup", "netid", "modbus_port"}
+        if unknown:
+            raise FleetError(f"{where}: unknown keys {sorted(unknown)}")
+        name = entry.get("name")
+        if not isinstance(name, str) or not NAME.fullmatch(name) or name == "fleet":
+            raise FleetError(f"{where}: name {name!r} is not a machine name (letters, digits, _.-)")
+        startup = Path(entry["startup"]) if "startup" in entry else default_startup_list()
+        if not startup.is_absolute():
+            startup = path.parent / startup
+        netid = str(entry.get("netid", netid_at(base_netid, i)))
+        port = entry.get("modbus_port", base_port + i)
+        if not isinstance(port, int) or not 0 <= port <= 65535:
+            raise FleetError(f"{where}: modbus_port {port!r} is not a TCP port")
+        members.append(Member(name, startup, netid, port))
+    for attr in ("name", "netid", "modbus_port"):
+        seen: dict[Any, str] = {}
+        for m in members:
+            key = getattr(m, attr)
+            if key in seen and not (attr == "modbus_port" and key == 0):
+                raise FleetError(f"{path}: {m.name} and {seen[key]} have the same {attr} {key}")
+            seen[key] = m.name
+    return members
+
+
+def member(path: Path, name: str) -> Member:
+    """The machine `name` of a fleet file (clients: its NetId and Modbus port)."""
+    for m in load_fleet(path, DEFAULT_NETID, DEFAULT_MODBUS_PORT):
+        if m.name == name:
+            return m
+    raise FleetError(f"{path}: no machine named {name!r}")

@@ -1,0 +1,241 @@
+"""A fleet in one process (SPEC §13): `geo-server run --fleet FILE` serves several machines,
+Zenoh by machine name, ADS by target AMS NetId on one port, Modbus one port per machine,
+status per machine and for the fleet; `geo-client --fleet FILE --machine NAME` reaches
+any of them over every transport. Real clients: a Zenoh session, pyads, geo-client (which
+speaks Modbus through pymodbus)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyads
+import pytest
+import zenoh
+from conftest import free_port
+
+from geo_server.client.ads_client import close_port_first
+from geo_server.dictionary import load_dictionary
+from geo_server.fleetfile import FleetError, copies, load_fleet, netid_at
+from geo_server.paths import default_startup_list
+
+D = load_dictionary()
+TIMEOUT = 5.0
+BIN = Path(sys.executable).parent
+OFFSET_0 = D.by_name("TEMPC::offset_0")
+CYCLE_COUNT = D.by_name("SIM::cycle_count")
+
+
+# ---------------------------------------------------------------------- the file
+
+
+def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
+    f = tmp_path / "fleet.toml"
+    f.write_text(
+        '[[machine]]\nname = "mill-a"\n\n[[machine]]\nname = "lathe_b"\n'
+        'startup = "lists/hochlauf.lis"\nnetid = "10.1.1.7.1.1"\nmodbus_port = 6000\n',
+        encoding="utf-8",
+    )
+    a, b = load_fleet(f, "127.0.0.1.1.1", 5020)
+    assert (a.name, a.startup, a.netid, a.modbus_port) == (
+        "mill-a",
+        default_startup_list(),
+        "127.0.0.1.1.1",
+        5020,
+    )
+    assert (b.startup, b.netid, b.modbus_port) == (
+        tmp_path / "lists/hochlauf.lis",
+        "10.1.1.7.1.1",
+        6000,
+    )
+    assert [m.netid for m in copies(3, "m", a.startup, "127.0.0.1.1.1", 7000)] == [
+        "127.0.0.1.1.1",
+        "127.0.0.1.2.1",
+        "127.0.0.1.3.1",
+    ]
+    assert [m.name for m in copies(2, "m", a.startup, "127.0.0.1.1.1", 7000)] == ["m-1", "m-2"]
+    with pytest.raises(FleetError, match="cannot number 2 machines"):
+        netid_at("127.0.0.1.255.1", 1)
+    for text, message in (
+        ('[[machine]]\nname = "a"\n[[machine]]\nname = "a"\n', "same name a"),
+        ('[[machine]]\nname = "a/b"\n', "not a machine name"),
+        ('[[machine]]\nname = "fleet"\n', "not a machine name"),
+        ('[[machine]]\nname = "a"\ncolour = 1\n', "unknown keys"),
+        (
+            '[[machine]]\nname = "a"\n[[machine]]\nname = "b"\nnetid = "127.0.0.1.1.1"\n',
+            "same netid",
+        ),
+        ("name = 1\n", "no \\[\\[machine\\]\\]"),
+        ("[[machine]\n", "fleet.toml"),
+    ):
+        f.write_text(text, encoding="utf-8")
+        with pytest.raises(FleetError, match=message):
+            load_fleet(f, "127.0.0.1.1.1", 5020)
+
+
+# ---------------------------------------------------------------------- served
+
+
+@pytest.fixture
+def fleet(tmp_path: Path):
+    zport, aport, mport = free_port(), free_port(), free_port()
+    mport2 = free_port()
+    f = tmp_path / "fleet.toml"
+    f.write_text(
+        f'[[machine]]\nname = "mill-a"\nmodbus_port = {mport}\n\n'
+        f'[[machine]]\nname = "lathe-b"\nnetid = "127.0.0.1.9.1"\nmodbus_port = {mport2}\n',
+        encoding="utf-8",
+    )
+    args = [
+        str(BIN / "geo-server"),
+        "run",
+        "--fleet",
+        str(f),
+        "--homed",
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{zport}",
+        "--ads-port",
+        str(aport),
+        "--ads-udp-port",
+        "0",
+        "--status-period",
+        "0.2",
+    ]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = tmp_path / "out.txt"
+    with open(out, "wb") as o, open(tmp_path / "err.txt", "wb") as e:
+        proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=o, stderr=e)
+    deadline = time.monotonic() + 30
+    while "fleet: 2 machines" not in out.read_text(errors="replace"):
+        assert proc.poll() is None, (tmp_path / "err.txt").read_text()
+        assert time.monotonic() < deadline, out.read_text()
+        time.sleep(0.1)
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("listen/endpoints", "[]")
+    cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    session = zenoh.open(cfg)
+    try:
+        yield {
+            "file": f,
+            "zenoh": session,
+            "zport": zport,
+            "ads": f"127.0.0.1:{aport}",
+            "aport": aport,
+            "modbus": (mport, mport2),
+            "out": out,
+        }
+    finally:
+        session.close()
+        proc.terminate()
+        proc.wait(10)
+    assert proc.returncode == 0, (tmp_path / "err.txt").read_text()
+    assert "stopped: 2 machines" in out.read_text()
+
+
+def zget(session: zenoh.Session, key: str) -> list[tuple[str, object]]:
+    got = []
+    for r in session.get(key, timeout=TIMEOUT):
+        if r.ok is not None:
+            got.append((str(r.ok.key_expr), json.loads(r.ok.payload.to_bytes())))
+    return got
+
+
+def client(fleet, *args: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["GEO_CLIENT_ZENOH"] = f"tcp/127.0.0.1:{fleet['zport']}"
+    env["GEO_CLIENT_ADS"] = fleet["ads"]
+    return subprocess.run(
+        [str(BIN / "geo-client"), "--fleet", str(fleet["file"]), "--json", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+
+
+def test_every_machine_on_every_transport_by_name(fleet) -> None:
+    s = fleet["zenoh"]
+    # Zenoh: one liveliness token and key space per machine name, and the fleet status
+    tokens = sorted(
+        str(r.ok.key_expr)
+        for r in s.liveliness().get("cnc/*/alive", timeout=TIMEOUT)
+        if r.ok is not None
+    )
+    assert tokens == ["cnc/lathe-b/alive", "cnc/mill-a/alive"]
+    deadline = time.monotonic() + TIMEOUT
+    status: dict = {}
+    while time.monotonic() < deadline:
+        got = zget(s, "cnc/fleet/status")
+        if got:
+            status = got[0][1]  # type: ignore[assignment]
+            break
+        time.sleep(0.1)
+    assert status["count"] == 2 and status["overruns"] == 0
+    assert [m["name"] for m in status["machines"]] == ["mill-a", "lathe-b"]
+    assert [m["netid"] for m in status["machines"]] == ["127.0.0.1.1.1", "127.0.0.1.9.1"]
+    assert all(m["engine"] == "exact" for m in status["machines"])
+    ((_, st_b),) = zget(s, "cnc/lathe-b/status")
+    assert st_b["axis_names"]["1"] == "X"  # type: ignore[index]
+
+    # ADS: one port, routed by the target NetId; a write reaches only its machine
+    a = pyads.Connection("127.0.0.1.1.1", 551, fleet["ads"])
+    b = pyads.Connection("127.0.0.1.9.1", 551, fleet["ads"])
+    ghost = pyads.Connection("127.0.0.1.77.1", 551, fleet["ads"])
+    for c in (a, b, ghost):
+        c.open()
+        c.set_timeout(int(TIMEOUT * 1000))
+    try:
+        before = a.read(OFFSET_0.index_group, OFFSET_0.index_offset(1), pyads.PLCTYPE_DINT)
+        b.write(OFFSET_0.index_group, OFFSET_0.index_offset(1), before + 77, pyads.PLCTYPE_DINT)
+        assert (
+            b.read(OFFSET_0.index_group, OFFSET_0.index_offset(1), pyads.PLCTYPE_DINT)
+            == before + 77
+        )
+        assert a.read(OFFSET_0.index_group, OFFSET_0.index_offset(1), pyads.PLCTYPE_DINT) == before
+        assert b.read_by_name("GEO.X.TEMPC.offset_0", pyads.PLCTYPE_DINT) == before + 77
+        assert a.read_by_name("GEO.X.TEMPC.offset_0", pyads.PLCTYPE_DINT) == before
+        assert a.read_device_info()[0] == "geo-server"
+        with pytest.raises(pyads.ADSError) as err:
+            ghost.read(CYCLE_COUNT.index_group, CYCLE_COUNT.index_offset(0), pyads.PLCTYPE_UDINT)
+        assert err.value.err_code == 0x7  # target machine not found
+    finally:
+        for c in (a, b, ghost):
+            close_port_first(c)
+    # Zenoh sees the same: the write went to lathe-b only
+    ((_, vb),) = zget(s, "cnc/lathe-b/axis/1/tempc/offset_0")
+    ((_, va),) = zget(s, "cnc/mill-a/axis/1/tempc/offset_0")
+    assert (va, vb) == (before, before + 77)
+
+    # geo-client by machine name over every transport (Modbus: one port per machine)
+    for via in ("zenoh", "ads", "modbus"):
+        for name, value in (("mill-a", before), ("lathe-b", before + 77)):
+            r = client(fleet, "--via", via, "--machine", name, "--raw", "read", "TEMPC::offset_0")
+            assert r.returncode == 0, (via, name, r.stderr)
+            assert json.loads(r.stdout)["value"] == value, (via, name, r.stdout)
+    # the HMI by machine name (over Zenoh)
+    r = subprocess.run(
+        [
+            str(BIN / "geo-hmi"),
+            "--connect",
+            f"tcp/127.0.0.1:{fleet['zport']}",
+            "--machine",
+            "lathe-b",
+            "--once",
+            "--format",
+            "json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "lathe-b" in r.stdout and str(before + 77) in r.stdout
+    r = client(fleet, "--via", "ads", "--machine", "drill-c", "read", "TEMPC::offset_0")
+    assert r.returncode == 2 and "no machine named 'drill-c'" in r.stderr
+    assert "fleet: 2 machines, cycles" in fleet["out"].read_text()

@@ -87,6 +87,8 @@ def main() -> int:
     own = ap.parse_args()
     rest = own.run_options[1:] if own.run_options[:1] == ["--"] else own.run_options
     args = cli.build_parser().parse_args(["run", *rest])
+    if args.cycle_in is None:
+        args.cycle_in = cli.default_cycle_in(engine=args.engine)
 
     local = build_machine(args, own.demo_axes)
     scheduler: Any

@@ -187,7 +187,8 @@ def _run(args: argparse.Namespace) -> int:
             return 2
     print(
         f"geo-server {__version__}: {path} with axes {list(machine.axes)}, cycle "
-        f"{args.cycle_ms:g} ms ({args.mode}, cycle in its own {args.cycle_in}); Ctrl-C stops",
+        f"{args.cycle_ms:g} ms ({args.mode}, {args.engine} engine, cycle in its own "
+        f"{args.cycle_in}); Ctrl-C stops",
         flush=True,
     )
     try:
@@ -391,10 +392,14 @@ class CycleStoppedError(GeoError):
     """The GEO cycle thread died (a defect; its traceback is on stderr)."""
 
 
-def default_cycle_in(os_name: str = os.name) -> str:
-    """Where the GEO cycle runs by default: its own process where the process channel
-    works (POSIX: Linux, macOS), a thread of the server elsewhere (Windows)."""
-    return "process" if os_name == "posix" else "thread"
+def default_cycle_in(os_name: str = os.name, engine: str = "exact") -> str:
+    """Where the GEO cycle runs by default. The punctual engine: its own process where
+    the process channel works (POSIX: Linux, macOS; no interpreter lock shared with the
+    transports, so it stays on its deadlines under load), a thread elsewhere (Windows).
+    The exact engine: a thread — it computes when an observer looks, on the observer's
+    thread, so a process would only add a pipe round trip to every catch-up
+    (docs/design.md §13)."""
+    return "process" if os_name == "posix" and engine == "punctual" else "thread"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -447,10 +452,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--cycle-in",
         choices=("process", "thread"),
-        default=default_cycle_in(),
-        help="run the GEO cycle in its own process (default on Linux and macOS: no "
-        "interpreter lock shared with the transports, punctual under load) or in a thread "
-        "of the server (default on Windows)",
+        default=None,
+        help="run the GEO cycle in its own process (no interpreter lock shared with the "
+        "transports: the default of the punctual engine on Linux and macOS) or in a "
+        "thread of the server (the default of the exact engine, and on Windows)",
     )
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument("--cycles", type=int, default=0, help="stop after this many cycles (0: never)")
@@ -533,6 +538,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run" and not 0.25 <= args.cycle_ms <= 10:
         print("error: --cycle-ms must be between 0.25 and 10", file=sys.stderr)
         return 2
+    if args.command == "run" and args.cycle_in is None:
+        args.cycle_in = default_cycle_in(engine=args.engine)
     return int(args.func(args))
 
 

@@ -300,12 +300,16 @@ def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):
 
 
 def test_where_the_cycle_runs_by_default_and_priority_without_os_nice(monkeypatch):
-    """Linux and macOS: its own process; Windows (no fd pipes, no os.nice): a thread; and
+    """The punctual engine on Linux and macOS: its own process; Windows (no fd pipes, no
+    os.nice) and the exact engine: a thread; and
     asking for priority where os.nice does not exist is not an error."""
     from geo_server.cli import default_cycle_in
     from geo_server.machine import process
 
-    assert default_cycle_in("posix") == "process"
-    assert default_cycle_in("nt") == "thread"
+    assert default_cycle_in("posix", "punctual") == "process"
+    assert default_cycle_in("nt", "punctual") == "thread"
+    # the exact engine computes where it is observed: a process adds only a round trip
+    assert default_cycle_in("posix", "exact") == "thread"
+    assert default_cycle_in("posix") == "thread"
     monkeypatch.delattr(process.os, "nice", raising=False)
     process._raise_priority()  # logs "keeps normal priority", raises nothing

@@ -92,6 +92,7 @@ class Machine:
         #: cycles in a row that began at rest (`_at_rest`): from 2 on, a cycle changes
         #: nothing but the counters and the twin's clock (`quiescent`)
         self._rest_streak = 0
+        self._rest_after = False  # the last cycle ended at rest
         self.kernel_ns = 0  # time of the last cycle's compensation kernel (status)
         self.player: Player | None = None
         self.events: deque[Event] = deque(maxlen=100)
@@ -147,6 +148,7 @@ class Machine:
             with self._cycle_lock:
                 rest = self._at_rest()
                 self._rest_streak = self._rest_streak + 1 if rest else 0
+                self._rest_after = False
                 applied = self._apply_queue()
                 self._step_program()
                 self.motion.step()
@@ -167,6 +169,8 @@ class Machine:
                     self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
                 )
                 self.cycle += 1
+                if self._rest_streak >= 1:  # (only then can the next cycles be quiescent)
+                    self._rest_after = self._at_rest()
                 if not publish:
                     return self.snapshot
                 snap = self._build_snapshot()
@@ -213,8 +217,10 @@ class Machine:
     def quiescent(self) -> bool:
         """True when the next cycles would publish the snapshot of this one but for the
         counters and the twin's clock and temperatures: two cycles in a row began at
-        rest and nothing has been queued since (docs/design.md §13)."""
-        return self._rest_streak >= 2 and self._at_rest()
+        rest, the last one ended at rest, and nothing has been queued since (docs/
+        design.md §13). Only operations change a machine between cycles, so the end of
+        the last cycle is remembered (`_rest_after`) instead of looked at again."""
+        return self._rest_streak >= 2 and self._rest_after and not self._queue
 
     def skip(self, n: int) -> None:
         """`n` cycles of a `quiescent` machine without computing them: the counter, the
@@ -303,6 +309,7 @@ class Machine:
 
     def apply(self, op: Operation) -> Any:
         """Carry out one operation now (at a cycle boundary)."""
+        self._rest_after = False
         match op:
             case WriteObjects(items):
                 return tuple(self._apply_item(*item) for item in items)

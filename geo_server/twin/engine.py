@@ -266,7 +266,9 @@ class TwinEngine:
         calls); the axis lines, which only the errors read, are updated once."""
         end = self.cycles + n
         every = self.thermal_every
-        nodes = _RestNodes(self, spindle) if len(self.node_temp) else None
+        nodes: _RestNodes | None = None  # made at the first thermal update
+        has_nodes = len(self.node_temp) > 0
+        thermal = False
         while True:
             nxt = min((self.cycles // every + 1) * every, self._sample_cycle())
             if nxt > end:
@@ -275,17 +277,21 @@ class TwinEngine:
             self.cycles = c
             self.time = c * self.dt
             if c % every == 0:
-                if nodes is None:
+                thermal = True
+                if not has_nodes:
                     self._vsum[:] = 0.0
                 else:
+                    if nodes is None:
+                        nodes = _RestNodes(self, spindle)
                     nodes.update(self.time)
             if self.time >= self._next_sample:
                 if nodes is not None:
                     nodes.store()  # the sensors read the nodes
                 self._sample_sensors()
-        if nodes is not None:
-            nodes.store()
-        self._update_lines()
+        if thermal:  # (the lines follow the temperatures only)
+            if nodes is not None:
+                nodes.store()
+            self._update_lines()
         self.cycles = end
         self.time = end * self.dt
         if evaluate:

@@ -1,0 +1,304 @@
+"""The observation-exact engine against the punctual one (SPEC §13): request latency and fleets.
+
+Two parts, each with both engines in the same run:
+
+1. **Added request latency from catch-up.** One default machine (`geo-server run --homed`,
+   1 ms, cycle in its own process), idle and with every axis moving; requests at random
+   moments (0–10 ms apart, so the exact engine has cycles to catch up on before it
+   answers): an ADS read (a bare AMS/TCP client), a Modbus read (pymodbus), a Zenoh get. p50/p99 per
+   engine and the difference exact − punctual.
+2. **The largest fleet.** `geo-server run --fleet-size M --homed` (machines at rest, 1 ms);
+   rounds in which every machine is asked once on every transport (ADS routed by NetId on
+   one port, Modbus on the machine's port, Zenoh by name). A fleet *serves* when every
+   request is answered and the p99 of all of them is ≤ 10 ms. M grows until it does not;
+   the server's CPU share is reported alongside.
+
+    python bench/engine.py [--quick] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import random
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from common import (
+    HOST,
+    ServerProcess,
+    cpu_seconds,
+    emit,
+    free_ports,
+    geo_server_argv,
+    start_geo,
+    summary_us,
+    table,
+    wait_port,
+    zenoh_session,
+)
+
+MOVING = "N10 G90 G01 X200 Y150 Z-100 C90 F6000\nN20 X-200 Y-150 Z100 C-90\nN30 $GOTO N10\n"
+GEO = 0x120300
+OFFSET_0 = 0x10044  # TEMPC::offset_0 of axis 1
+ZENOH_KEY = "cnc/{m}/axis/1/tempc/offset_0"
+
+
+def _children_cpu(pid: int) -> float:
+    total = cpu_seconds(pid)
+    try:
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        kids = []
+    for k in kids:
+        with contextlib.suppress(OSError):
+            total += cpu_seconds(int(k))
+    return total
+
+
+class AdsReader:
+    """A bare AMS/TCP client for one target NetId (pyads' AdsLib keeps one route per
+    address and process, which a benchmark of 100 NetIds behind one port outgrows)."""
+
+    def __init__(self, port: int, netid: str) -> None:
+        from geo_server.transports.ads import codec
+
+        self.codec = codec
+        self.sock = socket.create_connection((HOST, port), timeout=5.0)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.target = codec.AmsAddr(netid, 551)
+        self.source = codec.AmsAddr("10.9.9.9.1.1", 32999)
+        self.framer = codec.Framer()
+        self.invoke = 0
+
+    def read(self, ig: int, io: int, n: int) -> bytes:
+        c = self.codec
+        self.invoke += 1
+        self.sock.sendall(
+            c.request_frame(
+                self.target, self.source, c.Command.READ, c.read_request(ig, io, n), self.invoke
+            )
+        )
+        while True:
+            data = self.sock.recv(65536)
+            if not data:
+                raise ConnectionError("closed by the server")
+            for ev in self.framer.feed(data):
+                if isinstance(ev, c.AmsPacket):
+                    code, value = c.parse_read_response(ev.data)
+                    if code:
+                        raise RuntimeError(f"ADS error {code:#x}")
+                    return value
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Clients:
+    """One ADS, Modbus and Zenoh client per machine (`names`, NetIds, Modbus ports)."""
+
+    def __init__(self, ports: dict[str, int], machines: list[tuple[str, str, int]]) -> None:
+        from pymodbus.client import ModbusTcpClient
+
+        self.session = zenoh_session(f"tcp/{HOST}:{ports['zenoh']}")
+        self.machines = machines
+        self.ads = []
+        self.mb = []
+        for _name, netid, mport in machines:
+            self.ads.append(AdsReader(ports["ads"], netid))
+            mb = ModbusTcpClient(HOST, port=mport, timeout=5)
+            mb.connect()
+            self.mb.append(mb)
+
+    def ask(self, i: int, via: str) -> float:
+        """One request to machine i over `via`: its round trip in µs (raises on failure)."""
+        t0 = time.perf_counter_ns()
+        if via == "ads":
+            self.ads[i].read(GEO, OFFSET_0, 4)
+        elif via == "modbus":
+            r = self.mb[i].read_holding_registers(272, count=2, device_id=1)  # offset_0
+            if r.isError():
+                raise RuntimeError(f"modbus: {r}")
+        else:
+            replies = list(self.session.get(ZENOH_KEY.format(m=self.machines[i][0]), timeout=5.0))
+            if not any(r.ok is not None for r in replies):
+                raise RuntimeError("zenoh: no reply")
+        return (time.perf_counter_ns() - t0) / 1000
+
+    def close(self) -> None:
+        for plc in self.ads:
+            plc.close()
+        for mb in self.mb:
+            mb.close()
+        self.session.close()
+
+
+# ---------------------------------------------------------------------- 1. latency
+
+
+def latency(
+    engine: str, program: Path | None, seconds: float, cycle_in: str = ""
+) -> dict[str, dict[str, float]]:
+    zport, mport, aport = free_ports(3)
+    ports = {"zenoh": zport, "modbus": mport, "ads": aport}
+    extra = ["--ads-udp-port", "0"]
+    if cycle_in:
+        extra += ["--cycle-in", cycle_in]
+    if program is not None:
+        extra += ["--program", str(program)]
+    argv = geo_server_argv(1.0, ports, extra=extra, engine=engine)
+    out: dict[str, list[float]] = {"ads": [], "modbus": [], "zenoh": []}
+    with ServerProcess(argv, f"latency-{engine}") as server:
+        start_geo(server, ports).close()
+        clients = Clients(ports, [("local", "127.0.0.1.1.1", mport)])
+        try:
+            rng = random.Random(1)
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                for via in ("ads", "modbus", "zenoh"):
+                    time.sleep(rng.uniform(0.0, 0.010))
+                    out[via].append(clients.ask(0, via))
+        finally:
+            clients.close()
+    return {via: summary_us(v) for via, v in out.items()}
+
+
+# ---------------------------------------------------------------------- 2. fleets
+
+
+def fleet(engine: str, size: int, seconds: float) -> dict[str, Any]:
+    zport, aport = free_ports(2)
+    mbase = 20000 + random.randint(0, 20000)
+    ports = {"zenoh": zport, "ads": aport}
+    argv = geo_server_argv(
+        1.0,
+        {"zenoh": zport, "modbus": mbase, "ads": aport},
+        extra=["--fleet-size", str(size), "--cycle-in", "thread", "--ads-udp-port", "0"],
+        engine=engine,
+    )
+    machines = [(f"local-{i + 1}", f"127.0.0.1.{i + 1}.1", mbase + i) for i in range(size)]
+    lat: list[float] = []
+    failures = 0
+    with ServerProcess(argv, f"fleet-{engine}-{size}") as server:
+        wait_port(zport, 60.0, server.proc)
+        wait_port(aport, 60.0, server.proc)
+        wait_port(mbase + size - 1, 60.0, server.proc)
+        time.sleep(1.0)
+        clients = Clients(ports, machines)
+        try:
+            c0, t0 = _children_cpu(server.pid), time.monotonic()
+            end = time.monotonic() + seconds
+            rounds = 0
+            while time.monotonic() < end or rounds == 0:
+                for i in range(size):
+                    for via in ("ads", "modbus", "zenoh"):
+                        try:
+                            lat.append(clients.ask(i, via))
+                        except Exception:
+                            failures += 1
+                rounds += 1
+            cpu = 100 * (_children_cpu(server.pid) - c0) / (time.monotonic() - t0)
+        finally:
+            clients.close()
+    s = summary_us(lat)
+    return {
+        "size": size,
+        "rounds": rounds,
+        "failures": failures,
+        "p50_ms": s["p50"] / 1000,
+        "p99_ms": s["p99"] / 1000,
+        "cpu": cpu,
+        "serves": failures == 0 and s["p99"] <= 10_000,
+    }
+
+
+def largest(engine: str, sizes: list[int], seconds: float) -> list[dict[str, Any]]:
+    rows = []
+    for n in sizes:
+        r = fleet(engine, n, seconds)
+        rows.append(r)
+        print(f"  {engine} fleet of {n}: {r}", flush=True)
+        if not r["serves"]:
+            break
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="short windows, fewer fleet sizes")
+    ap.add_argument("--out", help="also write the Markdown here")
+    args = ap.parse_args()
+    seconds = 4.0 if args.quick else 15.0
+    prog = Path(os.environ.get("TMPDIR", "/tmp")) / f"geo-bench-engine-{os.getpid()}.nc"
+    prog.write_text(MOVING, encoding="utf-8")
+    md = "### Added request latency from catch-up (one default machine, 1 ms)\n\n"
+    rows = []
+    try:
+        for case, program in (("idle", None), ("all axes moving", prog)):
+            res = {e: latency(e, program, seconds) for e in ("exact", "punctual")}
+            for via in ("ads", "modbus", "zenoh"):
+                ex, pu = res["exact"][via], res["punctual"][via]
+                rows.append(
+                    [
+                        f"{case}, {via}",
+                        f"{ex['p50']:.0f} / {ex['p99']:.0f}",
+                        f"{pu['p50']:.0f} / {pu['p99']:.0f}",
+                        f"{ex['p50'] - pu['p50']:+.0f} / {ex['p99'] - pu['p99']:+.0f}",
+                    ]
+                )
+    finally:
+        prog.unlink(missing_ok=True)
+    md += table(
+        ["case, transport", "exact p50 / p99 µs", "punctual p50 / p99 µs", "added p50 / p99 µs"],
+        rows,
+    )
+    md += "\nRequests 0–10 ms apart (the exact engine catches up before each answer).\n\n"
+    sizes = [1, 10, 25, 50, 75, 100] if not args.quick else [1, 10, 50]
+    window = 5.0 if args.quick else 10.0
+    fleets = {
+        "exact": largest("exact", sizes, window),
+        "punctual": largest("punctual", [1, 2, 4, 8], window),
+    }
+    md += "### Fleets of default machines at rest (1 ms, one process)\n\n"
+    frows = [
+        [
+            engine,
+            r["size"],
+            r["rounds"],
+            r["failures"],
+            f"{r['p50_ms']:.2f}",
+            f"{r['p99_ms']:.2f}",
+            f"{r['cpu']:.0f}",
+            "yes" if r["serves"] else "no",
+        ]
+        for engine, rs in fleets.items()
+        for r in rs
+    ]
+    md += table(
+        [
+            "engine",
+            "machines",
+            "rounds",
+            "unanswered",
+            "p50 ms",
+            "p99 ms",
+            "server CPU %",
+            "every machine, every transport, p99 ≤ 10 ms",
+        ],
+        frows,
+    )
+    best = {e: max((r["size"] for r in rs if r["serves"]), default=0) for e, rs in fleets.items()}
+    md += (
+        f"\nLargest fleet served: exact engine {best['exact']}, punctual engine "
+        f"{best['punctual']} (target ≥ 50).\n"
+    )
+    emit(md, args.out)
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()

@@ -140,6 +140,7 @@ class Scheduler:
         self._every = 0  # observers that sample every cycle (`demand_every_cycle`)
         self._every_lock = threading.Lock()
         self.computed = 0  # exact engine: cycles computed (the rest were skipped at rest)
+        self.sync_stats = CycleStats(2000)  # exact engine: time of each catch-up (µs)
         self.wakes = 0
         self.max_catchup = max_catchup
         self.max_cycles = max_cycles
@@ -253,12 +254,15 @@ class Scheduler:
             return
         # A cycle that hangs (a defect) holds the lock: the caller is not held up with
         # it, the stall watch answers instead.
+        t0 = time.perf_counter_ns()
         if not self._engine_lock.acquire(timeout=SYNC_WAIT):
             return
         try:
             self.advance(self.due())
         finally:
             self._engine_lock.release()
+        # what the catch-up added to this request (status: sync_p50_us, sync_p99_us)
+        self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
 
     @property
     def running_exact(self) -> bool:
@@ -438,6 +442,15 @@ class Scheduler:
             self._punctual = 0
             self.spin_ns = max(int(self.spin_ns * 0.9), SPIN_MIN_NS)
 
+    def _sync_summary(self) -> dict[str, float]:
+        """Exact engine: what catching up added to requests (p50/p99 µs, last 2000)."""
+        st = self.sync_stats
+        n = min(st.count, len(st.cycle_time))
+        if not n:
+            return {"syncs": 0, "sync_p50_us": 0.0, "sync_p99_us": 0.0}
+        p50, p99 = np.percentile(st.cycle_time[:n], (50, 99))
+        return {"syncs": st.count, "sync_p50_us": float(p50), "sync_p99_us": float(p99)}
+
     def _cached_summary(self) -> dict[str, float]:
         """Percentiles cost ~1 ms of GIL time: recompute at most every 250 cycles."""
         count = self._summary[0]
@@ -455,6 +468,7 @@ class Scheduler:
             "engine": self.engine if self.mode == "realtime" else self.mode,
             "computed_cycles": self.computed,
             "engine_wakes": self.wakes,
+            **self._sync_summary(),
             "overruns": m.overruns,
             "spin_margin_us": round(self.spin_ns / 1000),
             "cycle_errors": self.cycle_errors,

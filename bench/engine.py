@@ -177,7 +177,7 @@ def latency(
 
 def fleet(engine: str, size: int, seconds: float) -> dict[str, Any]:
     zport, aport = free_ports(2)
-    mbase = 20000 + random.randint(0, 20000)
+    mbase = free_range(size)
     ports = {"zenoh": zport, "ads": aport}
     argv = geo_server_argv(
         1.0,
@@ -219,6 +219,21 @@ def fleet(engine: str, size: int, seconds: float) -> dict[str, Any]:
         "cpu": cpu,
         "serves": failures == 0 and s["p99"] <= 10_000,
     }
+
+
+def free_range(n: int) -> int:
+    """The first of n consecutive TCP ports that are free (below the ephemeral range)."""
+    rng = random.Random()
+    for _ in range(200):
+        base = rng.randint(10_000, 32_000 - n)
+        try:
+            for p in range(base, base + n):
+                with socket.socket() as s:
+                    s.bind((HOST, p))
+        except OSError:
+            continue
+        return base
+    raise RuntimeError(f"no {n} free consecutive ports")
 
 
 def largest(engine: str, sizes: list[int], seconds: float) -> list[dict[str, Any]]:

@@ -87,8 +87,10 @@ def test_objects_into_a_closed_pipe_ends_quietly(tmp_path):
     assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
 
 
-@pytest.mark.parametrize("cycle_in", ["thread", "process"])
-def test_run_serves_and_stops(tmp_path, cycle_in):
+@pytest.mark.parametrize(
+    "cycle_in, engine", [("thread", "exact"), ("process", "exact"), ("process", "punctual")]
+)
+def test_run_serves_and_stops(tmp_path, cycle_in, engine):
     zport, mport, aport = free_port(), free_port(), free_port()
     r = run(
         [
@@ -96,6 +98,8 @@ def test_run_serves_and_stops(tmp_path, cycle_in):
             "run",
             "--cycle-in",
             cycle_in,
+            "--engine",
+            engine,
             "--homed",
             "--cycles",
             "300",
@@ -115,8 +119,9 @@ def test_run_serves_and_stops(tmp_path, cycle_in):
     assert f"tcp/127.0.0.1:{zport}" in r.stdout
     assert f"127.0.0.1:{mport}" in r.stdout
     assert f"127.0.0.1:{aport}" in r.stdout
-    assert "lateness p50" in r.stdout
-    assert f"cycle in its own {cycle_in}" in r.stdout
+    # the punctual engine reports its lateness, the exact one what it computed
+    assert ("lateness p50" if engine == "punctual" else "catch-up p50") in r.stdout
+    assert f"{engine} engine, cycle in its own {cycle_in}" in r.stdout
     assert "stopped after 300 cycles" in r.stdout  # --cycles is exact, no overshoot
 
 

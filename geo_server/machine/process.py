@@ -41,7 +41,7 @@ from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_fr
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
-from geo_server.machine.scheduler import ENGINES, Scheduler
+from geo_server.machine.scheduler import ENGINES, CycleStats, Scheduler, sync_summary
 from geo_server.model import Diagnostic, MachineConfig
 from geo_server.snapshot import Snapshot
 
@@ -481,6 +481,7 @@ class ProcessScheduler:
         self.engine = engine
         self._every = 0
         self._every_lock = threading.Lock()
+        self.sync_stats = CycleStats(2000)  # what waiting for the cycle process added (µs)
         self.max_cycles = max_cycles
         self.child_setup = child_setup
         self._proc: Any = None
@@ -557,12 +558,14 @@ class ProcessScheduler:
         if not self.exact or not self.running:
             return
         m = self.machine
+        t0 = time.perf_counter_ns()
         target = self.due()
         if m.snapshot.cycle >= target or time.monotonic() - m.snapshot_time > SYNC_DEAD:
             return
         m.wake()
         with m.arrived:
             m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, SYNC_WAIT)
+        self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (exact engine: the cycle
@@ -594,6 +597,7 @@ class ProcessScheduler:
         st["cycle"] = self.machine.cycle
         st["mode"] = self.mode
         st["engine"] = self.engine if self.mode == "realtime" else self.mode
+        st.update(sync_summary(self.sync_stats))
         st["cycle_in"] = "process"
         st["cycle_pid"] = self.pid
         return st

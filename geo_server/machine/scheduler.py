@@ -104,6 +104,16 @@ class CycleStats:
         }
 
 
+def sync_summary(stats: CycleStats) -> dict[str, float]:
+    """Exact engine: what catching up added to requests (p50/p99 µs of the last ones; the
+    times are kept in the `cycle_time` ring)."""
+    n = min(stats.count, len(stats.cycle_time))
+    if not n:
+        return {"syncs": 0, "sync_p50_us": 0.0, "sync_p99_us": 0.0}
+    p50, p99 = np.percentile(stats.cycle_time[:n], (50, 99))
+    return {"syncs": stats.count, "sync_p50_us": float(p50), "sync_p99_us": float(p99)}
+
+
 class Scheduler:
     """Runs a `Machine`'s cycles in one of `MODES`."""
 
@@ -442,15 +452,6 @@ class Scheduler:
             self._punctual = 0
             self.spin_ns = max(int(self.spin_ns * 0.9), SPIN_MIN_NS)
 
-    def _sync_summary(self) -> dict[str, float]:
-        """Exact engine: what catching up added to requests (p50/p99 µs, last 2000)."""
-        st = self.sync_stats
-        n = min(st.count, len(st.cycle_time))
-        if not n:
-            return {"syncs": 0, "sync_p50_us": 0.0, "sync_p99_us": 0.0}
-        p50, p99 = np.percentile(st.cycle_time[:n], (50, 99))
-        return {"syncs": st.count, "sync_p50_us": float(p50), "sync_p99_us": float(p99)}
-
     def _cached_summary(self) -> dict[str, float]:
         """Percentiles cost ~1 ms of GIL time: recompute at most every 250 cycles."""
         count = self._summary[0]
@@ -468,7 +469,7 @@ class Scheduler:
             "engine": self.engine if self.mode == "realtime" else self.mode,
             "computed_cycles": self.computed,
             "engine_wakes": self.wakes,
-            **self._sync_summary(),
+            **sync_summary(self.sync_stats),
             "overruns": m.overruns,
             "spin_margin_us": round(self.spin_ns / 1000),
             "cycle_errors": self.cycle_errors,

@@ -433,7 +433,10 @@ class ObjectService:
     # ------------------------------------------------------------------ subscriptions
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
-        """Call `callback(snapshot)` after every cycle, on the thread that publishes it.
+        """Call `callback(snapshot)` after every published cycle, on the thread that
+        publishes it. The exact engine publishes only the cycles someone looks at (and
+        every cycle while `scheduler.demand_every_cycle()` is held, as `subscribe_changes`
+        and the ADS notifications do); the other engines publish every cycle.
 
         Keep it short and hand work to your own thread or event loop. Returns a function
         that unsubscribes.
@@ -459,7 +462,14 @@ class ObjectService:
             if changed:
                 callback(changed)
 
-        return self.subscribe(on_cycle)
+        unsubscribe = self.subscribe(on_cycle)
+        release = self.scheduler.demand_every_cycle()  # no change may go unseen
+
+        def stop() -> None:
+            unsubscribe()
+            release()
+
+        return stop
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
         """Call `callback(event)` for every new warning or error (machine or server)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import queue
 import struct
+import time
 from pathlib import Path
 
 import pytest
@@ -20,6 +21,7 @@ from geo_server.client.cli import main as client_main
 from geo_server.dictionary import load_dictionary
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Scheduler
 from geo_server.service import ObjectService
 from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
@@ -233,6 +235,33 @@ def test_publications_arrive_on_a_subscriber(server, zs):
             values.append(value)
     finally:
         sub.undeclare()
+
+
+def test_nothing_is_computed_for_publication_while_nobody_subscribes(loop_thread, default_cfg):
+    """The publish loop asks Zenoh whether any subscriber matches `cnc/<m>/**`: without
+    one the exact engine is never made to catch up for a publication; with one, the
+    changed values flow (and each publication is a catch-up)."""
+    machine = Machine(default_cfg, cycle_s=0.001, homed=True)
+    sched = Scheduler(machine, mode="realtime", engine="exact")
+    srv = Server(loop_thread, ObjectService(machine, sched))
+    sched.start()
+    s = zenoh.open(session_config([srv.endpoint]))
+    try:
+        time.sleep(0.3)  # 30 publish periods of 10 ms
+        assert sched.status()["syncs"] == 0
+        q: queue.Queue = queue.Queue()
+        sub = s.declare_subscriber("cnc/t/sim/machine/twin_time", lambda smp: q.put(smp))
+        try:
+            first = json.loads(q.get(timeout=TIMEOUT).payload.to_bytes())
+            second = json.loads(q.get(timeout=TIMEOUT).payload.to_bytes())
+            assert second > first > 0  # the twin's clock, published as it runs
+            assert sched.status()["syncs"] >= 2
+        finally:
+            sub.undeclare()
+    finally:
+        s.close()
+        sched.stop()
+        srv.close()
 
 
 # ---------------------------------------------------------------------------- nc, commands

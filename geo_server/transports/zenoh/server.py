@@ -207,6 +207,7 @@ class ZenohInterface:
         self._status_ke = zenoh.KeyExpr(f"{self.keys.prefix}/status")
         self._errors_ke = zenoh.KeyExpr(f"{self.keys.prefix}/errors")
         self._session: zenoh.Session | None = None
+        self._watch: zenoh.Publisher | None = None
         self._entities: list[Any] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -260,6 +261,9 @@ class ZenohInterface:
         )
         self._entities.append(querier)
         self._entities.append(querier.declare_matching_listener(self._on_matching))
+        # Only its matching status is used: does any subscriber listen to this machine?
+        self._watch = s.declare_publisher(f"{prefix}/**")
+        self._entities.append(self._watch)
         self._spawn(self._publish_loop())
         self._spawn(self._status_loop())
         self._spawn(self._rival_loop())
@@ -598,18 +602,27 @@ class ZenohInterface:
     # ------------------------------------------------------------------ publications
 
     async def _publish_loop(self) -> None:
-        """Put changed named values at most every `publish_period`.
+        """Put changed named values at most every `publish_period`, while someone
+        subscribes to any of this machine's keys.
 
         `Snapshot.changed` finds what changed since the last publication with one array
-        comparison, so an idle machine costs almost nothing.
+        comparison. Whether anybody listens comes from Zenoh itself: the matching status
+        of a publisher declared on `cnc/<m>/**` (a subscriber anywhere on the network
+        whose key expression intersects it). Nobody listening, nothing is computed: the
+        exact engine then has no publication to catch up for (docs/design.md §13), and
+        a fleet of unwatched machines costs what their cycles cost.
         """
         named = {
             (route.obj.name, route.axis): (zenoh.KeyExpr(key), route.obj)
             for key, route in self.keys.named_routes().items()
             if route.obj is not None
         }
+        watch = self._watch
         last: Snapshot | None = None
         while True:
+            if watch is not None and not _matching(watch):
+                await asyncio.sleep(self.options.publish_period)
+                continue
             snap = self.service.fresh()  # the cycle due now (docs/design.md §13)
             if self._session is not None and (last is None or snap.cycle != last.cycle):
                 for obj, axis in snap.changed(last):
@@ -637,3 +650,10 @@ class ZenohInterface:
     def _put_event(self, event: Event) -> None:
         if self._session is not None:
             self._session.put(self._errors_ke, json.dumps(event.as_dict()).encode(), encoding=JSON)
+
+
+def _matching(publisher: zenoh.Publisher) -> bool:
+    """Whether subscribers match `publisher` (zenoh-python returns a `MatchingStatus`;
+    its type stubs say bool)."""
+    status: Any = publisher.matching_status
+    return bool(getattr(status, "matching", status))

@@ -307,10 +307,12 @@ class Scheduler:
 
         return release
 
-    def advance(self, target: int) -> None:
+    def advance(self, target: int, publish: bool = True) -> None:
         """Bring the machine to cycle `target` (call with the engine lock held): compute
         the cycles that do something, skip those of a quiescent machine, publish the
-        snapshot reached. Behind by more than `max_lag` cycles that must be computed
+        snapshot reached (unless `publish` is False: the engine's own wake-ups publish
+        only every `idle_wake`, for the stall watch; whoever looks syncs, and a sync
+        publishes). Behind by more than `max_lag` cycles that must be computed
         (the host cannot keep up) the time line moves on instead: an overrun, counted
         with the cycles given up, as the punctual engine does."""
         m = self.machine
@@ -339,10 +341,11 @@ class Scheduler:
             t0 = clock()
             # only the last cycle of the batch is looked at (and every one while
             # someone samples every cycle): the others need not build their snapshot
-            self._guarded_cycle(publish=bool(every) or m.cycle + 1 == target)
+            self._guarded_cycle(publish=bool(every) or (publish and m.cycle + 1 == target))
             self.computed += 1
             rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
-        m.publish()
+        if publish:
+            m.publish()
 
     @property
     def max_lag(self) -> int:
@@ -368,7 +371,10 @@ class Scheduler:
             while not self._stop.is_set() and not self._done():
                 self.wakes += 1
                 with self._engine_lock:
-                    self.advance(self.due())
+                    # a wake-up nobody asked for publishes only for the stall watch
+                    # (the cycle process always: its server holds no machine to sync)
+                    stale = time.monotonic() - self.machine.snapshot_time >= self.idle_wake
+                    self.advance(self.due(), publish=stale or self.waiter is not None)
                     wake = self._next_wake(clock())
                 delay = (wake - clock()) / 1e9
                 if delay > 0:

@@ -286,7 +286,7 @@ def main() -> None:
         "(each engine's default). *Catch-up in the server*: the time `sync()` took before "
         "an answer, timed in the server (its `sync_p50_us` / `sync_p99_us` status).\n\n"
     )
-    sizes = [1, 10, 25, 50, 75, 100] if not args.quick else [1, 10, 50]
+    sizes = [1, 10, 25, 50, 100, 150, 200, 250] if not args.quick else [1, 10, 50]
     window = 5.0 if args.quick else 10.0
     fleets = {
         "exact": largest("exact", sizes, window),

@@ -5,7 +5,7 @@ Reads
     bytes, or raises `AdsError` (0x702 group, 0x703 offset or axis, 0x705 length). A
     read never returns more bytes than the object has; `read_many` answers a batch from
     one snapshot (sum reads, block reads). While cycles run by themselves and the latest
-    snapshot is older than `ServiceLimits.stall_after`, the GEO cycle is *stalled*: reads
+    cycle has not advanced for `ServiceLimits.stall_after`, the GEO cycle is *stalled*: reads
     raise 0x707 (device not ready) instead of serving an ever older picture as current,
     and `status()` says `"stalled": true` (status itself is always answered).
 
@@ -186,8 +186,9 @@ class ObjectService:
 
     @property
     def snapshot(self) -> Snapshot:
-        """The latest published snapshot, however old (see `current`)."""
-        return self.machine.snapshot
+        """The snapshot of the cycle due now (the exact engine catches up first), also
+        while the cycle is stalled — then the last one there is (see `current`)."""
+        return self.fresh()
 
     def stalled_for(self) -> float:
         """Seconds since the latest snapshot when the cycle is stalled, else 0."""
@@ -195,7 +196,7 @@ class ObjectService:
             return 0.0
         if not self._started_at:
             self._started_at = time.monotonic()
-        age = time.monotonic() - max(self.machine.snapshot_time, self._started_at)
+        age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
         return age if age > self.limits.stall_after else 0.0
 
     def fresh(self) -> Snapshot:

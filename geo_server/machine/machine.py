@@ -134,6 +134,8 @@ class Machine:
         np.add(self.motion.pos, self.kernel.total_offset, out=self._output)
         self.snapshot: Snapshot = self._build_snapshot()
         self.snapshot_time = monotonic()
+        #: when the cycle last advanced (computed, skipped or published: the stall watch)
+        self.heartbeat = self.snapshot_time
 
     # ------------------------------------------------------------------ the cycle
 
@@ -169,6 +171,7 @@ class Machine:
                     self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
                 )
                 self.cycle += 1
+                self.heartbeat = monotonic()
                 if self._rest_streak >= 1:  # (only then can the next cycles be quiescent)
                     self._rest_after = self._at_rest()
                 if not publish:
@@ -233,6 +236,7 @@ class Machine:
             self.kernel.skip(n)
             self.twin.advance(n, self._output, self.motion.pos, self.spindle_on, False)
             self.cycle += n
+            self.heartbeat = monotonic()
 
     def publish(self) -> Snapshot:
         """Build and hand out the snapshot of the cycle reached, when `skip` or an

@@ -166,6 +166,11 @@ class MachinePort(Protocol):
         """The snapshot of the latest cycle (published by swapping a reference)."""
 
     @property
+    def heartbeat(self) -> float:
+        """`time.monotonic()` when the cycle last showed it is alive: a cycle computed or
+        skipped, or a snapshot published (the stall watch)."""
+
+    @property
     def snapshot_time(self) -> float:
         """`time.monotonic()` when the current snapshot was published."""
 

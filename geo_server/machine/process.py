@@ -271,6 +271,7 @@ class RemoteMachine:
         self.names = local.names
         self.snapshot: Snapshot = local.snapshot
         self.snapshot_time = time.monotonic()
+        self.heartbeat = self.snapshot_time  # a frame is the cycle process's sign of life
         self._shape = local.snapshot.values.shape
         self.events: deque[Event] = deque(local.events, maxlen=100)
         self._listeners: list[Callable[[Snapshot], None]] = []
@@ -427,7 +428,7 @@ class RemoteMachine:
             texts,
             stamp,
         )
-        self.snapshot_time = time.monotonic()
+        self.snapshot_time = self.heartbeat = time.monotonic()
         self.first_frame.set()
         with self.arrived:
             self.arrived.notify_all()

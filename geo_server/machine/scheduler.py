@@ -53,7 +53,7 @@ ENGINES = ("exact", "punctual")
 BATCH = 4
 #: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs about a
 #: microsecond per skipped thermal event of the twin (one per 10 ms), so waking more
-#: often would buy a request no latency; the wake keeps the published snapshot fresh
+#: often would buy a request no latency; the wake keeps the machine's heartbeat fresh
 #: for the stall watch (`ServiceLimits.stall_after`, 0.5 s)
 IDLE_WAKE = 0.1
 #: exact engine: the longest a request waits for a catch-up another thread is running
@@ -311,8 +311,8 @@ class Scheduler:
         """Bring the machine to cycle `target` (call with the engine lock held): compute
         the cycles that do something, skip those of a quiescent machine, publish the
         snapshot reached (unless `publish` is False: the engine's own wake-ups publish
-        only every `idle_wake`, for the stall watch; whoever looks syncs, and a sync
-        publishes). Behind by more than `max_lag` cycles that must be computed
+        nothing; whoever looks syncs, and a sync publishes). Behind by more than
+        `max_lag` cycles that must be computed
         (the host cannot keep up) the time line moves on instead: an overrun, counted
         with the cycles given up, as the punctual engine does."""
         m = self.machine
@@ -371,10 +371,10 @@ class Scheduler:
             while not self._stop.is_set() and not self._done():
                 self.wakes += 1
                 with self._engine_lock:
-                    # a wake-up nobody asked for publishes only for the stall watch
-                    # (the cycle process always: its server holds no machine to sync)
-                    stale = time.monotonic() - self.machine.snapshot_time >= self.idle_wake
-                    self.advance(self.due(), publish=stale or self.waiter is not None)
+                    # a wake-up nobody asked for publishes nothing (whoever looks syncs;
+                    # the stall watch reads the heartbeat), but in the cycle process:
+                    # its server has no machine to sync, only the frames it is sent
+                    self.advance(self.due(), publish=self.waiter is not None)
                     wake = self._next_wake(clock())
                 delay = (wake - clock()) / 1e9
                 if delay > 0:

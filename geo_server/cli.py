@@ -19,8 +19,7 @@ from typing import Any
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
-from geo_server.errors import GeoError
-from geo_server.interfaces import InterfaceStartError, start_failure
+from geo_server.interfaces import CycleStoppedError, InterfaceStartError, start_failure
 from geo_server.paths import default_startup_list
 
 
@@ -400,10 +399,6 @@ def status_line(st: dict[str, Any]) -> str:
         head + f"lateness p50 {st['lateness_p50_us']:.0f} µs "
         f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  " + tail
     )
-
-
-class CycleStoppedError(GeoError):
-    """The GEO cycle thread died (a defect; its traceback is on stderr)."""
 
 
 def default_cycle_in(os_name: str = os.name, engine: str = "exact") -> str:

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
-from geo_server.interfaces import InterfaceStartError, start_failure
+from geo_server.interfaces import CycleStoppedError, InterfaceStartError, start_failure
 from geo_server.paths import default_startup_list
 
 
@@ -91,6 +91,9 @@ def run_fleet(args: argparse.Namespace) -> int:
     except InterfaceStartError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except CycleStoppedError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     finally:
         for s in served:
             s.scheduler.stop()
@@ -135,7 +138,10 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         if not args.no_zenoh:
             session = await _start_zenoh(args, served, closers)
         if not args.no_modbus:
-            await _start_modbus(args, served, closers)
+            try:
+                await _start_modbus(args, served, closers)
+            except OSError as exc:
+                raise InterfaceStartError(start_failure("modbus", exc)) from exc
         if not args.no_ads:
             await _start_ads(args, served, closers)
         for s in served:
@@ -166,8 +172,9 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
             )
             if args.cycles and all(not s.scheduler.running for s in served):
                 break
-    except OSError as exc:
-        raise InterfaceStartError(start_failure("modbus", exc)) from exc
+            dead = [s.member.name for s in served if not s.scheduler.running]
+            if dead and not args.cycles:  # serving a frozen machine would look alive
+                raise CycleStoppedError(f"the GEO cycle of {', '.join(dead)} ended unexpectedly")
     finally:
         for close in reversed(closers):
             try:
@@ -199,11 +206,14 @@ async def _start_zenoh(args: argparse.Namespace, served: list[Served], closers: 
         await loop.run_in_executor(None, session.close)
 
     closers.append(close_session)
+    ifaces = []
     for s in served:
         opts = ZenohOptions(**{**base.__dict__, "machine": s.member.name})
         iface = ZenohInterface(s.service, opts, session=session)
         closers.append(iface.close)
-        await iface.start()
+        ifaces.append(iface)
+    # together: each start looks for a rival's liveliness token (up to a second)
+    await asyncio.gather(*(iface.start() for iface in ifaces))
     print(
         f"zenoh: {len(served)} machines on {', '.join(base.listen)} (keys cnc/<name>/**, "
         f"{FLEET_STATUS_KEY})",

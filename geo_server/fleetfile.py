@@ -46,10 +46,19 @@ class Member:
     modbus_port: int
 
 
+def parse_netid(text: object) -> list[int]:
+    """The six bytes of an AMS NetId written `a.b.c.d.e.f` (FleetError otherwise)."""
+    parts = str(text).strip().split(".") if isinstance(text, str) else []
+    if len(parts) != 6 or not all(p.isdigit() and int(p) <= 255 for p in parts):
+        raise FleetError(f"{text!r} is not an AMS NetId (six numbers 0…255, a.b.c.d.e.f)")
+    return [int(p) for p in parts]
+
+
 def netid_at(base: str, i: int) -> str:
-    """The i-th machine's AMS NetId: `base` with its fifth byte raised by i."""
-    parts = [int(x) for x in base.split(".")]
-    if len(parts) != 6 or parts[4] + i > 255:
+    """The i-th machine's AMS NetId: `base` with its fifth byte raised by i (canonical
+    spelling, as routing compares it)."""
+    parts = parse_netid(base)
+    if parts[4] + i > 255:
         raise FleetError(f"cannot number {i + 1} machines from AMS NetId {base}")
     parts[4] += i
     return ".".join(str(x) for x in parts)
@@ -82,12 +91,21 @@ def load_fleet(path: Path, base_netid: str, base_port: int) -> list[Member]:
         name = entry.get("name")
         if not isinstance(name, str) or not NAME.fullmatch(name) or name == "fleet":
             raise FleetError(f"{where}: name {name!r} is not a machine name (letters, digits, _.-)")
-        startup = Path(entry["startup"]) if "startup" in entry else default_startup_list()
+        raw = entry.get("startup")
+        if raw is not None and not isinstance(raw, str):
+            raise FleetError(f"{where}: startup {raw!r} is not a path")
+        startup = Path(raw) if raw is not None else default_startup_list()
         if not startup.is_absolute():
             startup = path.parent / startup
-        netid = str(entry.get("netid", netid_at(base_netid, i)))
+        try:
+            netid = netid_at(
+                str(entry["netid"]) if "netid" in entry else base_netid,
+                0 if "netid" in entry else i,
+            )
+        except FleetError as exc:
+            raise FleetError(f"{where}: netid {exc}") from None
         port = entry.get("modbus_port", base_port + i)
-        if not isinstance(port, int) or not 0 <= port <= 65535:
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
             raise FleetError(f"{where}: modbus_port {port!r} is not a TCP port")
         members.append(Member(name, startup, netid, port))
     for attr in ("name", "netid", "modbus_port"):
@@ -100,9 +118,13 @@ def load_fleet(path: Path, base_netid: str, base_port: int) -> list[Member]:
     return members
 
 
-def member(path: Path, name: str) -> Member:
-    """The machine `name` of a fleet file (clients: its NetId and Modbus port)."""
-    for m in load_fleet(path, DEFAULT_NETID, DEFAULT_MODBUS_PORT):
+def member(
+    path: Path, name: str, base_netid: str = DEFAULT_NETID, base_port: int = DEFAULT_MODBUS_PORT
+) -> Member:
+    """The machine `name` of a fleet file (clients: its NetId and Modbus port). Where the
+    file leaves them out they count from `base_netid` / `base_port`, which must be the
+    server's `--ads-netid` / `--modbus-port`."""
+    for m in load_fleet(path, base_netid, base_port):
         if m.name == name:
             return m
     raise FleetError(f"{path}: no machine named {name!r}")

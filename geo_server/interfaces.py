@@ -33,3 +33,7 @@ def start_failure(name: str, exc: BaseException) -> str:
             f"choose another port with {_PORT_OPTION[name]} or stop the other server"
         )
     return f"{name} interface did not start: {text}"
+
+
+class CycleStoppedError(GeoError):
+    """The GEO cycle thread died (a defect; its traceback is on stderr)."""

@@ -206,8 +206,14 @@ class ObjectService:
         return self.machine.snapshot
 
     def current(self) -> Snapshot:
-        """The snapshot of the cycle due now, or 0x707 while the GEO cycle is stalled."""
-        snap = self.fresh()
+        """The snapshot of the cycle due now, or 0x707 while the GEO cycle is stalled or
+        cannot catch up in time."""
+        if not self.scheduler.sync():
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOTREADY,
+                "the GEO cycle is busy catching up (the host stalled): no current values",
+            )
+        snap = self.machine.snapshot
         stalled = self.stalled_for()
         if stalled:
             raise AdsError(

@@ -20,7 +20,7 @@ from conftest import free_port
 
 from geo_server.client.ads_client import close_port_first
 from geo_server.dictionary import load_dictionary
-from geo_server.fleetfile import FleetError, copies, load_fleet, netid_at
+from geo_server.fleetfile import FleetError, copies, load_fleet, member, netid_at
 from geo_server.paths import default_startup_list
 
 D = load_dictionary()
@@ -60,6 +60,12 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
     assert [m.name for m in copies(2, "m", a.startup, "127.0.0.1.1.1", 7000)] == ["m-1", "m-2"]
     with pytest.raises(FleetError, match="cannot number 2 machines"):
         netid_at("127.0.0.1.255.1", 1)
+    with pytest.raises(FleetError, match="not an AMS NetId"):
+        copies(2, "m", a.startup, "127.0.0.1", 7000)  # a malformed --ads-netid
+    # a client counts what the file leaves out from the server's bases, as the server
+    f.write_text('[[machine]]\nname = "x"\n[[machine]]\nname = "y"\n', encoding="utf-8")
+    y = member(f, "y", "10.0.0.9.1.1", 6000)
+    assert (y.netid, y.modbus_port) == ("10.0.0.9.2.1", 6001)
     for text, message in (
         ('[[machine]]\nname = "a"\n[[machine]]\nname = "a"\n', "same name a"),
         ('[[machine]]\nname = "a/b"\n', "not a machine name"),
@@ -71,6 +77,16 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
         ),
         ("name = 1\n", "no \\[\\[machine\\]\\]"),
         ("[[machine]\n", "fleet.toml"),
+        ('[[machine]]\nname = "a"\nnetid = "127.0.0.1.2.01x"\n', "not an AMS NetId"),
+        ('[[machine]]\nname = "a"\nnetid = "mill"\n', "not an AMS NetId"),
+        ('[[machine]]\nname = "a"\nnetid = 5\n', "not an AMS NetId"),
+        ('[[machine]]\nname = "a"\nstartup = 3\n', "not a path"),
+        ('[[machine]]\nname = "a"\nmodbus_port = true\n', "not a TCP port"),
+        (
+            '[[machine]]\nname = "a"\nnetid = "127.0.0.1.2.01"\n[[machine]]\nname = "b"\n'
+            'netid = "127.0.0.1.2.1"\n',
+            "same netid 127.0.0.1.2.1",
+        ),
     ):
         f.write_text(text, encoding="utf-8")
         with pytest.raises(FleetError, match=message):

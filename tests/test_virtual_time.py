@@ -213,3 +213,64 @@ def test_every_cycle_is_published_while_someone_samples_every_cycle(cfg) -> None
     vc.t += 30 * P
     sched.sync()
     assert [c for c, _ in seen[31:]] == [110]
+
+
+def test_an_axis_without_friction_stops_inside_a_thermal_window(cfg) -> None:
+    """Y has no friction (nothing in the kernel's delay line): the machine is at rest as
+    soon as Y stands, but the motion heat Y gathered since the last thermal update is
+    still to be applied — the skip must wait for it to be, or the node differs."""
+    a, b = pair(cfg)
+    for m in (a, b):
+        m.step(40)
+        m.submit(WriteObjects((("SIM::target_position", 2, 20_000.0),)))  # 2 mm
+    for _ in range(5000):
+        a.step(1)
+        b.step(1)
+        if b.quiescent:
+            break
+    assert b.quiescent and a.cycle == b.cycle
+    for n in (3, 7, 250, 999):
+        a.step(n)
+        b.skip(n)
+        same(a.snapshot, b.publish())
+    assert a.twin.node_temp.tolist() == b.twin.node_temp.tolist()
+
+
+def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> None:
+    """Another thread holds the engine (a long catch-up after the host stalled): a read
+    is refused with 0x707 instead of being served an old snapshot, a write is refused
+    instead of landing in a cycle of the past."""
+    import threading
+
+    from geo_server.errors import AdsError
+    from geo_server.service import ObjectService
+
+    vc = VirtualClock()
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    svc = ObjectService(m, sched)
+    vc.t += 5 * P
+    assert svc.read_name("SIM::cycle_count") == 5
+    held, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with sched._engine_lock:
+            held.set()
+            release.wait(5)
+
+    t = threading.Thread(target=hold)
+    t.start()
+    try:
+        assert held.wait(5)
+        vc.t += 5 * P
+        with pytest.raises(AdsError) as err:
+            svc.read_name("SIM::cycle_count")
+        assert err.value.code == 0x707
+        with pytest.raises(AdsError) as err:
+            svc.write_name("TEMPC::offset_0", 1, 60)
+        assert err.value.code == 0x707
+    finally:
+        release.set()
+        t.join(5)
+    assert svc.read_name("SIM::cycle_count") == 10

@@ -329,7 +329,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--fleet",
         metavar="FILE",
         help="a fleet file: address --machine by name over every transport (its AMS "
-        "NetId for ADS, its port for Modbus)",
+        "NetId for ADS, its port for Modbus; what the file leaves out counts from --netid "
+        "and the --connect port, as the server's from --ads-netid and --modbus-port)",
     )
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -381,8 +382,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.fleet:  # the machine's NetId and Modbus port from the fleet file
         from geo_server.fleetfile import FleetError, member
 
+        # what the file leaves out counts from the server's defaults, or from the
+        # --netid / Modbus --connect port given here (the server's --ads-netid and
+        # --modbus-port)
+        base_port = 5020
+        if args.via == "modbus" and endpoint and endpoint.rsplit(":", 1)[-1].isdigit():
+            base_port = int(endpoint.rsplit(":", 1)[-1])
         try:
-            found = member(Path(args.fleet), args.machine)
+            found = member(Path(args.fleet), args.machine, args.netid, base_port)
         except FleetError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

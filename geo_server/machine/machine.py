@@ -15,6 +15,7 @@ through `submit()` (a queue applied at the next cycle boundary) and the publishe
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
@@ -47,6 +48,8 @@ from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
 from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
+
+log = logging.getLogger(__name__)
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -205,8 +208,9 @@ class Machine:
             self.snapshot = replace(snap, stamp=epoch + snap.cycle * self.period_ticks)
 
     def _at_rest(self) -> bool:
-        """Nothing queued, no program, no axis moving, the kernel at rest (docs/design.md
-        §13): a cycle that starts like this computes what the one before computed."""
+        """Nothing queued, no program, no axis moving, the kernel at rest, no motion heat
+        pending in the twin (docs/design.md §13): a cycle that starts like this computes
+        what the one before computed."""
         if self._queue:
             return False
         player = self.player
@@ -214,7 +218,7 @@ class Machine:
             return False
         if not self.motion.all_in_position():
             return False
-        return self.kernel.at_rest()
+        return self.kernel.at_rest() and self.twin.at_rest()
 
     @property
     def quiescent(self) -> bool:
@@ -249,7 +253,10 @@ class Machine:
             snap = self.snapshot = self._build_snapshot()
             self.snapshot_time = monotonic()
         for listener in self.listeners:
-            listener(snap)
+            try:
+                listener(snap)
+            except Exception:  # one broken subscriber must not stop the engine
+                log.exception("snapshot listener failed")
         return snap
 
     def _step_program(self) -> None:

@@ -211,9 +211,9 @@ class CycleRunner(Protocol):
     def step(self, n: int = 1) -> None:
         """Run `n` cycles now (stepped mode only)."""
 
-    def sync(self) -> None:
+    def sync(self) -> bool:
         """Make the machine's snapshot the one of the cycle due now (the exact engine
-        computes late; others: nothing to do)."""
+        computes late; others: nothing to do); False when it could not in time."""
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the

@@ -552,21 +552,24 @@ class ProcessScheduler:
         m = self.machine
         return (time.monotonic_ns() - m.t0) // round(m.cycle_s * 1e9)
 
-    def sync(self) -> None:
+    def sync(self) -> bool:
         """Exact engine: wake the cycle process and wait (briefly) for the snapshot of
         the cycle due now. A cycle process that has sent nothing for `SYNC_DEAD`
         seconds (stopped, hung) is not waited for: the stall watch answers instead."""
         if not self.exact or not self.running:
-            return
+            return True
         m = self.machine
         t0 = time.perf_counter_ns()
         target = self.due()
-        if m.snapshot.cycle >= target or time.monotonic() - m.snapshot_time > SYNC_DEAD:
-            return
+        if m.snapshot.cycle >= target:
+            return True
+        if time.monotonic() - m.snapshot_time > SYNC_DEAD:
+            return False
         m.wake()
         with m.arrived:
-            m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, SYNC_WAIT)
+            done = m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, SYNC_WAIT)
         self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+        return bool(done) and not m.closed
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (exact engine: the cycle

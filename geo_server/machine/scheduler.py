@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import Operation, Pending
 from geo_server.snapshot import filetime_now
@@ -57,7 +58,9 @@ BATCH = 4
 #: for the stall watch (`ServiceLimits.stall_after`, 0.5 s)
 IDLE_WAKE = 0.1
 #: exact engine: the longest a request waits for a catch-up another thread is running
-SYNC_WAIT = 0.05
+#: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
+#: wait is answered 0x707)
+SYNC_WAIT = 0.25
 
 
 class CycleStats:
@@ -183,7 +186,7 @@ class Scheduler:
         # transports' threads (docs/design.md §5).
         sys.setswitchinterval(0.0002)
         self._stop.clear()
-        if self.exact:
+        if self.mode == "realtime":
             self._begin_timeline()  # before any request can sync against it
         self._thread = threading.Thread(target=self._loop(), name="geo-cycle", daemon=True)
         self._thread.start()
@@ -192,7 +195,7 @@ class Scheduler:
         """Run the free / real-time loop in the calling thread until `stop()` or
         `max_cycles` (the GEO-cycle process runs it in its main thread)."""
         self._stop.clear()
-        if self.exact:
+        if self.mode == "realtime":
             self._begin_timeline()
         self._loop()()
 
@@ -257,22 +260,24 @@ class Scheduler:
         t = self._clock() if now is None else now
         return (t - self.t0) // self.period_ns
 
-    def sync(self) -> None:
+    def sync(self) -> bool:
         """Exact engine: compute (or skip) the cycles up to now before an observer looks
-        (from any thread; the caller computes them). Other modes: nothing to do."""
+        (from any thread; the caller computes them). False when that was not possible
+        within `SYNC_WAIT`: another thread holds the engine (a long catch-up after the
+        host stalled, or a cycle that hangs) — the machine's snapshot is then not the
+        one due. Other modes: nothing to do (True)."""
         if not self.exact or not self.running_exact:
-            return
-        # A cycle that hangs (a defect) holds the lock: the caller is not held up with
-        # it, the stall watch answers instead.
+            return True
         t0 = time.perf_counter_ns()
         if not self._engine_lock.acquire(timeout=SYNC_WAIT):
-            return
+            return False
         try:
             self.advance(self.due())
         finally:
             self._engine_lock.release()
         # what the catch-up added to this request (status: sync_p50_us, sync_p99_us)
         self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+        return True
 
     @property
     def running_exact(self) -> bool:
@@ -285,9 +290,17 @@ class Scheduler:
         on its deadline."""
         if not self.running_exact:
             return self.machine.submit(op)
-        with self._engine_lock:
+        if not self._engine_lock.acquire(timeout=SYNC_WAIT):
+            # queued now it could land in a cycle that belongs to the past
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOTREADY,
+                "the GEO cycle is busy catching up (the host stalled): nothing queued",
+            )
+        try:
             self.advance(self.due())
             pending = self.machine.submit(op)
+        finally:
+            self._engine_lock.release()
         self._wake.set()
         return pending
 
@@ -316,11 +329,44 @@ class Scheduler:
         (the host cannot keep up) the time line moves on instead: an overrun, counted
         with the cycles given up, as the punctual engine does."""
         m = self.machine
+        target = self._reachable(target)
+        if target <= m.cycle:
+            return
+        every = self._every
+        rec, clock = self.stats.record, time.perf_counter_ns
+        while m.cycle < target and not self._stop.is_set():
+            if m.quiescent:
+                try:
+                    if not every:
+                        m.skip(target - m.cycle)
+                        break
+                    m.skip(1)
+                    m.publish()
+                except Exception:  # as `_guarded_cycle`: logged, counted, time goes on
+                    self.cycle_errors += 1
+                    log.exception("GEO cycle %d (skipped at rest) failed", m.cycle)
+                    break
+                continue
+            t0 = clock()
+            before = m.cycle
+            # only the last cycle of the batch is looked at (and every one while
+            # someone samples every cycle): the others need not build their snapshot
+            self._guarded_cycle(publish=bool(every) or (publish and m.cycle + 1 == target))
+            if m.cycle == before:  # the cycle failed before it counted: no busy loop
+                break
+            self.computed += 1
+            rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
+        if publish:
+            m.publish()
+
+    def _reachable(self, target: int) -> int:
+        """`target`, or less: `max_cycles` caps it, and behind by more than `max_lag`
+        cycles that must be computed (the host cannot keep up) the time line moves on
+        instead — one overrun, the cycles given up counted, t0 and the epoch shifted."""
+        m = self.machine
         if self.max_cycles:
             target = min(target, self.max_cycles)
         lag = target - m.cycle
-        if lag <= 0:
-            return
         if lag > self.max_lag and not m.quiescent:
             give_up = lag - 1
             self.t0 += give_up * self.period_ns
@@ -328,24 +374,7 @@ class Scheduler:
             m.overruns += 1
             self.skipped += give_up
             target = m.cycle + 1
-        every = self._every
-        rec, clock = self.stats.record, time.perf_counter_ns
-        while m.cycle < target and not self._stop.is_set():
-            if m.quiescent:
-                if not every:
-                    m.skip(target - m.cycle)
-                    break
-                m.skip(1)
-                m.publish()
-                continue
-            t0 = clock()
-            # only the last cycle of the batch is looked at (and every one while
-            # someone samples every cycle): the others need not build their snapshot
-            self._guarded_cycle(publish=bool(every) or (publish and m.cycle + 1 == target))
-            self.computed += 1
-            rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
-        if publish:
-            m.publish()
+        return target
 
     @property
     def max_lag(self) -> int:
@@ -370,12 +399,23 @@ class Scheduler:
         try:
             while not self._stop.is_set() and not self._done():
                 self.wakes += 1
+                # A wake-up nobody asked for publishes nothing (whoever looks syncs; the
+                # stall watch reads the heartbeat), but in the cycle process: its server
+                # has no machine to sync, only the frames it is sent. Behind by more
+                # than a batch (the host was busy), the engine catches up a batch at a
+                # time and lets go of the lock in between, so a request never waits
+                # for more than one batch before it catches up to its own cycle.
+                m = self.machine
                 with self._engine_lock:
-                    # a wake-up nobody asked for publishes nothing (whoever looks syncs;
-                    # the stall watch reads the heartbeat), but in the cycle process:
-                    # its server has no machine to sync, only the frames it is sent
-                    self.advance(self.due(), publish=self.waiter is not None)
-                    wake = self._next_wake(clock())
+                    target = self._reachable(self.due())
+                while True:
+                    with self._engine_lock:
+                        before = m.cycle
+                        step = target if m.quiescent else min(target, m.cycle + self.batch)
+                        self.advance(step, publish=self.waiter is not None and step == target)
+                        if m.cycle >= target or m.cycle == before or self._stop.is_set():
+                            wake = self._next_wake(clock())
+                            break
                 delay = (wake - clock()) / 1e9
                 if delay > 0:
                     self._wait(delay)
@@ -429,6 +469,9 @@ class Scheduler:
                 # count the cycles given up so that status shows the whole stall.
                 self.machine.overruns += 1
                 self.skipped += late // period
+                # (the stamps keep counting cycles: epoch + cycle·T, so a stamp always
+                # names its cycle; after an overrun they trail wall time by the cycles
+                # given up, which status reports as skipped_cycles)
                 deadline = now
             t0 = time.perf_counter_ns()
             self._guarded_cycle()

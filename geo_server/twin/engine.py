@@ -244,6 +244,11 @@ class TwinEngine:
         if evaluate:  # (the outputs only: a cycle nobody looks at can leave them)
             self.evaluate(output, command, velocity)
 
+    def at_rest(self) -> bool:
+        """No motion heat waits for the next thermal update (|v| summed since the last
+        one is zero): `advance` may then run the thermal updates without it."""
+        return not np.count_nonzero(self._vsum)
+
     def advance(
         self,
         n: int,

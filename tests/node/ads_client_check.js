@@ -51,6 +51,8 @@ async function main() {
     const timer = setTimeout(() => reject(new Error("no notification in 5 s")), 5000);
     client
       .subscribeValue("GEO.SIM.cycle_count", (data, sub) => {
+        // samples of cycles computed together arrive together: keep the first three
+        if (seen.length >= 3) return;
         seen.push(data.value);
         if (seen.length === 3) {
           clearTimeout(timer);

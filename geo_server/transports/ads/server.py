@@ -250,7 +250,9 @@ class AdsServer:
     def add_device(self, service: ObjectService, options: AdsOptions) -> AdsServer:
         """Serve another machine on this server's TCP port under its own AMS NetId, as a
         TwinCAT router routes by target NetId (SPEC §13: a fleet). Start and close it
-        with this one."""
+        with this one (add devices before `start`)."""
+        if self._loop is not None:
+            raise RuntimeError("add_device() before start()")
         if options.netid in self.devices:
             raise ValueError(f"AMS NetId {options.netid} is served already")
         device = AdsServer(service, options, router=self)
@@ -829,10 +831,14 @@ class AdsServer:
         if req.index_group == symbols.SYM_VALBYHND:
             ig, io = self._address(conn, req.index_group, req.index_offset)
             req = replace(req, index_group=ig, index_offset=io)
-        reg = self.notifications.add(
-            conn, h.source, h.target, req, self.service.fresh(), hold_until=hold
-        )
+        # every cycle's snapshot from now on, before the registration's first cycle
         self._demand(True)
+        try:
+            reg = self.notifications.add(
+                conn, h.source, h.target, req, self.service.fresh(), hold_until=hold
+            )
+        finally:
+            self._demand(len(self.notifications) > 0)
         return codec.add_notification_response(0, reg.handle)
 
     def _demand(self, on: bool) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
-from geo_server.interfaces import CycleStoppedError, InterfaceStartError, start_failure
+from geo_server.interfaces import CycleStoppedError, InterfaceStartError, serve, start_failure
 from geo_server.paths import default_startup_list
 
 
@@ -190,20 +190,10 @@ def _run(args: argparse.Namespace) -> int:
         f"{args.cycle_in}); Ctrl-C stops",
         flush=True,
     )
-    try:
-        asyncio.run(_serve(args, service, scheduler))
-    except KeyboardInterrupt:  # where signal handlers cannot be installed (Windows)
-        pass
-    except InterfaceStartError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except CycleStoppedError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        scheduler.stop()
-    print(f"stopped after {machine.cycle} cycles")
-    return 0
+    code = serve(_serve(args, service, scheduler), scheduler.stop)
+    if code == 0:
+        print(f"stopped after {machine.cycle} cycles")
+    return code
 
 
 def _remove_orphans(cfg: Any) -> None:

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
-from geo_server.interfaces import CycleStoppedError, InterfaceStartError, start_failure
+from geo_server.interfaces import CycleStoppedError, InterfaceStartError, serve, start_failure
 from geo_server.paths import default_startup_list
 
 
@@ -84,21 +84,10 @@ def run_fleet(args: argparse.Namespace) -> int:
         "Ctrl-C stops",
         flush=True,
     )
-    try:
-        asyncio.run(_serve(args, served))
-    except KeyboardInterrupt:
-        pass
-    except InterfaceStartError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except CycleStoppedError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        for s in served:
-            s.scheduler.stop()
-    print(f"stopped: {len(served)} machines")
-    return 0
+    code = serve(_serve(args, served), lambda: [s.scheduler.stop() for s in served])
+    if code == 0:
+        print(f"stopped: {len(served)} machines")
+    return code
 
 
 def fleet_status(served: list[Served]) -> dict[str, Any]:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
 import re
+import sys
+from collections.abc import Callable, Coroutine
+from typing import Any
 
 from geo_server.errors import GeoError
 
@@ -37,3 +41,21 @@ def start_failure(name: str, exc: BaseException) -> str:
 
 class CycleStoppedError(GeoError):
     """The GEO cycle thread died (a defect; its traceback is on stderr)."""
+
+
+def serve(main: Coroutine[Any, Any, None], stop: Callable[[], object]) -> int:
+    """Run a server's interfaces until Ctrl-C / SIGTERM, then `stop` its cycles: the
+    exit code of `geo-server run` (0; 2 an interface did not start; 1 a cycle died)."""
+    try:
+        asyncio.run(main)
+    except KeyboardInterrupt:  # where signal handlers cannot be installed (Windows)
+        pass
+    except InterfaceStartError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except CycleStoppedError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        stop()
+    return 0

@@ -157,7 +157,7 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
         m.stop_cycle()
         wait_for(lambda: svc.status()["stalled"])
         st = svc.status()
-        assert st["stalled_for_s"] > 0.3
+        assert st["stalled_for_s"] >= 0.3  # (rounded to ms: 0.3004 shows as 0.3)
         with pytest.raises(AdsError) as err:
             svc.read(0x120300, 0x10043)
         assert err.value.code == AdsErrorCode.DEVICE_NOTREADY

@@ -81,8 +81,12 @@ class Server:
             "--ads-port",
             str(self.aport),
         ]
+        # stderr into a file, not a pipe: nobody reads a pipe while the server runs, and
+        # a server blocked on a full pipe answers nothing
+        self.log = cwd / "server.log"
+        self._log = self.log.open("w", encoding="utf-8")
         self.proc = subprocess.Popen(
-            cmd, cwd=cwd, env=env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+            cmd, cwd=cwd, env=env(), stdout=subprocess.DEVNULL, stderr=self._log, text=True
         )
         self.env = env() | {
             "GEO_CLIENT_ZENOH": f"tcp/127.0.0.1:{self.zport}",
@@ -103,7 +107,7 @@ class Server:
             )
             if ok:
                 return
-            assert self.proc.poll() is None, self.proc.stderr.read() if self.proc.stderr else ""
+            assert self.proc.poll() is None, self.log.read_text(encoding="utf-8")
             assert time.monotonic() < deadline, "server not ready"
             time.sleep(0.2)
 
@@ -121,6 +125,7 @@ class Server:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(10)
+        self._log.close()
 
 
 def matches(expected: list[str], got: list[str]) -> bool:

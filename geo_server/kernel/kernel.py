@@ -1226,6 +1226,9 @@ class Kernel:
         # total offset: Σ columns but friction (docs/design.md §3.7)
         self._not_fr = np.ones(7)
         self._not_fr[FRICT] = 0.0
+        #: counts `_setup` calls: whoever keeps buffers shaped by the tables (the batch,
+        #: `geo_server.kernel.batch`) rebuilds them when it changes
+        self.generation = 0
         self._setup(cfg)
 
     # ------------------------------------------------------------------ configuration
@@ -1235,6 +1238,7 @@ class Kernel:
         if sorted(cfg.axes) != [int(a) for a in self.axis_numbers]:
             raise ValueError("the set of axes cannot change on reload")
         self.cfg = cfg
+        self.generation += 1
         n, slot, src = self.n, self._slot, self._src
         axes = [cfg.axes[int(a)] for a in self.axis_numbers]
         p = [ax.params for ax in axes]
@@ -1510,7 +1514,10 @@ class Kernel:
             add(pl.k00b, pl.base4, pk, casting="unsafe")
             pl.tab.take(pk, out=pc)
             mul(pw, pc, pw)
-            add.reduce(pl.w4, axis=0, out=pl.out)
+            po = pl.out  # the corners in a fixed order (the batch adds them alike)
+            add(pw[0, 0], pw[0, 1], po)
+            add(po, pw[1, 0], po)
+            add(po, pw[1, 1], po)
         tri = self._tri
         if tri is not None:
             # crosstalk mode 3 (000 §4.6 p.84, docs/design.md §12): first region
@@ -1625,4 +1632,4 @@ class Kernel:
         mul(rv, fs.effective, fs.actual)  # = friction_current
 
         subtract(act, prev, self.delta)
-        np.dot(act, self._not_fr, out=self.total_offset)  # Σ columns but friction
+        np.matmul(act, self._not_fr, out=self.total_offset)  # Σ columns but friction

@@ -29,6 +29,7 @@ from geo_server.dictionary import Dictionary, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
+from geo_server.kernel.batch import KernelBatch
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, parse_program
@@ -59,6 +60,11 @@ def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
     np.floor(out, out=out)
     np.copysign(out, x, out=out)
     return out
+
+
+#: buffers of this many batch sizes are kept (the engine uses a few: its wake-up
+#: interval, the catch-ups of requests, the rest of a move)
+_BATCHES_KEPT = 16
 
 
 class Machine:
@@ -106,6 +112,7 @@ class Machine:
         self._queue: deque[tuple[Operation, Pending]] = deque()
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
+        self._batches: dict[int, tuple[KernelBatch, np.ndarray, np.ndarray]] = {}
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
         self._rounded = np.zeros((n, 7))  # scratch: rounded actual values
@@ -196,6 +203,70 @@ class Machine:
         for listener in self.listeners:
             listener(snap)
         return snap
+
+    # ------------------------------------------------------------------ batches
+
+    def run_batch(self, n: int, publish: bool = True) -> int:
+        """Run up to `n` of the next cycles in one pass while they form a *steady
+        stretch* (docs/design.md §13.2): nothing queued, an axis moving throughout and
+        no move starting or ending (`Motion.steady_cycles`), the program (if any) only
+        waiting for that motion, no reversal, no step event, no held output. Returns
+        the cycles run: 0 when fewer than two are steady (nothing has changed then: run
+        single cycles). The numbers are those of as many calls of
+        `run_cycle(publish=False)` followed, with `publish`, by the snapshot of the last
+        cycle (tests/test_batch.py)."""
+        if n < 2 or self._queue or self.cycle == 0:
+            return 0
+        mo = self.motion
+        with self._cycle_lock:
+            n = min(n, mo.steady_cycles())
+            if n < 2 or self._queue:
+                return 0
+            player = self.player
+            if player is not None and player.running:
+                waits = player.motion_wait()
+                if not waits or not mo._moving[list(waits)].any():
+                    return 0
+            kb, rev, out = self._batch(n)
+            if not kb.ready():
+                return 0
+            mo.sample(kb.pos, kb.vel, kb.acc, rev)
+            np.copyto(kb.rev, rev)
+            t0 = perf_counter_ns()
+            if not kb.run(mo.homed):
+                return 0
+            self.kernel_ns = (perf_counter_ns() - t0) // n
+            mo.advance(kb.pos, kb.vel, kb.acc)
+            np.copyto(self._reversal, rev[-1])
+            np.add(kb.pos, kb.total, out=out)
+            self.twin.step_steady(out, kb.pos, kb.vel, self.spindle_on, publish)
+            np.copyto(self._output, out[-1])
+            if player is not None and player.running:
+                player.skip(n)
+            self.cycle += n
+            self.heartbeat = monotonic()
+            self._rest_streak = 0  # an axis moved in every cycle
+            self._rest_after = False
+            if not publish:
+                return n
+            snap = self._build_snapshot()
+            self.snapshot = snap
+            self.snapshot_time = monotonic()
+        for listener in self.listeners:
+            listener(snap)
+        return n
+
+    def _batch(self, n: int) -> tuple[KernelBatch, np.ndarray, np.ndarray]:
+        """The kernel batch of `n` cycles with the machine's own [n, axes] buffers
+        (reversal counts, outputs), made at its first use."""
+        got = self._batches.get(n)
+        if got is None or got[0].k is not self.kernel:
+            if len(self._batches) >= _BATCHES_KEPT:
+                self._batches.clear()  # (sizes in use come back at their next use)
+            shape = (n, len(self.axes))
+            got = KernelBatch(self.kernel, n), np.zeros(shape, dtype=np.int64), np.zeros(shape)
+            self._batches[n] = got
+        return got
 
     # ------------------------------------------------------------------ virtual time
 

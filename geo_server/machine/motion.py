@@ -281,6 +281,77 @@ class Motion:
         if self._queued.any() and self._done.any():
             self._start_queued()
 
+    def steady_cycles(self) -> int:
+        """How many of the next steps only sample running profiles: some axis moves,
+        every moving axis has taken its first step and none arrives within them (so
+        no move starts, ends or is replanned, and no velocity changes sign). 0 when
+        none (docs/design.md §13.2)."""
+        mv = self._moving
+        if not mv.any():
+            return 0
+        k = self._k[mv]
+        if k.min() < 1:
+            return 0
+        return max(int((self._nc[mv] - k).min()) - 1, 0)
+
+    def sample(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, rev: np.ndarray) -> None:
+        """The next `len(pos)` (≤ `steady_cycles`) steps, into [b, n] rows,
+        without changing the state (`advance` does): pos/vel/acc after step b + 1 and
+        what `reversal_in` then gives (docs/design.md §13.2). The same IEEE operations
+        in the same order as `_eval_profile`/`_apply` and `_step_scalar`, with the steps
+        as a leading axis, so the numbers are bit-identical."""
+        nb = len(pos)
+        mv = self._moving
+        kb = np.multiply.outer(np.arange(1, nb + 1), mv)
+        kb += self._k  # k after each step
+        t = kb * self.dt
+        j, ta, td, tt, w = self._j, self._ta, self._td, self._tt, self._w
+        u = t * t
+        u *= 0.5
+        u *= j
+        du = j * t
+        ddu = np.empty_like(t)
+        np.copyto(ddu, j)
+        m = t >= ta  # phase B
+        s = t - ta
+        s *= w
+        s += self._ub0
+        np.copyto(u, s, where=m)
+        np.copyto(du, w, where=m)
+        np.copyto(ddu, 0.0, where=m)
+        m = t >= td  # phase C
+        r = tt - t
+        s = r * r
+        s *= j
+        s *= -0.5
+        s += 1.0
+        np.copyto(u, s, where=m)
+        np.multiply(j, r, out=r)
+        np.copyto(du, r, where=m)
+        np.copyto(ddu, -j, where=m)
+        np.multiply(self._dist, u, out=s)
+        s += self._p0
+        np.copyto(pos, self.pos)
+        np.copyto(pos, s, where=mv)
+        np.copyto(vel, self.vel)
+        np.multiply(self._dist, du, out=s)
+        np.copyto(vel, s, where=mv)
+        np.copyto(acc, self.acc)
+        np.multiply(self._dist, ddu, out=s)
+        np.copyto(acc, s, where=mv)
+        # reversal_in after each step: cycles to arrival where the next move reverses
+        coming = self._next_dir * self._dir < 0.0
+        np.subtract(self._nc, kb, out=rev, casting="unsafe")
+        np.copyto(rev, -1, where=~coming)
+
+    def advance(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:
+        """Take the state after the steps `sample` gave (its last row)."""
+        mv = self._moving
+        self._k += len(pos) * mv
+        np.copyto(self.pos, pos[-1])
+        np.copyto(self.vel, vel[-1])
+        np.copyto(self.acc, acc[-1])
+
     def _step_scalar(self, moving: list[int]) -> None:
         """`step()` for a few moving axes, one at a time with Python floats.
 

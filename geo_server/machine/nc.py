@@ -634,6 +634,20 @@ class Player:
                 return
         self._fail(ERR_NC_RUNTIME, f"{MAX_BLOCKS_PER_CYCLE} blocks without motion in one cycle")
 
+    def motion_wait(self) -> tuple[int, ...]:
+        """The axes whose motion the waiting block waits for (empty when it waits for
+        nothing or for something else as well): while one of them moves, `step` only
+        counts the cycle."""
+        w = self._wait
+        if w is None or w.comp or w.end:
+            return ()
+        return w.motion
+
+    def skip(self, n: int) -> None:
+        """`n` cycles in which `step` would only count (the machine checked that an
+        axis of `motion_wait` moves throughout)."""
+        self.cycle += n
+
     def abort(self) -> None:
         """Stop executing (CNC reset); the machine handles the reset semantics."""
         self.running = False

@@ -244,6 +244,49 @@ class TwinEngine:
         if evaluate:  # (the outputs only: a cycle nobody looks at can leave them)
             self.evaluate(output, command, velocity)
 
+    def step_steady(
+        self,
+        output: np.ndarray,
+        command: np.ndarray,
+        velocity: np.ndarray,
+        spindle: bool,
+        evaluate: bool = True,
+    ) -> None:
+        """`len(velocity)` cycles of `step` ([b, n] rows) in one pass, for a stretch in
+        which no velocity changes sign (docs/design.md §13.2); otherwise cycle by cycle.
+
+        Without a sign change `step` only adds |v| to the motion heat and runs the
+        thermal updates and sensor samples in their cycles, so the stretch is cut at
+        those events: |v| is summed up to each of them with `np.add.accumulate` (the
+        same additions in the same order) and the event runs at its own cycle."""
+        sign = np.sign(velocity)
+        if np.count_nonzero(sign != self._sign_before):
+            last = len(velocity) - 1
+            for b in range(len(velocity)):
+                self.step(output[b], command[b], velocity[b], spindle, evaluate and b == last)
+            return
+        heat = np.abs(velocity)
+        vsum, every = self._vsum, self.thermal_every
+        end = self.cycles + len(velocity)
+        row = 0
+        while self.cycles < end:
+            upto = int(min((self.cycles // every + 1) * every, self._sample_cycle(), end))
+            j = upto - self.cycles
+            part = np.empty((j + 1, len(vsum)))
+            part[0] = vsum
+            part[1:] = heat[row : row + j]
+            np.add.accumulate(part, axis=0, out=part)
+            vsum[:] = part[j]
+            row += j
+            self.cycles = upto
+            self.time = upto * self.dt
+            if upto % every == 0:
+                self._thermal(spindle)
+            if self.time >= self._next_sample:
+                self._sample_sensors()
+        if evaluate:
+            self.evaluate(output[-1], command[-1], velocity[-1])
+
     def at_rest(self) -> bool:
         """No motion heat waits for the next thermal update (|v| summed since the last
         one is zero): `advance` may then run the thermal updates without it."""

@@ -208,6 +208,7 @@ class ZenohInterface:
         self._errors_ke = zenoh.KeyExpr(f"{self.keys.prefix}/errors")
         self._session: zenoh.Session | None = None
         self._watch: zenoh.Publisher | None = None
+        self._watched: asyncio.Event | None = None  # set while a subscriber matches
         self._entities: list[Any] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -264,6 +265,9 @@ class ZenohInterface:
         # Only its matching status is used: does any subscriber listen to this machine?
         self._watch = s.declare_publisher(f"{prefix}/**")
         self._entities.append(self._watch)
+        # the publish loop sleeps while nobody listens; a new subscriber wakes it
+        self._watched = asyncio.Event()
+        self._entities.append(self._watch.declare_matching_listener(self._on_watch))
         self._spawn(self._publish_loop())
         self._spawn(self._status_loop())
         self._spawn(self._rival_loop())
@@ -484,6 +488,16 @@ class ZenohInterface:
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         self._to_loop(self._matching_changed, bool(status.matching))
 
+    def _on_watch(self, status: zenoh.MatchingStatus) -> None:
+        self._to_loop(self._watch_changed, bool(status.matching))
+
+    def _watch_changed(self, matching: bool) -> None:
+        if self._watched is not None:
+            if matching:
+                self._watched.set()
+            else:
+                self._watched.clear()
+
     def _alive_changed(self, deleted: bool) -> None:
         # Our own token lives as long as this interface: a DELETE while we run is
         # another session's token going away.
@@ -617,11 +631,15 @@ class ZenohInterface:
             for key, route in self.keys.named_routes().items()
             if route.obj is not None
         }
-        watch = self._watch
+        watch, watched = self._watch, self._watched
         last: Snapshot | None = None
         while True:
-            if watch is not None and not _matching(watch):
-                await asyncio.sleep(self.options.publish_period)
+            if watch is not None and watched is not None and not _matching(watch):
+                # nobody listens: wait for the matching listener (no polling at rest),
+                # and look again now and then in case a status change went unreported
+                watched.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(watched.wait(), WATCH_RECHECK_S)
                 continue
             snap = self.service.fresh()  # the cycle due now (docs/design.md §13)
             if self._session is not None and (last is None or snap.cycle != last.cycle):
@@ -650,6 +668,11 @@ class ZenohInterface:
     def _put_event(self, event: Event) -> None:
         if self._session is not None:
             self._session.put(self._errors_ke, json.dumps(event.as_dict()).encode(), encoding=JSON)
+
+
+#: the publish loop looks at the matching status at least this often (seconds) while
+#: nobody listens; the matching listener wakes it at once in the normal case
+WATCH_RECHECK_S = 1.0
 
 
 def _matching(publisher: zenoh.Publisher) -> bool:

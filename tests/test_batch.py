@@ -1,0 +1,147 @@
+"""Batches of cycles (docs/design.md §13.2) give the numbers of single cycles, bit for bit.
+
+Two machines run the same NC program and the same writes: one cycle by cycle
+(`run_cycle`, the reference), the other in batches of random size wherever the batch
+accepts the stretch (`run_batch`), single cycles elsewhere. After every batch the whole
+state that a later cycle or a snapshot reads is compared with `np.array_equal`: the
+kernel's outputs, filter, source vector and friction delay line, the motion, the twin,
+and the published snapshot. Machines: the default machine (every compensation, crosstalk
+mode 3 among them) and random machines (modulo axes, friction delays, manual activation,
+missing compensations).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from support.machines import random_machine
+
+from geo_server.listfile.loader import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.machine.port import WriteObjects
+from geo_server.model import MachineConfig
+from geo_server.paths import default_startup_list
+
+
+def state(m: Machine) -> list[np.ndarray]:
+    k, mo, tw = m.kernel, m.motion, m.twin
+    f, fs = k._filter, k._fr_state
+    return [
+        k.actual,
+        k.target,
+        k.previous,
+        k.delta,
+        k.effective,
+        k.total_offset,
+        f.kidx,
+        f.w,
+        f.jump,
+        k._src.S,
+        fs.path,
+        fs.ring,
+        np.array([fs.ring_pos]),
+        mo.pos,
+        mo.vel,
+        mo.acc,
+        mo._k,
+        m._reversal,
+        m._output,
+        tw._vsum,
+        tw.sensor_temperature,
+        np.array([m.cycle, tw.cycles, m.player.cycle if m.player else 0]),
+    ]
+
+
+def program(names: list[str]) -> str:
+    """Moves of every axis with reversals, a move of one axis, a dwell, a loop."""
+    a = names
+    there = " ".join(f"{x}{20 + 7 * i}" for i, x in enumerate(a))
+    back = " ".join(f"{x}{-15 - 5 * i}" for i, x in enumerate(a))
+    return (
+        f"N10 G90 G01 {there} F3000\n"
+        f"N20 {back}\n"
+        f"N30 {a[0]}5\n"
+        "N40 G04 X0.02\n"
+        f"N50 G00 {there}\n"
+        "N60 $GOTO N20\n"
+    )
+
+
+def run_pair(cfg: MachineConfig, seed: int, cycles: int, writes: dict[int, tuple]) -> int:
+    ref, bat = Machine(cfg, homed=True), Machine(cfg, homed=True)
+    names = sorted(ref.names, key=ref.names.__getitem__)
+    for m in (ref, bat):
+        m.twin._rng = np.random.default_rng(seed)  # the twin's scatter draws
+        m.set_epoch(0)
+        m.start_program(program(names))
+    rng = np.random.default_rng(seed)
+    batched = 0
+    while ref.cycle < cycles:
+        w = writes.get(ref.cycle)
+        if w is not None:
+            for m in (ref, bat):
+                m.submit(WriteObjects((w,)))
+        size = int(rng.choice([2, 3, 4, 8, 16]))
+        publish = bool(rng.integers(2))
+        got = bat.run_batch(size, publish=publish)
+        if got:
+            batched += got
+            for _ in range(got - 1):
+                ref.run_cycle(publish=False)
+            ref.run_cycle(publish=publish)
+        else:
+            ref.run_cycle()
+            bat.run_cycle()
+        for i, (x, y) in enumerate(zip(state(ref), state(bat), strict=True)):
+            assert np.array_equal(x, y), f"state {i} differs after cycle {ref.cycle}"
+        if got and publish:
+            assert np.array_equal(ref.snapshot.values, bat.snapshot.values)
+            assert ref.snapshot.stamp == bat.snapshot.stamp
+    assert np.array_equal(ref.publish().values, bat.publish().values)
+    return batched
+
+
+def test_default_machine_batches_equal_single_cycles() -> None:
+    cfg = load_machine(default_startup_list())
+    writes = {
+        700: ("TEMPC::offset_0", 1, -250),  # a sin² ramp while the axes move
+        1500: ("TEMPC::coefficient", 2, 40.0),
+        2200: ("TEMPC::activated", 3, False),
+    }
+    batched = run_pair(cfg, seed=1, cycles=4000, writes=writes)
+    assert batched > 3000  # most of the run is steady motion
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("n", [2, 5])
+def test_random_machines_batches_equal_single_cycles(n: int, seed: int) -> None:
+    cfg = random_machine(n, seed)
+    for a, letter in zip(sorted(cfg.axes), "XYZUV", strict=False):
+        cfg.axes[a].params.name = letter  # (its own names, A1 …, read as address A)
+    writes = {400: ("TEMPC::offset_0", 1, 120), 900: ("TEMPC::position_0", 2, 5000)}
+    assert run_pair(cfg, seed, cycles=1500, writes=writes) > 500
+
+
+def test_a_batch_refuses_what_is_not_steady() -> None:
+    """Nothing changes when the batch says no (at rest, with an operation queued), and
+    a batch stops before the cycle in which a move ends."""
+    m = Machine(load_machine(default_startup_list()), homed=True)
+    m.step(3)
+    before = [a.copy() for a in state(m)]
+    assert m.run_batch(8) == 0  # at rest: the engine skips such cycles instead
+    m.start_program("N10 G90 G01 X1 F6000\n")
+    assert m.run_batch(8) == 0  # the program waits for the next single cycle
+    for x, y in zip(before, state(m), strict=True):
+        assert np.array_equal(x, y)
+    m.step(1)  # the program starts the move, which takes its first step
+    assert m.motion._k[0] == 1
+    m.submit(WriteObjects((("TEMPC::offset_0", 1, 10),)))
+    assert m.run_batch(4) == 0  # the write goes into the next single cycle
+    m.step(1)
+    left = int(m.motion._nc[0] - m.motion._k[0])
+    assert left > 2
+    assert m.run_batch(left + 5) == left - 1  # up to the cycle before the arrival
+    assert m.motion.vel[0] != 0.0
+    assert m.run_batch(2) == 0  # the arrival is a single cycle
+    m.step(1)
+    assert m.motion.pos[0] == 10_000.0 and m.motion.vel[0] == 0.0  # X1: arrived

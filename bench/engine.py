@@ -159,7 +159,8 @@ def latency(
         clients = Clients(ports, [("local", "127.0.0.1.1.1", mport)])
         try:
             rng = random.Random(1)
-            end = time.monotonic() + seconds
+            c0, t0 = _children_cpu(server.pid), time.monotonic()
+            end = t0 + seconds
             while time.monotonic() < end:
                 for via in ("ads", "modbus", "zenoh"):
                     time.sleep(rng.uniform(0.0, 0.010))
@@ -167,10 +168,12 @@ def latency(
                         out[via].append(clients.ask(0, via))
                     except Exception as exc:  # counted, reported with the table
                         failed.append(f"{via}: {exc}")
+            cpu = 100.0 * (_children_cpu(server.pid) - c0) / (time.monotonic() - t0)
             st = get_status(clients.session)
         finally:
             clients.close()
     res = {via: summary_us(v) for via, v in out.items()}
+    res["cpu"] = {"p50": cpu, "p99": cpu}  # server CPU while asked (% of one core)
     # the catch-up itself, timed in the server (exact engine on a thread)
     res["catch-up"] = {"p50": st.get("sync_p50_us", 0.0), "p99": st.get("sync_p99_us", 0.0)}
     if failed:
@@ -272,6 +275,14 @@ def main() -> None:
             cu = res["exact"]["catch-up"]
             rows.append(
                 [f"{case}, catch-up in the server", f"{cu['p50']:.0f} / {cu['p99']:.0f}", "", ""]
+            )
+            rows.append(
+                [
+                    f"{case}, server CPU while asked (% of one core)",
+                    f"{res['exact']['cpu']['p50']:.1f}",
+                    f"{res['punctual']['cpu']['p50']:.1f}",
+                    "",
+                ]
             )
             for via in ("ads", "modbus", "zenoh"):
                 ex, pu = res["exact"][via], res["punctual"][via]

@@ -145,3 +145,20 @@ def test_a_batch_refuses_what_is_not_steady() -> None:
     assert m.run_batch(2) == 0  # the arrival is a single cycle
     m.step(1)
     assert m.motion.pos[0] == 10_000.0 and m.motion.vel[0] == 0.0  # X1: arrived
+
+
+def test_a_long_friction_delay_shortens_the_pass() -> None:
+    """A delay of d cycles reads the delay line d rows back: a pass of more than
+    249 − d cycles would read a row it writes later, so passes stop at that length
+    (and the numbers stay those of single cycles)."""
+    cfg = random_machine(3, 4)
+    for a, letter in zip(sorted(cfg.axes), "XYZ", strict=True):
+        cfg.axes[a].params.name = letter
+    fr = cfg.axes[1].comp.frict
+    assert fr is not None and fr.valid and fr.mode == 3
+    fr.delay_cycles = 245  # ≤ 248 (000 p.79)
+    m = Machine(cfg, homed=True)
+    m.start_program(program(["X", "Y", "Z"]))
+    m.step(5)
+    assert m.run_batch(16) == 4  # 249 − 245
+    run_pair(cfg, seed=4, cycles=800, writes={})

@@ -58,3 +58,15 @@ def test_bench_kernel_prints_its_table():
     rows = [line for line in r.stdout.splitlines() if line.startswith("| 1 |")]
     rows += [line for line in r.stdout.splitlines() if line.startswith("| 8 |")]
     assert len(rows) == 2, r.stdout
+
+
+def test_bench_batch_prints_its_table():
+    r = subprocess.run(
+        [sys.executable, str(BENCH / "batch.py"), "--passes", "6"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| pass of ")]
+    assert len(rows) == 6, r.stdout

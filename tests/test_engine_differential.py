@@ -194,7 +194,9 @@ def check(live: Live, epoch: int, reads, got) -> None:
         ops[c] = WriteObjects((("TEMPC::offset_0", 1, v),))
     last = max(max(c for c, _ in by_name[n]) for n in by_name)
     last = max(last, *(struct.unpack_from("<I", d, 4 * len(WATCH))[0] for _a, _b, d in reads))
-    snaps = {}
+    # (a registration made before the first cycle samples cycle 0: the snapshot the
+    # machine is built with)
+    snaps = {ref.cycle: ref.snapshot}
     while ref.cycle < last:
         op = ops.get(ref.cycle + 1)
         if op is not None:

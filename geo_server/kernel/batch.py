@@ -38,6 +38,18 @@ def _offset(view: np.ndarray, base: np.ndarray) -> int:
     return (view.__array_interface__["data"][0] - base.__array_interface__["data"][0]) // 8
 
 
+def batch_limit(kernel: Kernel) -> int:
+    """The most cycles of one pass the kernel's tables allow: 0 with crosstalk mode-3
+    rows on the scalar evaluation; else the friction delay line's length minus the
+    longest delay (a longer pass would read a row it writes later)."""
+    tri = kernel._tri
+    if tri is not None and tri.slow:
+        return 0
+    ridx = np.array(kernel._frict.ridx_rows[0], dtype=np.int64)
+    delay = (-(ridx // kernel.n)) % RING
+    return RING - int(delay.max(initial=0))
+
+
 class KernelBatch:
     """Buffers for `size` cycles of one `Kernel`, rebuilt when its tables change.
 
@@ -98,7 +110,6 @@ class KernelBatch:
         self.o_fr = _offset(vec.fac_fr, vec.fac) if len(vec.fac_fr) else 0
         self.n_fr = len(vec.fac_fr)
         xt = k._xt
-        self.supported = True
         if xt is not None:
             nx = len(xt.code)
             self.nx = nx
@@ -132,8 +143,6 @@ class KernelBatch:
             self.PC = np.zeros((B, 2, 2, P))
         tri = k._tri
         if tri is not None:
-            if tri.slow:
-                self.supported = False  # rows on the scalar evaluation: cycle by cycle
             T, G3 = tri.H.shape[0], tri.H.shape[1]
             G = G3 // 3
             self.T = T
@@ -160,12 +169,8 @@ class KernelBatch:
         self.WPRE = np.ones((B, n))
         self.WPOST = np.ones((B, n))
         self.CUR = np.zeros((B, n))
-        ridx = np.array(fr.ridx_rows, dtype=np.int64)  # [RING, n]
-        self.ridx = ridx
-        delay = (-(ridx[0] // n)) % RING
-        if int(delay.max(initial=0)) > RING - B:
-            # a read would reach a row written later in the same stretch
-            self.supported = False
+        self.ridx = np.array(fr.ridx_rows, dtype=np.int64)  # [RING, n]
+        self.supported = batch_limit(k) >= B
         self.RIDX = np.zeros((B, n), dtype=np.int64)
         self.RV = np.zeros((B, n))
 

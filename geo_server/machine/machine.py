@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from time import monotonic, perf_counter_ns
@@ -29,7 +29,7 @@ from geo_server.dictionary import Dictionary, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
-from geo_server.kernel.batch import KernelBatch
+from geo_server.kernel.batch import KernelBatch, batch_limit
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, parse_program
@@ -62,9 +62,9 @@ def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
     return out
 
 
-#: buffers of this many batch sizes are kept (the engine uses a few: its wake-up
-#: interval, the catch-ups of requests, the rest of a move)
-_BATCHES_KEPT = 16
+#: buffers of this many batch sizes are kept, the least recently used dropped first (the
+#: engine uses a few: its wake-up interval, the catch-ups of requests, the rest of a move)
+_BATCHES_KEPT = 24
 
 
 class Machine:
@@ -112,7 +112,8 @@ class Machine:
         self._queue: deque[tuple[Operation, Pending]] = deque()
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
-        self._batches: dict[int, tuple[KernelBatch, np.ndarray, np.ndarray]] = {}
+        self._batches: OrderedDict[int, tuple[KernelBatch, np.ndarray, np.ndarray]] = OrderedDict()
+        self._batch_limit = (-1, 0)  # (kernel generation, `batch_limit` of its tables)
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
         self._rounded = np.zeros((n, 7))  # scratch: rounded actual values
@@ -219,7 +220,10 @@ class Machine:
             return 0
         mo = self.motion
         with self._cycle_lock:
-            n = min(n, mo.steady_cycles())
+            k = self.kernel
+            if self._batch_limit[0] != k.generation:  # (once per load of the tables)
+                self._batch_limit = (k.generation, batch_limit(k))
+            n = min(n, mo.steady_cycles(), self._batch_limit[1])
             if n < 2 or self._queue:
                 return 0
             player = self.player
@@ -259,13 +263,16 @@ class Machine:
     def _batch(self, n: int) -> tuple[KernelBatch, np.ndarray, np.ndarray]:
         """The kernel batch of `n` cycles with the machine's own [n, axes] buffers
         (reversal counts, outputs), made at its first use."""
-        got = self._batches.get(n)
+        kept = self._batches
+        got = kept.get(n)
         if got is None or got[0].k is not self.kernel:
-            if len(self._batches) >= _BATCHES_KEPT:
-                self._batches.clear()  # (sizes in use come back at their next use)
+            if len(kept) >= _BATCHES_KEPT:
+                kept.popitem(last=False)  # the size used least recently
             shape = (n, len(self.axes))
             got = KernelBatch(self.kernel, n), np.zeros(shape, dtype=np.int64), np.zeros(shape)
-            self._batches[n] = got
+            kept[n] = got
+        else:
+            kept.move_to_end(n)
         return got
 
     # ------------------------------------------------------------------ virtual time

@@ -69,6 +69,16 @@ def wait_port(port: int, timeout: float, proc: subprocess.Popen | None = None) -
 # ---------------------------------------------------------------------- processes
 
 
+def _die_with_parent() -> None:
+    """In the server's child process (Linux): SIGKILL it when the benchmark that started
+    it dies, so that a benchmark killed by a time limit leaves no server behind (a
+    leftover 150-machine fleet once ran on for 40 minutes and spoiled later runs)."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
 class ServerProcess:
     """A server in a subprocess; use as a context manager (always stopped on exit)."""
 
@@ -84,6 +94,7 @@ class ServerProcess:
             stderr=subprocess.STDOUT,
             cwd=ROOT,
             env={**os.environ, **(env or {})},
+            preexec_fn=_die_with_parent if sys.platform == "linux" else None,
         )
         self.exit_code: int | None = None
         self.stop_seconds: float | None = None

@@ -38,7 +38,7 @@ def one_pass(m: Machine, n: int) -> tuple[int, int]:
     if n == 1:
         m.run_cycle(publish=False)
         return time.perf_counter_ns() - t0, 1
-    got = m.run_batch(n, publish=False)
+    got = m.run_batch(n)
     if got != n:
         for _ in range(n - got):
             m.run_cycle(publish=False)

@@ -83,9 +83,11 @@ def run_pair(cfg: MachineConfig, seed: int, cycles: int, writes: dict[int, tuple
                 m.submit(WriteObjects((w,)))
         size = int(rng.choice([2, 3, 4, 8, 16]))
         publish = bool(rng.integers(2))
-        got = bat.run_batch(size, publish=publish)
+        got = bat.run_batch(size)
         if got:
             batched += got
+            if publish:
+                bat.publish()
             for _ in range(got - 1):
                 ref.run_cycle(publish=False)
             ref.run_cycle(publish=publish)

@@ -170,21 +170,21 @@ class KernelBatch:
         self.WPOST = np.ones((B, n))
         self.CUR = np.zeros((B, n))
         self.ridx = np.array(fr.ridx_rows, dtype=np.int64)  # [RING, n]
-        self.supported = batch_limit(k) >= B
         self.RIDX = np.zeros((B, n), dtype=np.int64)
         self.RV = np.zeros((B, n))
 
     # ------------------------------------------------------------------ the stretch
 
     def ready(self) -> bool:
-        """The kernel's state allows a stretch (no pending event, no held output, its
-        tables supported): checked before the commands are sampled."""
+        """The kernel's state allows a stretch (no pending event, no held output):
+        checked before the commands are sampled. The caller keeps the stretch within
+        `batch_limit` of the tables (`Machine.run_batch`)."""
         k = self.k
         if k._first or k._pending_any or k._any_held:
             return False
         if self._generation != k.generation:
             self._build()
-        return self.supported
+        return True
 
     def run(self, homed: np.ndarray) -> bool:
         """`size` cycles of `Kernel.step` with the commands in `pos`/`vel`/`acc`/`rev`

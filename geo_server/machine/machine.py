@@ -207,15 +207,15 @@ class Machine:
 
     # ------------------------------------------------------------------ batches
 
-    def run_batch(self, n: int, publish: bool = True) -> int:
+    def run_batch(self, n: int) -> int:
         """Run up to `n` of the next cycles in one pass while they form a *steady
         stretch* (docs/design.md §13.2): nothing queued, an axis moving throughout and
         no move starting or ending (`Motion.steady_cycles`), the program (if any) only
         waiting for that motion, no reversal, no step event, no held output. Returns
         the cycles run: 0 when fewer than two are steady (nothing has changed then: run
         single cycles). The numbers are those of as many calls of
-        `run_cycle(publish=False)` followed, with `publish`, by the snapshot of the last
-        cycle (tests/test_batch.py)."""
+        `run_cycle(publish=False)` (tests/test_batch.py): the snapshot of the cycle
+        reached is left to `publish`."""
         if n < 2 or self._queue or self.cycle == 0:
             return 0
         mo = self.motion
@@ -243,7 +243,7 @@ class Machine:
             mo.advance(kb.pos, kb.vel, kb.acc)
             np.copyto(self._reversal, rev[-1])
             np.add(kb.pos, kb.total, out=out)
-            self.twin.step_steady(out, kb.pos, kb.vel, self.spindle_on, publish)
+            self.twin.step_steady(out, kb.pos, kb.vel, self.spindle_on)
             np.copyto(self._output, out[-1])
             if player is not None and player.running:
                 player.skip(n)
@@ -251,13 +251,6 @@ class Machine:
             self.heartbeat = monotonic()
             self._rest_streak = 0  # an axis moved in every cycle
             self._rest_after = False
-            if not publish:
-                return n
-            snap = self._build_snapshot()
-            self.snapshot = snap
-            self.snapshot_time = monotonic()
-        for listener in self.listeners:
-            listener(snap)
         return n
 
     def _batch(self, n: int) -> tuple[KernelBatch, np.ndarray, np.ndarray]:

@@ -269,10 +269,11 @@ class Motion:
             return
         np.add(self._k, mv, out=self._k, casting="unsafe")
         np.multiply(self._k, self.dt, out=self._t)
-        self._eval_profile()
+        u, du, ddu, s, r, m = self._u, self._du, self._ddu, self._s, self._r, self._m
+        self._eval_profile(self._t, u, du, ddu, s, r, m)
         np.greater_equal(self._k, self._nc, out=self._done)
         np.logical_and(self._done, mv, out=self._done)
-        self._apply(mv)
+        self._apply(mv, u, du, ddu, s, self.pos, self.vel, self.acc)
         np.copyto(self.pos, self.target, where=self._done)
         np.copyto(self.vel, 0.0, where=self._done)
         np.copyto(self.acc, 0.0, where=self._done)
@@ -297,48 +298,21 @@ class Motion:
     def sample(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, rev: np.ndarray) -> None:
         """The next `len(pos)` (≤ `steady_cycles`) steps, into [b, n] rows,
         without changing the state (`advance` does): pos/vel/acc after step b + 1 and
-        what `reversal_in` then gives (docs/design.md §13.2). The same IEEE operations
-        in the same order as `_eval_profile`/`_apply` and `_step_scalar`, with the steps
-        as a leading axis, so the numbers are bit-identical."""
+        what `reversal_in` then gives (docs/design.md §13.2): `step`'s own
+        `_eval_profile`/`_apply` with the steps as a leading axis (and the operations of
+        `_step_scalar`), so the numbers are bit-identical."""
         nb = len(pos)
         mv = self._moving
         kb = np.multiply.outer(np.arange(1, nb + 1), mv)
         kb += self._k  # k after each step
         t = kb * self.dt
-        j, ta, td, tt, w = self._j, self._ta, self._td, self._tt, self._w
-        u = t * t
-        u *= 0.5
-        u *= j
-        du = j * t
-        ddu = np.empty_like(t)
-        np.copyto(ddu, j)
-        m = t >= ta  # phase B
-        s = t - ta
-        s *= w
-        s += self._ub0
-        np.copyto(u, s, where=m)
-        np.copyto(du, w, where=m)
-        np.copyto(ddu, 0.0, where=m)
-        m = t >= td  # phase C
-        r = tt - t
-        s = r * r
-        s *= j
-        s *= -0.5
-        s += 1.0
-        np.copyto(u, s, where=m)
-        np.multiply(j, r, out=r)
-        np.copyto(du, r, where=m)
-        np.copyto(ddu, -j, where=m)
-        np.multiply(self._dist, u, out=s)
-        s += self._p0
+        u, du, ddu, sc, r = (np.empty_like(t) for _ in range(5))
+        m = np.empty(t.shape, dtype=bool)
+        self._eval_profile(t, u, du, ddu, sc, r, m)
         np.copyto(pos, self.pos)
-        np.copyto(pos, s, where=mv)
         np.copyto(vel, self.vel)
-        np.multiply(self._dist, du, out=s)
-        np.copyto(vel, s, where=mv)
         np.copyto(acc, self.acc)
-        np.multiply(self._dist, ddu, out=s)
-        np.copyto(acc, s, where=mv)
+        self._apply(mv, u, du, ddu, sc, pos, vel, acc)
         # reversal_in after each step: cycles to arrival where the next move reverses
         coming = self._next_dir * self._dir < 0.0
         np.subtract(self._nc, kb, out=rev, casting="unsafe")
@@ -396,9 +370,19 @@ class Motion:
             self._done[done] = True
             self._start_queued()
 
-    def _eval_profile(self) -> None:
-        """u, du/dt, d²u/dt² at t = k·dt for every axis (phases A, B, C)."""
-        t, u, du, ddu, s, r, m = self._t, self._u, self._du, self._ddu, self._s, self._r, self._m
+    def _eval_profile(
+        self,
+        t: np.ndarray,
+        u: np.ndarray,
+        du: np.ndarray,
+        ddu: np.ndarray,
+        s: np.ndarray,
+        r: np.ndarray,
+        m: np.ndarray,
+    ) -> None:
+        """u, du/dt, d²u/dt² at the times `t` (phases A, B, C), into `u`, `du`, `ddu`
+        (`s`, `r`, `m`: scratch of t's shape). `t` is [n] for one step or [b, n] for
+        the steps of `sample`: the profile parameters broadcast over the rows."""
         j = self._j
         np.multiply(t, t, out=u)  # phase A
         u *= 0.5
@@ -424,16 +408,26 @@ class Motion:
         np.negative(j, out=s)
         np.copyto(ddu, s, where=m)
 
-    def _apply(self, mv: np.ndarray) -> None:
-        """pos/vel/acc of the moving axes from the normalised profile."""
-        s = self._s
-        np.multiply(self._dist, self._u, out=s)
+    def _apply(
+        self,
+        mv: np.ndarray,
+        u: np.ndarray,
+        du: np.ndarray,
+        ddu: np.ndarray,
+        s: np.ndarray,
+        pos: np.ndarray,
+        vel: np.ndarray,
+        acc: np.ndarray,
+    ) -> None:
+        """pos/vel/acc of the moving axes `mv` from the normalised profile (`s`:
+        scratch); the other axes keep what `pos`/`vel`/`acc` hold."""
+        np.multiply(self._dist, u, out=s)
         s += self._p0
-        np.copyto(self.pos, s, where=mv)
-        np.multiply(self._dist, self._du, out=s)
-        np.copyto(self.vel, s, where=mv)
-        np.multiply(self._dist, self._ddu, out=s)
-        np.copyto(self.acc, s, where=mv)
+        np.copyto(pos, s, where=mv)
+        np.multiply(self._dist, du, out=s)
+        np.copyto(vel, s, where=mv)
+        np.multiply(self._dist, ddu, out=s)
+        np.copyto(acc, s, where=mv)
 
     # ------------------------------------------------------------------ planning
 

@@ -389,7 +389,7 @@ class Scheduler:
         cycles run (0: fewer than two were steady)."""
         m = self.machine
         try:
-            return m.run_batch(min(left, BATCH_MAX), publish=False)
+            return m.run_batch(min(left, BATCH_MAX))
         except Exception:  # as `_guarded_cycle`: logged and counted, time goes on
             self.cycle_errors += 1
             log.exception("GEO cycles from %d on (one pass) failed", m.cycle)

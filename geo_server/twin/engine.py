@@ -245,15 +245,13 @@ class TwinEngine:
             self.evaluate(output, command, velocity)
 
     def step_steady(
-        self,
-        output: np.ndarray,
-        command: np.ndarray,
-        velocity: np.ndarray,
-        spindle: bool,
-        evaluate: bool = True,
+        self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray, spindle: bool
     ) -> None:
-        """`len(velocity)` cycles of `step` ([b, n] rows) in one pass, for a stretch in
-        which no velocity changes sign (docs/design.md §13.2); otherwise cycle by cycle.
+        """`len(velocity)` cycles of `step` ([b, n] rows) in one pass,
+        without evaluating the outputs (`evaluate` does, for the cycle reached), for a
+        stretch in which no velocity changes sign (docs/design.md §13.2). The machine
+        guarantees that (it does not reverse in a steady stretch); the rare axis that
+        starts or stops (a velocity becoming exactly 0) makes it run cycle by cycle.
 
         Without a sign change `step` only adds |v| to the motion heat and runs the
         thermal updates and sensor samples in their cycles, so the stretch is cut at
@@ -261,9 +259,8 @@ class TwinEngine:
         same additions in the same order) and the event runs at its own cycle."""
         sign = np.sign(velocity)
         if np.count_nonzero(sign != self._sign_before):
-            last = len(velocity) - 1
             for b in range(len(velocity)):
-                self.step(output[b], command[b], velocity[b], spindle, evaluate and b == last)
+                self.step(output[b], command[b], velocity[b], spindle, evaluate=False)
             return
         heat = np.abs(velocity)
         vsum, every = self._vsum, self.thermal_every
@@ -284,8 +281,6 @@ class TwinEngine:
                 self._thermal(spindle)
             if self.time >= self._next_sample:
                 self._sample_sensors()
-        if evaluate:
-            self.evaluate(output[-1], command[-1], velocity[-1])
 
     def at_rest(self) -> bool:
         """No motion heat waits for the next thermal update (|v| summed since the last

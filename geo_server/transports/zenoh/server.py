@@ -492,11 +492,8 @@ class ZenohInterface:
         self._to_loop(self._watch_changed, bool(status.matching))
 
     def _watch_changed(self, matching: bool) -> None:
-        if self._watched is not None:
-            if matching:
-                self._watched.set()
-            else:
-                self._watched.clear()
+        if matching and self._watched is not None:  # (the loop clears it when it waits)
+            self._watched.set()
 
     def _alive_changed(self, deleted: bool) -> None:
         # Our own token lives as long as this interface: a DELETE while we run is

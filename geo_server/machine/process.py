@@ -41,7 +41,13 @@ from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_fr
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
-from geo_server.machine.scheduler import ENGINES, CycleStats, Scheduler, sync_summary
+from geo_server.machine.scheduler import (
+    ENGINES,
+    SYNC_WAIT,
+    CycleStats,
+    Scheduler,
+    sync_summary,
+)
 from geo_server.model import Diagnostic, MachineConfig
 from geo_server.snapshot import Snapshot
 
@@ -55,10 +61,11 @@ STATUS_EVERY = 100  # cycles between two status reports from the child
 SEND_BACKLOG = 8 * 1024 * 1024
 #: Seconds `ProcessScheduler.start` waits for the child's first cycle.
 FIRST_FRAME_TIMEOUT = 30.0
-#: Exact engine: the longest a request waits for the cycle process to catch up, and how
+#: Exact engine: the longest a request waits for the cycle process to catch up — the
+#: thread engine's `scheduler.SYNC_WAIT` (a loaded 2-core CI runner once kept the cycle
+#: process from the CPU for more than 50 ms, and a read was answered 0x707) — and how
 #: long without any frame (it sends one at least every `scheduler.IDLE_WAKE`) makes it
 #: count as not responding (then requests are not held up: the stall watch answers).
-SYNC_WAIT = 0.05
 SYNC_DEAD = 0.3
 
 

@@ -14,6 +14,7 @@ sit at group + 0x100 (name), 0x200 (type name), 0x300 (length), 0x400 (unit),
 
 from __future__ import annotations
 
+import contextvars
 import difflib
 import math
 import struct
@@ -27,10 +28,25 @@ from typing import Any
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.paths import data_dir
 
-#: The AMS port of the GEO task: every object is served there (docs/design.md §2).
+#: The AMS port of the GEO task: the GEO and emulator objects are served there
+#: (docs/design.md §2).
 GEO_AMS_PORT = 551
-#: Index groups of the object groups (docs/design.md §2).
-GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300}
+#: The AMS port of the COM task: the volumetric compensation's CNC objects (004 p.19).
+COM_AMS_PORT = 553
+#: Index groups of the object groups (docs/design.md §2; 004 p.19 for "com").
+GROUPS: dict[str, int] = {"geo": 0x120300, "sim": 0x12F300, "com": 0x120100}
+#: The AMS port that serves each group.
+GROUP_PORTS: dict[str, int] = {"geo": GEO_AMS_PORT, "sim": GEO_AMS_PORT, "com": COM_AMS_PORT}
+#: The groups of the GEO task, which have attribute groups (+0x100 … +0x500) and the
+#: address lookup (+0x600). The COM group has neither: 0x120100 + 0x200 is the GEO group.
+TASK_GROUPS: dict[str, int] = {g: GROUPS[g] for g in ("geo", "sim")}
+#: The AMS ports objects are served on.
+AMS_PORTS: tuple[int, ...] = (GEO_AMS_PORT, COM_AMS_PORT)
+#: The AMS target port of the ADS request being resolved (set by the ADS server around
+#: a request; None: any port, e.g. a name-based interface).
+REQUEST_PORT: contextvars.ContextVar[int | None] = contextvars.ContextVar(
+    "ads_request_port", default=None
+)
 #: Attribute group offsets relative to an object group (docs/design.md §2).
 ATTRIBUTES: dict[int, str] = {
     0x100: "name",
@@ -160,8 +176,15 @@ class ObjectDef:
         return (axis << 16) | self.id
 
     @property
+    def ams_port(self) -> int:
+        """The AMS port its task is served on (551 GEO, 553 COM)."""
+        return GROUP_PORTS[self.group]
+
+    @property
     def key_group(self) -> str:
         """Zenoh `<group>` (docs/design.md §7): `bc`, `tempc`, …; `ssfk activated` is `lsec`."""
+        if self.group == "com":
+            return "com"
         if "::" not in self.name:
             return "lsec"
         return _key_part(self.name.split("::", 1)[0])
@@ -185,8 +208,11 @@ class ObjectDef:
         return struct.pack("<" + self.type.code, v)
 
     def decode(self, data: bytes) -> Any:
-        """Decode ADS bytes; wrong length -> 0x705, invalid BOOLEAN/NaN -> 0x706."""
-        if len(data) != self.length:
+        """Decode ADS bytes; wrong length -> 0x705, invalid BOOLEAN/NaN -> 0x706. A
+        STRING may be written shorter than its 256 bytes (a client writes the text and
+        its terminating NUL, as pyads does), never longer."""
+        short_string = self.type.name == "STRING" and 0 < len(data) <= self.length
+        if len(data) != self.length and not short_string:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDSIZE,
                 f"{self.name} is {self.type.name} of {self.length} bytes, got {len(data)}",
@@ -417,7 +443,9 @@ class Dictionary:
         GEO objects are platform-global (channel 0): another channel has no instance;
         machine objects answer for axis 0, axis objects for a configured axis. Unknown
         group -> 0x702, unknown element -> 0x703."""
-        group = next((g for g, ig in GROUPS.items() if ig + ADDRESS_LOOKUP == index_group), None)
+        group = next(
+            (g for g, ig in TASK_GROUPS.items() if ig + ADDRESS_LOOKUP == index_group), None
+        )
         if group is None:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group 0x{index_group:X}")
         scopes = {o.scope for o in self.objects if o.group == group and o.id == element}
@@ -432,21 +460,31 @@ class Dictionary:
         return GROUPS[group], (axis << 16) | element
 
     def resolve(
-        self, index_group: int, index_offset: int, axes: Iterable[int]
+        self, index_group: int, index_offset: int, axes: Iterable[int], port: int | None = None
     ) -> tuple[ObjectDef, int, str | None]:
         """Resolve an ADS address to (object, axis, attribute kind or None).
 
-        Unknown index group -> 0x702; unknown element ID or axis -> 0x703 (docs/design.md §9).
+        Unknown index group -> 0x702, also a group of another task than the AMS port
+        asked (`port`, else `REQUEST_PORT`); unknown element ID or axis -> 0x703 (docs/
+        design.md §9).
         """
         attr: str | None = None
         group = next((g for g, ig in GROUPS.items() if ig == index_group), None)
         if group is None:
-            for g, ig in GROUPS.items():
+            for g, ig in TASK_GROUPS.items():
                 if index_group - ig in ATTRIBUTES:
                     group, attr = g, ATTRIBUTES[index_group - ig]
                     break
         if group is None:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group 0x{index_group:X}")
+        port = REQUEST_PORT.get() if port is None else port
+        if port is not None and port != GROUP_PORTS[group]:
+            task = "COM" if GROUP_PORTS[group] == COM_AMS_PORT else "GEO"
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDGRP,
+                f"index group 0x{index_group:X} is the {task} task's, served on AMS port "
+                f"{GROUP_PORTS[group]}, not {port}",
+            )
         axis, oid = index_offset >> 16, index_offset & 0xFFFF
         scope = "machine" if axis == 0 else "axis"
         obj = self._by_id.get((group, oid, scope))

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntFlag
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -149,6 +150,9 @@ class AxisParams:
     frict_comp: bool = False  # P-AXIS-00522
     crosstalk: bool = False  # P-AXIS-00789
     prog_movement_requires_compensations: CompKind = NO_COMP  # P-AXIS-00465
+    #: P-AXIS-00525 lr_param.vol_comp.s_limit (004 p.14): the largest volumetric
+    #: correction of the axis, 0.1 µm; 0 = not defined (activation is refused then)
+    vol_comp_s_limit: int = 0
     #: parameter name (as written in the list, lower-case first segment) -> source
     sources: dict[str, Source] = field(default_factory=dict)
     path: str = ""
@@ -305,6 +309,9 @@ class MachineConfig:
     diagnostics: list[Diagnostic] = field(default_factory=list)
     #: The machine behind the controller (`twin.toml` beside the start-up list), if any.
     twin: TwinConfig | None = None
+    #: Volumetric compensations (004, `vol_comp[i]` of the start-up list): a tuple of
+    #: `geo_server.volcomp.config.VolComp` (typed loosely: model sits below volcomp)
+    volumetric: tuple[Any, ...] = ()
 
     @property
     def list_files(self) -> list[str]:

@@ -45,6 +45,7 @@ from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
+from geo_server.listfile.values import Reporter
 from geo_server.machine.nc import NcError, parse_program
 from geo_server.machine.port import (
     CycleRunner,
@@ -53,6 +54,7 @@ from geo_server.machine.port import (
     Reload,
     Reset,
     StartProgram,
+    VolcUpdate,
     WriteObjects,
     chained,
     resolved,
@@ -61,6 +63,8 @@ from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
 from geo_server.snapshot import Snapshot
 from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
+from geo_server.volcomp.config import load_compensation
+from geo_server.volcomp.kernel import VOLC_ERROR
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
@@ -352,7 +356,7 @@ class ObjectService:
                     f"{commands[0].obj.name} must be written on its own",
                     commands[0].obj.name,
                 )
-            result = self.run_command(commands[0].obj.command or "")
+            result = self.run_command(commands[0].obj.command or "", commands[0].value)
             if not result.ok:
                 raise result.error()
             return resolved(result)
@@ -606,12 +610,15 @@ class ObjectService:
         """End a running `measure` at its next wait (the server is shutting down)."""
         self._measure_cancel.set()
 
-    def run_command(self, name: str) -> CommandResult:
-        """Run `reload` or `save` in the caller's thread (see `command`)."""
+    def run_command(self, name: str, value: Any = None) -> CommandResult:
+        """Run `reload`, `save` or `volcomp_update` in the caller's thread (see
+        `command`)."""
         if name == "reload":
             return self.reload()
         if name == "save":
             return self.save()
+        if name == "volcomp_update":
+            return self.volcomp_update(str(value))
         raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}")
 
     async def command(self, name: str) -> CommandResult:
@@ -665,6 +672,60 @@ class ObjectService:
         except AdsError as exc:
             return CommandResult(False, "reload", errors=[exc.message], code=exc.code)
         return CommandResult(True, "reload", warnings=warnings, files=new.list_files)
+
+    def volcomp_update(self, file_name: str) -> CommandResult:
+        """cnc_interpr_vol_comp_file_w (004 p.23): read the VOLC list `file_name` and its
+        correction files for the compensation whose ID was written to
+        cnc_interpr_vol_comp_index_w (VOLC::index), here, off the cycle; the cycle then
+        swaps it in (switched off first, without movement). A list or file with errors
+        leaves the compensation as it was: 0x70A with the diagnostics."""
+        if not self._command_lock.acquire(timeout=self.limits.command_wait):
+            return _busy("volcomp_update")
+        try:
+            result = self._volcomp_update(file_name)
+        finally:
+            self._command_lock.release()
+        if not result.ok:
+            self._report_now(result.message + ": " + "; ".join(result.errors), result.error_id)
+        return result
+
+    def _volcomp_update(self, file_name: str) -> CommandResult:
+        ident = int(self.snapshot.value(self.dictionary.by_name("VOLC::index"), 0))
+        cfg = self.machine.cfg
+        comp = next((c for c in cfg.volumetric if c.id == ident), None)
+        if comp is None:
+            return CommandResult(
+                False,
+                "volcomp_update",
+                [f"vol_comp[{ident}] is not configured in the start-up list (004 p.12)"],
+                code=AdsErrorCode.DEVICE_INVALIDDATA,
+                error_id=VOLC_ERROR,
+            )
+        diags: list[Diagnostic] = []
+        params = {a: cfg.axes[a].params for a in cfg.axes}
+        new = load_compensation(
+            ident, comp.max_records, file_name, cfg.startup_path.parent, params, Reporter(diags)
+        )
+        warnings = [d.describe() for d in diags if d.severity != "error"]
+        if not new.available:
+            return CommandResult(
+                False,
+                "volcomp_update",
+                [d.describe() for d in diags if d.severity == "error"],
+                warnings,
+                code=ADSERR_DEVICE_SYNTAX,
+                error_id=VOLC_ERROR,
+            )
+        try:
+            self._refuse_when_stalled()
+            self.settle_sync(
+                self.scheduler.submit(VolcUpdate(ident, new)), self.limits.swap_timeout
+            )
+        except AdsError as exc:
+            return CommandResult(False, "volcomp_update", errors=[exc.message], code=exc.code)
+        return CommandResult(
+            True, "volcomp_update", warnings=warnings, files=[new.path, *new.param_files]
+        )
 
     def save(self) -> CommandResult:
         """Write the live TEMPC parameters back into the axis lists (atomic rewrite)."""

@@ -59,8 +59,10 @@ def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None
     assert conn["connected"] is True and conn["localAmsNetId"] == "127.0.0.1.1.1"
     assert conn["localAdsPort"] >= 32768  # a port of its own from the router
     info = out["uploadInfo"]
-    axis_objects = sum(1 for o in machine.dictionary.objects if o.scope == "axis")
-    machine_objects = len(machine.dictionary.objects) - axis_objects
+    # the GEO task's port: the COM task's objects (port 553) have no symbols there
+    geo = [o for o in machine.dictionary.objects if o.group != "com"]
+    axis_objects = sum(1 for o in geo if o.scope == "axis")
+    machine_objects = len(geo) - axis_objects
     assert info["version"] == 2
     assert info["symbolCount"] == 4 * axis_objects + machine_objects  # X, Y, Z, C
     assert info["dataTypeCount"] == 6

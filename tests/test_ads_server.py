@@ -580,8 +580,16 @@ def test_response_addressing(raw) -> None:
 
 
 def test_wrong_ams_port_is_ams_error_6(raw) -> None:
-    p = raw.ask(Command.READ, codec.read_request(GEO, 0x10043, 8), port=553)
+    p = raw.ask(Command.READ, codec.read_request(GEO, 0x10043, 8), port=552)
     assert p.header.error_code == 0x6 and p.data == b""
+
+
+def test_a_group_on_the_other_tasks_port_is_0x702(raw) -> None:
+    """Port 553 is the COM task (004 p.19): it serves 0x120100, not the GEO group."""
+    p = raw.ask(Command.READ, codec.read_request(GEO, 0x10043, 8), port=553)
+    assert p.header.error_code == 0 and p.data[:4] == (0x702).to_bytes(4, "little")
+    p = raw.ask(Command.WRITE, codec.write_request(0x120100, 0x291, b"\0\0"), port=551)
+    assert p.data[:4] == (0x702).to_bytes(4, "little")
 
 
 def test_unknown_command_and_write_control_0x701(raw) -> None:

@@ -31,6 +31,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),
     (3, ("geo_server.twin",)),
+    (3, ("geo_server.volcomp",)),
     (4, ("geo_server.machine",)),
     (5, ("geo_server.service",)),
     (6, ("geo_server.transports",)),

@@ -62,6 +62,7 @@ _FIELDS: dict[str, tuple[str, Callable[[Any], object]]] = {
     "getriebe[].a_max": ("a_max", float),
     "sim.homed": ("homed", bool),
     "sim.start_position": ("start_position", float),
+    "lr_param.vol_comp.s_limit": ("vol_comp_s_limit", int),
 }
 
 #: Which attribute switches a compensation off after a configuration error.

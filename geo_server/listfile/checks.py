@@ -20,6 +20,9 @@ from geo_server.model import COMP_NAMES, CompKind
 
 #: Emulator-chosen error ID of temperature-compensation configuration errors.
 EMU_TEMP_ERROR = 990271
+#: Emulator-chosen error ID of volumetric-compensation errors (004 names no error ID;
+#: after P-AXIS-00525, the volumetric limit).
+EMU_VOLC_ERROR = 990525
 
 
 @dataclass(frozen=True)
@@ -44,6 +47,7 @@ _M000_LE = "000 §4.4.3 p.63; 001"
 _M000_FR = "000 §4.5.1.2 p.71 (stated meaning)"
 _M000_CT = "000 §4.6.4 p.92–93"
 _EMU = "none (emulator ID)"
+_M004 = "004 (no ID; emulator ID)"
 _LIST = "002/003 §1.3 (warning, no ID)"
 
 CHECKS: tuple[Check, ...] = (
@@ -72,7 +76,7 @@ CHECKS: tuple[Check, ...] = (
         "list.ignored",
         None,
         0,
-        "entry read but not used (volumetric start-up entries, gear stages other than "
+        "entry read but not used (`diagnosis_file` of a VOLC list, gear stages other than "
         "`getriebe[0]`, explicit setpoints of an equidistant LSEC table, `neg` values of "
         "a unilateral table, the other crosstalk dialect's entries)",
         _LIST,
@@ -367,6 +371,45 @@ CHECKS: tuple[Check, ...] = (
         "old model: `last_index` missing or not 0…4 (more than 5 points), an index > "
         "last_index, an acceleration/correction missing, accelerations not strictly ascending",
         "001 §4.5 (old model only)",
+    ),
+)
+
+CHECKS += (
+    # ---- volumetric compensation (004, docs/volumetric.md)
+    Check(
+        "volc.config",
+        None,
+        EMU_VOLC_ERROR,
+        "VOLC list unusable: no `chain` or one with unknown or repeated letters, not "
+        "exactly the linear axes X Y Z, a chain axis without its axis number or one that "
+        "is no axis of the machine, `workpiece_axes` beyond the chain, a `file[j]` "
+        "without `file_format[j]` or an unknown format, an interpolation other than GRID: "
+        "that compensation is not available",
+        _M004,
+        False,
+        "error",
+    ),
+    Check(
+        "volc.file",
+        None,
+        EMU_VOLC_ERROR,
+        "a VOLC list or correction file missing, unreadable or malformed, records not on a "
+        "grid, a parameter unknown or over the wrong arguments, more records than "
+        "`vol_comp[i].max_records` (004 p.12): that compensation is not available",
+        _M004,
+        False,
+        "error",
+    ),
+    Check(
+        "volc.s_limit",
+        None,
+        EMU_VOLC_ERROR,
+        "an axis of an activated compensation without `lr_param.vol_comp.s_limit` "
+        "(P-AXIS-00525, 004 p.14: activation refused), or its correction beyond it "
+        "(the compensation is switched off, the program stopped)",
+        "004 p.14 (stated meaning; emulator ID)",
+        False,
+        "error",
     ),
 )
 

@@ -5,7 +5,8 @@ Start-up list entries (000 §4.1 p.26, 000 §4.1):
 * `zahl_kw`, `achs_kw[i]`, `achs_kw_log_ax_nr[i]` — compensation value lists (manual);
 * `zahl_mds`, `achs_mds[i]`, `achs_mds_log_ax_nr[i]` — axis parameter lists (emulator
   extension: the manuals print no start-up entry for them);
-* `vol_comp[i].max_records`, `vol_comp[i].file_name` — volumetric (004), ignored.
+* `vol_comp[i].max_records`, `vol_comp[i].file_name` — volumetric compensations (004
+  p.12, p.36), loaded by `geo_server.volcomp.config` (docs/volumetric.md).
 
 File names are relative to the start-up list's folder; Windows `..\\listen\\x.lis` works.
 The axis number of a list is `achs_*_log_ax_nr[i]`, else the list's `kopf.achs_nr`.
@@ -80,7 +81,13 @@ def load_machine(startup: Path | str) -> MachineConfig:
         twin = find_twin(startup, names)
     except TwinFileError as exc:
         raise ListFileError(exc.path, exc.line, exc.message) from None
-    return MachineConfig(startup_path=startup, axes=configs, diagnostics=diags, twin=twin)
+    # (imported here: geo_server.volcomp.config reads its lists with this package)
+    from geo_server.volcomp.config import load_volumetric
+
+    volumetric = load_volumetric(stup, startup.parent, axes, rep)
+    return MachineConfig(
+        startup_path=startup, axes=configs, diagnostics=diags, twin=twin, volumetric=volumetric
+    )
 
 
 def _read(path: Path, kind: ListKind, rep: Reporter) -> Values:
@@ -145,9 +152,6 @@ def _named_lists(stup: Values, tag: str, rep: Reporter) -> list[tuple[int, str, 
         out.append((nr, str(item.value), item.entry.line))
     if count is not None and len(out) < count.value:  # type: ignore[operator]
         rep.at("list.ignored", f"zahl_{tag} {count.value} but {len(out)} lists named", count.entry)
-    for base in ("vol_comp[].max_records", "vol_comp[].file_name"):
-        for item in stup.table(base).values() if tag == "kw" else ():
-            rep.at("list.ignored", "volumetric compensation is not emulated yet", item.entry)
     return out
 
 

@@ -24,6 +24,7 @@ class ListKind(Enum):
     STUP = "start-up list"
     AXIS = "axis parameter list"
     COMP = "compensation value list"
+    VOLC = "volumetric compensation list"
 
 
 #: Value bounds of the integer data types (002 §1.3 tables: UNSnn, SGNnn).
@@ -116,6 +117,8 @@ _SPECS: list[Spec] = [
     Spec("getriebe[].a_max", "REAL64", _A, "emulator", lo=1e-9, hi=1e9),
     Spec("sim.homed", "BOOLEAN", _A, "emulator"),
     Spec("sim.start_position", "SGN64", _A, "emulator"),
+    # volumetric compensation limit (004 p.14)
+    Spec("lr_param.vol_comp.s_limit", "UNS32", _A, "P-AXIS-00525"),
     # ---- compensation value list [COMP]: header (002 §2)
     Spec("kopf.achs_nr", "UNS16", _C, "P-COMP-00001", lo=1),
     Spec("kopf.log_achs_nr", "UNS16", _C, "P-COMP-00001", None, 1, None, "kopf.achs_nr", True),
@@ -233,6 +236,26 @@ _SPECS += [
     Spec("kw.crosstalk.last_index", "SGN32", _C, "P-COMP-00065 (old)", _CT),  # 0..4: own
     Spec("kw.crosstalk.table[].acceleration", "SGN32", _C, "P-COMP-00066 (old)", _CT),
     Spec("kw.crosstalk.table[].correction", "SGN32", _C, "P-COMP-00067 (old)", _CT),
+]
+
+# ---- volumetric compensation list [VOLC] (004 §3, p.11-17, p.23): the manual names
+# P-VOLC-00012 (file[j]), -00017 (manual_activation) and -00018 (filter_steps) only
+_V = ListKind.VOLC
+_SPECS += [Spec(axis.lower(), "UNS16", _V, lo=1) for axis in "XYZABC"]
+_SPECS += [
+    Spec("chain", "STRING", _V),
+    Spec("workpiece_axes", "UNS16", _V, lo=0, hi=6),
+    Spec("file[]", "STRING", _V, "P-VOLC-00012"),
+    Spec("file_format[]", "STRING", _V),
+    Spec("negate", "STRING", _V),
+    Spec("set_to_zero", "STRING", _V),
+    Spec("alternative_model", "BOOLEAN", _V),
+    Spec("filter_steps", "UNS32", _V, "P-VOLC-00018"),
+    Spec("manual_activation", "BOOLEAN", _V, "P-VOLC-00017"),
+    Spec("interpolation", "STRING", _V),
+    Spec("enable_splicing", "BOOLEAN", _V),
+    Spec("associate_to_channel", "BOOLEAN", _V),
+    Spec("diagnosis_file", "STRING", _V),
 ]
 
 SPECS: dict[tuple[ListKind, str], Spec] = {(s.list, s.name): s for s in _SPECS}

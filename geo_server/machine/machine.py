@@ -19,6 +19,7 @@ import logging
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from time import monotonic, perf_counter_ns
 from typing import Any
@@ -31,8 +32,9 @@ from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel
 from geo_server.kernel.batch import KernelBatch, batch_limit
 from geo_server.kernel.common import ALL_KINDS, COLUMN
+from geo_server.listfile.values import Reporter
 from geo_server.machine.motion import Motion, MotionError
-from geo_server.machine.nc import Player, Program, parse_program
+from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
 from geo_server.machine.port import (
     Operation,
     Pending,
@@ -40,6 +42,7 @@ from geo_server.machine.port import (
     Reload,
     Reset,
     StartProgram,
+    VolcUpdate,
     WriteObjects,
     listen,
     resolved,
@@ -49,6 +52,8 @@ from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
 from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
+from geo_server.volcomp.config import load_compensation
+from geo_server.volcomp.kernel import VOLC_ERROR, VolKernel
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +70,8 @@ def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
 #: buffers of this many batch sizes are kept, the least recently used dropped first (the
 #: engine uses a few: its wake-up interval, the catch-ups of requests, the rest of a move)
 _BATCHES_KEPT = 24
+#: reads the files of a #VOLCOMP UPDATE off the cycle (docs/volumetric.md §7)
+_LOADER = ThreadPoolExecutor(1, thread_name_prefix="volcomp-load")
 
 
 class Machine:
@@ -86,6 +93,11 @@ class Machine:
         self.axes: tuple[int, ...] = tuple(sorted(cfg.axes))
         self.names = {cfg.axes[a].params.name.upper(): i for i, a in enumerate(self.axes)}
         self.kernel = Kernel(cfg)
+        self.volc = self._new_volc(cfg)
+        #: cnc_interpr_vol_comp_index_w: the compensation the next file write updates
+        self.volc_index = 0
+        #: #VOLCOMP UPDATE: (ID, the worker reading its files)
+        self._volc_loading: list[tuple[int, Future[Any]]] = []
         self.twin = self._new_twin(cfg)
         self.spindle_on = False  # TWIN::spindle_on: a heat source of the twin
         self.motion = Motion([cfg.axes[a].params for a in self.axes], self.cycle_s)
@@ -175,8 +187,10 @@ class Machine:
                     self.motion.homed,
                     self._reversal,
                 )
-                self.kernel_ns = perf_counter_ns() - t0
                 np.add(self.motion.pos, k.total_offset, out=self._output)
+                if self.volc.states:
+                    self._volumetric()
+                self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
                 self.twin.step(
                     self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
@@ -216,7 +230,7 @@ class Machine:
         single cycles). The numbers are those of as many calls of
         `run_cycle(publish=False)` (tests/test_batch.py): the snapshot of the cycle
         reached is left to `publish`."""
-        if n < 2 or self._queue or self.cycle == 0:
+        if n < 2 or self._queue or self.cycle == 0 or self.volc.busy:
             return 0
         mo = self.motion
         with self._cycle_lock:
@@ -289,7 +303,7 @@ class Machine:
             return False
         if not self.motion.all_in_position():
             return False
-        return self.kernel.at_rest() and self.twin.at_rest()
+        return self.kernel.at_rest() and self.volc.at_rest and self.twin.at_rest()
 
     @property
     def quiescent(self) -> bool:
@@ -329,6 +343,17 @@ class Machine:
             except Exception:  # one broken subscriber must not stop the engine
                 log.exception("snapshot listener failed")
         return snap
+
+    def _volumetric(self) -> None:
+        """The volumetric corrections of this cycle (docs/volumetric.md §1): from the
+        command positions, added to the output; a correction beyond its s_limit stops
+        the program (004 p.14: "the axis is stopped in a controlled manner")."""
+        mo = self.motion
+        if not self.volc.step(mo.pos, mo.homed):
+            if self.player is not None and self.player.running:
+                self.player.abort()
+            mo.stop()
+        self._output += self.volc.offset
 
     def _step_program(self) -> None:
         """Advance the NC program; a command the machine cannot carry out ends the program
@@ -404,6 +429,10 @@ class Machine:
             case Record(diagnostic):
                 self._record(diagnostic)
                 return None
+            case VolcUpdate(ident, comp):
+                self.volc.update(ident, comp)
+                self.volc_index = ident
+                return None
         raise TypeError(f"not a machine operation: {op!r}")
 
     def _apply_item(self, name: str, axis: int, value: Any) -> BaseException | None:
@@ -435,7 +464,7 @@ class Machine:
         """
         col = self.layout.col
         k, mo = self.kernel, self.motion
-        self._src_owner = (k, mo, self.twin)
+        self._src_owner = (k, mo, self.twin, self.volc)
         n = len(self.axes)
         pieces: dict[str, np.ndarray] = {
             "actual": k.actual,
@@ -478,10 +507,15 @@ class Machine:
                 "TWIN::ambient_temperature",
                 "TWIN::time",
                 "TWIN::spindle_on",
+                "VOLC::active",
+                "VOLC::available",
+                "VOLC::index",
+                "VOLC::tool_length",
             )
         )
         self._mach_template = [0.0] * len(self.layout.machine_objects)
         self._text_slot = self.layout.text_index["SIM::last_error"]
+        self._volc_file_slot = self.layout.text_index["VOLC::file"]
         self._texts = [""] * len(self.layout.text_objects)
         self._texts[self.layout.text_index["SIM::axis_names"]] = " ".join(
             f"{a}={self.cfg.axes[a].params.name or a}" for a in self.axes
@@ -490,7 +524,7 @@ class Machine:
     def _build_snapshot(self) -> Snapshot:
         """docs/design.md §5 step 4: every object of every axis, from this cycle's state."""
         k, mo = self.kernel, self.motion
-        if self._src_owner != (k, mo, self.twin):
+        if self._src_owner != (k, mo, self.twin, self.volc):
             self._layout_sources()
         mb = self._mbuf_cols
         # Deltas are differences of the published (rounded) values of this cycle and
@@ -510,7 +544,7 @@ class Machine:
         np.concatenate(self._pieces, axis=1, out=self._stack)
         v = self._stack.take(self._columns, axis=1)
         mach = self._mach_template.copy()
-        c0, c1, c2, c3, c4, c5, c6, c7, c8 = self._mcols
+        c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12 = self._mcols
         mach[c0] = self.cycle & 0xFFFF_FFFF
         mach[c1] = round(self.cycle_s * 1e6)
         mach[c2] = self.overruns
@@ -522,7 +556,12 @@ class Machine:
         mach[c6] = self.twin.ambient
         mach[c7] = self.twin.time
         mach[c8] = float(self.spindle_on)
+        volc = self.volc
+        mach[c9], mach[c10] = volc.active_mask, volc.available_mask
+        mach[c11] = self.volc_index
+        mach[c12] = volc.tool_length
         self._texts[self._text_slot] = self.last_error
+        self._texts[self._volc_file_slot] = volc.file_of(self.volc_index)
         return Snapshot(
             self.cycle,
             self.axes,
@@ -641,12 +680,23 @@ class Machine:
         """
         self.cfg = cfg
         self.kernel.reload(cfg)
+        # the lists as the start-up list names them again (004 p.23: an update by CNC
+        # object does not change the configuration); the compensations start over
+        self.volc = self._new_volc(cfg)
         twin = self._new_twin(cfg)
         twin.take_state(self.twin)  # the machine does not cool down on a reload
         self.twin = twin
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         for d in cfg.diagnostics:
             self._record(d)
+
+    def _new_volc(self, cfg: MachineConfig) -> VolKernel:
+        return VolKernel(
+            cfg.volumetric,
+            self.axes,
+            [cfg.axes[a].params for a in self.axes],
+            report=lambda error_id, message: self.report(error_id, message),
+        )
 
     def _new_twin(self, cfg: MachineConfig) -> TwinEngine:
         """The machine behind the controller; without a twin file a perfect machine at
@@ -671,6 +721,7 @@ class Machine:
             self.player.abort()
         self.motion.stop()
         self.program_end()
+        self.volc.reset()  # 004 p.24: every volumetric compensation off, no movement
 
     def start(self, prog: Program, mdi: bool = False) -> None:
         """Run a parsed program (or MDI lines) from the next cycle on."""
@@ -737,6 +788,57 @@ class Machine:
         else:
             self.kernel.release(slot)
         return 0
+
+    def volcomp(self, cmd: VolcompCommand) -> tuple[int, str]:
+        """`#VOLCOMP …` (004 p.21-23): switch, or start reading the files of an UPDATE
+        in a worker thread (the cycle never waits for a disk); ALL switches every
+        available compensation."""
+        volc = self.volc
+        ids = cmd.ids
+        if ids is None:
+            ids = tuple(
+                i for i, st in volc.states.items() if st.evaluator is not None or not cmd.on
+            )
+        try:
+            for ident in ids:
+                if cmd.update:
+                    self._volc_update(ident)
+                else:
+                    volc.switch(ident, cmd.on, cmd.no_move, cmd.cfact)
+        except (KeyError, ValueError) as exc:
+            return VOLC_ERROR, str(exc.args[0]) if exc.args else str(exc)
+        return 0, ""
+
+    def _volc_update(self, ident: int) -> None:
+        """Read compensation `ident` again from its VOLC list (004 p.23)."""
+        st = self.volc.get(ident)
+        comp = st.comp
+        folder = self.cfg.startup_path.parent
+        params = {a: self.cfg.axes[a].params for a in self.axes}
+
+        def load() -> tuple[Any, list[Diagnostic]]:
+            diags: list[Diagnostic] = []
+            new = load_compensation(
+                ident,
+                comp.max_records,
+                comp.path or comp.file_name,
+                folder,
+                params,
+                Reporter(diags),
+            )
+            return new, diags
+
+        self._volc_loading.append((ident, _LOADER.submit(load)))
+
+    def volcomp_settled(self) -> bool:
+        """The #VOLCOMP ramps are over and the updates read and applied."""
+        while self._volc_loading and self._volc_loading[0][1].done():
+            ident, fut = self._volc_loading.pop(0)
+            new, diags = fut.result()
+            for d in diags:
+                self._record(d)
+            self.volc.update(ident, new)
+        return not self._volc_loading and self.volc.at_rest
 
     def comp_settled(self, slots: Iterable[int]) -> bool:
         """000 §5.1: the offset of a COMP switch is travelled before the program goes
@@ -838,6 +940,7 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "TWIN::true_position": lambda m: m.twin.true_position,
     "TWIN::residual": lambda m: m.twin.residual,
     "TWIN::friction_current": lambda m: m.twin.friction_current,
+    "VOLC::correction": lambda m: m.volc.offset,
 }
 
 
@@ -875,6 +978,17 @@ def _set_tempc_activated(m: Machine, slot: int, on: bool) -> None:
     m.kernel.release(slot, CompKind.TEMP)
 
 
+def _volc_switch(m: Machine, ident: int, on: bool) -> None:
+    """cnc_vol_comp_enable/disable_index_w (004 p.22): like #VOLCOMP ON/OFF [ID..]. An
+    ID that is not configured or not available answers 0x706 (invalid data)."""
+    try:
+        m.volc.switch(ident, on)
+    except (KeyError, ValueError) as exc:
+        message = str(exc.args[0]) if exc.args else str(exc)
+        m.report(VOLC_ERROR, message)
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDDATA, message) from None
+
+
 def _set_homed(m: Machine, slot: int, value: Any) -> None:
     if value:
         m.motion.home(slot)
@@ -894,4 +1008,8 @@ _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     "TWIN::spindle_on": lambda m, s, v: setattr(m, "spindle_on", bool(v)),
     "TWIN::ambient_temperature": lambda m, s, v: m.twin.hold_ambient(float(v)),
     "TWIN::soak": lambda m, s, v: m.twin.soak(),
+    "VOLC::tool_length": lambda m, s, v: setattr(m.volc, "tool_length", float(v)),
+    "cnc_interpr_vol_comp_index_w": lambda m, s, v: setattr(m, "volc_index", int(v)),
+    "cnc_vol_comp_enable_index_w": lambda m, s, v: _volc_switch(m, int(v), True),
+    "cnc_vol_comp_disable_index_w": lambda m, s, v: _volc_switch(m, int(v), False),
 }

@@ -26,6 +26,11 @@ Supported subset (docs/design.md §5; TF5200 axis compensation manual, 000):
   release axes from the channel (their manual-activation compensations are deselected,
   000 §5.1); `#CALL AX [X, 1, 0]` brings an axis back. Programming a released axis is an
   error. Every program starts with all axes in the channel.
+* Volumetric compensation, alone in its block (004 §4.1-4.2, p.21-23): `#VOLCOMP ON
+  [ID0]`, `#VOLCOMP ON [ID=0 NO_MOVE CFACT_X=0.5]`, `#VOLCOMP OFF [ID=0]`, `#VOLCOMP ON
+  ALL`, `#VOLCOMP OFF ALL`, `#VOLCOMP [ID0 UPDATE]`; the program waits until the ramp
+  (filter_steps) or the update is done ("The machine stops when a #VOLCOMP command is
+  used", 004 p.22).
 
 Monitoring (000 §5.3, p.97): a motion block that would move an axis whose required
 compensations (`MachinePort.required`) are not all effective raises P-ERR-70435 and stops
@@ -125,6 +130,14 @@ class MachinePort(Protocol):
         """`COMP OFF_ALL`; returns 0 or an error ID."""
         ...
 
+    def volcomp(self, cmd: VolcompCommand) -> tuple[int, str]:
+        """`#VOLCOMP …` (004 p.21-23); returns (0, "") or (error ID, message)."""
+        ...
+
+    def volcomp_settled(self) -> bool:
+        """True when the volumetric ramps and updates started by #VOLCOMP are done."""
+        ...
+
     def comp_settled(self, slots: Iterable[int]) -> bool:
         """True when the offset ramps started by COMP on these axes have finished."""
         ...
@@ -166,6 +179,18 @@ class CompCommand:
     no_move: bool = False
 
 
+@dataclass(frozen=True)
+class VolcompCommand:
+    """`#VOLCOMP ON|OFF [ID=.. NO_MOVE CFACT_X/Y/Z=..]`, `ON ALL`/`OFF ALL`, `#VOLCOMP
+    [ID=.. UPDATE]` (004 §4.1-4.2, p.21-23). `ids` None: ALL."""
+
+    on: bool
+    ids: tuple[int, ...] | None
+    no_move: bool = False
+    cfact: tuple[float, float, float] | None = None
+    update: bool = False
+
+
 @dataclass
 class Block:
     """One NC block (a logical line after `\\` continuation)."""
@@ -186,6 +211,7 @@ class Block:
     end: bool = False
     release: tuple[int, ...] = ()  # `#PUT AX` / `#AX RELEASE`: slots leaving the channel
     call: tuple[int, ...] = ()  # `#CALL AX`: slots coming back
+    volcomp: VolcompCommand | None = None  # `#VOLCOMP …` (004 p.21)
 
 
 @dataclass
@@ -356,10 +382,78 @@ def _integer(line: int, addr: str, num: float | None) -> int:
     return int(num)
 
 
+#: `#VOLCOMP …` (004 p.21), alone in its block after an optional block number
+_VOLCOMP = re.compile(r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*VOLCOMP\b\s*(?P<rest>.*)")
+_VOLCOMP_ID = re.compile(r"ID\s*=?\s*(\d+)$")
+_VOLCOMP_CFACT = re.compile(r"CFACT_([XYZ])\s*=\s*([+-]?(?:\d+\.?\d*|\.\d+))$")
+
+
+def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
+    """The words of `#VOLCOMP` (004 p.21): ON | OFF [ID=.. NO_MOVE CFACT_X=..], ON ALL,
+    OFF ALL, [ID=.. UPDATE]; `\\` continuations are already joined."""
+    m = re.fullmatch(r"(?P<mode>ON|OFF)?\s*(?:(?P<all>ALL)|\[(?P<args>[^\]]*)\])?\s*", rest)
+    if m is None:
+        raise NcError(
+            line, f"#VOLCOMP {rest.strip()}: expected ON|OFF [ID=..], ON|OFF ALL or [ID=.. UPDATE]"
+        )
+    mode, args = m["mode"], m["args"]
+    if m["all"]:
+        if mode is None:
+            raise NcError(line, "#VOLCOMP ALL needs ON or OFF")
+        return VolcompCommand(mode == "ON", None)
+    words = re.sub(r"\s*=\s*", "=", args or "").replace(",", " ").split()
+    ident: int | None = None
+    no_move = update = False
+    cfact = [1.0, 1.0, 1.0]
+    weighted = False
+    for word in words:
+        if (mi := _VOLCOMP_ID.match(word)) is not None:
+            ident = int(mi[1])
+        elif word == "NO_MOVE":
+            no_move = True
+        elif word == "UPDATE":
+            update = True
+        elif (mc := _VOLCOMP_CFACT.match(word)) is not None:
+            value = float(mc[2])
+            if not 0.0 <= value <= 1.0:
+                raise NcError(
+                    line,
+                    f"#VOLCOMP CFACT_{mc[1]}={value:g}: permitted values are 0.0 … 1.0 (004 p.21)",
+                )
+            cfact["XYZ".index(mc[1])] = value
+            weighted = True
+        else:
+            raise NcError(
+                line, f"#VOLCOMP: unknown word {word!r} (ID=.., NO_MOVE, CFACT_X/Y/Z=.., UPDATE)"
+            )
+    if ident is None:
+        raise NcError(line, "#VOLCOMP: name the compensation with ID=.. (0 … 4) or use ALL")
+    if ident > 4:
+        raise NcError(line, f"#VOLCOMP ID={ident}: the IDs are 0 … 4 (004 p.21)")
+    if update:
+        if mode is not None or no_move or weighted:
+            raise NcError(
+                line, "#VOLCOMP [ID=.. UPDATE] takes no ON/OFF, NO_MOVE or CFACT (004 p.21)"
+            )
+        return VolcompCommand(False, (ident,), update=True)
+    if mode is None:
+        raise NcError(line, "#VOLCOMP needs ON, OFF or [ID=.. UPDATE]")
+    if weighted and mode != "ON":
+        raise NcError(line, "#VOLCOMP: CFACT_* only with ON (004 p.21)")
+    return VolcompCommand(mode == "ON", (ident,), no_move, tuple(cfact) if weighted else None)  # type: ignore[arg-type]
+
+
 def _parse_block(
     line: int, body: str, names: dict[str, int], warnings: list[Diagnostic]
 ) -> Block | None:
     """Interpret the words of one block."""
+    volcomp = _VOLCOMP.fullmatch(body.upper())
+    if volcomp is not None:
+        number = int(volcomp["n"]) if volcomp["n"] else None
+        cmd = _parse_volcomp(line, volcomp["n"], volcomp["rest"])
+        return Block(line=line, text=body, number=number, label=bool(volcomp["colon"]), volcomp=cmd)
+    if "#VOLCOMP" in body.upper().replace(" ", ""):
+        raise NcError(line, "#VOLCOMP must stand alone in its block")
     exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
     if exchange is not None:
         return _parse_exchange(line, body, exchange, names, warnings)
@@ -567,6 +661,7 @@ class _Wait:
 
     motion: tuple[int, ...] = ()
     comp: tuple[int, ...] = ()
+    volcomp: bool = False  # #VOLCOMP: ramps and updates finished (004 p.22)
     until_cycle: int = 0
     end: bool = False  # M30 in the waiting block: end after the wait
 
@@ -639,7 +734,7 @@ class Player:
         nothing or for something else as well): while one of them moves, `step` only
         counts the cycle."""
         w = self._wait
-        if w is None or w.comp or w.end:
+        if w is None or w.comp or w.end or w.volcomp:
             return ()
         return w.motion
 
@@ -660,6 +755,14 @@ class Player:
         self._modal.update(b)
         if b.release or b.call:
             self._exchange(b)
+            return
+        if b.volcomp is not None:
+            err, message = self.port.volcomp(b.volcomp)
+            if err:
+                self._fail(err, message)
+                return
+            # "The machine stops when a #VOLCOMP command is used" (004 p.22)
+            self._wait = _Wait(volcomp=True)
             return
         if not self._in_channel(b):
             return
@@ -780,6 +883,7 @@ class Player:
             self.cycle >= w.until_cycle
             and (not w.motion or self.port.in_position(w.motion))
             and (not w.comp or self.port.comp_settled(w.comp))
+            and (not w.volcomp or self.port.volcomp_settled())
         )
 
     def _finish(self, explicit: bool) -> None:

@@ -71,7 +71,17 @@ class Record:
     diagnostic: Diagnostic
 
 
-Operation = WriteObjects | StartProgram | Reset | Reload | Record
+@dataclass(frozen=True)
+class VolcUpdate:
+    """Replace volumetric compensation `ident` by a freshly loaded one (`#VOLCOMP
+    UPDATE` or cnc_interpr_vol_comp_file_w, 004 p.23): the files were read by the
+    caller, off the cycle; `comp` is a `geo_server.volcomp.config.VolComp`."""
+
+    ident: int
+    comp: Any
+
+
+Operation = WriteObjects | StartProgram | Reset | Reload | Record | VolcUpdate
 
 
 # ---------------------------------------------------------------------- pending

@@ -29,8 +29,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from geo_server.kernel.tables import Lookup, MergedTable
-from geo_server.twin.model import AxisTwin, Curve, Grid, TwinConfig
+from geo_server.twin.model import AxisTwin, Curve, Grid, RigidBody, TwinConfig
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
+from geo_server.volcomp.evaluator import Evaluator
+from geo_server.volcomp.model import build_model
+from geo_server.volcomp.tables import ParamTable
 
 #: Increments per second to m/s (linear) or to 1000 °/s (rotary).
 V_SCALE = 1e-7
@@ -77,6 +80,7 @@ class TwinEngine:
         self._still = np.zeros(n)  # the velocities of a machine at rest
         self._setup_geometry(axes, slot)
         self._setup_thermal(axes, slot)
+        self._setup_rigid(cfg.rigid_body, slot)
         # outputs (read by the machine's snapshot)
         self.true_position = np.zeros(n)
         self.residual = np.zeros(n)
@@ -84,6 +88,42 @@ class TwinEngine:
         self.error = np.zeros(n)
 
     # ------------------------------------------------------------------ set-up
+
+    def _setup_rigid(self, rb: RigidBody | None, slot: dict[str, int]) -> None:
+        """The rigid-body errors (docs/twin.md §2.1) as a volumetric model (docs/
+        volumetric.md §2): the same kinematics the compensation inverts, with the twin's
+        curves as tables (µm → mm, µrad → rad)."""
+        self._rigid: Evaluator | None = None
+        if rb is None or not all(a in slot for a in "XYZ"):
+            return
+        tables: dict[str, ParamTable] = {}
+        for name, curve in rb.components:
+            scale = 1e-3 if name[1] in "XYZ" else 1e-6
+            tables[name] = ParamTable(
+                name,
+                (name[2],),
+                (np.array(curve.positions),),
+                np.array(curve.errors) * scale,
+            )
+        for name, urad in rb.squareness:
+            tables[name] = ParamTable(name, (), (), np.array(urad * 1e-6))
+        for d, v in zip("XYZ", rb.tool, strict=True):
+            tables[f"P0{d}"] = ParamTable(f"P0{d}", (), (), np.array(v))
+        model = build_model(rb.chain, rb.workpiece_axes, tables)
+        self._rigid = Evaluator(model)
+        self._rigid_chain = [slot[a] for a in rb.chain]
+        self._rigid_xyz = np.array([slot[a] for a in "XYZ"])
+        self._rigid_tip = model.tool_point(0.0)
+
+    def _rigid_errors(self, output: np.ndarray, e: np.ndarray) -> None:
+        """Where the imperfect machine puts the tool minus where the ideal one would, at
+        the drive positions, added to the X, Y, Z errors."""
+        ev = self._rigid
+        assert ev is not None
+        q = output[self._rigid_chain][None, :] / UNITS_PER_MM
+        tip = self._rigid_tip
+        d = ev.forward(q, tip)[0] - ev.forward(q, tip, errors=False)[0]
+        e[self._rigid_xyz] += d * UNITS_PER_MM
 
     def _setup_geometry(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
         n = len(axes)
@@ -373,6 +413,8 @@ class TwinEngine:
             e[target] += grid(output.item(o1), output.item(o2))
         if self._any_square:
             e += self.square @ output
+        if self._rigid is not None:
+            self._rigid_errors(output, e)
         np.add(output, e, out=self.true_position)
         np.subtract(self.true_position, command, out=self.residual)
         if self._any_friction:  # the drive's current: sign(v)·c + k·v = sign(v)·(c + k·|v|)

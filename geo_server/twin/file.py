@@ -65,10 +65,13 @@ from typing import Any
 
 from geo_server.errors import GeoError
 from geo_server.twin.model import (
+    RIGID_COMPONENTS,
+    RIGID_SQUARENESS,
     AxisTwin,
     Curve,
     Expansion,
     Grid,
+    RigidBody,
     Sensor,
     Straightness,
     ThermalNode,
@@ -216,7 +219,7 @@ class _Parser:
     # ------------------------------------------------------------------ the file
 
     def config(self, raw: dict[str, Any]) -> TwinConfig:
-        self.unknown(raw, ("twin", "node", "sensor", "axis"), "")
+        self.unknown(raw, ("twin", "node", "sensor", "axis", "rigid_body"), "")
         top = self.table(raw, "twin")
         self.unknown(top, ("reference_temperature", "time_scale", "seed", "ambient"), "twin")
         nodes = self.nodes(raw.get("node", []))
@@ -240,6 +243,52 @@ class _Parser:
             nodes=tuple(nodes),
             sensors=tuple(sensors),
             axes=axes,
+            rigid_body=self.rigid_body(raw.get("rigid_body")),
+        )
+
+    def rigid_body(self, d: Any) -> RigidBody | None:
+        """`[rigid_body]`: chain, workpiece_axes, tool, squareness = { C0Y = µrad … },
+        and `[rigid_body.errors]` with one curve per component error (EXX …)."""
+        if d is None:
+            return None
+        table = "rigid_body"
+        head = self.where.table(table)
+        if not isinstance(d, dict):
+            raise self.fail(head, "[rigid_body] must be a table")
+        self.unknown(d, ("chain", "workpiece_axes", "tool", "squareness", "errors"), table)
+        chain = d.get("chain", "YXZ")
+        if not isinstance(chain, str) or sorted(chain.upper()) != ["X", "Y", "Z"]:
+            raise self.fail(
+                self.where.key(table, "chain"),
+                f"chain must order X, Y and Z (workpiece → tool), not {chain!r}",
+            )
+        for a in "XYZ":
+            self.axis(a, self.where.key(table, "chain"))
+        wp = d.get("workpiece_axes", 0)
+        if not isinstance(wp, int) or isinstance(wp, bool) or not 0 <= wp <= 3:
+            raise self.fail(self.where.key(table, "workpiece_axes"), "workpiece_axes is 0 … 3")
+        tool = self.numbers(d.get("tool", [0.0, 0.0, 0.0]), "tool", self.where.key(table, "tool"))
+        if len(tool) != 3:
+            raise self.fail(self.where.key(table, "tool"), "tool is [x, y, z] in mm")
+        square = d.get("squareness", {})
+        if not isinstance(square, dict):
+            raise self.fail(self.where.key(table, "squareness"), "squareness = { C0Y = µrad, … }")
+        self.unknown_inline(square, RIGID_SQUARENESS, table, "squareness")
+        errors = d.get("errors", {})
+        if not isinstance(errors, dict):
+            raise self.fail(head, "[rigid_body.errors] must be a table of curves")
+        self.unknown(errors, RIGID_COMPONENTS, f"{table}.errors")
+        return RigidBody(
+            chain=chain.upper(),
+            workpiece_axes=wp,
+            tool=(tool[0], tool[1], tool[2]),
+            squareness=tuple(
+                (k, self.inline_number(square, k, table, "squareness")) for k in square
+            ),
+            components=tuple(
+                (k, self.curve(v, k, self.where.key(f"{table}.errors", k)))
+                for k, v in errors.items()
+            ),
         )
 
     def table(self, raw: dict[str, Any], key: str) -> dict[str, Any]:

@@ -118,6 +118,29 @@ class Sensor:
     period: float = 0.1  # s of simulated time
 
 
+#: The rigid-body errors of a three-axis machine (ISO 230-1): six component errors of
+#: each linear axis over its own travel (004 p.29-30 names) ...
+RIGID_COMPONENTS = tuple(f"E{d}{a}" for a in "XYZ" for d in "XYZABC")
+#: ... and the orientation (squareness) errors of the axes (004 p.30 position errors;
+#: with X as the reference, C0Y, B0Z, A0Z are the three of ISO 230-1).
+RIGID_SQUARENESS = tuple(f"{d}0{a}" for a in "XYZ" for d in "ABC")
+
+
+@dataclass(frozen=True)
+class RigidBody:
+    """The rigid-body errors of the linear axes X, Y, Z (docs/twin.md §2.1): composed
+    along `chain` (workpiece → tool, as in a VOLC list) with the model of docs/
+    volumetric.md §2, the tool tip at `tool` (mm, in the frame of the last carriage).
+    Component errors are curves over the axis' own position: µm for EX?, EY?, EZ?,
+    µrad for EA?, EB?, EC?; squareness in µrad."""
+
+    chain: str = "YXZ"
+    workpiece_axes: int = 0
+    tool: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    squareness: tuple[tuple[str, float], ...] = ()
+    components: tuple[tuple[str, Curve], ...] = ()
+
+
 @dataclass(frozen=True)
 class TwinConfig:
     """Everything the twin file says (validated)."""
@@ -130,13 +153,17 @@ class TwinConfig:
     nodes: tuple[ThermalNode, ...] = ()
     sensors: tuple[Sensor, ...] = ()
     axes: dict[str, AxisTwin] = field(default_factory=dict)
+    rigid_body: RigidBody | None = None
 
 
 __all__ = [
+    "RIGID_COMPONENTS",
+    "RIGID_SQUARENESS",
     "AxisTwin",
     "Curve",
     "Expansion",
     "Grid",
+    "RigidBody",
     "Sensor",
     "Straightness",
     "ThermalNode",

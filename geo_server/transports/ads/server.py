@@ -37,7 +37,13 @@ from dataclasses import dataclass, field, replace
 from typing import Any, cast
 
 import geo_server
-from geo_server.dictionary import ADDRESS_LOOKUP, GEO_AMS_PORT, GROUPS
+from geo_server.dictionary import (
+    ADDRESS_LOOKUP,
+    AMS_PORTS,
+    GEO_AMS_PORT,
+    REQUEST_PORT,
+    TASK_GROUPS,
+)
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService, PreparedWrite
 from geo_server.snapshot import Snapshot
@@ -88,7 +94,7 @@ class AdsOptions:
     host: str = "127.0.0.1"
     port: int = 48898  # 0 = ephemeral (tests); the bound port is `AdsServer.port`
     netid: str = "127.0.0.1.1.1"  # own AMS NetId
-    ams_ports: tuple[int, ...] = (GEO_AMS_PORT,)
+    ams_ports: tuple[int, ...] = AMS_PORTS
     read_only: bool = False  # every write answers 0x704
     #: Reject requests addressed to another NetId with AMS error 0x7 (target machine not
     #: found). Off by default: a stand-alone server answers whatever NetId the client
@@ -374,7 +380,11 @@ class AdsServer:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_PORT_NOT_FOUND))
             return
-        self._answer(conn, h, lambda: self._dispatch(conn, packet))
+        token = REQUEST_PORT.set(h.target.port)  # resolves only this task's groups
+        try:
+            self._answer(conn, h, lambda: self._dispatch(conn, packet))
+        finally:
+            REQUEST_PORT.reset(token)
 
     def _answer(self, conn: AdsConnection, h: AmsHeader, handler: Callable[[], Reply]) -> None:
         """Run `handler`, turning its exceptions into the command's error payload."""
@@ -993,7 +1003,7 @@ class AdsServer:
 WriteItem = tuple[int, int, bytes] | int
 #: AMS ports the router hands to clients (TwinCAT's ADS clients get 30000 and up).
 FIRST_CLIENT_PORT, LAST_CLIENT_PORT = 32768, 65535
-_RESERVED_PORTS = frozenset({GEO_AMS_PORT, SYSTEM_SERVICE_PORT})
+_RESERVED_PORTS = frozenset({*AMS_PORTS, SYSTEM_SERVICE_PORT})
 _NAME_SERVICES = frozenset(
     {
         symbols.SYM_HNDBYNAME,
@@ -1002,7 +1012,7 @@ _NAME_SERVICES = frozenset(
         symbols.SYM_DT_INFOBYNAMEEX,
     }
 )
-_LOOKUPS = frozenset(ig + ADDRESS_LOOKUP for ig in GROUPS.values())
+_LOOKUPS = frozenset(ig + ADDRESS_LOOKUP for ig in TASK_GROUPS.values())
 _UPLOADS = frozenset(
     {symbols.SYM_UPLOAD, symbols.SYM_UPLOADINFO, symbols.SYM_UPLOADINFO2, symbols.SYM_DT_UPLOAD}
 )

@@ -32,7 +32,7 @@ import struct
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from geo_server.dictionary import GROUPS, DataType, Dictionary, ObjectDef
+from geo_server.dictionary import GEO_AMS_PORT, GROUPS, DataType, Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 
 #: Reserved index groups of the symbol and state services (AdsDef.h `ADSIGRP_*`).
@@ -138,6 +138,8 @@ class SymbolTable:
         """`axis_names`: axis number -> name (`X`), in the machine's order."""
         symbols: list[Symbol] = []
         for obj in dictionary.objects:
+            if obj.ams_port != GEO_AMS_PORT:  # the COM task (port 553) has no symbols here
+                continue
             targets: Iterable[tuple[int, str | None]] = (
                 axis_names.items() if obj.scope == "axis" else [(0, None)]
             )

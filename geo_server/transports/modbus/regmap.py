@@ -140,9 +140,11 @@ def exception_for(exc: AdsError) -> ExcCode:
 
 
 def mapped(obj: ObjectDef) -> bool:
-    """True when the object has a Modbus representation (every object: numbers in 4-register
-    slots, texts in `TEXT_SLOT` registers)."""
-    return obj.type.name in REGISTERS
+    """True when the object has a Modbus representation (every object of the GEO task:
+    numbers in 4-register slots, texts in `TEXT_SLOT` registers). The COM task's
+    objects (port 553, 004 p.19) are ADS and Zenoh only: write-only commands that name
+    files, which the read-back `VOLC::*` objects show on Modbus."""
+    return obj.type.name in REGISTERS and obj.group != "com"
 
 
 def slot_size(obj: ObjectDef) -> int:

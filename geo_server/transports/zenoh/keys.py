@@ -4,6 +4,7 @@
     cnc/<m>/axis/<A>/<group>/<field>    GEO objects by name, JSON
     cnc/<m>/sim/axis/<A>/<field>        emulator axis objects, JSON
     cnc/<m>/sim/machine/<field>         emulator machine-wide objects, JSON
+    cnc/<m>/com/<name>                  the COM task's objects (port 553), JSON
     cnc/<m>/nc                          execute NC lines (get with payload)
     cnc/<m>/cmd/reload, cmd/save        commands (get with payload)
     cnc/<m>/cmd/reset, cmd/measure      (measure: a JSON test plan, docs/twin.md)
@@ -19,9 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from geo_server.dictionary import (
+    AMS_PORTS,
     ATTRIBUTES,
     GEO_AMS_PORT,
     GROUPS,
+    TASK_GROUPS,
     Dictionary,
     ObjectDef,
 )
@@ -70,6 +73,8 @@ class KeySpace:
         return f"{self.prefix}/ads/{port}/0x{index_group:x}/0x{index_offset:x}"
 
     def named_key(self, obj: ObjectDef, axis: int) -> str:
+        if obj.group == "com":  # the COM task's objects (004 p.19) by their own names
+            return f"{self.prefix}/com/{obj.key_field}"
         if obj.group == "sim":
             if obj.scope == "machine":
                 return f"{self.prefix}/sim/machine/{obj.key_field}"
@@ -101,7 +106,8 @@ class KeySpace:
             assert route.obj is not None
             ig = route.obj.index_group
             io = route.obj.index_offset(route.axis)
-            keys[self.raw_key(ig, io)] = Route("raw", route.obj, route.axis, ig, io)
+            key = self.raw_key(ig, io, route.obj.ams_port)
+            keys[key] = Route("raw", route.obj, route.axis, ig, io)
         keys[f"{self.prefix}/status"] = self._fixed[f"{self.prefix}/status"]
         keys[f"{self.prefix}/errors"] = self._fixed[f"{self.prefix}/errors"]
         return keys
@@ -152,9 +158,10 @@ class KeySpace:
             )
         if rest[:1] == ["ads"]:
             port, ig = concrete(1), concrete(2)
-            if port is not None and port != str(GEO_PORT):
+            if port is not None and port not in {str(p) for p in AMS_PORTS}:
                 return AdsError(
-                    AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is {GEO_PORT})"
+                    AdsErrorCode.TARGET_PORT_NOT_FOUND,
+                    f"no ADS port {port} (GEO is {GEO_PORT}, COM {AMS_PORTS[1]})",
                 )
             if ig is not None:
                 try:
@@ -178,11 +185,12 @@ class KeySpace:
                 AdsErrorCode.DEVICE_INVALIDOFFSET,
                 f"raw key needs <port>/<0xgroup>/<0xoffset>: {key}",
             ) from None
-        if port != GEO_PORT:
+        if port not in AMS_PORTS:
             raise AdsError(
-                AdsErrorCode.TARGET_PORT_NOT_FOUND, f"no ADS port {port} (GEO is {GEO_PORT})"
+                AdsErrorCode.TARGET_PORT_NOT_FOUND,
+                f"no ADS port {port} (GEO is {GEO_PORT}, COM {AMS_PORTS[1]})",
             )
-        obj, axis, _attr = self.dictionary.resolve(ig, io, self.axes)
+        obj, axis, _attr = self.dictionary.resolve(ig, io, self.axes, port)
         return Route("raw", obj, axis, ig, io)
 
     def _unknown_named(self, key: str, axis_text: str) -> Route:
@@ -200,4 +208,4 @@ def _readable(route: Route) -> bool:
 
 
 def is_attribute_group(index_group: int) -> bool:
-    return any(index_group - ig in ATTRIBUTES for ig in GROUPS.values())
+    return any(index_group - ig in ATTRIBUTES for ig in TASK_GROUPS.values())

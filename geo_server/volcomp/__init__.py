@@ -1,0 +1,1 @@
+"""Volumetric compensation (TF5280, manual 004)."""

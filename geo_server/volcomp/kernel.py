@@ -1,0 +1,224 @@
+"""The volumetric compensations of one machine in the GEO cycle (004 §4, docs/volumetric.md §5).
+
+Per compensation: whether it is wanted (automatic activation, `#VOLCOMP ON/OFF`, the
+enable/disable CNC objects), whether it can act (available, every axis referenced,
+s_limit defined), the ramp of `filter_steps` (004 p.22), the `CFACT_*` weights of the
+activation (004 p.21), `negate`/`set_to_zero` (004 p.16) and the `s_limit` watch (004
+p.14). `offset` is what the drives get added, per machine axis slot, in increments.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from geo_server.model import AxisParams
+from geo_server.units import UNITS_PER_MM
+from geo_server.volcomp.config import VolComp
+from geo_server.volcomp.evaluator import Evaluator
+
+#: error reported when the volumetric compensation cannot act (checks.EMU_VOLC_ERROR)
+VOLC_ERROR = 990525
+
+
+@dataclass
+class CompState:
+    """The run-time state of one compensation."""
+
+    comp: VolComp
+    evaluator: Evaluator | None
+    slots: np.ndarray  # machine slots of the chain axes, chain order
+    linear_slots: np.ndarray  # machine slots of X, Y, Z
+    limits: np.ndarray  # s_limit of X, Y, Z (increments, 0 = not defined)
+    modify: np.ndarray  # +1, −1 (negate), 0 (set_to_zero) per X, Y, Z
+    wanted: bool = False
+    factor: float = 0.0  # the ramp: 0 off … 1 fully on
+    step: float = 1.0  # ramp change per cycle
+    target: float = 0.0
+    cfact: np.ndarray = field(default_factory=lambda: np.ones(3))
+    value: np.ndarray = field(default_factory=lambda: np.zeros(3))  # increments, X Y Z
+    raw: np.ndarray = field(default_factory=lambda: np.zeros(3))  # mm before weights
+
+    @property
+    def active(self) -> bool:
+        """On or ramping (V.G.VOLCOMP[i].ACTIVE, 004 p.18)."""
+        return self.target > 0.0 or self.factor > 0.0
+
+
+class VolKernel:
+    """All volumetric compensations of a machine."""
+
+    def __init__(
+        self,
+        comps: Sequence[VolComp],
+        axes: Sequence[int],
+        params: Sequence[AxisParams],
+        report: Callable[[int, str], None] | None = None,
+    ) -> None:
+        self.slot_of = {a: i for i, a in enumerate(axes)}
+        self.params = list(params)
+        self.n = len(axes)
+        self.offset = np.zeros(self.n)
+        self.tool_length = 0.0  # mm: VOLC::tool_length (the tool table's, 004 p.15)
+        self.report = report or (lambda _id, _msg: None)
+        self.states: dict[int, CompState] = {}
+        for c in comps:
+            self.states[c.id] = self._state(c)
+        self._active: list[CompState] = []
+
+    def _state(self, c: VolComp) -> CompState:
+        if c.model is None or c.config is None:
+            empty = np.zeros(0, dtype=np.intp)
+            return CompState(c, None, empty, empty, np.zeros(3), np.ones(3))
+        cfg = c.config
+        slots = np.array([self.slot_of[cfg.axes[a]] for a in cfg.chain], dtype=np.intp)
+        lin = np.array([self.slot_of[cfg.axes[a]] for a in "XYZ"], dtype=np.intp)
+        limits = np.array([float(self.params[s].vol_comp_s_limit) for s in lin])
+        modify = np.array(
+            [0.0 if a in cfg.set_to_zero else -1.0 if a in cfg.negate else 1.0 for a in "XYZ"]
+        )
+        st = CompState(c, Evaluator(c.model), slots, lin, limits, modify)
+        st.wanted = not cfg.manual_activation  # automatic activation (004 p.20)
+        return st
+
+    # ------------------------------------------------------------------ switching
+
+    def get(self, ident: int) -> CompState:
+        st = self.states.get(ident)
+        if st is None:
+            raise KeyError(f"volumetric compensation {ident} is not configured")
+        return st
+
+    def switch(
+        self,
+        ident: int,
+        on: bool,
+        no_move: bool = False,
+        cfact: tuple[float, float, float] | None = None,
+    ) -> None:
+        """`#VOLCOMP ON/OFF [ID=.. NO_MOVE CFACT_*]` or the enable/disable objects: ramp
+        over `filter_steps` (004 p.22), at once with NO_MOVE. CFACT_* are non-modal:
+        every ON without them weighs 1 (004 p.21)."""
+        st = self.get(ident)
+        if on and st.evaluator is None:
+            raise ValueError(f"volumetric compensation {ident} is not available: {st.comp.problem}")
+        if on:
+            missing = [a for a, lim in zip("XYZ", st.limits, strict=True) if lim <= 0]
+            if missing:
+                raise ValueError(
+                    f"volumetric compensation {ident}: lr_param.vol_comp.s_limit (P-AXIS-00525) "
+                    f"not defined for {', '.join(missing)} (004 p.14)"
+                )
+            st.cfact = np.array(cfact if cfact is not None else (1.0, 1.0, 1.0))
+        st.wanted = on
+        steps = st.comp.config.filter_steps if st.comp.config else 0
+        st.step = 1.0 if no_move or steps <= 1 else 1.0 / steps
+        st.target = 1.0 if on else 0.0
+        if no_move:
+            st.factor = st.target
+        self._refresh()
+
+    def reset(self) -> None:
+        """Controller reset: every compensation off without axis movement (004 p.24)."""
+        for st in self.states.values():
+            st.wanted = False
+            st.target = st.factor = 0.0
+            st.value[:] = 0.0
+        self._refresh()
+        self.offset[:] = 0.0
+
+    def update(self, ident: int, comp: VolComp) -> None:
+        """`#VOLCOMP [ID.. UPDATE]` or the CNC objects: the new configuration replaces
+        the old one, which is switched off first without movement (004 p.23 policy,
+        docs/volumetric.md §7); automatic activation applies again."""
+        old = self.get(ident)
+        old.target = old.factor = 0.0
+        self.states[ident] = self._state(comp)
+        self._refresh()
+
+    @property
+    def busy(self) -> bool:
+        """A compensation acts: the machine computes cycles one by one."""
+        return bool(self._active)
+
+    @property
+    def active_mask(self) -> int:
+        """VOLC::active: bit i for compensation i active or ramping."""
+        return sum(1 << i for i, s in self.states.items() if s.active)
+
+    @property
+    def available_mask(self) -> int:
+        return sum(1 << i for i, s in self.states.items() if s.evaluator is not None)
+
+    def file_of(self, ident: int) -> str:
+        st = self.states.get(ident)
+        return st.comp.path if st is not None else ""
+
+    def _refresh(self) -> None:
+        self._active = [s for s in self.states.values() if s.active]
+
+    @property
+    def at_rest(self) -> bool:
+        """No ramp running (a quiescent machine keeps its corrections)."""
+        return all(s.factor == s.target for s in self._active)
+
+    # ------------------------------------------------------------------ the cycle
+
+    def auto_activate(self, homed: np.ndarray) -> None:
+        """Automatic activation (004 p.20: "as soon as all participating axes allow
+        it"): a wanted, available compensation whose axes are all referenced starts."""
+        for st in self.states.values():
+            if not st.wanted or st.target > 0 or st.evaluator is None:
+                continue
+            if not homed[st.slots].all():
+                continue
+            try:
+                self.switch(st.comp.id, True)
+            except ValueError as exc:
+                st.wanted = False
+                self.report(VOLC_ERROR, str(exc))
+
+    def step(self, pos: np.ndarray, homed: np.ndarray) -> bool:
+        """Compute `offset` for command positions `pos` (increments). False when a
+        correction exceeded its s_limit (the compensation is then off, an error
+        reported; the caller stops the program)."""
+        if not self._active:
+            self.auto_activate(homed)
+            if not self._active:
+                self.offset[:] = 0.0
+                return True
+        ok = True
+        self.offset[:] = 0.0
+        for st in self._active:
+            if st.factor != st.target:
+                d = st.target - st.factor
+                st.factor = st.target if abs(d) <= st.step else st.factor + np.sign(d) * st.step
+            q = pos[st.slots][None, :] / UNITS_PER_MM
+            ev = st.evaluator
+            assert ev is not None
+            st.raw = ev.correction(q, ev.model.tool_point(self.tool_length))[0]
+            st.value = st.raw * UNITS_PER_MM * st.cfact * st.modify * st.factor
+            over = np.abs(st.value) > st.limits
+            if over.any():
+                a = "XYZ"[int(np.argmax(over))]
+                i = int(np.argmax(over))
+                self.report(
+                    VOLC_ERROR,
+                    f"volumetric compensation {st.comp.id}: correction of {a} "
+                    f"{st.value[i]:.0f} exceeds lr_param.vol_comp.s_limit {st.limits[i]:.0f} "
+                    "(P-AXIS-00525, 004 p.14): compensation switched off",
+                )
+                st.wanted = False
+                st.target = st.factor = 0.0
+                st.value[:] = 0.0
+                ok = False
+                continue
+            np.add.at(self.offset, st.linear_slots, st.value)
+        if not ok or any(not s.active for s in self._active):
+            self._refresh()
+        return ok
+
+
+__all__ = ["VOLC_ERROR", "CompState", "VolKernel"]

@@ -1,7 +1,7 @@
 """Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
     python bench/run_all.py [--quick] [--only kernel,twin,scheduler,transports,ads_symbols,
-                                              cpu,batch,engine,memory,soak]
+                                              cpu,batch,volcomp,engine,memory,soak]
                             [--results FILE]
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
@@ -35,6 +35,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
     "ads_symbols": ("ads_symbols.py", [], ["--quick"], 300),
     "cpu": ("cpu.py", [], ["--quick"], 300),
     "batch": ("batch.py", [], ["--passes", "30"], 300),
+    "volcomp": ("volcomp.py", [], ["--cycles", "1000"], 300),
     "engine": ("engine.py", [], ["--quick"], 2400),
     "memory": ("memory.py", [], ["--quick"], 300),
     "soak": ("soak.py", [], ["--quick"], 600),

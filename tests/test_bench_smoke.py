@@ -70,3 +70,14 @@ def test_bench_batch_prints_its_table():
     assert r.returncode == 0, r.stderr
     rows = [line for line in r.stdout.splitlines() if line.startswith("| pass of ")]
     assert len(rows) == 6, r.stdout
+
+
+def test_bench_volcomp_prints_its_table():
+    r = subprocess.run(
+        [sys.executable, str(BENCH / "volcomp.py"), "--cycles", "100"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "| added per cycle (target ≤ 30 µs) |" in r.stdout, r.stdout

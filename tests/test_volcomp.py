@@ -372,7 +372,7 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
     import pyads
     from conftest import run_in
 
-    from geo_server.client.ads_client import close_port_first
+    from geo_server.client.ads_client import AdsClient, close_port_first
     from geo_server.machine.scheduler import Scheduler
     from geo_server.transports.ads.server import AdsOptions, AdsServer
 
@@ -423,6 +423,16 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
         with pytest.raises(pyads.ADSError) as exc:  # the COM group is not the GEO task's
             geo.write(0x120100, 0x291, 0, pyads.PLCTYPE_UINT)
         assert exc.value.err_code == 0x702
+        # geo-client's ADS client opens the COM task's port for these objects by name
+        host, port = srv.address.rsplit(":", 1)
+        with AdsClient(host, int(port), netid="127.0.0.10.1.1") as client:
+            client.write("cnc_vol_comp_disable_index_w", 0, 0)
+            for _ in range(50):  # ramped out over filter_steps (4 cycles)
+                if client.read("VOLC::active") == 0:
+                    break
+            assert client.read("VOLC::active") == 0
+            client.write("cnc_vol_comp_enable_index_w", 0, 0)
+            assert client.read("VOLC::active") == 1
     finally:
         close_port_first(com)
         close_port_first(geo)

@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from geo_server.client.base import ObjectClient
-from geo_server.dictionary import GEO_AMS_PORT, load_dictionary
+from geo_server.dictionary import COM_AMS_PORT, GEO_AMS_PORT, GROUPS, load_dictionary
 from geo_server.errors import AdsError
 
 SUMUP_READ = 0xF080
@@ -95,6 +95,9 @@ class AdsClient(ObjectClient):
         self.host, self.port, self.netid, self.ams_port = host, port, netid, ams_port
         self.dictionary = load_dictionary()
         self.conn = pyads.Connection(netid, ams_port, f"{host}:{port}")
+        #: the COM task (AMS port 553: the volumetric objects), opened when first used
+        self._com: Any = None
+        self._timeout = timeout
         self._lock = threading.Lock()
         self._notifications: dict[int, tuple[int, Any]] = {}
         try:
@@ -118,6 +121,8 @@ class AdsClient(ObjectClient):
             with contextlib.suppress(AdsError):
                 self.unsubscribe(handle)
         close_port_first(self.conn)
+        if self._com is not None:
+            close_port_first(self._com)
 
     def __enter__(self) -> AdsClient:
         return self
@@ -131,8 +136,24 @@ class AdsClient(ObjectClient):
         except self._pyads.ADSError as exc:
             raise _ads_error(exc) from None
 
-    def _addr(self) -> Any:
-        return ctypes.pointer(self.conn._adr.amsAddrStruct())
+    def _addr(self, conn: Any = None) -> Any:
+        return ctypes.pointer((conn or self.conn)._adr.amsAddrStruct())
+
+    def _conn_for(self, index_group: int) -> Any:
+        """The connection of the task that serves `index_group`: the COM task's objects
+        (0x120100) are on AMS port 553 (004 p.19), everything else on the GEO port."""
+        if index_group != GROUPS["com"]:
+            return self.conn
+        if self._com is None:
+            com = self._pyads.Connection(self.netid, COM_AMS_PORT, f"{self.host}:{self.port}")
+            try:
+                com.open()
+                com.set_timeout(max(1, int(self._timeout * 1000)))
+            except self._pyads.ADSError as exc:
+                com.close()
+                raise _ads_error(exc) from None
+            self._com = com
+        return self._com
 
     # ------------------------------------------------------------------ raw access
 
@@ -140,9 +161,10 @@ class AdsClient(ObjectClient):
         """The bytes the server returns for a Read of `length` bytes (maybe fewer)."""
         buf = (ctypes.c_ubyte * max(length, 1))()
         got = ctypes.c_ulong()
+        conn = self._conn_for(index_group)
         err = self._pyads.pyads_ex._adsDLL.AdsSyncReadReqEx2(
-            self.conn._port,
-            self._addr(),
+            conn._port,
+            self._addr(conn),
             ctypes.c_ulong(index_group),
             ctypes.c_ulong(index_offset),
             ctypes.c_ulong(length),
@@ -155,9 +177,10 @@ class AdsClient(ObjectClient):
 
     def write_raw(self, index_group: int, index_offset: int, data: bytes) -> None:
         buf = (ctypes.c_ubyte * max(len(data), 1)).from_buffer_copy(data.ljust(1, b"\0"))
+        conn = self._conn_for(index_group)
         err = self._pyads.pyads_ex._adsDLL.AdsSyncWriteReqEx(
-            self.conn._port,
-            self._addr(),
+            conn._port,
+            self._addr(conn),
             ctypes.c_ulong(index_group),
             ctypes.c_ulong(index_offset),
             ctypes.c_ulong(len(data)),

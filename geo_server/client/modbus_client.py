@@ -24,6 +24,7 @@ from geo_server.transports.modbus.regmap import (
     ExcCode,
     decode,
     encode,
+    mapped,
     register_address,
     register_count,
 )
@@ -76,8 +77,18 @@ class ModbusClient(ObjectClient):
 
     # ------------------------------------------------------------------ registers
 
+    @staticmethod
+    def _mapped(obj: ObjectDef) -> None:
+        if not mapped(obj):
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDGRP,
+                f"{obj.name} is the COM task's (AMS port 553): not on Modbus, use ADS or Zenoh",
+                obj.name,
+            )
+
     def read_value(self, obj: ObjectDef, axis: int) -> Any:
         """Decoded value of `obj` on unit `axis` (0 for machine-wide objects)."""
+        self._mapped(obj)
         unit = 0 if obj.scope == "machine" else axis
         try:
             rr = self._client.read_holding_registers(
@@ -91,6 +102,7 @@ class ModbusClient(ObjectClient):
 
     def write_value(self, obj: ObjectDef, axis: int, value: Any) -> Any:
         """Write a (decoded) value; FC 6 for one register, FC 16 for more. Returns it."""
+        self._mapped(obj)
         unit = 0 if obj.scope == "machine" else axis
         v = obj.coerce(value)
         regs = encode(obj, v)

@@ -107,6 +107,11 @@ class Evaluator:
         self.const_jac = None if self.rotary else self._jacobian(np.zeros((1, n)))[0]
         self.const_jac_inv = None if self.const_jac is None else np.linalg.inv(self.const_jac)
         self._scalar = self._scalar_tables() if self._scalar_fits() else None
+        # the one-position path's constants as Python floats (no numpy scalars)
+        self._offset_list = self.offset.tolist()
+        self._nominal_su = [tuple((s * u).tolist()) for s, u in zip(self.sign, self.u, strict=True)]
+        self._linear_list = self.linear_idx.tolist()
+        self._inv_list = None if self.const_jac_inv is None else self.const_jac_inv.tolist()
 
     # ------------------------------------------------------------------ one position
 
@@ -162,32 +167,33 @@ class Evaluator:
         return px, py, pz
 
     def _correction_scalar(self, q: np.ndarray, tip: np.ndarray) -> np.ndarray:
-        qs = (q[0] + self.offset).tolist()
         t = (float(tip[0]), float(tip[1]), float(tip[2]))
-        n0x, n0y, n0z = self._forward_nominal_scalar(qs, t)
-        inv = self.const_jac_inv.tolist()  # type: ignore[union-attr]
-        lin = self.linear_idx.tolist()
+        return np.array([self.correction_one(q[0].tolist(), t)])
+
+    def correction_one(self, q: list[float], tip: tuple[float, float, float]) -> list[float]:
+        """[Δx, Δy, Δz] (mm) at one programmed position (chain order, mm and °): the
+        GEO cycle's path, in Python floats where the model allows (`_scalar_fits`)."""
+        if self._scalar is None:
+            out: list[float] = self.correction(np.array([q]), np.array(tip))[0].tolist()
+            return out
+        qs = [v + o for v, o in zip(q, self._offset_list, strict=True)]
+        n0x, n0y, n0z = tip
+        for v, (ux, uy, uz) in zip(qs, self._nominal_su, strict=True):
+            n0x, n0y, n0z = n0x + v * ux, n0y + v * uy, n0z + v * uz
+        inv = self._inv_list
+        assert inv is not None  # (no rotary axis: the Jacobian is constant)
+        lin = self._linear_list
         d = [0.0, 0.0, 0.0]
         moved = list(qs)
         for _ in range(STEPS):
             for k, i in enumerate(lin):
                 moved[i] = qs[i] + d[k]
-            ax, ay, az = self._forward_scalar(moved, t)
+            ax, ay, az = self._forward_scalar(moved, tip)
             mx, my, mz = n0x - ax, n0y - ay, n0z - az
             for k in range(3):
                 r = inv[k]
                 d[k] += r[0] * mx + r[1] * my + r[2] * mz
-        return np.array([d])
-
-    def _forward_nominal_scalar(
-        self, q: list[float], tip: tuple[float, float, float]
-    ) -> tuple[float, float, float]:
-        px, py, pz = tip
-        for i in range(self.n):
-            u = self.u[i]
-            s = self.sign[i] * q[i]
-            px, py, pz = px + s * u[0], py + s * u[1], pz + s * u[2]
-        return float(px), float(py), float(pz)
+        return d
 
     def _build_merged(self, segments: list[tuple[np.ndarray, np.ndarray] | None]) -> None:
         grids, raw, values, lo, hi, first, last = [], [], [], [], [], [], []

@@ -9,6 +9,7 @@ p.14). `offset` is what the drives get added, per machine axis slot, in incremen
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -38,8 +39,12 @@ class CompState:
     step: float = 1.0  # ramp change per cycle
     target: float = 0.0
     cfact: np.ndarray = field(default_factory=lambda: np.ones(3))
-    value: np.ndarray = field(default_factory=lambda: np.zeros(3))  # increments, X Y Z
-    raw: np.ndarray = field(default_factory=lambda: np.zeros(3))  # mm before weights
+    value: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # increments, X Y Z
+    raw: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # mm before weights
+    slot_list: list[int] = field(default_factory=list)
+    tip: tuple[float, float, float] = (0.0, 0.0, 0.0)  # tool point at `tip_length`
+    tip_length: float = float("nan")
+    linear_list: list[int] = field(default_factory=list)
 
     @property
     def active(self) -> bool:
@@ -80,6 +85,7 @@ class VolKernel:
             [0.0 if a in cfg.set_to_zero else -1.0 if a in cfg.negate else 1.0 for a in "XYZ"]
         )
         st = CompState(c, Evaluator(c.model), slots, lin, limits, modify)
+        st.slot_list, st.linear_list = slots.tolist(), lin.tolist()
         st.wanted = not cfg.manual_activation  # automatic activation (004 p.20)
         return st
 
@@ -125,7 +131,7 @@ class VolKernel:
         for st in self.states.values():
             st.wanted = False
             st.target = st.factor = 0.0
-            st.value[:] = 0.0
+            st.value = [0.0, 0.0, 0.0]
         self._refresh()
         self.offset[:] = 0.0
 
@@ -194,28 +200,36 @@ class VolKernel:
         for st in self._active:
             if st.factor != st.target:
                 d = st.target - st.factor
-                st.factor = st.target if abs(d) <= st.step else st.factor + np.sign(d) * st.step
-            q = pos[st.slots][None, :] / UNITS_PER_MM
+                st.factor = (
+                    st.target if abs(d) <= st.step else st.factor + math.copysign(st.step, d)
+                )
             ev = st.evaluator
             assert ev is not None
-            st.raw = ev.correction(q, ev.model.tool_point(self.tool_length))[0]
-            st.value = st.raw * UNITS_PER_MM * st.cfact * st.modify * st.factor
-            over = np.abs(st.value) > st.limits
-            if over.any():
-                a = "XYZ"[int(np.argmax(over))]
-                i = int(np.argmax(over))
+            if st.tip_length != self.tool_length:  # its own P0, N0 (004 p.15)
+                t = ev.model.tool_point(self.tool_length)
+                st.tip, st.tip_length = (float(t[0]), float(t[1]), float(t[2])), self.tool_length
+            q = [pos.item(s) / UNITS_PER_MM for s in st.slot_list]
+            st.raw = ev.correction_one(q, st.tip)
+            w = st.factor * UNITS_PER_MM
+            cf, mo, lim = st.cfact, st.modify, st.limits
+            st.value = [st.raw[k] * cf.item(k) * mo.item(k) * w for k in range(3)]
+            over = [k for k in range(3) if abs(st.value[k]) > lim.item(k)]
+            if over:
+                k = over[0]
                 self.report(
                     VOLC_ERROR,
-                    f"volumetric compensation {st.comp.id}: correction of {a} "
-                    f"{st.value[i]:.0f} exceeds lr_param.vol_comp.s_limit {st.limits[i]:.0f} "
+                    f"volumetric compensation {st.comp.id}: correction of {'XYZ'[k]} "
+                    f"{st.value[k]:.0f} exceeds lr_param.vol_comp.s_limit {lim.item(k):.0f} "
                     "(P-AXIS-00525, 004 p.14): compensation switched off",
                 )
                 st.wanted = False
                 st.target = st.factor = 0.0
-                st.value[:] = 0.0
+                st.value = [0.0, 0.0, 0.0]
                 ok = False
                 continue
-            np.add.at(self.offset, st.linear_slots, st.value)
+            off = self.offset
+            for k, s in enumerate(st.linear_list):
+                off[s] += st.value[k]
         if not ok or any(not s.active for s in self._active):
             self._refresh()
         return ok

@@ -23,6 +23,7 @@ from geo_server.dictionary import (
     AMS_PORTS,
     ATTRIBUTES,
     GEO_AMS_PORT,
+    GROUP_PORTS,
     GROUPS,
     TASK_GROUPS,
     Dictionary,
@@ -69,7 +70,10 @@ class KeySpace:
 
     # ------------------------------------------------------------------ building
 
-    def raw_key(self, index_group: int, index_offset: int, port: int = GEO_PORT) -> str:
+    def raw_key(self, index_group: int, index_offset: int, port: int | None = None) -> str:
+        """`…/ads/<port>/<ig>/<io>`; the port of the group's task unless given."""
+        if port is None:
+            port = next((GROUP_PORTS[g] for g, ig in GROUPS.items() if ig == index_group), GEO_PORT)
         return f"{self.prefix}/ads/{port}/0x{index_group:x}/0x{index_offset:x}"
 
     def named_key(self, obj: ObjectDef, axis: int) -> str:

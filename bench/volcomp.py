@@ -27,7 +27,10 @@ from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir
 from geo_server.volcomp import reference
+from geo_server.volcomp.evaluator import Evaluator
+from geo_server.volcomp.model import build_model
 from geo_server.volcomp.paramfile import Block, write_isg_csv
+from geo_server.volcomp.tables import ParamTable
 
 PROGRAM = "N10 G90 G01 X200 Y150 Z-100 C90 F600\nN20 X-200 Y-150 Z100 C-90\nN30 $GOTO N10\n"
 GRID = np.arange(-280.0, 280.0 + 1e-9, 10.0)
@@ -106,6 +109,17 @@ def main() -> None:
         q64 = np.random.default_rng(2).uniform(-250, 250, size=(64, 3))
         one = timed(lambda: ev.correction(q1, tip), args.cycles)
         batch = timed(lambda: ev.correction(q64, tip), max(args.cycles // 20, 20)) / 64
+        # the same tables with a rotary table C (chain CYXZ, workpiece side): the general
+        # one-position path (Rodrigues, the workpiece inverse, a Jacobian per position)
+        tables = dict(model.tables)
+        gc = np.linspace(0.0, 360.0, 73)
+        tables["EXC"] = ParamTable("EXC", ("C",), (gc,), 2e-3 * np.cos(np.radians(gc)))
+        tables["ECC"] = ParamTable("ECC", ("C",), (gc,), 2e-5 * np.sin(np.radians(gc)))
+        rot = Evaluator(build_model("CYXZ", 1, tables))
+        rot_one = timed(
+            lambda: rot.correction_one([123.0, 35.0, -120.0, -40.0], (0.0, 0.0, -120.0)),
+            args.cycles,
+        )
         ref = timed(
             lambda: reference.correction(model, {"Y": 35.0, "X": -120.0, "Z": -40.0}, 120.0),
             max(args.cycles // 50, 10),
@@ -119,6 +133,7 @@ def main() -> None:
         ["one correction, one position (the cycle's path)", f"{one:.1f}"],
         ["one correction, per position in a batch of 64", f"{batch:.1f}"],
         ["one correction, plain reference", f"{ref:.0f}"],
+        ["one correction, one position, chain CYXZ (rotary table)", f"{rot_one:.1f}"],
         ["default machine cycle, moving, compensation off", f"{b:.1f}"],
         ["default machine cycle, moving, compensation on", f"{w:.1f}"],
         ["added per cycle (target ≤ 30 µs)", f"{w - b:.1f}"],

@@ -678,7 +678,7 @@ class ObjectService:
         correction files for the compensation whose ID was written to
         cnc_interpr_vol_comp_index_w (VOLC::index), here, off the cycle; the cycle then
         swaps it in (switched off first, without movement). A list or file with errors
-        leaves the compensation as it was: 0x70A with the diagnostics."""
+        leaves the compensation as it was: 0x70D with the diagnostics."""
         if not self._command_lock.acquire(timeout=self.limits.command_wait):
             return _busy("volcomp_update")
         try:

@@ -590,6 +590,14 @@ def test_a_group_on_the_other_tasks_port_is_0x702(raw) -> None:
     assert p.header.error_code == 0 and p.data[:4] == (0x702).to_bytes(4, "little")
     p = raw.ask(Command.WRITE, codec.write_request(0x120100, 0x291, b"\0\0"), port=551)
     assert p.data[:4] == (0x702).to_bytes(4, "little")
+    # the GEO task's name and symbol services are not the COM task's either
+    name = b"GEO.X.TEMPC.coefficient\0"
+    p = raw.ask(Command.READ_WRITE, codec.read_write_request(0xF003, 0, 4, name), port=553)
+    assert p.data[:4] == (0x702).to_bytes(4, "little")
+    p = raw.ask(Command.READ, codec.read_request(0xF00C, 0, 24), port=553)
+    assert p.data[:4] == (0x702).to_bytes(4, "little")
+    p = raw.ask(Command.READ_WRITE, codec.read_write_request(0xF003, 0, 4, name), port=551)
+    assert p.data[:4] == b"\0\0\0\0"
 
 
 def test_unknown_command_and_write_control_0x701(raw) -> None:

@@ -438,3 +438,165 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
         close_port_first(geo)
         run_in(loop_thread, srv.close())
         sched.stop()
+
+
+# ---------------------------------------------------------------------- review findings
+
+
+def test_a_second_automatic_compensation_starts_while_one_acts(lists_copy: Path) -> None:
+    """manual_activation 0 for both; C is referenced late: ID1 (chain CYXZ) starts in
+    the first cycle in which every axis of its chain is referenced, ID0 (YXZ) acting."""
+    folder = lists_copy.parent
+    auto = smooth_files(folder).replace("manual_activation 1", "manual_activation 0")
+    add_volc(lists_copy, auto, {})
+    cyxz = auto.replace("chain YXZ", "C 4\nchain CYXZ\nworkpiece_axes 1")
+    (folder / "volc1.lis").write_text(cyxz, encoding="utf-8")
+    with lists_copy.open("a", encoding="utf-8") as fh:
+        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.homed[3] = False
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 1  # C not referenced: ID0 only
+    m.motion.home(3)
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 3
+
+
+def test_referencing_is_a_precondition_and_losing_it_switches_off(lists_copy: Path) -> None:
+    """004 p.20: each axis must be referenced; p.24: an axis error removes the values
+    without movement."""
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=False)
+    m.start_program("#VOLCOMP ON [ID0]\n", mdi=True)
+    m.run_cycle()
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 0
+    assert "must be referenced" in value(m, "SIM::last_error")
+    for s in range(3):
+        m.motion.home(s)
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    m.run_cycle()
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 1
+    m.motion.homed[0] = False
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 0 and m.volc.offset[0] == 0.0
+    assert "lost its reference" in value(m, "SIM::last_error")
+
+
+def test_s_limit_bounds_the_sum_on_an_axis(lists_copy: Path) -> None:
+    """Two compensations of −20 increments each on X, s_limit 30: each alone is within
+    it, the axis would get −40 (004 p.14: the value for this axis)."""
+    folder = lists_copy.parent
+    add_volc(lists_copy, smooth_files(folder), {}, s_limit=30)
+    (folder / "volc1.lis").write_text(smooth_files(folder), encoding="utf-8")
+    with lists_copy.open("a", encoding="utf-8") as fh:
+        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n#VOLCOMP ON [ID1 NO_MOVE]\n", mdi=True)
+    for _ in range(5):
+        m.run_cycle()
+    assert abs(value(m, "VOLC::correction", 1)) <= 30
+    assert "exceeds lr_param.vol_comp.s_limit 30" in value(m, "SIM::last_error")
+
+
+def test_an_update_interrupted_by_reset_is_dropped(lists_copy: Path) -> None:
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.start_program("#VOLCOMP [ID0 UPDATE]\n", mdi=True)
+    m.run_cycle()
+    m.run_cycle()
+    m.reset()
+    assert m._volc_loading == []
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(5):
+        m.run_cycle()
+    assert value(m, "VOLC::active") == 1 and value(m, "VOLC::correction", 1) == -20
+
+
+def test_a_broken_update_keeps_the_compensation(lists_copy: Path) -> None:
+    """Like the CNC object (docs/volumetric.md §7): the old compensation stays, the
+    program stops with the error."""
+    folder = lists_copy.parent
+    add_volc(lists_copy, smooth_files(folder), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(3):
+        m.run_cycle()
+    (folder / "exx.csv").write_text("X EXX\n0 nan\n", encoding="utf-8")
+    m.start_program("#VOLCOMP [ID0 UPDATE]\n", mdi=True)
+    for _ in range(3000):
+        m.run_cycle()
+        if m.player is not None and not m.player.running:
+            break
+    assert value(m, "VOLC::available") == 1 and value(m, "VOLC::correction", 1) == -20
+    assert "UPDATE] failed, compensation unchanged" in value(m, "SIM::last_error")
+
+
+def test_reload_keeps_what_is_switched_on_and_the_tool_length(lists_copy: Path) -> None:
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.volc.tool_length = 150.0
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(3):
+        m.run_cycle()
+    m.reload(load_machine(lists_copy))
+    m.run_cycle()
+    assert value(m, "VOLC::active") == 1 and value(m, "VOLC::correction", 1) == -20
+    assert value(m, "VOLC::tool_length") == 150.0
+
+
+def test_mixed_splicing_on_one_axis_matches_the_reference() -> None:
+    """A spliced 1-D table of C beside one that is not (over −180 … 180): each is
+    taken modulo 360° or not on its own, as the reference does."""
+    gc = np.array([0.0, 90.0, 180.0, 270.0, 360.0])
+    exc = ParamTable("EXC", ("C",), (gc,), np.array([0.0, 3e-3, 0.0, -3e-3, 0.0]), spliced=True)
+    eyc = table("EYC", "C", (-180.0, 0.0, 180.0), (3e-3, 0.0, -3e-3))
+    mdl = model("CYXZ", exc, eyc, wp=1)
+    ev = Evaluator(mdl)
+    for c in (-90.0, 45.0, 300.0):
+        ref = R.correction(mdl, {"C": c, "X": 10.0, "Y": 5.0, "Z": 0.0})
+        got = ev.correction(np.array([[c, 5.0, 10.0, 0.0]]), np.zeros(3))[0]
+        assert got == pytest.approx([ref["X"], ref["Y"], ref["Z"]], abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("#VOLCOMP ON [ID0 ID1]", "one ID per command"),
+        ("#VOLCOMP ON [ID0] M30", "must stand alone"),
+        ("G01 X1 #VOLCOMP ON [ID0]", "must stand alone"),
+        ("#VOLCOMP ON [ID0 CFACT_X=1.5]", "permitted values are 0.0"),
+        ("#VOLCOMP [ID0 UPDATE NO_MOVE]", "takes no ON/OFF, NO_MOVE or CFACT"),
+        ("#VOLCOMP ON [ID7]", "the IDs are 0 … 4"),
+        ("#VOLCOMP ON", "name the compensation"),
+    ],
+)
+def test_volcomp_nc_errors(text: str, message: str) -> None:
+    from geo_server.machine.nc import NcError, parse_program
+
+    with pytest.raises(NcError, match=message):
+        parse_program(text, {"X": 0, "Y": 1, "Z": 2}, mdi=True)
+
+
+def test_volcomp_nc_forms() -> None:
+    """The manual's forms (004 p.21, p.23), a continuation and an exponent."""
+    from geo_server.machine.nc import VolcompCommand, parse_program
+
+    prog = parse_program(
+        "N10 #VOLCOMP ON [ID0]\nN90 #VOLCOMP OFF [ID0]\nN100 #VOLCOMP [ID0 UPDATE]\n"
+        "#VOLCOMP ON ALL\n#VOLCOMP ON [ID=1 \\\n NO_MOVE CFACT_X=5E-1 CFACT_Z=0]\n",
+        {"X": 0},
+        mdi=True,
+    )
+    assert [b.volcomp for b in prog.blocks] == [
+        VolcompCommand(True, (0,)),
+        VolcompCommand(False, (0,)),
+        VolcompCommand(False, (0,), update=True),
+        VolcompCommand(True, None),
+        VolcompCommand(True, (1,), True, (0.5, 1.0, 0.0)),
+    ]

@@ -19,7 +19,7 @@ import logging
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import replace
 from time import monotonic, perf_counter_ns
 from typing import Any
@@ -70,8 +70,24 @@ def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
 #: buffers of this many batch sizes are kept, the least recently used dropped first (the
 #: engine uses a few: its wake-up interval, the catch-ups of requests, the rest of a move)
 _BATCHES_KEPT = 24
-#: reads the files of a #VOLCOMP UPDATE off the cycle (docs/volumetric.md §7)
-_LOADER = ThreadPoolExecutor(1, thread_name_prefix="volcomp-load")
+#: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
+VOLC_LOAD_TIMEOUT = 30.0
+
+
+def _in_worker(fn: Callable[[], Any]) -> Future[Any]:
+    """Run `fn` in a daemon thread of its own (reading files off the cycle: one that
+    never delivers, a FIFO or a dead share, holds up neither other machines nor the
+    interpreter's exit)."""
+    fut: Future[Any] = Future()
+
+    def run() -> None:
+        try:
+            fut.set_result(fn())
+        except BaseException as exc:  # handed to the cycle, which reports it
+            fut.set_exception(exc)
+
+    threading.Thread(target=run, name="volcomp-load", daemon=True).start()
+    return fut
 
 
 class Machine:
@@ -97,7 +113,7 @@ class Machine:
         #: cnc_interpr_vol_comp_index_w: the compensation the next file write updates
         self.volc_index = 0
         #: #VOLCOMP UPDATE: (ID, the worker reading its files)
-        self._volc_loading: list[tuple[int, Future[Any]]] = []
+        self._volc_loading: list[tuple[int, float, Future[Any]]] = []
         self.twin = self._new_twin(cfg)
         self.spindle_on = False  # TWIN::spindle_on: a heat source of the twin
         self.motion = Motion([cfg.axes[a].params for a in self.axes], self.cycle_s)
@@ -681,8 +697,11 @@ class Machine:
         self.cfg = cfg
         self.kernel.reload(cfg)
         # the lists as the start-up list names them again (004 p.23: an update by CNC
-        # object does not change the configuration); the compensations start over
+        # object does not change the configuration); what was switched on stays on
+        old = self.volc
         self.volc = self._new_volc(cfg)
+        self.volc.carry_over(old)
+        self._volc_loading.clear()  # an UPDATE still reading belongs to the old lists
         twin = self._new_twin(cfg)
         twin.take_state(self.twin)  # the machine does not cool down on a reload
         self.twin = twin
@@ -722,6 +741,7 @@ class Machine:
         self.motion.stop()
         self.program_end()
         self.volc.reset()  # 004 p.24: every volumetric compensation off, no movement
+        self._volc_loading.clear()  # an UPDATE still reading is given up
 
     def start(self, prog: Program, mdi: bool = False) -> None:
         """Run a parsed program (or MDI lines) from the next cycle on."""
@@ -804,7 +824,7 @@ class Machine:
                 if cmd.update:
                     self._volc_update(ident)
                 else:
-                    volc.switch(ident, cmd.on, cmd.no_move, cmd.cfact)
+                    volc.switch(ident, cmd.on, cmd.no_move, cmd.cfact, self.motion.homed)
         except (KeyError, ValueError) as exc:
             return VOLC_ERROR, str(exc.args[0]) if exc.args else str(exc)
         return 0, ""
@@ -828,15 +848,33 @@ class Machine:
             )
             return new, diags
 
-        self._volc_loading.append((ident, _LOADER.submit(load)))
+        self._volc_loading.append((ident, monotonic(), _in_worker(load)))
 
     def volcomp_settled(self) -> bool:
-        """The #VOLCOMP ramps are over and the updates read and applied."""
-        while self._volc_loading and self._volc_loading[0][1].done():
-            ident, fut = self._volc_loading.pop(0)
+        """The #VOLCOMP ramps are over and the updates read and applied. An update
+        whose files did not load keeps the compensation as it was (like the CNC object,
+        docs/volumetric.md §7) and ends the program with its error; one still reading
+        after `VOLC_LOAD_TIMEOUT` s (a file that never delivers) is given up."""
+        while self._volc_loading:
+            ident, since, fut = self._volc_loading[0]
+            if not fut.done():
+                if monotonic() - since < VOLC_LOAD_TIMEOUT:
+                    break
+                self._volc_loading.pop(0)
+                raise AdsError(
+                    AdsErrorCode.DEVICE_TIMEOUT,
+                    f"#VOLCOMP [ID{ident} UPDATE]: its files were not read within "
+                    f"{VOLC_LOAD_TIMEOUT:.0f} s",
+                )
+            self._volc_loading.pop(0)
             new, diags = fut.result()
             for d in diags:
                 self._record(d)
+            if not new.available:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_SYNTAX,
+                    f"#VOLCOMP [ID{ident} UPDATE] failed, compensation unchanged: {new.problem}",
+                )
             self.volc.update(ident, new)
         return not self._volc_loading and self.volc.at_rest
 
@@ -982,7 +1020,7 @@ def _volc_switch(m: Machine, ident: int, on: bool) -> None:
     """cnc_vol_comp_enable/disable_index_w (004 p.22): like #VOLCOMP ON/OFF [ID..]. An
     ID that is not configured or not available answers 0x706 (invalid data)."""
     try:
-        m.volc.switch(ident, on)
+        m.volc.switch(ident, on, homed=m.motion.homed)
     except (KeyError, ValueError) as exc:
         message = str(exc.args[0]) if exc.args else str(exc)
         m.report(VOLC_ERROR, message)

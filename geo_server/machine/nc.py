@@ -385,7 +385,7 @@ def _integer(line: int, addr: str, num: float | None) -> int:
 #: `#VOLCOMP …` (004 p.21), alone in its block after an optional block number
 _VOLCOMP = re.compile(r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*VOLCOMP\b\s*(?P<rest>.*)")
 _VOLCOMP_ID = re.compile(r"ID\s*=?\s*(\d+)$")
-_VOLCOMP_CFACT = re.compile(r"CFACT_([XYZ])\s*=\s*([+-]?(?:\d+\.?\d*|\.\d+))$")
+_VOLCOMP_CFACT = re.compile(r"CFACT_([XYZ])\s*=\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:E[+-]?\d+)?)$")
 
 
 def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
@@ -393,6 +393,8 @@ def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
     OFF ALL, [ID=.. UPDATE]; `\\` continuations are already joined."""
     m = re.fullmatch(r"(?P<mode>ON|OFF)?\s*(?:(?P<all>ALL)|\[(?P<args>[^\]]*)\])?\s*", rest)
     if m is None:
+        if re.search(r"(\]|\bALL)\s*\S", rest):
+            raise NcError(line, "#VOLCOMP must stand alone in its block (004 p.21)")
         raise NcError(
             line, f"#VOLCOMP {rest.strip()}: expected ON|OFF [ID=..], ON|OFF ALL or [ID=.. UPDATE]"
         )
@@ -408,6 +410,8 @@ def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
     weighted = False
     for word in words:
         if (mi := _VOLCOMP_ID.match(word)) is not None:
+            if ident is not None:
+                raise NcError(line, f"#VOLCOMP: one ID per command ({ident} and {mi[1]})")
             ident = int(mi[1])
         elif word == "NO_MOVE":
             no_move = True
@@ -453,7 +457,7 @@ def _parse_block(
         cmd = _parse_volcomp(line, volcomp["n"], volcomp["rest"])
         return Block(line=line, text=body, number=number, label=bool(volcomp["colon"]), volcomp=cmd)
     if "#VOLCOMP" in body.upper().replace(" ", ""):
-        raise NcError(line, "#VOLCOMP must stand alone in its block")
+        raise NcError(line, "#VOLCOMP must stand alone in its block (004 p.21)")
     exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
     if exchange is not None:
         return _parse_exchange(line, body, exchange, names, warnings)

@@ -15,6 +15,7 @@ the GEO cycle (tests/test_volcomp_kernel.py holds the two together):
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from typing import Any
 
@@ -40,17 +41,16 @@ for _k, (_r, _c, _s) in enumerate(
     _SKEW[_k // 2, _r * 3 + _c] = _s
 
 
-def _merged(model: VolModel, letter: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """(grid, values [points, 6]) of one axis' own 1-D component tables, or None if it
-    has none."""
-    tables = [model.tables.get(f"{c}{letter}") for c in _COMPONENTS]
-    own = [t for t in tables if t is not None and t.arguments == (letter,)]
+def _merged(tables: list[ParamTable | None]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(grid, values [points, 6]) of the 1-D tables of one axis' six components that
+    are merged (`None` where a component is not), or None if there are none."""
+    own = [t for t in tables if t is not None]
     if not own:
         return None
     grid = np.unique(np.concatenate([t.grid[0] for t in own]))
     values = np.zeros((len(grid), 6))
     for j, t in enumerate(tables):
-        if t is not None and t.arguments == (letter,):
+        if t is not None:
             g = t.grid[0]
             values[:, j] = t.values[0] if len(g) == 1 else np.interp(grid, g, t.values)
     if len(grid) == 1:  # one record: a constant over the whole travel
@@ -83,30 +83,33 @@ class Evaluator:
         self.constants = np.zeros((n, 6))  # component errors given as constants
         self.general: list[tuple[int, int, ParamTable, list[int]]] = []
         segments = []
+        spliced = []
         for i, a in enumerate(chain):
-            for j, c in enumerate(_COMPONENTS):
-                t = model.tables.get(f"{c}{a}")
-                if t is None or t.arguments == (a,):
+            tables = [model.tables.get(f"{c}{a}") for c in _COMPONENTS]
+            own = [t for t in tables if t is not None and t.arguments == (a,)]
+            # the merged table of the axis takes its own 1-D tables when they agree on
+            # splicing (one modulo for the key); the rest take the per-table path
+            merge_spliced = bool(own) and all(t.spliced for t in own)
+            merged: list[ParamTable | None] = [None] * 6
+            for j, t in enumerate(tables):
+                if t is None:
                     continue
-                if not t.arguments:
+                if t.arguments == (a,) and t.spliced == merge_spliced:
+                    merged[j] = t
+                elif not t.arguments:
                     self.constants[i, j] = float(t.values)
                 else:
                     self.general.append((i, j, t, [chain.index(x) for x in t.arguments]))
-            segments.append(_merged(model, a))
+            segments.append(_merged(merged))
+            spliced.append(merge_spliced)
         self._build_merged(segments)
-        self.spliced = np.array(
-            [
-                any(
-                    (t := model.tables.get(f"{c}{a}")) is not None and t.spliced
-                    for c in _COMPONENTS
-                )
-                for a in chain
-            ]
-        )
+        self.spliced = np.array(spliced)
         self.any_spliced = bool(self.spliced.any())
         self.const_jac = None if self.rotary else self._jacobian(np.zeros((1, n)))[0]
         self.const_jac_inv = None if self.const_jac is None else np.linalg.inv(self.const_jac)
         self._scalar = self._scalar_tables() if self._scalar_fits() else None
+        # one position, any chain without N-D tables (rotary, workpiece side, splicing)
+        self._chain1 = self._chain_tables() if not self.general else None
         # the one-position path's constants as Python floats (no numpy scalars)
         self._offset_list = self.offset.tolist()
         self._nominal_su = [tuple((s * u).tolist()) for s, u in zip(self.sign, self.u, strict=True)]
@@ -138,6 +141,116 @@ class Evaluator:
                 )
             )
         return out
+
+    def _chain_tables(self) -> list[tuple[Any, ...]]:
+        """Per chain axis, Python floats for `_forward_chain`: (rotary, spliced, lo, hi,
+        grid, values, slopes, constants, s, u, s·u′, K, K², centre, shift, tilt, u″, c″)
+        with K the cross-product matrix of u (Rodrigues), u″/K″ of the alternative
+        model's tilted axis and c″ its centre."""
+        out = []
+        for i in range(self.n):
+            a, b = self.first[i], self.last[i] + 2
+            u = self.u[i]
+            ut = self.u_tilted[i] / np.linalg.norm(self.u_tilted[i])
+            k = _cross_matrix(u)
+            k2 = _cross_matrix(ut)
+            out.append(
+                (
+                    i in self.rotary,
+                    bool(self.spliced[i]),
+                    float(self.lo[i]),
+                    float(self.hi[i]),
+                    self.grid_raw[a:b].tolist(),
+                    [tuple(r) for r in self.values[a:b].tolist()],
+                    [tuple(r) for r in self.slope[a:b].tolist()],
+                    tuple(self.constants[i].tolist()),
+                    float(self.sign[i]),
+                    tuple(u.tolist()),
+                    tuple((self.sign[i] * self.u_tilted[i]).tolist()),
+                    (tuple(k.reshape(9).tolist()), tuple((k @ k).reshape(9).tolist())),
+                    (tuple(k2.reshape(9).tolist()), tuple((k2 @ k2).reshape(9).tolist())),
+                    tuple(self.centre[i].tolist()),
+                    tuple(self.shift[i].tolist()),
+                    tuple(self.tilt[i].tolist()),
+                )
+            )
+        return out
+
+    def _transform1(self, i: int, v: float, errors: bool) -> tuple[tuple[float, ...], ...]:
+        """(R as 9 floats row by row, t) of chain axis i at model value v: the table of
+        `_transforms` for one position."""
+        (rot, spl, lo, hi, grid, vals, slopes, const, s, u, su, kk, kk2, c, sh, tl) = self._chain1[
+            i
+        ]  # type: ignore[index]
+        if errors:
+            x = v % 360.0 if spl else v
+            key = lo if x < lo else hi if x > hi else x
+            j = min(max(bisect_right(grid, key) - 1, 0), len(grid) - 2)
+            f = key - grid[j]
+            e = [vals[j][m] + f * slopes[j][m] + const[m] for m in range(6)]
+        else:
+            e = [0.0] * 6
+        if not rot:
+            if not errors:
+                return (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), (
+                    s * v * u[0],
+                    s * v * u[1],
+                    s * v * u[2],
+                )
+            return _omega(e[3], e[4], e[5]), (v * su[0] + e[0], v * su[1] + e[1], v * su[2] + e[2])
+        angle = math.radians(s * v)
+        if errors and self.model.alternative:
+            r = _mul(_omega(e[3], e[4], e[5]), _rodrigues1(kk2, angle))
+            c = (c[0] + sh[0], c[1] + sh[1], c[2] + sh[2])
+            d = (e[0], e[1], e[2])
+        elif errors:
+            r = _mul(_omega(e[3] + tl[0], e[4] + tl[1], e[5] + tl[2]), _rodrigues1(kk, angle))
+            d = (sh[0] + e[0], sh[1] + e[1], sh[2] + e[2])
+        else:
+            r = _rodrigues1(kk, angle)
+            d = (0.0, 0.0, 0.0)
+        rc = _apply(r, c)
+        return r, (c[0] + d[0] - rc[0], c[1] + d[1] - rc[1], c[2] + d[2] - rc[2])
+
+    def _forward_chain(
+        self, q: list[float], tip: tuple[float, float, float], errors: bool
+    ) -> tuple[float, float, float]:
+        """`forward` at one position in Python floats, for any chain (rotary axes,
+        workpiece side, splicing): the same model as the vectorised form."""
+        p = tip
+        for i in range(self.n - 1, self.w - 1, -1):
+            r, t = self._transform1(i, q[i], errors)
+            rp = _apply(r, p)
+            p = (t[0] + rp[0], t[1] + rp[1], t[2] + rp[2])
+        for i in range(self.w - 1, -1, -1):
+            r, t = self._transform1(i, q[i], errors)
+            p = _solve(r, (p[0] - t[0], p[1] - t[1], p[2] - t[2]))
+        return p
+
+    def _correction_chain(self, q: list[float], tip: tuple[float, float, float]) -> list[float]:
+        qs = [v + o for v, o in zip(q, self._offset_list, strict=True)]
+        n0 = self._forward_chain(qs, tip, False)
+        lin = self._linear_list
+        cols = []
+        for i in lin:  # the ideal machine is affine in its linear axes
+            moved = list(qs)
+            moved[i] += 1.0
+            p = self._forward_chain(moved, tip, False)
+            cols.append((p[0] - n0[0], p[1] - n0[1], p[2] - n0[2]))
+        jac = (
+            cols[0][0], cols[1][0], cols[2][0],
+            cols[0][1], cols[1][1], cols[2][1],
+            cols[0][2], cols[1][2], cols[2][2],
+        )  # fmt: skip
+        d = [0.0, 0.0, 0.0]
+        moved = list(qs)
+        for _ in range(STEPS):
+            for k, i in enumerate(lin):
+                moved[i] = qs[i] + d[k]
+            a = self._forward_chain(moved, tip, True)
+            step = _solve(jac, (n0[0] - a[0], n0[1] - a[1], n0[2] - a[2]))
+            d = [d[0] + step[0], d[1] + step[1], d[2] + step[2]]
+        return d
 
     def _forward_scalar(
         self, q: list[float], tip: tuple[float, float, float]
@@ -174,6 +287,8 @@ class Evaluator:
         """[Δx, Δy, Δz] (mm) at one programmed position (chain order, mm and °): the
         GEO cycle's path, in Python floats where the model allows (`_scalar_fits`)."""
         if self._scalar is None:
+            if self._chain1 is not None:
+                return self._correction_chain(q, tip)
             out: list[float] = self.correction(np.array([q]), np.array(tip))[0].tolist()
             return out
         qs = [v + o for v, o in zip(q, self._offset_list, strict=True)]
@@ -299,6 +414,50 @@ class Evaluator:
             miss = target - self.forward(moved, tip)
             delta += (inv @ miss[..., None])[..., 0]
         return delta
+
+
+def _cross_matrix(u: np.ndarray) -> np.ndarray:
+    x, y, z = u
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _omega(a: float, b: float, c: float) -> tuple[float, ...]:
+    """I + [(a, b, c)]× as 9 floats, row by row."""
+    return (1.0, -c, b, c, 1.0, -a, -b, a, 1.0)
+
+
+def _rodrigues1(kk: tuple[tuple[float, ...], tuple[float, ...]], angle: float) -> tuple[float, ...]:
+    """I + sin·K + (1 − cos)·K² as 9 floats."""
+    k, k2 = kk
+    s, c = math.sin(angle), 1.0 - math.cos(angle)
+    eye = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    return tuple(eye[m] + s * k[m] + c * k2[m] for m in range(9))
+
+
+def _mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
+    return tuple(
+        a[3 * r] * b[c] + a[3 * r + 1] * b[3 + c] + a[3 * r + 2] * b[6 + c]
+        for r in range(3)
+        for c in range(3)
+    )
+
+
+def _apply(r: tuple[float, ...], p: tuple[float, ...]) -> tuple[float, float, float]:
+    return (
+        r[0] * p[0] + r[1] * p[1] + r[2] * p[2],
+        r[3] * p[0] + r[4] * p[1] + r[5] * p[2],
+        r[6] * p[0] + r[7] * p[1] + r[8] * p[2],
+    )
+
+
+def _solve(r: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
+    """r⁻¹·b by Cramer's rule (3×3)."""
+    a, bb, c, d, e, f, g, h, k = r
+    det = a * (e * k - f * h) - bb * (d * k - f * g) + c * (d * h - e * g)
+    x = (b[0] * (e * k - f * h) - bb * (b[1] * k - f * b[2]) + c * (b[1] * h - e * b[2])) / det
+    y = (a * (b[1] * k - f * b[2]) - b[0] * (d * k - f * g) + c * (d * b[2] - b[1] * g)) / det
+    z = (a * (e * b[2] - b[1] * h) - bb * (d * b[2] - b[1] * g) + b[0] * (d * h - e * g)) / det
+    return x, y, z
 
 
 def _rodrigues(u: np.ndarray, angle: np.ndarray) -> np.ndarray:

@@ -103,13 +103,20 @@ class VolKernel:
         on: bool,
         no_move: bool = False,
         cfact: tuple[float, float, float] | None = None,
+        homed: np.ndarray | None = None,
     ) -> None:
         """`#VOLCOMP ON/OFF [ID=.. NO_MOVE CFACT_*]` or the enable/disable objects: ramp
         over `filter_steps` (004 p.22), at once with NO_MOVE. CFACT_* are non-modal:
-        every ON without them weighs 1 (004 p.21)."""
+        every ON without them weighs 1 (004 p.21). ON needs every axis of the chain
+        referenced (`homed`, 004 p.20) and s_limit defined (p.14)."""
         st = self.get(ident)
         if on and st.evaluator is None:
             raise ValueError(f"volumetric compensation {ident} is not available: {st.comp.problem}")
+        if on and homed is not None and not homed[st.slots].all():
+            raise ValueError(
+                f"volumetric compensation {ident}: every axis of the chain must be "
+                "referenced (004 p.20)"
+            )
         if on:
             missing = [a for a, lim in zip("XYZ", st.limits, strict=True) if lim <= 0]
             if missing:
@@ -138,10 +145,25 @@ class VolKernel:
     def update(self, ident: int, comp: VolComp) -> None:
         """`#VOLCOMP [ID.. UPDATE]` or the CNC objects: the new configuration replaces
         the old one, which is switched off first without movement (004 p.23 policy,
-        docs/volumetric.md §7); automatic activation applies again."""
+        docs/volumetric.md §7); automatic activation applies again. A configuration that
+        did not load (`comp.available` False) changes nothing: the caller reports it."""
         old = self.get(ident)
+        if not comp.available:
+            return
         old.target = old.factor = 0.0
         self.states[ident] = self._state(comp)
+        self._refresh()
+
+    def carry_over(self, old: VolKernel) -> None:
+        """After a reload: the tool length, and the switching state of every compensation
+        that is still available (its corrections follow the new files at once)."""
+        self.tool_length = old.tool_length
+        for ident, st in old.states.items():
+            new = self.states.get(ident)
+            if new is None or new.evaluator is None or not st.active:
+                continue
+            new.wanted, new.factor, new.target = st.wanted, st.factor, st.target
+            new.step, new.cfact = st.step, st.cfact
         self._refresh()
 
     @property
@@ -174,30 +196,42 @@ class VolKernel:
 
     def auto_activate(self, homed: np.ndarray) -> None:
         """Automatic activation (004 p.20: "as soon as all participating axes allow
-        it"): a wanted, available compensation whose axes are all referenced starts."""
+        it"): a wanted, available compensation whose axes are all referenced starts —
+        checked every cycle, so one waiting for an axis starts while others act."""
         for st in self.states.values():
             if not st.wanted or st.target > 0 or st.evaluator is None:
                 continue
             if not homed[st.slots].all():
                 continue
             try:
-                self.switch(st.comp.id, True)
+                self.switch(st.comp.id, True, homed=homed)
             except ValueError as exc:
                 st.wanted = False
                 self.report(VOLC_ERROR, str(exc))
 
+    def _off(self, st: CompState, why: str) -> None:
+        """Switch `st` off without movement (004 p.24, the error case) and say why."""
+        self.report(VOLC_ERROR, f"volumetric compensation {st.comp.id}: {why}")
+        st.wanted = False
+        st.target = st.factor = 0.0
+        st.value = [0.0, 0.0, 0.0]
+
     def step(self, pos: np.ndarray, homed: np.ndarray) -> bool:
         """Compute `offset` for command positions `pos` (increments). False when a
-        correction exceeded its s_limit (the compensation is then off, an error
-        reported; the caller stops the program)."""
+        compensation had to be switched off in this cycle (the sum on an axis beyond its
+        s_limit, 004 p.14, or an axis no longer referenced, p.20/p.24): the error is
+        reported, the caller stops the program."""
+        self.auto_activate(homed)
+        off = self.offset
+        off[:] = 0.0
         if not self._active:
-            self.auto_activate(homed)
-            if not self._active:
-                self.offset[:] = 0.0
-                return True
+            return True
         ok = True
-        self.offset[:] = 0.0
         for st in self._active:
+            if not homed[st.slots].all():
+                self._off(st, "an axis lost its reference: switched off without movement")
+                ok = False
+                continue
             if st.factor != st.target:
                 d = st.target - st.factor
                 st.factor = (
@@ -211,25 +245,31 @@ class VolKernel:
             q = [pos.item(s) / UNITS_PER_MM for s in st.slot_list]
             st.raw = ev.correction_one(q, st.tip)
             w = st.factor * UNITS_PER_MM
-            cf, mo, lim = st.cfact, st.modify, st.limits
+            cf, mo = st.cfact, st.modify
             st.value = [st.raw[k] * cf.item(k) * mo.item(k) * w for k in range(3)]
-            over = [k for k in range(3) if abs(st.value[k]) > lim.item(k)]
-            if over:
-                k = over[0]
-                self.report(
-                    VOLC_ERROR,
-                    f"volumetric compensation {st.comp.id}: correction of {'XYZ'[k]} "
-                    f"{st.value[k]:.0f} exceeds lr_param.vol_comp.s_limit {lim.item(k):.0f} "
-                    "(P-AXIS-00525, 004 p.14): compensation switched off",
-                )
-                st.wanted = False
-                st.target = st.factor = 0.0
-                st.value = [0.0, 0.0, 0.0]
-                ok = False
-                continue
-            off = self.offset
             for k, s in enumerate(st.linear_list):
                 off[s] += st.value[k]
+        # s_limit bounds what the axis gets, the sum of every compensation (004 p.14)
+        for st in self._active:
+            if not st.active:
+                continue
+            for k, s in enumerate(st.linear_list):
+                lim = st.limits.item(k)
+                if abs(off.item(s)) > lim:
+                    self._off(
+                        st,
+                        f"correction of {'XYZ'[k]} {off.item(s):.0f} exceeds "
+                        f"lr_param.vol_comp.s_limit {lim:.0f} (P-AXIS-00525, 004 p.14): "
+                        "switched off",
+                    )
+                    ok = False
+                    break
+        if not ok:
+            off[:] = 0.0
+            for st in self._active:
+                if st.active:
+                    for k, s in enumerate(st.linear_list):
+                        off[s] += st.value[k]
         if not ok or any(not s.active for s in self._active):
             self._refresh()
         return ok

@@ -40,6 +40,7 @@ import geo_server
 from geo_server.dictionary import (
     ADDRESS_LOOKUP,
     AMS_PORTS,
+    COM_AMS_PORT,
     GEO_AMS_PORT,
     REQUEST_PORT,
     TASK_GROUPS,
@@ -552,6 +553,8 @@ class AdsServer:
 
     def _service_read(self, ig: int, io: int, length: int) -> bytes | None:
         """Reads of the symbol and state services on the GEO port, None for the rest."""
+        if ig in _GEO_SERVICES:
+            _geo_port_only(ig)
         if ig == symbols.DEVICE_DATA:
             return self._device_data(length)
         if ig == symbols.SYM_VERSION:
@@ -571,6 +574,7 @@ class AdsServer:
         """The object address behind a symbol handle (0xF005, offset = handle)."""
         if ig != symbols.SYM_VALBYHND:
             return ig, io
+        _geo_port_only(ig)
         sym = conn.table(self).handles.get(io)
         if sym is None:
             raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{io:X}")
@@ -610,6 +614,7 @@ class AdsServer:
         data type info (0xF011) by name: the write data is the name. A handle asked for
         with more than 4 bytes of read length comes with size, type decoration and type
         name (as ads-client's `createVariableHandle` reads it)."""
+        _geo_port_only(ig)
         name = symbols.decode_name(data)
         if ig == symbols.SYM_DT_INFOBYNAMEEX:
             entry = symbols.datatype_entry(self.symbols.datatype(name))
@@ -638,6 +643,7 @@ class AdsServer:
     def _lookup_address(self, req: ReadWriteRequest) -> bytes:
         """Group + 0x600: in (channel, axis) as two UNS32 (or two UNS16), the element in
         the index offset's low word; out (IndexGroup, IndexOffset), (0, 0) for none."""
+        _geo_port_only(req.index_group)
         if len(req.data) == 8:
             channel, axis = struct.unpack("<II", req.data)
         elif len(req.data) == 4:
@@ -1013,9 +1019,23 @@ _NAME_SERVICES = frozenset(
     }
 )
 _LOOKUPS = frozenset(ig + ADDRESS_LOOKUP for ig in TASK_GROUPS.values())
+
+
+def _geo_port_only(ig: int) -> None:
+    """The symbol, name and lookup services are the GEO task's: on the COM task's port
+    (553, the volumetric objects) they answer 0x702, as a group that port does not know."""
+    if REQUEST_PORT.get() == COM_AMS_PORT:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDGRP,
+            f"index group 0x{ig:X} is a service of the GEO task (AMS port 551), not 553",
+        )
+
+
 _UPLOADS = frozenset(
     {symbols.SYM_UPLOAD, symbols.SYM_UPLOADINFO, symbols.SYM_UPLOADINFO2, symbols.SYM_DT_UPLOAD}
 )
+#: The GEO task's symbol services (reads)
+_GEO_SERVICES = _UPLOADS | {symbols.SYM_VERSION}
 #: Services a notification may watch besides the objects (constant values: one sample)
 _NOTIFIABLE_SERVICES = frozenset({symbols.DEVICE_DATA, symbols.SYM_VERSION})
 

@@ -345,7 +345,7 @@ def test_s_limit_exceeded_switches_off(lists_copy: Path) -> None:
         ("X 1\nY 2\nZ 3\nchain YXQ\n", "unknown axis letter 'Q'"),
         ("X 1\nY 2\nchain YX\n", "exactly the 3 linear axes"),
         ("X 1\nY 2\nZ 9\nchain YXZ\n", "axis 9 is not an axis of the machine"),
-        ("X 1\nY 2\nZ 3\ninterpolation SCATTER\n", "SCATTER: not emulated"),
+        ("X 1\nY 2\nZ 3\ninterpolation SPLINE\n", "not one of GRID, SCATTER"),
         ("X 1\nY 2\nZ 3\nfile[0] nowhere.csv\nfile_format[0] ISG_CSV\n", "nowhere.csv not found"),
         ("X 1\nY 2\nZ 3\nfile[0] exx.csv\n", "file[0] without file_format[0]"),
     ],
@@ -600,3 +600,91 @@ def test_volcomp_nc_forms() -> None:
         VolcompCommand(True, None),
         VolcompCommand(True, (1,), True, (0.5, 1.0, 0.0)),
     ]
+
+
+# ---------------------------------------------------------------------- SCATTER, PATH
+
+
+def point_table(mode: str, args, points, values) -> ParamTable:
+    return ParamTable(
+        "EZZ",
+        tuple(args),
+        (),
+        np.array(np.nan),
+        mode=mode,
+        points=np.array(points, float),
+        point_values=np.array(values, float),
+    )
+
+
+def test_scatter_is_inverse_distance_weighting() -> None:
+    """Records at (0, 0), (100, 0), (0, 100) of 0, 3, 6 µm: at a record its value; at
+    (50, 0) the distances² are 2500, 2500, 12500, so the weights 1/2500, 1/2500,
+    1/12500: (0 + 3/2500 + 6/12500)/(2/2500 + 1/12500) = (0.0012 + 0.00048)/0.00088
+    = 1.909090… µm."""
+    from geo_server.volcomp.tables import evaluate
+
+    t = point_table("SCATTER", "XY", [(0, 0), (100, 0), (0, 100)], [0.0, 3e-3, 6e-3])
+    assert evaluate(t, {"X": 100.0, "Y": 0.0}) == 3e-3
+    assert evaluate(t, {"X": 50.0, "Y": 0.0}) == pytest.approx(1.68e-6 / 0.00088, abs=1e-15)
+    mdl = model("YXZ", t)
+    ev = Evaluator(mdl)
+    for x, y in ((50.0, 0.0), (100.0, 0.0), (20.0, 70.0)):
+        ref = R.correction(mdl, {"X": x, "Y": y, "Z": 0.0})
+        got = ev.correction(np.array([[y, x, 0.0]]), np.zeros(3))[0]
+        assert got == pytest.approx([ref["X"], ref["Y"], ref["Z"]], abs=1e-12)
+    # EZZ moves the tool in Z: Δz = −EZZ (it depends on X, Y only)
+    assert R.correction(mdl, {"X": 50.0, "Y": 0.0, "Z": 0.0})["Z"] == pytest.approx(
+        -1.68e-6 / 0.00088, abs=1e-12
+    )
+
+
+def test_path_interpolates_along_the_nearest_section() -> None:
+    """Corners (0, 0), (100, 0), (100, 100) with 0, 1, 2 µm: at (50, 10) the nearest
+    point of the polygon is (50, 0), half way along the first section: 0.5 µm; at
+    (120, 40) it is (100, 40) on the second: 1.4 µm; beyond the ends the end values."""
+    from geo_server.volcomp.tables import evaluate
+
+    t = point_table("PATH", "XY", [(0, 0), (100, 0), (100, 100)], [0.0, 1e-3, 2e-3])
+    assert evaluate(t, {"X": 50.0, "Y": 10.0}) == pytest.approx(0.5e-3, abs=1e-15)
+    assert evaluate(t, {"X": 120.0, "Y": 40.0}) == pytest.approx(1.4e-3, abs=1e-15)
+    assert evaluate(t, {"X": -30.0, "Y": -5.0}) == 0.0
+    assert evaluate(t, {"X": 100.0, "Y": 300.0}) == 2e-3
+    xy = point_table("PATH_XY", "XYZ", [(0, 0, 0), (100, 0, 500)], [0.0, 1e-3])
+    assert evaluate(xy, {"X": 50.0, "Y": 10.0, "Z": -400.0}) == pytest.approx(0.5e-3)
+    for tab in (t, xy):
+        mdl = model("YXZ", tab)
+        ev = Evaluator(mdl)
+        for x, y, z in ((50.0, 10.0, 0.0), (120.0, 40.0, -3.0), (-30.0, -5.0, 7.0)):
+            ref = R.correction(mdl, {"X": x, "Y": y, "Z": z})
+            got = ev.correction(np.array([[y, x, z]]), np.zeros(3))[0]
+            assert got == pytest.approx([ref["X"], ref["Y"], ref["Z"]], abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("interp", "csv", "mode"),
+    [
+        ("AUTO", "X Y EZZ\n0 0 0\n100 0 0.001\n0 100 0.002\n100 100 0.003\n", "GRID"),
+        ("AUTO", "X Y EZZ\n0 0 0\n100 0 0.001\n0 100 0.002\n", "SCATTER"),
+        ("SCATTER", "X Y EZZ\n0 0 0\n100 0 0.001\n0 100 0.002\n", "SCATTER"),
+        ("PATH", "X Y EZZ\n0 0 0\n100 0 0.001\n100 100 0.002\n", "PATH"),
+        ("PATH_XY", "X Y Z EZZ\n0 0 0 0\n100 0 9 0.001\n", "PATH_XY"),
+    ],
+)
+def test_interpolation_modes_load(lists_copy: Path, interp: str, csv: str, mode: str) -> None:
+    """004 p.34: AUTO takes GRID when the records form a grid, else SCATTER."""
+    folder = lists_copy.parent
+    (folder / "e.csv").write_text(csv, encoding="utf-8")
+    volc = f"X 1\nY 2\nZ 3\ninterpolation {interp}\nfile[0] e.csv\nfile_format[0] ISG_CSV\n"
+    add_volc(lists_copy, volc, {})
+    (comp,) = load_machine(lists_copy).volumetric
+    assert comp.available, comp.problem
+    assert comp.model.tables["EZZ"].mode == mode
+
+
+def test_path_xy_needs_x_and_y(lists_copy: Path) -> None:
+    (lists_copy.parent / "e.csv").write_text("X Z EZZ\n0 0 0\n1 1 1\n", encoding="utf-8")
+    volc = "X 1\nY 2\nZ 3\ninterpolation PATH_XY\nfile[0] e.csv\nfile_format[0] ISG_CSV\n"
+    add_volc(lists_copy, volc, {})
+    (comp,) = load_machine(lists_copy).volumetric
+    assert "PATH_XY needs X and Y" in comp.problem

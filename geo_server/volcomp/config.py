@@ -175,15 +175,6 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
             "",
             item.entry.line if item else 0,
         )
-    if interp not in ("GRID", "AUTO"):
-        item = values.item("interpolation")
-        raise _Problem(
-            "volc.config",
-            f"interpolation {interp}: not emulated (GRID and AUTO on grid data are; "
-            "docs/volumetric.md §6)",
-            "",
-            item.entry.line if item else 0,
-        )
     if (item := values.item("diagnosis_file")) is not None:
         rep.at(
             "list.ignored",
@@ -253,13 +244,9 @@ def _tables(cfg: VolcConfig, folder: Path) -> tuple[dict[str, ParamTable], int, 
         blocks.extend(pf.blocks)
         paths.append(str(p))
     try:
-        tables, records = build_tables(blocks, cfg.enable_splicing)
+        tables, records = build_tables(blocks, cfg.enable_splicing, cfg.interpolation)
     except TableError as exc:
-        check = "volc.file"
-        message = exc.message
-        if cfg.interpolation == "AUTO" and "not on a grid" in message:
-            message += "; AUTO would select SCATTER, which is not emulated"
-        raise _Problem(check, message, exc.file, exc.line) from None
+        raise _Problem("volc.file", exc.message, exc.file, exc.line) from None
     for t in tables.values():
         for arg in t.arguments:
             if arg not in cfg.chain:

@@ -23,7 +23,7 @@ import numpy as np
 
 from geo_server.volcomp.model import VolModel
 from geo_server.volcomp.names import ROTARY
-from geo_server.volcomp.tables import ParamTable
+from geo_server.volcomp.tables import ParamTable, path_columns
 
 #: keys of different axes are this far apart in the merged table (mm or °; the
 #: interpolation itself uses the unshifted grid, so this costs no precision)
@@ -89,12 +89,13 @@ class Evaluator:
             own = [t for t in tables if t is not None and t.arguments == (a,)]
             # the merged table of the axis takes its own 1-D tables when they agree on
             # splicing (one modulo for the key); the rest take the per-table path
+            own = [t for t in own if t.mode == "GRID"]
             merge_spliced = bool(own) and all(t.spliced for t in own)
             merged: list[ParamTable | None] = [None] * 6
             for j, t in enumerate(tables):
                 if t is None:
                     continue
-                if t.arguments == (a,) and t.spliced == merge_spliced:
+                if t.arguments == (a,) and t.mode == "GRID" and t.spliced == merge_spliced:
                     merged[j] = t
                 elif not t.arguments:
                     self.constants[i, j] = float(t.values)
@@ -469,8 +470,40 @@ def _rodrigues(u: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * k + c * (k @ k)
 
 
+def _points(t: ParamTable, x: np.ndarray) -> np.ndarray:
+    """[b] values of a SCATTER or PATH table at points x [b, k] (`tables.evaluate`)."""
+    assert t.points is not None and t.point_values is not None
+    pts, vals = t.points, t.point_values
+    if t.mode == "SCATTER":
+        d2 = ((x[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)  # [b, m]
+        exact = d2 == 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = 1.0 / d2
+            out = (w * vals).sum(axis=1) / w.sum(axis=1)
+        hit = exact.any(axis=1)
+        if hit.any():
+            out[hit] = vals[exact[hit].argmax(axis=1)]
+        return out
+    cols = path_columns(t)
+    p, xx = pts[:, cols], x[:, cols]
+    if len(p) == 1:
+        return np.full(x.shape[0], vals[0])
+    a, ab = p[:-1], p[1:] - p[:-1]  # [s, k]
+    ll = (ab**2).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = ((xx[:, None, :] - a[None]) * ab[None]).sum(axis=2) / ll
+    tt = np.clip(np.nan_to_num(tt, nan=0.0), 0.0, 1.0)  # [b, s]
+    d2 = ((a[None] + tt[..., None] * ab[None] - xx[:, None, :]) ** 2).sum(axis=2)
+    best = d2.argmin(axis=1)  # the first section wins a tie, as in the reference
+    rows = np.arange(x.shape[0])
+    tb = tt[rows, best]
+    return vals[best] + tb * (vals[best + 1] - vals[best])
+
+
 def _multilinear(t: ParamTable, x: np.ndarray) -> np.ndarray:
     """[b] values of an N-D table at points x [b, k]: multi-linear, edges held."""
+    if t.mode != "GRID":
+        return _points(t, x)
     b = x.shape[0]
     out = np.zeros(b)
     idx: list[np.ndarray] = []

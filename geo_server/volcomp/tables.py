@@ -14,12 +14,13 @@ of one compensation into one `ParamTable` per parameter:
   a 0° record but none at 360° gets one with the 0° values, so the table is continuous
   over the modulo passage; its argument is then taken modulo 360°.
 
-Other interpolation modes (SCATTER, AUTO, PATH, PATH_XY) are refused with a clear error
-(docs/volumetric.md §6): only GRID is emulated.
+The other modes (SCATTER, AUTO, PATH, PATH_XY) keep the records as they are; their laws
+are in docs/volumetric.md §6 (`evaluate` here, `evaluator._points` vectorised).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -52,6 +53,11 @@ class ParamTable:
     spliced: bool = False  # rotary argument taken modulo 360° (splicing)
     file: str = ""
     line: int = 0
+    #: "GRID", or "SCATTER", "PATH", "PATH_XY": then `points` [m, k] holds the records'
+    #: arguments in file order and `point_values` [m] their values (docs/volumetric.md §6)
+    mode: str = "GRID"
+    points: np.ndarray | None = None
+    point_values: np.ndarray | None = None
 
     @property
     def constant(self) -> float:
@@ -122,8 +128,38 @@ def _grid_table(
     return ParamTable(name, args, grid, values, spliced, file, line)
 
 
+def _point_table(
+    name: str,
+    args: tuple[str, ...],
+    records: Sequence[tuple[tuple[float, ...], float, str, int]],
+    mode: str,
+) -> ParamTable:
+    """SCATTER, PATH or PATH_XY: the records as they are (004 p.34)."""
+    file, line = records[0][2], records[0][3]
+    if mode == "PATH_XY" and not {"X", "Y"} <= set(args):
+        raise TableError(
+            file,
+            line,
+            f"{name}: PATH_XY needs X and Y among the arguments, not ({', '.join(args)})",
+        )
+    pts = np.array([r[0] for r in records], dtype=float)
+    if mode == "SCATTER" and len({tuple(p) for p in pts.tolist()}) != len(pts):
+        raise TableError(file, line, f"{name}: a point given twice (SCATTER)")
+    return ParamTable(
+        name,
+        args,
+        (),
+        np.array(np.nan),
+        file=file,
+        line=line,
+        mode=mode,
+        points=pts,
+        point_values=np.array([r[1] for r in records], dtype=float),
+    )
+
+
 def build_tables(
-    blocks: Sequence[Block], splicing: bool = False
+    blocks: Sequence[Block], splicing: bool = False, interpolation: str = "GRID"
 ) -> tuple[dict[str, ParamTable], int]:
     """Every parameter's table (GRID) and the number of records, the rows of the blocks
     plus one per 360° record splicing added (`vol_comp[i].max_records` bounds it: 004
@@ -131,7 +167,17 @@ def build_tables(
     tables: dict[str, ParamTable] = {}
     added = 0
     for name, (args, records) in _parameter_records(blocks).items():
-        t = tables[name] = _grid_table(name, args, records, splicing)
+        if not args or interpolation == "GRID":
+            t = tables[name] = _grid_table(name, args, records, splicing)
+        elif interpolation == "AUTO":  # a grid if the records form one (004 p.34)
+            try:
+                t = tables[name] = _grid_table(name, args, records, splicing)
+            except TableError as exc:
+                if "not on a grid" not in exc.message:
+                    raise
+                t = tables[name] = _point_table(name, args, records, "SCATTER")
+        else:
+            t = tables[name] = _point_table(name, args, records, interpolation)
         added += (
             t.spliced and float(t.grid[0][-1]) == 360.0 and 360.0 not in {r[0][0] for r in records}
         )
@@ -143,6 +189,10 @@ def evaluate(table: ParamTable, point: dict[str, float]) -> float:
     reference (`geo_server.volcomp.reference`); the kernel has its own vectorised form."""
     if not table.arguments:
         return float(table.values)
+    if table.mode == "SCATTER":
+        return _scatter(table, point)
+    if table.mode in ("PATH", "PATH_XY"):
+        return _path(table, point)
     corners: list[tuple[tuple[int, ...], float]] = [((), 1.0)]
     for arg, g in zip(table.arguments, table.grid, strict=True):
         v = point.get(arg, 0.0)
@@ -160,4 +210,57 @@ def evaluate(table: ParamTable, point: dict[str, float]) -> float:
     return sum(w * float(table.values[c]) for c, w in corners)
 
 
-__all__ = ["ParamTable", "TableError", "build_tables", "evaluate"]
+def _scatter(table: ParamTable, point: dict[str, float]) -> float:
+    """SCATTER (004 p.34: "non-linear interpolation, any distribution"): inverse
+    distance weighting, w = 1/d² in the space of the arguments (mm, °) — exact at every
+    record, smooth between, bounded by the records' values."""
+    assert table.points is not None and table.point_values is not None
+    x = [point.get(a, 0.0) for a in table.arguments]
+    num = den = 0.0
+    for p, v in zip(table.points.tolist(), table.point_values.tolist(), strict=True):
+        d2 = sum((pi - xi) ** 2 for pi, xi in zip(p, x, strict=True))
+        if d2 == 0.0:
+            return float(v)
+        num += v / d2
+        den += 1.0 / d2
+    return num / den
+
+
+def path_columns(table: ParamTable) -> list[int]:
+    """The argument columns a PATH measures distance in: all, or X and Y (PATH_XY)."""
+    if table.mode == "PATH_XY":
+        return [table.arguments.index("X"), table.arguments.index("Y")]
+    return list(range(len(table.arguments)))
+
+
+def _path(table: ParamTable, point: dict[str, float]) -> float:
+    """PATH / PATH_XY (004 p.34: "specified at the corner points of a polygon.
+    Interpolation takes place in linear sections along the polygon"): the records in
+    file order are the corners; the value is the one at the point of the polygon nearest
+    to `point` (in the XY plane for PATH_XY), linear along its section; the first
+    section wins a tie."""
+    assert table.points is not None and table.point_values is not None
+    cols = path_columns(table)
+    x = [point.get(table.arguments[c], 0.0) for c in cols]
+    pts = [[p[c] for c in cols] for p in table.points.tolist()]
+    vals = table.point_values.tolist()
+    if len(pts) == 1:
+        return float(vals[0])
+    best, value = math.inf, 0.0
+    for i in range(len(pts) - 1):
+        a, b = pts[i], pts[i + 1]
+        ab = [bi - ai for ai, bi in zip(a, b, strict=True)]
+        ll = sum(c * c for c in ab)
+        t = (
+            0.0
+            if ll == 0.0
+            else sum((xi - ai) * c for xi, ai, c in zip(x, a, ab, strict=True)) / ll
+        )
+        t = min(max(t, 0.0), 1.0)
+        d2 = sum((ai + t * c - xi) ** 2 for ai, c, xi in zip(a, ab, x, strict=True))
+        if d2 < best:
+            best, value = d2, vals[i] + t * (vals[i + 1] - vals[i])
+    return value
+
+
+__all__ = ["ParamTable", "TableError", "build_tables", "evaluate", "path_columns"]

@@ -383,7 +383,7 @@ CHECKS += (
         "VOLC list unusable: no `chain` or one with unknown or repeated letters, not "
         "exactly the linear axes X Y Z, a chain axis without its axis number or one that "
         "is no axis of the machine, `workpiece_axes` beyond the chain, a `file[j]` "
-        "without `file_format[j]` or an unknown format, an interpolation other than GRID: "
+        "without `file_format[j]` or an unknown format, an unknown interpolation mode: "
         "that compensation is not available",
         _M004,
         False,

@@ -63,7 +63,7 @@ from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
 from geo_server.snapshot import Snapshot
 from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
-from geo_server.volcomp.config import load_compensation
+from geo_server.volcomp.config import reload_compensation
 from geo_server.volcomp.kernel import VOLC_ERROR
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
@@ -691,9 +691,9 @@ class ObjectService:
 
     def _volcomp_update(self, file_name: str) -> CommandResult:
         ident = int(self.snapshot.value(self.dictionary.by_name("VOLC::index"), 0))
-        cfg = self.machine.cfg
-        comp = next((c for c in cfg.volumetric if c.id == ident), None)
-        if comp is None:
+        diags: list[Diagnostic] = []
+        new = reload_compensation(self.machine.cfg, ident, file_name, Reporter(diags))
+        if new is None:
             return CommandResult(
                 False,
                 "volcomp_update",
@@ -701,11 +701,6 @@ class ObjectService:
                 code=AdsErrorCode.DEVICE_INVALIDDATA,
                 error_id=VOLC_ERROR,
             )
-        diags: list[Diagnostic] = []
-        params = {a: cfg.axes[a].params for a in cfg.axes}
-        new = load_compensation(
-            ident, comp.max_records, file_name, cfg.startup_path.parent, params, Reporter(diags)
-        )
         warnings = [d.describe() for d in diags if d.severity != "error"]
         if not new.available:
             return CommandResult(

@@ -393,24 +393,29 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
     geo = pyads.Connection("127.0.0.9.1.1", 551, srv.address)
     com.open()
     geo.open()
-    sim = 0x12F300
+    # the manual's addresses of the COM objects (004 p.19) are typed here on purpose: the
+    # test holds the dictionary to them; the emulator's read-back objects come from it
+    corr, active, vfile = (D.by_name(n) for n in ("VOLC::correction", "VOLC::active", "VOLC::file"))
+    sim = corr.index_group
     try:
         com.write(0x120100, 0x291, 0, pyads.PLCTYPE_UINT)  # enable ID 0
         for _ in range(50):
-            if geo.read(sim, 0x10030, pyads.PLCTYPE_DINT) == -20:
+            if geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -20:
                 break
-        assert geo.read(sim, 0x10030, pyads.PLCTYPE_DINT) == -20  # VOLC::correction X
-        assert geo.read(sim, 0x0030, pyads.PLCTYPE_UINT) == 1  # VOLC::active
+        assert geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -20
+        assert geo.read(sim, active.index_offset(0), pyads.PLCTYPE_UINT) == 1
         com.write(0x120100, 0x292, 0, pyads.PLCTYPE_UINT)  # disable ID 0
         com.write(0x120100, 0x27D, 0, pyads.PLCTYPE_UINT)
         com.write(0x120100, 0x27C, str(folder / "other.lis"), pyads.PLCTYPE_STRING)
-        assert geo.read(sim, 0x0033, pyads.PLCTYPE_STRING) == str(folder / "other.lis")
+        assert geo.read(sim, vfile.index_offset(0), pyads.PLCTYPE_STRING) == str(
+            folder / "other.lis"
+        )
         com.write(0x120100, 0x291, 0, pyads.PLCTYPE_UINT)
         for _ in range(50):
-            if geo.read(sim, 0x10030, pyads.PLCTYPE_DINT) == -40:
+            if geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -40:
                 break
         # twice the error: −4e-5·100/1.00004 mm = −39.998 increments
-        assert geo.read(sim, 0x10030, pyads.PLCTYPE_DINT) == -40
+        assert geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -40
         with pytest.raises(pyads.ADSError) as exc:  # write-only (004 p.19)
             com.read(0x120100, 0x291, pyads.PLCTYPE_UINT)
         assert exc.value.err_code == 0x704

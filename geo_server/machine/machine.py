@@ -52,7 +52,7 @@ from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
 from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
-from geo_server.volcomp.config import load_compensation
+from geo_server.volcomp.config import reload_compensation
 from geo_server.volcomp.kernel import VOLC_ERROR, VolKernel
 
 log = logging.getLogger(__name__)
@@ -831,21 +831,12 @@ class Machine:
 
     def _volc_update(self, ident: int) -> None:
         """Read compensation `ident` again from its VOLC list (004 p.23)."""
-        st = self.volc.get(ident)
-        comp = st.comp
-        folder = self.cfg.startup_path.parent
-        params = {a: self.cfg.axes[a].params for a in self.axes}
+        comp = self.volc.get(ident).comp
+        cfg = self.cfg
 
         def load() -> tuple[Any, list[Diagnostic]]:
             diags: list[Diagnostic] = []
-            new = load_compensation(
-                ident,
-                comp.max_records,
-                comp.path or comp.file_name,
-                folder,
-                params,
-                Reporter(diags),
-            )
+            new = reload_compensation(cfg, ident, comp.path or comp.file_name, Reporter(diags))
             return new, diags
 
         self._volc_loading.append((ident, monotonic(), _in_worker(load)))
@@ -870,10 +861,11 @@ class Machine:
             new, diags = fut.result()
             for d in diags:
                 self._record(d)
-            if not new.available:
+            if new is None or not new.available:
+                why = new.problem if new is not None else "not configured"
                 raise AdsError(
                     AdsErrorCode.DEVICE_SYNTAX,
-                    f"#VOLCOMP [ID{ident} UPDATE] failed, compensation unchanged: {new.problem}",
+                    f"#VOLCOMP [ID{ident} UPDATE] failed, compensation unchanged: {why}",
                 )
             self.volc.update(ident, new)
         return not self._volc_loading and self.volc.at_rest

@@ -30,10 +30,10 @@ import numpy as np
 
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.twin.model import AxisTwin, Curve, Grid, RigidBody, TwinConfig
+from geo_server.twin.volumetric import rigid_tables
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.evaluator import Evaluator
 from geo_server.volcomp.model import build_model
-from geo_server.volcomp.tables import ParamTable
 
 #: Increments per second to m/s (linear) or to 1000 °/s (rotary).
 V_SCALE = 1e-7
@@ -96,20 +96,7 @@ class TwinEngine:
         self._rigid: Evaluator | None = None
         if rb is None or not all(a in slot for a in "XYZ"):
             return
-        tables: dict[str, ParamTable] = {}
-        for name, curve in rb.components:
-            scale = 1e-3 if name[1] in "XYZ" else 1e-6
-            tables[name] = ParamTable(
-                name,
-                (name[2],),
-                (np.array(curve.positions),),
-                np.array(curve.errors) * scale,
-            )
-        for name, urad in rb.squareness:
-            tables[name] = ParamTable(name, (), (), np.array(urad * 1e-6))
-        for d, v in zip("XYZ", rb.tool, strict=True):
-            tables[f"P0{d}"] = ParamTable(f"P0{d}", (), (), np.array(v))
-        model = build_model(rb.chain, rb.workpiece_axes, tables)
+        model = build_model(rb.chain, rb.workpiece_axes, rigid_tables(rb))
         self._rigid = Evaluator(model)
         self._rigid_chain = [slot[a] for a in rb.chain]
         self._rigid_xyz = np.array([slot[a] for a in "XYZ"])

@@ -19,7 +19,30 @@ from pathlib import Path
 import numpy as np
 
 from geo_server.twin.model import RigidBody
+from geo_server.volcomp.names import is_angle
 from geo_server.volcomp.paramfile import Block, write_isg_csv
+from geo_server.volcomp.tables import ParamTable
+
+
+def rigid_tables(rb: RigidBody) -> dict[str, ParamTable]:
+    """The twin's rigid-body errors as the volumetric model's tables (004 p.30-31 units:
+    µm → mm, µrad → rad for the angles, `names.is_angle`), with its tool point as P0."""
+    tables: dict[str, ParamTable] = {}
+    for name, c in rb.components:
+        scale = _scale(name)
+        tables[name] = ParamTable(
+            name, (name[2],), (np.array(c.positions),), np.array(c.errors) * scale
+        )
+    for name, value in rb.squareness:
+        tables[name] = ParamTable(name, (), (), np.array(value * _scale(name)))
+    for d, v in zip("XYZ", rb.tool, strict=True):
+        tables[f"P0{d}"] = ParamTable(f"P0{d}", (), (), np.array(float(v)))
+    return tables
+
+
+def _scale(name: str) -> float:
+    """Twin units (µm, µrad) to the model's (mm, rad)."""
+    return 1e-6 if is_angle(name) else 1e-3
 
 
 def measure_rigid_body(
@@ -28,27 +51,19 @@ def measure_rigid_body(
     """The component errors of X, Y, Z every `step` mm over `travel` (mm, both ends
     included) in mm and rad, one block per axis over its own position, the squareness
     errors and the tool point (P0X … P0Z) as constants (004 p.30 names)."""
-    curves = dict(rb.components)
+    tables = rigid_tables(rb)
     blocks = []
     for axis in "XYZ":
         lo, hi = travel[axis]
-        n = max(2, round((hi - lo) / step) + 1)
-        grid = np.linspace(lo, hi, n)
-        names = [f"E{d}{axis}" for d in "XYZABC" if f"E{d}{axis}" in curves]
+        grid = np.linspace(lo, hi, max(2, round((hi - lo) / step) + 1))
+        names = [f"E{d}{axis}" for d in "XYZABC" if f"E{d}{axis}" in tables]
         if not names:
             continue
-        cols = []
-        for name in names:
-            c = curves[name]
-            scale = 1e-3 if name[1] in "XYZ" else 1e-6  # µm → mm, µrad → rad
-            cols.append(np.interp(grid, c.positions, c.errors) * scale)
+        cols = [np.interp(grid, tables[n].grid[0], tables[n].values) for n in names]
         rows = tuple((float(g), *(float(col[i]) for col in cols)) for i, g in enumerate(grid))
         blocks.append(Block((axis,), tuple(names), rows))
-    if rb.squareness:
-        square = tuple(n for n, _ in rb.squareness)
-        blocks.append(Block((), square, (tuple(v * 1e-6 for _, v in rb.squareness),)))
-    # the tool point the errors were measured at (P0X … P0Z, 004 p.30)
-    blocks.append(Block((), ("P0X", "P0Y", "P0Z"), (tuple(float(v) for v in rb.tool),)))
+    constants = [n for n, _ in rb.squareness] + ["P0X", "P0Y", "P0Z"]
+    blocks.append(Block((), tuple(constants), (tuple(float(tables[n].values) for n in constants),)))
     return blocks
 
 

@@ -18,17 +18,16 @@ from pathlib import Path, PureWindowsPath
 from geo_server.listfile.schema import ListKind, lookup
 from geo_server.listfile.syntax import NotAListFileError, parse_list
 from geo_server.listfile.values import Reporter, Values, read_values
-from geo_server.model import AxisParams
+from geo_server.model import AxisParams, MachineConfig
 from geo_server.volcomp.model import VolModel, build_model
 from geo_server.volcomp.names import AXES, LINEAR
-from geo_server.volcomp.paramfile import Block, ParamFileError, read_param_file
+from geo_server.volcomp.paramfile import FORMATS, Block, ParamFileError, read_param_file
 from geo_server.volcomp.tables import ParamTable, TableError, build_tables
 
 #: IDs 0-4 (004 p.11: "Up to 5 compensations can be configured for each controller").
 MAX_COMPENSATIONS = 5
 #: file[0] … file[9] (004 p.12: "Up to 10 parameter files").
 MAX_FILES = 10
-FORMATS = ("ISG_CSV", "ETALON_EXCHANGE")
 INTERPOLATIONS = ("GRID", "SCATTER", "AUTO", "PATH", "PATH_XY")
 
 
@@ -69,12 +68,6 @@ class VolComp:
     @property
     def available(self) -> bool:
         return self.model is not None
-
-    def axis_numbers(self) -> dict[str, int]:
-        """Letter -> logical axis number of the axes it corrects (X, Y, Z)."""
-        if self.config is None:
-            return {}
-        return {a: n for a, n in self.config.axes.items() if a in LINEAR}
 
 
 def resolve(folder: Path, name: str) -> Path:
@@ -331,6 +324,21 @@ def load_compensation(
     return VolComp(ident, max_records, file_name, str(path), cfg, model, records, "", paths)
 
 
+def reload_compensation(
+    cfg: MachineConfig, ident: int, file_name: str, rep: Reporter
+) -> VolComp | None:
+    """Compensation `ident` of a loaded machine read again from the VOLC list
+    `file_name` (`#VOLCOMP UPDATE`, cnc_interpr_vol_comp_file_w: 004 p.23), with the
+    start-up list's `max_records`; None when the start-up list does not configure it."""
+    comp = next((c for c in cfg.volumetric if c.id == ident), None)
+    if comp is None:
+        return None
+    params = {a: ax.params for a, ax in cfg.axes.items()}
+    return load_compensation(
+        ident, comp.max_records, file_name, cfg.startup_path.parent, params, rep
+    )
+
+
 def load_volumetric(
     stup: Values, folder: Path, machine: dict[int, AxisParams], rep: Reporter
 ) -> tuple[VolComp, ...]:
@@ -377,5 +385,6 @@ __all__ = [
     "load_compensation",
     "load_volumetric",
     "read_volc_list",
+    "reload_compensation",
     "resolve",
 ]

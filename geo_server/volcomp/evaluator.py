@@ -124,33 +124,33 @@ class Evaluator:
         a 1-D table over its own axis or a constant, no splicing."""
         return not self.rotary and self.w == 0 and not self.general and not self.any_spliced
 
+    def _axis_rows(self, i: int) -> tuple[Any, ...]:
+        """Chain axis i's merged table in Python floats and lists: (lo, hi, grid, value
+        rows, slope rows, constants) — what both one-position paths interpolate."""
+        a, b = self.first[i], self.last[i] + 2
+        return (
+            float(self.lo[i]),
+            float(self.hi[i]),
+            self.grid_raw[a:b].tolist(),
+            [tuple(r) for r in self.values[a:b].tolist()],
+            [tuple(r) for r in self.slope[a:b].tolist()],
+            tuple(self.constants[i].tolist()),
+        )
+
     def _scalar_tables(self) -> list[tuple[Any, ...]]:
-        """Per chain axis, Python floats and lists: (lo, hi, grid, values rows, slope
-        rows, constants, s·u′)."""
-        out = []
-        for i in range(self.n):
-            a, b = self.first[i], self.last[i] + 2
-            out.append(
-                (
-                    float(self.lo[i]),
-                    float(self.hi[i]),
-                    self.grid_raw[a:b].tolist(),
-                    [tuple(r) for r in self.values[a:b].tolist()],
-                    [tuple(r) for r in self.slope[a:b].tolist()],
-                    tuple(self.constants[i].tolist()),
-                    tuple((self.sign[i] * self.u_tilted[i]).tolist()),
-                )
-            )
-        return out
+        """Per chain axis: (*`_axis_rows`, s·u′)."""
+        return [
+            (*self._axis_rows(i), tuple((self.sign[i] * self.u_tilted[i]).tolist()))
+            for i in range(self.n)
+        ]
 
     def _chain_tables(self) -> list[tuple[Any, ...]]:
-        """Per chain axis, Python floats for `_forward_chain`: (rotary, spliced, lo, hi,
-        grid, values, slopes, constants, s, u, s·u′, K, K², centre, shift, tilt, u″, c″)
-        with K the cross-product matrix of u (Rodrigues), u″/K″ of the alternative
-        model's tilted axis and c″ its centre."""
+        """Per chain axis, Python floats for `_forward_chain`: (rotary, spliced,
+        *`_axis_rows`, s, u, s·u′, (K, K²), (K′, K′²), centre, shift, tilt) with K the
+        cross-product matrix of u (Rodrigues) and K′ that of the alternative model's
+        tilted axis."""
         out = []
         for i in range(self.n):
-            a, b = self.first[i], self.last[i] + 2
             u = self.u[i]
             ut = self.u_tilted[i] / np.linalg.norm(self.u_tilted[i])
             k = _cross_matrix(u)
@@ -159,12 +159,7 @@ class Evaluator:
                 (
                     i in self.rotary,
                     bool(self.spliced[i]),
-                    float(self.lo[i]),
-                    float(self.hi[i]),
-                    self.grid_raw[a:b].tolist(),
-                    [tuple(r) for r in self.values[a:b].tolist()],
-                    [tuple(r) for r in self.slope[a:b].tolist()],
-                    tuple(self.constants[i].tolist()),
+                    *self._axis_rows(i),
                     float(self.sign[i]),
                     tuple(u.tolist()),
                     tuple((self.sign[i] * self.u_tilted[i]).tolist()),

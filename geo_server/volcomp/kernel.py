@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geo_server.listfile.checks import EMU_VOLC_ERROR
 from geo_server.model import AxisParams
 from geo_server.units import UNITS_PER_MM
 from geo_server.volcomp.config import VolComp
 from geo_server.volcomp.evaluator import Evaluator
 
-#: error reported when the volumetric compensation cannot act (checks.EMU_VOLC_ERROR)
-VOLC_ERROR = 990525
+#: error reported when the volumetric compensation cannot act (the checks' ID)
+VOLC_ERROR = EMU_VOLC_ERROR
 
 
 @dataclass
@@ -31,7 +32,6 @@ class CompState:
     comp: VolComp
     evaluator: Evaluator | None
     slots: np.ndarray  # machine slots of the chain axes, chain order
-    linear_slots: np.ndarray  # machine slots of X, Y, Z
     limits: np.ndarray  # s_limit of X, Y, Z (increments, 0 = not defined)
     modify: np.ndarray  # +1, −1 (negate), 0 (set_to_zero) per X, Y, Z
     wanted: bool = False
@@ -76,7 +76,7 @@ class VolKernel:
     def _state(self, c: VolComp) -> CompState:
         if c.model is None or c.config is None:
             empty = np.zeros(0, dtype=np.intp)
-            return CompState(c, None, empty, empty, np.zeros(3), np.ones(3))
+            return CompState(c, None, empty, np.zeros(3), np.ones(3))
         cfg = c.config
         slots = np.array([self.slot_of[cfg.axes[a]] for a in cfg.chain], dtype=np.intp)
         lin = np.array([self.slot_of[cfg.axes[a]] for a in "XYZ"], dtype=np.intp)
@@ -84,7 +84,7 @@ class VolKernel:
         modify = np.array(
             [0.0 if a in cfg.set_to_zero else -1.0 if a in cfg.negate else 1.0 for a in "XYZ"]
         )
-        st = CompState(c, Evaluator(c.model), slots, lin, limits, modify)
+        st = CompState(c, Evaluator(c.model), slots, limits, modify)
         st.slot_list, st.linear_list = slots.tolist(), lin.tolist()
         st.wanted = not cfg.manual_activation  # automatic activation (004 p.20)
         return st

@@ -59,10 +59,6 @@ class ParamTable:
     points: np.ndarray | None = None
     point_values: np.ndarray | None = None
 
-    @property
-    def constant(self) -> float:
-        return float(self.values) if not self.arguments else float("nan")
-
 
 def _parameter_records(
     blocks: Iterable[Block],

@@ -19,7 +19,13 @@ from typing import Any
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
-from geo_server.interfaces import CycleStoppedError, InterfaceStartError, serve, start_failure
+from geo_server.interfaces import (
+    CycleStoppedError,
+    InterfaceStartError,
+    inject_faults,
+    serve,
+    start_failure,
+)
 from geo_server.paths import default_startup_list
 
 
@@ -178,6 +184,8 @@ def _run(args: argparse.Namespace) -> int:
         )
         scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
     service = ObjectService(machine, scheduler)
+    if not inject_faults(args.fault, service):
+        return 2
     if args.program:
         try:
             machine.start_program(Path(args.program).read_text(encoding="utf-8"))
@@ -475,6 +483,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve N copies of the start-up list as a fleet, named <machine>-1 … <machine>-N",
     )
     r.add_argument("--read-only", action="store_true", help="reject every write")
+    r.add_argument(
+        "--fault",
+        action="append",
+        metavar="SPEC",
+        help="inject a fault from the start (repeatable; docs/faults.md), e.g. "
+        "ads:error=0x707,count=2  modbus:delay=200  cycle:overrun=40,every=1000  "
+        "sensor@X:stuck; `geo-client fault clear` ends it",
+    )
     z = r.add_argument_group("zenoh")
     z.add_argument("--no-zenoh", action="store_true", help="do not start the Zenoh interface")
     z.add_argument(

@@ -37,6 +37,7 @@ class AdsErrorCode(IntEnum):
     DEVICE_INVALIDDATA = 0x706  # value of the wrong type or out of range
     DEVICE_NOTREADY = 0x707  # the GEO cycle is stalled or ended
     DEVICE_BUSY = 0x708  # axis busy, program running, another command running
+    DEVICE_INVALIDPARM = 0x70B  # parameter values not valid (a fault that cannot be injected)
     DEVICE_SYNTAX = 0x70D  # list file or NC text has errors (reload rejected)
     DEVICE_SYMBOLNOTFOUND = 0x710  # unknown symbol name or handle
     DEVICE_INVALIDSTATE = 0x712  # the device cannot go to the requested ADS state

@@ -53,6 +53,7 @@ class Served:
 def run_fleet(args: argparse.Namespace) -> int:
     """`geo-server run --fleet FILE | --fleet-size N` (exit code)."""
     from geo_server import __version__
+    from geo_server.interfaces import inject_faults
     from geo_server.listfile import ListFileError, load_machine
     from geo_server.machine.machine import Machine
     from geo_server.machine.scheduler import Scheduler
@@ -76,7 +77,10 @@ def run_fleet(args: argparse.Namespace) -> int:
             cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
         )
         sched = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
-        served.append(Served(m, ObjectService(machine, sched), sched))
+        service = ObjectService(machine, sched)
+        if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
+            return 2
+        served.append(Served(m, service, sched))
     print(
         f"geo-server {__version__}: a fleet of {len(served)} machines "
         f"({', '.join(s.member.name for s in served[:5])}{', …' if len(served) > 5 else ''}), "

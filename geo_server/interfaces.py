@@ -9,6 +9,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any
 
 from geo_server.errors import GeoError
+from geo_server.faults import FaultError
 
 
 class InterfaceStartError(GeoError):
@@ -59,3 +60,16 @@ def serve(main: Coroutine[Any, Any, None], stop: Callable[[], object]) -> int:
     finally:
         stop()
     return 0
+
+
+def inject_faults(specs: list[str] | None, service: Any, label: str = "") -> bool:
+    """`run --fault`: inject each fault before the first cycle (docs/faults.md);
+    False (after saying why) when one cannot be."""
+    for spec in specs or ():
+        try:
+            fault = service.inject_fault(spec)
+        except FaultError as exc:
+            print(f"error: {label}{exc}", file=sys.stderr)
+            return False
+        print(f"{label}fault {fault['id']} injected: {fault['fault']}", file=sys.stderr)
+    return True

@@ -44,6 +44,7 @@ from typing import Any
 from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
+from geo_server.faults import Fault, FaultError, Faults, parse_fault
 from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
 from geo_server.listfile.values import Reporter
 from geo_server.machine.nc import NcError, parse_program
@@ -53,6 +54,7 @@ from geo_server.machine.port import (
     Pending,
     Reload,
     Reset,
+    SensorFault,
     StartProgram,
     VolcUpdate,
     WriteObjects,
@@ -172,6 +174,8 @@ class ObjectService:
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
+        #: injected faults (docs/faults.md); the transports ask `faults.decide`
+        self.faults = Faults()
 
     # ------------------------------------------------------------------ state
 
@@ -495,8 +499,79 @@ class ObjectService:
         st["stalled"] = bool(stalled)
         st["stalled_for_s"] = round(stalled, 3)
         st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
+        st["faults"] = self.faults.status()
         st.update(self.status_extra)
         return st
+
+    # ------------------------------------------------------------------ faults
+
+    def inject_fault(self, fault: str | Fault) -> dict[str, Any]:
+        """Inject a fault (text as in docs/faults.md, or parsed) and return it as listed
+        in `status()["faults"]`. Transport faults act on the next request; a cycle
+        overrun from the next cycle on; a sensor fault at the next cycle boundary.
+        Raises `FaultError` (a clear message) for a fault this machine cannot have."""
+        f = parse_fault(fault) if isinstance(fault, str) else fault
+        if f.target == "cycle":
+            return self._inject_overrun(f)
+        if f.target == "sensor":
+            return self._inject_sensor(f)
+        return self.faults.add(f).as_dict()
+
+    def _inject_overrun(self, f: Fault) -> dict[str, Any]:
+        set_overrun = getattr(self.scheduler, "set_overrun", None)
+        if set_overrun is None:
+            raise FaultError(
+                f"fault {f.text!r}: cycle overruns need the GEO cycle in a thread "
+                "(geo-server run --cycle-in thread)"
+            )
+        active = self.faults.of("cycle")
+        if active:
+            raise FaultError(
+                f"fault {f.text!r}: overrun fault {active[0].ident} is active; clear it first"
+            )
+        cycles = max(1, round(f.value / (self.cycle_s * 1000)))
+        added = self.faults.add(f)
+        set_overrun(cycles, f.every, lambda: self.faults.hit(added))
+        return added.as_dict()
+
+    def _inject_sensor(self, f: Fault) -> dict[str, Any]:
+        twin = getattr(self.machine, "twin", None)
+        if twin is None:
+            raise FaultError(
+                f"fault {f.text!r}: sensor faults need the GEO cycle in a thread "
+                "(geo-server run --cycle-in thread)"
+            )
+        try:
+            k = twin.sensor_index(f.sensor)
+        except LookupError as exc:
+            raise FaultError(f"fault {f.text!r}: {exc}") from None
+        if any(twin.sensor_index(g.sensor) == k for g in self.faults.of("sensor")):
+            raise FaultError(f"fault {f.text!r}: that sensor has a fault already; clear it first")
+        added = self.faults.add(f)
+        self._settle_op(SensorFault(k, f.kind, f.value))
+        return added.as_dict()
+
+    def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
+        """Clear fault `ident` (None: every fault) and undo what it did: overruns stop,
+        a sensor reads its node again from its next sample. Returns the faults cleared;
+        an `ident` that is not active raises `FaultError`."""
+        gone = self.faults.remove(ident)
+        if ident is not None and not gone:
+            active = ", ".join(str(f["id"]) for f in self.faults.status()) or "none"
+            raise FaultError(f"no active fault {ident} (active: {active})")
+        for f in gone:
+            if f.target == "cycle":
+                self.scheduler.set_overrun(0, 0)  # type: ignore[attr-defined]
+            elif f.target == "sensor":
+                twin = self.machine.twin  # type: ignore[attr-defined]
+                self._settle_op(SensorFault(twin.sensor_index(f.sensor), ""))
+        return [f.as_dict() for f in gone]
+
+    def _settle_op(self, op: SensorFault) -> None:
+        """Queue a machine operation; with cycles running, wait until it is applied."""
+        pending = self.scheduler.submit(op)
+        if self.running:
+            self.settle_sync(pending, self.limits.write_timeout)
 
     def errors(self) -> list[dict[str, Any]]:
         """The last 100 warnings and errors, oldest first."""

@@ -26,7 +26,7 @@ ROOTS = {
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
-    (1, ("geo_server.fleetfile", "geo_server.interfaces")),
+    (1, ("geo_server.fleetfile", "geo_server.interfaces", "geo_server.faults")),
     (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),
@@ -47,6 +47,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.snapshot",
     "geo_server.events",
     "geo_server.service",
+    "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
 )
 

@@ -261,7 +261,9 @@ def test_adapter_run_ticks_on_the_wall_clock():
 def test_adapter_refuses_values_out_of_range(caplog):
     table = load_reference(EXAMPLE_REFERENCE)
     client = FakeClient()
-    ad = TemperatureAdapter(client, table, ConstantTemperature(200.0), axes=[1, 2])
+    ad = TemperatureAdapter(
+        client, table, ConstantTemperature(200.0), axes=[1, 2], plausible=(-40.0, 250.0)
+    )
     with caplog.at_level("ERROR", logger="geo_clients.plc_tempcomp"):
         r = ad.tick(0)
     # X at 200 °C: 5000 + (200 − 40)·40 = 11400 µm/m > 10000 (000 p.21): nothing for X

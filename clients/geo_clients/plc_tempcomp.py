@@ -67,7 +67,10 @@ are retried `retries` times. When a write of an axis fails for good, the rest of
 axis is not written in that period (no half-updated parameter set: offset_0 and the
 coefficient belong to the position_0 they were derived for); the next period tries the
 whole set again. Every parameter write is a step event ramped with `temp_comp_n_cycles`
-by the server (docs/design.md §3).
+by the server (docs/design.md §3). A temperature outside `plausible` (−40 … 150 °C by
+default: a broken sensor wire reads the terminal's overrange value) writes nothing: the
+server keeps the parameters of the last plausible reading (*hold*) until the sensor reads
+sensibly again. How the adapter behaves under each injected fault is in docs/faults.md.
 
 Temperature sources: `WarmUp` (a simulated warm-up curve `T(t) = T_end − (T_end −
 T_start)·exp(−t/τ)`), `CsvTemperature` (timestamped samples `time,temperature_C`,
@@ -123,6 +126,8 @@ UNIT_FACTORS = {"": 1.0, "_incr": 1.0, "_um": UNITS_PER_UM, "_mm": UNITS_PER_MM}
 #: server could not apply in time), client sync timeout / invalid response / port locked
 #: (pyads).
 TRANSIENT_ADS = frozenset({0x707, 0x708, 0x719, 0x745, 0x746, 0x748})
+#: Temperatures a machine's sensor can plausibly read (°C); outside: a failed sensor.
+PLAUSIBLE_C = (-40.0, 150.0)
 #: Writable TEMPC objects `(field, object name)` in write order, from the dictionary:
 #: position_0 and offset_0 before coefficient (highest element ID first, 000 p.22–23), so
 #: the line's anchor is in place before its slope changes.
@@ -617,6 +622,8 @@ class TickResult:
     parameters: dict[int, Parameters] = field(default_factory=dict)
     writes: list[WriteRecord] = field(default_factory=list)
     refused: dict[int, str] = field(default_factory=dict)
+    #: why nothing was written this period although a temperature was read ('' if not)
+    held: str = ""
 
 
 def is_transient(exc: BaseException) -> bool:
@@ -646,6 +653,7 @@ class TemperatureAdapter:
         retries: int = 3,
         retry_delay: float = 0.1,
         write_unchanged: bool = False,
+        plausible: tuple[float, float] = PLAUSIBLE_C,
         sleep: Callable[[float], None] = time.sleep,
         clock: Callable[[], float] = time.perf_counter,
         transport: str | None = None,
@@ -668,6 +676,7 @@ class TemperatureAdapter:
         self.retries = retries
         self.retry_delay = retry_delay
         self.write_unchanged = write_unchanged
+        self.plausible = plausible
         self.sleep = sleep
         self.clock = clock
         self.transport = transport or transport_name(client)
@@ -715,6 +724,20 @@ class TemperatureAdapter:
             return result
         if not all(v is not None and math.isfinite(v) for v in temps.values()):
             log.error("t=%.3fs: temperature %r is not finite; nothing written", t, temps)
+            return result
+        low, high = self.plausible
+        wrong = {a: v for a, v in temps.items() if v is not None and not low <= v <= high}
+        if wrong:
+            # a broken wire reads the terminal's overrange value, a short its underrange
+            # one: derived from that the parameters would be nonsense, so the server keeps
+            # the ones of the last plausible reading (hold) until the sensor reads again
+            result.held = (
+                "implausible temperature "
+                + ", ".join(f"axis {a}: {v:g} °C" for a, v in sorted(wrong.items()))
+                + f" (outside {low:g} … {high:g} °C: sensor open or shorted?); holding the "
+                "parameters of the last plausible reading"
+            )
+            log.error("t=%.3fs: %s", t, result.held)
             return result
         for axis in self.axes:
             temp_axis = float(temps[axis])  # type: ignore[arg-type]
@@ -855,6 +878,17 @@ class TemperatureAdapter:
 # ============================================================================ the CLI
 
 
+def _range(text: str) -> tuple[float, float]:
+    low, sep, high = text.partition(":")
+    try:
+        pair = (float(low), float(high))
+    except ValueError:
+        pair = (math.nan, math.nan)
+    if not sep or not pair[0] < pair[1]:
+        raise argparse.ArgumentTypeError(f"expected MIN:MAX with MIN < MAX, not {text!r}")
+    return pair
+
+
 def _reference_positions(items: Sequence[str]) -> dict[int, float]:
     out: dict[int, float] = {}
     for item in items:
@@ -925,6 +959,14 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--tolerance", type=float, default=0.5, help="virtual intersection [0.1 µm]")
     w.add_argument("--decimals", type=int, default=4, help="coefficient decimals (default 4)")
     w.add_argument("--retries", type=int, default=3, help="retries of a transient failure")
+    w.add_argument(
+        "--plausible",
+        type=_range,
+        default=PLAUSIBLE_C,
+        metavar="MIN:MAX",
+        help="temperatures a sensor can read, °C (default -40:150); outside, nothing is "
+        "written (the server holds the last parameters)",
+    )
     w.add_argument("--activate", action="store_true", help="write TEMPC::activated TRUE first")
     w.add_argument("--log-file", metavar="FILE", help="append every write as a JSON line")
     w.add_argument(
@@ -1011,6 +1053,7 @@ def main(argv: list[str] | None = None) -> int:
             tolerance=args.tolerance,
             coefficient_decimals=args.decimals,
             retries=args.retries,
+            plausible=args.plausible,
             on_write=on_write,
         )
         if args.activate:

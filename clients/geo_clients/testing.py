@@ -309,6 +309,39 @@ class GeoTestServer:
             lambda s: s.machine.player is None or not s.machine.player.running, max_cycles
         )
 
+    # ------------------------------------------------------------------ faults
+
+    def inject(self, fault: str) -> dict[str, Any]:
+        """Inject a fault (docs/faults.md: `ads:error=0x707,count=2`, `sensor@X:stuck`,
+        …); returns it as `status()["faults"]` lists it (its `id` clears it)."""
+        # a sensor fault lands at the next cycle boundary: in stepped mode, now
+        result = self.service.inject_fault(fault)
+        if result["target"] == "sensor":
+            self.step(1)
+        return result
+
+    def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
+        """Clear fault `ident`, or every fault (None); returns those cleared."""
+        cleared = self.service.clear_faults(ident)
+        if any(f["target"] == "sensor" for f in cleared):
+            self.step(1)
+        return cleared
+
+    @contextlib.contextmanager
+    def fault(self, fault: str) -> Iterator[dict[str, Any]]:
+        """`with srv.fault("modbus:error=6"): …` — injected for the block, cleared after
+        it (unless its count was used up already)."""
+        injected = self.inject(fault)
+        try:
+            yield injected
+        finally:
+            if any(f["id"] == injected["id"] for f in self.service.faults.status()):
+                self.clear_faults(injected["id"])
+
+    def faults(self) -> list[dict[str, Any]]:
+        """The active faults, as `status()["faults"]`."""
+        return self.service.faults.status()
+
     def errors(self) -> list[dict[str, Any]]:
         return self.service.errors()
 

@@ -34,6 +34,8 @@ from geo_server.client.base import ObjectClient
 from geo_server.dictionary import COM_AMS_PORT, GEO_AMS_PORT, GROUPS, load_dictionary
 from geo_server.errors import AdsError
 
+#: AdsLib: no answer within the timeout (ADSERR_CLIENT_SYNCTIMEOUT)
+CLIENT_SYNCTIMEOUT = 0x745
 SUMUP_READ = 0xF080
 
 
@@ -94,18 +96,47 @@ class AdsClient(ObjectClient):
         self._pyads = pyads
         self.host, self.port, self.netid, self.ams_port = host, port, netid, ams_port
         self.dictionary = load_dictionary()
-        self.conn = pyads.Connection(netid, ams_port, f"{host}:{port}")
         #: the COM task (AMS port 553: the volumetric objects), opened when first used
         self._com: Any = None
         self._timeout = timeout
         self._lock = threading.Lock()
         self._notifications: dict[int, tuple[int, Any]] = {}
+        self._lost = False  # the connection failed: open a new one before the next request
+        self.reconnects = 0
+        self.conn = self._open(ams_port)
+
+    def _open(self, ams_port: int) -> Any:
+        conn = self._pyads.Connection(self.netid, ams_port, f"{self.host}:{self.port}")
         try:
-            self.conn.open()
-            self.conn.set_timeout(max(1, int(timeout * 1000)))
-        except pyads.ADSError as exc:
-            self.conn.close()
+            conn.open()
+            conn.set_timeout(max(1, int(self._timeout * 1000)))
+        except self._pyads.ADSError as exc:
+            conn.close()
             raise _ads_error(exc) from None
+        return conn
+
+    def _failed(self, err: int, what: str) -> Exception:
+        """The exception for AdsLib's return code `err`. A timeout or a broken socket
+        (AdsLib never reconnects by itself) marks the connection lost: the next request
+        opens a new one, as a TwinCAT router re-establishes its route. A lost socket is a
+        `ConnectionError`, a timeout stays ADS 0x745 (both transient for a retry)."""
+        if (err < 0 or err == CLIENT_SYNCTIMEOUT) and not self._notifications:
+            self._lost = True
+        if err < 0:
+            return ConnectionError(f"{what}: connection to {self.host}:{self.port} lost")
+        return AdsError(err, what)
+
+    def _reopen(self) -> None:
+        """Replace a lost connection (and the COM task's) before the next request."""
+        with contextlib.suppress(Exception):
+            close_port_first(self.conn)
+        if self._com is not None:
+            with contextlib.suppress(Exception):
+                close_port_first(self._com)
+            self._com = None
+        self.conn = self._open(self.ams_port)
+        self._lost = False
+        self.reconnects += 1
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -142,6 +173,8 @@ class AdsClient(ObjectClient):
     def _conn_for(self, index_group: int) -> Any:
         """The connection of the task that serves `index_group`: the COM task's objects
         (0x120100) are on AMS port 553 (004 p.19), everything else on the GEO port."""
+        if self._lost:
+            self._reopen()
         if index_group != GROUPS["com"]:
             return self.conn
         if self._com is None:
@@ -172,7 +205,7 @@ class AdsClient(ObjectClient):
             ctypes.pointer(got),
         )
         if err:
-            raise AdsError(err, f"read 0x{index_group:X}/0x{index_offset:X} failed")
+            raise self._failed(err, f"read 0x{index_group:X}/0x{index_offset:X} failed")
         return bytes(buf)[: got.value]
 
     def write_raw(self, index_group: int, index_offset: int, data: bytes) -> None:
@@ -187,7 +220,7 @@ class AdsClient(ObjectClient):
             ctypes.pointer(buf),
         )
         if err:
-            raise AdsError(err, f"write 0x{index_group:X}/0x{index_offset:X} failed")
+            raise self._failed(err, f"write 0x{index_group:X}/0x{index_offset:X} failed")
 
     def sum_read_raw(self, items: Sequence[tuple[int, int, int]]) -> list[bytes | AdsError]:
         """One sum read (0xF080) of (group, offset, length) items; per item bytes or the

@@ -259,6 +259,9 @@ def status_lines(st: dict[str, Any]) -> list[str]:
         lines.append("axes " + ", ".join(f"{a} {n}" for a, n in axes.items()))
     elif axes:
         lines.append("axes " + ", ".join(str(a) for a in axes))
+    faults = fault_lines(st.get("faults") or [])
+    if faults:
+        lines.append("FAULTS injected:\n" + faults)
     for rival in st.get("zenoh_rivals") or ():
         lines.append(f"WARNING: another server answers for this machine: {rival}")
     return lines
@@ -278,6 +281,46 @@ def _errors(sh: Shell) -> int:
         ident = f"[{e['error_id']}] " if e.get("error_id") else ""
         print(f"{cycle}{severity}{ident}{where}{e['message']}")
     return 0
+
+
+def _fault(sh: Shell) -> int:
+    args = sh.args
+    if args.action == "inject" and not args.spec:
+        print("error: fault inject needs a fault, e.g. ads:error=0x707,count=2", file=sys.stderr)
+        return 2
+    if args.action == "clear":
+        which: int | str = "all"
+        if args.spec and args.spec[0] != "all":
+            if not _is_int(args.spec[0]):
+                print(
+                    f"error: fault clear takes an id or 'all', not {args.spec[0]!r}",
+                    file=sys.stderr,
+                )
+                return 2
+            which = int(args.spec[0], 0)
+        result = sh.client.fault(clear=which)
+    elif args.action == "inject":
+        result = {"faults": []}
+        for spec in args.spec:
+            result = sh.client.fault(inject=spec)
+    else:
+        result = sh.client.fault()
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    for f in result.get("cleared") or ():
+        print(f"cleared fault {f['id']}: {f['fault']} ({f['hits']} hits)")
+    print(fault_lines(result.get("faults") or []) or "no active faults")
+    return 0
+
+
+def fault_lines(faults: list[dict[str, Any]]) -> str:
+    """Active faults, one line each: id, text, hits, what is left."""
+    return "\n".join(
+        f"fault {f['id']}: {f['fault']}  hits {f['hits']}"
+        + (f", {f['left']} left" if "left" in f else "")
+        for f in faults
+    )
 
 
 def _command(name: str) -> Callable[[Shell], int]:
@@ -308,7 +351,7 @@ _TARGET_HELP = (
     "several for read) or an ADS address GROUP OFFSET (0x120300 0x10043)"
 )
 #: Commands only the Zenoh interface offers.
-ZENOH_ONLY = frozenset({"nc", "reset"})
+ZENOH_ONLY = frozenset({"nc", "reset", "fault"})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -361,6 +404,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("save", help="save live TEMPC parameters").set_defaults(func=_command("save"))
     sub.add_parser("reset", help="CNC reset: stop the NC program and the axes (Zenoh)")
     sub.choices["reset"].set_defaults(func=_reset)
+    s = sub.add_parser(
+        "fault",
+        help="inject, clear or list faults (Zenoh; docs/faults.md)",
+        description="fault inject SPEC [SPEC …] | fault clear [ID|all] | fault list — e.g. "
+        "`fault inject ads:error=0x707,count=2`, `fault inject sensor@X:stuck`",
+    )
+    s.add_argument("action", choices=("inject", "clear", "list"))
+    s.add_argument("spec", nargs="*", help="faults to inject, or the id to clear")
+    s.set_defaults(func=_fault)
     sub.add_parser("objects", help="print the object dictionary").set_defaults(func=None)
     return p
 

@@ -51,7 +51,8 @@ def ads_error(code: int, obj: ObjectDef, axis: int, write: bool) -> AdsError:
             obj.name,
         )
     if code == ExcCode.DEVICE_BUSY:
-        return AdsError(AdsErrorCode.DEVICE_BUSY, f"{where}: write not applied in time", obj.name)
+        why = "device busy or write not applied in time" if write else "device busy"
+        return AdsError(AdsErrorCode.DEVICE_BUSY, f"{where}: {why} (Modbus exception 6)", obj.name)
     return AdsError(_GENERAL, f"{where}: Modbus exception {code}", obj.name)
 
 

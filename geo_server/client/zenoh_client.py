@@ -165,6 +165,10 @@ class ZenohClient(ObjectClient):
         for _zid, reply in replies:
             if reply.ok is not None:
                 out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            elif reply.err.payload.to_bytes() == b"Timeout":
+                # Zenoh's own error reply when the get's timeout ran out before the
+                # server answered (the server's errors are JSON): a timeout, transient
+                raise TimeoutError(f"no reply for {key} within {wait} s (the get timed out)")
             else:
                 raise _error(reply.err)
         if not out:
@@ -230,6 +234,19 @@ class ZenohClient(ObjectClient):
 
     def save(self) -> dict[str, Any]:
         result: dict[str, Any] = json.loads(self._one(f"cnc/{self.machine}/cmd/save", b"{}", JSON))
+        return result
+
+    def fault(self, inject: str | None = None, clear: int | str | None = None) -> dict[str, Any]:
+        """`cmd/fault` (docs/faults.md): inject a fault (`"ads:error=0x707,count=2"`),
+        clear one by id or `"all"`, or (neither) list them; the reply lists the active
+        faults under `faults`."""
+        body: dict[str, Any] = {}
+        if inject is not None:
+            body["inject"] = inject
+        if clear is not None:
+            body["clear"] = clear
+        key = f"cnc/{self.machine}/cmd/fault"
+        result: dict[str, Any] = json.loads(self._one(key, json.dumps(body).encode(), JSON))
         return result
 
     def measure(self, plan: dict[str, Any], timeout: float | None = None) -> dict[str, Any]:

@@ -41,6 +41,7 @@ from geo_server.machine.port import (
     Record,
     Reload,
     Reset,
+    SensorFault,
     StartProgram,
     VolcUpdate,
     WriteObjects,
@@ -448,6 +449,9 @@ class Machine:
             case VolcUpdate(ident, comp):
                 self.volc.update(ident, comp)
                 self.volc_index = ident
+                return None
+            case SensorFault(sensor, kind, sigma):
+                self.twin.set_sensor_fault(sensor, kind, sigma)
                 return None
         raise TypeError(f"not a machine operation: {op!r}")
 

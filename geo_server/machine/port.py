@@ -81,7 +81,17 @@ class VolcUpdate:
     comp: Any
 
 
-Operation = WriteObjects | StartProgram | Reset | Reload | Record | VolcUpdate
+@dataclass(frozen=True)
+class SensorFault:
+    """Injected fault of the twin's sensor `sensor` (geo_server/faults.py): "stuck",
+    "noisy" (σ = `sigma` °C more noise), "open", or "" to clear it."""
+
+    sensor: int
+    kind: str
+    sigma: float = 0.0
+
+
+Operation = WriteObjects | StartProgram | Reset | Reload | Record | VolcUpdate | SensorFault
 
 
 # ---------------------------------------------------------------------- pending

@@ -74,6 +74,8 @@ IDLE_WAKE = 0.1
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)
 SYNC_WAIT = 0.25
+#: `_next_overrun` while no overrun is injected: a cycle never reached
+_NEVER = 1 << 62
 
 
 class CycleStats:
@@ -186,10 +188,52 @@ class Scheduler:
         self._summary: tuple[int, dict[str, float]] = (-1, {})
         self._punctual = 0
         self._here = False  # the exact loop runs in the caller's thread (`run_here`)
+        # an injected overrun (geo_server/faults.py): after cycle `_next_overrun` the
+        # time line slips by `_overrun_cycles` periods, every `_overrun_every` cycles
+        self._next_overrun = _NEVER
+        self._overrun_cycles = 0
+        self._overrun_every = 0
+        self._on_overrun: Callable[[], bool] | None = None
 
     @property
     def period_ns(self) -> int:
         return round(self.machine.cycle_s * 1e9)
+
+    # ------------------------------------------------------------------ injected overruns
+
+    def set_overrun(
+        self, cycles: int, every: int, on_overrun: Callable[[], bool] | None = None
+    ) -> None:
+        """Inject GEO-cycle overruns (docs/faults.md): from now on every `every`-th
+        cycle overruns by `cycles` periods — the next cycle starts that much late, the
+        cycles in between are lost (counted in `overruns` and `skipped_cycles`), as a
+        TwinCAT task that exceeds its cycle. Both real-time engines slip their time line
+        the same way, so every observer sees the same thing; stepped and free-running
+        cycles have no time line and only count. `on_overrun` is called at each one
+        and ends them by returning False. `cycles` 0 ends them now."""
+        with self._engine_lock:
+            if cycles <= 0 or every <= 0:
+                self._next_overrun, self._on_overrun = _NEVER, None
+            else:
+                self._overrun_cycles, self._overrun_every = cycles, every
+                self._on_overrun = on_overrun
+                self._next_overrun = self.machine.cycle + every
+        self._wake.set()
+
+    def _overrun(self) -> int:
+        """At the boundary after cycle `_next_overrun`: count the overrun and return the
+        periods the time line slips (0 when the fault is used up)."""
+        if self._on_overrun is not None and not self._on_overrun():
+            self._next_overrun, self._on_overrun = _NEVER, None
+            return 0
+        k = self._overrun_cycles
+        m = self.machine
+        m.overruns += 1
+        self.skipped += k
+        self._next_overrun += self._overrun_every
+        if self.mode == "realtime":
+            m.epoch += k * m.period_ticks  # the stamps keep naming their cycle's wall time
+        return k
 
     # ------------------------------------------------------------------ control
 
@@ -245,6 +289,8 @@ class Scheduler:
         if self.running:
             raise RuntimeError("step() needs the stepped mode (the cycle thread is running)")
         for _ in range(n):
+            if self.machine.cycle >= self._next_overrun:
+                self._overrun()  # counted; stepped cycles have no time to lose
             t0 = time.perf_counter_ns()
             self.machine.run_cycle()
             self.stats.record(
@@ -352,11 +398,19 @@ class Scheduler:
         every = self._every
         rec, clock = self.stats.record, time.perf_counter_ns
         while m.cycle < target and not self._stop.is_set():
+            if m.cycle >= self._next_overrun:
+                slip = self._overrun()
+                self.t0 += slip * self.period_ns
+                target -= slip  # the cycle due now, on the slipped time line
+                continue
+            stop_at = min(target, self._next_overrun)
             if m.quiescent:
                 try:
                     if not every:
-                        m.skip(target - m.cycle)
-                        break
+                        m.skip(stop_at - m.cycle)
+                        if stop_at == target:
+                            break
+                        continue
                     m.skip(1)
                     m.publish()
                 except Exception:  # as `_guarded_cycle`: logged, counted, time goes on
@@ -366,9 +420,9 @@ class Scheduler:
                 continue
             t0 = clock()
             before = m.cycle
-            if not every and target - before >= 2 and self.before_cycle is None:
+            if not every and stop_at - before >= 2 and self.before_cycle is None:
                 # a steady stretch in one pass (docs/design.md §13.2), else single cycles
-                done = self._batch(target - before)
+                done = self._batch(stop_at - before)
                 if done:
                     self.computed += done
                     rec(0.0, (clock() - t0) / 1000 / done, m.kernel_ns / 1000)
@@ -450,6 +504,7 @@ class Scheduler:
                     target = self._reachable(self.due())
                 while True:
                     with self._engine_lock:
+                        target = min(target, self.due())  # an overrun slipped the time line
                         before = m.cycle
                         step = target if m.quiescent else min(target, m.cycle + self.batch)
                         self.advance(step, publish=self.waiter is not None and step == target)
@@ -476,6 +531,8 @@ class Scheduler:
     def _run_free(self) -> None:
         rec, clock = self.stats.record, time.perf_counter_ns
         while not self._stop.is_set() and not self._done():
+            if self.machine.cycle >= self._next_overrun:
+                self._overrun()
             t0 = clock()
             self._guarded_cycle()
             rec(0.0, (clock() - t0) / 1000, self.machine.kernel_ns / 1000)
@@ -513,6 +570,9 @@ class Scheduler:
                 # names its cycle; after an overrun they trail wall time by the cycles
                 # given up, which status reports as skipped_cycles)
                 deadline = now
+            if self.machine.cycle >= self._next_overrun:
+                deadline += self._overrun() * period
+                continue
             t0 = time.perf_counter_ns()
             self._guarded_cycle()
             self.stats.record(

@@ -28,6 +28,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from geo_server.faults import OPEN_CIRCUIT_C
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.twin.model import AxisTwin, Curve, Grid, RigidBody, TwinConfig
 from geo_server.twin.volumetric import rigid_tables
@@ -233,6 +234,9 @@ class TwinEngine:
                 self.axis_sensor[slot[s.axis]] = k
         self.sensor_temperature = np.full(n, self.t_ref)
         self._next_sample = 0.0 if sensors else math.inf
+        #: injected sensor faults (geo_server/faults.py): "", "stuck", "noisy", "open"
+        self.sensor_fault = [""] * len(sensors)
+        self.sensor_extra_noise = np.zeros(len(sensors))  # σ a "noisy" fault adds
         self._vsum = np.zeros(n)
         self._line_a = np.zeros(n)
         self._line_b = np.zeros(n)
@@ -501,11 +505,18 @@ class TwinEngine:
     def _sample_sensors(self) -> None:
         due = self.sensor_due <= self.time
         k = np.nonzero(due)[0]
-        noise = self._rng.normal(size=len(k)) * self.sensor_noise[k]
-        raw = self.node_temp[self.sensor_node[k]] + noise
-        self.sensor_value[k] = [
-            _quantize(v, r) for v, r in zip(raw, self.sensor_res[k], strict=True)
-        ]
+        # a noisy fault widens the sensor's own noise (the same draws: the random stream
+        # stays the one of a sound sensor)
+        sigma = np.hypot(self.sensor_noise[k], self.sensor_extra_noise[k])
+        raw = self.node_temp[self.sensor_node[k]] + self._rng.normal(size=len(k)) * sigma
+        values = [_quantize(v, r) for v, r in zip(raw, self.sensor_res[k], strict=True)]
+        for j, s in enumerate(k):
+            fault = self.sensor_fault[s]
+            if fault == "stuck":
+                values[j] = self.sensor_value[s]  # the reading it had when it stuck
+            elif fault == "open":
+                values[j] = OPEN_CIRCUIT_C
+        self.sensor_value[k] = values
         # the next sample one period after the one due (never drifting with dt)
         self.sensor_due[k] += self.sensor_period[k] * np.ceil(
             (self.time - self.sensor_due[k]) / self.sensor_period[k] + 1e-12
@@ -513,6 +524,34 @@ class TwinEngine:
         self._next_sample = float(self.sensor_due.min())
         has = self.axis_sensor >= 0
         self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+
+    # ------------------------------------------------------------------ faults
+
+    def sensor_index(self, label: str) -> int:
+        """The sensor a fault names (docs/faults.md): a sensor name, or the axis (name
+        or slot number from 1) whose `TWIN::sensor_temperature` it feeds."""
+        low = label.strip().lower()
+        names = [n.lower() for n in self.sensor_names]
+        if low in names:
+            return names.index(low)
+        slot = self.names.index(low.upper()) if low.upper() in self.names else -1
+        if slot < 0 and low.isdigit() and 1 <= int(low) <= len(self.names):
+            slot = int(low) - 1
+        if slot >= 0 and self.axis_sensor[slot] >= 0:
+            return int(self.axis_sensor[slot])
+        known = ", ".join(self.sensor_names) or "none: the machine has no twin sensors"
+        raise LookupError(f"no twin sensor {label!r} (sensors: {known}; or an axis with one)")
+
+    def set_sensor_fault(self, k: int, kind: str, sigma: float = 0.0) -> None:
+        """Make sensor `k` stuck, noisy (σ °C more noise) or open from its next sample
+        on ("" clears it: the next sample reads the node again). An open circuit shows
+        at once, as an input terminal reports a broken wire."""
+        self.sensor_fault[k] = kind
+        self.sensor_extra_noise[k] = sigma if kind == "noisy" else 0.0
+        if kind == "open":
+            self.sensor_value[k] = OPEN_CIRCUIT_C
+            has = self.axis_sensor >= 0
+            self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
 
     # ------------------------------------------------------------------ reload
 
@@ -528,6 +567,8 @@ class TwinEngine:
             if name in old.sensor_names:
                 j = old.sensor_names.index(name)
                 self.sensor_value[k], self.sensor_due[k] = old.sensor_value[j], old.sensor_due[j]
+                self.sensor_fault[k] = old.sensor_fault[j]  # a reload does not mend a wire
+                self.sensor_extra_noise[k] = old.sensor_extra_noise[j]
         self._next_sample = float(self.sensor_due.min()) if len(self.sensor_due) else math.inf
         has = self.axis_sensor >= 0
         self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]

@@ -164,6 +164,7 @@ class AdsStats:
     requests: int = 0
     errors: int = 0  # responses with a non-zero result
     dropped_frames: int = 0
+    faulted: int = 0  # requests an injected fault dropped, answered, delayed or cut off
     closed_for_framing: int = 0
     notifications_sent: int = 0
     notifications_dropped: int = 0
@@ -370,6 +371,13 @@ class AdsServer:
             device.handle_packet(conn, packet)
             return
         self.stats.requests += 1
+        if self.service.faults.active and self._faulted(conn, packet):
+            return
+        self.serve_packet(conn, packet)
+
+    def serve_packet(self, conn: AdsConnection, packet: AmsPacket) -> None:
+        """Answer one request addressed to this device (no fault decided any more)."""
+        h = packet.header
         if self.options.strict_netid and h.target.netid != self.options.netid:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
@@ -386,6 +394,50 @@ class AdsServer:
             self._answer(conn, h, lambda: self._dispatch(conn, packet))
         finally:
             REQUEST_PORT.reset(token)
+
+    # ------------------------------------------------------------------ injected faults
+
+    def _faulted(self, conn: AdsConnection, packet: AmsPacket) -> bool:
+        """Carry out the injected fault that hits this request, if any (docs/faults.md):
+        True when the request is dealt with (dropped, answered with the error, its
+        connection closed, or delayed to be served later)."""
+        op, name = self._fault_target(conn, packet)
+        fault = self.service.faults.decide("ads", op, name)
+        if fault is None:
+            return False
+        h = packet.header
+        self.stats.faulted += 1
+        if fault.kind == "drop":
+            return True
+        if fault.kind == "disconnect":
+            conn.abort()
+            return True
+        if fault.kind == "error":
+            self._respond(conn, h, error_payload(h.command, int(fault.value)))
+            return True
+
+        async def later() -> None:
+            await asyncio.sleep(fault.value / 1000)
+            if conn.transport is not None and not conn.transport.is_closing():
+                self.serve_packet(conn, packet)
+
+        conn.spawn(later())
+        return True
+
+    def _fault_target(self, conn: AdsConnection, packet: AmsPacket) -> tuple[str, str]:
+        """("read" | "write", object name or "") of a request, for the faults' filters:
+        a write is a Write (also by handle) or a sum write; a ReadWrite otherwise reads
+        (by name, handles, sum reads)."""
+        write = packet.header.command == Command.WRITE
+        name = ""
+        with contextlib.suppress(Exception):  # an unparsable request has no name
+            req = codec.parse_request(packet)
+            if isinstance(req, ReadWriteRequest):
+                write = req.index_group in (SumGroup.WRITE, SumGroup.READ_WRITE)
+            elif isinstance(req, ReadRequest | WriteRequest):
+                ig, io = self._address(conn, req.index_group, req.index_offset)
+                name = self.service.resolve(ig, io)[0].name
+        return ("write" if write else "read"), name
 
     def _answer(self, conn: AdsConnection, h: AmsHeader, handler: Callable[[], Reply]) -> None:
         """Run `handler`, turning its exceptions into the command's error payload."""

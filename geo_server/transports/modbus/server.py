@@ -38,6 +38,7 @@ from typing import Any
 import geo_server
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError
+from geo_server.faults import Fault
 from geo_server.service import ObjectService
 from geo_server.transports.modbus.codec import (
     DeviceIdRequest,
@@ -69,6 +70,10 @@ log = logging.getLogger(__name__)
 
 #: Highest unit id a Modbus device can have.
 MAX_UNIT = 255
+
+
+class DropConnection(Exception):
+    """An injected `disconnect` fault: the connection is cut instead of answered."""
 
 
 @dataclass
@@ -123,6 +128,7 @@ class ModbusInterface:
         self._device = device_objects()
         self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
         self.requests = 0
+        self.faulted = 0  # requests an injected fault dropped, answered, delayed or cut off
         self.closed_for_framing = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -156,8 +162,52 @@ class ModbusInterface:
     # ------------------------------------------------------------------ requests
 
     def handle(self, frame: Frame) -> bytes | Awaitable[bytes]:
-        """The reply ADU to one request: bytes now (reads), or an awaitable (writes)."""
+        """The reply ADU to one request: bytes now (reads), or an awaitable (writes);
+        an injected fault (docs/faults.md) may make it empty bytes (no reply), an
+        exception reply, a delayed one, or an awaitable that raises `DropConnection`."""
         self.requests += 1
+        faults = self.service.faults
+        if faults.active:
+            fault = faults.decide("modbus", *self._fault_target(frame))
+            if fault is not None:
+                self.faulted += 1
+                return self._faulted(frame, fault)
+        return self.serve(frame)
+
+    def _fault_target(self, frame: Frame) -> tuple[str, str]:
+        """("read" | "write", name of the first object addressed or "")."""
+        req = parse_pdu(frame.pdu)
+        um = self.unit_maps.get(frame.unit)
+        name = ""
+        if um is not None and isinstance(req, ReadRequest | WriteRequest):
+            entry = um.registers.get(req.address)
+            if req.function in (1, 2, 5, 15):  # bits: coils and discrete inputs
+                bit = um.bits(Table.COILS if req.function != 2 else Table.DISCRETE_INPUTS)
+                name = bit[req.address].name if req.address in bit else ""
+            elif entry is not None:
+                name = entry[0].name
+        return ("write" if isinstance(req, WriteRequest) else "read"), name
+
+    def _faulted(self, frame: Frame, fault: Fault) -> bytes | Awaitable[bytes]:
+        fc = frame.pdu[0] if frame.pdu else 0
+        if fault.kind == "drop":
+            return b""
+        if fault.kind == "error":
+            code = int(fault.value)
+            exc = code if code < 0x100 else exception_for(AdsError(code, "injected fault"))
+            return adu(frame.transaction, frame.unit, exception_pdu(fc, exc))
+
+        async def later() -> bytes:
+            if fault.kind == "disconnect":
+                raise DropConnection
+            await asyncio.sleep(fault.value / 1000)
+            reply = self.serve(frame)
+            return reply if isinstance(reply, bytes) else await reply
+
+        return later()
+
+    def serve(self, frame: Frame) -> bytes | Awaitable[bytes]:
+        """The reply to one request (no fault decided any more)."""
         req = parse_pdu(frame.pdu)
         fc = frame.pdu[0] if frame.pdu else 0
         try:
@@ -312,6 +362,9 @@ class ModbusConnection(asyncio.Protocol):
                     self._paused = False
                     if self.transport is not None and not self.transport.is_closing():
                         self.transport.resume_reading()
+        except DropConnection:  # an injected fault: cut the connection, answer nothing
+            self._queue.clear()
+            self.abort()
         except Exception:  # a defect: answer nothing more on this connection
             log.exception("modbus: request failed; closing %s", self.peer)
             self._queue.clear()
@@ -324,7 +377,7 @@ class ModbusConnection(asyncio.Protocol):
     # helpers
 
     def _send(self, data: bytes) -> None:
-        if self.transport is not None and not self.transport.is_closing():
+        if data and self.transport is not None and not self.transport.is_closing():
             self.transport.write(data)
 
     def _watch_unfinished(self, progress: bool) -> None:

@@ -8,6 +8,7 @@
     cnc/<m>/nc                          execute NC lines (get with payload)
     cnc/<m>/cmd/reload, cmd/save        commands (get with payload)
     cnc/<m>/cmd/reset, cmd/measure      (measure: a JSON test plan, docs/twin.md)
+    cnc/<m>/cmd/fault                   inject, clear, list faults (JSON, docs/faults.md)
     cnc/<m>/status, cnc/<m>/errors      JSON
     cnc/<m>/alive                       liveliness token
 
@@ -38,7 +39,8 @@ GEO_PORT = GEO_AMS_PORT
 class Route:
     """What a concrete key addresses."""
 
-    #: "raw" | "named" | "nc" | "reload" | "save" | "reset" | "measure" | "status" | "errors"
+    #: "raw" | "named" | "nc" | "reload" | "save" | "reset" | "measure" | "fault" | "status"
+    #: | "errors"
     kind: str
     obj: ObjectDef | None = None
     axis: int = 0
@@ -64,6 +66,7 @@ class KeySpace:
             f"{self.prefix}/cmd/save": Route("save"),
             f"{self.prefix}/cmd/reset": Route("reset"),
             f"{self.prefix}/cmd/measure": Route("measure"),
+            f"{self.prefix}/cmd/fault": Route("fault"),
             f"{self.prefix}/status": Route("status"),
             f"{self.prefix}/errors": Route("errors"),
         }

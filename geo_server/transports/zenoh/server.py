@@ -34,6 +34,7 @@ import zenoh
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
+from geo_server.faults import FaultError
 from geo_server.service import ObjectService, check_readable
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
@@ -214,6 +215,7 @@ class ZenohInterface:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: list[Any] = []
         self.queries = 0
+        self.faulted = 0  # queries an injected fault dropped, answered or delayed
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
         #: Other sessions found answering for this machine: key (their Zenoh id, or
@@ -326,6 +328,8 @@ class ZenohInterface:
                     AdsErrorCode.DEVICE_INVALIDSIZE,
                     f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}",
                 )
+            if self.service.faults.active and await self._faulted(query, key, payload):
+                return
             if "*" in key:
                 if payload is not None:
                     raise AdsError(
@@ -342,6 +346,32 @@ class ZenohInterface:
             query.reply_err(_error_payload(err), encoding=JSON)
         finally:
             query.drop()
+
+    async def _faulted(self, query: zenoh.Query, key: str, payload: bytes | None) -> bool:
+        """Carry out the injected fault that hits this query (docs/faults.md): True when
+        it is dealt with (dropped: the get ends without a reply; or answered with a
+        `reply_err`); a delay sleeps, then the query is served (False). The fault
+        command and the status are exempt: a fault can always be seen and cleared."""
+        name, route = "", None
+        if "*" not in key:
+            with contextlib.suppress(AdsError):
+                route = self.keys.parse(key)
+                name = route.obj.name if route.obj is not None else ""
+        if route is not None and route.kind in ("fault", "status"):
+            return False
+        op = "read" if payload is None else "write"
+        fault = self.service.faults.decide("zenoh", op, name)
+        if fault is None:
+            return False
+        self.faulted += 1
+        if fault.kind == "drop":
+            return True
+        if fault.kind == "error":
+            err = AdsError(int(fault.value), f"injected fault {fault.ident}: {fault.text}")
+            query.reply_err(_error_payload(err), encoding=JSON)
+            return True
+        await asyncio.sleep(fault.value / 1000)
+        return False
 
     def _answer_wildcard(self, query: zenoh.Query) -> None:
         """One reply per readable key the wildcard matches, all from one snapshot.
@@ -433,6 +463,9 @@ class ZenohInterface:
             # minutes of motion: in a worker thread, the loop keeps serving everyone else
             outcome = await asyncio.to_thread(svc.measure, spec)
             query.reply(key, json.dumps(outcome).encode(), encoding=JSON)
+        elif route.kind == "fault":
+            body = await asyncio.to_thread(fault_command, svc, payload)
+            query.reply(key, json.dumps(body).encode(), encoding=JSON)
         elif route.kind == "reset":
             cycle = await svc.reset_applied()
             body = {"ok": True, "command": "reset", "cycle": cycle}
@@ -670,6 +703,34 @@ class ZenohInterface:
 #: the publish loop looks at the matching status at least this often (seconds) while
 #: nobody listens; the matching listener wakes it at once in the normal case
 WATCH_RECHECK_S = 1.0
+
+
+def fault_command(service: ObjectService, payload: bytes) -> dict[str, Any]:
+    """`cmd/fault` (docs/faults.md): `{"inject": "<fault>"}`, `{"clear": <id> | "all"}`
+    or `{}` (list). Answers `{"ok": true, …, "faults": [the active ones]}`; a fault that
+    cannot be injected or cleared is 0x70B with the reason."""
+    try:
+        body = json.loads(payload or b"{}")
+    except ValueError:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, "cmd/fault: payload is not JSON") from None
+    if not isinstance(body, dict) or not set(body) <= {"inject", "clear"}:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDPARM,
+            'cmd/fault: expected {"inject": "<fault>"}, {"clear": <id> | "all"} or {}',
+        )
+    out: dict[str, Any] = {"ok": True, "command": "fault"}
+    try:
+        if "inject" in body:
+            out["injected"] = service.inject_fault(str(body["inject"]))
+        if "clear" in body:
+            which = body["clear"]
+            if which != "all" and (isinstance(which, bool) or not isinstance(which, int)):
+                raise FaultError(f'cmd/fault: clear takes a fault id or "all", not {which!r}')
+            out["cleared"] = service.clear_faults(None if which == "all" else which)
+    except FaultError as exc:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc)) from None
+    out["faults"] = service.faults.status()
+    return out
 
 
 def _matching(publisher: zenoh.Publisher) -> bool:

@@ -27,6 +27,7 @@ from geo_server.interfaces import (
     start_failure,
 )
 from geo_server.paths import default_startup_list
+from geo_server.recorder import cli as recorder_cli
 
 
 def _objects(args: argparse.Namespace) -> int:
@@ -144,6 +145,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.fleet or args.fleet_size:
         from geo_server.fleet import run_fleet
 
+        if args.record:
+            print("error: --record records one machine; not with a fleet", file=sys.stderr)
+            return 2
+
         return run_fleet(args)
     from geo_server.listfile import ListFileError, load_machine
     from geo_server.machine.machine import Machine
@@ -186,6 +191,8 @@ def _run(args: argparse.Namespace) -> int:
     service = ObjectService(machine, scheduler)
     if not inject_faults(args.fault, service):
         return 2
+    if not recorder_cli.start_from_args(args, service):
+        return 2
     if args.program:
         try:
             machine.start_program(Path(args.program).read_text(encoding="utf-8"))
@@ -199,6 +206,7 @@ def _run(args: argparse.Namespace) -> int:
         flush=True,
     )
     code = serve(_serve(args, service, scheduler), scheduler.stop)
+    recorder_cli.finish(service)
     if code == 0:
         print(f"stopped after {machine.cycle} cycles")
     return code
@@ -311,6 +319,9 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 )
             if program is not None:
                 program.update()
+            recording = getattr(service, "recording", None)
+            if recording is not None and recording.done:  # its trigger's samples are in
+                recorder_cli.finish(service)
             if loop.time() < next_status and not finished:
                 continue
             next_status = loop.time() + args.status_period
@@ -528,6 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="UDP port of ADS discovery and add-route (default 48899, 0: off)",
     )
     a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
+    recorder_cli.add_run_arguments(r)
     r.set_defaults(func=_run)
 
     ms = sub.add_parser(
@@ -540,6 +552,9 @@ def build_parser() -> argparse.ArgumentParser:
     from geo_server import commissioning
 
     commissioning.add_arguments(ms)
+
+    recorder_cli.add_replay_parser(sub)
+    recorder_cli.add_compare_parser(sub)
 
     mm = sub.add_parser("modbus-map", help="print the Modbus register map")
     mm.add_argument("--format", choices=("md", "csv"), default="md")

@@ -63,6 +63,8 @@ from geo_server.machine.port import (
 )
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.paths import is_packaged_data
+from geo_server.recorder import Recorder, RecordSpec, SelectionError, TraceFileError
+from geo_server.recorder.inputs import inputs_path, save_inputs
 from geo_server.snapshot import Snapshot
 from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
 from geo_server.volcomp.config import reload_compensation
@@ -176,6 +178,9 @@ class ObjectService:
         self._started_at = 0.0
         #: injected faults (docs/faults.md); the transports ask `faults.decide`
         self.faults = Faults()
+        #: the recording a command started (docs/recorder.md §7) and where it goes
+        self.recording: Recorder | None = None
+        self._recording_out = Path("geo-trace.csv")
 
     # ------------------------------------------------------------------ state
 
@@ -500,6 +505,8 @@ class ObjectService:
         st["stalled_for_s"] = round(stalled, 3)
         st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
         st["faults"] = self.faults.status()
+        if self.recording is not None:
+            st["recording"] = {**self.recording.status(), "file": str(self._recording_out)}
         st.update(self.status_extra)
         return st
 
@@ -550,6 +557,43 @@ class ObjectService:
         added = self.faults.add(f)
         self._settle_op(SensorFault(k, f.kind, f.value))
         return added.as_dict()
+
+    # ------------------------------------------------------------------ recording
+
+    def start_recording(
+        self, spec: RecordSpec | dict[str, Any], out: str | Path = "geo-trace.csv", name: str = ""
+    ) -> dict[str, Any]:
+        """Start recording `spec` (docs/recorder.md); `out` (CSV or .parquet, the
+        inputs beside it as `<stem>.inputs.jsonl`) is written by `stop_recording`. One
+        recording at a time: another one is refused with 0x708."""
+        if self.recording is not None:
+            raise AdsError(
+                AdsErrorCode.DEVICE_BUSY, "a recording runs already: stop it first", "record"
+            )
+        try:
+            if isinstance(spec, dict):
+                spec = RecordSpec.from_json(spec)
+            self.recording = Recorder(self, spec, name).start()
+        except (SelectionError, ValueError) as exc:
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc), "record") from None
+        self._recording_out = Path(out)
+        return {**self.recording.status(), "file": str(self._recording_out)}
+
+    def stop_recording(self) -> dict[str, Any]:
+        """Stop the recording and write its trace and inputs; what was written."""
+        rec, self.recording = self.recording, None
+        if rec is None:
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDSTATE, "no recording runs", "record")
+        trace = rec.stop()
+        out = self._recording_out
+        try:
+            trace.save(out)
+            inputs = save_inputs(rec.inputs, inputs_path(out))
+        except (OSError, TraceFileError) as exc:
+            raise AdsError(
+                AdsErrorCode.DEVICE_ERROR, f"cannot write {out}: {exc}", "record"
+            ) from None
+        return {**rec.status(), "rows": len(trace), "file": str(out), "inputs_file": str(inputs)}
 
     def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
         """Clear fault `ident` (None: every fault) and undo what it did: overruns stop,
@@ -619,7 +663,7 @@ class ObjectService:
         except NcError as exc:
             raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
         self._refuse_when_stalled()
-        return self.scheduler.submit(StartProgram(prog, True))
+        return self.scheduler.submit(StartProgram(prog, True, text))
 
     async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
         """`run_nc` parsed in a worker thread; returns the cycle that started it."""

@@ -33,9 +33,12 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (3, ("geo_server.twin",)),
     (3, ("geo_server.volcomp",)),
     (4, ("geo_server.machine",)),
+    (4, ("geo_server.recorder",)),  # records from a service it is handed (duck-typed)
     (5, ("geo_server.service",)),
     (6, ("geo_server.transports",)),
     (6, ("geo_server.client",)),
+    (6, ("geo_server.recorder.replay",)),  # builds its own stepped machine and service
+    (7, ("geo_server.recorder.cli",)),
     (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
     (8, ("geo_clients",)),
 ]

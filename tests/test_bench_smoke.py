@@ -81,3 +81,14 @@ def test_bench_volcomp_prints_its_table():
     )
     assert r.returncode == 0, r.stderr
     assert "| added per cycle (target ≤ 30 µs) |" in r.stdout, r.stdout
+
+
+def test_bench_recorder_prints_its_table():
+    r = subprocess.run(
+        [sys.executable, str(BENCH / "recorder.py"), "--cycles", "400"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "| cycle, recording 20 values every cycle |" in r.stdout, r.stdout

@@ -37,7 +37,8 @@ from typing import Any
 
 import pytest
 
-from geo_clients.testing import VIAS, GeoTestServer, GeoView
+from geo_clients.testing import VIAS, GeoTestServer, GeoView, check_golden
+from geo_server.recorder import Comparison, Trace
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -47,6 +48,11 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         choices=VIAS,
         default="service",
         help="transport of the `geo` fixture (default: service, in-process)",
+    )
+    group.addoption(
+        "--geo-update-golden",
+        action="store_true",
+        help="geo_golden writes the traces as the new golden ones instead of comparing",
     )
     group.addoption(
         "--geo-startup",
@@ -108,6 +114,20 @@ def geo_server_factory() -> Iterator[Callable[..., GeoTestServer]]:
 
 
 @pytest.fixture
+def geo_golden(request: pytest.FixtureRequest) -> Callable[..., Comparison | None]:
+    """`geo_golden(trace, "golden/warmup.csv", ["TEMPC::*=0.5"])`: hold a recorded trace
+    to a golden one (relative paths: beside the test file); `--geo-update-golden` writes
+    the new ones (`geo_clients.testing.check_golden`)."""
+    update = bool(request.config.getoption("--geo-update-golden", default=False))
+    here = Path(request.node.path).parent
+
+    def check(trace: Trace, path: str | Path, tolerances: Any = (), **kw: Any) -> Any:
+        return check_golden(trace, here / path, tolerances, update=update, **kw)
+
+    return check
+
+
+@pytest.fixture
 def geo_via(request: pytest.FixtureRequest) -> str:
     """The transport of `geo` (`--geo-via`, or parametrize `geo_via`)."""
     return str(request.config.getoption("--geo-via", default="service"))
@@ -122,4 +142,4 @@ def geo(geo_server: GeoTestServer, geo_via: str) -> GeoView:
     return geo_server.via(geo_via)
 
 
-__all__ = ["geo", "geo_server", "geo_server_factory", "geo_via"]
+__all__ = ["geo", "geo_golden", "geo_server", "geo_server_factory", "geo_via"]

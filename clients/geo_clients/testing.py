@@ -30,7 +30,7 @@ import contextlib
 import itertools
 import math
 import threading
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,8 @@ from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
+from geo_server.recorder import Comparison, Recorder, RecordSpec, Trace, compare, load_trace
+from geo_server.recorder.compare import Tolerance
 from geo_server.service import ObjectService
 from geo_server.snapshot import Snapshot
 
@@ -129,6 +131,7 @@ class GeoTestServer:
         self._thread: threading.Thread | None = None
         self._interfaces: dict[str, Any] = {}
         self._clients: dict[str, GeoClient] = {"service": ServiceClient(self.service)}
+        self._recorders: list[Recorder] = []
         self._closed = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -144,6 +147,8 @@ class GeoTestServer:
         if self._closed:
             return
         self._closed = True
+        for rec in self._recorders:
+            rec.stop()
         for via, client in list(self._clients.items()):
             if via != "service":
                 with contextlib.suppress(Exception):
@@ -309,6 +314,24 @@ class GeoTestServer:
             lambda s: s.machine.player is None or not s.machine.player.running, max_cycles
         )
 
+    # ------------------------------------------------------------------ recording
+
+    def record(
+        self,
+        *objects: str,
+        every: int = 1,
+        trigger: str | None = None,
+        pre: int = 0,
+        post: int = 1000,
+    ) -> Recorder:
+        """Start recording `objects` (selectors of docs/recorder.md: `TEMPC::*`,
+        `SIM::command_position@1`, `0x120300:0x10043`) every `every` cycles, and the
+        inputs; `.stop()` returns the `Trace` (`.inputs`: what to replay)."""
+        spec = RecordSpec(list(objects), every, trigger, pre, post)
+        rec = Recorder(self.service, spec, self.machine_name).start()
+        self._recorders.append(rec)
+        return rec
+
     # ------------------------------------------------------------------ faults
 
     def inject(self, fault: str) -> dict[str, Any]:
@@ -352,6 +375,32 @@ class GeoTestServer:
 
     def write(self, name: str, axis: int | str, value: Any, via: str = "service") -> Any:
         return self.via(via).write(name, axis, value)
+
+
+def check_golden(
+    trace: Trace,
+    path: str | Path,
+    tolerances: Iterable[str | Tolerance] = (),
+    *,
+    default: float = 0.0,
+    update: bool = False,
+) -> Comparison | None:
+    """Hold `trace` to the golden trace at `path` (docs/recorder.md §6): an
+    `AssertionError` with the readable diff when they differ. `update` (pytest
+    `--geo-update-golden`) writes `trace` as the new golden one instead. A golden file
+    that does not exist yet is written and the check fails once, so that a new golden
+    trace is looked at before it is trusted."""
+    p = Path(path)
+    if update or not p.exists():
+        p.parent.mkdir(parents=True, exist_ok=True)
+        trace.save(p)
+        if update:
+            return None
+        raise AssertionError(f"{p}: no golden trace yet; written now — check it, then rerun")
+    result = compare(load_trace(p), trace, list(tolerances), default)
+    if not result.ok:
+        raise AssertionError(f"{p}:\n{result.report()}")
+    return result
 
 
 class GeoView:

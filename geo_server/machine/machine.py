@@ -116,6 +116,9 @@ class Machine:
         #: #VOLCOMP UPDATE: (ID, the worker reading its files)
         self._volc_loading: list[tuple[int, float, Future[Any]]] = []
         self.twin = self._new_twin(cfg)
+        #: called with (cycle, operation) for every operation applied at a cycle boundary
+        #: (after `cycle`): what a recording replays (docs/recorder.md §4)
+        self.input_taps: list[Callable[[int, Operation], None]] = []
         self.spindle_on = False  # TWIN::spindle_on: a heat source of the twin
         self.motion = Motion([cfg.axes[a].params for a in self.axes], self.cycle_s)
         if homed:
@@ -434,10 +437,15 @@ class Machine:
     def apply(self, op: Operation) -> Any:
         """Carry out one operation now (at a cycle boundary)."""
         self._rest_after = False
+        for tap in self.input_taps:  # a recorder's (geo_server/recorder): usually none
+            try:
+                tap(self.cycle, op)
+            except Exception:  # a recording must never stop the cycle
+                log.exception("input tap failed")
         match op:
             case WriteObjects(items):
                 return tuple(self._apply_item(*item) for item in items)
-            case StartProgram(program, mdi):
+            case StartProgram(program, mdi, _text):
                 return self.start(program, mdi)
             case Reset():
                 return self.reset()
@@ -735,7 +743,7 @@ class Machine:
 
     def start_program(self, text: str, mdi: bool = False) -> Pending:
         """Parse an NC program (raises `NcError`) and run it from the next cycle on."""
-        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi))
+        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi, text))
 
     def reset(self) -> None:
         """CNC reset: stop the program and every axis (controlled stop), deselect the

@@ -47,6 +47,8 @@ class StartProgram:
 
     program: Program
     mdi: bool = False
+    #: the NC text it was parsed from (what a recording of the inputs replays)
+    text: str = ""
 
 
 @dataclass(frozen=True)

@@ -351,7 +351,7 @@ class RemoteMachine:
 
     def start_program(self, text: str, mdi: bool = False) -> Pending:
         """Parse here (raises `NcError` at once) and run it in the cycle process."""
-        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi))
+        return self.submit(StartProgram(parse_program(text, self.names, mdi=mdi), mdi, text))
 
     def stop(self) -> None:
         """Ask the cycle process to end after its current cycle."""

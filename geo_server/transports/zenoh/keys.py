@@ -9,6 +9,7 @@
     cnc/<m>/cmd/reload, cmd/save        commands (get with payload)
     cnc/<m>/cmd/reset, cmd/measure      (measure: a JSON test plan, docs/twin.md)
     cnc/<m>/cmd/fault                   inject, clear, list faults (JSON, docs/faults.md)
+    cnc/<m>/cmd/record                  start, stop a recording (JSON, docs/recorder.md)
     cnc/<m>/status, cnc/<m>/errors      JSON
     cnc/<m>/alive                       liveliness token
 
@@ -67,6 +68,7 @@ class KeySpace:
             f"{self.prefix}/cmd/reset": Route("reset"),
             f"{self.prefix}/cmd/measure": Route("measure"),
             f"{self.prefix}/cmd/fault": Route("fault"),
+            f"{self.prefix}/cmd/record": Route("record"),
             f"{self.prefix}/status": Route("status"),
             f"{self.prefix}/errors": Route("errors"),
         }

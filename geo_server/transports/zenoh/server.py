@@ -466,6 +466,9 @@ class ZenohInterface:
         elif route.kind == "fault":
             body = await asyncio.to_thread(fault_command, svc, payload)
             query.reply(key, json.dumps(body).encode(), encoding=JSON)
+        elif route.kind == "record":
+            body = await asyncio.to_thread(record_command, svc, payload, self.options.machine)
+            query.reply(key, json.dumps(body).encode(), encoding=JSON)
         elif route.kind == "reset":
             cycle = await svc.reset_applied()
             body = {"ok": True, "command": "reset", "cycle": cycle}
@@ -730,6 +733,35 @@ def fault_command(service: ObjectService, payload: bytes) -> dict[str, Any]:
     except FaultError as exc:
         raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc)) from None
     out["faults"] = service.faults.status()
+    return out
+
+
+def record_command(service: ObjectService, payload: bytes, machine: str) -> dict[str, Any]:
+    """`cmd/record` (docs/recorder.md §7): `{"start": {"objects": [...], "every": N,
+    "trigger": "...", "pre": N, "post": N, "out": "trace.csv"}}`, `{"stop": true}` (writes
+    the trace and its inputs on the server's host), or `{}` (status)."""
+    try:
+        body = json.loads(payload or b"{}")
+    except ValueError:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, "cmd/record: payload is not JSON") from None
+    if not isinstance(body, dict) or not set(body) <= {"start", "stop"} or len(body) > 1:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDPARM,
+            'cmd/record: expected {"start": {"objects": [...], ...}}, {"stop": true} or {}',
+        )
+    out: dict[str, Any] = {"ok": True, "command": "record"}
+    if "start" in body:
+        spec_body = body["start"]
+        if not isinstance(spec_body, dict):
+            raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, "cmd/record: start takes an object")
+        file = str(spec_body.get("out") or "geo-trace.csv")
+        spec = {k: v for k, v in spec_body.items() if k != "out"}
+        out["recording"] = service.start_recording(spec, file, machine)
+    elif "stop" in body:
+        out["recording"] = service.stop_recording()
+    else:
+        st = service.status().get("recording")
+        out["recording"] = st
     return out
 
 

@@ -145,8 +145,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.fleet or args.fleet_size:
         from geo_server.fleet import run_fleet
 
-        if args.record:
-            print("error: --record records one machine; not with a fleet", file=sys.stderr)
+        if args.record or args.http:
+            what = "--record records" if args.record else "--http serves"
+            print(f"error: {what} one machine; not with a fleet", file=sys.stderr)
             return 2
 
         return run_fleet(args)
@@ -274,6 +275,14 @@ def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
     return ads, banner
 
 
+def _http(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
+    from geo_server.web.server import HmiOptions, HmiServer, parse_http
+
+    host, port = parse_http(args.http)
+    hmi = HmiServer(service, HmiOptions(host=host, port=port, machine=args.machine))
+    return hmi, lambda: f"http: web HMI on http://{hmi.address}/ (no authentication)"
+
+
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
     stop = asyncio.Event()
@@ -288,6 +297,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             ("zenoh", args.no_zenoh, _zenoh),
             ("modbus", args.no_modbus, _modbus),
             ("ads", args.no_ads, _ads),
+            ("http", not args.http, _http),
         ):
             if disabled:
                 continue
@@ -495,6 +505,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--read-only", action="store_true", help="reject every write")
     r.add_argument(
+        "--http",
+        metavar="HOST:PORT",
+        help="serve the web HMI there (off by default; e.g. 127.0.0.1:8080; docs/web.md). "
+        "No authentication: keep it on loopback or behind a proxy that has some",
+    )
+    r.add_argument(
         "--fault",
         action="append",
         metavar="SPEC",
@@ -570,6 +586,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.command == "run" and args.cycle_in is None:
         args.cycle_in = default_cycle_in(engine=args.engine)
+    if args.command == "run" and args.http:
+        from geo_server.web.server import parse_http
+
+        try:
+            parse_http(args.http)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     return int(args.func(args))
 
 

@@ -39,6 +39,8 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (6, ("geo_server.client",)),
     (6, ("geo_server.recorder.replay",)),  # builds its own stepped machine and service
     (7, ("geo_server.recorder.cli",)),
+    (6, ("geo_server.web",)),  # an interface beside the transports: the same service
+    (2, ("geo_server.web.views",)),  # pure: what an HMI shows, from a snapshot
     (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
     (8, ("geo_clients",)),
 ]

@@ -38,92 +38,12 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from typing import Any
 
 from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.units import LINEAR, show
+from geo_server.web.views import AXIS_FIELDS, COMPENSATIONS, CompView
 
-
-@dataclass(frozen=True)
-class CompView:
-    """Which objects show one compensation's columns (None: the manual has no object)."""
-
-    key: str
-    title: str
-    selected: str | None
-    effective: str | None
-    actual: str | None
-    delta: str | None
-    unfiltered: str | None
-    parameters: tuple[tuple[str, str], ...] = ()
-
-
-#: The compensations in the order of the GEO cycle (docs/design.md §5) and their objects (000).
-COMPENSATIONS: tuple[CompView, ...] = (
-    CompView(
-        "TEMP",
-        "temperature",
-        "TEMPC::activated",
-        "TEMPC::f_is_active",
-        "TEMPC::actual_offset",
-        None,
-        None,
-        (
-            ("coefficient", "TEMPC::coefficient"),
-            ("offset_0", "TEMPC::offset_0"),
-            ("position_0", "TEMPC::position_0"),
-        ),
-    ),
-    CompView(
-        "CROSS",
-        "cross",
-        "CROSSC::activated",
-        "CROSSC::f_is_active",
-        "CROSSC::actual_offset",
-        "CROSSC::delta_offset",
-        None,
-    ),
-    CompView("PLANE", "plane", "CC2::activated", None, "CC2::correction", None, None),
-    CompView(
-        "CROSSTALK",
-        "crosstalk",
-        "CROSSTALK::activated",
-        None,
-        "CROSSTALK::actual_offset",
-        "CROSSTALK::delta_offset",
-        "CROSSTALK::end_offset",
-    ),
-    CompView(
-        "LSEC",
-        "leadscrew",
-        "ssfk activated",
-        "LSEC::active",
-        "LSEC::sum epsilon",
-        "LSEC::epsilon",
-        None,
-    ),
-    CompView(
-        "BC",
-        "backlash",
-        None,
-        None,
-        "BC::actual backlash",
-        "BC::delta backlash",
-        "BC::sum backlash",
-        (("conf_backlash", "BC::conf. backlash"),),
-    ),
-    CompView("FRICT", "friction", None, None, "FRICT::additive_current", None, None),
-)
-#: Axis-level values: field -> object (docs/design.md §2 emulator objects).
-AXIS_FIELDS: tuple[tuple[str, str], ...] = (
-    ("axis_type", "SIM::axis_type"),
-    ("homed", "SIM::homed"),
-    ("command_position", "SIM::command_position"),
-    ("output_position", "SIM::output_position"),
-    ("total_offset", "SIM::total_offset"),
-    ("velocity", "SIM::velocity"),
-)
 COLUMNS = ("selected", "effective", "actual", "delta", "unfiltered")
 CSV_FIELDS = (
     "axis",

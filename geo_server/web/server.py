@@ -1,0 +1,282 @@
+"""The web HMI's server (docs/web.md): aiohttp on the server's asyncio loop, the same
+object service as every transport.
+
+    GET  /                      the page (static files shipped in the package)
+    GET  /ws                    WebSocket: `hello` on connect, then `live` 10 times a
+                                second, `status` every second, `error` as they happen
+    GET  /api/tables            every compensation table in engineering units
+    GET  /api/state             the `hello` message (machine, axes, trends, errors)
+    POST /api/write             {"name", "axis", "value"}: a writable TEMPC object
+    POST /api/command/{reload,save}
+
+One task samples the machine 10 times a second (`service.fresh()`: one snapshot per
+push, whoever watches) into the trend ring and sends the same JSON text to every socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from aiohttp import WSMsgType, web
+
+from geo_server import __version__
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.events import Event
+from geo_server.service import ObjectService
+from geo_server.web.views import (
+    COMPENSATIONS,
+    TRENDS,
+    LiveView,
+    Trends,
+    object_info,
+    tables,
+    writable_tempc,
+)
+
+log = logging.getLogger(__name__)
+STATIC = Path(__file__).resolve().parent / "static"
+
+
+@dataclass
+class HmiOptions:
+    host: str = "127.0.0.1"
+    port: int = 8080
+    machine: str = "local"
+    #: seconds between pushes (and trend samples)
+    period: float = 0.1
+    #: seconds of trend kept for a page opened later
+    trend_seconds: float = 600.0
+
+
+def parse_http(text: str) -> tuple[str, int]:
+    """`--http HOST:PORT` (or just `PORT`) -> (host, port); ValueError says why not."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = "127.0.0.1", text
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"--http {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+class HmiServer:
+    """Serve the web HMI of one machine."""
+
+    def __init__(self, service: ObjectService, options: HmiOptions | None = None) -> None:
+        self.service = service
+        self.options = options or HmiOptions()
+        d = service.dictionary
+        self.view = LiveView(d, service.machine.cfg, service.axes)
+        self.trends = Trends(
+            len(service.axes) * len(TRENDS), self.options.trend_seconds, 1 / self.options.period
+        )
+        self.tempc = [object_info(o) for o in writable_tempc(d)]
+        self._writable = {o.name for o in writable_tempc(d)}
+        self.sockets: set[web.WebSocketResponse] = set()
+        self._runner: web.AppRunner | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._unsubscribe: Any = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._t0 = time.monotonic()
+        self.pushes = 0
+        self.address = ""
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        app = web.Application()
+        app.add_routes(
+            [
+                web.get("/", self._index),
+                web.get("/ws", self._ws),
+                web.get("/favicon.ico", self._favicon),
+                web.get("/api/tables", self._tables),
+                web.get("/api/state", self._state),
+                web.post("/api/write", self._write),
+                web.post("/api/command/{name}", self._command),
+                web.static("/static", STATIC),
+            ]
+        )
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.options.host, self.options.port)
+        await site.start()
+        host, port = self._runner.addresses[0][:2]
+        self.address = f"{host}:{port}"
+        self._unsubscribe = self.service.subscribe_events(self._on_event)
+        self._spawn(self._push_loop())
+        self._spawn(self._status_loop())
+
+    async def close(self) -> None:
+        if self._unsubscribe is not None:
+            self._unsubscribe()
+            self._unsubscribe = None
+        for t in list(self._tasks):
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for ws in list(self.sockets):
+            await ws.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    @property
+    def port(self) -> int:
+        return int(self.address.rpartition(":")[2]) if self.address else 0
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # ------------------------------------------------------------------ pushing
+
+    def hello(self) -> dict[str, Any]:
+        svc = self.service
+        cfg = svc.machine.cfg
+        return {
+            "type": "hello",
+            "version": __version__,
+            "machine": self.options.machine,
+            "period": self.options.period,
+            "axes": [
+                {
+                    "axis": a,
+                    "name": cfg.axes[a].params.name,
+                    "rotary": cfg.axes[a].params.kind != "T",
+                }
+                for a in svc.axes
+            ],
+            "comps": [{"key": c.key, "title": c.title} for c in COMPENSATIONS],
+            "tempc": self.tempc,
+            "trend_fields": list(TRENDS),
+            "trends": self.trends.as_json(),
+            "errors": svc.errors(),
+            "status": svc.status(),
+        }
+
+    def sample(self) -> str | None:
+        """One push: the snapshot due now, as JSON text (None while stalled)."""
+        try:
+            snap = self.service.current()
+        except AdsError as exc:
+            return json.dumps({"type": "stalled", "message": exc.message})
+        t = time.monotonic() - self._t0
+        live = self.view.push(snap, t)
+        self.trends.add(live["t"], self.view.trend_point(live))
+        return json.dumps(live)
+
+    async def _push_loop(self) -> None:
+        period = self.options.period
+        while True:
+            await asyncio.sleep(period)
+            try:
+                text = self.sample()
+            except Exception:  # never let one bad sample end the pushes
+                log.exception("web HMI: sample failed")
+                continue
+            if text is not None and self.sockets:
+                self.pushes += 1
+                await self._broadcast(text)
+
+    async def _status_loop(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            if self.sockets:
+                await self._broadcast(
+                    json.dumps({"type": "status", "status": self.service.status()})
+                )
+
+    async def _broadcast(self, text: str) -> None:
+        for ws in list(self.sockets):
+            if ws.closed:
+                self.sockets.discard(ws)
+                continue
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                await ws.send_str(text)
+
+    def _on_event(self, event: Event) -> None:
+        """Cycle thread: hand the event to the loop and return."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        text = json.dumps({"type": "error", "error": event.as_dict()})
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._spawn, self._broadcast(text))
+
+    # ------------------------------------------------------------------ handlers
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "index.html")
+
+    async def _favicon(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "favicon.svg", headers={"Content-Type": "image/svg+xml"})
+
+    async def _ws(self, request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse(heartbeat=20)
+        await ws.prepare(request)
+        await ws.send_str(json.dumps(self.hello()))
+        self.sockets.add(ws)
+        try:
+            async for msg in ws:  # the page sends nothing; this waits for the close
+                if msg.type == WSMsgType.ERROR:
+                    break
+        finally:
+            self.sockets.discard(ws)
+        return ws
+
+    async def _tables(self, request: web.Request) -> web.Response:
+        svc = self.service
+        return web.json_response(tables(svc.machine.cfg, svc.axes))
+
+    async def _state(self, request: web.Request) -> web.Response:
+        return web.json_response(self.hello())
+
+    async def _write(self, request: web.Request) -> web.Response:
+        """A TEMPC edit: the object service's write path, range checks and messages."""
+        try:
+            body = await request.json()
+            name, axis, value = str(body["name"]), int(body["axis"]), body["value"]
+        except (ValueError, KeyError, TypeError):
+            return _refused(
+                AdsError(
+                    AdsErrorCode.DEVICE_INVALIDPARM,
+                    'expected JSON {"name": …, "axis": …, "value": …}',
+                )
+            )
+        try:
+            obj = self.service.lookup(name, axis)
+            if obj.name not in self._writable:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDACCESS,
+                    f"{obj.name} is not a writable TEMPC parameter",
+                    obj.name,
+                )
+            stored = await self.service.write_name_applied(obj.name, axis, value)
+        except AdsError as exc:
+            return _refused(exc)
+        return web.json_response({"ok": True, "name": obj.name, "axis": axis, "value": stored})
+
+    async def _command(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in ("reload", "save"):
+            return _refused(AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}"))
+        result = await self.service.command(name)
+        body = result.as_dict()
+        if not result.ok:
+            body = {**result.error().as_dict(), **body}
+            return web.json_response(body, status=400)
+        return web.json_response(body)
+
+
+def _refused(exc: AdsError) -> web.Response:
+    return web.json_response(
+        {"ok": False, "code": exc.code, "message": exc.message, "name": exc.name}, status=400
+    )

@@ -39,16 +39,9 @@ from common import (
     timed_loop,
     wait_port,
 )
+from recorder import TWENTY
 from transports import ads_reader, modbus_reader, zenoh_reader
 
-TWENTY = [
-    "TEMPC::*@1",
-    "BC::*@1",
-    "SIM::command_position",
-    "TWIN::sensor_temperature",
-    "SIM::cycle_count",
-    "TWIN::residual@1",
-]
 PROGRAM = "N10 G90 G01 X100 Y-50 Z30 C90 F3000\nN20 X-100 Y50 Z-30 C0\nN30 $GOTO N10\n"
 READERS = {
     "ADS read": lambda p: ads_reader(p["ads"]),

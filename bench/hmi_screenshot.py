@@ -20,6 +20,7 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
+from geo_server.web import CHROMIUM, CHROMIUM_ARGS
 from geo_server.web.server import HmiOptions, HmiServer
 
 PROGRAM = (
@@ -28,16 +29,6 @@ PROGRAM = (
     "N30 X40 Y10 Z0 C0\n"
     "N40 $GOTO N10\n"
 )
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def main() -> None:
@@ -59,7 +50,7 @@ def main() -> None:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS)
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_ARGS))
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
         page.goto(f"http://{hmi.address}/")
         time.sleep(args.seconds)

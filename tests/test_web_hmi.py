@@ -18,21 +18,10 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
 from geo_server.paths import data_dir, default_startup_list
 from geo_server.service import ObjectService
+from geo_server.web import CHROMIUM, CHROMIUM_ARGS
 from geo_server.web.server import HmiOptions, HmiServer, parse_http
 from geo_server.web.views import LiveView, tables
 
-CHROMIUM = "/usr/bin/chromium"
-#: flags for a root, offline, headless Chromium (docs/web.md §5)
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 WAIT_MS = 15_000
 
 
@@ -91,7 +80,7 @@ def browser():
         pytest.skip(f"{CHROMIUM} is missing (apt-get install chromium)")
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        b = p.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_ARGS))
         yield b
         b.close()
 

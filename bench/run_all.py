@@ -1,7 +1,7 @@
 """Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
     python bench/run_all.py [--quick] [--only kernel,twin,scheduler,transports,ads_symbols,
-                                              cpu,batch,volcomp,recorder,engine,memory,soak]
+                                              cpu,batch,volcomp,recorder,hmi_load,engine,memory,soak]
                             [--results FILE]
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
@@ -37,6 +37,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
     "batch": ("batch.py", [], ["--passes", "30"], 300),
     "volcomp": ("volcomp.py", [], ["--cycles", "1000"], 300),
     "recorder": ("recorder.py", [], ["--cycles", "2000"], 300),
+    "hmi_load": ("hmi_load.py", [], ["--rounds", "1", "--seconds", "1"], 900),
     "engine": ("engine.py", [], ["--quick"], 2400),
     "memory": ("memory.py", [], ["--quick"], 300),
     "soak": ("soak.py", [], ["--quick"], 600),

@@ -13,6 +13,9 @@ package. Fixtures:
   `@pytest.mark.parametrize("geo_via", ["zenoh", "modbus", "ads"])`.
 - `geo_server_factory` — `geo_server_factory(startup=None, homed=False, ...)` makes more
   servers (other machines, options chosen inside the test); all closed after the test.
+- `geo_golden` — `geo_golden(trace, "golden/x.csv", ["TEMPC::*=0.5"])`: hold a recorded
+  trace (`geo_server.record(...)`, docs/recorder.md) to a golden one beside the test file;
+  `--geo-update-golden` rewrites the golden files.
 - `geo` — `geo_server.via(geo_via)`: `read(name, axis)`, `write(name, axis, value)`,
   `read_address(group, offset)`, `assert_value(name, axis, expected)`,
   `assert_raw(group, offset, expected)`, `expect_error(code, fn)`, and the machine

@@ -21,6 +21,7 @@ _PORT_OPTION = {
     "zenoh": "--zenoh-listen tcp/127.0.0.1:PORT",
     "modbus": "--modbus-port PORT",
     "ads": "--ads-port PORT",
+    "http": "--http HOST:PORT",
 }
 
 

@@ -1,5 +1,6 @@
 """The web HMI (docs/web.md) in a real headless browser: Debian's Chromium driven by
-Playwright, against a real-time machine (exact engine) served in this process."""
+Playwright, against a real-time machine (exact engine) served in this process; and its
+JSON without a browser."""
 
 from __future__ import annotations
 
@@ -7,12 +8,19 @@ import asyncio
 import json
 import os
 import shutil
+import socket
+import subprocess
+import sys
 import threading
+import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
+import aiohttp
 import pytest
 
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -20,28 +28,37 @@ from geo_server.paths import data_dir, default_startup_list
 from geo_server.service import ObjectService
 from geo_server.web import CHROMIUM, CHROMIUM_ARGS
 from geo_server.web.server import HmiOptions, HmiServer, parse_http
-from geo_server.web.views import LiveView, tables
+from geo_server.web.tables import tables
+from geo_server.web.views import LiveView
 
 WAIT_MS = 15_000
+#: `geo-server run` with the web HMI alone
+RUN = (sys.executable, "-m", "geo_server.cli", "run", "--no-zenoh", "--no-modbus", "--no-ads")
+ACCEL_POS = "accelerating, + direction"
 
 
 class Served:
     """A real-time machine with the web HMI on an ephemeral port of 127.0.0.1."""
 
-    def __init__(self, startup: Path) -> None:
+    def __init__(self, startup: Path, options: HmiOptions | None = None) -> None:
         self.machine = Machine(load_machine(startup), homed=True)
         self.scheduler = Scheduler(self.machine, mode="realtime", engine="exact")
         self.service = ObjectService(self.machine, self.scheduler)
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
-        self.hmi = HmiServer(self.service, HmiOptions(port=0, machine="bench"))
-        self._run(self.hmi.start())
+        self.hmi = HmiServer(self.service, options or HmiOptions(port=0, machine="bench"))
+        self.run(self.hmi.start())
         self.scheduler.start()
         self.url = f"http://{self.hmi.address}/"
+        self.lists = startup.parent
 
-    def _run(self, coro):
+    def run(self, coro):
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(15)
+
+    def get(self, path: str):
+        with urllib.request.urlopen(self.url + path.lstrip("/"), timeout=10) as r:
+            return json.loads(r.read())
 
     def post(self, path: str, body: dict) -> tuple[int, dict]:
         req = urllib.request.Request(
@@ -56,18 +73,25 @@ class Served:
             return exc.code, json.loads(exc.read())
 
     def close(self) -> None:
-        self._run(self.hmi.close())
+        self.run(self.hmi.close())
         self.scheduler.stop()
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(5)
         self.loop.close()
 
 
+def copy_lists(tmp_path: Path, *, twin: bool = True) -> Path:
+    """The default machine's lists in tmp_path: save writes here, never into the
+    repository's lists."""
+    lists = tmp_path / "lists"
+    ignore = ["examples", "tools"] + ([] if twin else ["twin.toml"])
+    shutil.copytree(data_dir("lists"), lists, ignore=shutil.ignore_patterns(*ignore))
+    return lists / "hochlauf.lis"
+
+
 @pytest.fixture
 def served(tmp_path):
-    lists = tmp_path / "lists"  # save writes here, never into the repository's lists
-    shutil.copytree(data_dir("lists"), lists, ignore=shutil.ignore_patterns("examples", "tools"))
-    s = Served(lists / "hochlauf.lis")
+    s = Served(copy_lists(tmp_path))
     yield s
     s.close()
 
@@ -85,16 +109,26 @@ def browser():
         b.close()
 
 
+def open_page(browser, served):
+    """The page of `served`, once every axis shows a live value."""
+    pg = browser.new_page(viewport={"width": 1400, "height": 1000})
+    pg.errors = []
+    pg.on("pageerror", lambda e: pg.errors.append(str(e)))
+    pg.goto(served.url)
+    last = served.service.axes[-1]
+    pg.wait_for_selector(
+        f"#axis-{last} .v[data-f='command_position']:not(:text('–'))", timeout=WAIT_MS
+    )
+    pg.wait_for_function("() => state.tablePlots.length > 0", timeout=WAIT_MS)
+    return pg
+
+
 @pytest.fixture
 def page(browser, served):
-    pg = browser.new_page(viewport={"width": 1400, "height": 1000})
-    errors: list[str] = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    pg.goto(served.url)
-    pg.wait_for_selector("#axis-4 .v[data-f='command_position']:not(:text('–'))", timeout=WAIT_MS)
+    pg = open_page(browser, served)
     yield pg
     pg.close()
-    assert errors == []  # no script error in the page
+    assert pg.errors == []  # no script error in the page
 
 
 def cell(pg, axis: int, field: str):
@@ -115,15 +149,23 @@ def test_the_page_shows_every_axis_live(page, served):
     assert names == ["X", "Y", "Z", "C"]
     expect(cell(page, 1, "command_position")).to_have_text("0.0000 mm")
     expect(cell(page, 4, "command_position")).to_have_text("0.0000 °")
-    # lists/achsmd1.lis: temp_comp_coefficient 4000 µm/m, shown in the editor
+    # the twin's sensor starts at its ambient temperature (lists/twin.toml: 20 °C)
+    expect(cell(page, 4, "sensor_temperature")).to_have_text("20.00 °C")
+    # lists/achsmd1.lis: temp_comp_coefficient 4000 µm/m, offset_0 40 (0.1 µm) = 4.0 µm
     expect(tempc_input(page, 1, "TEMPC::coefficient")).to_have_value("4000")
-    # X: temperature compensation selected and effective (homed, 000 p.22)
+    expect(tempc_input(page, 1, "TEMPC::offset_0")).to_have_value("40")
+    expect(page.locator("#axis-1 .hint[data-hint='offset_0']")).to_have_text("= 4.0 µm")
+    # X at 0 mm: 4.0 µm + 4000·10⁻⁶·(0 − 0.01 mm) = 3.96 µm → TEMPC::actual_offset 4.0 µm
     row = page.locator("#axis-1 tr[data-comp='TEMP']")
+    expect(row.locator(".act")).to_have_text("4.0")
+    # X: temperature compensation selected and effective (homed, 000 p.22)
     expect(row.locator(".sel")).to_have_class("dot sel on")
     expect(row.locator(".eff")).to_have_class("dot eff on")
-    # every configured table drawn: 4 LSEC, friction, cross, plane, crosstalk mode 3
+    # every configured table drawn: LSEC of X, Y, C; X friction; Z cross, plane, mode 3
     expect(page.locator(".table-card")).to_have_count(7)
-    expect(page.locator("#status")).to_contain_text("exact")
+    expect(page.locator(".table-card canvas.heat")).to_have_count(2)
+    expect(page.locator("#trends .trend")).to_have_count(3)
+    expect(page.locator("#status")).to_contain_text("exact engine")
 
 
 def test_a_value_changes_when_the_axis_moves(page, served, tmp_path):
@@ -132,6 +174,11 @@ def test_a_value_changes_when_the_axis_moves(page, served, tmp_path):
     served.service.run_nc("G90 G01 X10 Y-5 F6000")  # 10 mm at 100 mm/s
     expect(cell(page, 1, "command_position")).to_have_text("10.0000 mm", timeout=WAIT_MS)
     expect(cell(page, 2, "command_position")).to_have_text("-5.0000 mm", timeout=WAIT_MS)
+    # the tables' marker follows: the cross table of Z over X and the plane over X/Y
+    cross = page.locator(".table-card[data-kind='cross'] .caption")
+    expect(cross).to_contain_text("X 10.0000 mm", timeout=WAIT_MS)
+    plane = page.locator(".table-card[data-kind='plane'] .caption")
+    expect(plane).to_contain_text("X 10.0000 mm · Y -5.0000 mm", timeout=WAIT_MS)
     page.screenshot(path=str(tmp_path / "moved.png"), full_page=True)
     assert (tmp_path / "moved.png").stat().st_size > 50_000
 
@@ -149,6 +196,11 @@ def test_a_tempc_edit_reaches_the_server(page, served):
     off.press("Enter")
     expect(page.locator("#tempc-msg-3")).to_have_text("TEMPC::offset_0 := -25")
     assert served.service.read_name("TEMPC::offset_0", 3) == -25
+    expect(page.locator("#axis-3 .hint[data-hint='offset_0']")).to_have_text("= -2.5 µm")
+    # a flag: the checkbox switches the temperature compensation of C on
+    tempc_input(page, 4, "TEMPC::activated").check()
+    expect(page.locator("#tempc-msg-4")).to_have_text("TEMPC::activated := true")
+    assert served.service.read_name("TEMPC::activated", 4) is True
 
 
 def test_an_out_of_range_edit_shows_the_servers_error(page, served):
@@ -166,6 +218,7 @@ def test_an_out_of_range_edit_shows_the_servers_error(page, served):
     box.fill("abc")
     box.press("Enter")
     expect(page.locator("#tempc-msg-1")).to_have_text("TEMPC::coefficient: 'abc' is not a number")
+    assert served.service.read_name("TEMPC::coefficient", 1) == 4000.0
 
 
 def test_save_and_reload_buttons(page, served):
@@ -176,24 +229,54 @@ def test_save_and_reload_buttons(page, served):
     box.press("Enter")
     expect(page.locator("#tempc-msg-2")).to_have_text("TEMPC::coefficient := 33.5")
     page.click("#save")
-    lists = served.machine.cfg.startup_path.parent
-    expect(page.locator("#command-result")).to_have_text(f"saved: {lists / 'achsmd2.lis'}")
-    assert "lr_param.temp_comp_coefficient 33.5" in (lists / "achsmd2.lis").read_text("utf-8")
+    expect(page.locator("#command-result")).to_have_text(f"saved: {served.lists / 'achsmd2.lis'}")
+    assert "lr_param.temp_comp_coefficient 33.5" in (served.lists / "achsmd2.lis").read_text()
+    # an edited table reaches the page by the button: X's LSEC error at -490 mm 1.5 → 2.5 µm
+    x_lsec = "state.tables.find((t) => t.kind === 'lsec' && t.axis === 1).series.error[1]"
+    assert page.evaluate(x_lsec) == 1.5
+    kw1 = served.lists / "achskw1.lis"
+    kw1.write_text(kw1.read_text().replace("table[1].pos 15 ", "table[1].pos 25 "))
     page.click("#reload")
-    expect(page.locator("#command-result")).to_contain_text("reloaded (")
+    expect(page.locator("#command-result")).to_have_text("reloaded (8 files)")
+    page.wait_for_function(f"() => {x_lsec} === 2.5", timeout=WAIT_MS)
+    # … and by a reload from another interface (the page is told to fetch the tables)
+    kw1.write_text(kw1.read_text().replace("table[1].pos 25 ", "table[1].pos -5 "))
+    assert served.service.run_command("reload").ok
+    page.wait_for_function(f"() => {x_lsec} === -0.5", timeout=WAIT_MS)
+    # the saved coefficient came back with the lists
+    expect(tempc_input(page, 2, "TEMPC::coefficient")).to_have_value("33.5")
 
 
 def test_new_errors_and_faults_show_up(page, served):
     from playwright.sync_api import expect
 
-    served.service.report("coolant pressure low (from the test)")
-    expect(page.locator("#errors tbody tr").first).to_contain_text(
-        "coolant pressure low (from the test)", timeout=WAIT_MS
-    )
+    served.service.report("coolant pressure low (from the test)", error_id=4711)
+    first = page.locator("#errors tbody tr").first
+    expect(first).to_contain_text("coolant pressure low (from the test)", timeout=WAIT_MS)
+    expect(first.locator("td").nth(1)).to_have_text("error")
+    expect(first.locator("td").nth(2)).to_have_text("4711")
     served.service.inject_fault("ads:error=0x707,count=2")
     expect(page.locator("#faults")).to_have_text(
         "Injected faults: #1 ads:error=0x707,count=2 (0 hits)", timeout=WAIT_MS
     )
+
+
+def test_a_machine_without_twin(browser, tmp_path):
+    """No twin.toml: no twin rows, one trend, and the page still works."""
+    from playwright.sync_api import expect
+
+    served = Served(copy_lists(tmp_path, twin=False))
+    try:
+        pg = open_page(browser, served)
+        expect(pg.locator("#trends .trend")).to_have_count(1)
+        expect(cell(pg, 1, "sensor_temperature")).to_have_count(0)
+        # TEMPC 4.0 µm + LSEC 0.9 µm (lists/achskw1.lis: table[50].pos -9 at 0 mm; the
+        # cycle applies −Δs)
+        expect(cell(pg, 1, "total_offset")).to_have_text("4.9 µm")
+        pg.close()
+        assert pg.errors == []
+    finally:
+        served.close()
 
 
 # ---------------------------------------------------------------------- without a browser
@@ -207,18 +290,50 @@ def test_tables_in_engineering_units():
         (1, "lsec"),
         (2, "lsec"),
         (3, "cross"),
+        (3, "crosstalk"),
         (3, "plane"),
-        (3, "scatter"),
         (4, "lsec"),
     ]
     x = by[(1, "lsec")]
     # lists/achskw1.lis: kw_startpos -5000000, interval 100000, table[1].pos 15 (0.1 µm)
-    assert x["x"][:2] == [-500.0, -490.0] and x["series"]["positive"][:2] == [0.0, 1.5]
-    assert (x["x_unit"], x["y_unit"]) == ("mm", "µm")
+    assert x["x"][:2] == [-500.0, -490.0] and x["series"]["error"][:2] == [0.0, 1.5]
+    assert (x["x_name"], x["x_unit"], x["y_label"]) == ("X", "mm", "measured error [µm]")
+    y = by[(2, "lsec")]  # lists/achskw2.lis: bilateral, setpoints -200000, -199306, …
+    assert list(y["series"]) == ["+ direction", "− direction"] and y["x"][:2] == [-20.0, -19.9306]
+    # lists/achskw1.lis: friction table[1] 50 µm/s → 2600
+    fr = by[(1, "frict")]
+    assert (fr["x"][1], fr["series"]["additive current"][1], fr["x_unit"]) == (0.05, 2600.0, "mm/s")
+    # lists/achskw3.lis: cross table[1] at -485 mm: 3 (0.1 µm); plane start -500 mm,
+    # interval 50 mm, table[0][0] 15, [0][1] 12
+    cross = by[(3, "cross")]
+    assert (cross["x_axis"], cross["x"][1], cross["series"]["correction"][1]) == (1, -485.0, 0.3)
     plane = by[(3, "plane")]
-    # lists/achskw3.lis: start -5000000, interval 500000, table[0][0] 15, [0][1] 12
-    assert plane["x"][:2] == [-500.0, -450.0] and plane["z"][0][:2] == [1.5, 1.2]
-    assert by[(4, "lsec")]["x_unit"] == "°"
+    assert plane["x"][:2] == [-500.0, -450.0]
+    assert plane["layers"]["correction"][0][:2] == [1.5, 1.2]
+    # mode 3: position[0] at X -500, Y -400 mm, accelerate_dir_pos 35, …_neg -37; the
+    # sampled surface passes through its test points
+    ct = by[(3, "crosstalk")]
+    assert (ct["points"]["x"][0], ct["points"]["y"][0]) == (-500.0, -400.0)
+    assert ct["points"]["layers"][ACCEL_POS][0] == 3.5
+    assert ct["points"]["layers"]["accelerating, − direction"][0] == -3.7
+    assert (ct["x"][0], ct["y"][0], ct["layers"][ACCEL_POS][0][0]) == (-500.0, -400.0, 3.5)
+    assert len(ct["x"]) == 48 and len(ct["layers"][ACCEL_POS]) == 36
+    c = by[(4, "lsec")]
+    assert (c["x_unit"], c["y_label"]) == ("°", "measured error [°]")
+
+
+def test_tables_endpoint(served):
+    got = served.get("/api/tables")
+    assert got == json.loads(json.dumps(tables(served.machine.cfg, served.service.axes)))
+    assert [t["title"] for t in got] == [
+        "X leadscrew error (LSEC)",
+        "X friction compensation (FRICT)",
+        "Y leadscrew error (LSEC)",
+        "Z cross compensation over X (CROSSC)",
+        "Z plane compensation over X/Y (CC2)",
+        "Z crosstalk mode 3 over X/Y",
+        "C leadscrew error (LSEC)",
+    ]
 
 
 def test_live_payload_of_a_stepped_machine():
@@ -231,8 +346,62 @@ def test_live_payload_of_a_stepped_machine():
     x = live["axes"]["1"]
     assert live["cycle"] == 500 and x["command_position"] == 1.0  # mm
     assert x["tempc"]["coefficient"] == 4000.0 and x["comps"]["TEMP"][:2] == [True, True]
+    assert x["tempc_shown"] == {"offset_0": "4.0 µm", "position_0": "0.01 mm"}
     assert x["comps"]["PLANE"][1] is None  # the manual has no effective flag for it
+    assert x["sensor_temperature"] == 20.0
+    assert view.trend_fields == ("total_offset", "residual", "sensor_temperature")
     assert len(view.trend_point(live)) == 12
+
+
+def test_live_payload_without_twin(tmp_path):
+    m = Machine(load_machine(copy_lists(tmp_path, twin=False)), homed=True)
+    service = ObjectService(m)
+    service.step(20)
+    view = LiveView(service.dictionary, m.cfg, service.axes)
+    live = view.push(service.snapshot, 0.0)
+    x = live["axes"]["1"]
+    assert not view.has_twin and "residual" not in x and "sensor_temperature" not in x
+    # total offsets at rest: X 4.0 (TEMPC) + 0.9 (LSEC) µm, Y -9.8 µm (LSEC), Z -2.0
+    # (TEMPC) + 8.3 (cross) - 2.0 (plane) µm, C -0.0007° (LSEC, 7 increments)
+    assert view.trend_fields == ("total_offset",)
+    assert view.trend_point(live) == [4.9, -9.8, 4.3, -0.0007]
+
+
+def test_nobody_watching_costs_one_sample_a_second(tmp_path):
+    """No socket: a trend sample every `idle_period`, nothing pushed; a page opened
+    later gets those samples, then a push every `period`."""
+    opts = HmiOptions(port=0, period=0.02, idle_period=0.2)
+    served = Served(copy_lists(tmp_path), opts)
+    try:
+        time.sleep(1.0)
+        assert 2 <= served.hmi.samples <= 6 and served.hmi.pushes == 0
+
+        async def watch() -> tuple[dict, list[dict]]:
+            async with (
+                aiohttp.ClientSession() as s,
+                s.ws_connect(f"ws://{served.hmi.address}/ws") as ws,
+            ):
+                hello = json.loads((await ws.receive()).data)
+                got = [json.loads((await ws.receive()).data) for _ in range(10)]
+                return hello, got
+
+        t0 = time.monotonic()
+        hello, got = served.run(watch())
+        assert time.monotonic() - t0 < 1.5  # ten pushes at 50 Hz, not at 5 Hz
+        assert len(hello["trends"]["t"]) >= 3 and len(hello["trends"]["series"]) == 12
+        assert [m["type"] for m in got].count("live") >= 9
+        assert served.hmi.pushes >= 9
+    finally:
+        served.close()
+
+
+def test_a_stalled_cycle_is_pushed_as_such(served, monkeypatch):
+    def stalled():
+        raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the GEO cycle is stalled")
+
+    monkeypatch.setattr(served.service, "current", stalled)
+    got = json.loads(served.hmi.sample())
+    assert got == {"type": "stalled", "code": 0x707, "message": "the GEO cycle is stalled"}
 
 
 def test_write_endpoint_refuses_what_is_not_a_tempc_parameter(served):
@@ -247,6 +416,54 @@ def test_write_endpoint_refuses_what_is_not_a_tempc_parameter(served):
     assert status == 400 and body["message"] == "axis 9 is not configured"
     status, body = served.post("/api/command/explode", {})
     assert status == 400 and body["code"] == 0x701
+    status, body = served.post("/api/write", {"name": "TEMPC::coefficient", "axis": 1, "value": 7})
+    assert (status, body["ok"], body["value"]) == (200, True, 7.0)
+
+
+def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
+    """`geo-server run --http` on a port in use: exit 2 and one clear line."""
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen()
+    port = blocker.getsockname()[1]
+    try:
+        r = subprocess.run(
+            [*RUN, "--cycles", "50", "--http", f"127.0.0.1:{port}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        blocker.close()
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.strip() == (
+        f"error: http interface did not start: 127.0.0.1:{port} is taken (another "
+        "geo-server?); choose another --http HOST:PORT or stop the other server"
+    )
+
+
+def test_run_serves_the_page_on_an_ephemeral_port(tmp_path):
+    """`--http 127.0.0.1:0`: the banner names the port the page is served on."""
+    proc = subprocess.Popen(
+        [*RUN, "--homed", "--http", "127.0.0.1:0"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = ""
+        for line in proc.stdout:
+            if line.startswith("http: web HMI on "):
+                url = line.split()[4]
+                break
+        assert line.endswith("(no authentication)\n") and url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url, timeout=10) as r:
+            assert b"<title>geo-server HMI</title>" in r.read()
+    finally:
+        proc.terminate()
+        proc.wait(15)
 
 
 @pytest.mark.parametrize(

@@ -3,23 +3,27 @@ object service as every transport.
 
     GET  /                      the page (static files shipped in the package)
     GET  /ws                    WebSocket: `hello` on connect, then `live` 10 times a
-                                second, `status` every second, `error` as they happen
+                                second, `status` every second, `error` as they happen,
+                                `tables` after a reload
     GET  /api/tables            every compensation table in engineering units
     GET  /api/state             the `hello` message (machine, axes, trends, errors)
     POST /api/write             {"name", "axis", "value"}: a writable TEMPC object
     POST /api/command/{reload,save}
 
-One task samples the machine 10 times a second (`service.fresh()`: one snapshot per
-push, whoever watches) into the trend ring and sends the same JSON text to every socket.
+One task samples the machine (`service.current()`: one snapshot per sample) into the
+trend ring and sends the same JSON text to every socket: every 100 ms while a page is
+open, once a second for the trends while none is.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 import time
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,28 +33,35 @@ from aiohttp import WSMsgType, web
 from geo_server import __version__
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
+from geo_server.model import MachineConfig
 from geo_server.service import ObjectService
+from geo_server.web.tables import tables
 from geo_server.web.views import (
     COMPENSATIONS,
     TRENDS,
     LiveView,
     Trends,
     object_info,
-    tables,
     writable_tempc,
 )
 
 log = logging.getLogger(__name__)
+#: errno of a port in use: Linux, macOS, Windows
+_IN_USE = (errno.EADDRINUSE, 48, 98, 10048)
 STATIC = Path(__file__).resolve().parent / "static"
 
 
 @dataclass
 class HmiOptions:
+    """Where the web HMI listens and how often it samples."""
+
     host: str = "127.0.0.1"
     port: int = 8080
     machine: str = "local"
-    #: seconds between pushes (and trend samples)
+    #: seconds between pushes (and trend samples) while a page is open
     period: float = 0.1
+    #: seconds between trend samples while no page is open (0: none at all)
+    idle_period: float = 1.0
     #: seconds of trend kept for a page opened later
     trend_seconds: float = 600.0
 
@@ -72,24 +83,33 @@ class HmiServer:
         self.service = service
         self.options = options or HmiOptions()
         d = service.dictionary
-        self.view = LiveView(d, service.machine.cfg, service.axes)
-        self.trends = Trends(
-            len(service.axes) * len(TRENDS), self.options.trend_seconds, 1 / self.options.period
-        )
         self.tempc = [object_info(o) for o in writable_tempc(d)]
         self._writable = {o.name for o in writable_tempc(d)}
         self.sockets: set[web.WebSocketResponse] = set()
         self._runner: web.AppRunner | None = None
         self._tasks: set[asyncio.Task[None]] = set()
-        self._unsubscribe: Any = None
+        self._unsubscribe: Callable[[], None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._t0 = time.monotonic()
+        #: set while a page is open (wakes the sampling at once when one opens)
+        self._watched = asyncio.Event()
+        self._cfg: MachineConfig = service.machine.cfg
+        self._tables_json = ""
+        self.view = LiveView(d, self._cfg, service.axes)
+        self.trends = self._new_trends()
+        #: pushes sent (samples taken while a page was open)
         self.pushes = 0
+        #: trend samples taken, pushed or not
+        self.samples = 0
         self.address = ""
+
+    def _new_trends(self) -> Trends:
+        series = len(self.service.axes) * len(self.view.trend_fields)
+        return Trends(series, self.options.trend_seconds, 1 / self.options.period)
 
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
+        """Bind the port and start sampling."""
         self._loop = asyncio.get_running_loop()
         app = web.Application()
         app.add_routes(
@@ -106,15 +126,25 @@ class HmiServer:
         )
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.options.host, self.options.port)
-        await site.start()
+        host, port = self.options.host, self.options.port
+        try:
+            await web.TCPSite(self._runner, host, port).start()
+        except OSError as exc:
+            if exc.errno not in _IN_USE:
+                raise
+            # said here in full: geo_server.interfaces knows no option for this port
+            raise RuntimeError(
+                f"{host}:{port} is taken (another geo-server?); choose another "
+                "--http HOST:PORT or stop the other server"
+            ) from exc
         host, port = self._runner.addresses[0][:2]
-        self.address = f"{host}:{port}"
+        self.address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
         self._unsubscribe = self.service.subscribe_events(self._on_event)
         self._spawn(self._push_loop())
         self._spawn(self._status_loop())
 
     async def close(self) -> None:
+        """Stop sampling, close every socket and the listener."""
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
@@ -129,9 +159,10 @@ class HmiServer:
 
     @property
     def port(self) -> int:
+        """The bound TCP port (useful with `port=0`)."""
         return int(self.address.rpartition(":")[2]) if self.address else 0
 
-    def _spawn(self, coro: Any) -> None:
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
@@ -139,6 +170,7 @@ class HmiServer:
     # ------------------------------------------------------------------ pushing
 
     def hello(self) -> dict[str, Any]:
+        """The first message of a socket: what the page is built from."""
         svc = self.service
         cfg = svc.machine.cfg
         return {
@@ -146,6 +178,7 @@ class HmiServer:
             "version": __version__,
             "machine": self.options.machine,
             "period": self.options.period,
+            "twin": self.view.has_twin,
             "axes": [
                 {
                     "axis": a,
@@ -156,38 +189,72 @@ class HmiServer:
             ],
             "comps": [{"key": c.key, "title": c.title} for c in COMPENSATIONS],
             "tempc": self.tempc,
-            "trend_fields": list(TRENDS),
+            "trend_fields": [
+                {
+                    "field": f,
+                    "title": TRENDS[f][0],
+                    "unit": TRENDS[f][1],
+                    "rotary_unit": TRENDS[f][2],
+                }
+                for f in self.view.trend_fields
+            ],
             "trends": self.trends.as_json(),
             "errors": svc.errors(),
             "status": svc.status(),
         }
 
-    def sample(self) -> str | None:
-        """One push: the snapshot due now, as JSON text (None while stalled)."""
+    def sample(self) -> str:
+        """One sample: the snapshot due now into the trends, as the JSON text of a
+        `live` message (a `stalled` one while the GEO cycle is)."""
         try:
             snap = self.service.current()
         except AdsError as exc:
-            return json.dumps({"type": "stalled", "message": exc.message})
-        t = time.monotonic() - self._t0
-        live = self.view.push(snap, t)
+            return json.dumps({"type": "stalled", "code": exc.code, "message": exc.message})
+        live = self.view.push(snap, time.time())
         self.trends.add(live["t"], self.view.trend_point(live))
+        self.samples += 1
         return json.dumps(live)
 
+    def _reconfigured(self) -> bool:
+        """After a reload (from any interface) the tables and units may have changed."""
+        cfg = self.service.machine.cfg
+        if cfg is self._cfg:
+            return False
+        self._cfg, self._tables_json = cfg, ""
+        fields = self.view.trend_fields
+        self.view = LiveView(self.service.dictionary, cfg, self.service.axes)
+        if self.view.trend_fields != fields:  # a twin came or went
+            self.trends = self._new_trends()
+        return True
+
+    async def _wait(self) -> None:
+        """Until the next sample: `period` while a page is open; else `idle_period`
+        (forever with 0), cut short when a page opens."""
+        if self.sockets:
+            await asyncio.sleep(self.options.period)
+            return
+        self._watched.clear()
+        idle = self.options.idle_period
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._watched.wait(), idle if idle > 0 else None)
+
     async def _push_loop(self) -> None:
-        period = self.options.period
         while True:
-            await asyncio.sleep(period)
+            await self._wait()
             try:
+                if self._reconfigured() and self.sockets:
+                    await self._broadcast(json.dumps({"type": "tables"}))
                 text = self.sample()
             except Exception:  # never let one bad sample end the pushes
                 log.exception("web HMI: sample failed")
                 continue
-            if text is not None and self.sockets:
+            if self.sockets:
                 self.pushes += 1
                 await self._broadcast(text)
 
     async def _status_loop(self) -> None:
         while True:
+            await self._watched.wait()
             await asyncio.sleep(1.0)
             if self.sockets:
                 await self._broadcast(
@@ -203,13 +270,16 @@ class HmiServer:
                 await ws.send_str(text)
 
     def _on_event(self, event: Event) -> None:
-        """Cycle thread: hand the event to the loop and return."""
+        """The cycle's thread: hand the event to the loop and return."""
         loop = self._loop
-        if loop is None or loop.is_closed():
+        if loop is None or loop.is_closed() or not self.sockets:
             return
         text = json.dumps({"type": "error", "error": event.as_dict()})
-        with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(self._spawn, self._broadcast(text))
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+            loop.call_soon_threadsafe(self._send_event, text)
+
+    def _send_event(self, text: str) -> None:
+        self._spawn(self._broadcast(text))
 
     # ------------------------------------------------------------------ handlers
 
@@ -224,6 +294,7 @@ class HmiServer:
         await ws.prepare(request)
         await ws.send_str(json.dumps(self.hello()))
         self.sockets.add(ws)
+        self._watched.set()
         try:
             async for msg in ws:  # the page sends nothing; this waits for the close
                 if msg.type == WSMsgType.ERROR:
@@ -233,8 +304,14 @@ class HmiServer:
         return ws
 
     async def _tables(self, request: web.Request) -> web.Response:
-        svc = self.service
-        return web.json_response(tables(svc.machine.cfg, svc.axes))
+        self._reconfigured()
+        if not self._tables_json:  # once per configuration, off the loop (tens of ms)
+            cfg = self._cfg
+            text = await asyncio.to_thread(_tables_json, cfg, self.service.axes)
+            if cfg is self._cfg:
+                self._tables_json = text
+            return web.Response(text=text, content_type="application/json")
+        return web.Response(text=self._tables_json, content_type="application/json")
 
     async def _state(self, request: web.Request) -> web.Response:
         return web.json_response(self.hello())
@@ -274,6 +351,15 @@ class HmiServer:
             body = {**result.error().as_dict(), **body}
             return web.json_response(body, status=400)
         return web.json_response(body)
+
+
+def _tables_json(cfg: MachineConfig, axes: tuple[int, ...]) -> str:
+    return json.dumps(tables(cfg, axes))
+
+
+def _trend_field(field: str) -> dict[str, str]:
+    title, unit, rotary_unit = TRENDS[field]
+    return {"field": field, "title": title, "unit": unit, "rotary_unit": rotary_unit}
 
 
 def _refused(exc: AdsError) -> web.Response:

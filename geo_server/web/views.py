@@ -8,12 +8,10 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.model import MachineConfig
 from geo_server.snapshot import Snapshot
-from geo_server.units import ACHS_TYP, LINEAR, UNITS_PER_MM, UNITS_PER_UM, raw_unit, show
+from geo_server.units import ACHS_TYP, LINEAR, raw_unit, show
 
 
 @dataclass(frozen=True)
@@ -100,8 +98,14 @@ TWIN_FIELDS: tuple[tuple[str, str], ...] = (
     ("residual", "TWIN::residual"),
     ("sensor_temperature", "TWIN::sensor_temperature"),
 )
-#: Trends: field -> what it is (the web page's titles).
-TRENDS = ("total_offset", "residual", "sensor_temperature")
+#: Trends: field -> title and unit (linear axes, rotary axes) on the web page.
+TRENDS: dict[str, tuple[str, str, str]] = {
+    "total_offset": ("Total offset", "µm", "°"),
+    "residual": ("Residual error (twin)", "µm", "°"),
+    "sensor_temperature": ("Sensor temperature (twin)", "°C", "°C"),
+}
+#: Trends of a machine without a twin (no `twin.toml` beside its start-up list).
+TRENDS_WITHOUT_TWIN = ("total_offset",)
 
 
 def writable_tempc(dictionary: Dictionary) -> list[ObjectDef]:
@@ -110,6 +114,7 @@ def writable_tempc(dictionary: Dictionary) -> list[ObjectDef]:
 
 
 def object_info(obj: ObjectDef) -> dict[str, Any]:
+    """What the page's editor needs to know of an object: its unit and range."""
     return {
         "name": obj.name,
         "field": obj.key_field,
@@ -128,10 +133,16 @@ class LiveView:
         self.dictionary = dictionary
         self.axes = axes
         self.kind = {a: ACHS_TYP.get(cfg.axes[a].params.kind, LINEAR) for a in axes}
+        #: the twin's objects are only shown for a machine that has one
+        self.has_twin = cfg.twin is not None
         by = dictionary.by_name
         self.fields = [(f, by(n)) for f, n in AXIS_FIELDS if f != "axis_type"]
-        self.twin = [(f, by(n)) for f, n in TWIN_FIELDS]
+        if self.has_twin:
+            self.fields += [(f, by(n)) for f, n in TWIN_FIELDS]
+        self.trend_fields = tuple(TRENDS) if self.has_twin else TRENDS_WITHOUT_TWIN
         self.tempc = [(o.key_field, o) for o in writable_tempc(dictionary)]
+        #: the TEMPC objects that also have an engineering value (offset_0, position_0)
+        self.tempc_shown = [(f, o) for f, o in self.tempc if o.quantity]
         self.comps = [
             (
                 c.key,
@@ -146,10 +157,12 @@ class LiveView:
         return show(obj, value, self.kind[axis]).value
 
     def axis(self, snap: Snapshot, axis: int) -> dict[str, Any]:
-        out: dict[str, Any] = {
-            f: self.shown(o, snap.value(o, axis), axis) for f, o in (*self.fields, *self.twin)
-        }
+        """One axis of a push: its values, TEMPC parameters and compensation columns."""
+        out: dict[str, Any] = {f: self.shown(o, snap.value(o, axis), axis) for f, o in self.fields}
         out["tempc"] = {f: snap.value(o, axis) for f, o in self.tempc}
+        out["tempc_shown"] = {
+            f: str(show(o, out["tempc"][f], self.kind[axis])) for f, o in self.tempc_shown
+        }
         out["comps"] = {
             key: [
                 None if s is None else bool(snap.value(s, axis)),
@@ -161,6 +174,7 @@ class LiveView:
         return out
 
     def push(self, snap: Snapshot, t: float) -> dict[str, Any]:
+        """The `live` message: `t` in seconds since the epoch (the trends' time axis)."""
         return {
             "type": "live",
             "t": round(t, 3),
@@ -169,135 +183,26 @@ class LiveView:
         }
 
     def trend_point(self, live: dict[str, Any]) -> list[float]:
-        """One trend sample: per axis total offset (µm / °), residual, sensor °C."""
-        return [float(live["axes"][str(a)][f]) for a in self.axes for f in TRENDS]
+        """One trend sample: per axis, each trend field (µm / °, °C)."""
+        return [float(live["axes"][str(a)][f]) for a in self.axes for f in self.trend_fields]
 
 
 class Trends:
-    """The last `seconds` of trend samples at `rate` per second (a ring)."""
+    """The trend samples of the last `seconds` (a ring: samples come at the push rate
+    while somebody watches, more slowly while nobody does)."""
 
     def __init__(self, series: int, seconds: float = 600.0, rate: float = 10.0) -> None:
-        self.samples: deque[tuple[float, list[float]]] = deque(maxlen=int(seconds * rate))
+        self.seconds = seconds
+        self.samples: deque[tuple[float, list[float]]] = deque(maxlen=int(seconds * rate) + 1)
         self.series = series
 
     def add(self, t: float, values: list[float]) -> None:
         self.samples.append((t, values))
+        while self.samples and self.samples[0][0] < t - self.seconds:
+            self.samples.popleft()
 
     def as_json(self) -> dict[str, Any]:
+        """Column by column: `t` and one list per series (axis-major, field-minor)."""
         t = [s[0] for s in self.samples]
         cols = [[s[1][i] for s in self.samples] for i in range(self.series)]
         return {"t": t, "series": cols}
-
-
-# ---------------------------------------------------------------------- tables
-
-
-def _mm(v: np.ndarray) -> list[float]:
-    return [round(float(x) / UNITS_PER_MM, 4) for x in v]
-
-
-def _um(v: np.ndarray) -> list[float]:
-    return [round(float(x) / UNITS_PER_UM, 2) for x in v]
-
-
-def _rotary(cfg: MachineConfig, axis: int) -> bool:
-    return axis in cfg.axes and cfg.axes[axis].params.kind != "T"
-
-
-def _offsets(cfg: MachineConfig, axis: int, v: np.ndarray) -> list[float]:
-    """Corrections of `axis`: µm on a linear axis, ° on a rotary one (docs/design.md §3)."""
-    if _rotary(cfg, axis):
-        return [round(float(x) / UNITS_PER_MM, 4) for x in v]
-    return _um(v)
-
-
-def tables(cfg: MachineConfig, axes: tuple[int, ...]) -> list[dict[str, Any]]:
-    """Every configured compensation table in engineering units (positions in mm,
-    corrections in µm; docs/design.md §3): curves (LSEC, cross, friction) and grids
-    (plane; crosstalk mode 3 as scattered points)."""
-    names = {a: cfg.axes[a].params.name for a in axes}
-    out: list[dict[str, Any]] = []
-    for a in axes:
-        comp = cfg.axes[a].comp
-        if comp is None:
-            continue
-        base = {"axis": a, "name": names[a]}
-        if comp.lsec is not None and comp.lsec.valid:
-            out.append(
-                {
-                    **base,
-                    "kind": "lsec",
-                    "title": f"{names[a]} leadscrew (LSEC)",
-                    "x": _mm(comp.lsec.setpoint),
-                    "x_axis": a,
-                    "series": {
-                        "positive": _offsets(cfg, a, comp.lsec.pos),
-                        "negative": _offsets(cfg, a, comp.lsec.neg),
-                    },
-                    "x_unit": "°" if _rotary(cfg, a) else "mm",
-                    "y_unit": "°" if _rotary(cfg, a) else "µm",
-                }
-            )
-        if comp.cross is not None and comp.cross.valid:
-            m = comp.cross.master_ax_nr
-            out.append(
-                {
-                    **base,
-                    "kind": "cross",
-                    "title": f"{names[a]} cross over {names.get(m, m)} (CROSSC)",
-                    "x": _mm(comp.cross.setpoint),
-                    "x_axis": m,
-                    "series": {"correction": _um(comp.cross.correction)},
-                    "x_unit": "mm",
-                    "y_unit": "µm",
-                }
-            )
-        if comp.frict is not None and comp.frict.valid:
-            out.append(
-                {
-                    **base,
-                    "kind": "frict",
-                    "title": f"{names[a]} friction (FRICT)",
-                    "x": [float(v) for v in comp.frict.vin],
-                    "x_axis": a,
-                    "series": {"current": [float(v) for v in comp.frict.out]},
-                    "x_unit": "velocity (list units)",
-                    "y_unit": "current (list units)",
-                }
-            )
-        if comp.plane is not None and comp.plane.valid:
-            p = comp.plane
-            ny, nx = p.table.shape
-            out.append(
-                {
-                    **base,
-                    "kind": "plane",
-                    "title": f"{names[a]} plane over {names.get(p.master1_ax_nr)}/"
-                    f"{names.get(p.master2_ax_nr)} (CC2)",
-                    "x_axis": p.master1_ax_nr,
-                    "y_axis": p.master2_ax_nr,
-                    "x": _mm(p.start_position_master1 + p.interval1 * np.arange(nx)),
-                    "y": _mm(p.start_position_master2 + p.interval2 * np.arange(ny)),
-                    "z": [_um(row) for row in p.table],
-                    "x_unit": "mm",
-                    "z_unit": "µm",
-                }
-            )
-        ct = comp.crosstalk
-        if ct is not None and ct.valid and ct.mode == 3:
-            out.append(
-                {
-                    **base,
-                    "kind": "scatter",
-                    "title": f"{names[a]} crosstalk mode 3 over "
-                    f"{names.get(ct.master_pos1_ax_nr)}/{names.get(ct.master_pos2_ax_nr)}",
-                    "x_axis": ct.master_pos1_ax_nr,
-                    "y_axis": ct.master_pos2_ax_nr,
-                    "x": _mm(ct.ax_1),
-                    "y": _mm(ct.ax_2),
-                    "z": _um(ct.corrections[:, 0]),
-                    "x_unit": "mm",
-                    "z_unit": "µm",
-                }
-            )
-    return out

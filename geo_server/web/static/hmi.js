@@ -1,10 +1,11 @@
-// geo-server web HMI (docs/web.md): one WebSocket, pushes 10 times a second.
+// geo-server web HMI (docs/web.md): one WebSocket, `live` pushes 10 times a second.
 "use strict";
 
 const COLORS = ["#0b6bcb", "#d9480f", "#2b8a3e", "#862e9c", "#e67700", "#c2255c"];
-const TREND_MAX = 6000;
-const state = { hello: null, axes: [], charts: {}, trend: null, tables: [], tablePlots: [],
-                live: null, pushes: 0 };
+const MARK = "#c62828";
+const TREND_SECONDS = 600;
+const state = { hello: null, axes: [], trends: [], tables: [], tablePlots: [], live: null,
+                pushes: 0 };
 
 const $ = (sel, root = document) => root.querySelector(sel);
 const el = (tag, attrs = {}, ...kids) => {
@@ -23,62 +24,89 @@ function fmt(v, digits) {
   return Number(v).toFixed(digits);
 }
 
+// tick labels: uPlot's default shows at most 3 decimals (a rotary axis' 0.0001° is 0)
+const ticks = (u, splits) => splits.map((v) => (v === null ? "" : Math.abs(v) >= 1000
+  ? v.toLocaleString("en") : String(+v.toFixed(8))));
+
+// time ticks as a 24-hour clock of the browser's time zone
+const clock = (u, splits) => splits.map((t) => new Date(t * 1000).toLocaleTimeString("en-GB"));
+
+const liveAxis = (axis) => (state.live ? state.live.axes[String(axis)] : null) || null;
+const axisInfo = (axis) => state.axes.find((a) => a.axis === axis) || { name: `axis ${axis}`, rotary: false };
+
 // ---------------------------------------------------------------- axis cards
 
+// field, label, decimals on a linear axis, on a rotary axis, quantity
 const AXIS_ROWS = [
-  ["command_position", "command position", 4, "pos"],
-  ["output_position", "output position", 4, "pos"],
-  ["total_offset", "total offset", 1, "off"],
-  ["velocity", "velocity", 3, "vel"],
-  ["residual", "residual error (twin)", 2, "off"],
-  ["sensor_temperature", "sensor (twin)", 2, "°C"],
+  ["command_position", "command position", 4, 4, "pos"],
+  ["output_position", "output position", 4, 4, "pos"],
+  ["total_offset", "total offset", 1, 4, "off"],
+  ["velocity", "velocity", 3, 3, "vel"],
+];
+const TWIN_ROWS = [
+  ["residual", "residual error (twin)", 2, 5, "off"],
+  ["sensor_temperature", "sensor (twin)", 2, 2, "°C"],
 ];
 
-function unitOf(kind, rotary) {
-  if (kind === "pos") return rotary ? "°" : "mm";
-  if (kind === "off") return rotary ? "°" : "µm";
-  if (kind === "vel") return rotary ? "°/s" : "mm/s";
-  return kind;
+function unitOf(quantity, rotary) {
+  if (quantity === "pos") return rotary ? "°" : "mm";
+  if (quantity === "off") return rotary ? "°" : "µm";
+  if (quantity === "vel") return rotary ? "°/s" : "mm/s";
+  return quantity;
 }
+
+function axisRows() { return state.hello.twin ? [...AXIS_ROWS, ...TWIN_ROWS] : AXIS_ROWS; }
 
 function buildAxes(hello) {
   const root = $("#axes");
   root.replaceChildren();
   for (const ax of hello.axes) {
     const kv = el("div", { class: "kv" });
-    for (const [field, label, , kind] of AXIS_ROWS) {
+    for (const [field, label, , , q] of axisRows()) {
       kv.append(el("span", { text: label }),
-        el("span", { class: "v", "data-f": field, "data-unit": unitOf(kind, ax.rotary), text: "–" }));
+        el("span", { class: "v" + (field === "command_position" ? " big" : ""), "data-f": field,
+                     "data-unit": unitOf(q, ax.rotary), text: "–" }));
     }
-    const comps = el("table", { class: "comps" },
-      el("thead", {}, el("tr", {}, el("th", { text: "compensation" }), el("th", { text: "selected" }),
-        el("th", { text: "effective" }), el("th", { text: `actual (${ax.rotary ? "°" : "µm"})` }))));
-    const body = el("tbody");
-    for (const c of hello.comps) {
-      // friction's actual value is the drive's additive current, not a length
-      const title = c.key === "FRICT" ? `${c.title} (current)` : c.title;
-      body.append(el("tr", { "data-comp": c.key }, el("td", { text: title }),
-        el("td", {}, el("span", { class: "dot sel" })), el("td", {}, el("span", { class: "dot eff" })),
-        el("td", { class: "num act", text: "–" })));
-    }
-    comps.append(body);
-    const tempc = el("div", { class: "tempc" });
-    for (const p of hello.tempc) {
-      const input = p.type === "BOOLEAN"
-        ? el("input", { type: "checkbox", "data-name": p.name, "data-axis": ax.axis })
-        : el("input", { type: "text", inputmode: "decimal", "data-name": p.name, "data-axis": ax.axis,
-                        title: `${p.name} [${p.unit}] ${p.min ?? ""} … ${p.max ?? ""}` });
-      input.addEventListener(p.type === "BOOLEAN" ? "change" : "keydown", (ev) => {
-        if (p.type === "BOOLEAN" || ev.key === "Enter") writeTempc(input, p, ax.axis);
-      });
-      input.addEventListener("input", () => input.classList.add("pending"));
-      tempc.append(el("label", { text: `${p.field}${p.unit ? " [" + p.unit + "]" : ""}` }), input);
-    }
-    tempc.append(el("span", { class: "msg", id: `tempc-msg-${ax.axis}` }));
     root.append(el("div", { class: "axis", id: `axis-${ax.axis}` },
       el("h2", {}, el("span", { text: ax.name }), el("small", { text: `axis ${ax.axis}${ax.rotary ? " · rotary" : ""}` })),
-      kv, comps, el("h3", { text: "Temperature compensation (TEMPC)" }), tempc));
+      kv, compTable(hello, ax), el("h3", { text: "Temperature compensation (TEMPC)" }), tempcEditor(hello, ax)));
   }
+}
+
+function compTable(hello, ax) {
+  const head = el("tr", {}, el("th", { text: "compensation" }), el("th", { class: "flag", text: "selected" }),
+    el("th", { class: "flag", text: "effective" }), el("th", { class: "num", text: "actual" }), el("th"));
+  const body = el("tbody");
+  for (const c of hello.comps) {
+    // friction's actual value is the drive's additive current, not a length
+    const unit = c.key === "FRICT" ? "cur." : unitOf("off", ax.rotary);
+    body.append(el("tr", { "data-comp": c.key }, el("td", { text: c.title }),
+      el("td", { class: "flag" }, el("span", { class: "dot sel" })),
+      el("td", { class: "flag" }, el("span", { class: "dot eff" })),
+      el("td", { class: "num act", text: "–" }), el("td", { class: "unit", text: unit })));
+  }
+  return el("table", { class: "comps" }, el("thead", {}, head), body);
+}
+
+function tempcEditor(hello, ax) {
+  const root = el("div", { class: "tempc" });
+  for (const p of hello.tempc) {
+    const boolean = p.type === "BOOLEAN";
+    const input = boolean
+      ? el("input", { type: "checkbox", "data-name": p.name, "data-axis": ax.axis })
+      : el("input", { type: "text", inputmode: "decimal", "data-name": p.name, "data-axis": ax.axis,
+                      title: `${p.name}: ${p.min ?? "–"} … ${p.max ?? "–"} ${p.unit}; Enter writes` });
+    input.addEventListener(boolean ? "change" : "keydown", (ev) => {
+      if (boolean || ev.key === "Enter") writeTempc(input, p, ax.axis);
+      else if (ev.key === "Escape") { input.classList.remove("pending"); input.blur(); }
+    });
+    input.addEventListener("input", () => input.classList.add("pending"));
+    const label = el("label", { text: p.field });
+    if (p.unit) label.append(" ", el("small", { text: `[${p.unit}]` }));
+    root.append(label, input, el("span", { class: "hint", "data-hint": p.field }));
+  }
+  root.append(el("span", { class: "msg", id: `tempc-msg-${ax.axis}` }));
+  return root;
 }
 
 function updateAxes(live) {
@@ -86,21 +114,23 @@ function updateAxes(live) {
     const v = live.axes[String(ax.axis)];
     const card = $(`#axis-${ax.axis}`);
     if (!v || !card) continue;
-    for (const [field, , digits] of AXIS_ROWS) {
+    for (const [field, , lin, rot] of axisRows()) {
       const cell = $(`.v[data-f="${field}"]`, card);
-      cell.textContent = `${fmt(v[field], ax.rotary && digits < 4 && field !== "sensor_temperature" ? 4 : digits)} ${cell.dataset.unit}`;
+      cell.textContent = `${fmt(v[field], ax.rotary ? rot : lin)} ${cell.dataset.unit}`;
     }
     for (const [key, [sel, eff, act]] of Object.entries(v.comps)) {
       const row = $(`tr[data-comp="${key}"]`, card);
       if (!row) continue;
       $(".sel", row).className = "dot sel" + (sel === null ? " na" : sel ? " on" : "");
       $(".eff", row).className = "dot eff" + (eff === null ? " na" : eff ? " on" : "");
-      $(".act", row).textContent = act === null ? "–" : fmt(act, ax.rotary ? 4 : 1);
+      $(".act", row).textContent = act === null ? "–" : fmt(act, key === "FRICT" ? 0 : ax.rotary ? 4 : 1);
     }
     for (const input of card.querySelectorAll(".tempc input")) {
+      const field = input.dataset.name.split("::")[1];
+      const hint = $(`.hint[data-hint="${field}"]`, card);
+      if (hint) hint.textContent = v.tempc_shown[field] ? `= ${v.tempc_shown[field]}` : "";
       if (document.activeElement === input || input.classList.contains("pending")) continue;
-      const value = v.tempc[input.dataset.name.split("::")[1]];
-      if (input.type === "checkbox") input.checked = !!value; else input.value = String(value);
+      if (input.type === "checkbox") input.checked = !!v.tempc[field]; else input.value = String(v.tempc[field]);
     }
   }
 }
@@ -110,15 +140,21 @@ async function writeTempc(input, p, axis) {
   let value;
   if (p.type === "BOOLEAN") value = input.checked;
   else {
-    value = Number(input.value.trim().replace(",", "."));
-    if (input.value.trim() === "" || Number.isNaN(value)) {
+    const text = input.value.trim().replace(",", ".");
+    value = Number(text);
+    if (text === "" || Number.isNaN(value)) {
       msg.className = "msg error"; msg.textContent = `${p.name}: '${input.value}' is not a number`; return;
     }
   }
   msg.className = "msg"; msg.textContent = `writing ${p.name} …`;
-  const r = await fetch("/api/write", { method: "POST", headers: { "Content-Type": "application/json" },
-                                        body: JSON.stringify({ name: p.name, axis, value }) });
-  const body = await r.json();
+  let body;
+  try {
+    const r = await fetch("/api/write", { method: "POST", headers: { "Content-Type": "application/json" },
+                                          body: JSON.stringify({ name: p.name, axis, value }) });
+    body = await r.json();
+  } catch (e) {
+    body = { ok: false, code: 0x745, message: `no answer from the server (${e})` };
+  }
   input.classList.remove("pending");
   if (body.ok) {
     msg.className = "msg ok"; msg.textContent = `${p.name} := ${body.value}`;
@@ -129,71 +165,51 @@ async function writeTempc(input, p, axis) {
 
 // ---------------------------------------------------------------- trends
 
+function chartWidth(host) { return Math.max(360, Math.floor(host.getBoundingClientRect().width) || 400); }
+
 function buildTrends(hello) {
-  const fields = hello.trend_fields;
-  const n = hello.axes.length;
-  state.trend = fields.map(() => [[], ...hello.axes.map(() => [])]);
-  const tr = hello.trends;
-  tr.t.forEach((t, k) => {
-    fields.forEach((_, fi) => {
-      state.trend[fi][0].push(t);
-      for (let a = 0; a < n; a++) state.trend[fi][a + 1].push(tr.series[a * fields.length + fi][k]);
-    });
-  });
-  fields.forEach((f, fi) => {
-    const host = $(`#trend-${f}`);
-    host.replaceChildren();
-    const opts = {
-      width: Math.max(380, host.clientWidth || 400), height: 180,
-      scales: { x: { time: false } },
-      axes: [{ label: "s" }, {}],
-      series: [{ label: "t [s]" }, ...hello.axes.map((a, i) => ({ label: a.name, stroke: COLORS[i % COLORS.length], width: 1.5 }))],
+  const root = $("#trends");
+  root.replaceChildren();
+  const fields = hello.trend_fields, nf = fields.length, tr = hello.trends;
+  state.trends = fields.map((f, fi) => {
+    const host = el("div");
+    root.append(el("div", { class: "trend" },
+      el("h3", {}, f.title, " ", el("small", { text: f.unit === f.rotary_unit ? f.unit : `${f.unit} · rotary ${f.rotary_unit}` })), host));
+    const data = [tr.t.slice(), ...hello.axes.map((a, i) => tr.series[i * nf + fi].slice())];
+    const rot = f.unit !== f.rotary_unit && hello.axes.some((a) => a.rotary);
+    const axes = [{ values: clock, space: 70 }, { scale: f.unit, label: f.unit, size: 56, values: ticks }];
+    const rotNames = hello.axes.filter((a) => a.rotary).map((a) => a.name).join(" ");
+    if (rot) axes.push({ scale: f.rotary_unit, label: `${rotNames} [${f.rotary_unit}]`, side: 1, size: 64,
+                           values: ticks, grid: { show: false } });
+    const plot = new uPlot({
+      width: chartWidth(host), height: 210,
+      scales: { x: { time: true } },
+      axes,
+      series: [{ label: "time" }, ...hello.axes.map((a, i) => ({
+        label: a.name, stroke: COLORS[i % COLORS.length], width: 1.5,
+        scale: a.rotary && rot ? f.rotary_unit : f.unit,
+        value: (u, v) => (v === null ? "–" : v.toFixed(a.rotary && rot ? 4 : 2)),
+      }))],
       legend: { live: false },
-    };
-    state.charts[f] = new uPlot(opts, state.trend[fi], host);
+    }, data, host);
+    return { field: f.field, data, plot, host };
   });
 }
 
 function pushTrend(live) {
-  const fields = state.hello.trend_fields;
-  fields.forEach((f, fi) => {
-    const d = state.trend[fi];
-    d[0].push(live.t);
-    state.axes.forEach((a, i) => d[i + 1].push(live.axes[String(a.axis)][f]));
-    if (d[0].length > TREND_MAX) d.forEach((s) => s.shift());
-  });
-  if (state.pushes % 5 === 0) fields.forEach((f, fi) => state.charts[f].setData(state.trend[fi]));
+  for (const t of state.trends) {
+    t.data[0].push(live.t);
+    state.axes.forEach((a, i) => t.data[i + 1].push(live.axes[String(a.axis)][t.field]));
+    while (t.data[0].length && t.data[0][0] < live.t - TREND_SECONDS) t.data.forEach((s) => s.shift());
+    if (state.pushes % 5 === 0) t.plot.setData(t.data);
+  }
 }
 
 // ---------------------------------------------------------------- tables
 
-function positionOf(axis) {
-  const live = state.live;
-  if (!live || !live.axes[String(axis)]) return null;
-  return live.axes[String(axis)].command_position;
-}
-
-function curvePlot(t, host) {
-  const names = Object.keys(t.series);
-  const marker = (u) => {
-    const x = positionOf(t.x_axis);
-    if (x === null || t.kind === "frict") return;
-    const ctx = u.ctx, px = u.valToPos(x, "x", true);
-    if (px < u.bbox.left || px > u.bbox.left + u.bbox.width) return;
-    ctx.save(); ctx.strokeStyle = "#c62828"; ctx.lineWidth = 1.5; ctx.setLineDash([4, 3]);
-    ctx.beginPath(); ctx.moveTo(px, u.bbox.top); ctx.lineTo(px, u.bbox.top + u.bbox.height); ctx.stroke();
-    const y = interp(t.x, t.series[names[0]], x);
-    ctx.setLineDash([]); ctx.fillStyle = "#c62828"; ctx.beginPath();
-    ctx.arc(px, u.valToPos(y, "y", true), 4 * devicePixelRatio, 0, 2 * Math.PI); ctx.fill(); ctx.restore();
-  };
-  return new uPlot({
-    width: Math.max(380, host.clientWidth || 400), height: 200,
-    scales: { x: { time: false } },
-    axes: [{ label: t.x_unit }, { label: t.y_unit }],
-    series: [{ label: t.x_unit }, ...names.map((n, i) => ({ label: n, stroke: COLORS[i], width: 1.5 }))],
-    hooks: { draw: [marker] },
-    legend: { live: false },
-  }, [t.x, ...names.map((n) => t.series[n])], host);
+function clampedMarker(t, x) {
+  const lo = Math.min(...t.x), hi = Math.max(...t.x);
+  return { x: Math.min(hi, Math.max(lo, x)), outside: x < lo || x > hi };
 }
 
 function interp(xs, ys, x) {
@@ -204,43 +220,223 @@ function interp(xs, ys, x) {
   return ys[ys.length - 1];
 }
 
-function heatColor(v, lo, hi) {
-  const f = hi > lo ? (v - lo) / (hi - lo) : 0.5;
-  const h = 240 - 240 * Math.min(1, Math.max(0, f));  // blue (low) … red (high)
-  return `hsl(${h}, 75%, 50%)`;
+// the position marking a curve: the master's command position, friction's |velocity|
+function curvePosition(t) {
+  const v = liveAxis(t.x_axis);
+  if (!v) return null;
+  return t.kind === "frict" ? Math.abs(v.velocity) : v.command_position;
 }
 
-function heatPlot(t, canvas) {
-  const w = canvas.width = 400 * devicePixelRatio, h = canvas.height = 260 * devicePixelRatio;
-  const ctx = canvas.getContext("2d"), pad = 30 * devicePixelRatio;
-  const xs = t.x, ys = t.y;
-  const flat = t.kind === "plane" ? t.z.flat() : t.z;
-  const lo = Math.min(...flat), hi = Math.max(...flat);
-  const x0 = Math.min(...xs), x1 = Math.max(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
-  const px = (x) => pad + (x - x0) / ((x1 - x0) || 1) * (w - 2 * pad);
-  const py = (y) => h - pad - (y - y0) / ((y1 - y0) || 1) * (h - 2 * pad);
-  ctx.clearRect(0, 0, w, h);
-  if (t.kind === "plane") {
-    const cw = (w - 2 * pad) / Math.max(1, xs.length - 1), ch = (h - 2 * pad) / Math.max(1, ys.length - 1);
-    t.z.forEach((row, j) => row.forEach((v, i) => {
-      ctx.fillStyle = heatColor(v, lo, hi); ctx.fillRect(px(xs[i]) - cw / 2, py(ys[j]) - ch / 2, cw + 1, ch + 1);
-    }));
-  } else {
-    xs.forEach((x, i) => { ctx.fillStyle = heatColor(flat[i], lo, hi); ctx.beginPath();
-      ctx.arc(px(x), py(ys[i]), 9 * devicePixelRatio, 0, 2 * Math.PI); ctx.fill(); });
+// the series the cycle uses now: a bilateral LSEC table by the direction of motion
+function activeSeries(t, names) {
+  if (names.length < 2) return names[0];
+  const v = liveAxis(t.x_axis);
+  return v && v.velocity < 0 ? names[1] : names[0];
+}
+
+function caption(t) {
+  const parts = [];
+  const master = (prefix) => {
+    const v = liveAxis(t[`${prefix}_axis`]);
+    if (!v) return;
+    const pos = t.kind === "frict" ? Math.abs(v.velocity) : v.command_position;
+    parts.push(el("span", {}, `${t[`${prefix}_name`]} `, el("b", { text: `${fmt(pos, t.kind === "frict" ? 3 : 4)} ${t[`${prefix}_unit`]}` })));
+  };
+  master("x");
+  if (t.y_axis) master("y");
+  const own = liveAxis(t.axis);
+  if (own && own.comps[t.comp]) {
+    const act = own.comps[t.comp][2];
+    const unit = t.kind === "frict" ? "" : ` ${unitOf("off", axisInfo(t.axis).rotary)}`;
+    parts.push(el("span", {}, `${t.kind === "frict" ? "current" : "applied to " + t.name} `,
+      el("b", { text: `${fmt(act, t.kind === "frict" ? 0 : axisInfo(t.axis).rotary ? 4 : 1)}${unit}` })));
   }
-  ctx.fillStyle = "#1d2733"; ctx.font = `${11 * devicePixelRatio}px system-ui`;
-  ctx.fillText(`${x0} … ${x1} ${t.x_unit}`, pad, h - 8 * devicePixelRatio);
-  ctx.save(); ctx.translate(12 * devicePixelRatio, h - pad); ctx.rotate(-Math.PI / 2);
-  ctx.fillText(`${y0} … ${y1} ${t.x_unit}`, 0, 0); ctx.restore();
-  const mx = positionOf(t.x_axis), my = positionOf(t.y_axis);
-  if (mx !== null && my !== null) {
-    const cx = px(Math.min(x1, Math.max(x0, mx))), cy = py(Math.min(y1, Math.max(y0, my)));
-    ctx.strokeStyle = "#fff"; ctx.lineWidth = 3 * devicePixelRatio;
-    ctx.beginPath(); ctx.arc(cx, cy, 6 * devicePixelRatio, 0, 2 * Math.PI); ctx.stroke();
-    ctx.fillStyle = "#111"; ctx.beginPath(); ctx.arc(cx, cy, 4 * devicePixelRatio, 0, 2 * Math.PI); ctx.fill();
+  const out = [];
+  parts.forEach((p, i) => { if (i) out.push(" · "); out.push(p); });
+  return out;
+}
+
+function curvePlot(t, host) {
+  const names = Object.keys(t.series);
+  const state1 = { outside: false };
+  const marker = (u) => {
+    const pos = curvePosition(t);
+    if (pos === null) return;
+    const m = clampedMarker(t, pos);
+    state1.outside = m.outside;
+    const ctx = u.ctx, px = u.valToPos(m.x, "x", true);
+    const name = activeSeries(t, names);
+    const py = u.valToPos(interp(t.x, t.series[name], m.x), "y", true);
+    ctx.save();
+    ctx.strokeStyle = m.outside ? "#999" : MARK; ctx.lineWidth = 1.5 * devicePixelRatio;
+    ctx.setLineDash([4 * devicePixelRatio, 3 * devicePixelRatio]);
+    ctx.beginPath(); ctx.moveTo(px, u.bbox.top); ctx.lineTo(px, u.bbox.top + u.bbox.height); ctx.stroke();
+    ctx.setLineDash([]); ctx.beginPath(); ctx.arc(px, py, 4.5 * devicePixelRatio, 0, 2 * Math.PI);
+    if (m.outside) { ctx.fillStyle = "#fff"; ctx.fill(); ctx.stroke(); } else { ctx.fillStyle = MARK; ctx.fill(); }
+    ctx.restore();
+  };
+  const x = { time: false };
+  const xAxis = { label: `${t.x_name} [${t.x_unit}]`, size: 44, labelSize: 18, values: ticks };
+  if (t.kind === "frict") {  // the Stribeck part is near 0: a log-like scale that has 0
+    Object.assign(x, { distr: 4, asinh: 0.01, range: (u, lo, hi) => [0, hi * 1.2] });
+    xAxis.splits = (u) => [0, 0.01, 0.1, 1, 10, 100, 1000, 10000].filter((v) => v <= u.scales.x.max);
   }
-  return `${t.z_unit}: ${lo} (blue) … ${hi} (red)`;
+  const plot = new uPlot({
+    width: chartWidth(host), height: 210,
+    scales: { x },
+    axes: [xAxis, { label: t.y_label, size: 56, labelSize: 18, values: ticks }],
+    series: [{ label: t.x_unit, value: (u, v) => (v === null ? "–" : `${v}`) },
+             ...names.map((n, i) => ({ label: n, stroke: COLORS[i], width: 1.5,
+                                       points: { show: t.kind === "frict" } }))],
+    hooks: { draw: [marker] },
+    legend: { live: false },
+  }, [t.x, ...names.map((n) => t.series[n])], host);
+  return { plot, outside: () => state1.outside };
+}
+
+// ---- heat maps: plane (its grid nodes, bilinear between them) and crosstalk mode 3
+
+const STOPS = [[-1, [33, 102, 172]], [-0.5, [103, 169, 207]], [0, [247, 247, 247]],
+               [0.5, [239, 138, 98]], [1, [178, 24, 43]]];
+
+// a value's place on the colour map, −1 … 1: diverging (blue −, white 0, red +) around 0
+// when the values have both signs, else light to dark in their own colour
+function colorScale(values) {
+  const lo = Math.min(...values), hi = Math.max(...values), span = hi - lo || 1;
+  if (lo >= 0 && hi > 0) return { f: (v) => 0.12 + 0.88 * (v - lo) / span, lo, hi };
+  if (hi <= 0 && lo < 0) return { f: (v) => -0.12 - 0.88 * (hi - v) / span, lo, hi };
+  const m = Math.max(-lo, hi) || 1;
+  return { f: (v) => v / m, lo: -m, hi: m };
+}
+
+function heatColor(f0) {
+  const f = Math.min(1, Math.max(-1, f0));
+  for (let i = 1; i < STOPS.length; i++) {
+    const [f1, c1] = STOPS[i], [f0, c0] = STOPS[i - 1];
+    if (f <= f1) { const k = (f - f0) / (f1 - f0); return c0.map((c, j) => Math.round(c + (c1[j] - c) * k)); }
+  }
+  return STOPS[STOPS.length - 1][1];
+}
+
+function niceTicks(lo, hi, count = 5) {
+  const span = hi - lo || 1, raw = span / count, mag = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 2.5, 5, 10].map((s) => s * mag).find((s) => span / s <= count) || 10 * mag;
+  const out = [];
+  for (let v = Math.ceil(lo / step - 1e-9) * step; v <= hi + 1e-9 * span; v += step) out.push(+v.toFixed(10));
+  return out;
+}
+
+function heatMap(t, canvas) {
+  const layers = Object.keys(t.layers);
+  const view = { layer: layers[0], bg: null, outside: false };
+  const M = { l: 58, r: 78, t: 10, b: 40 };
+  const render = () => {  // the map, its axes and colour bar, into an offscreen canvas
+    const d = devicePixelRatio, W = canvas.clientWidth, H = canvas.clientHeight;
+    const bg = document.createElement("canvas");
+    bg.width = canvas.width = Math.round(W * d); bg.height = canvas.height = Math.round(H * d);
+    const ctx = bg.getContext("2d"); ctx.scale(d, d);
+    const z = t.layers[view.layer], xs = t.x, ys = t.y, nx = xs.length, ny = ys.length;
+    const flat = z.flat().concat(t.points ? t.points.layers[view.layer] : []);
+    const m = colorScale(flat);
+    const g = geometry(t, W, H, M);
+    const img = document.createElement("canvas"); img.width = nx; img.height = ny;
+    const ic = img.getContext("2d"), id = ic.createImageData(nx, ny);
+    for (let j = 0; j < ny; j++) for (let i = 0; i < nx; i++) {
+      const [r, gg, b] = heatColor(m.f(z[j][i])), k = 4 * ((ny - 1 - j) * nx + i);
+      id.data[k] = r; id.data[k + 1] = gg; id.data[k + 2] = b; id.data[k + 3] = 255;
+    }
+    ic.putImageData(id, 0, 0);
+    const cw = (g.px(xs[nx - 1]) - g.px(xs[0])) / Math.max(1, nx - 1);
+    const ch = (g.py(ys[0]) - g.py(ys[ny - 1])) / Math.max(1, ny - 1);
+    ctx.save(); ctx.beginPath(); ctx.rect(g.x0, g.y1, g.x1 - g.x0, g.y0 - g.y1); ctx.clip();
+    ctx.imageSmoothingEnabled = true;  // bilinear between the nodes, as the cycle does
+    ctx.drawImage(img, g.px(xs[0]) - cw / 2, g.py(ys[ny - 1]) - ch / 2, nx * cw, ny * ch);
+    ctx.restore();
+    if (t.points) drawPoints(ctx, t, g, m, view.layer);
+    drawFrame(ctx, t, g);
+    drawColorBar(ctx, g, m, t.z_unit, H);
+    view.bg = bg;
+  };
+  const redraw = () => {
+    if (!view.bg || view.bg.width !== Math.round(canvas.clientWidth * devicePixelRatio)) render();
+    const ctx = canvas.getContext("2d");
+    ctx.setTransform(1, 0, 0, 1, 0, 0); ctx.clearRect(0, 0, canvas.width, canvas.height);
+    ctx.drawImage(view.bg, 0, 0);
+    ctx.scale(devicePixelRatio, devicePixelRatio);
+    view.outside = drawHeatMarker(ctx, t, geometry(t, canvas.clientWidth, canvas.clientHeight, M));
+  };
+  const setLayer = (name) => { view.layer = name; view.bg = null; redraw(); };
+  return { redraw, setLayer, layers, outside: () => view.outside, invalidate: () => { view.bg = null; } };
+}
+
+function geometry(t, W, H, M) {
+  const xlo = Math.min(...t.x), xhi = Math.max(...t.x), ylo = Math.min(...t.y), yhi = Math.max(...t.y);
+  const x0 = M.l, x1 = W - M.r, y0 = H - M.b, y1 = M.t;
+  return { x0, x1, y0, y1, xlo, xhi, ylo, yhi,
+           px: (x) => x0 + (x - xlo) / ((xhi - xlo) || 1) * (x1 - x0),
+           py: (y) => y0 - (y - ylo) / ((yhi - ylo) || 1) * (y0 - y1) };
+}
+
+function drawPoints(ctx, t, g, m, layer) {
+  const p = t.points;
+  p.x.forEach((x, i) => {
+    const [r, gg, b] = heatColor(m.f(p.layers[layer][i]));
+    ctx.fillStyle = `rgb(${r},${gg},${b})`; ctx.strokeStyle = "#1d2733"; ctx.lineWidth = 1;
+    ctx.beginPath(); ctx.arc(g.px(x), g.py(p.y[i]), 4, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+  });
+}
+
+function drawFrame(ctx, t, g) {
+  ctx.strokeStyle = "#9aa5b1"; ctx.lineWidth = 1; ctx.strokeRect(g.x0, g.y1, g.x1 - g.x0, g.y0 - g.y1);
+  ctx.fillStyle = "#1d2733"; ctx.font = "11px system-ui, sans-serif";
+  ctx.textAlign = "center"; ctx.textBaseline = "top";
+  for (const v of niceTicks(g.xlo, g.xhi)) {
+    const x = g.px(v);
+    ctx.fillRect(x, g.y0, 1, 4); ctx.fillText(String(v), x, g.y0 + 6);
+  }
+  ctx.font = "bold 11px system-ui, sans-serif";
+  ctx.fillText(`${t.x_name} [${t.x_unit}]`, (g.x0 + g.x1) / 2, g.y0 + 22);
+  ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "right"; ctx.textBaseline = "middle";
+  for (const v of niceTicks(g.ylo, g.yhi)) {
+    const y = g.py(v);
+    ctx.fillRect(g.x0 - 4, y, 4, 1); ctx.fillText(String(v), g.x0 - 6, y);
+  }
+  ctx.save(); ctx.translate(12, (g.y0 + g.y1) / 2); ctx.rotate(-Math.PI / 2);
+  ctx.textAlign = "center"; ctx.font = "bold 11px system-ui, sans-serif";
+  ctx.fillText(`${t.y_name} [${t.y_unit}]`, 0, 0); ctx.restore();
+}
+
+function drawColorBar(ctx, g, m, unit, H) {
+  const x = g.x1 + 14, w = 12, top = g.y1, bottom = g.y0;
+  for (let y = top; y < bottom; y++) {
+    const [r, gg, b] = heatColor(m.f(m.hi - (m.hi - m.lo) * (y - top) / (bottom - top)));
+    ctx.fillStyle = `rgb(${r},${gg},${b})`; ctx.fillRect(x, y, w, 1);
+  }
+  ctx.strokeStyle = "#9aa5b1"; ctx.strokeRect(x, top, w, bottom - top);
+  ctx.fillStyle = "#1d2733"; ctx.font = "11px system-ui, sans-serif"; ctx.textAlign = "left";
+  ctx.textBaseline = "middle";
+  const big = Math.max(Math.abs(m.lo), Math.abs(m.hi));
+  const digits = big >= 10 ? 0 : big >= 1 ? 1 : big >= 0.01 ? 3 : 5;
+  [[m.hi, top], [(m.lo + m.hi) / 2, (top + bottom) / 2], [m.lo, bottom]]
+    .forEach(([v, y]) => ctx.fillText(v.toFixed(digits), x + w + 4, y));
+  ctx.textBaseline = "top"; ctx.fillText(unit, x, Math.min(H - 14, bottom + 8));
+}
+
+function drawHeatMarker(ctx, t, g) {
+  const vx = liveAxis(t.x_axis), vy = liveAxis(t.y_axis);
+  if (!vx || !vy) return false;
+  const mx = vx.command_position, my = vy.command_position;
+  const outside = mx < g.xlo || mx > g.xhi || my < g.ylo || my > g.yhi;
+  const cx = g.px(Math.min(g.xhi, Math.max(g.xlo, mx))), cy = g.py(Math.min(g.yhi, Math.max(g.ylo, my)));
+  ctx.save();
+  ctx.strokeStyle = "rgba(29,39,51,0.45)"; ctx.setLineDash([3, 3]); ctx.lineWidth = 1;
+  ctx.beginPath(); ctx.moveTo(cx, g.y1); ctx.lineTo(cx, g.y0); ctx.moveTo(g.x0, cy); ctx.lineTo(g.x1, cy); ctx.stroke();
+  ctx.setLineDash([]);
+  ctx.lineWidth = 4; ctx.strokeStyle = "#fff"; ctx.beginPath(); ctx.arc(cx, cy, 7, 0, 2 * Math.PI); ctx.stroke();
+  ctx.lineWidth = 2; ctx.strokeStyle = outside ? "#888" : "#111"; ctx.beginPath(); ctx.arc(cx, cy, 7, 0, 2 * Math.PI); ctx.stroke();
+  if (!outside) { ctx.fillStyle = "#111"; ctx.beginPath(); ctx.arc(cx, cy, 2.5, 0, 2 * Math.PI); ctx.fill(); }
+  ctx.restore();
+  return outside;
 }
 
 async function buildTables() {
@@ -249,19 +445,34 @@ async function buildTables() {
   const root = $("#tables");
   root.replaceChildren();
   state.tablePlots = state.tables.map((t) => {
-    const card = el("div", { class: "table-card", "data-kind": t.kind, "data-axis": t.axis },
-      el("h3", { text: t.title }));
+    const title = el("h3", { text: t.title });
+    const cap = el("div", { class: "caption" });
+    const card = el("div", { class: "table-card", "data-kind": t.kind, "data-axis": t.axis }, title);
     root.append(card);
-    if (t.kind === "plane" || t.kind === "scatter") {
+    let view;
+    if (t.layers) {
       const canvas = el("canvas", { class: "heat" });
-      const legend = el("div", { class: "legend" });
-      card.append(canvas, legend);
-      return { t, redraw: () => { legend.textContent = heatPlot(t, canvas); } };
+      card.append(canvas, cap);
+      view = heatMap(t, canvas);
+      if (view.layers.length > 1) {
+        const sel = el("select", { "aria-label": "correction column" },
+          ...view.layers.map((n) => el("option", { value: n, text: n })));
+        sel.addEventListener("change", () => view.setLayer(sel.value));
+        title.append(sel);
+      }
+    } else {
+      const host = el("div");
+      card.append(host, cap);
+      const c = curvePlot(t, host);
+      view = { redraw: () => c.plot.redraw(false), outside: c.outside, plot: c.plot, host };
     }
-    const host = el("div");
-    card.append(host);
-    const plot = curvePlot(t, host);
-    return { t, redraw: () => plot.redraw(false) };
+    const redraw = () => {
+      view.redraw();
+      const kids = caption(t);
+      if (view.outside()) kids.push(" · ", el("span", { class: "outside", text: "outside the table" }));
+      cap.replaceChildren(...kids);
+    };
+    return { t, view, redraw };
   });
   state.tablePlots.forEach((p) => p.redraw());
 }
@@ -273,7 +484,7 @@ function showStatus(st) {
   s.classList.toggle("stalled", !!st.stalled);
   s.textContent = st.stalled
     ? `STALLED: no GEO cycle for ${st.stalled_for_s} s`
-    : `cycle ${st.cycle} · ${st.engine} · overruns ${st.overruns}`;
+    : `cycle ${st.cycle} · ${st.engine} engine · overruns ${st.overruns}`;
   const faults = st.faults || [];
   const banner = $("#faults");
   banner.hidden = faults.length === 0;
@@ -284,59 +495,86 @@ function showStatus(st) {
 
 function addError(e, top = true) {
   const body = $("#errors tbody");
+  $(".empty", body)?.remove();
+  const where = e.file && e.line ? `${e.file}:${e.line}: ` : "";
   const row = el("tr", { class: e.severity || "" },
     el("td", { text: e.cycle ?? "" }), el("td", { text: e.severity || "" }),
-    el("td", { text: e.error_id || "" }),
-    el("td", { text: (e.file && e.line ? `${e.file}:${e.line}: ` : "") + e.message }));
+    el("td", { text: e.error_id || "" }), el("td", { text: e.axis ? axisInfo(e.axis).name : "" }),
+    el("td", { text: where + e.message }));
   if (top) body.prepend(row); else body.append(row);
   while (body.children.length > 100) body.lastChild.remove();
+}
+
+function showErrors(errors) {
+  const body = $("#errors tbody");
+  body.replaceChildren();
+  if (!errors.length) body.append(el("tr", { class: "empty" }, el("td", { colspan: 5, text: "none" })));
+  errors.slice().reverse().forEach((e) => addError(e, false));
 }
 
 async function command(name) {
   const msg = $("#command-result");
   msg.className = "msg"; msg.textContent = `${name} …`;
-  const r = await fetch(`/api/command/${name}`, { method: "POST" });
-  const body = await r.json();
+  let body;
+  try {
+    body = await (await fetch(`/api/command/${name}`, { method: "POST" })).json();
+  } catch (e) {
+    body = { ok: false, message: `no answer from the server (${e})` };
+  }
   if (body.ok) {
     msg.className = "msg";
     msg.textContent = name === "save"
       ? (body.files.length ? `saved: ${body.files.join(", ")}` : "saved: nothing had changed")
       : `reloaded (${body.files.length} files)`;
+    if (name === "reload") buildTables();
   } else {
     msg.className = "msg error";
     msg.textContent = `${name} failed: ${(body.errors || []).join("; ") || body.message}`;
   }
+  msg.title = msg.textContent;
 }
 
 // ---------------------------------------------------------------- the socket
 
+function onMessage(m) {
+  if (m.type === "hello") {
+    state.hello = m; state.axes = m.axes; state.live = null;
+    $("#machine").textContent = `${m.machine} · ${m.version}`;
+    document.title = `geo-server HMI · ${m.machine}`;
+    buildAxes(m); buildTrends(m); buildTables(); showStatus(m.status); showErrors(m.errors);
+  } else if (m.type === "live") {
+    state.live = m; state.pushes += 1;
+    updateAxes(m); pushTrend(m);
+    state.tablePlots.forEach((p) => p.redraw());
+    document.body.dataset.cycle = m.cycle;
+  } else if (m.type === "status") {
+    showStatus(m.status);
+  } else if (m.type === "error") {
+    addError(m.error);
+  } else if (m.type === "tables") {
+    buildTables();
+  } else if (m.type === "stalled") {
+    $("#status").textContent = `STALLED: ${m.message}`; $("#status").classList.add("stalled");
+  }
+}
+
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
-  ws.onmessage = (ev) => {
-    const m = JSON.parse(ev.data);
-    if (m.type === "hello") {
-      state.hello = m; state.axes = m.axes;
-      $("#machine").textContent = `${m.machine} · ${m.version}`;
-      document.title = `geo-server HMI · ${m.machine}`;
-      buildAxes(m); buildTrends(m); buildTables(); showStatus(m.status);
-      $("#errors tbody").replaceChildren();
-      m.errors.slice().reverse().forEach((e) => addError(e, false));
-    } else if (m.type === "live") {
-      state.live = m; state.pushes += 1;
-      updateAxes(m); pushTrend(m);
-      if (state.pushes % 2 === 0) state.tablePlots.forEach((p) => p.redraw());
-      document.body.dataset.cycle = m.cycle;
-    } else if (m.type === "status") {
-      showStatus(m.status);
-    } else if (m.type === "error") {
-      addError(m.error);
-    } else if (m.type === "stalled") {
-      $("#status").textContent = m.message; $("#status").classList.add("stalled");
-    }
-  };
+  ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
   ws.onclose = () => { $("#status").textContent = "disconnected; reconnecting…"; setTimeout(connect, 1000); };
 }
 
+function resize() {
+  for (const t of state.trends) t.plot.setSize({ width: chartWidth(t.host), height: 210 });
+  for (const p of state.tablePlots) {
+    if (p.view.plot) p.view.plot.setSize({ width: chartWidth(p.view.host), height: 210 });
+    if (p.view.invalidate) p.view.invalidate();
+    p.redraw();
+  }
+}
+
+let resizing = null;
+window.addEventListener("resize", () => { clearTimeout(resizing); resizing = setTimeout(resize, 150); });
 $("#reload").addEventListener("click", () => command("reload"));
 $("#save").addEventListener("click", () => command("save"));
 connect();

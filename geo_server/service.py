@@ -498,7 +498,14 @@ class ObjectService:
     # ------------------------------------------------------------------ status, events
 
     def status(self) -> dict[str, Any]:
-        """Cycle count, cycle time, lateness, overruns, and whether the cycle is stalled."""
+        """Cycle count, cycle time, lateness, overruns, and whether the cycle is stalled.
+
+        A status is an observation like a read (docs/design.md §13): the exact engine
+        catches up first, so `cycle` is the cycle due now — unless the cycle is stalled,
+        when the status must answer at once and tells the last cycle there is."""
+        stalled = self.stalled_for()
+        if not stalled:
+            self.scheduler.sync()
         st = dict(self.scheduler.status())
         stalled = self.stalled_for()
         st["stalled"] = bool(stalled)

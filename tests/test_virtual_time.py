@@ -274,3 +274,23 @@ def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> 
         release.set()
         t.join(5)
     assert svc.read_name("SIM::cycle_count") == 10
+
+
+def test_a_status_is_an_observation_too(cfg) -> None:
+    """`status()` (Zenoh `cnc/<m>/status`, `cnc/fleet/status`, the run's status line)
+    tells the cycle due now, not the last one the sleeping engine happened to compute:
+    a machine at rest for 610.5 periods reads cycle 610."""
+    from geo_server.service import ObjectService
+
+    vc = VirtualClock()
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    svc = ObjectService(m, sched)
+    vc.t += 10 * P
+    assert svc.status()["cycle"] == 10
+    vc.t += 600 * P + P // 2
+    assert m.cycle == 10  # nobody looked since
+    assert svc.status()["cycle"] == 610
+    vc.t += 66 * P
+    assert svc.status()["cycle"] == 676

@@ -145,9 +145,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.fleet or args.fleet_size:
         from geo_server.fleet import run_fleet
 
-        if args.record or args.http:
-            what = "--record records" if args.record else "--http serves"
-            print(f"error: {what} one machine; not with a fleet", file=sys.stderr)
+        if args.record:
+            print("error: --record records one machine; not with a fleet", file=sys.stderr)
             return 2
 
         return run_fleet(args)
@@ -507,8 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--http",
         metavar="HOST:PORT",
-        help="serve the web HMI there (off by default; e.g. 127.0.0.1:8080; docs/web.md). "
-        "No authentication: keep it on loopback or behind a proxy that has some",
+        help="serve the web HMI there (off by default; e.g. 127.0.0.1:8080; docs/web.md; "
+        "a fleet: its list at /, a machine at /m/NAME/). No authentication: keep it on "
+        "loopback or behind a proxy that has some",
     )
     r.add_argument(
         "--fault",

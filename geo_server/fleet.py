@@ -12,6 +12,7 @@ its own: a machine at rest costs next to nothing) and object service. The interf
 - **ADS**: one TCP port; requests are routed by the target AMS NetId as a TwinCAT router
   does (`AdsServer.add_device`), one NetId per machine; an unknown NetId gets 0x7.
 - **Modbus**: one port per machine, `--modbus-port` + i.
+- **Web HMI** (`--http`): the fleet's page at `/`, each machine's page at `/m/<name>/`.
 
 The fleet file: `geo_server.fleetfile`.
 """
@@ -137,6 +138,8 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
                 raise InterfaceStartError(start_failure("modbus", exc)) from exc
         if not args.no_ads:
             await _start_ads(args, served, closers)
+        if args.http:
+            await _start_http(args, served, closers)
         for s in served:
             s.scheduler.start()
         latest = [json.dumps(fleet_status(served)).encode()]
@@ -228,6 +231,27 @@ async def _start_modbus(args: argparse.Namespace, served: list[Served], closers:
         await mb.start()
     first, last = served[0].member.modbus_port, served[-1].member.modbus_port
     print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
+
+
+async def _start_http(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:
+    from geo_server.web.server import FleetHmi, HmiOptions, parse_http
+
+    host, port = parse_http(args.http)
+    hmi = FleetHmi(
+        {s.member.name: s.service for s in served},
+        lambda: fleet_status(served),
+        HmiOptions(host=host, port=port),
+    )
+    closers.append(hmi.close)
+    try:
+        await hmi.start()
+    except Exception as exc:  # a taken port
+        raise InterfaceStartError(start_failure("http", exc)) from exc
+    print(
+        f"http: web HMI on http://{hmi.address}/ (the fleet; a machine at /m/<name>/; "
+        "no authentication)",
+        flush=True,
+    )
 
 
 async def _start_ads(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:

@@ -484,3 +484,70 @@ def test_parse_http_refuses_nonsense():
         parse_http("localhost:http")
     with pytest.raises(ValueError, match="expected HOST:PORT"):
         parse_http("1.2.3.4:70000")
+
+
+def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
+    """`geo-server run --fleet FILE --http`: `/` lists the machines (docs/web.md §7), a
+    name opens that machine's page at /m/<name>/, and an edit there reaches that machine
+    and no other (a fresh page of each shows its own server value)."""
+    from playwright.sync_api import expect
+
+    fleet = tmp_path / "fleet.toml"
+    fleet.write_text(
+        '[[machine]]\nname = "mill-a"\n\n[[machine]]\nname = "lathe-b"\nnetid = "127.0.0.1.9.1"\n',
+        encoding="utf-8",
+    )
+    proc = subprocess.Popen(
+        [*RUN, "--fleet", str(fleet), "--homed", "--http", "127.0.0.1:0"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    pg = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        url = ""
+        for line in proc.stdout:
+            if line.startswith("http: web HMI on "):
+                url = line.split()[4]
+                break
+        assert url.startswith("http://127.0.0.1:"), proc.stderr.read()
+        with urllib.request.urlopen(url + "api/fleet", timeout=10) as r:
+            st = json.loads(r.read())
+        assert st["count"] == 2 and [m["name"] for m in st["machines"]] == ["mill-a", "lathe-b"]
+        assert [m["netid"] for m in st["machines"]] == ["127.0.0.1.1.1", "127.0.0.1.9.1"]
+        with pytest.raises(urllib.error.HTTPError) as nope:
+            urllib.request.urlopen(url + "m/drill-c/", timeout=10)
+        assert nope.value.code == 404
+        assert nope.value.read().decode() == (
+            "no machine 'drill-c' in this fleet (machines: mill-a, lathe-b)"
+        )
+
+        pg.goto(url)
+        rows = pg.locator("#machines tbody tr")
+        expect(rows).to_have_count(2, timeout=WAIT_MS)
+        expect(rows.nth(1).locator("td").nth(5)).to_have_text("127.0.0.1.9.1")
+        expect(pg.locator("#status")).to_have_text("2 machines · overruns 0 · stalled 0")
+        pg.locator("a", has_text="lathe-b").click()
+        pg.wait_for_url(url + "m/lathe-b/")
+        expect(pg.locator("#machine")).to_contain_text("lathe-b")
+        expect(pg.locator("#fleet-link")).to_be_visible()
+        box = tempc_input(pg, 1, "TEMPC::coefficient")
+        expect(box).to_have_value("4000", timeout=WAIT_MS)
+        box.fill("4321.5")
+        box.press("Enter")
+        expect(pg.locator("#tempc-msg-1")).to_have_text("TEMPC::coefficient := 4321.5")
+        # the other machine keeps the list's 4000 µm/m; this one serves 4321.5 to a new page
+        for name, value in (("mill-a", "4000"), ("lathe-b", "4321.5")):
+            pg.goto(url + f"m/{name}")  # (no slash: redirected to the page)
+            expect(pg.locator("#machine")).to_contain_text(name, timeout=WAIT_MS)
+            expect(tempc_input(pg, 1, "TEMPC::coefficient")).to_have_value(value, timeout=WAIT_MS)
+        pg.locator("#fleet-link").click()
+        expect(pg.locator("#machines tbody tr")).to_have_count(2, timeout=WAIT_MS)
+    finally:
+        pg.close()
+        proc.terminate()
+        proc.wait(15)
+    assert errors == []

@@ -10,6 +10,9 @@ object service as every transport.
     POST /api/write             {"name", "axis", "value"}: a writable TEMPC object
     POST /api/command/{reload,save}
 
+A fleet (`FleetHmi`): `GET /` the fleet's page, `GET /api/fleet` its status, and each
+machine's endpoints above under `/m/<name>/`.
+
 One task samples the machine (`service.current()`: one snapshot per sample) into the
 trend ring and sends the same JSON text to every socket: every 100 ms while a page is
 open, once a second for the trends while none is.
@@ -24,7 +27,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +67,8 @@ class HmiOptions:
     idle_period: float = 1.0
     #: seconds of trend kept for a page opened later
     trend_seconds: float = 600.0
+    #: the machine is one of a fleet (its page links back to the fleet's)
+    fleet: bool = False
 
 
 def parse_http(text: str) -> tuple[str, int]:
@@ -108,43 +113,41 @@ class HmiServer:
 
     # ------------------------------------------------------------------ lifecycle
 
+    def routes(self) -> list[web.RouteDef]:
+        """The machine's page and API, relative to where it is served: the root for one
+        machine, `/m/<name>/` for a machine of a fleet (`FleetHmi`)."""
+        return [
+            web.get("/", self._index),
+            web.get("/ws", self._ws),
+            web.get("/api/tables", self._tables),
+            web.get("/api/state", self._state),
+            web.post("/api/write", self._write),
+            web.post("/api/command/{name}", self._command),
+        ]
+
     async def start(self) -> None:
         """Bind the port and start sampling."""
-        self._loop = asyncio.get_running_loop()
         app = web.Application()
-        app.add_routes(
-            [
-                web.get("/", self._index),
-                web.get("/ws", self._ws),
-                web.get("/favicon.ico", self._favicon),
-                web.get("/api/tables", self._tables),
-                web.get("/api/state", self._state),
-                web.post("/api/write", self._write),
-                web.post("/api/command/{name}", self._command),
-                web.static("/static", STATIC),
-            ]
-        )
-        self._runner = web.AppRunner(app, access_log=None)
-        await self._runner.setup()
-        host, port = self.options.host, self.options.port
-        try:
-            await web.TCPSite(self._runner, host, port).start()
-        except OSError as exc:
-            if exc.errno not in _IN_USE:
-                raise
-            # said here in full: geo_server.interfaces knows no option for this port
-            raise RuntimeError(
-                f"{host}:{port} is taken (another geo-server?); choose another "
-                "--http HOST:PORT or stop the other server"
-            ) from exc
-        host, port = self._runner.addresses[0][:2]
-        self.address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        app.add_routes([*self.routes(), *common_routes()])
+        self._runner, self.address = await bind(app, self.options)
+        await self.start_sampling()
+
+    async def start_sampling(self) -> None:
+        """Sample the machine and push to the sockets (also when served by a `FleetHmi`)."""
+        self._loop = asyncio.get_running_loop()
         self._unsubscribe = self.service.subscribe_events(self._on_event)
         self._spawn(self._push_loop())
         self._spawn(self._status_loop())
 
     async def close(self) -> None:
         """Stop sampling, close every socket and the listener."""
+        await self.stop_sampling()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    async def stop_sampling(self) -> None:
+        """Stop sampling and close every socket."""
         if self._unsubscribe is not None:
             self._unsubscribe()
             self._unsubscribe = None
@@ -153,9 +156,6 @@ class HmiServer:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         for ws in list(self.sockets):
             await ws.close()
-        if self._runner is not None:
-            await self._runner.cleanup()
-            self._runner = None
 
     @property
     def port(self) -> int:
@@ -177,6 +177,7 @@ class HmiServer:
             "type": "hello",
             "version": __version__,
             "machine": self.options.machine,
+            "fleet": self.options.fleet,
             "period": self.options.period,
             "twin": self.view.has_twin,
             "axes": [
@@ -206,14 +207,18 @@ class HmiServer:
     def sample(self) -> str:
         """One sample: the snapshot due now into the trends, as the JSON text of a
         `live` message (a `stalled` one while the GEO cycle is)."""
+        return json.dumps(self._take())
+
+    def _take(self) -> dict[str, Any]:
+        """`sample` before its JSON text (which nobody needs while no page is open)."""
         try:
             snap = self.service.current()
         except AdsError as exc:
-            return json.dumps({"type": "stalled", "code": exc.code, "message": exc.message})
+            return {"type": "stalled", "code": exc.code, "message": exc.message}
         live = self.view.push(snap, time.time())
         self.trends.add(live["t"], self.view.trend_point(live))
         self.samples += 1
-        return json.dumps(live)
+        return live
 
     def _reconfigured(self) -> bool:
         """After a reload (from any interface) the tables and units may have changed."""
@@ -244,11 +249,12 @@ class HmiServer:
             try:
                 if self._reconfigured() and self.sockets:
                     await self._broadcast(json.dumps({"type": "tables"}))
-                text = self.sample()
+                live = self._take()
+                text = json.dumps(live) if self.sockets else ""
             except Exception:  # never let one bad sample end the pushes
                 log.exception("web HMI: sample failed")
                 continue
-            if self.sockets:
+            if text:
                 self.pushes += 1
                 await self._broadcast(text)
 
@@ -285,9 +291,6 @@ class HmiServer:
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC / "index.html")
-
-    async def _favicon(self, request: web.Request) -> web.StreamResponse:
-        return web.FileResponse(STATIC / "favicon.svg", headers={"Content-Type": "image/svg+xml"})
 
     async def _ws(self, request: web.Request) -> web.WebSocketResponse:
         ws = web.WebSocketResponse(heartbeat=20)
@@ -351,6 +354,96 @@ class HmiServer:
             body = {**result.error().as_dict(), **body}
             return web.json_response(body, status=400)
         return web.json_response(body)
+
+
+def common_routes() -> list[web.AbstractRouteDef]:
+    """What every page shares: the static files and the icon, at the root."""
+    return [web.get("/favicon.ico", _favicon), web.static("/static", STATIC)]
+
+
+async def _favicon(request: web.Request) -> web.StreamResponse:
+    return web.FileResponse(STATIC / "favicon.svg", headers={"Content-Type": "image/svg+xml"})
+
+
+async def bind(app: web.Application, options: HmiOptions) -> tuple[web.AppRunner, str]:
+    """Serve `app` on the options' host and port: the runner and the bound address
+    (a taken port: RuntimeError with the one-line reason `geo-server run` prints)."""
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    host, port = options.host, options.port
+    try:
+        await web.TCPSite(runner, host, port).start()
+    except OSError as exc:
+        await runner.cleanup()
+        if exc.errno not in _IN_USE:
+            raise
+        # said here in full: geo_server.interfaces knows no option for this port
+        raise RuntimeError(
+            f"{host}:{port} is taken (another geo-server?); choose another "
+            "--http HOST:PORT or stop the other server"
+        ) from exc
+    host, port = runner.addresses[0][:2]
+    return runner, f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+class FleetHmi:
+    """The web HMI of a fleet (docs/web.md §7): `/` lists every machine (name, cycle,
+    engine, overruns, stalled, NetId, Modbus port; `GET /api/fleet` as JSON) and
+    `/m/<name>/` is that machine's page, the same page and API as for one machine."""
+
+    def __init__(
+        self,
+        services: dict[str, ObjectService],
+        fleet_status: Callable[[], dict[str, Any]],
+        options: HmiOptions | None = None,
+    ) -> None:
+        self.options = options or HmiOptions()
+        self.pages = {
+            name: HmiServer(svc, replace(self.options, machine=name, fleet=True))
+            for name, svc in services.items()
+        }
+        self._fleet_status = fleet_status
+        self._runner: web.AppRunner | None = None
+        self.address = ""
+
+    async def start(self) -> None:
+        """Bind the port and start every machine's sampling."""
+        # /m/<name> -> /m/<name>/: the page's relative addresses need the slash
+        app = web.Application(middlewares=[web.normalize_path_middleware(append_slash=True)])
+        app.add_routes(
+            [web.get("/", self._index), web.get("/api/fleet", self._fleet), *common_routes()]
+        )
+        for name, page in self.pages.items():
+            sub = web.Application()
+            sub.add_routes(page.routes())
+            app.add_subapp(f"/m/{name}", sub)
+        app.router.add_get("/m/{name}/{rest:.*}", self._unknown)
+        self._runner, self.address = await bind(app, self.options)
+        for page in self.pages.values():
+            await page.start_sampling()
+
+    async def close(self) -> None:
+        for page in self.pages.values():
+            await page.stop_sampling()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    @property
+    def port(self) -> int:
+        return int(self.address.rpartition(":")[2]) if self.address else 0
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "fleet.html")
+
+    async def _fleet(self, request: web.Request) -> web.Response:
+        return web.json_response(self._fleet_status())
+
+    async def _unknown(self, request: web.Request) -> web.StreamResponse:
+        names = ", ".join(self.pages)
+        raise web.HTTPNotFound(
+            text=f"no machine {request.match_info['name']!r} in this fleet (machines: {names})"
+        )
 
 
 def _tables_json(cfg: MachineConfig, axes: tuple[int, ...]) -> str:

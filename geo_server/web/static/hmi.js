@@ -149,7 +149,7 @@ async function writeTempc(input, p, axis) {
   msg.className = "msg"; msg.textContent = `writing ${p.name} …`;
   let body;
   try {
-    const r = await fetch("/api/write", { method: "POST", headers: { "Content-Type": "application/json" },
+    const r = await fetch("api/write", { method: "POST", headers: { "Content-Type": "application/json" },
                                           body: JSON.stringify({ name: p.name, axis, value }) });
     body = await r.json();
   } catch (e) {
@@ -440,7 +440,7 @@ function drawHeatMarker(ctx, t, g) {
 }
 
 async function buildTables() {
-  const r = await fetch("/api/tables");
+  const r = await fetch("api/tables");
   state.tables = await r.json();
   const root = $("#tables");
   root.replaceChildren();
@@ -517,7 +517,7 @@ async function command(name) {
   msg.className = "msg"; msg.textContent = `${name} …`;
   let body;
   try {
-    body = await (await fetch(`/api/command/${name}`, { method: "POST" })).json();
+    body = await (await fetch(`api/command/${name}`, { method: "POST" })).json();
   } catch (e) {
     body = { ok: false, message: `no answer from the server (${e})` };
   }
@@ -540,6 +540,7 @@ function onMessage(m) {
   if (m.type === "hello") {
     state.hello = m; state.axes = m.axes; state.live = null;
     $("#machine").textContent = `${m.machine} · ${m.version}`;
+    $("#fleet-link").hidden = !m.fleet;
     document.title = `geo-server HMI · ${m.machine}`;
     buildAxes(m); buildTrends(m); buildTables(); showStatus(m.status); showErrors(m.errors);
   } else if (m.type === "live") {
@@ -559,7 +560,10 @@ function onMessage(m) {
 }
 
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  // relative to the page: /ws for one machine, /m/<name>/ws for a machine of a fleet
+  const url = new URL("ws", location.href);
+  url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+  const ws = new WebSocket(url);
   ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
   ws.onclose = () => { $("#status").textContent = "disconnected; reconnecting…"; setTimeout(connect, 1000); };
 }

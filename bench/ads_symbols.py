@@ -18,6 +18,7 @@ import numpy as np
 from common import (
     HOST,
     ServerProcess,
+    address,
     emit,
     free_ports,
     geo_server_argv,
@@ -27,7 +28,10 @@ from common import (
     timed_loop,
 )
 
-IG, IO = 0x120300, 0x10043
+#: TEMPC::coefficient of axis 1 (from the dictionary)
+COEFF = address("TEMPC::coefficient")
+
+IG, IO = COEFF.index_group, COEFF.index_offset
 NAME = "GEO.X.TEMPC.coefficient"
 
 

@@ -1,7 +1,7 @@
 """Bare transport floors: trivial servers that answer one read with fixed bytes.
 
     python bench/bare.py zenoh  --port P   # queryable on cnc/local/** answering 8 fixed bytes
-    python bench/bare.py modbus --port P   # pymodbus SimDevice, unit 1, registers 268…271
+    python bench/bare.py modbus --port P   # pymodbus SimDevice, unit 1, TEMPC::coefficient
     python bench/bare.py ads    --port P   # asyncio responder: every Read gets 8 fixed bytes
     python bench/bare.py pyads  --port P   # pyads' own AdsTestServer (AdvancedHandler)
 
@@ -19,8 +19,11 @@ import struct
 import sys
 import threading
 
-#: What every bare server answers: TEMPC::coefficient 4000.0 as REAL64.
+from common import address
+
+#: What every bare server answers: TEMPC::coefficient 4000.0 as REAL64, at its addresses.
 VALUE = struct.pack("<d", 4000.0)
+COEFF = address("TEMPC::coefficient")
 HOST = "127.0.0.1"
 
 
@@ -57,7 +60,7 @@ def serve_zenoh(port: int) -> None:
 
 
 def serve_modbus(port: int) -> None:
-    """pymodbus `ModbusTcpServer` with one `SimDevice` (unit 1, holding 268…271)."""
+    """pymodbus `ModbusTcpServer` with one `SimDevice` (unit 1, TEMPC::coefficient)."""
     from pymodbus.server import ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -65,7 +68,15 @@ def serve_modbus(port: int) -> None:
 
     async def run() -> None:
         device = SimDevice(
-            id=1, simdata=[SimData(268, count=4, values=regs, datatype=DataType.REGISTERS)]
+            id=1,
+            simdata=[
+                SimData(
+                    COEFF.register,
+                    count=COEFF.registers,
+                    values=regs,
+                    datatype=DataType.REGISTERS,
+                )
+            ],
         )
         server = ModbusTcpServer(device, address=(HOST, port))
         await server.serve_forever(background=True)
@@ -120,7 +131,7 @@ def serve_ads(port: int) -> None:
 
 
 def serve_pyads(port: int) -> None:
-    """pyads' `AdsTestServer` with one variable at 0x120300/0x10043 (LREAL 4000.0).
+    """pyads' `AdsTestServer` with one variable at TEMPC::coefficient's address (LREAL 4000.0).
 
     Quirks (pyads 3.6.0 test server): thread per connection, `recvfrom(4096)` without framing, AMS
     port ignored; an unknown index kills the connection thread. Its `request_history`
@@ -136,8 +147,8 @@ def serve_pyads(port: int) -> None:
             VALUE,
             ads_type=pyads.constants.ADST_REAL64,
             symbol_type="LREAL",
-            index_group=0x120300,
-            index_offset=0x10043,
+            index_group=COEFF.index_group,
+            index_offset=COEFF.index_offset,
         )
     )
     server = AdsTestServer(handler=handler, ip_address=HOST, port=port, logging=False)

@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,46 @@ BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
 PYTHON = sys.executable
 HOST = "127.0.0.1"
+
+
+# ---------------------------------------------------------------------- addresses
+
+
+@dataclass(frozen=True)
+class Address:
+    """Where the benchmarks find one object, on every transport — from the dictionary
+    (objects/), never typed a second time."""
+
+    index_group: int
+    index_offset: int
+    #: first holding register of its Modbus slot, and how many carry the value
+    register: int
+    registers: int
+    #: bytes of its ADS value
+    size: int
+    raw_key: str
+    named_key: str
+
+
+def address(name: str, axis: int = 1, machine: str = "local") -> Address:
+    """The ADS, Modbus and Zenoh addresses of object `name` of `axis` on `machine`."""
+    from geo_server.dictionary import load_dictionary
+    from geo_server.transports.modbus.regmap import register_address, register_count
+    from geo_server.transports.zenoh.keys import KeySpace
+
+    d = load_dictionary()
+    obj = d.by_name(name)
+    keys = KeySpace(machine, d, (axis,))
+    ig, io = obj.index_group, obj.index_offset(axis)
+    return Address(
+        ig,
+        io,
+        register_address(obj),
+        register_count(obj),
+        obj.length,
+        keys.raw_key(ig, io),
+        keys.named_key(obj, axis),
+    )
 
 
 # ---------------------------------------------------------------------- ports

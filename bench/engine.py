@@ -31,6 +31,7 @@ import numpy as np
 from common import (
     HOST,
     ServerProcess,
+    address,
     cpu_seconds,
     emit,
     free_ports,
@@ -44,9 +45,8 @@ from common import (
 )
 
 MOVING = "N10 G90 G01 X200 Y150 Z-100 C90 F6000\nN20 X-200 Y-150 Z100 C-90\nN30 $GOTO N10\n"
-GEO = 0x120300
-OFFSET_0 = 0x10044  # TEMPC::offset_0 of axis 1
-ZENOH_KEY = "cnc/{m}/axis/1/tempc/offset_0"
+#: the object every request reads: TEMPC::offset_0 of axis 1 ("{m}": the machine's name)
+OFFSET_0 = address("TEMPC::offset_0", 1, machine="{m}")
 
 
 def _children_cpu(pid: int) -> float:
@@ -120,13 +120,16 @@ class Clients:
         """One request to machine i over `via`: its round trip in µs (raises on failure)."""
         t0 = time.perf_counter_ns()
         if via == "ads":
-            self.ads.read(self.machines[i][1], GEO, OFFSET_0, 4)
+            a = OFFSET_0
+            self.ads.read(self.machines[i][1], a.index_group, a.index_offset, a.size)
         elif via == "modbus":
-            r = self.mb[i].read_holding_registers(272, count=2, device_id=1)  # offset_0
+            a = OFFSET_0
+            r = self.mb[i].read_holding_registers(a.register, count=a.registers, device_id=1)
             if r.isError():
                 raise RuntimeError(f"modbus: {r}")
         else:
-            replies = list(self.session.get(ZENOH_KEY.format(m=self.machines[i][0]), timeout=5.0))
+            key = OFFSET_0.named_key.format(m=self.machines[i][0])
+            replies = list(self.session.get(key, timeout=5.0))
             if not any(r.ok is not None for r in replies):
                 raise RuntimeError("zenoh: no reply")
         return (time.perf_counter_ns() - t0) / 1000

@@ -30,6 +30,7 @@ import numpy as np
 from common import (
     HOST,
     ServerProcess,
+    address,
     emit,
     free_ports,
     geo_server_argv,
@@ -42,11 +43,14 @@ from common import (
 from recorder import TWENTY
 from transports import ads_reader, modbus_reader, zenoh_reader
 
+#: TEMPC::coefficient of axis 1 (from the dictionary)
+COEFF = address("TEMPC::coefficient")
+
 PROGRAM = "N10 G90 G01 X100 Y-50 Z30 C90 F3000\nN20 X-100 Y50 Z-30 C0\nN30 $GOTO N10\n"
 READERS = {
     "ADS read": lambda p: ads_reader(p["ads"]),
     "Modbus read": lambda p: modbus_reader(p["modbus"]),
-    "Zenoh get": lambda p: zenoh_reader(p["zenoh"], "cnc/local/ads/551/0x120300/0x10043"),
+    "Zenoh get": lambda p: zenoh_reader(p["zenoh"], COEFF.raw_key),
 }
 
 

@@ -28,7 +28,18 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from common import HOST, Reservoir, summary_us
+from common import HOST, Reservoir, address, summary_us
+
+#: the objects of the mixes, from the dictionary: X's TEMPC parameters
+COEFF = address("TEMPC::coefficient")
+COEFF_ADS = (COEFF.index_group, COEFF.index_offset)
+OFFSET_0 = address("TEMPC::offset_0")
+POSITION_0 = address("TEMPC::position_0")
+TEMPC = [address(n) for n in ("TEMPC::activated", "TEMPC::actual_offset")] + [
+    COEFF,
+    OFFSET_0,
+    POSITION_0,
+]
 
 MAX_PER_OP = 2_000_000  # hard bound on requests per operation
 RESERVOIR = 100_000  # latency samples kept per operation
@@ -124,8 +135,8 @@ class Load:
             read = self.op("zenoh read (raw key)")
             write = self.op("zenoh write TEMPC::coefficient")
             nc = self.op("zenoh NC line")
-            raw = "cnc/local/ads/551/0x120300/0x10043"
-            coef = "cnc/local/axis/1/tempc/coefficient"
+            raw = COEFF.raw_key
+            coef = COEFF.named_key
             next_nc = time.monotonic() + 0.5
             lines = 0
             self.connected()
@@ -165,12 +176,12 @@ class Load:
             }  # offset_0 of X is 40 in the default machine
 
             def rd() -> None:
-                rr = c.read_holding_registers(268, count=4, device_id=1)
+                rr = c.read_holding_registers(COEFF.register, count=COEFF.registers, device_id=1)
                 if rr.isError():
                     raise RuntimeError(str(rr))
 
             def wr(v: int) -> None:
-                rr = c.write_registers(272, regs[v], device_id=1)
+                rr = c.write_registers(OFFSET_0.register, regs[v], device_id=1)
                 if rr.isError():
                     raise RuntimeError(str(rr))
 
@@ -201,8 +212,7 @@ class Load:
             read = self.op("ads read")
             write = self.op("ads write TEMPC::position_0")
             sumr = self.op("ads sum read (TEMPC, 5 objects)")
-            tempc = [(0x120300, (1 << 16) | i, n) for i, n in ((0x41, 1), (0x42, 4), (0x43, 8))]
-            tempc += [(0x120300, (1 << 16) | i, 4) for i in (0x44, 0x45)]
+            tempc = [(a.index_group, a.index_offset, a.size) for a in TEMPC]
 
             def sr() -> None:
                 for r in client.sum_read_raw(tempc):
@@ -215,11 +225,15 @@ class Load:
                 i += 1
                 if soak and i % 10 == 0:
                     v = 100 if i % 20 else 101  # X position_0 is 100 in the default machine
-                    write.call(lambda v=v: conn.write(0x120300, 0x10045, v, pyads.PLCTYPE_DINT))
+                    write.call(
+                        lambda v=v: conn.write(
+                            POSITION_0.index_group, POSITION_0.index_offset, v, pyads.PLCTYPE_DINT
+                        )
+                    )
                 elif soak and i % 10 == 5:
                     sumr.call(sr)
                 else:
-                    read.call(lambda: conn.read(0x120300, 0x10043, pyads.PLCTYPE_LREAL))
+                    read.call(lambda: conn.read(*COEFF_ADS, pyads.PLCTYPE_LREAL))
         finally:
             client.close()
 

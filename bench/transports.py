@@ -28,6 +28,7 @@ from common import (
     HOST,
     PYTHON,
     ServerProcess,
+    address,
     emit,
     free_port,
     free_ports,
@@ -39,9 +40,10 @@ from common import (
     wait_port,
 )
 
-RAW_KEY = "cnc/local/ads/551/0x120300/0x10043"
-JSON_KEY = "cnc/local/axis/1/tempc/coefficient"
-IG, IO = 0x120300, 0x10043
+#: the object every client reads: TEMPC::coefficient of axis 1 (from the dictionary)
+COEFF = address("TEMPC::coefficient", 1)
+RAW_KEY, JSON_KEY = COEFF.raw_key, COEFF.named_key
+IG, IO = COEFF.index_group, COEFF.index_offset
 _netids = itertools.count(2)
 
 
@@ -73,7 +75,7 @@ def modbus_reader(port: int) -> tuple[Callable[[], Any], Callable[[], None]]:
         raise ConnectionError(f"modbus {HOST}:{port}")
 
     def read() -> list[int]:
-        rr = client.read_holding_registers(268, count=4, device_id=1)
+        rr = client.read_holding_registers(COEFF.register, count=COEFF.registers, device_id=1)
         if rr.isError():
             raise RuntimeError(rr)
         return rr.registers

@@ -92,3 +92,19 @@ def test_bench_recorder_prints_its_table():
     )
     assert r.returncode == 0, r.stderr
     assert "| cycle, recording 20 values every cycle |" in r.stdout, r.stdout
+
+
+def test_bench_addresses_come_from_the_dictionary(monkeypatch):
+    """The benchmarks take every address from objects/ (bench/common.py `address`):
+    TEMPC::offset_0 is ID 0x44, so axis 1 is ADS 0x120300 / (1 << 16 | 0x44) and the
+    holding registers 4·0x44 = 272 (two: a DINT) — docs/design.md §2 addressing."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    from common import address
+
+    a = address("TEMPC::offset_0", 1, machine="mill")
+    assert (a.index_group, a.index_offset) == (0x120300, 0x10044)
+    assert (a.register, a.registers, a.size) == (272, 2, 4)
+    assert a.raw_key == "cnc/mill/ads/551/0x120300/0x10044"
+    assert a.named_key == "cnc/mill/axis/1/tempc/offset_0"
+    c = address("TEMPC::coefficient", 3)
+    assert (c.index_offset, c.register, c.registers, c.size) == (0x30043, 268, 4, 8)

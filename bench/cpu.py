@@ -12,7 +12,11 @@ Each case with both engines in the same run: the observation-exact engine (the d
 computes late, in batches, skips the cycles of a machine at rest; targets idle ≤ 1 %,
 moving ≤ 15 %) and the punctual one (sleep, then spin to each deadline).
 
-    python bench/cpu.py [--quick] [--seconds S] [--out FILE]
+And a fleet of default machines at rest in one process (exact engine, every interface
+on, nobody connected), without and with the web HMI (`--http`, no page open: one trend
+sample a second per machine).
+
+    python bench/cpu.py [--quick] [--seconds S] [--fleet N] [--out FILE]
 """
 
 from __future__ import annotations
@@ -22,7 +26,17 @@ import os
 import time
 from pathlib import Path
 
-from common import ServerProcess, emit, free_ports, geo_server_argv, start_geo, table
+from common import (
+    HOST,
+    ServerProcess,
+    emit,
+    free_ports,
+    geo_server_argv,
+    start_geo,
+    table,
+    wait_port,
+)
+from engine import free_range, settle
 
 TICKS = os.sysconf("SC_CLK_TCK")
 #: every axis of the default machine back and forth, forever (X Y Z linear, C rotary)
@@ -65,6 +79,26 @@ def measure(extra: list[str], seconds: float, program: Path | None, engine: str)
     return 100.0 * (c1 - c0) / (t1 - t0)
 
 
+def measure_fleet(size: int, seconds: float, http: bool) -> float:
+    """CPU of `--fleet-size size` at rest (exact engine), % of one core."""
+    zport, aport, hport = free_ports(3)
+    mbase = free_range(size)
+    ports = {"zenoh": zport, "modbus": mbase, "ads": aport}
+    extra = ["--fleet-size", str(size), "--ads-udp-port", "0"]
+    if http:
+        extra += ["--http", f"{HOST}:{hport}"]
+    argv = geo_server_argv(1.0, ports, extra=extra, engine="exact")
+    with ServerProcess(argv, f"cpu-fleet-{size}") as server:
+        for p in (zport, aport, mbase + size - 1, *([hport] if http else [])):
+            wait_port(p, 60.0, server.proc)
+        settle(server.pid)
+        time.sleep(1.0)
+        c0, t0 = cpu_seconds(server.pid), time.monotonic()
+        time.sleep(seconds)
+        c1, t1 = cpu_seconds(server.pid), time.monotonic()
+    return 100.0 * (c1 - c0) / (t1 - t0)
+
+
 CASES = (
     ("idle, cycle in its own process", [], False),
     ("idle, cycle on a thread", ["--cycle-in", "thread"], False),
@@ -77,6 +111,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="3 s windows")
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--fleet", type=int, default=50, help="machines of the fleet (0: none)")
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args()
     seconds = 3.0 if args.quick else args.seconds
@@ -96,6 +131,17 @@ def main() -> None:
     md = f"### Host CPU of one default machine, 1 ms cycle ({seconds:g} s windows)\n\n"
     md += table(["case", "exact engine, % of one core", "punctual engine, % of one core"], rows)
     md += "\nTargets of the observation-exact engine (SPEC §13): idle ≤ 1 %, moving ≤ 15 %.\n"
+    if args.fleet:
+        n = args.fleet
+        plain, web = measure_fleet(n, seconds, False), measure_fleet(n, seconds, True)
+        md += f"\n### A fleet of {n} default machines at rest, exact engine ({seconds:g} s)\n\n"
+        md += table(
+            ["case", "% of one core", "per machine"],
+            [
+                ["every interface, nobody connected", plain, plain / n],
+                ["and the web HMI (--http), no page open", web, web / n],
+            ],
+        )
     emit(md, args.out)
 
 

@@ -501,11 +501,8 @@ class ObjectService:
         """Cycle count, cycle time, lateness, overruns, and whether the cycle is stalled.
 
         A status is an observation like a read (docs/design.md §13): the exact engine
-        catches up first, so `cycle` is the cycle due now — unless the cycle is stalled,
-        when the status must answer at once and tells the last cycle there is."""
-        stalled = self.stalled_for()
-        if not stalled:
-            self.scheduler.sync()
+        catches up first, so `cycle` is the cycle due now (`_catch_up`)."""
+        self._catch_up()
         st = dict(self.scheduler.status())
         stalled = self.stalled_for()
         st["stalled"] = bool(stalled)
@@ -633,8 +630,16 @@ class ObjectService:
         server with this machine's name) in the machine's error list: listed by
         `errors()`, shown by `SIM::last_error(_id)`, passed to the event listeners. Never
         refused; with the cycle in its own process it lands at the next cycle boundary
-        (while that cycle is stalled: once it resumes)."""
+        (while that cycle is stalled: once it resumes). Its cycle is the one due now."""
+        self._catch_up()
         return self.machine.record(Diagnostic(severity, message, error_id=error_id))
+
+    def _catch_up(self) -> None:
+        """Before a status or a server's own error: the exact engine computes up to the
+        cycle due now (docs/design.md §13) — not while the cycle is stalled, when the
+        answer must come at once and tells the last cycle there is."""
+        if not self.stalled_for():
+            self.scheduler.sync()
 
     def _report_now(self, message: str, error_id: int = 0) -> None:
         """`report` and, when cycles run, wait (briefly) until it is in the list, so a

@@ -279,7 +279,8 @@ def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> 
 def test_a_status_is_an_observation_too(cfg) -> None:
     """`status()` (Zenoh `cnc/<m>/status`, `cnc/fleet/status`, the run's status line)
     tells the cycle due now, not the last one the sleeping engine happened to compute:
-    a machine at rest for 610.5 periods reads cycle 610."""
+    a machine at rest for 610.5 periods reads cycle 610; a server's own error is
+    listed with the cycle due when it came."""
     from geo_server.service import ObjectService
 
     vc = VirtualClock()
@@ -294,3 +295,7 @@ def test_a_status_is_an_observation_too(cfg) -> None:
     assert svc.status()["cycle"] == 610
     vc.t += 66 * P
     assert svc.status()["cycle"] == 676
+    # so is an error the server itself reports: it carries the cycle due when it came
+    vc.t += 123 * P
+    svc.report("a second server answers for this machine")
+    assert svc.errors()[-1]["cycle"] == 799

@@ -43,6 +43,7 @@ from geo_server.machine.nc import parse_program
 from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
 from geo_server.machine.scheduler import (
     ENGINES,
+    IDLE_WAKE_PROCESS,
     SYNC_WAIT,
     CycleStats,
     Scheduler,
@@ -64,7 +65,7 @@ FIRST_FRAME_TIMEOUT = 30.0
 #: Exact engine: the longest a request waits for the cycle process to catch up — the
 #: thread engine's `scheduler.SYNC_WAIT` (a loaded 2-core CI runner once kept the cycle
 #: process from the CPU for more than 50 ms, and a read was answered 0x707) — and how
-#: long without any frame (it sends one at least every `scheduler.IDLE_WAKE`) makes it
+#: long without any frame (it sends one at least every `scheduler.IDLE_WAKE_PROCESS`) makes it
 #: count as not responding (then requests are not held up: the stall watch answers).
 SYNC_DEAD = 0.3
 
@@ -104,6 +105,7 @@ def _child_main(
     _raise_priority()
     machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
     sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
+    sched.idle_wake = IDLE_WAKE_PROCESS  # a frame well within SYNC_DEAD of the last
     out, dec = OutBuffer(), FrameDecoder()
     acks: list[tuple[int, bool, Any]] = []
     events: list[Event] = []

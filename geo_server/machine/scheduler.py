@@ -65,11 +65,15 @@ OBSERVED_S = 0.02
 #: exact engine: the most cycles of a steady stretch computed in one pass
 #: (`Machine.run_batch`)
 BATCH_MAX = 64
-#: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs about a
-#: microsecond per skipped thermal event of the twin (one per 10 ms), so waking more
-#: often would buy a request no latency; the wake keeps the machine's heartbeat fresh
-#: for the stall watch (`ServiceLimits.stall_after`, 0.5 s)
-IDLE_WAKE = 0.1
+#: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs a few
+#: microseconds per skipped thermal event of the twin (one per 10 ms), so waking more
+#: often would buy a request no latency, while each wake costs about 0.4 ms of cold
+#: caches whatever it skips (bench/cpu.py: 0.68 % of a core for the engine alone at
+#: 0.1 s, 0.40 % at 0.25 s). The wake keeps the machine's heartbeat fresh for the stall
+#: watch (`ServiceLimits.stall_after`, 0.5 s: half of it is margin). The cycle process
+#: wakes every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
+IDLE_WAKE = 0.25
+IDLE_WAKE_PROCESS = 0.1
 #: exact engine: the longest a request waits for a catch-up another thread is running
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)

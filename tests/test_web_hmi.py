@@ -351,6 +351,9 @@ def test_live_payload_of_a_stepped_machine():
     assert x["sensor_temperature"] == 20.0
     assert view.trend_fields == ("total_offset", "residual", "sensor_temperature")
     assert len(view.trend_point(live)) == 12
+    # the sample taken while no page is open: the same numbers without the push
+    assert view.trend_sample(service.snapshot) == view.trend_point(live)
+    assert view.trend_sample(service.snapshot)[2] == 20.0  # X's sensor, °C
 
 
 def test_live_payload_without_twin(tmp_path):

@@ -210,7 +210,7 @@ class HmiServer:
         return json.dumps(self._take())
 
     def _take(self) -> dict[str, Any]:
-        """`sample` before its JSON text (which nobody needs while no page is open)."""
+        """`sample` before its JSON text."""
         try:
             snap = self.service.current()
         except AdsError as exc:
@@ -219,6 +219,13 @@ class HmiServer:
         self.trends.add(live["t"], self.view.trend_point(live))
         self.samples += 1
         return live
+
+    def _trend_only(self) -> None:
+        """A sample while no page is open: the trends only (no push, no JSON)."""
+        with contextlib.suppress(AdsError):  # stalled: no sample
+            snap = self.service.current()
+            self.trends.add(round(time.time(), 3), self.view.trend_sample(snap))
+            self.samples += 1
 
     def _reconfigured(self) -> bool:
         """After a reload (from any interface) the tables and units may have changed."""
@@ -249,12 +256,14 @@ class HmiServer:
             try:
                 if self._reconfigured() and self.sockets:
                     await self._broadcast(json.dumps({"type": "tables"}))
-                live = self._take()
-                text = json.dumps(live) if self.sockets else ""
+                if not self.sockets:
+                    self._trend_only()
+                    continue
+                text = self.sample()
             except Exception:  # never let one bad sample end the pushes
                 log.exception("web HMI: sample failed")
                 continue
-            if text:
+            if self.sockets:
                 self.pushes += 1
                 await self._broadcast(text)
 

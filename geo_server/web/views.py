@@ -140,6 +140,8 @@ class LiveView:
         if self.has_twin:
             self.fields += [(f, by(n)) for f, n in TWIN_FIELDS]
         self.trend_fields = tuple(TRENDS) if self.has_twin else TRENDS_WITHOUT_TWIN
+        fields = dict(self.fields)
+        self._trend_objects = [fields[f] for f in self.trend_fields]
         self.tempc = [(o.key_field, o) for o in writable_tempc(dictionary)]
         #: the TEMPC objects that also have an engineering value (offset_0, position_0)
         self.tempc_shown = [(f, o) for f, o in self.tempc if o.quantity]
@@ -185,6 +187,15 @@ class LiveView:
     def trend_point(self, live: dict[str, Any]) -> list[float]:
         """One trend sample: per axis, each trend field (µm / °, °C)."""
         return [float(live["axes"][str(a)][f]) for a in self.axes for f in self.trend_fields]
+
+    def trend_sample(self, snap: Snapshot) -> list[float]:
+        """`trend_point(push(snap, t))` without the rest of the push (a sample nobody
+        watches: a fleet of machines at rest takes one a second each)."""
+        return [
+            float(self.shown(o, snap.value(o, a), a))
+            for a in self.axes
+            for o in self._trend_objects
+        ]
 
 
 class Trends:

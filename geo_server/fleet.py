@@ -25,6 +25,7 @@ import contextlib
 import json
 import signal
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -138,11 +139,14 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
                 raise InterfaceStartError(start_failure("modbus", exc)) from exc
         if not args.no_ads:
             await _start_ads(args, served, closers)
-        if args.http:
-            await _start_http(args, served, closers)
         for s in served:
             s.scheduler.start()
-        latest = [json.dumps(fleet_status(served)).encode()]
+        # the fleet's status, computed off the loop once per status period (each machine
+        # catches up first: a few hundred machines take tens of milliseconds)
+        current = [await asyncio.to_thread(fleet_status, served)]
+        latest = [json.dumps(current[0]).encode()]
+        if args.http:
+            await _start_http(args, served, closers, lambda: current[0])
         if session is not None:
             # Zenoh thread: answer with the latest status, computed on the loop
             queryable = session.declare_queryable(
@@ -156,7 +160,7 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), args.status_period)
-            st = fleet_status(served)
+            st = current[0] = await asyncio.to_thread(fleet_status, served)
             latest[0] = json.dumps(st).encode()
             if session is not None:
                 session.put(FLEET_STATUS_KEY, latest[0])
@@ -233,14 +237,19 @@ async def _start_modbus(args: argparse.Namespace, served: list[Served], closers:
     print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
 
 
-async def _start_http(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:
+async def _start_http(
+    args: argparse.Namespace,
+    served: list[Served],
+    closers: list[Any],
+    status: Callable[[], dict[str, Any]],
+) -> None:
     from geo_server.web.server import FleetHmi, HmiOptions, parse_http
 
     host, port = parse_http(args.http)
     hmi = FleetHmi(
         {s.member.name: s.service for s in served},
-        lambda: fleet_status(served),
-        HmiOptions(host=host, port=port),
+        status,
+        HmiOptions(host=host, port=port, read_only=args.read_only),
     )
     closers.append(hmi.close)
     try:

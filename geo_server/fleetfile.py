@@ -68,6 +68,11 @@ def copies(n: int, name: str, startup: Path, base_netid: str, base_port: int) ->
     """`--fleet-size n`: n machines from one start-up list, named `<name>-1` … `<name>-n`."""
     if not 1 <= n <= 250:
         raise FleetError(f"--fleet-size must be between 1 and 250, not {n}")
+    if not NAME.fullmatch(name) or name == "fleet":
+        raise FleetError(
+            f"--machine {name!r} is not a machine name (letters, digits, _.-): "
+            "the copies are named <machine>-1 …"
+        )
     return [
         Member(f"{name}-{i + 1}", startup, netid_at(base_netid, i), base_port + i) for i in range(n)
     ]

@@ -72,6 +72,9 @@ from geo_server.volcomp.kernel import VOLC_ERROR
 
 #: ADS "syntax error in file" — a reload rejected because a list has errors.
 ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
+#: the longest a status or a server's own error waits for another thread's catch-up
+#: (seconds; a fleet's status asks every machine in turn)
+STATUS_SYNC_WAIT = 0.02
 
 
 @dataclass(frozen=True)
@@ -169,6 +172,8 @@ class ObjectService:
         self.machine = machine
         self.scheduler = scheduler
         self.limits = limits or ServiceLimits()
+        if hasattr(scheduler, "idle_wake"):  # an engine that sleeps at rest: a heartbeat
+            scheduler.idle_wake = min(scheduler.idle_wake, self.limits.stall_after / 2)
         self.dictionary = machine.dictionary
         self._command_lock = threading.Lock()
         self._measure_lock = threading.Lock()
@@ -204,12 +209,16 @@ class ObjectService:
         return self.fresh()
 
     def stalled_for(self) -> float:
-        """Seconds since the latest snapshot when the cycle is stalled, else 0."""
+        """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
+        heartbeat is checked by a catch-up that does not wait (the exact engine sleeps
+        at rest: a late wake is no stall; a hung engine holds its lock)."""
         if not self.running:
             return 0.0
         if not self._started_at:
             self._started_at = time.monotonic()
         age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
+        if age > self.limits.stall_after and self.scheduler.sync(wait=0, record=False):
+            age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
         return age if age > self.limits.stall_after else 0.0
 
     def fresh(self) -> Snapshot:
@@ -492,7 +501,11 @@ class ObjectService:
         return stop
 
     def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]:
-        """Call `callback(event)` for every new warning or error (machine or server)."""
+        """Call `callback(event)` for every new warning or error (machine or server).
+
+        It runs on the reporting thread — the cycle's, with the cycle's lock held — so
+        it must hand the event on and return: calling `status`, `report`, `fresh` or
+        `current` from it would wait for the cycle it is called from."""
         return self.machine.subscribe_events(callback)
 
     # ------------------------------------------------------------------ status, events
@@ -638,8 +651,8 @@ class ObjectService:
         """Before a status or a server's own error: the exact engine computes up to the
         cycle due now (docs/design.md §13) — not while the cycle is stalled, when the
         answer must come at once and tells the last cycle there is."""
-        if not self.stalled_for():
-            self.scheduler.sync()
+        if not self.stalled_for():  # (briefly: a status must answer, caught up or not)
+            self.scheduler.sync(wait=STATUS_SYNC_WAIT, record=False)
 
     def _report_now(self, message: str, error_id: int = 0) -> None:
         """`report` and, when cycles run, wait (briefly) until it is in the list, so a

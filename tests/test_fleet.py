@@ -62,6 +62,9 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
         netid_at("127.0.0.1.255.1", 1)
     with pytest.raises(FleetError, match="not an AMS NetId"):
         copies(2, "m", a.startup, "127.0.0.1", 7000)  # a malformed --ads-netid
+    for bad in ("a/b", "fleet", "%41", ""):  # --fleet-size N --machine BAD
+        with pytest.raises(FleetError, match="is not a machine name"):
+            copies(2, bad, a.startup, "127.0.0.1.1.1", 7000)
     # a client counts what the file leaves out from the server's bases, as the server
     f.write_text('[[machine]]\nname = "x"\n[[machine]]\nname = "y"\n', encoding="utf-8")
     y = member(f, "y", "10.0.0.9.1.1", 6000)

@@ -423,6 +423,21 @@ def test_write_endpoint_refuses_what_is_not_a_tempc_parameter(served):
     assert (status, body["ok"], body["value"]) == (200, True, 7.0)
 
 
+def test_a_read_only_server_refuses_edits_and_commands(tmp_path):
+    """`geo-server run --read-only --http`: the page may look, not touch (0x704)."""
+    s = Served(copy_lists(tmp_path), HmiOptions(port=0, read_only=True))
+    try:
+        assert s.get("/api/state")["read_only"] is True
+        status, body = s.post("/api/write", {"name": "TEMPC::coefficient", "axis": 1, "value": 7})
+        assert (status, body["code"]) == (400, 0x704)
+        assert body["message"] == "this interface is read-only"
+        status, body = s.post("/api/command/save", {})
+        assert (status, body["code"]) == (400, 0x704)
+        assert s.service.read_name("TEMPC::coefficient", 1) == 4000.0  # lists/achsmd1.lis
+    finally:
+        s.close()
+
+
 def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
     """`geo-server run --http` on a port in use: exit 2 and one clear line."""
     blocker = socket.socket()
@@ -490,7 +505,7 @@ def test_parse_http_refuses_nonsense():
 
 
 def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
-    """`geo-server run --fleet FILE --http`: `/` lists the machines (docs/web.md §7), a
+    """`geo-server run --fleet FILE --http`: `/` lists the machines (docs/web.md §3), a
     name opens that machine's page at /m/<name>/, and an edit there reaches that machine
     and no other (a fresh page of each shows its own server value)."""
     from playwright.sync_api import expect
@@ -500,13 +515,14 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
         '[[machine]]\nname = "mill-a"\n\n[[machine]]\nname = "lathe-b"\nnetid = "127.0.0.1.9.1"\n',
         encoding="utf-8",
     )
-    proc = subprocess.Popen(
-        [*RUN, "--fleet", str(fleet), "--homed", "--http", "127.0.0.1:0"],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    with open(tmp_path / "err.txt", "wb") as err:  # (a pipe nobody reads could fill up)
+        proc = subprocess.Popen(
+            [*RUN, "--fleet", str(fleet), "--homed", "--http", "127.0.0.1:0"],
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+        )
     pg = browser.new_page(viewport={"width": 1400, "height": 1000})
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
@@ -516,7 +532,7 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
             if line.startswith("http: web HMI on "):
                 url = line.split()[4]
                 break
-        assert url.startswith("http://127.0.0.1:"), proc.stderr.read()
+        assert url.startswith("http://127.0.0.1:"), (tmp_path / "err.txt").read_text()
         with urllib.request.urlopen(url + "api/fleet", timeout=10) as r:
             st = json.loads(r.read())
         assert st["count"] == 2 and [m["name"] for m in st["machines"]] == ["mill-a", "lathe-b"]
@@ -527,6 +543,10 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
         assert nope.value.read().decode() == (
             "no machine 'drill-c' in this fleet (machines: mill-a, lathe-b)"
         )
+        post = urllib.request.Request(url + "m/drill-c/api/write", b"{}", method="POST")
+        with pytest.raises(urllib.error.HTTPError) as nope:
+            urllib.request.urlopen(post, timeout=10)
+        assert nope.value.code == 404
 
         pg.goto(url)
         rows = pg.locator("#machines tbody tr")
@@ -553,4 +573,5 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
         pg.close()
         proc.terminate()
         proc.wait(15)
+        proc.stdout.close()
     assert errors == []

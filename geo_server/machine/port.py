@@ -233,9 +233,11 @@ class CycleRunner(Protocol):
     def step(self, n: int = 1) -> None:
         """Run `n` cycles now (stepped mode only)."""
 
-    def sync(self) -> bool:
+    def sync(self, wait: float = ..., record: bool = True) -> bool:
         """Make the machine's snapshot the one of the cycle due now (the exact engine
-        computes late; others: nothing to do); False when it could not in time."""
+        computes late; others: nothing to do); False when it could not within `wait`
+        seconds (0: only if nobody else is computing). `record`: time it as what
+        catching up added to a request."""
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the

@@ -561,10 +561,11 @@ class ProcessScheduler:
         m = self.machine
         return (time.monotonic_ns() - m.t0) // round(m.cycle_s * 1e9)
 
-    def sync(self) -> bool:
-        """Exact engine: wake the cycle process and wait (briefly) for the snapshot of
-        the cycle due now. A cycle process that has sent nothing for `SYNC_DEAD`
-        seconds (stopped, hung) is not waited for: the stall watch answers instead."""
+    def sync(self, wait: float = SYNC_WAIT, record: bool = True) -> bool:
+        """Exact engine: wake the cycle process and wait (at most `wait` seconds) for the
+        snapshot of the cycle due now. A cycle process that has sent nothing for
+        `SYNC_DEAD` seconds (stopped, hung) is not waited for: the stall watch answers
+        instead."""
         if not self.exact or not self.running:
             return True
         m = self.machine
@@ -576,8 +577,9 @@ class ProcessScheduler:
             return False
         m.wake()
         with m.arrived:
-            done = m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, SYNC_WAIT)
-        self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+            done = m.arrived.wait_for(lambda: m.snapshot.cycle >= target or m.closed, wait)
+        if record:
+            self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
         return bool(done) and not m.closed
 
     def submit(self, op: Operation) -> Pending:

@@ -68,12 +68,16 @@ BATCH_MAX = 64
 #: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs a few
 #: microseconds per skipped thermal event of the twin (one per 10 ms), so waking more
 #: often would buy a request no latency, while each wake costs about 0.4 ms of cold
-#: caches whatever it skips (bench/cpu.py: 0.68 % of a core for the engine alone at
-#: 0.1 s, 0.40 % at 0.25 s). The wake keeps the machine's heartbeat fresh for the stall
-#: watch (`ServiceLimits.stall_after`, 0.5 s: half of it is margin). The cycle process
-#: wakes every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
+#: caches whatever it skips (the engine alone: 0.68 % of a core at 0.1 s, 0.38 % at
+#: 0.25 s). The wake keeps the machine's heartbeat fresh for the stall watch
+#: (`ServiceLimits.stall_after`, 0.5 s; the service wakes it at least every half of
+#: that, and tries a catch-up before it calls a cycle stalled). The cycle process wakes
+#: every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
 IDLE_WAKE = 0.25
 IDLE_WAKE_PROCESS = 0.1
+#: the interpreter's GIL switch interval (seconds) while a punctual / exact engine runs
+SWITCH_PUNCTUAL = 0.0002
+SWITCH_EXACT = 0.001
 #: exact engine: the longest a request waits for a catch-up another thread is running
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)
@@ -245,9 +249,12 @@ class Scheduler:
         """Start the cycle thread (free / realtime); nothing to do when stepped."""
         if self.mode == "stepped" or self._thread is not None:
             return
-        # A short GIL switch interval keeps the cycle thread from being starved by the
-        # transports' threads (docs/design.md §5).
-        sys.setswitchinterval(0.0002)
+        # A short GIL switch interval keeps the punctual cycle thread from being starved
+        # by the transports' threads (docs/design.md §5). The exact engine computes late
+        # anyway, and many engine threads (a fleet) switching every 0.2 ms spend the
+        # cores on handing the GIL around: 100 machines at rest took 195 % of a 2-core
+        # VM and fell ever further behind, against 30 % at 1 ms (docs/design.md §13.1).
+        sys.setswitchinterval(SWITCH_EXACT if self.exact else SWITCH_PUNCTUAL)
         self._stop.clear()
         if self.mode == "realtime":
             self._begin_timeline()  # before any request can sync against it
@@ -325,24 +332,26 @@ class Scheduler:
         t = self._clock() if now is None else now
         return (t - self.t0) // self.period_ns
 
-    def sync(self) -> bool:
+    def sync(self, wait: float = SYNC_WAIT, record: bool = True) -> bool:
         """Exact engine: compute (or skip) the cycles up to now before an observer looks
         (from any thread; the caller computes them). False when that was not possible
-        within `SYNC_WAIT`: another thread holds the engine (a long catch-up after the
+        within `wait` seconds: another thread holds the engine (a long catch-up after the
         host stalled, or a cycle that hangs) — the machine's snapshot is then not the
-        one due. Other modes: nothing to do (True)."""
+        one due. `record`: time it as what catching up added to a request (status
+        `sync_p50_us`/`sync_p99_us`; a status's own catch-up is not one). Other modes:
+        nothing to do (True)."""
         if not self.exact or not self.running_exact:
             return True
         t0 = time.perf_counter_ns()
         self._observed_at = self._clock()
-        if not self._engine_lock.acquire(timeout=SYNC_WAIT):
+        if not self._engine_lock.acquire(timeout=wait if wait > 0 else -1, blocking=wait > 0):
             return False
         try:
             self.advance(self.due())
         finally:
             self._engine_lock.release()
-        # what the catch-up added to this request (status: sync_p50_us, sync_p99_us)
-        self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+        if record:
+            self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
         return True
 
     @property

@@ -69,6 +69,8 @@ class HmiOptions:
     trend_seconds: float = 600.0
     #: the machine is one of a fleet (its page links back to the fleet's)
     fleet: bool = False
+    #: `geo-server run --read-only`: edits, reload and save refused (0x704)
+    read_only: bool = False
 
 
 def parse_http(text: str) -> tuple[str, int]:
@@ -178,6 +180,7 @@ class HmiServer:
             "version": __version__,
             "machine": self.options.machine,
             "fleet": self.options.fleet,
+            "read_only": self.options.read_only,
             "period": self.options.period,
             "twin": self.view.has_twin,
             "axes": [
@@ -330,6 +333,8 @@ class HmiServer:
 
     async def _write(self, request: web.Request) -> web.Response:
         """A TEMPC edit: the object service's write path, range checks and messages."""
+        if self.options.read_only:
+            return _refused(READ_ONLY)
         try:
             body = await request.json()
             name, axis, value = str(body["name"]), int(body["axis"]), body["value"]
@@ -355,6 +360,8 @@ class HmiServer:
 
     async def _command(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]
+        if self.options.read_only:
+            return _refused(READ_ONLY)
         if name not in ("reload", "save"):
             return _refused(AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}"))
         result = await self.service.command(name)
@@ -391,12 +398,15 @@ async def bind(app: web.Application, options: HmiOptions) -> tuple[web.AppRunner
             f"{host}:{port} is taken (another geo-server?); choose another "
             "--http HOST:PORT or stop the other server"
         ) from exc
+    except BaseException:  # cancelled while starting: nothing left listening
+        await runner.cleanup()
+        raise
     host, port = runner.addresses[0][:2]
     return runner, f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 class FleetHmi:
-    """The web HMI of a fleet (docs/web.md §7): `/` lists every machine (name, cycle,
+    """The web HMI of a fleet (docs/web.md §3): `/` lists every machine (name, cycle,
     engine, overruns, stalled, NetId, Modbus port; `GET /api/fleet` as JSON) and
     `/m/<name>/` is that machine's page, the same page and API as for one machine."""
 
@@ -426,7 +436,7 @@ class FleetHmi:
             sub = web.Application()
             sub.add_routes(page.routes())
             app.add_subapp(f"/m/{name}", sub)
-        app.router.add_get("/m/{name}/{rest:.*}", self._unknown)
+        app.router.add_route("*", "/m/{name}/{rest:.*}", self._unknown)
         self._runner, self.address = await bind(app, self.options)
         for page in self.pages.values():
             await page.start_sampling()
@@ -462,6 +472,10 @@ def _tables_json(cfg: MachineConfig, axes: tuple[int, ...]) -> str:
 def _trend_field(field: str) -> dict[str, str]:
     title, unit, rotary_unit = TRENDS[field]
     return {"field": field, "title": title, "unit": unit, "rotary_unit": rotary_unit}
+
+
+#: what a read-only server (`geo-server run --read-only`) answers an edit or a command
+READ_ONLY = AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "this interface is read-only")
 
 
 def _refused(exc: AdsError) -> web.Response:

@@ -19,9 +19,10 @@ function show(fleet) {
       cell(m.netid), cell(m.modbus_port ?? "–"));
     body.append(tr);
   }
-  document.querySelector("#fleet").textContent = `fleet of ${fleet.count}`;
+  const machines = fleet.count === 1 ? "1 machine" : `${fleet.count} machines`;
+  document.querySelector("#fleet").textContent = `fleet of ${machines}`;
   document.querySelector("#status").textContent =
-    `${fleet.count} machines · overruns ${fleet.overruns} · stalled ${fleet.stalled.length}`;
+    `${machines} · overruns ${fleet.overruns} · stalled ${fleet.stalled.length}`;
 }
 
 async function refresh() {

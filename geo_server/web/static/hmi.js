@@ -543,6 +543,10 @@ function onMessage(m) {
     $("#fleet-link").hidden = !m.fleet;
     document.title = `geo-server HMI · ${m.machine}`;
     buildAxes(m); buildTrends(m); buildTables(); showStatus(m.status); showErrors(m.errors);
+    if (m.read_only) {  // geo-server run --read-only: the server refuses edits and commands
+      document.querySelectorAll("input[data-name], #reload, #save").forEach((e) => { e.disabled = true; });
+      $("#command-result").textContent = "read-only server";
+    }
   } else if (m.type === "live") {
     state.live = m; state.pushes += 1;
     updateAxes(m); pushTrend(m);

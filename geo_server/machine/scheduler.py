@@ -75,9 +75,24 @@ BATCH_MAX = 64
 #: every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
 IDLE_WAKE = 0.25
 IDLE_WAKE_PROCESS = 0.1
-#: the interpreter's GIL switch interval (seconds) while a punctual / exact engine runs
-SWITCH_PUNCTUAL = 0.0002
-SWITCH_EXACT = 0.001
+#: the interpreter's GIL switch interval (seconds): short while a cycle thread runs, so
+#: it is not starved by the transports' threads (and a request's catch-up is not kept
+#: waiting for the lock by an engine thread); longer while more than `FEW_ENGINES`
+#: exact engines run in the process (a fleet), which would otherwise spend the cores on
+#: handing the lock around (docs/design.md §13.1)
+SWITCH_SHORT = 0.0002
+SWITCH_FLEET = 0.001
+FEW_ENGINES = 4
+_engines = 0  # exact-engine threads running in this process
+_engines_lock = threading.Lock()
+
+
+def _count_engine(delta: int) -> None:
+    """An exact-engine thread starts (+1) or ends (-1): set the switch interval."""
+    global _engines
+    with _engines_lock:
+        _engines += delta
+        sys.setswitchinterval(SWITCH_FLEET if _engines > FEW_ENGINES else SWITCH_SHORT)
 #: exact engine: the longest a request waits for a catch-up another thread is running
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)
@@ -249,12 +264,15 @@ class Scheduler:
         """Start the cycle thread (free / realtime); nothing to do when stepped."""
         if self.mode == "stepped" or self._thread is not None:
             return
-        # A short GIL switch interval keeps the punctual cycle thread from being starved
-        # by the transports' threads (docs/design.md §5). The exact engine computes late
-        # anyway, and many engine threads (a fleet) switching every 0.2 ms spend the
-        # cores on handing the GIL around: 100 machines at rest took 195 % of a 2-core
-        # VM and fell ever further behind, against 30 % at 1 ms (docs/design.md §13.1).
-        sys.setswitchinterval(SWITCH_EXACT if self.exact else SWITCH_PUNCTUAL)
+        # A short GIL switch interval keeps the cycle thread from being starved by the
+        # transports' threads (docs/design.md §5) — but many exact-engine threads (a
+        # fleet) switching every 0.2 ms spend the cores on handing the GIL around: 100
+        # machines at rest took 195 % of a 2-core VM and fell ever further behind,
+        # against 30 % at 1 ms (docs/design.md §13.1); `_count_engine` chooses.
+        if self.exact:
+            _count_engine(+1)
+        else:
+            sys.setswitchinterval(SWITCH_SHORT)
         self._stop.clear()
         if self.mode == "realtime":
             self._begin_timeline()  # before any request can sync against it
@@ -503,6 +521,7 @@ class Scheduler:
     def _run_exact(self) -> None:
         clock = self._clock
         self._here = threading.current_thread() is not self._thread
+        counted = not self._here  # a thread `start` counted (`_count_engine`)
         try:
             while not self._stop.is_set() and not self._done():
                 self.wakes += 1
@@ -529,6 +548,8 @@ class Scheduler:
                     self._wait(delay)
         finally:
             self._here = False
+            if counted:
+                _count_engine(-1)
 
     def _wait(self, seconds: float) -> None:
         if self.waiter is not None:

@@ -93,6 +93,8 @@ def _count_engine(delta: int) -> None:
     with _engines_lock:
         _engines += delta
         sys.setswitchinterval(SWITCH_FLEET if _engines > FEW_ENGINES else SWITCH_SHORT)
+
+
 #: exact engine: the longest a request waits for a catch-up another thread is running
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)

@@ -299,3 +299,27 @@ def test_a_status_is_an_observation_too(cfg) -> None:
     vc.t += 123 * P
     svc.report("a second server answers for this machine")
     assert svc.errors()[-1]["cycle"] == 799
+
+
+def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
+    """A freshly homed machine is not yet quiescent: its temperature compensation ramps
+    in over 20 cycles (a sin² ramp), then two cycles at rest make it so. Found more
+    than `max_lag` (a second) behind — a fleet starting a hundred machines at once — it
+    computes those cycles and skips the rest: the cycle due, no overrun. A moving
+    machine that far behind still gives its cycles up (one overrun)."""
+    vc = VirtualClock()
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    assert not m.quiescent and sched.max_lag == 1000
+    vc.t += 5000 * P + P // 2
+    sched.sync()
+    assert (m.cycle, m.overruns, sched.skipped) == (5000, 0, 0)
+    # the same machine moving (X to 100 mm at 100 mm/s takes a second), 3 s behind
+    m.submit(WriteObjects((("SIM::target_position", 1, 1_000_000.0),)))
+    vc.t += 2 * P
+    sched.sync()
+    assert not m.quiescent
+    vc.t += 3000 * P
+    sched.sync()
+    assert m.overruns == 1 and sched.skipped > 0

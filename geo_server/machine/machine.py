@@ -325,6 +325,18 @@ class Machine:
             return False
         return self.kernel.at_rest() and self.volc.at_rest and self.twin.at_rest()
 
+    def standing(self) -> bool:
+        """Nothing queued, no program running, every axis in position: whatever still
+        changes (a sin² ramp — the temperature compensation of a freshly homed machine
+        ramps in over its first 20 cycles — the friction delay line, the twin's motion
+        heat) ends by itself, and then the machine is `quiescent`."""
+        if self._queue:
+            return False
+        player = self.player
+        if player is not None and player.running:
+            return False
+        return self.motion.all_in_position()
+
     @property
     def quiescent(self) -> bool:
         """True when the next cycles would publish the snapshot of this one but for the

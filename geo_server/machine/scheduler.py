@@ -75,6 +75,9 @@ BATCH_MAX = 64
 #: every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
 IDLE_WAKE = 0.25
 IDLE_WAKE_PROCESS = 0.1
+#: exact engine: the most cycles computed to let a standing machine become quiescent
+#: (a ramp runs out) before a long catch-up would give its cycles up (`_reachable`)
+SETTLE_CYCLES = 64
 #: the interpreter's GIL switch interval (seconds): short while a cycle thread runs, so
 #: it is not starved by the transports' threads (and a request's catch-up is not kept
 #: waiting for the lock by an engine thread); longer while more than `FEW_ENGINES`
@@ -490,6 +493,19 @@ class Scheduler:
         if self.max_cycles:
             target = min(target, self.max_cycles)
         lag = target - m.cycle
+        if lag > self.max_lag and not m.quiescent and m.standing():
+            # standing but not yet quiescent (its first cycles: a fleet starting a
+            # hundred machines at once leaves some of them a second behind): the few
+            # cycles that make it quiescent, then the rest is skipped — no overrun
+            for _ in range(SETTLE_CYCLES):
+                if m.quiescent or m.cycle >= target:
+                    break
+                before = m.cycle
+                self._guarded_cycle(publish=False)
+                if m.cycle == before:
+                    break
+                self.computed += 1
+            lag = target - m.cycle
         if lag > self.max_lag and not m.quiescent:
             give_up = lag - 1
             self.t0 += give_up * self.period_ns

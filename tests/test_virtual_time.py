@@ -141,6 +141,16 @@ class VirtualClock:
         self.t += round(seconds * 1e9)
 
 
+def driven(cfg) -> tuple[VirtualClock, Machine, Scheduler]:
+    """A homed machine under the exact engine, driven by a virtual clock (observers
+    catch up on their own thread): the clock, the machine, its scheduler."""
+    vc = VirtualClock()
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    sched.drive()
+    return vc, m, sched
+
+
 def test_exact_engine_shows_the_cycle_due_and_applies_writes_in_the_next(cfg) -> None:
     """Observations at chosen (virtual) instants against a stepped twin of the machine."""
     vc = VirtualClock()
@@ -195,10 +205,7 @@ def test_exact_engine_shows_the_cycle_due_and_applies_writes_in_the_next(cfg) ->
 
 
 def test_every_cycle_is_published_while_someone_samples_every_cycle(cfg) -> None:
-    vc = VirtualClock()
-    m = Machine(cfg, homed=True)
-    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
-    sched.drive()
+    vc, m, sched = driven(cfg)
     seen: list[tuple[int, int]] = []
     m.subscribe(lambda snap: seen.append((snap.cycle, snap.stamp)))
     vc.t += 50 * P
@@ -245,10 +252,7 @@ def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> 
     from geo_server.errors import AdsError
     from geo_server.service import ObjectService
 
-    vc = VirtualClock()
-    m = Machine(cfg, homed=True)
-    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
-    sched.drive()
+    vc, m, sched = driven(cfg)
     svc = ObjectService(m, sched)
     vc.t += 5 * P
     assert svc.read_name("SIM::cycle_count") == 5
@@ -283,10 +287,7 @@ def test_a_status_is_an_observation_too(cfg) -> None:
     listed with the cycle due when it came."""
     from geo_server.service import ObjectService
 
-    vc = VirtualClock()
-    m = Machine(cfg, homed=True)
-    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
-    sched.drive()
+    vc, m, sched = driven(cfg)
     svc = ObjectService(m, sched)
     vc.t += 10 * P
     assert svc.status()["cycle"] == 10
@@ -307,10 +308,7 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     than `max_lag` (a second) behind — a fleet starting a hundred machines at once — it
     computes those cycles and skips the rest: the cycle due, no overrun. A moving
     machine that far behind still gives its cycles up (one overrun)."""
-    vc = VirtualClock()
-    m = Machine(cfg, homed=True)
-    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
-    sched.drive()
+    vc, m, sched = driven(cfg)
     assert not m.quiescent and sched.max_lag == 1000
     vc.t += 5000 * P + P // 2
     sched.sync()

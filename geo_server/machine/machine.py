@@ -316,12 +316,7 @@ class Machine:
         """Nothing queued, no program, no axis moving, the kernel at rest, no motion heat
         pending in the twin (docs/design.md §13): a cycle that starts like this computes
         what the one before computed."""
-        if self._queue:
-            return False
-        player = self.player
-        if player is not None and player.running:
-            return False
-        if not self.motion.all_in_position():
+        if not self.standing():
             return False
         return self.kernel.at_rest() and self.volc.at_rest and self.twin.at_rest()
 

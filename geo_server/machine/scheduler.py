@@ -465,11 +465,8 @@ class Scheduler:
                     continue
             # only the last cycle of the batch is looked at (and every one while
             # someone samples every cycle): the others need not build their snapshot
-            self._guarded_cycle(publish=bool(every) or (publish and m.cycle + 1 == target))
-            if m.cycle == before:  # the cycle failed before it counted: no busy loop
+            if not self._computed_cycle(bool(every) or (publish and m.cycle + 1 == target)):
                 break
-            self.computed += 1
-            rec(0.0, (clock() - t0) / 1000, m.kernel_ns / 1000)
         if publish:
             m.publish()
 
@@ -498,13 +495,8 @@ class Scheduler:
             # hundred machines at once leaves some of them a second behind): the few
             # cycles that make it quiescent, then the rest is skipped — no overrun
             for _ in range(SETTLE_CYCLES):
-                if m.quiescent or m.cycle >= target:
+                if m.quiescent or m.cycle >= target or not self._computed_cycle(False):
                     break
-                before = m.cycle
-                self._guarded_cycle(publish=False)
-                if m.cycle == before:
-                    break
-                self.computed += 1
             lag = target - m.cycle
         if lag > self.max_lag and not m.quiescent:
             give_up = lag - 1
@@ -591,6 +583,18 @@ class Scheduler:
 
     def _done(self) -> bool:
         return bool(self.max_cycles) and self.machine.cycle >= self.max_cycles
+
+    def _computed_cycle(self, publish: bool) -> bool:
+        """Exact engine: one cycle computed, counted and timed; False when it failed
+        before it counted (the caller stops: no busy loop)."""
+        m = self.machine
+        t0, before = time.perf_counter_ns(), m.cycle
+        self._guarded_cycle(publish=publish)
+        if m.cycle == before:
+            return False
+        self.computed += 1
+        self.stats.record(0.0, (time.perf_counter_ns() - t0) / 1000, m.kernel_ns / 1000)
+        return True
 
     def _guarded_cycle(self, publish: bool = True) -> None:
         """One cycle; an unexpected exception is logged and counted, the cycle goes on."""

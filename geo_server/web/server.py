@@ -162,7 +162,7 @@ class HmiServer:
     @property
     def port(self) -> int:
         """The bound TCP port (useful with `port=0`)."""
-        return int(self.address.rpartition(":")[2]) if self.address else 0
+        return port_of(self.address)
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         task = asyncio.ensure_future(coro)
@@ -207,28 +207,19 @@ class HmiServer:
             "status": svc.status(),
         }
 
-    def sample(self) -> str:
+    def sample(self, push: bool = True) -> str:
         """One sample: the snapshot due now into the trends, as the JSON text of a
-        `live` message (a `stalled` one while the GEO cycle is)."""
-        return json.dumps(self._take())
-
-    def _take(self) -> dict[str, Any]:
-        """`sample` before its JSON text."""
+        `live` message (a `stalled` one while the GEO cycle is); without `push` (no
+        page open) the trends only, and no message ("")."""
         try:
             snap = self.service.current()
         except AdsError as exc:
-            return {"type": "stalled", "code": exc.code, "message": exc.message}
-        live = self.view.push(snap, time.time())
-        self.trends.add(live["t"], self.view.trend_point(live))
+            stalled = {"type": "stalled", "code": exc.code, "message": exc.message}
+            return json.dumps(stalled) if push else ""
+        t = time.time()
+        self.trends.add(round(t, 3), self.view.trend_sample(snap))
         self.samples += 1
-        return live
-
-    def _trend_only(self) -> None:
-        """A sample while no page is open: the trends only (no push, no JSON)."""
-        with contextlib.suppress(AdsError):  # stalled: no sample
-            snap = self.service.current()
-            self.trends.add(round(time.time(), 3), self.view.trend_sample(snap))
-            self.samples += 1
+        return json.dumps(self.view.push(snap, t)) if push else ""
 
     def _reconfigured(self) -> bool:
         """After a reload (from any interface) the tables and units may have changed."""
@@ -259,14 +250,11 @@ class HmiServer:
             try:
                 if self._reconfigured() and self.sockets:
                     await self._broadcast(json.dumps({"type": "tables"}))
-                if not self.sockets:
-                    self._trend_only()
-                    continue
-                text = self.sample()
+                text = self.sample(push=bool(self.sockets))
             except Exception:  # never let one bad sample end the pushes
                 log.exception("web HMI: sample failed")
                 continue
-            if self.sockets:
+            if text and self.sockets:
                 self.pushes += 1
                 await self._broadcast(text)
 
@@ -405,6 +393,11 @@ async def bind(app: web.Application, options: HmiOptions) -> tuple[web.AppRunner
     return runner, f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
+def port_of(address: str) -> int:
+    """The port of a bound address `bind` returned (0 before it is bound)."""
+    return int(address.rpartition(":")[2]) if address else 0
+
+
 class FleetHmi:
     """The web HMI of a fleet (docs/web.md §3): `/` lists every machine (name, cycle,
     engine, overruns, stalled, NetId, Modbus port; `GET /api/fleet` as JSON) and
@@ -450,7 +443,7 @@ class FleetHmi:
 
     @property
     def port(self) -> int:
-        return int(self.address.rpartition(":")[2]) if self.address else 0
+        return port_of(self.address)
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC / "fleet.html")

@@ -189,8 +189,9 @@ class LiveView:
         return [float(live["axes"][str(a)][f]) for a in self.axes for f in self.trend_fields]
 
     def trend_sample(self, snap: Snapshot) -> list[float]:
-        """`trend_point(push(snap, t))` without the rest of the push (a sample nobody
-        watches: a fleet of machines at rest takes one a second each)."""
+        """`trend_point(push(snap, t))` without the rest of the push (every sample takes
+        this; a fleet of machines at rest takes one a second each while nobody
+        watches). `trend_point` is its readable reference (tests/test_web_hmi.py)."""
         return [
             float(self.shown(o, snap.value(o, a), a))
             for a in self.axes

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import __version__
-from geo_server.console import closes_quietly_on_broken_pipe
+from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
 from geo_server.interfaces import (
     CycleStoppedError,
@@ -397,26 +397,6 @@ class ProgramReport:
         if self._started and not self._done:
             return f"  program line {self.service.snapshot.value(self._line, 0)}"
         return ""
-
-
-def status_line(st: dict[str, Any]) -> str:
-    """The status line `run` prints: the punctual engine's lateness, or what the exact
-    engine computed (the rest of the cycles were skipped at rest) and what catching up
-    added to requests."""
-    head = f"cycle {st['cycle']}  "
-    tail = (
-        f"overruns {st['overruns']}  cycle p50 {st['cycle_p50_us']:.0f} µs "
-        f"(kernel {st['kernel_p50_us']:.0f} µs)"
-    )
-    if st.get("engine") == "exact":
-        return (
-            head + f"computed {st['computed_cycles']} ({st['engine_wakes']} wake-ups)  "
-            f"catch-up p50 {st['sync_p50_us']:.0f} µs p99 {st['sync_p99_us']:.0f} µs  " + tail
-        )
-    return (
-        head + f"lateness p50 {st['lateness_p50_us']:.0f} µs "
-        f"p99 {st['lateness_p99_us']:.0f} µs max {st['lateness_max_us']:.0f} µs  " + tail
-    )
 
 
 def default_cycle_in(os_name: str = os.name, engine: str = "exact") -> str:

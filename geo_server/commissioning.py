@@ -162,6 +162,10 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _measure(args: argparse.Namespace) -> int:
+    from geo_server.twin import plots
+
+    if args.plot and not plots.available():  # said now, not after minutes of measuring
+        raise MeasureError(f"--plot: {plots.MISSING}")
     startup = Path(args.startup) if args.startup else default_startup_list()
     if args.commission and (args.targets or args.range):
         raise MeasureError(

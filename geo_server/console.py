@@ -6,6 +6,7 @@ import functools
 import os
 import sys
 from collections.abc import Callable
+from typing import Any
 
 
 def closes_quietly_on_broken_pipe(main: Callable[..., int]) -> Callable[..., int]:
@@ -27,3 +28,32 @@ def closes_quietly_on_broken_pipe(main: Callable[..., int]) -> Callable[..., int
             return 0
 
     return wrapper
+
+
+def engine_figures(st: dict[str, Any]) -> str:
+    """What the engine did, from a status (`ObjectService.status()`): for the exact
+    engine the cycles it computed (the rest were skipped at rest) and what catching up
+    added to requests; for the punctual one its lateness. The same words in the status
+    line of `geo-server run` and in `geo-client status`."""
+
+    def us(key: str) -> str:
+        return f"{float(st.get(key) or 0):.0f} µs"
+
+    tail = (
+        f"overruns {st.get('overruns', 0)}  cycle p50 {us('cycle_p50_us')} "
+        f"(kernel {us('kernel_p50_us')})"
+    )
+    if st.get("engine") == "exact":
+        return (
+            f"computed {st.get('computed_cycles', 0)} ({st.get('engine_wakes', 0)} wake-ups)  "
+            f"catch-up p50 {us('sync_p50_us')} p99 {us('sync_p99_us')}  " + tail
+        )
+    return (
+        f"lateness p50 {us('lateness_p50_us')} p99 {us('lateness_p99_us')} "
+        f"max {us('lateness_max_us')}  " + tail
+    )
+
+
+def status_line(st: dict[str, Any]) -> str:
+    """The status line `geo-server run` prints every `--status-period`."""
+    return f"cycle {st['cycle']}  " + engine_figures(st)

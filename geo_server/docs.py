@@ -39,8 +39,8 @@ def modbus_page() -> str:
     return (
         "# Modbus register map\n\n"
         "Generated from the object dictionary by `python -m geo_server.docs` (also "
-        "`geo-server modbus-map`). Unit id = logical axis number, unit 0 = the machine-wide "
-        "objects; addresses are PDU addresses (0-based).\n\n" + modbus_map("md")
+        "`geo-server modbus-map`). Unit id = logical axis number, unit 0 (or 255) = the "
+        "machine-wide objects; addresses are PDU addresses (0-based).\n\n" + modbus_map("md")
     )
 
 
@@ -54,13 +54,13 @@ def checks_page() -> str:
 def symbols_page() -> str:
     """Every ADS symbol pattern, from the dictionary (`transports/ads/symbols.py`)."""
     from geo_server.dictionary import load_dictionary
-    from geo_server.transports.ads.symbols import symbol_name
+    from geo_server.transports.ads.symbols import has_symbol, symbol_name
 
     rows = [
         "| symbol | TwinCAT type | size | ADST | index group | index offset | access | object |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for obj in load_dictionary().objects:
+    for obj in filter(has_symbol, load_dictionary().objects):
         axis = obj.scope == "axis"
         name = symbol_name(obj, "<axis>" if axis else None)
         offset = f"(axis << 16) \\| 0x{obj.id:04X}" if axis else f"0x{obj.id:X}"
@@ -79,9 +79,9 @@ def symbols_page() -> str:
         "object and axis of the machine (`<axis>` is the axis name of its axis list, e.g. "
         "`GEO.X.TEMPC.coefficient`), machine-wide objects once; names are case-insensitive. "
         "Served on AMS port 551: handles (0xF003/0xF005/0xF006), info by name (0xF009), "
-        "uploads (0xF00B/0xF00C/0xF00E/0xF00F) — see [design.md](design.md) §9.\n\n"
-        + "\n".join(rows)
-        + "\n"
+        "uploads (0xF00B/0xF00C/0xF00E/0xF00F) — see [design.md](design.md) §9. The COM "
+        "task's objects (AMS port 553, index group 0x120100) have no symbols: address them "
+        "by index group and offset ([volumetric.md](volumetric.md)).\n\n" + "\n".join(rows) + "\n"
     )
 
 

@@ -159,3 +159,68 @@ def test_status_is_readable_text_and_json_on_request(servers, via, capfd):
 def test_nc_and_reset_say_they_need_zenoh(servers, capfd):
     code, _, err = run(servers, "modbus", "reset", capfd=capfd)
     assert code == 2 and "available over Zenoh only" in err
+
+
+@pytest.mark.parametrize("via", VIAS)
+def test_no_server_is_one_line_and_exit_2(via):
+    """Nothing listening: one line naming the address, exit 2, on every transport — no
+    pymodbus log line, no AdsLib warnings (they write to the process' stderr, so the
+    client runs as its own process)."""
+    import subprocess
+    import sys
+
+    port = free_port()  # free a moment ago: nothing listens there
+    where = f"tcp/127.0.0.1:{port}" if via == "zenoh" else f"127.0.0.1:{port}"
+    client = [sys.executable, "-m", "geo_server.client.cli", "--via", via, "--connect", where]
+    r = subprocess.run(
+        [*client, "read", "--axis", "X", "TEMPC::coefficient"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2
+    assert r.stderr.splitlines() == [f"error: no geo-server at {where} (connection refused)"]
+    assert r.stdout == ""
+
+
+def test_an_injected_ads_error_names_the_object_asked_for(servers, capfd):
+    """`read --axis X TEMPC::coefficient` with every ADS request answered 0x707: the
+    message names the object asked for (and the one read on the way: the axis names),
+    not just an address."""
+    servers.service.inject_fault("ads:error=0x707")
+    code, _, err = run(servers, "ads", "read", "--axis", "X", "TEMPC::coefficient", capfd=capfd)
+    assert code == 1
+    assert err.strip() == (
+        "error: TEMPC::coefficient: read SIM::axis_names (0x12F300/0xA) failed (ADS 0x707)"
+    )
+    code, _, err = run(servers, "ads", "read", "--axis", "1", "TEMPC::coefficient", capfd=capfd)
+    assert err.strip() == (
+        "error: read TEMPC::coefficient of axis 1 (0x120300/0x10043) failed (ADS 0x707)"
+    )
+
+
+def test_status_shows_what_the_engine_did():
+    """`geo-client status` shows the server console's figures: under the exact engine (the
+    default) what it computed and the catch-up, not a lateness that is always 0."""
+    from geo_server.client.cli import status_lines
+
+    st = {
+        "cycle": 5000,
+        "cycle_time_us": 1000,
+        "engine": "exact",
+        "mode": "realtime",
+        "computed_cycles": 120,
+        "engine_wakes": 20,
+        "sync_p50_us": 408.4,
+        "sync_p99_us": 746.0,
+        "overruns": 0,
+        "cycle_p50_us": 294.0,
+        "kernel_p50_us": 115.2,
+        "lateness_p50_us": 0.0,
+    }
+    assert status_lines(st)[1] == (
+        "computed 120 (20 wake-ups)  catch-up p50 408 µs p99 746 µs  "
+        "overruns 0  cycle p50 294 µs (kernel 115 µs)"
+    )
+    punctual = {**st, "engine": "punctual", "lateness_p50_us": 12.0, "lateness_p99_us": 80.6}
+    assert status_lines(punctual)[1].startswith("lateness p50 12 µs p99 81 µs max 0 µs  ")

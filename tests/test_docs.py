@@ -44,3 +44,19 @@ def test_the_limits_table_shows_the_defaults():
         if "AdsOptions.max_connections" in ln
     )
     assert f"| {AdsOptions().max_connections} |" in row
+
+
+def test_the_symbol_page_lists_only_served_symbols():
+    """docs/ads-symbols.md lists no symbol that no symbol service serves: every row's name
+    is one the GEO task's symbol table of the default machine answers (axis X for
+    `<axis>`), and the COM task's objects (port 553) are not among them."""
+    import re
+
+    from geo_server.dictionary import load_dictionary
+    from geo_server.transports.ads.symbols import SymbolTable
+
+    table = SymbolTable(load_dictionary(), {1: "X"})
+    names = re.findall(r"^\| `([^`]+)` \|", (ROOT / "docs" / "ads-symbols.md").read_text(), re.M)
+    assert names and not [n for n in names if n.startswith("GEO.COM.")]
+    for name in names:
+        table.lookup(name.replace("<axis>", "X"))  # raises for an unknown name

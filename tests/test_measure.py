@@ -292,6 +292,19 @@ def test_measure_refuses_to_commission_the_shipped_lists(capsys):
     assert "no axis 'Q'" in capsys.readouterr().err
 
 
+def test_plot_without_matplotlib_is_refused_before_measuring(tmp_path, monkeypatch, capsys):
+    """--plot without matplotlib is said at once (it used to be said after 220 s of
+    commissioning): nothing is measured, no folder made."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    out = tmp_path / "out"
+    argv = ["measure", "--axis", "X", "--targets", "0,10", "--plot", "--out", str(out)]
+    assert cli_main(argv) == 2
+    assert "pip install geo-server[plots]" in capsys.readouterr().err
+    assert not out.exists()
+
+
 # ---------------------------------------------------------------------- over Zenoh
 
 

@@ -287,6 +287,15 @@ def test_modbus_map_csv_is_complete():
     assert coef["address"].startswith("268…271")
     assert coef["type"] == "REAL64" and coef["registers"] == "4"
     assert "6/16" in coef["access"]
+    # plain numbers for tools: TEMPC::coefficient is ID 0x43, slot 4·0x43 = 268, REAL64 = 4
+    assert (coef["start"], coef["count"]) == ("268", "4")
+    # a text object: 128 registers from 0x6000 + 128·ID, 125 carry the text, 3 unused
+    text = next(r for r in rows if r["object"] == "SIM::last_error")
+    assert text["registers"] == "125 (+3 unused)"
+    assert int(text["start"]) == 0x6000 + 128 * int(text["id"], 16)
+    assert text["count"] == "125"
+    tempc_bit = next(r for r in rows if r["object"] == "TEMPC::activated" and r["table"] == "coil")
+    assert (tempc_bit["start"], tempc_bit["count"]) == (str(0x41), "1")
 
 
 def test_modbus_map_markdown():

@@ -414,7 +414,25 @@ def test_read_only_option(loop_thread, service):
 
 def test_units_are_machine_zero_and_every_axis(service):
     iface = ModbusInterface(service, ModbusOptions(port=0))
-    assert set(iface.unit_maps) == {0, *service.axes}
+    assert set(iface.unit_maps) == {0, 255, *service.axes}
+
+
+def test_unit_255_is_the_machine_unit(server, client, service):
+    """The MODBUS/TCP guide's unit of a directly addressed device (0xFF) reaches the
+    machine-wide objects, as unit 0 does; the reply carries the unit asked for."""
+    cycles = obj("SIM::cycle_count")  # UNS32, two registers, high word first
+    address = register_address(cycles)
+    for unit in (0, 255):
+        rr = client.read_holding_registers(address, count=2, device_id=unit)
+        assert not rr.isError(), rr
+        assert rr.dev_id == unit
+        assert rr.registers == [0, 5]  # the fixture stepped 5 cycles
+    # the machine unit has no per-axis objects, on 255 either
+    assert exc(client.read_holding_registers(4 * 0x43, count=4, device_id=255)) == 2
+    # a write on 255 is a write of the machine's object: SIM::reload reloads the lists
+    reload = register_address(obj("SIM::reload"))
+    rr = client.write_register(reload, 1, device_id=255)
+    assert not rr.isError() and rr.dev_id == 255
 
 
 def test_reload_over_modbus(loop_thread, lists_copy):

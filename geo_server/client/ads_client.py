@@ -30,7 +30,7 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from geo_server.client.base import ObjectClient
+from geo_server.client.base import ObjectClient, probe
 from geo_server.dictionary import COM_AMS_PORT, GEO_AMS_PORT, GROUPS, load_dictionary
 from geo_server.errors import AdsError
 
@@ -64,6 +64,15 @@ def close_port_first(conn: Any) -> None:
 def _ads_error(exc: Exception) -> AdsError:
     code = int(getattr(exc, "err_code", 0x700) or 0x700)
     return AdsError(code, str(getattr(exc, "msg", exc)))
+
+
+def _label(obj: Any, axis: int) -> str:
+    return f"{obj.name} of axis {axis}" if obj.scope == "axis" else obj.name
+
+
+def _where(index_group: int, index_offset: int, label: str) -> str:
+    address = f"0x{index_group:X}/0x{index_offset:X}"
+    return f"{label} ({address})" if label else address
 
 
 def quiet_adslib(pyads: Any) -> None:
@@ -103,6 +112,7 @@ class AdsClient(ObjectClient):
         self._notifications: dict[int, tuple[int, Any]] = {}
         self._lost = False  # the connection failed: open a new one before the next request
         self.reconnects = 0
+        probe(host, port, timeout)  # AdsLib would print four warnings, then 0x6
         self.conn = self._open(ams_port)
 
     def _open(self, ams_port: int) -> Any:
@@ -190,8 +200,9 @@ class AdsClient(ObjectClient):
 
     # ------------------------------------------------------------------ raw access
 
-    def read_raw(self, index_group: int, index_offset: int, length: int) -> bytes:
-        """The bytes the server returns for a Read of `length` bytes (maybe fewer)."""
+    def read_raw(self, index_group: int, index_offset: int, length: int, label: str = "") -> bytes:
+        """The bytes the server returns for a Read of `length` bytes (maybe fewer);
+        `label` names the object in an error (else the address alone)."""
         buf = (ctypes.c_ubyte * max(length, 1))()
         got = ctypes.c_ulong()
         conn = self._conn_for(index_group)
@@ -205,10 +216,11 @@ class AdsClient(ObjectClient):
             ctypes.pointer(got),
         )
         if err:
-            raise self._failed(err, f"read 0x{index_group:X}/0x{index_offset:X} failed")
+            where = _where(index_group, index_offset, label)
+            raise self._failed(err, f"read {where} failed")
         return bytes(buf)[: got.value]
 
-    def write_raw(self, index_group: int, index_offset: int, data: bytes) -> None:
+    def write_raw(self, index_group: int, index_offset: int, data: bytes, label: str = "") -> None:
         buf = (ctypes.c_ubyte * max(len(data), 1)).from_buffer_copy(data.ljust(1, b"\0"))
         conn = self._conn_for(index_group)
         err = self._pyads.pyads_ex._adsDLL.AdsSyncWriteReqEx(
@@ -220,7 +232,8 @@ class AdsClient(ObjectClient):
             ctypes.pointer(buf),
         )
         if err:
-            raise self._failed(err, f"write 0x{index_group:X}/0x{index_offset:X} failed")
+            where = _where(index_group, index_offset, label)
+            raise self._failed(err, f"write {where} failed")
 
     def sum_read_raw(self, items: Sequence[tuple[int, int, int]]) -> list[bytes | AdsError]:
         """One sum read (0xF080) of (group, offset, length) items; per item bytes or the
@@ -243,12 +256,13 @@ class AdsClient(ObjectClient):
 
     def read(self, name: str, axis: int = 0) -> Any:
         obj = self.dictionary.by_name(name)
-        return obj.decode(self.read_raw(obj.index_group, obj.index_offset(axis), obj.length))
+        raw = self.read_raw(obj.index_group, obj.index_offset(axis), obj.length, _label(obj, axis))
+        return obj.decode(raw)
 
     def write(self, name: str, axis: int, value: Any) -> Any:
         obj = self.dictionary.by_name(name)
         v = obj.coerce(value)
-        self.write_raw(obj.index_group, obj.index_offset(axis), obj.encode(v))
+        self.write_raw(obj.index_group, obj.index_offset(axis), obj.encode(v), _label(obj, axis))
         return v
 
     def read_axis(self, axis: int, group: str = "geo") -> dict[str, Any]:

@@ -11,6 +11,8 @@ objects.
 
 from __future__ import annotations
 
+import re
+import socket
 from typing import Any
 
 from geo_server.dictionary import Dictionary
@@ -26,6 +28,48 @@ _STATUS = (
     ("program_line", "SIM::program_line"),
     ("last_error_id", "SIM::last_error_id"),
 )
+
+
+class ServerUnreachable(ConnectionError):
+    """Nothing listens where the client was told the server is: one line that says where
+    and why, the same on every transport (`geo-client` exits 2)."""
+
+
+def probe(host: str, port: int, timeout: float, shown: str | None = None) -> None:
+    """Open and close a TCP connection to `host:port` before a protocol library tries:
+    pymodbus logs a refused connection and AdsLib prints four warnings before its own
+    "0x6 target port not found"; this says it once (`ServerUnreachable`)."""
+    where = shown or (f"[{host}]:{port}" if ":" in host else f"{host}:{port}")
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise ServerUnreachable(f"no geo-server at {where} (connection refused)") from None
+    except TimeoutError:
+        raise ServerUnreachable(f"no geo-server at {where} (no answer in {timeout:g} s)") from None
+    except OSError as exc:
+        raise ServerUnreachable(f"no geo-server at {where} ({exc.strerror or exc})") from None
+
+
+#: A Zenoh TCP or TLS endpoint: `tcp/host:port`, `tls/[::1]:port`, `#…` options after it.
+_ZENOH_TCP = re.compile(r"^(?:tcp|tls)/(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/#]+)):(?P<port>\d+)")
+
+
+def probe_zenoh(endpoints: list[str], timeout: float) -> None:
+    """`probe` for Zenoh endpoints: unreachable only when every endpoint is a TCP or TLS
+    one and none of them accepts a connection (other kinds are left to Zenoh)."""
+    failures: list[ServerUnreachable] = []
+    for ep in endpoints:
+        m = _ZENOH_TCP.match(ep)
+        if m is None:
+            return
+        try:
+            probe(m["v6"] or m["host"], int(m["port"]), timeout, shown=ep)
+        except ServerUnreachable as exc:
+            failures.append(exc)
+        else:
+            return
+    if failures:
+        raise failures[0]
 
 
 class ObjectClient:

@@ -18,8 +18,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from geo_server import __version__
 from geo_server.client import TRANSPORTS, open_client, resolve
-from geo_server.console import closes_quietly_on_broken_pipe
+from geo_server.client.base import ServerUnreachable
+from geo_server.console import closes_quietly_on_broken_pipe, engine_figures
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError
 from geo_server.units import LINEAR, show
@@ -114,8 +116,14 @@ def _read(sh: Shell) -> int:
             print(f"{where}{obj.name} {attr} = {value}")
         return 0
     for name in words:
-        obj, axis = sh.target(name)
-        sh.print_value(obj, axis, sh.client.read(obj.name, axis))
+        try:  # the axis' number may need a read of its own (SIM::axis_names)
+            obj, axis = sh.target(name)
+            value = sh.client.read(obj.name, axis)
+        except AdsError as exc:
+            if name.lower() in exc.message.lower():  # it names the object already
+                raise
+            raise AdsError(exc.code, f"{name}: {exc.message}", exc.name) from None
+        sh.print_value(obj, axis, value)
     return 0
 
 
@@ -240,12 +248,8 @@ def status_lines(st: dict[str, Any]) -> list[str]:
             f"STALLED: no GEO cycle for {st.get('stalled_for_s')} s (reads answer 'not "
             "ready', writes are refused)"
         )
-    if "lateness_p50_us" in st:
-        lines.append(
-            f"lateness p50 {st['lateness_p50_us']:.0f} µs  p99 {st['lateness_p99_us']:.0f} µs  "
-            f"max {st['lateness_max_us']:.0f} µs  overruns {st.get('overruns')}  "
-            f"kernel p50 {st.get('kernel_p50_us', 0):.0f} µs"
-        )
+    if "engine" in st or "lateness_p50_us" in st:  # the server's own status (Zenoh)
+        lines.append(engine_figures(st))
     else:
         lines.append(f"overruns {st.get('overruns')}")
     if "program_running" in st:
@@ -358,6 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="geo-client", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    p.add_argument("--version", action="version", version=f"geo-client {__version__}")
     p.add_argument("--via", choices=TRANSPORTS, default="zenoh", help="transport (default zenoh)")
     p.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
     p.add_argument(
@@ -453,6 +458,9 @@ def main(argv: list[str] | None = None) -> int:
         client = open_client(
             args.via, endpoint, machine=args.machine, timeout=args.timeout, netid=args.netid
         )
+    except ServerUnreachable as exc:  # one line, the same on every transport
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except Exception as exc:
         print(f"error: cannot reach the server over {args.via}: {exc}", file=sys.stderr)
         return 2

@@ -17,7 +17,7 @@ from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
-from geo_server.client.base import ObjectClient
+from geo_server.client.base import ObjectClient, probe
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.transports.modbus.regmap import (
@@ -63,6 +63,7 @@ class ModbusClient(ObjectClient):
         self.host = host
         self.port = port
         self.dictionary = load_dictionary()
+        probe(host, port, timeout)  # pymodbus would log a refused connection itself
         self._client = ModbusTcpClient(host, port=port, timeout=timeout, retries=0)
         if not self._client.connect():
             raise ConnectionError(f"no Modbus server at {host}:{port}")

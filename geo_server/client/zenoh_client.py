@@ -19,7 +19,7 @@ from typing import Any
 
 import zenoh
 
-from geo_server.client.base import ObjectClient
+from geo_server.client.base import ObjectClient, probe_zenoh
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 from geo_server.transports.zenoh.keys import KeySpace
@@ -106,9 +106,10 @@ class ZenohClient(ObjectClient):
         #: Only replies from this Zenoh session count (None: any one session, but only one).
         self.server_id = server_id or os.environ.get(SERVER_ID_ENV) or None
         self._own = session is None
-        self.session = session or zenoh.open(
-            client_config(connect or ["tcp/127.0.0.1:7447"], mode, config_file)
-        )
+        endpoints = connect or ["tcp/127.0.0.1:7447"]
+        if session is None and mode == "peer":
+            probe_zenoh(endpoints, timeout)  # else a get would wait for its timeout
+        self.session = session or zenoh.open(client_config(endpoints, mode, config_file))
         self.dictionary = load_dictionary()
         self._subs: list[Any] = []
 

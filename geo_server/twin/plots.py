@@ -36,6 +36,16 @@ MEAN_COLOR = "black"
 DPI = 150
 
 
+def available() -> bool:
+    """Whether matplotlib can be imported, asked before minutes of measuring: a program
+    that plots at its end checks this at its start."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def _figure(width: float, height: float) -> Figure:
     """A figure on an Agg canvas (RuntimeError `MISSING` without matplotlib)."""
     try:

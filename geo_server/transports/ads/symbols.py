@@ -73,6 +73,12 @@ class Symbol:
     axis: int  # 0 for machine objects
 
 
+def has_symbol(obj: ObjectDef) -> bool:
+    """Whether the GEO task's symbol service (port 551) serves `obj`: the COM task's
+    objects (port 553, 004 p.19) are addressed by index group and offset only."""
+    return obj.ams_port == GEO_AMS_PORT
+
+
 def symbol_name(obj: ObjectDef, axis_name: str | None) -> str:
     """`GEO.<axis>.<GROUP>.<field>` (axis objects) or `GEO.<GROUP>.<field>`."""
     group = obj.key_group.upper()
@@ -138,7 +144,7 @@ class SymbolTable:
         """`axis_names`: axis number -> name (`X`), in the machine's order."""
         symbols: list[Symbol] = []
         for obj in dictionary.objects:
-            if obj.ams_port != GEO_AMS_PORT:  # the COM task (port 553) has no symbols here
+            if not has_symbol(obj):
                 continue
             targets: Iterable[tuple[int, str | None]] = (
                 axis_names.items() if obj.scope == "axis" else [(0, None)]

@@ -22,7 +22,8 @@ emulator objects of index offset axis 0):
 Exceptions: a read must cover only slot registers (bits: only object addresses), else 2;
 a write must cover whole objects (all value registers of every object it touches), else
 3; writing a read-only object → 2; a value outside its range → 3; a quantity outside the
-Modbus limits → 3; an unknown unit id → 11 (decided by the server).
+Modbus limits → 3; an unknown unit id → 11 (decided by the server). Unit 255 (the
+MODBUS/TCP guide's identifier for a directly addressed device) is unit 0.
 """
 
 from __future__ import annotations
@@ -50,6 +51,12 @@ MAX_READ_BITS = 2000
 MAX_WRITE_BITS = 1968
 #: Unit id of the machine-wide emulator objects (index offset axis 0).
 MACHINE_UNIT = 0
+#: The unit id the MODBUS/TCP implementation guide (v1.0b, §4.4.2) recommends for a
+#: device addressed directly by its IP address; served as `MACHINE_UNIT`, because clients
+#: that treat unit 0 as a broadcast (modbus-cli, the pymodbus console up to 3.7, the
+#: Node-RED Modbus node) cannot reach the machine-wide objects otherwise. An axis numbered
+#: 255 therefore has no unit of its own.
+DIRECT_UNIT = 255
 
 #: First register of the text (STRING) objects: each owns `TEXT_SLOT` registers from
 #: `TEXT_BASE + TEXT_SLOT·ID`; its value is the first `TEXT_REGISTERS` of them (the most
@@ -400,7 +407,7 @@ class ModbusMap:
 
     def for_unit(self, unit: int, axes: Iterable[int]) -> UnitMap | None:
         """The map served on `unit`, or None when the unit id is unknown (→ exception 11)."""
-        if unit == MACHINE_UNIT:
+        if unit in (MACHINE_UNIT, DIRECT_UNIT):
             return self.machine
         return self.axis if unit in set(axes) else None
 
@@ -408,6 +415,9 @@ class ModbusMap:
 # ---------------------------------------------------------------------- documentation
 
 MAP_COLUMNS = ("unit", "table", "address", "object", "group", "id", "type", "registers", "access")
+#: The CSV's columns: the map's, then the first address and the number of registers (or
+#: bits) of the value as plain numbers, for tools that read the file.
+CSV_COLUMNS = (*MAP_COLUMNS, "start", "count")
 
 _TABLE_NAMES = {
     Table.COILS: "coil",
@@ -425,6 +435,7 @@ def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
         for o in um.objects:
             base = register_address(o)
             n = register_count(o)
+            unused = slot_size(o) - n
             access = {"r": "read", "rw": "read/write", "w": "write"}[o.access]
             common = {
                 "unit": unit,
@@ -438,7 +449,9 @@ def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
                     **common,
                     "table": _TABLE_NAMES[Table.HOLDING_REGISTERS],
                     "address": f"{base}…{base + slot_size(o) - 1} (0x{base:04X})",
-                    "registers": f"{n} (+{SLOT - n} unused)" if n < slot_size(o) else str(n),
+                    "registers": f"{n} (+{unused} unused)" if unused else str(n),
+                    "start": str(base),
+                    "count": str(n),
                     "access": access
                     + {"r": " (FC 3/4)", "rw": " (FC 3/4, 6/16)", "w": " (FC 6/16; reads 0)"}[
                         o.access
@@ -454,6 +467,8 @@ def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
                         "address": f"{b} (0x{b:04X})",
                         "registers": "1 bit",
                         "access": "read (FC 2)",
+                        "start": str(b),
+                        "count": "1",
                     }
                 )
                 if is_coil(o):
@@ -464,6 +479,8 @@ def map_rows(dictionary: Dictionary | None = None) -> list[dict[str, str]]:
                             "address": f"{b} (0x{b:04X})",
                             "registers": "1 bit",
                             "access": "read/write (FC 1, 5/15)",
+                            "start": str(b),
+                            "count": "1",
                         }
                     )
     return rows
@@ -474,7 +491,7 @@ def modbus_map(format: str = "md", dictionary: Dictionary | None = None) -> str:
     rows = map_rows(dictionary)
     if format == "csv":
         buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=MAP_COLUMNS, lineterminator="\n")
+        w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
         w.writeheader()
         w.writerows(rows)
         return buf.getvalue()
@@ -487,6 +504,7 @@ def modbus_map(format: str = "md", dictionary: Dictionary | None = None) -> str:
 
 
 __all__ = [
+    "DIRECT_UNIT",
     "MACHINE_UNIT",
     "SIM_BASE",
     "SLOT",

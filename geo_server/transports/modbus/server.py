@@ -8,8 +8,9 @@ the answer to the previous one) gets exactly one reply per request, in order, an
 acknowledged write has been applied. Reads are answered from one published snapshot (a
 block read never mixes two cycles); writes are validated with the register map and the
 object service, and the reply is sent after the cycle that applied them (in stepped mode
-as soon as they are queued). Unit id = logical axis number; unit 0 = the machine-wide
-emulator objects; any other unit id → exception 11.
+as soon as they are queued). Unit id = logical axis number; unit 0 (and 255, the
+MODBUS/TCP guide's unit of a directly addressed device) = the machine-wide emulator
+objects; any other unit id → exception 11.
 
 pymodbus' server keeps one "last request" per connection and starts handling it from a
 scheduled callback, so a second request arriving while the first waits for its cycle
@@ -56,6 +57,7 @@ from geo_server.transports.modbus.codec import (
     write_reply_pdu,
 )
 from geo_server.transports.modbus.regmap import (
+    DIRECT_UNIT,
     MACHINE_UNIT,
     ExcCode,
     ModbusMap,
@@ -68,8 +70,8 @@ from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
 
-#: Highest unit id a Modbus device can have.
-MAX_UNIT = 255
+#: Highest unit id an axis can have (255 is `DIRECT_UNIT`, the machine's).
+MAX_UNIT = DIRECT_UNIT - 1
 
 
 class DropConnection(Exception):
@@ -116,14 +118,15 @@ class ModbusInterface:
         self.service = service
         self.options = options or ModbusOptions()
         self.map = ModbusMap.build(service.dictionary)
-        units = [MACHINE_UNIT]
+        #: unit id -> the axis of its objects' index offsets (0: machine-wide)
+        self.unit_axis = {MACHINE_UNIT: 0, DIRECT_UNIT: 0}
         for axis in service.axes:
             if 1 <= axis <= MAX_UNIT:
-                units.append(axis)
+                self.unit_axis[axis] = axis
             else:
-                log.warning("axis %d has no Modbus unit id (1…255); not served", axis)
+                log.warning("axis %d has no Modbus unit id (1…%d); not served", axis, MAX_UNIT)
         self.unit_maps: dict[int, UnitMap] = {
-            u: self.map.machine if u == MACHINE_UNIT else self.map.axis for u in units
+            u: self.map.machine if a == 0 else self.map.axis for u, a in self.unit_axis.items()
         }
         self._device = device_objects()
         self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
@@ -219,7 +222,7 @@ class ModbusInterface:
                 code = ExcCode.GATEWAY_NO_RESPONSE  # an unknown unit id (axis)
                 return adu(frame.transaction, frame.unit, exception_pdu(fc, code))
             if isinstance(req, ReadRequest):
-                pdu = self._read(frame.unit, um, req)
+                pdu = self._read(self.unit_axis[frame.unit], um, req)
             elif isinstance(req, DeviceIdRequest):
                 pdu = self._device_id(req)
             else:
@@ -232,12 +235,12 @@ class ModbusInterface:
             pdu = exception_pdu(fc, exception_for(exc))
         return adu(frame.transaction, frame.unit, pdu)
 
-    def _read(self, unit: int, um: UnitMap, req: ReadRequest) -> bytes:
+    def _read(self, axis: int, um: UnitMap, req: ReadRequest) -> bytes:
         table = um.check_read(req.function, req.address, req.count)
         snap = self.service.current()  # ONE snapshot for the whole request
 
         def value_of(obj: ObjectDef) -> Any:
-            return snap.value(obj, unit)
+            return snap.value(obj, axis)
 
         if table >= Table.HOLDING_REGISTERS:
             regs = um.read_registers(req.address, req.count, value_of)
@@ -261,7 +264,8 @@ class ModbusInterface:
             raise RegisterError(ExcCode.ILLEGAL_ADDRESS, "this interface is read-only")
         pairs = um.decode_write(req.function, req.address, req.values)
         svc = self.service
-        prepared = [svc.prepare_object(obj, frame.unit, value) for obj, value in pairs]
+        axis = self.unit_axis[frame.unit]
+        prepared = [svc.prepare_object(obj, axis, value) for obj, value in pairs]
 
         async def applied() -> bytes:
             try:

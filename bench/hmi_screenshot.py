@@ -52,7 +52,7 @@ def main() -> None:
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_ARGS))
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        page.goto(f"http://{hmi.address}/")
+        page.goto(hmi.url)  # with the run's token, as printed
         time.sleep(args.seconds)
         page.screenshot(path=args.out, full_page=True)
         browser.close()

@@ -1,7 +1,8 @@
 """Run every geo-server benchmark and write `bench/RESULTS.md` (docs/design.md §11).
 
     python bench/run_all.py [--quick] [--only kernel,twin,scheduler,transports,ads_symbols,
-                                              cpu,batch,volcomp,recorder,hmi_load,engine,memory,soak]
+                                              cpu,batch,volcomp,recorder,hmi_load,engine,memory,soak,
+                                              fleet_isolation]
                             [--results FILE]
 
 Each part runs as its own subprocess (so one crashing library cannot take the others
@@ -41,6 +42,7 @@ PARTS: dict[str, tuple[str, list[str], list[str], float]] = {
     "engine": ("engine.py", [], ["--quick"], 2400),
     "memory": ("memory.py", [], ["--quick"], 300),
     "soak": ("soak.py", [], ["--quick"], 600),
+    "fleet_isolation": ("fleet_isolation.py", [], ["--quick"], 1200),
 }
 
 

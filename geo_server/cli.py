@@ -18,6 +18,7 @@ from typing import Any
 
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
+from geo_server.descriptors import AcceptLog, DescriptorError, plan
 from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
 from geo_server.interfaces import (
     CycleStoppedError,
@@ -125,7 +126,7 @@ def _check(args: argparse.Namespace) -> int:
 
     path = Path(args.startup) if args.startup else default_startup_list()
     try:
-        cfg = load_machine(path)
+        cfg = load_machine(path, args.allow_dir)
     except ListFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -158,7 +159,7 @@ def _run(args: argparse.Namespace) -> int:
 
     path = Path(args.startup) if args.startup else default_startup_list()
     try:
-        cfg = load_machine(path)
+        cfg = load_machine(path, args.allow_dir)
     except ListFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -233,6 +234,8 @@ def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
         multicast_scouting=args.zenoh_scouting,
         read_only=args.read_only or args.zenoh_read_only,
     )
+    if "zenoh" in args.caps:  # sessions and handshakes shrunk alike (`_connection_caps`)
+        opts.shrink_to(args.caps["zenoh"])
     return (
         ZenohInterface(service, opts),
         lambda: (
@@ -247,7 +250,13 @@ def _modbus(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
 
     read_only = args.read_only or args.modbus_read_only
     mb = ModbusInterface(
-        service, ModbusOptions(host=args.modbus_host, port=args.modbus_port, read_only=read_only)
+        service,
+        ModbusOptions(
+            host=args.modbus_host,
+            port=args.modbus_port,
+            read_only=read_only,
+            max_connections=args.caps.get("modbus", ModbusOptions.max_connections),
+        ),
     )
     return mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"
 
@@ -262,6 +271,9 @@ def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
         netid=args.ads_netid,
         read_only=read_only,
         udp_port=args.ads_udp_port or None,
+        route_user=args.ads_route_user,
+        route_password=args.ads_route_password,
+        max_connections=args.caps.get("ads", AdsOptions.max_connections),
     )
     ads = AdsServer(service, opts)
 
@@ -275,11 +287,36 @@ def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
 
 
 def _http(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.web.server import HmiOptions, HmiServer, parse_http
+    from geo_server.web.server import HmiServer, access_note, http_options
 
-    host, port = parse_http(args.http)
-    hmi = HmiServer(service, HmiOptions(host=host, port=port, machine=args.machine))
-    return hmi, lambda: f"http: web HMI on http://{hmi.address}/ (no authentication)"
+    caps = {"max_connections": args.caps["http"]} if "http" in args.caps else {}
+    hmi = HmiServer(service, http_options(args, machine=args.machine, **caps))
+    return hmi, lambda: f"http: web HMI on {hmi.url} ({access_note(hmi.options)})"
+
+
+def _connection_caps(args: argparse.Namespace) -> dict[str, int]:
+    """Each interface's connection cap, fitted under the open-files limit (raised to the
+    hard limit first; geo_server/descriptors.py): Zenoh's counts its sessions and the
+    handshakes under way."""
+    from geo_server.transports.ads.server import AdsOptions
+    from geo_server.transports.modbus.server import ModbusOptions
+    from geo_server.transports.tcp import BACKLOG
+    from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.web.server import HmiOptions
+
+    wanted = {}
+    if not args.no_zenoh:
+        wanted["zenoh"] = ZenohOptions.max_sessions + ZenohOptions.accept_pending
+    if not args.no_modbus:
+        wanted["modbus"] = ModbusOptions.max_connections
+    if not args.no_ads:
+        wanted["ads"] = AdsOptions.max_connections
+    if args.http:
+        wanted["http"] = HmiOptions.max_connections
+    caps, said = plan(wanted, BACKLOG * len(set(wanted) - {"zenoh"}))
+    if said:
+        print(said, file=sys.stderr, flush=True)
+    return caps
 
 
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
@@ -291,6 +328,11 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
     interfaces: list[Any] = []
+    AcceptLog().install(loop)
+    try:
+        args.caps = _connection_caps(args)
+    except DescriptorError as exc:
+        raise InterfaceStartError(str(exc)) from None
     try:
         for name, disabled, build in (
             ("zenoh", args.no_zenoh, _zenoh),
@@ -330,7 +372,8 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
                 program.update()
             recording = getattr(service, "recording", None)
             if recording is not None and recording.done:  # its trigger's samples are in
-                recorder_cli.finish(service)
+                # the rest of the rows are written off the loop (it keeps serving)
+                await asyncio.to_thread(recorder_cli.finish, service)
             if loop.time() < next_status and not finished:
                 continue
             next_status = loop.time() + args.status_period
@@ -425,10 +468,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check", help="validate a machine's list files")
     c.add_argument("startup", nargs="?", help="start-up list (default: the default machine)")
+    _add_allow_dir(c)
     c.set_defaults(func=_check)
 
     r = sub.add_parser("run", help="run the machine in real time")
     r.add_argument("startup", nargs="?", help="start-up list (default: the default machine)")
+    _add_allow_dir(r)
     r.add_argument("--cycle-ms", type=float, default=1.0, help="GEO cycle length in ms (0.25 … 10)")
     r.add_argument("--program", help="NC program to run at start")
     r.add_argument("--homed", action="store_true", help="start with every axis homed")
@@ -487,8 +532,27 @@ def build_parser() -> argparse.ArgumentParser:
         "--http",
         metavar="HOST:PORT",
         help="serve the web HMI there (off by default; e.g. 127.0.0.1:8080; docs/web.md; "
-        "a fleet: its list at /, a machine at /m/NAME/). No authentication: keep it on "
-        "loopback or behind a proxy that has some",
+        "a fleet: its list at /, a machine at /m/NAME/). Edits need the token of the URL "
+        "printed at start; no TLS: keep it on loopback or behind a proxy",
+    )
+    h = r.add_argument_group("web HMI (docs/web.md §4)")
+    h.add_argument(
+        "--http-allowed-hosts",
+        action="append",
+        metavar="HOST[:PORT],…",
+        help="Host names the HMI answers to besides its address (e.g. hmi.example:8080; "
+        "repeatable); a request for any other Host is refused (DNS rebinding)",
+    )
+    h.add_argument(
+        "--http-token",
+        metavar="TOKEN",
+        help="the secret edits, reload and save need (default: a new random one each "
+        "run, printed in the page's URL)",
+    )
+    h.add_argument("--http-user", metavar="USER", help="HTTP Basic authentication on everything")
+    h.add_argument("--http-password", metavar="PASSWORD", help="its password (with --http-user)")
+    h.add_argument(
+        "--http-read-only", action="store_true", help="the HMI shows, refuses every edit"
     )
     r.add_argument(
         "--fault",
@@ -535,6 +599,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="UDP port of ADS discovery and add-route (default 48899, 0: off)",
     )
     a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
+    a.add_argument(
+        "--ads-route-user",
+        metavar="USER",
+        help="user name an add-route request on the discovery port must carry (with "
+        "--ads-route-password; without both, every add-route is refused with 0x704)",
+    )
+    a.add_argument(
+        "--ads-route-password",
+        metavar="PASSWORD",
+        help="password an add-route request must carry (see --ads-route-user)",
+    )
     recorder_cli.add_run_arguments(r)
     r.set_defaults(func=_run)
 
@@ -558,6 +633,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _add_allow_dir(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--allow-dir",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder besides the start-up list's from which VOLC lists and correction "
+        "files may be read, also when named over the network (repeatable; docs/security.md)",
+    )
+
+
 @closes_quietly_on_broken_pipe
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -567,10 +653,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run" and args.cycle_in is None:
         args.cycle_in = default_cycle_in(engine=args.engine)
     if args.command == "run" and args.http:
-        from geo_server.web.server import parse_http
+        from geo_server.web.server import http_options
 
         try:
-            parse_http(args.http)
+            http_options(args)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -32,7 +32,7 @@ from geo_server.kernel.common import initial_direction
 from geo_server.listfile import ListFileError, load_machine
 from geo_server.machine.machine import Machine
 from geo_server.model import MachineConfig
-from geo_server.paths import default_startup_list
+from geo_server.paths import default_startup_list, is_product_data
 from geo_server.service import ObjectService
 from geo_server.twin import iso230
 from geo_server.twin.iso230 import Evaluation
@@ -172,7 +172,7 @@ def _measure(args: argparse.Namespace) -> int:
             "--commission measures at the setpoints of the axis' LSEC table: "
             "leave out --targets/--range"
         )
-    if args.commission and not args.startup:
+    if args.commission and is_product_data(startup):  # read-only, as for `save`
         raise MeasureError(
             "--commission writes into the lists: copy the default machine first "
             "(geo-server init DIR) and name DIR/hochlauf.lis"

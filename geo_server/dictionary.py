@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextvars
 import difflib
+import json
 import math
 import struct
 import sys
@@ -59,6 +60,12 @@ ATTRIBUTES: dict[int, str] = {
 #: "0x600: object address: in (channel, axis), out (IndexGroup, IndexOffset)"); ReadWrite.
 ADDRESS_LOOKUP = 0x600
 STRING_LENGTH = 256
+#: The highest logical axis number (docs/design.md §2.1: the index offset's high word).
+MAX_AXIS = 0xFFFF
+#: Most characters a JSON integer may have. More than any object type can hold (a REAL64
+#: ends near 1.8e308, 309 digits), so a longer one is refused (0x706) before Python
+#: converts it: that conversion is quadratic in the length and fails over 4300 digits.
+MAX_JSON_INT_CHARS = 330
 
 
 @dataclass(frozen=True)
@@ -102,7 +109,8 @@ def _show(value: Any, limit: int = 40) -> str:
     """
     if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 128:
         return f"<an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits>"
-    text = repr(value)
+    # (a long string is cut before `repr`, which would copy all of it)
+    text = repr(value[: limit + 1] if isinstance(value, str) else value)
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
@@ -119,6 +127,42 @@ def _json_kind(value: Any) -> str:
     if isinstance(value, list | tuple):
         return "array"
     return "null" if value is None else type(value).__name__
+
+
+def _bounded_int(text: str) -> int:
+    """`parse_int` of `loads_json`: refuse an integer too long for any object first."""
+    if len(text) > MAX_JSON_INT_CHARS:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDDATA,
+            f"a JSON integer of {len(text)} characters is out of range for every object type",
+        )
+    return int(text)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+def loads_json(data: bytes | str, label: str, name: str = "", *, constants: bool = True) -> Any:
+    """JSON that came over the network, decoded strictly (every interface that takes JSON:
+    Zenoh's payloads, the web HMI's bodies); anything malformed is `AdsError` 0x706
+    (invalid data) saying what (`label`: "TEMPC::coefficient: payload", "the body").
+
+    Integers longer than `MAX_JSON_INT_CHARS` are refused before Python converts them;
+    deep nesting ("[[[[…]]]]") is bad data like any other, not an internal error (the
+    decoder's RecursionError); without `constants`, NaN and ±Infinity are refused too.
+    The value itself is checked against its object by `ObjectDef.coerce_json`.
+    """
+    extra: dict[str, Any] = {} if constants else {"parse_constant": _no_constant}
+    try:
+        return json.loads(data, parse_int=_bounded_int, **extra)
+    # ValueError: Python's own limit on long numbers, should one get past `_bounded_int`
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDDATA, f"{label} is not JSON ({exc})", name
+        ) from None
+    except AdsError as exc:
+        raise AdsError(exc.code, f"{label}: {exc.message}", name) from None
 
 
 def _key_part(text: str) -> str:
@@ -383,6 +427,8 @@ class Dictionary:
     _by_name: dict[str, ObjectDef] = field(default_factory=dict, repr=False)
     _keys: dict[str, ObjectDef] | None = field(default=None, repr=False)
     _by_id: dict[tuple[str, int, str], ObjectDef] = field(default_factory=dict, repr=False)
+    #: the longest object name `by_name` considers (set from the objects' names)
+    max_name_chars: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
         for obj in self.objects:
@@ -395,11 +441,28 @@ class Dictionary:
             if k in self._by_id:
                 raise ValueError(f"object dictionary: duplicate id {k}")
             self._by_id[k] = obj
+        # The longest spelling any name may have (docs/design.md §2.2): name, alias or Zenoh
+        # key spelling, with 000's blank after `::`, followed by the longest axis suffix
+        # a caller may leave on it (`NAME@65535`, `NAME[65535]`). A longer name cannot
+        # be any object's: `by_name` refuses it before normalising or matching it, so
+        # the cost of an unknown name is bounded whatever its length.
+        spellings = [*self._by_name, *self._by_key()]
+        longest = max(len(s.replace("::", ":: ")) for s in spellings)
+        self.max_name_chars = longest + max(len(f"@{MAX_AXIS}"), len(f"[{MAX_AXIS}]"))
 
     def by_name(self, name: str) -> ObjectDef:
         """Resolve a name or alias (case-insensitive), also in the spelling of the Zenoh
         keys (`BC::actual_backlash`, `lsec::sum_epsilon`); unknown -> AdsError 0x703
-        naming the nearest known names."""
+        naming the nearest known names. A name longer than `max_name_chars` is refused
+        (0x703) before any matching: the nearest-name search costs time in proportion to
+        its length (a 1 MB name: ~170 ms of the event loop every interface shares)."""
+        if len(name) > self.max_name_chars:
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDOFFSET,
+                f"unknown object name {_show(name)}: {len(name)} characters, longer than "
+                f"any object's name (at most {self.max_name_chars})",
+                _show(name),
+            )
         key = _normalize_name(name)
         obj = self._by_name.get(key) or self._by_key().get(key.replace("/", "::"))
         if obj is not None:

@@ -135,7 +135,37 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "a measurement (`cmd/measure`) holds a running machine",
         "ended: reply_err 0x708; one at a time (0x708)",
     ),
-    ("ads", "max_connections", "", "ADS connections", "the new one is closed at once"),
+    (
+        "ads",
+        "max_connections",
+        "",
+        "ADS connections to one machine",
+        "the new one is closed at once; in a fleet, its request to that machine answers 0x716",
+    ),
+    (
+        "ads",
+        "max_connections_fleet",
+        "",
+        "ADS connections to the port of a fleet",
+        "the new one is closed at once",
+    ),
+    (
+        "ads",
+        "max_pending",
+        "",
+        "answers one ADS connection has outstanding",
+        "the server stops reading that connection until half are sent",
+    ),
+    (
+        "ads",
+        "requests_per_step",
+        "",
+        "ADS requests one machine serves in one event-loop step",
+        "the rest wait for the next step (their connections' reading paused)",
+    ),
+    ("ads", "max_handles", "", "symbol handles of one connection at one machine", "0x716"),
+    ("ads", "max_handles_machine", "", "symbol handles at one machine", "0x716"),
+    ("ads", "max_handles_fleet", "", "symbol handles at every machine of a fleet", "0x716"),
     (
         "ads",
         "max_frame",
@@ -145,7 +175,16 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
     ),
     ("ads", "incomplete_frame_timeout", "s", "a frame may stay unfinished", "connection closed"),
     ("ads", "max_notifications", "", "notifications per connection", "0x716"),
-    ("ads", "max_notifications_total", "", "notifications of all connections", "0x716"),
+    ("ads", "max_notifications_total", "", "notifications at one machine", "0x716"),
+    ("ads", "max_notifications_fleet", "", "notifications at every machine of a fleet", "0x716"),
+    (
+        "ads",
+        "sample_backlog",
+        "cycles",
+        "snapshots waiting to be sampled, all machines together (shared evenly, ≥ 16 each)",
+        "the engine publishes no more for sampling; those samples come from a later cycle "
+        "(counted: `samples_late`)",
+    ),
     (
         "ads",
         "notification_backlog",
@@ -179,21 +218,145 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
     ),
     ("zenoh", "accept_pending", "", "connections opening a session at once", "further ones wait"),
     ("zenoh", "max_nc_bytes", "bytes", "NC text on `cnc/<m>/nc`", "reply_err 0x705"),
+    (
+        "files",
+        "volc_list_bytes",
+        "bytes",
+        "a VOLC list (start-up, reload, 0x27C, `#VOLCOMP UPDATE`)",
+        "refused unread past the bound: compensation unavailable / update 0x70D",
+    ),
+    (
+        "files",
+        "correction_file_bytes",
+        "bytes",
+        "a correction file `file[j]` of a VOLC list",
+        "refused unread past the bound: compensation unavailable / update 0x70D",
+    ),
+    (
+        "http",
+        "max_connections",
+        "",
+        "HTTP connections (open pages included); shrunk at start to fit the descriptor limit",
+        "the new one is closed at once",
+    ),
+    (
+        "http",
+        "keepalive_timeout",
+        "s",
+        "an HTTP connection without a complete request head (from its opening, after each answer)",
+        "connection closed",
+    ),
+    ("http", "body_timeout", "s", "an HTTP request body may take to arrive", "408"),
+    ("http", "max_line_size", "bytes", "one HTTP request or header line", "400/431"),
+    ("http", "max_headers", "", "HTTP header lines of one request", "400/431"),
+    ("http", "max_body", "bytes", "an HTTP request body (a write is under 200)", "413"),
+    (
+        "http",
+        "max_pages",
+        "",
+        "open pages (WebSockets) of one machine",
+        "503 with a message; a closed page frees its place",
+    ),
+    (
+        "http",
+        "ws_max_message",
+        "bytes",
+        "a WebSocket message from a page (the page sends none)",
+        "socket closed: 1009 at the frame's header, unread; any message 1008",
+    ),
+    (
+        "http",
+        "ws_ping_burst",
+        "",
+        "WebSocket pings from a peer in a burst (one more a second)",
+        "socket closed: 1008",
+    ),
+    (
+        "http",
+        "ws_backlog",
+        "bytes",
+        "pushes a page leaves unread",
+        "the page is dropped (it reconnects), the others are not held up",
+    ),
+    ("http", "ws_send_timeout", "s", "one push to one page", "the page is dropped"),
+    (
+        "recorder",
+        "max_samples",
+        "rows",
+        "a recording without a trigger (`samples`), and after one (`post`)",
+        "refused: 0x70B naming the setting and its range",
+    ),
+    ("recorder", "max_pre", "rows", "samples kept before the trigger (`pre`)", "refused: 0x70B"),
+    ("recorder", "max_every", "cycles", "between two samples (`every`)", "refused: 0x70B"),
+    ("recorder", "max_selectors", "", "selectors of one recording (`objects`)", "refused: 0x70B"),
+    (
+        "recorder",
+        "max_text",
+        "characters",
+        "one selector, the trigger, the file name",
+        "refused: 0x70B",
+    ),
+    (
+        "recorder",
+        "buffer_bytes",
+        "bytes",
+        "the ring of a recording to a file (the `pre` samples and rows not yet written)",
+        "a wider `pre` refused (0x70B); a real-time machine whose writer is a ring behind "
+        "drops samples (counted: `dropped`), a stepped one waits",
+    ),
+    (
+        "recorder",
+        "input_buffer_bytes",
+        "bytes",
+        "the machine's inputs held by a recording (awaiting its trigger, or not yet written)",
+        "the oldest go (counted: `inputs_dropped`)",
+    ),
 ]
 
 
 def _option_classes() -> dict[str, Any]:
+    from geo_server.recorder.recorder import RecorderLimits
+    from geo_server.safefile import FileLimits
     from geo_server.service import ServiceLimits
     from geo_server.transports.ads.server import AdsOptions
     from geo_server.transports.modbus.server import ModbusOptions
     from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.web.server import HmiOptions
 
     return {
+        "http": HmiOptions,
         "service": ServiceLimits,
         "ads": AdsOptions,
         "modbus": ModbusOptions,
         "zenoh": ZenohOptions,
+        "files": FileLimits,
+        "recorder": RecorderLimits,
     }
+
+
+def _fault_and_descriptor_rows() -> list[str]:
+    """Bounds that are constants, not options: faults (docs/faults.md) and the
+    descriptors kept beside the connection caps (geo_server/descriptors.py)."""
+    from geo_server.descriptors import RESERVE
+    from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
+    from geo_server.fleet import FLEET_BACKLOG
+    from geo_server.transports.tcp import BACKLOG
+
+    return [
+        f"| faults | faults active on one machine | {MAX_FAULTS} | `faults.MAX_FAULTS` | "
+        "refused: 0x70B |",
+        f"| faults | one fault's text | {MAX_TEXT} characters | `faults.MAX_TEXT` | "
+        "refused: 0x70B |",
+        f"| faults | one `objects=` pattern (one per fault) | {MAX_PATTERN} characters | "
+        "`faults.MAX_PATTERN` | refused: 0x70B |",
+        f"| all | accept queue of each TCP listener | {BACKLOG} | `tcp.BACKLOG` | "
+        "counted in the descriptor budget |",
+        f"| Modbus | accept queue of each machine's port in a fleet | {FLEET_BACKLOG} | "
+        "`fleet.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
+        "4 connections, or the fleet does not start |",
+        f"| all | descriptors kept for files and the runtime | {RESERVE} | "
+        "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",
+    ]
 
 
 def _default(cls: Any, name: str) -> Any:
@@ -209,7 +372,9 @@ def limits_table() -> str:
     from geo_server.transports.modbus.codec import MAX_ADU
 
     classes = _option_classes()
-    where = {"service": "all", "ads": "ADS", "modbus": "Modbus", "zenoh": "Zenoh"}
+    where = {"service": "all", "ads": "ADS", "modbus": "Modbus", "zenoh": "Zenoh", "files": "files"}
+    where["recorder"] = "recorder"
+    where["http"] = "HTTP"
     lines = [
         "| interface | limit | default | option | past it |",
         "|---|---|---|---|---|",
@@ -226,6 +391,18 @@ def limits_table() -> str:
     lines.append(
         f"| lists | one list file | {MAX_LIST_BYTES} bytes | `MAX_LIST_BYTES` | "
         "refused (reload rejected, machine unchanged) |"
+    )
+    lines.extend(_fault_and_descriptor_rows())
+    from geo_server.dictionary import MAX_JSON_INT_CHARS, load_dictionary
+
+    lines.append(
+        f"| all | an object name | {load_dictionary().max_name_chars} characters | the "
+        "longest name, alias or key spelling + `[65535]` (`Dictionary.max_name_chars`) | "
+        "0x703 before any matching |"
+    )
+    lines.append(
+        f"| all | a JSON integer (Zenoh payloads, web HMI bodies) | {MAX_JSON_INT_CHARS} "
+        "characters | `MAX_JSON_INT_CHARS` | 0x706 before it is converted |"
     )
     return "\n".join(line.replace("  ", " ") for line in lines) + "\n"
 

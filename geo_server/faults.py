@@ -20,13 +20,23 @@ Transport faults are decided here (`Faults.decide`, pure, thread-safe); the tran
 carry them out, the scheduler the overruns and the twin the sensor faults. Every fault
 is listed in `status()["faults"]` with its hits until it is cleared — explicitly
 (`clear`), or by itself once its `count` is used up.
+
+What a fault may ask for is bounded (docs/faults.md §1, *Bounds*): `MAX_FAULTS` at once,
+`MAX_TEXT` characters of text, one `objects=` pattern of at most `MAX_PATTERN`
+characters, compiled once when the fault is parsed — so a request pays at most
+`MAX_FAULTS` matches of a short pattern against a short name, and nothing of a fault
+stays behind once it is cleared.
 """
 
 from __future__ import annotations
 
+import asyncio
 import fnmatch
+import math
 import random
+import re
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -46,6 +56,23 @@ MODBUS_EXCEPTIONS = (1, 2, 3, 4, 6, 0x0A, 0x0B)
 #: Longest delay or overrun a fault may ask for, in ms (a minute).
 MAX_MS = 60_000.0
 OPS = ("any", "read", "write")
+#: Faults active on one machine at once: a test bench needs a handful; each is matched
+#: against every request while transport faults are active, and each is listed in the
+#: status the HMI receives every second.
+MAX_FAULTS = 64
+#: Longest fault text (characters); longer ones are refused before they are parsed.
+MAX_TEXT = 256
+#: Longest `objects=` pattern (characters): more than twice the longest object name or
+#: alias (28), so every pattern that can match a name fits.
+MAX_PATTERN = 64
+
+
+#: A request delayed by a fault looks this often (s) whether the fault was cleared.
+_DELAY_SLICE = 0.05
+
+
+def _match_all(name: str) -> bool:
+    return True
 
 
 class FaultError(GeoError, ValueError):
@@ -70,6 +97,11 @@ class Fault:
     ident: int = 0
     hits: int = 0
     _rng: random.Random = field(default_factory=random.Random, repr=False, compare=False)
+    #: `objects` compiled once when parsed (`_option`): no per-request compilation and
+    #: no global cache keeping it after the fault is cleared
+    _matches: Callable[[str], bool] = field(default=_match_all, repr=False, compare=False)
+    #: set by `Faults.remove`: a delay under way ends (`delay`)
+    cleared: bool = field(default=False, repr=False, compare=False)
 
     def transports(self) -> tuple[str, ...]:
         if self.target == "all":
@@ -82,9 +114,20 @@ class Fault:
             return False
         if self.ops != "any" and op != self.ops:
             return False
-        if self.objects != "*" and not (name and fnmatch.fnmatchcase(name, self.objects)):
+        if self.objects != "*" and not (name and self._matches(name)):
             return False
         return self.kind != "disconnect" or transport != "zenoh"
+
+    async def delay(self) -> None:
+        """Wait out this delay fault's `value` ms — less when it is cleared meanwhile:
+        clearing a fault ends its effect at once (within `_DELAY_SLICE`)."""
+        loop = asyncio.get_running_loop()
+        end = loop.time() + self.value / 1000
+        while not self.cleared:
+            left = end - loop.time()
+            if left <= 0:
+                return
+            await asyncio.sleep(min(left, _DELAY_SLICE))
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -110,8 +153,23 @@ class Fault:
 
 def parse_fault(text: str) -> Fault:
     """The `Fault` a line of text describes (module docstring); `FaultError` says what
-    is wrong with it."""
+    is wrong with it — whatever the text, nothing else is raised."""
+    if not isinstance(text, str):
+        raise FaultError(f"a fault is a line of text, not {type(text).__name__}")
     text = text.strip()
+    if len(text) > MAX_TEXT:
+        raise FaultError(
+            f"fault {text[:40]!r}…: {len(text)} characters, at most {MAX_TEXT} (docs/faults.md)"
+        )
+    try:
+        return _parse(text)
+    except FaultError:
+        raise
+    except (ValueError, OverflowError, TypeError) as exc:  # a number no fault can have
+        raise FaultError(f"fault {text!r}: {exc}") from None
+
+
+def _parse(text: str) -> Fault:
     head, _, rest = text.partition(",")
     target, sep, action = head.partition(":")
     if not sep or not action:
@@ -156,9 +214,12 @@ def _target(fault: Fault, text: str) -> None:
 
 def _number(fault: Fault, what: str, text: str) -> float:
     try:
-        return float(int(text, 0)) if text.lower().startswith("0x") else float(text)
+        v = float(int(text, 0)) if text.lower().startswith("0x") else float(text)
     except ValueError:
-        raise FaultError(f"fault {fault.text!r}: {what} {text!r} is not a number") from None
+        v = math.nan
+    if not math.isfinite(v):
+        raise FaultError(f"fault {fault.text!r}: {what} {text!r} is not a number")
+    return v
 
 
 def _value(fault: Fault, value: str) -> None:
@@ -176,6 +237,8 @@ def _value(fault: Fault, value: str) -> None:
     if kind == "noisy" and not 0 < v <= 100:
         raise FaultError(f"fault {fault.text!r}: noise σ {v:g} °C outside 0 … 100")
     if kind == "error":
+        if v != int(v):
+            raise FaultError(f"fault {fault.text!r}: code {value!r} is not a whole number")
         _check_code(fault, int(v))
     fault.value = v
 
@@ -210,7 +273,15 @@ def _option(fault: Fault, item: str) -> None:
             raise FaultError(f"fault {fault.text!r}: ops={value} (any, read, write)")
         fault.ops = value
     elif key == "objects" and transport:
+        if fault.objects != "*":
+            raise FaultError(f"fault {fault.text!r}: one objects= pattern per fault")
+        if len(value) > MAX_PATTERN:
+            raise FaultError(
+                f"fault {fault.text!r}: objects= pattern of {len(value)} characters, at most "
+                f"{MAX_PATTERN} (the longest object name has 28)"
+            )
         fault.objects = value
+        fault._matches = _compiled(value)
     elif key == "count" and fault.target != "sensor":
         fault.count = _positive(fault, key, value)
     elif key == "every" and fault.target == "cycle":
@@ -224,6 +295,13 @@ def _option(fault: Fault, item: str) -> None:
         fault.seed = _positive(fault, key, value, zero=True)
     else:
         raise FaultError(f"fault {fault.text!r}: {fault.target} has no option {key!r}")
+
+
+def _compiled(pattern: str) -> Callable[[str], bool]:
+    """`pattern` (fnmatch, case-sensitive) as a matcher of its own: `fnmatch.fnmatchcase`
+    would keep every pattern ever used in its module-wide cache."""
+    match = re.compile(fnmatch.translate(pattern)).match
+    return lambda name: match(name) is not None
 
 
 def _positive(fault: Fault, key: str, value: str, zero: bool = False) -> int:
@@ -253,8 +331,14 @@ class Faults:
         self.cleared = 0
 
     def add(self, fault: Fault) -> Fault:
-        """Register a parsed fault; returns it with its id."""
+        """Register a parsed fault; returns it with its id. `FaultError` once
+        `MAX_FAULTS` are active."""
         with self._lock:
+            if len(self._faults) >= MAX_FAULTS:
+                raise FaultError(
+                    f"fault {fault.text!r}: {MAX_FAULTS} faults are active, the most a machine "
+                    "takes; clear some first"
+                )
             fault = replace(fault, ident=self._next)
             if fault.seed is not None:
                 fault._rng = random.Random(fault.seed)
@@ -267,6 +351,8 @@ class Faults:
         """Take away fault `ident` (None: all); returns those removed (empty: no such)."""
         with self._lock:
             gone = [f for f in self._faults if ident is None or f.ident == ident]
+            for f in gone:
+                f.cleared = True
             self._faults = [f for f in self._faults if f not in gone]
             self.cleared += len(gone)
             self._update()

@@ -30,9 +30,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from geo_server.descriptors import MIN_CAP, AcceptLog, DescriptorError, plan
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, InterfaceStartError, serve, start_failure
 from geo_server.paths import default_startup_list
+from geo_server.recorder import cli as recorder_cli
 
 
 def members_from_args(args: argparse.Namespace) -> list[Member]:
@@ -50,6 +52,7 @@ class Served:
     member: Member
     service: Any
     scheduler: Any
+    late: int = 0  # samples late at the last fleet status (`starved`)
 
 
 def run_fleet(args: argparse.Namespace) -> int:
@@ -70,7 +73,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     configs: dict[Path, Any] = {}
     for m in members:
         try:
-            cfg = configs.get(m.startup) or load_machine(m.startup)
+            cfg = configs.get(m.startup) or load_machine(m.startup, args.allow_dir)
         except ListFileError as exc:
             print(f"error: {m.name}: {exc}", file=sys.stderr)
             return 2
@@ -80,6 +83,8 @@ def run_fleet(args: argparse.Namespace) -> int:
         )
         sched = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
         service = ObjectService(machine, sched)
+        # a folder of recordings per machine: the same name never collides (docs/recorder.md §7)
+        service.record_dir = recorder_cli.record_dir(args, m.name, cfg.startup_path)
         if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
             return 2
         served.append(Served(m, service, sched))
@@ -96,11 +101,19 @@ def run_fleet(args: argparse.Namespace) -> int:
     return code
 
 
-def fleet_status(served: list[Served]) -> dict[str, Any]:
-    """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals."""
+def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, Any]:
+    """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals.
+
+    Starvation shows too (docs/design.md §13.1): `loop_lag_ms`, how late the event loop
+    that serves every machine ran a timer in the last status period, and per machine
+    `samples_late`, its notification samples taken later than their cycle (the loop or
+    the engine could not keep up, `ads_notifications` of its status); `starved` lists
+    the machines whose count grew since the last status."""
     machines = []
     for s in served:
         st = s.service.status()
+        notes = st.get("ads_notifications") or {}
+        late = int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0))
         machines.append(
             {
                 "name": s.member.name,
@@ -109,16 +122,80 @@ def fleet_status(served: list[Served]) -> dict[str, Any]:
                 "overruns": st["overruns"],
                 "stalled": st["stalled"],
                 "computed_cycles": st["computed_cycles"],
+                "notifications": int(notes.get("registrations", 0)),
+                "samples_late": late,
                 "netid": s.member.netid,
                 "modbus_port": s.member.modbus_port,
             }
         )
+    starved = [
+        m["name"] for m, s in zip(machines, served, strict=True) if m["samples_late"] > s.late
+    ]
+    for m, s in zip(machines, served, strict=True):
+        s.late = m["samples_late"]
     return {
         "machines": machines,
         "count": len(machines),
         "overruns": sum(m["overruns"] for m in machines),
         "stalled": [m["name"] for m in machines if m["stalled"]],
+        "loop_lag_ms": round(loop_lag_ms, 1),
+        "samples_late": sum(m["samples_late"] for m in machines),
+        "starved": starved,
     }
+
+
+#: How often the fleet's event loop checks its own lag (seconds)
+LAG_TICK = 0.05
+
+
+async def _watch_lag(worst: list[float]) -> None:
+    """Keep `worst[0]` at the largest lateness (ms) of a `LAG_TICK` timer since it was
+    last reset: a loop kept busy by one machine's clients delays every machine."""
+    loop = asyncio.get_running_loop()
+    while True:
+        t = loop.time()
+        await asyncio.sleep(LAG_TICK)
+        worst[0] = max(worst[0], (loop.time() - t - LAG_TICK) * 1000)
+
+
+#: Connections each machine's Modbus port queues before they are accepted: a fleet has a
+#: port per machine, and every queued connection may become a descriptor at once.
+FLEET_BACKLOG = 16
+
+
+def connection_caps(args: argparse.Namespace, machines: int) -> dict[str, int]:
+    """The fleet's connection caps fitted under the open-files limit, as for one machine
+    (geo_server/descriptors.py): Zenoh's sessions and handshakes on the one session, ADS
+    connections of the one port (`AdsOptions.max_connections_fleet`), the web HMI's, and
+    Modbus per machine ("modbus" in the result is the cap of each machine's port). The
+    listening queues are held whatever the caps: `FLEET_BACKLOG` per Modbus port,
+    `BACKLOG` for ADS and HTTP."""
+    from geo_server.transports.ads.server import AdsOptions
+    from geo_server.transports.modbus.server import ModbusOptions
+    from geo_server.transports.tcp import BACKLOG
+    from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.web.server import HmiOptions
+
+    wanted: dict[str, int] = {}
+    fixed = 0
+    if not args.no_zenoh:
+        wanted["zenoh"] = ZenohOptions.max_sessions + ZenohOptions.accept_pending
+    if not args.no_modbus:
+        wanted["modbus"] = ModbusOptions.max_connections * machines
+        fixed += FLEET_BACKLOG * machines
+    if not args.no_ads:
+        wanted["ads"] = AdsOptions.max_connections_fleet
+        fixed += BACKLOG
+    if args.http:
+        wanted["http"] = HmiOptions.max_connections
+        fixed += BACKLOG
+    # every machine's port keeps at least MIN_CAP connections
+    caps, said = plan(wanted, fixed, floors={"modbus": MIN_CAP * machines})
+    if said:
+        print(said, file=sys.stderr, flush=True)
+    if "modbus" in caps:
+        caps["modbus"] //= machines
+    return caps
 
 
 async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
@@ -127,6 +204,14 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
+    # as for one machine (geo_server/descriptors.py): the soft open-files limit raised to
+    # the hard one, every interface's connections fitted under it, and accept failures
+    # said once per period, not once per retry
+    AcceptLog().install(loop)
+    try:
+        args.caps = connection_caps(args, len(served))
+    except DescriptorError as exc:
+        raise InterfaceStartError(str(exc)) from None
     closers: list[Any] = []
     session = None
     try:
@@ -141,6 +226,9 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
             await _start_ads(args, served, closers)
         for s in served:
             s.scheduler.start()
+        lag = [0.0]
+        watch = asyncio.ensure_future(_watch_lag(lag))
+        closers.append(lambda: _cancel(watch))
         # the fleet's status, computed off the loop once per status period (each machine
         # catches up first: a few hundred machines take tens of milliseconds)
         current = [await asyncio.to_thread(fleet_status, served)]
@@ -160,14 +248,16 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         while not stop.is_set():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), args.status_period)
-            st = current[0] = await asyncio.to_thread(fleet_status, served)
+            worst, lag[0] = lag[0], 0.0
+            st = current[0] = await asyncio.to_thread(fleet_status, served, worst)
             latest[0] = json.dumps(st).encode()
             if session is not None:
                 session.put(FLEET_STATUS_KEY, latest[0])
             cycles = [m["cycle"] for m in st["machines"]]
             print(
                 f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
-                f"overruns {st['overruns']}, stalled {len(st['stalled'])}",
+                f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
+                f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}",
                 flush=True,
             )
             if args.cycles and all(not s.scheduler.running for s in served):
@@ -183,6 +273,12 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
                 print(f"warning: closing: {exc}", file=sys.stderr)
 
 
+async def _cancel(task: asyncio.Future[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
 async def _start_zenoh(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> Any:
     import zenoh
 
@@ -196,6 +292,7 @@ async def _start_zenoh(args: argparse.Namespace, served: list[Served], closers: 
         multicast_scouting=args.zenoh_scouting,
         read_only=args.read_only or args.zenoh_read_only,
     )
+    base.shrink_to(args.caps["zenoh"])
     loop = asyncio.get_running_loop()
     try:
         session = await loop.run_in_executor(None, zenoh.open, base.zenoh_config())
@@ -226,10 +323,17 @@ async def _start_modbus(args: argparse.Namespace, served: list[Served], closers:
     from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
     read_only = args.read_only or args.modbus_read_only
+    caps = args.caps["modbus"]
     for s in served:
         mb = ModbusInterface(
             s.service,
-            ModbusOptions(host=args.modbus_host, port=s.member.modbus_port, read_only=read_only),
+            ModbusOptions(
+                host=args.modbus_host,
+                port=s.member.modbus_port,
+                read_only=read_only,
+                max_connections=caps,
+                backlog=FLEET_BACKLOG,
+            ),
         )
         closers.append(mb.close)
         await mb.start()
@@ -243,22 +347,18 @@ async def _start_http(
     closers: list[Any],
     status: Callable[[], dict[str, Any]],
 ) -> None:
-    from geo_server.web.server import FleetHmi, HmiOptions, parse_http
+    from geo_server.web.server import FleetHmi, access_note, http_options
 
-    host, port = parse_http(args.http)
-    hmi = FleetHmi(
-        {s.member.name: s.service for s in served},
-        status,
-        HmiOptions(host=host, port=port, read_only=args.read_only),
-    )
+    options = http_options(args, max_connections=args.caps["http"])
+    hmi = FleetHmi({s.member.name: s.service for s in served}, status, options)
     closers.append(hmi.close)
     try:
         await hmi.start()
     except Exception as exc:  # a taken port
         raise InterfaceStartError(start_failure("http", exc)) from exc
     print(
-        f"http: web HMI on http://{hmi.address}/ (the fleet; a machine at /m/<name>/; "
-        "no authentication)",
+        f"http: web HMI on {hmi.url} (the fleet; a machine at /m/<name>/; "
+        f"{access_note(hmi.options)})",
         flush=True,
     )
 
@@ -274,7 +374,14 @@ async def _start_ads(args: argparse.Namespace, served: list[Served], closers: li
     head = served[0]
     ads = AdsServer(
         head.service,
-        options(head.member, port=args.ads_port, udp_port=args.ads_udp_port or None),
+        options(
+            head.member,
+            port=args.ads_port,
+            udp_port=args.ads_udp_port or None,
+            route_user=args.ads_route_user,
+            route_password=args.ads_route_password,
+            max_connections_fleet=args.caps["ads"],
+        ),
     )
     for s in served[1:]:
         ads.add_device(s.service, options(s.member))

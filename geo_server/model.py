@@ -312,6 +312,15 @@ class MachineConfig:
     #: Volumetric compensations (004, `vol_comp[i]` of the start-up list): a tuple of
     #: `geo_server.volcomp.config.VolComp` (typed loosely: model sits below volcomp)
     volumetric: tuple[Any, ...] = ()
+    #: Folders besides the start-up list's from which files named in a VOLC list or over
+    #: the network may be read (`geo-server run --allow-dir`; docs/security.md).
+    allow_dirs: tuple[Path, ...] = ()
+
+    @property
+    def file_roots(self) -> tuple[Path, ...]:
+        """The folders a file named over the network or in a VOLC list must lie in: the
+        machine's folder (the start-up list's) and the `--allow-dir` folders."""
+        return (self.startup_path.parent, *self.allow_dirs)
 
     @property
     def list_files(self) -> list[str]:

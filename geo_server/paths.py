@@ -12,6 +12,9 @@ from pathlib import Path
 _PACKAGE = Path(__file__).resolve().parent
 #: The data folder of an installed wheel (absent in a checkout / editable install).
 PACKAGED_DATA = _PACKAGE / "_data"
+#: A source checkout's root and its data folders (`data_dir` looks there second).
+CHECKOUT = _PACKAGE.parent
+CHECKOUT_DATA = ("lists", "objects")
 
 
 def data_dir(name: str) -> Path:
@@ -31,10 +34,23 @@ def default_startup_list() -> Path:
 
 
 def is_packaged_data(path: str | Path) -> bool:
-    """True for a file inside an installed wheel's data folder (site-packages), which
-    `save` must not edit: an upgrade would overwrite it and other users share it."""
+    """True for a file inside an installed wheel's data folder (site-packages): an
+    upgrade would overwrite it and other users share it."""
+    return _below(path, PACKAGED_DATA)
+
+
+def is_product_data(path: str | Path) -> bool:
+    """True for a file of the shipped data — the default machine, the object dictionary —
+    wherever it comes from: an installed wheel's data folder or the `lists/` and
+    `objects/` folders beside a source checkout, whose files are tracked and read by the
+    tests. `save` never edits one (docs/design.md §4.5: `geo-server init DIR` copies the
+    default machine to a folder of the user's)."""
+    return is_packaged_data(path) or any(_below(path, CHECKOUT / name) for name in CHECKOUT_DATA)
+
+
+def _below(path: str | Path, folder: Path) -> bool:
     try:
-        Path(path).resolve().relative_to(PACKAGED_DATA)
+        Path(path).resolve().relative_to(folder.resolve())
     except ValueError:
         return False
     return True

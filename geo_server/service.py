@@ -60,11 +60,13 @@ from geo_server.machine.port import (
     WriteObjects,
     chained,
     resolved,
+    varies_at_rest,
 )
 from geo_server.model import CompKind, Diagnostic, MachineConfig
-from geo_server.paths import is_packaged_data
+from geo_server.paths import is_product_data
 from geo_server.recorder import Recorder, RecordSpec, SelectionError, TraceFileError
-from geo_server.recorder.inputs import inputs_path, save_inputs
+from geo_server.recorder.paths import check_target, default_record_dir, machine_files, output_path
+from geo_server.recorder.recorder import RecorderLimits
 from geo_server.snapshot import Snapshot
 from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
 from geo_server.volcomp.config import reload_compensation
@@ -185,7 +187,12 @@ class ObjectService:
         self.faults = Faults()
         #: the recording a command started (docs/recorder.md §7) and where it goes
         self.recording: Recorder | None = None
-        self._recording_out = Path("geo-trace.csv")
+        self._recording_lock = threading.Lock()
+        #: where recordings asked for over an interface go (`run --record-dir`); None:
+        #: `recordings/` beside the start-up list (recorder.paths.default_record_dir)
+        self.record_dir: Path | None = None
+        #: bounds of a recording (README *Limits*, docs/recorder.md §8)
+        self.record_limits = RecorderLimits()
 
     # ------------------------------------------------------------------ state
 
@@ -248,6 +255,13 @@ class ObjectService:
 
     def resolve(self, index_group: int, index_offset: int) -> tuple[ObjectDef, int, str | None]:
         return self.dictionary.resolve(index_group, index_offset, self.axes)
+
+    @staticmethod
+    def varies_at_rest(obj: ObjectDef) -> bool:
+        """Whether `obj` can change while the machine is quiescent (`machine/port.py`
+        `varies_at_rest`; docs/design.md §13): an on-change observer of any other object
+        needs no snapshot of a quiescent cycle."""
+        return varies_at_rest(obj.name)
 
     def lookup(self, name: str, axis: int) -> ObjectDef:
         """Object by name for `axis`; 0x703 when the axis does not exist."""
@@ -523,7 +537,7 @@ class ObjectService:
         st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
         st["faults"] = self.faults.status()
         if self.recording is not None:
-            st["recording"] = {**self.recording.status(), "file": str(self._recording_out)}
+            st["recording"] = {**self.recording.status(), "file": str(self.recording.out)}
         st.update(self.status_extra)
         return st
 
@@ -578,39 +592,65 @@ class ObjectService:
     # ------------------------------------------------------------------ recording
 
     def start_recording(
-        self, spec: RecordSpec | dict[str, Any], out: str | Path = "geo-trace.csv", name: str = ""
+        self,
+        spec: RecordSpec | dict[str, Any],
+        out: str | Path = "geo-trace.csv",
+        name: str = "",
+        *,
+        overwrite: bool = False,
+        local: bool = False,
     ) -> dict[str, Any]:
-        """Start recording `spec` (docs/recorder.md); `out` (CSV or .parquet, the
-        inputs beside it as `<stem>.inputs.jsonl`) is written by `stop_recording`. One
+        """Start recording `spec` (docs/recorder.md) into `out` (CSV or .parquet, the
+        inputs beside it as `<stem>.inputs.jsonl`), streamed while it records and put in
+        place by `stop_recording`. An `out` from an interface (not `local`, the command
+        line's own) is a file name in the recordings folder, an existing file replaced
+        only with `overwrite`, never a file of the machine (recorder.paths); anything
+        else is refused with 0x70B, as are settings outside `record_limits`. One
         recording at a time: another one is refused with 0x708."""
-        if self.recording is not None:
-            raise AdsError(
-                AdsErrorCode.DEVICE_BUSY, "a recording runs already: stop it first", "record"
-            )
-        try:
-            if isinstance(spec, dict):
-                spec = RecordSpec.from_json(spec)
-            self.recording = Recorder(self, spec, name).start()
-        except (SelectionError, ValueError) as exc:
-            raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc), "record") from None
-        self._recording_out = Path(out)
-        return {**self.recording.status(), "file": str(self._recording_out)}
+        with self._recording_lock:
+            if self.recording is not None:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_BUSY, "a recording runs already: stop it first", "record"
+                )
+            try:
+                if isinstance(spec, dict):
+                    spec = RecordSpec.from_json(spec, self.record_limits)
+                protected = machine_files(self.machine.cfg)
+                if local:
+                    target = Path(out)
+                    check_target(target, overwrite=True, protected=protected)
+                else:
+                    folder = self.record_dir or default_record_dir(self.machine.cfg.startup_path)
+                    folder.mkdir(parents=True, exist_ok=True)
+                    target = output_path(
+                        str(out),
+                        folder,
+                        overwrite=overwrite,
+                        protected=protected,
+                        max_text=self.record_limits.max_text,
+                    )
+                rec = Recorder(self, spec, name, out=target, limits=self.record_limits)
+                self.recording = rec.start()
+            except (SelectionError, ValueError) as exc:
+                raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc), "record") from None
+            except OSError as exc:  # the folder cannot be made or written
+                raise AdsError(
+                    AdsErrorCode.DEVICE_ERROR, f"record: cannot write {out}: {exc}", "record"
+                ) from None
+            return {**rec.status(), "file": str(target)}
 
     def stop_recording(self) -> dict[str, Any]:
-        """Stop the recording and write its trace and inputs; what was written."""
-        rec, self.recording = self.recording, None
+        """Stop the recording, write the rows it still holds and put its trace and
+        inputs in place (in the calling thread: call it off the event loop); what was
+        written."""
+        with self._recording_lock:
+            rec, self.recording = self.recording, None
         if rec is None:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDSTATE, "no recording runs", "record")
-        trace = rec.stop()
-        out = self._recording_out
         try:
-            trace.save(out)
-            inputs = save_inputs(rec.inputs, inputs_path(out))
+            return rec.finish()
         except (OSError, TraceFileError) as exc:
-            raise AdsError(
-                AdsErrorCode.DEVICE_ERROR, f"cannot write {out}: {exc}", "record"
-            ) from None
-        return {**rec.status(), "rows": len(trace), "file": str(out), "inputs_file": str(inputs)}
+            raise AdsError(AdsErrorCode.DEVICE_ERROR, str(exc), "record") from None
 
     def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
         """Clear fault `ident` (None: every fault) and undo what it did: overruns stop,
@@ -787,8 +827,8 @@ class ObjectService:
 
     def _reload(self, startup: Path | str | None) -> CommandResult:
         path = Path(startup) if startup else self.machine.cfg.startup_path
-        try:
-            new = load_machine(path)
+        try:  # the folders the user allowed at start stay allowed
+            new = load_machine(path, self.machine.cfg.allow_dirs)
         except ListFileError as exc:
             return CommandResult(False, "reload", errors=[str(exc)], code=ADSERR_DEVICE_SYNTAX)
         problems = _rejecting(new) + compare_max_points(self.machine.cfg, new)
@@ -879,6 +919,11 @@ class ObjectService:
         return result
 
     def _save(self) -> CommandResult:
+        startup = self.machine.cfg.startup_path
+        if is_product_data(startup):  # refused whatever changed: it is never saved
+            return CommandResult(
+                False, "save", errors=[_read_only_default(startup)], code=AdsErrorCode.DEVICE_ERROR
+            )
         snap = self.snapshot
         files: list[str] = []
         errors: list[str] = []
@@ -890,11 +935,8 @@ class ObjectService:
             if not params.path:
                 errors.append(f"axis {axis}: no axis parameter list to save into")
                 continue
-            if is_packaged_data(params.path):
-                errors.append(
-                    f"{params.path} belongs to the installed package; copy the machine "
-                    "with `geo-server init DIR` and run DIR/hochlauf.lis to save"
-                )
+            if is_product_data(params.path):
+                errors.append(_read_only_default(params.path))
                 continue
             try:
                 rewrite_values(params.path, changes)
@@ -947,6 +989,16 @@ def _single(pending: Pending) -> Pending:
         return outcome
 
     return chained(pending, first)
+
+
+def _read_only_default(path: str | Path) -> str:
+    """Why `save` does not write into `path`, a file of the shipped default machine
+    (docs/design.md §4.5)."""
+    return (
+        f"{path} belongs to the default machine shipped with geo-server, which is read-only "
+        "wherever it is installed; copy it with `geo-server init DIR` and run "
+        "`geo-server run DIR/hochlauf.lis` to save"
+    )
 
 
 def _busy(command: str) -> CommandResult:

@@ -373,26 +373,92 @@ def test_pyads_state_info_and_notification_by_name(ads, plc, service) -> None:
 # ---------------------------------------------------------------------- UDP 48899
 
 
-@pytest.fixture
-def udp_ads(loop_thread, service) -> Iterator[AdsServer]:
+#: the add-route credentials the UDP fixtures' server is started with
+ROUTE_USER, ROUTE_PASSWORD = "Administrator", "s3cret-1"
+
+
+def _udp_server(loop_thread, service, **options) -> AdsServer:
     """On 127.0.0.2 (loopback): pyads' UDP functions always send to port 48899."""
     from conftest import run_in
 
-    srv = start_server(loop_thread, service, host="127.0.0.2", udp_port=48899, netid="5.6.7.8.1.1")
+    srv = start_server(
+        loop_thread, service, host="127.0.0.2", udp_port=48899, netid="5.6.7.8.1.1", **options
+    )
     if srv.udp_port != 48899:
         run_in(loop_thread, srv.close())
         pytest.skip(f"UDP 48899 is taken on this host: {srv.udp_error}")
+    return srv
+
+
+@pytest.fixture
+def udp_ads(loop_thread, service) -> Iterator[AdsServer]:
+    from conftest import run_in
+
+    srv = _udp_server(loop_thread, service, route_user=ROUTE_USER, route_password=ROUTE_PASSWORD)
     yield srv
     run_in(loop_thread, srv.close())
 
 
+def _add_route(user: str, password: str) -> bool:
+    """pyads' add-route against the fixture's server: True accepted, False refused.
+    pyads reads TwinCAT's refusal (status 0x704) one byte off and raises for it."""
+    try:
+        return pyads.add_route_to_plc(
+            "10.1.2.3.1.1", "tester", "127.0.0.2", user, password, route_name="geo-test"
+        )
+    except RuntimeError as exc:
+        assert "Unexpected response" in str(exc)
+        return False
+
+
+def _route_status(user: bytes, password: bytes) -> int:
+    """The status tag of the server's answer to a raw add-route (pyads' layout)."""
+    import socket
+
+    body = b"".join(
+        struct.pack("<HH", tag, len(data)) + data
+        for tag, data in ((12, b"geo-test\0"), (13, user), (2, password), (5, b"tester\0"))
+    )
+    head = struct.pack("<III", 0x71146603, 7, 6) + bytes([10, 1, 2, 3, 1, 1])
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(TIMEOUT)
+        s.sendto(head + struct.pack("<HI", 10000, 4) + body, ("127.0.0.2", 48899))
+        reply = s.recv(2048)
+    assert struct.unpack_from("<I", reply, 8)[0] == 0x8000_0006
+    tag, length = struct.unpack_from("<HH", reply, 24)
+    assert (tag, length) == (1, 4)
+    return struct.unpack_from("<I", reply, 28)[0]
+
+
 def test_pyads_discovery_and_add_route(udp_ads) -> None:
     assert pyads.pyads_ex.adsGetNetIdForPLC("127.0.0.2") == "5.6.7.8.1.1"
-    ok = pyads.add_route_to_plc(
-        "10.1.2.3.1.1", "tester", "127.0.0.2", "Administrator", "1", route_name="geo-test"
-    )
-    assert ok is True
+    assert _add_route(ROUTE_USER, ROUTE_PASSWORD) is True
     assert udp_ads.stats.udp_answered == 2
+
+
+def test_add_route_refuses_wrong_credentials(udp_ads) -> None:
+    """Issue 30: add-route accepted any user name and password. Now only the ones given
+    at start, and a refusal is what TwinCAT answers to wrong credentials: 0x704."""
+    assert _add_route(ROUTE_USER, "wrong") is False
+    assert _add_route("Guest", ROUTE_PASSWORD) is False
+    assert _add_route("", "") is False
+    assert _add_route(ROUTE_USER, ROUTE_PASSWORD + "x") is False  # a prefix is not enough
+    assert _route_status(b"Administrator\0", b"s3cret-1\0") == 0
+    assert _route_status(b"Administrator\0", b"s3cret-\0") == 0x704
+    assert _route_status(b"", b"") == 0x704  # no credential tags at all
+    assert _add_route(ROUTE_USER, ROUTE_PASSWORD) is True  # the server still answers
+
+
+def test_add_route_refused_without_configured_credentials(loop_thread, service) -> None:
+    from conftest import run_in
+
+    srv = _udp_server(loop_thread, service)
+    try:
+        assert _add_route("Administrator", "1") is False
+        assert _add_route("", "") is False
+        assert _route_status(b"Administrator\0", b"1\0") == 0x704
+    finally:
+        run_in(loop_thread, srv.close())
 
 
 def test_discovery_answer_and_garbage(udp_ads) -> None:

@@ -24,9 +24,19 @@ ROOTS = {
 #: Layer of each module prefix, bottom (0) to top. A module may import only modules of
 #: its own layer or below (its own package included).
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
-    (0, ("geo_server", "geo_server.paths", "geo_server.errors", "geo_server.console")),
+    (
+        0,
+        (
+            "geo_server",
+            "geo_server.paths",
+            "geo_server.errors",
+            "geo_server.console",
+            "geo_server.safefile",  # reads files on request: bounded, never blocking
+        ),
+    ),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
     (1, ("geo_server.fleetfile", "geo_server.interfaces", "geo_server.faults")),
+    (1, ("geo_server.descriptors",)),  # the process's descriptors, planned at start
     (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (3, ("geo_server.listfile",)),
     (3, ("geo_server.kernel",)),

@@ -94,6 +94,19 @@ def test_bench_recorder_prints_its_table():
     assert "| cycle, recording 20 values every cycle |" in r.stdout, r.stdout
 
 
+def test_bench_fleet_isolation_prints_its_table():
+    """A fleet of 3, every phase briefly (quiet, notifications, client gone, flood)."""
+    r = subprocess.run(
+        [sys.executable, str(BENCH / "fleet_isolation.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "| flood on m1 | ADS m3 |" in r.stdout, r.stdout
+    assert '"granted": 3' in r.stdout, r.stdout
+
+
 def test_bench_addresses_come_from_the_dictionary(monkeypatch):
     """The benchmarks take every address from objects/ (bench/common.py `address`):
     TEMPC::offset_0 is ID 0x44, so axis 1 is ADS 0x120300 / (1 << 16 | 0x44) and the

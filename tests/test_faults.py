@@ -11,6 +11,7 @@ import json
 import statistics
 import threading
 import time
+from typing import Any
 
 import pytest
 from geo_clients.plc_tempcomp import (
@@ -25,7 +26,14 @@ from geo_clients.testing import GeoTestServer
 from geo_server.client import cli as client_cli
 from geo_server.client.modbus_client import ModbusClient
 from geo_server.errors import AdsError
-from geo_server.faults import OPEN_CIRCUIT_C, FaultError, Faults, parse_fault
+from geo_server.faults import (
+    MAX_FAULTS,
+    MAX_PATTERN,
+    OPEN_CIRCUIT_C,
+    FaultError,
+    Faults,
+    parse_fault,
+)
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import WriteObjects
@@ -291,22 +299,29 @@ class VirtualClock:
         self.t += round(seconds * 1e9)
 
 
-def test_an_overrun_slips_the_exact_engines_time_line():
-    """1 ms cycles; after cycles 100 and 200 an overrun of 10 ms: cycle c > 100 is due
-    at (c + 10) ms, c > 200 at (c + 20) ms; a write during an overrun waits for it."""
+def _overrun_under_a_virtual_clock(fault: str) -> tuple[ObjectService, Scheduler, Any]:
+    """The exact engine of the default machine on a virtual clock with `fault` injected,
+    and `cycle_at(µs)`: the cycle the machine is at that long after its start."""
     vc = VirtualClock()
     m = Machine(load_machine(default_startup_list()), homed=True)
     sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
     service = ObjectService(m, sched)
     sched.drive()
     t0 = sched.t0
-    service.inject_fault("cycle:overrun=10,every=100")
+    service.inject_fault(fault)
 
     def cycle_at(us: int) -> int:
         vc.t = t0 + us * 1000
         sched.sync()
         return m.cycle
 
+    return service, sched, cycle_at
+
+
+def test_an_overrun_slips_the_exact_engines_time_line():
+    """1 ms cycles; after cycles 100 and 200 an overrun of 10 ms: cycle c > 100 is due
+    at (c + 10) ms, c > 200 at (c + 20) ms; a write during an overrun waits for it."""
+    service, sched, cycle_at = _overrun_under_a_virtual_clock("cycle:overrun=10,every=100")
     assert [cycle_at(us) for us in (99_999, 100_000, 105_000, 110_999, 111_000)] == [
         99,
         100,
@@ -314,7 +329,6 @@ def test_an_overrun_slips_the_exact_engines_time_line():
         100,
         101,
     ]
-    vc.t = t0 + 150_500_000
     assert cycle_at(150_500) == 140
     pending = sched.submit(WriteObjects((("TEMPC::offset_0", 1, 75),)))
     assert cycle_at(210_000) == 200 and pending.done()  # applied in cycle 141
@@ -324,6 +338,102 @@ def test_an_overrun_slips_the_exact_engines_time_line():
     assert service.status()["faults"][0]["hits"] == 2
     service.clear_faults()
     assert cycle_at(400_000) == 380  # no more slips
+
+
+def test_clearing_an_overrun_ends_it_at_once_exact_engine():
+    """Issue 30: a 60 s overrun kept the machine stalled for 57 s after it was cleared.
+    Cleared in the middle of it, the next cycle runs in the next period, and the cycles
+    that were not lost after all are not counted as skipped."""
+    service, _, cycle_at = _overrun_under_a_virtual_clock("cycle:overrun=60000,every=100")
+    assert cycle_at(100_000) == 100
+    assert cycle_at(3_000_000) == 100  # the overrun: no cycle for 60 s
+    assert service.status()["skipped_cycles"] == 60_000
+    service.clear_faults()
+    assert cycle_at(3_001_000) == 101  # the next period, not 57 s later
+    assert service.status()["skipped_cycles"] == 2_900  # 2.9 s were lost, not 60
+    assert cycle_at(3_101_000) == 201
+
+
+def test_clearing_an_overrun_ends_it_at_once_punctual_engine():
+    m = Machine(load_machine(default_startup_list()), homed=True)
+    sched = Scheduler(m, mode="realtime", engine="punctual")
+    service = ObjectService(m, sched)
+    sched.start()
+    try:
+        service.inject_fault("cycle:overrun=60000")
+        assert _until(lambda: m.overruns >= 1)
+        stalled_at = m.cycle
+        service.clear_faults()
+        assert _until(lambda: m.cycle > stalled_at + 10)  # cycles again, long before 60 s
+        assert service.status()["skipped_cycles"] < 30_000
+    finally:
+        sched.stop()
+
+
+def _until(condition, limit: float = 20.0) -> bool:
+    end = time.monotonic() + limit
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_clearing_a_delay_fault_releases_the_delayed_request(srv):
+    """A request held by a 60 s delay is answered when the fault is cleared."""
+    z = srv.client("zenoh")
+    mb = srv.client("modbus")
+    z.fault(inject="modbus:delay=60000")
+    done = threading.Event()
+
+    def read() -> None:
+        mb.timeout = 30
+        mb.read("TEMPC::coefficient", 1)
+        done.set()
+
+    t = threading.Thread(target=read)
+    t.start()
+    assert _until(lambda: z.status()["faults"][0]["hits"] == 1)
+    z.fault(clear="all")
+    t.join(30)
+    assert done.is_set()
+
+
+# ---------------------------------------------------------------------- bounds
+
+
+def test_fault_patterns_and_counts_are_bounded(srv):
+    """Issue 30: 20 `objects=` patterns of 30 KB stalled every interface for 4.8 s and
+    kept 1.2 MiB each after they were cleared; 5000 faults slowed every request 6x and
+    grew the status to 568 KB. Now refused at once with 0x70B, the documented code."""
+    z = srv.client("zenoh")
+    for i in range(20):
+        err = _fails(
+            lambda i=i: z.fault(inject="all:delay=1,objects=" + "a*" * 15_000 + str(i)), 0x70B
+        )
+        assert "at most 256" in err.message
+    err = _fails(lambda: z.fault(inject="all:delay=1,objects=" + "a*" * 40), 0x70B)
+    assert f"at most {MAX_PATTERN}" in err.message
+    err = _fails(lambda: z.fault(inject="all:delay=1,objects=A*,objects=B*"), 0x70B)
+    assert "one objects= pattern" in err.message
+    for i in range(MAX_FAULTS):
+        z.fault(inject=f"modbus:error=6,objects=SIM::nothing_{i}*")
+    err = _fails(lambda: z.fault(inject="modbus:error=6"), 0x70B)
+    assert f"{MAX_FAULTS} faults are active" in err.message
+    st = z.status()
+    assert len(st["faults"]) == MAX_FAULTS and len(json.dumps(st["faults"])) < 16_384
+    assert z.read("TEMPC::coefficient", 1) == COEFFICIENT_X  # no fault matches it
+    z.fault(clear="all")
+    assert z.fault(inject="modbus:error=6,count=1")["injected"]["id"] == MAX_FAULTS + 1
+
+
+@pytest.mark.parametrize(
+    "spec",
+    ["ads:error=1e400", "ads:error=nan", "ads:error=0x707.5", "all:delay=inf", "zenoh:delay=-0"],
+)
+def test_malformed_specs_answer_0x70b_never_0x700(srv, spec):
+    err = _fails(lambda: srv.client("zenoh").fault(inject=spec), 0x70B)
+    assert spec in err.message
 
 
 # ---------------------------------------------------------------------- the twin's sensors

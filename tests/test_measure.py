@@ -284,6 +284,10 @@ def test_commissioning_the_default_machine_reproduces_its_lists(tmp_path):
 def test_measure_refuses_to_commission_the_shipped_lists(capsys):
     assert cli_main(["measure", "--axis", "X", "--commission"]) == 2
     assert "geo-server init" in capsys.readouterr().err
+    # named explicitly, the checkout's lists/ are the shipped machine all the same
+    shipped = str(default_startup_list())
+    assert cli_main(["measure", shipped, "--axis", "X", "--commission"]) == 2
+    assert "geo-server init" in capsys.readouterr().err
     assert cli_main(["measure", "--axis", "X", "--targets", "0,nan"]) == 2
     assert "finite" in capsys.readouterr().err
     assert cli_main(["measure", "--axis", "X", "--overrun", "-5", "--targets", "0,10"]) == 2

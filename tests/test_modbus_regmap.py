@@ -87,7 +87,8 @@ def test_known_addresses():
     assert register_address(obj("SIM::cycle_count")) == 0x4004  # machine unit
     assert bit_address(obj("TEMPC::activated")) == 0x41
     assert bit_address(obj("SIM::homed")) == 0x4005
-    assert set(AX.coils) == {0x41, 0x4005}
+    assert bit_address(obj("SIM::drive_enable")) == 0x400E
+    assert set(AX.coils) == {0x41, 0x4005, 0x400E}
 
 
 def test_unit_maps():
@@ -282,7 +283,12 @@ def test_modbus_map_csv_is_complete():
     regs = {(r["unit"], r["object"]) for r in rows if r["table"].startswith("holding")}
     assert len(regs) == len([o for o in D.objects if o.group != "com"])  # COM: ADS, Zenoh
     coils = [r for r in rows if r["table"] == "coil"]
-    assert {r["object"] for r in coils} == {"TEMPC::activated", "SIM::homed", "TWIN::spindle_on"}
+    assert {r["object"] for r in coils} == {
+        "TEMPC::activated",
+        "SIM::homed",
+        "SIM::drive_enable",
+        "TWIN::spindle_on",
+    }
     coef = next(r for r in rows if r["object"] == "TEMPC::coefficient")
     assert coef["address"].startswith("268…271")
     assert coef["type"] == "REAL64" and coef["registers"] == "4"

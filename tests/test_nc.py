@@ -88,6 +88,15 @@ class FakePort:
     def report(self, error_id: int, message: str, line: int) -> None:
         self.calls.append(("report", error_id, line))
 
+    def initialised(self, slot: int) -> CompKind:
+        return self.selected.get(slot, K(0))
+
+    def current(self, slot: int, kind: CompKind) -> float:
+        return 0.0
+
+    def message(self, text: str, line: int) -> None:
+        self.calls.append(("msg", text, line))
+
     def kinds(self, name: str) -> list[tuple]:
         return [c for c in self.calls if c[0] == name]
 

@@ -323,7 +323,12 @@ def test_check_golden_writes_once_then_compares(tmp_path):
 # ---------------------------------------------------------------------- Zenoh, CLI, plugin
 
 
-def test_zenoh_record_command(srv, tmp_path):
+def test_zenoh_record_command(tmp_path):
+    with GeoTestServer(record_dir=tmp_path) as srv:
+        _zenoh_record_command(srv, tmp_path)
+
+
+def _zenoh_record_command(srv, tmp_path):
     srv.start("zenoh")
     z = srv.client("zenoh")
     key = f"cnc/{srv.machine_name}/cmd/record"
@@ -334,7 +339,8 @@ def test_zenoh_record_command(srv, tmp_path):
         return json.loads(z.get(key, json.dumps(body).encode())[0][1])
 
     out = tmp_path / "z.csv"
-    started = command({"start": {"objects": ["SIM::cycle_count"], "every": 2, "out": str(out)}})
+    # a file name in the recordings folder (docs/recorder.md §7)
+    started = command({"start": {"objects": ["SIM::cycle_count"], "every": 2, "out": out.name}})
     assert started["recording"]["columns"] == 1 and started["recording"]["file"] == str(out)
     with pytest.raises(AdsError) as info:
         command({"start": {"objects": ["SIM::cycle_count"]}})

@@ -52,6 +52,8 @@ class Served:
         self.run(self.hmi.start())
         self.scheduler.start()
         self.url = f"http://{self.hmi.address}/"
+        #: the page's URL as `geo-server run` prints it: with the run's write token
+        self.page_url = self.hmi.url
         self.lists = startup.parent
 
     def run(self, coro):
@@ -65,7 +67,7 @@ class Served:
         req = urllib.request.Request(
             self.url + path.lstrip("/"),
             json.dumps(body).encode(),
-            {"Content-Type": "application/json"},
+            {"Content-Type": "application/json", "X-Geo-Token": self.hmi.options.token},
         )
         try:
             with urllib.request.urlopen(req, timeout=10) as r:
@@ -115,7 +117,7 @@ def open_page(browser, served):
     pg = browser.new_page(viewport={"width": 1400, "height": 1000})
     pg.errors = []
     pg.on("pageerror", lambda e: pg.errors.append(str(e)))
-    pg.goto(served.url)
+    pg.goto(served.page_url)
     last = served.service.axes[-1]
     pg.wait_for_selector(
         f"#axis-{last} .v[data-f='command_position']:not(:text('–'))", timeout=WAIT_MS
@@ -211,8 +213,9 @@ def test_an_out_of_range_edit_shows_the_servers_error(page, served):
     box.fill("20000")
     box.press("Enter")
     # the object's range, −10000 … 10000 µm/m (000 p.21), as every interface says it
+    # (the JSON number as sent, as Zenoh says it: the same rule, `coerce_json`)
     expect(page.locator("#tempc-msg-1")).to_have_text(
-        "ADS 0x706: TEMPC::coefficient: 20000.0 outside the range -10000 … 10000 [µm/m]"
+        "ADS 0x706: TEMPC::coefficient: 20000 outside the range -10000 … 10000 [µm/m]"
     )
     expect(page.locator("#tempc-msg-1")).to_have_class("msg error")
     assert served.service.read_name("TEMPC::coefficient", 1) == 4000.0
@@ -441,8 +444,8 @@ def test_a_read_only_server_refuses_edits_and_commands(tmp_path):
 
 
 def banner(proc: subprocess.Popen) -> tuple[str, str]:
-    """The page's URL in `geo-server run`'s `http:` line, and the line ("" and "" when
-    the server ended without one)."""
+    """The page's URL in `geo-server run`'s `http:` line (with its `?token=…`), and the
+    line ("" and "" when the server ended without one)."""
     for line in proc.stdout:
         if line.startswith("http: web HMI on "):
             return line.split()[4], line
@@ -483,7 +486,8 @@ def test_run_serves_the_page_on_an_ephemeral_port(tmp_path):
     )
     try:
         url, line = banner(proc)
-        assert line.endswith("(no authentication)\n") and url.startswith("http://127.0.0.1:")
+        assert line.endswith("(edits need the token in this URL)\n")
+        assert re.fullmatch(r"http://127\.0\.0\.1:\d+/\?token=[\w-]{32}", url), url
         with urllib.request.urlopen(url, timeout=10) as r:
             assert b"<title>geo-server HMI</title>" in r.read()
     finally:
@@ -534,8 +538,9 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     try:
-        url, _ = banner(proc)
-        assert url.startswith("http://127.0.0.1:"), (tmp_path / "err.txt").read_text()
+        page_url, _ = banner(proc)
+        assert page_url.startswith("http://127.0.0.1:"), (tmp_path / "err.txt").read_text()
+        url, _, token = page_url.partition("?token=")
         with urllib.request.urlopen(url + "api/fleet", timeout=10) as r:
             st = json.loads(r.read())
         assert st["count"] == 2 and [m["name"] for m in st["machines"]] == ["mill-a", "lathe-b"]
@@ -546,12 +551,17 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
         assert nope.value.read().decode() == (
             "no machine 'drill-c' in this fleet (machines: mill-a, lathe-b)"
         )
-        post = urllib.request.Request(url + "m/drill-c/api/write", b"{}", method="POST")
+        post = urllib.request.Request(
+            url + "m/drill-c/api/write",
+            b"{}",
+            {"Content-Type": "application/json", "X-Geo-Token": token},
+            method="POST",
+        )
         with pytest.raises(urllib.error.HTTPError) as nope:
             urllib.request.urlopen(post, timeout=10)
         assert nope.value.code == 404
 
-        pg.goto(url)
+        pg.goto(page_url)  # the token is kept for the machines' pages
         rows = pg.locator("#machines tbody tr")
         expect(rows).to_have_count(2, timeout=WAIT_MS)
         expect(rows.nth(1).locator("td").nth(5)).to_have_text("127.0.0.1.9.1")

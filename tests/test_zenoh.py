@@ -483,3 +483,69 @@ def test_read_only_interface_rejects_writes(loop_thread, service):
     finally:
         s.close()
         run_in(loop_thread, iface.close())
+
+
+# ---------------------------------------------------------------------------- put, delete
+
+
+def _until(predicate, timeout: float = TIMEOUT) -> None:
+    """Wait for something another session's put sets off (it has no reply to wait for)."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "the server never took the put"
+        time.sleep(0.005)
+
+
+def test_a_put_is_a_write_and_a_refused_one_is_reported(server, zs):
+    """A plain Zenoh `put` (what the REST and MQTT bridges send) writes the object of its
+    key like a get with payload; a refused put or a delete has no one to answer, so the
+    errors list says why, naming the key."""
+    svc = server.service
+    svc.write_name("SIM::set_position", 1, 1_000_000)  # X at 100 mm
+    svc.step(25)
+    zs.put("cnc/t/axis/1/tempc/coefficient", b"2000")
+    _until(lambda: server.iface.puts == 1)
+    svc.step(20)  # the ramp of temp_comp_n_cycles = 20
+    # 40 + 2000e-6·(1_000_000 − 100) = 2039.8 -> 2040 (000 p.15)
+    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
+    zs.put("cnc/t/ads/551/0x120300/0x10044", struct.pack("<i", 100))  # offset_0, raw
+    _until(lambda: server.iface.puts == 2)
+    svc.step(20)
+    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
+    # refused: out of range, read-only, a command, a delete — the value stays
+    zs.put("cnc/t/axis/1/tempc/coefficient", b"20000")
+    zs.put("cnc/t/axis/1/bc/actual_backlash", b"5")
+    zs.put("cnc/t/cmd/save", b"")
+    zs.delete("cnc/t/axis/1/tempc/coefficient")
+    _until(lambda: server.iface.refused_puts == 4)
+    svc.step(1)
+    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
+    messages = [e["message"] for e in svc.errors()[-4:]]
+    assert messages[0].startswith("zenoh put cnc/t/axis/1/tempc/coefficient: ")
+    assert messages[0].endswith("(ADS 0x706)")
+    assert messages[1].startswith("zenoh put cnc/t/axis/1/bc/actual_backlash: ")
+    assert messages[1].endswith("(ADS 0x704)")
+    assert "commands and NC text take a get with payload" in messages[2]
+    assert messages[3] == (
+        "zenoh delete cnc/t/axis/1/tempc/coefficient: an object cannot be deleted "
+        "(put a value to write it) (ADS 0x704)"
+    )
+
+
+def test_the_servers_own_publications_are_not_puts(server, zs):
+    """The server publishes values on the object keys; they never come back as writes
+    (its put subscriber takes remote samples only), and that subscriber of its own does
+    not count as a listener (the publish loop sleeps while no other session listens)."""
+    from geo_server.transports.zenoh.server import _matching
+
+    assert not _matching(server.iface._watch)
+    got = queue.Queue()
+    sub = zs.declare_subscriber("cnc/t/axis/1/tempc/coefficient", got.put)
+    try:
+        wait_until_routed(zs, "cnc/t/status")
+        server.service.step(3)
+        got.get(timeout=TIMEOUT)  # a publication came
+    finally:
+        sub.undeclare()
+    assert server.iface.puts == 0

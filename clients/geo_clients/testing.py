@@ -29,6 +29,8 @@ import asyncio
 import contextlib
 import itertools
 import math
+import shutil
+import tempfile
 import threading
 from collections.abc import Callable, Coroutine, Iterable, Iterator
 from pathlib import Path
@@ -101,6 +103,9 @@ class GeoTestServer:
     `machine_name`: the Zenoh key prefix `cnc/<machine_name>` (docs/design.md §7).
     `time_scale`: simulated seconds of the twin per cycle second (docs/twin.md; default:
     the twin file's), so a warm-up of hours takes a few thousand steps.
+    `record_dir`: the recordings folder of recordings asked for over an interface
+    (`cmd/record`, docs/recorder.md §7); None = a private temporary folder, removed by
+    `close` (`record()` records in memory and needs none).
     """
 
     def __init__(
@@ -114,6 +119,7 @@ class GeoTestServer:
         publish_period: float = 0.01,
         status_period: float = 0.1,
         time_scale: float | None = None,
+        record_dir: str | Path | None = None,
     ) -> None:
         self.startup = Path(startup) if startup else default_startup_list()
         self.cfg = load_machine(self.startup)
@@ -121,6 +127,9 @@ class GeoTestServer:
             self.cfg, cycle_s=cycle_ms / 1000.0, homed=homed, time_scale=time_scale
         )
         self.service = ObjectService(self.machine)
+        #: the private recordings folder `close` removes (only that one)
+        self._own_record_dir = None if record_dir else tempfile.mkdtemp(prefix="geo-rec-")
+        self.service.record_dir = Path(record_dir or self._own_record_dir or "")
         self.machine_name = machine_name
         self.timeout = timeout
         self.publish_period = publish_period
@@ -149,6 +158,9 @@ class GeoTestServer:
         self._closed = True
         for rec in self._recorders:
             rec.stop()
+        if self.service.recording is not None:  # one an interface started: not written
+            self.service.recording.abort()
+            self.service.recording = None
         for via, client in list(self._clients.items()):
             if via != "service":
                 with contextlib.suppress(Exception):
@@ -164,6 +176,8 @@ class GeoTestServer:
                 self._thread.join(5)
             self._loop.close()
             self._loop = None
+        if self._own_record_dir:
+            shutil.rmtree(self._own_record_dir, ignore_errors=True)
 
     def _run(self, coro: Coroutine[Any, Any, Any], timeout: float = 15.0) -> Any:
         if self._loop is None:

@@ -1214,6 +1214,13 @@ class Kernel:
         #: what besides the selection makes each column effective, as of the last step
         #: (homing, valid tables): the NC's 70435 check combines it with the selection
         self.preconditions = np.zeros((n, 7), dtype=bool)
+        #: the drives' enables (`SIM::drive_enable`): cross and plane compensation of an
+        #: axis are effective only with its drive enabled (000 §5.3 p.97 item 4)
+        self.drive_enabled = np.ones(n, dtype=bool)
+        self._drives_off = False
+        #: compensations whose configuration is valid, per axis (`Rows`; TEMP needs
+        #: none): with the axis list's selection, what `V.A.*_COMP_INIT` reports
+        self.configured = np.zeros((n, 7), dtype=bool)
         # scratch
         self._prev = np.zeros((n, 7))
         self._event = np.zeros((n, 7), dtype=bool)
@@ -1255,6 +1262,7 @@ class Kernel:
             return bool(modulo[m]), float(period[m])
 
         rows = Rows.of(axes, slot)
+        self._configured(axes, rows)
         self._bt.load(axes, modulo, period)
         self._eff = EffectiveTables.build(axes, rows, slot)
         self._vec = vec = TargetVector.build(rows)
@@ -1295,7 +1303,29 @@ class Kernel:
         )
         self._lsec = LsecTables.build(axes, rows.lsec, src, modulo, period, lead)
 
+    def _configured(self, axes: list[AxisConfig], rows: Rows) -> None:
+        c = self.configured
+        c.fill(False)
+        c[:, TEMP] = True
+        for i, ax in enumerate(axes):
+            c[i, BC] = ax.params.anwahl_losekomp != 0 and ax.params.lose != 0
+        for col, slots in (
+            (CROSS, rows.cross),
+            (PLANE, rows.plane),
+            (LEAD, rows.lsec),
+            (FRICT, rows.frict),
+            (CROSSTALK, rows.lin + rows.tri + rows.old),
+        ):
+            c[slots, col] = True
+
     # ------------------------------------------------------------------ interface
+
+    def set_drive_enabled(self, slot: int, on: bool) -> None:
+        """`SIM::drive_enable`: a precondition of cross and plane compensation (000 §5.3
+        p.97 item 4), taken into the effective flags at the next step (a change is a
+        step event, like homing)."""
+        self.drive_enabled[slot] = bool(on)
+        self._drives_off = not bool(self.drive_enabled.all())
 
     def slot_of(self, axis_number: int) -> int:
         return self._slot[int(axis_number)]
@@ -1429,6 +1459,9 @@ class Kernel:
         ne = et.ne
         et.homed.take(et.h, out=et.hb)
         np.logical_and(et.hb0, et.hb1, ne)
+        if self._drives_off:  # cross and plane need the drive enabled (000 p.97 item 4)
+            for col in (CROSS, PLANE):
+                np.logical_and(ne[:, col], self.drive_enabled, out=ne[:, col])
         copyto(self.preconditions, ne)
         np.logical_and(ne, self.selected, ne)
         np.not_equal(ne, eff, ev)

@@ -183,6 +183,8 @@ class ReferenceKernel:
         self.held = np.zeros((n, 7), dtype=bool)
         #: what besides the selection makes each column effective, as of the last step
         self.preconditions = np.zeros((n, 7), dtype=bool)
+        #: the drives' enables: a precondition of cross and plane (000 §5.3 p.97 item 4)
+        self.drive_enabled = np.ones(n, dtype=bool)
         self._tempc = [[float(getattr(ax.p, a)) for a in TEMPC_ATTRS] for ax in self._axes]
         self._path = [math.inf] * n  # path travelled since the last reversal (friction)
         self._prev_pos: list[float] | None = None
@@ -203,6 +205,10 @@ class ReferenceKernel:
     def set_selected(self, slot: int, kind: CompKind, on: bool) -> None:
         """COMP ON/OFF or a `TEMPC::activated` write (000 §5.1, §3.2)."""
         self.selected[slot, COLUMN[kind]] = bool(on)
+
+    def set_drive_enabled(self, slot: int, on: bool) -> None:
+        """`SIM::drive_enable` (000 §5.3 p.97 item 4: cross and plane need it)."""
+        self.drive_enabled[slot] = bool(on)
 
     def hold(self, slot: int, kinds: CompKind) -> None:
         """`COMP … NO_MOVE` (000 §5.1 p.94): the offset of the switch is only executed at
@@ -300,9 +306,11 @@ class ReferenceKernel:
         # temperature: homed (000 §3.2 p.17, P-AXIS-00482)
         pre[TEMP] = hom[i]
         # cross: table valid and master referenced (000 §4.2 p.29)
-        pre[CROSS] = ax.cross_ok and hom[ax.cross_master]
-        # plane: both masters referenced (000 §5.3 p.97 item 3)
-        pre[PLANE] = ax.plane_ok and hom[ax.plane_m1] and hom[ax.plane_m2]
+        # and the axis' drive enabled (000 §5.3 p.97 item 4)
+        drive = bool(self.drive_enabled[i])
+        pre[CROSS] = ax.cross_ok and hom[ax.cross_master] and drive
+        # plane: both masters referenced (000 §5.3 p.97 item 3), the drive enabled (item 4)
+        pre[PLANE] = ax.plane_ok and hom[ax.plane_m1] and hom[ax.plane_m2] and drive
         # LSEC: axis referenced (000 §5.3 p.97 item 2)
         pre[LEAD] = ax.lsec_ok and hom[i]
         # friction: P-AXIS-00522 and mode 3, no homing (000 §4.5 p.77)

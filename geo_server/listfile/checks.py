@@ -73,6 +73,15 @@ CHECKS: tuple[Check, ...] = (
     ),
     Check("list.duplicate", None, 0, "entry given twice: the last one counts", _LIST, False),
     Check(
+        "list.length",
+        None,
+        0,
+        "a text longer than its documented maximum: `kopf.log_achs_name` of a compensation "
+        "value list has at most 16 characters (P-COMP-00002); the value is kept",
+        "002/003 §2.2 (no ID)",
+        False,
+    ),
+    Check(
         "list.ignored",
         None,
         0,
@@ -174,8 +183,9 @@ CHECKS: tuple[Check, ...] = (
         "plane.axis",
         _PL,
         70183,
-        "a master axis is not an axis of the machine, is the slave, or both masters are "
-        "the same axis; or `kopf.achs_nr` names no axis / disagrees with the start-up list",
+        "a master axis is not an axis of the machine, or both masters are the same axis "
+        "(one of them may be the slave itself, 001 §4.4); or `kopf.achs_nr` names no axis "
+        "/ disagrees with the start-up list",
         _M000_PL,
     ),
     Check(

@@ -186,8 +186,9 @@ def build_plane(values: Values, ctx: Ctx) -> PlaneComp | None:
     if grid not in ("QUADRATIC", "RECTANGULAR"):
         b.fail("plane.range", f"grid {grid!r} is not QUADRATIC or RECTANGULAR", b.entry("grid"))
     i1, i2 = _plane_intervals(b, grid)
-    m1 = b.axis_ref("master1_ax_nr", "plane.missing", "plane.axis")
-    m2 = b.axis_ref("master2_ax_nr", "plane.missing", "plane.axis")
+    # "One of the master axes can also be the slave axis itself" (001 §4.4; 000 §4.3 p.38)
+    m1 = b.axis_ref("master1_ax_nr", "plane.missing", "plane.axis", slave_ok=True)
+    m2 = b.axis_ref("master2_ax_nr", "plane.missing", "plane.axis", slave_ok=True)
     if m1 and m1 == m2:
         b.fail("plane.axis", "both master axes are the same axis", b.entry("master2_ax_nr"))
     max_points = int(b.get("max_points") or 10201)

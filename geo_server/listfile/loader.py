@@ -16,6 +16,7 @@ Without any axis parameter list, every compensation list's axis gets default par
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path, PureWindowsPath
 
 from geo_server.errors import GeoError
@@ -45,13 +46,16 @@ class ListFileError(GeoError):
         super().__init__(f"{where}: {message}")
 
 
-def load_machine(startup: Path | str) -> MachineConfig:
+def load_machine(startup: Path | str, allow_dirs: Sequence[Path | str] = ()) -> MachineConfig:
     """Read the start-up list and every list it names; validate; never raise on content.
 
-    Raises `ListFileError` only if a list cannot be read, is not a list file, or no
-    axis is defined.
+    The volumetric compensation's files are read only from the start-up list's folder
+    and `allow_dirs` (`MachineConfig.file_roots`, docs/security.md). Raises
+    `ListFileError` only if a list cannot be read, is not a list file, or no axis is
+    defined.
     """
     startup = Path(startup)
+    extra = tuple(Path(d) for d in allow_dirs)
     diags: list[Diagnostic] = []
     rep = Reporter(diags)
     stup = _read(startup, ListKind.STUP, rep)
@@ -84,9 +88,14 @@ def load_machine(startup: Path | str) -> MachineConfig:
     # (imported here: geo_server.volcomp.config reads its lists with this package)
     from geo_server.volcomp.config import load_volumetric
 
-    volumetric = load_volumetric(stup, startup.parent, axes, rep)
+    volumetric = load_volumetric(stup, startup.parent, axes, rep, (startup.parent, *extra))
     return MachineConfig(
-        startup_path=startup, axes=configs, diagnostics=diags, twin=twin, volumetric=volumetric
+        startup_path=startup,
+        axes=configs,
+        diagnostics=diags,
+        twin=twin,
+        volumetric=volumetric,
+        allow_dirs=extra,
     )
 
 

@@ -51,6 +51,7 @@ class Spec:
     `lo`/`hi` are the inclusive documented bounds (None: the data type's bounds).
     `canonical` names the entry an alias stands for (e.g. the mode-3 crosstalk example's
     `acceleration_pos` = `acceleration`); `alias_warning` makes the alias warn.
+    `max_len` is the documented maximum length of a STRING (a longer one warns, kept).
     """
 
     name: str
@@ -62,6 +63,7 @@ class Spec:
     hi: float | None = None
     canonical: str = ""
     alias_warning: bool = False
+    max_len: int | None = None
 
     @property
     def key(self) -> str:
@@ -122,7 +124,8 @@ _SPECS: list[Spec] = [
     # ---- compensation value list [COMP]: header (002 §2)
     Spec("kopf.achs_nr", "UNS16", _C, "P-COMP-00001", lo=1),
     Spec("kopf.log_achs_nr", "UNS16", _C, "P-COMP-00001", None, 1, None, "kopf.achs_nr", True),
-    Spec("kopf.log_achs_name", "STRING", _C, "P-COMP-00002"),
+    # "Maximum 16 characters" (002/003 §2.2)
+    Spec("kopf.log_achs_name", "STRING", _C, "P-COMP-00002", max_len=16),
     # cross compensation (002 §3.1, 000 §4.2)
     Spec("kw.crosscomp.max_points", "UNS32", _C, "P-COMP-00060", _CR),
     Spec("kw.crosscomp.unit", "BOOLEAN", _C, "P-COMP-00003", _CR),

@@ -24,20 +24,20 @@ Rules (each cites where it comes from):
   `NotAListFileError`, never guessed (a guess would load a machine with every
   parameter defaulted);
 * only regular files of at most `MAX_LIST_BYTES` are read: a FIFO, a device, a socket
-  or a folder is refused before it is opened (reading one would block or never end).
+  or a folder is refused before it is opened (reading one would block or never end),
+  through `geo_server.safefile.read_regular`, like every file read on request.
 """
 
 from __future__ import annotations
 
-import os
 import re
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from geo_server.errors import GeoError
 from geo_server.listfile.schema import value_class
 from geo_server.model import Diagnostic
+from geo_server.safefile import FileRefused, read_regular
 
 #: Largest list file read, in bytes. The largest table of the manuals (plane
 #: compensation, 10201 points) takes well under 1 MiB; the bound keeps a device or a
@@ -58,13 +58,6 @@ _BREAK = re.compile(r"\r\n|\r|\n")
 _CONTROL = re.compile("[\x00-\x08\x0e-\x19\x1b-\x1f\x7f]")
 _UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
 _SAVE_AS_TEXT = "save it as ASCII/UTF-8"
-_FILE_TYPES = (
-    (stat.S_ISFIFO, "a FIFO"),
-    (stat.S_ISDIR, "a directory"),
-    (stat.S_ISCHR, "a character device"),
-    (stat.S_ISBLK, "a block device"),
-    (stat.S_ISSOCK, "a socket"),
-)
 
 
 class NotAListFileError(GeoError, OSError):
@@ -114,44 +107,26 @@ class ParsedList:
     end_line: int = 0  # 1-based line of `End`/`Ende`, 0 if none
 
 
-def read_text(path: Path | str) -> tuple[str, str]:
+def read_text(path: Path | str, limit: int | None = None) -> tuple[str, str]:
     """Decode a list file: UTF-8 (BOM kept as utf-8-sig), else CP1252.
 
-    Raises `NotAListFileError` for anything that is not a regular text file (see the
-    module docstring), other OSErrors if the file cannot be read.
+    Raises `NotAListFileError` for anything that is not a regular text file of at most
+    `limit` bytes (default `MAX_LIST_BYTES`; see the module docstring), other OSErrors
+    if the file cannot be read.
     """
-    return decode_list(read_bytes(path), path)
+    return decode_list(read_bytes(path, limit), path)
 
 
-def read_bytes(path: Path | str) -> bytes:
-    """The bytes of a regular file of at most `MAX_LIST_BYTES`.
-
-    The file type is checked before the file is opened (opening a FIFO blocks until a
-    writer comes) and again on the open file, in case the name was swapped in between.
-    """
-    _require_regular(path, os.stat(path))
-    flags = os.O_RDONLY
-    for name in ("O_NONBLOCK", "O_NOCTTY", "O_BINARY"):
-        flags |= getattr(os, name, 0)
-    with open(os.open(path, flags), "rb") as fh:
-        _require_regular(path, os.fstat(fh.fileno()))
-        data = fh.read(MAX_LIST_BYTES + 1)
-    if len(data) > MAX_LIST_BYTES:
-        raise NotAListFileError(path, _too_large())
-    return data
-
-
-def _require_regular(path: Path | str, st: os.stat_result) -> None:
-    if not stat.S_ISREG(st.st_mode):
-        kind = next((k for test, k in _FILE_TYPES if test(st.st_mode)), "a special file")
-        raise NotAListFileError(path, f"is {kind}, not a regular file")
-    if st.st_size > MAX_LIST_BYTES:
-        raise NotAListFileError(path, _too_large())
-
-
-def _too_large() -> str:
-    mib = f" ({MAX_LIST_BYTES // 2**20} MiB)" if MAX_LIST_BYTES % 2**20 == 0 else ""
-    return f"not a list file: larger than {MAX_LIST_BYTES} bytes{mib}"
+def read_bytes(path: Path | str, limit: int | None = None) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes (default `MAX_LIST_BYTES`),
+    read with `geo_server.safefile.read_regular`: never blocking on a FIFO, never
+    opening a device, never reading past the limit."""
+    bound = MAX_LIST_BYTES if limit is None else limit
+    try:
+        return read_regular(path, bound)
+    except FileRefused as exc:
+        reason = f"not a list file: {exc.reason}" if exc.kind == "too_large" else exc.reason
+        raise NotAListFileError(path, reason) from None
 
 
 def decode_list(data: bytes, path: Path | str = "") -> tuple[str, str]:
@@ -232,13 +207,14 @@ def parse_text(text: str, file: str = "") -> ParsedList:
     return result
 
 
-def parse_list(path: Path | str) -> ParsedList:
-    """Read and tokenize one list file.
+def parse_list(path: Path | str, limit: int | None = None) -> ParsedList:
+    """Read and tokenize one list file of at most `limit` bytes (default
+    `MAX_LIST_BYTES`).
 
     OSError if it cannot be read; `NotAListFileError` (an OSError) if it is no regular
     text file.
     """
-    text, encoding = read_text(path)
+    text, encoding = read_text(path, limit)
     parsed = parse_text(text, str(path))
     parsed.encoding = encoding
     return parsed

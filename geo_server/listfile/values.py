@@ -158,6 +158,12 @@ def _store(values: Values, spec: Spec, entry: Entry, rep: Reporter) -> None:
     except ValueError as exc:
         rep.at("list.defective", f"defective value, default used: {exc}", entry)
         return
+    if spec.max_len is not None and len(str(value)) > spec.max_len:
+        rep.at(
+            "list.length",
+            f"{len(str(value))} characters, at most {spec.max_len} ({spec.pid}): kept as given",
+            entry,
+        )
     problem = out_of_range(spec, value)
     if problem and spec.comp is None:
         rep.at("list.defective", f"{problem}: default used", entry)

@@ -104,23 +104,50 @@ def temp_prefix(path: Path) -> str:
     return f".{path.name}."
 
 
+class AtomicFile:
+    """A file written under a temporary name in `path`'s folder (`.<name>.<8>.tmp`) and
+    put in place by `commit` (flush, fsync, `os.replace`, fsync of the folder), so a
+    crash at any moment leaves the old `path` or the whole new one. `fh` may be written
+    for as long as the caller likes (a recording streams into it, docs/recorder.md §3);
+    `abort` removes the temporary file. `path` itself is never opened: a link or another
+    name of the old file is not written through."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=path.parent)
+        self.tmp = Path(tmp)
+        self.fh = os.fdopen(fd, "wb")
+
+    def commit(self) -> None:
+        try:
+            self.fh.flush()
+            os.fsync(self.fh.fileno())
+            self.fh.close()
+            with contextlib.suppress(OSError):
+                os.chmod(self.tmp, self.path.stat().st_mode & 0o7777)
+            os.replace(self.tmp, self.path)
+        except BaseException:
+            self.abort()
+            raise
+        _fsync_dir(self.path.parent)
+
+    def abort(self) -> None:
+        # best effort: the error that made us abort is the one to report
+        with contextlib.suppress(Exception):
+            self.fh.close()
+        with contextlib.suppress(OSError):
+            os.unlink(self.tmp)
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write `data` to `path` via a temporary file + fsync + rename + directory fsync."""
-    folder = path.parent
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=TEMP_SUFFIX, dir=folder)
+    f = AtomicFile(path)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        with contextlib.suppress(OSError):
-            os.chmod(tmp, path.stat().st_mode & 0o7777)
-        os.replace(tmp, path)
+        f.fh.write(data)
     except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        f.abort()
         raise
-    _fsync_dir(folder)
+    f.commit()
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -48,7 +48,7 @@ from geo_server.machine.port import (
     listen,
     resolved,
 )
-from geo_server.model import SELECTED_OBJECTS, CompKind, Diagnostic, MachineConfig
+from geo_server.model import SELECTED_OBJECTS, AxisParams, CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
@@ -162,6 +162,9 @@ class Machine:
         #: what the drives get: command + all compensations (SIM::output_position, a
         #: column of the snapshot buffer, computed once per cycle before the twin)
         self._output = self._mbuf[:, _MBUF["output"]]
+        #: the drives' actual positions (dig_act_pos, 000 p.19; SIM::drive_actual_position):
+        #: an enabled drive follows its command exactly, a disabled one stays where it is
+        self._drive_act = np.zeros(n)
         self._lose = self._mbuf[:, _MBUF["lose"]]
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
@@ -175,6 +178,7 @@ class Machine:
             self._record(d)
         self._layout_sources()
         np.add(self.motion.pos, self.kernel.total_offset, out=self._output)
+        np.copyto(self._drive_act, self._output)
         self.snapshot: Snapshot = self._build_snapshot()
         self.snapshot_time = monotonic()
         #: when the cycle last advanced (computed, skipped or published: the stall watch)
@@ -210,6 +214,7 @@ class Machine:
                 np.add(self.motion.pos, k.total_offset, out=self._output)
                 if self.volc.states:
                     self._volumetric()
+                np.copyto(self._drive_act, self._output, where=k.drive_enabled)
                 self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
                 self.twin.step(
@@ -279,6 +284,7 @@ class Machine:
             np.add(kb.pos, kb.total, out=out)
             self.twin.step_steady(out, kb.pos, kb.vel, self.spindle_on)
             np.copyto(self._output, out[-1])
+            np.copyto(self._drive_act, self._output, where=k.drive_enabled)
             if player is not None and player.running:
                 player.skip(n)
             self.cycle += n
@@ -614,7 +620,8 @@ class Machine:
         self.events.append(ev)
         if d.error_id:
             self.last_error_id = d.error_id
-        self.last_error = d.describe()
+        if d.severity != "message":  # a #MSG is no error (SIM::last_error)
+            self.last_error = d.describe()
         for listener in self.event_listeners:
             listener(ev)
         return ev
@@ -648,6 +655,11 @@ class Machine:
                 axis=axis,
             )
         )
+
+    def message(self, text: str, line: int) -> None:
+        """`#MSG ["text"]` (000 p.96): an event of severity "message" with the program
+        line, in the error list and on every interface that hands out events."""
+        self._record(Diagnostic("message", text, file="<nc>", line=line))
 
     # ------------------------------------------------------------------ object writes
 
@@ -909,18 +921,45 @@ class Machine:
         """`prog_movement_requires_compensations` ∩ compensations selected in the axis
         list: errors only for compensations also enabled there (000 §5.3, p.97)."""
         p = self.cfg.axes[self.axes[slot]].params
-        listed = _mask(
-            kind
-            for kind, on in (
-                (CompKind.BACKLASH, p.anwahl_losekomp != 0),
-                (CompKind.LEAD, p.ssfk),
-                (CompKind.TEMP, p.temp_comp),
-                (CompKind.CROSS, p.crosscomp),
-                (CompKind.PLANE, p.crosscomp2),
-            )
-            if on
+        monitored = ~(CompKind.FRICT | CompKind.CROSSTALK)  # no bit in 000 p.98
+        return p.prog_movement_requires_compensations & _listed(p) & monitored
+
+    def initialised(self, slot: int) -> CompKind:
+        """`V.A.<name>_COMP_INIT` (000 §5.2 p.95): enabled in the axis list and validly
+        configured (a valid table whose masters are axes of the machine), whether or not
+        it is selected (manual activation) or effective yet."""
+        p = self.cfg.axes[self.axes[slot]].params
+        configured = _mask(k for i, k in enumerate(COMP_ORDER) if self.kernel.configured[slot, i])
+        return _listed(p) & configured
+
+    def current(self, slot: int, kind: CompKind) -> float:
+        """`V.A.<name>_COMP_CURR` (000 §5.2 p.96): the output in mm (° on rotary axes);
+        friction, which has no position offset here, gives its additive current."""
+        value = float(self.kernel.actual[slot, COLUMN[kind]])
+        return value if kind == CompKind.FRICT else value / UNITS_PER_MM
+
+    def set_drive_enable(self, slot: int, on: bool) -> None:
+        """`SIM::drive_enable`: without it the axis' cross and plane compensation are not
+        effective (000 §5.3 p.97 item 4) and the drive holds its actual position."""
+        self.kernel.set_drive_enabled(slot, on)
+
+
+def _listed(p: AxisParams) -> CompKind:
+    """The compensations the axis parameter list enables (000 §5.3 p.97: "enabled in the
+    axis parameter list")."""
+    return _mask(
+        kind
+        for kind, on in (
+            (CompKind.BACKLASH, p.anwahl_losekomp != 0),
+            (CompKind.LEAD, p.ssfk),
+            (CompKind.TEMP, p.temp_comp),
+            (CompKind.CROSS, p.crosscomp),
+            (CompKind.PLANE, p.crosscomp2),
+            (CompKind.FRICT, p.frict_comp),
+            (CompKind.CROSSTALK, p.crosstalk),
         )
-        return p.prog_movement_requires_compensations & listed
+        if on
+    )
 
 
 def _mask(kinds: Iterable[CompKind]) -> CompKind:
@@ -981,6 +1020,8 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "SIM::acceleration": "acceleration",
     "SIM::homed": lambda m: m.motion.homed,
     "SIM::output_position": "output",
+    "SIM::drive_actual_position": lambda m: m._drive_act,
+    "SIM::drive_enable": lambda m: m.kernel.drive_enabled,
     "SIM::total_offset": lambda m: m.kernel.total_offset,
     "SIM::feed": "feed",
     "FRICT::additive_current": lambda m: m.kernel.friction_current,
@@ -1050,6 +1091,7 @@ _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     **{o.name: _set_tempc(o.key_field) for o in load_dictionary().tempc_parameters()},
     "SIM::target_position": lambda m, s, v: _move(m, s, float(v)),
     "SIM::homed": _set_homed,
+    "SIM::drive_enable": lambda m, s, v: m.set_drive_enable(s, bool(v)),
     "SIM::feed": lambda m, s, v: m.motion.feed.__setitem__(
         s, min(float(v) * UNITS_PER_UM, m.cfg.axes[m.axes[s]].params.v_max)
     ),

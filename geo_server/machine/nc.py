@@ -22,6 +22,18 @@ Supported subset (docs/design.md §5; TF5200 axis compensation manual, 000):
 * `$GOTO N<n>` and `$GOTO [N<n>]`: jump to the block labelled `N<n>:`, else to the first
   block numbered `N<n>` (the temperature program of 000 p.24 numbers three blocks N10).
 * `M30` (and `M02`) program end.
+* `$IF <condition>` … `$ELSEIF <condition>` … `$ELSE` … `$ENDIF` (nested), each alone in
+  its block, and `#MSG ["text"]` (000 §5.2 p.96, 001 §5.2): a condition compares
+  operands with `==`, `!=`, `<`, `<=`, `>`, `>=` (or is one operand, true when not 0),
+  joined by `AND`/`OR` (AND binds first); operands are numbers, `TRUE`/`FALSE` and the
+  V.A. variables of 000 p.95-96, `V.A.<name>_COMP_INIT|ACTIVE|CURR.<axis>` or `[<index>]`
+  (the axis' index in the channel, from 0). INIT: the compensation is enabled in the axis
+  list and its configuration is valid (`MachinePort.initialised`); ACTIVE: it is
+  effective (`MachinePort.effective`, the state the 70435 monitoring checks); CURR: its
+  present output in mm (or °). Blanks inside the name (`V. A. CROSS_COMP_INIT. X`, as
+  the English edition extracts) are accepted. A `#MSG` is reported with its line
+  (`MachinePort.message`); at most one per cycle. A block of only `...` (the manuals'
+  elision, `N150 ...` on p.96) is skipped with a warning.
 * Axis exchange, alone in its block: `#PUT AX [X, Y]`, `#PUT AX ALL`, `#AX RELEASE […]`
   release axes from the channel (their manual-activation compensations are deselected,
   000 §5.1); `#CALL AX [X, 1, 0]` brings an axis back. Programming a released axis is an
@@ -163,6 +175,20 @@ class MachinePort(Protocol):
         """Log an NC runtime error (the player stops after reporting)."""
         ...
 
+    def initialised(self, slot: int) -> CompKind:
+        """`V.A.<name>_COMP_INIT` (000 p.95): compensations enabled in the axis list whose
+        configuration is valid (they can become effective)."""
+        ...
+
+    def current(self, slot: int, kind: CompKind) -> float:
+        """`V.A.<name>_COMP_CURR` (000 p.96): the compensation's present output in mm
+        (° on rotary axes)."""
+        ...
+
+    def message(self, text: str, line: int) -> None:
+        """`#MSG ["text"]` (000 p.96): hand the text to every interface with its line."""
+        ...
+
 
 # --------------------------------------------------------------------------- program
 
@@ -191,6 +217,70 @@ class VolcompCommand:
     update: bool = False
 
 
+#: The V.A. variables of each compensation (000 §5.2 p.95-96): INIT for six of them,
+#: ACTIVE and CURR also for BACKLASH (001 §5.2 lists CROSS, PLANE, LEAD, TEMP only).
+VA_FIELDS: dict[str, frozenset[str]] = {
+    "INIT": frozenset({"CROSS", "PLANE", "LEAD", "TEMP", "FRICT", "CROSSTALK"}),
+    "ACTIVE": frozenset(KIND_WORDS),
+    "CURR": frozenset(KIND_WORDS),
+}
+
+
+@dataclass(frozen=True)
+class VaVariable:
+    """`V.A.<word>_COMP_<field>.<axis>` or `[<index>]` (000 p.95-96, 001 §5.2)."""
+
+    kind: CompKind
+    field: str  # INIT | ACTIVE | CURR
+    slot: int
+
+    def read(self, port: MachinePort) -> float:
+        """The variable's value now: 0/1 for INIT and ACTIVE, mm (°) for CURR."""
+        if self.field == "INIT":
+            return float(bool(port.initialised(self.slot) & self.kind))
+        if self.field == "ACTIVE":
+            return float(bool(port.effective(self.slot) & self.kind))
+        return float(port.current(self.slot, self.kind))
+
+
+Operand = VaVariable | float
+
+_COMPARE: dict[str, Callable[[float, float], bool]] = {
+    "==": lambda a, b: a == b,
+    "!=": lambda a, b: a != b,
+    "<": lambda a, b: a < b,
+    "<=": lambda a, b: a <= b,
+    ">": lambda a, b: a > b,
+    ">=": lambda a, b: a >= b,
+}
+
+
+@dataclass(frozen=True)
+class Condition:
+    """A `$IF` condition: comparisons (`left op right`) OR-ed over AND-ed groups."""
+
+    any_of: tuple[tuple[tuple[Operand, str, Operand], ...], ...]
+
+    def holds(self, port: MachinePort) -> bool:
+        def value(x: Operand) -> float:
+            return x.read(port) if isinstance(x, VaVariable) else x
+
+        return any(
+            all(_COMPARE[op](value(a), value(b)) for a, op, b in group) for group in self.any_of
+        )
+
+
+@dataclass
+class Branch:
+    """`$IF` / `$ELSEIF` / `$ELSE` / `$ENDIF`; `next` is the block index of the next branch of
+    the same `$IF` (where a false condition goes on), `end` that of its `$ENDIF`."""
+
+    kind: str
+    condition: Condition | None = None
+    next: int = -1
+    end: int = -1
+
+
 @dataclass
 class Block:
     """One NC block (a logical line after `\\` continuation)."""
@@ -212,6 +302,8 @@ class Block:
     release: tuple[int, ...] = ()  # `#PUT AX` / `#AX RELEASE`: slots leaving the channel
     call: tuple[int, ...] = ()  # `#CALL AX`: slots coming back
     volcomp: VolcompCommand | None = None  # `#VOLCOMP …` (004 p.21)
+    branch: Branch | None = None  # `$IF` / `$ELSEIF` / `$ELSE` / `$ENDIF`
+    message: str | None = None  # `#MSG ["text"]` (000 p.96)
 
 
 @dataclass
@@ -259,6 +351,7 @@ def parse_program(text: str, axis_names: Mapping[str, int], *, mdi: bool = False
         if block is not None:
             prog.blocks.append(block)
     _resolve_gotos(prog.blocks)
+    _resolve_branches(prog.blocks)
     _check_feed(prog.blocks)
     if not mdi and not any(b.end for b in prog.blocks):
         prog.warnings.append(_warning(0, "no M30: the end of the text ends the program"))
@@ -275,9 +368,15 @@ def _warning(line: int, message: str) -> Diagnostic:
 
 
 def _strip_comments(raw: str) -> str:
-    """Remove `;` comments and `( … )` comments (unclosed `(` runs to the line end)."""
-    out, depth = [], 0
+    """Remove `;` comments and `( … )` comments (unclosed `(` runs to the line end);
+    inside a `"…"` text (`#MSG`) neither starts a comment."""
+    out, depth, quoted = [], 0, False
     for ch in raw:
+        if depth == 0 and ch == '"':
+            quoted = not quoted
+        if quoted or (depth == 0 and ch == '"'):
+            out.append(ch)
+            continue
         if depth == 0 and ch == ";":
             break
         if ch == "(":
@@ -458,6 +557,9 @@ def _parse_block(
         return Block(line=line, text=body, number=number, label=bool(volcomp["colon"]), volcomp=cmd)
     if "#VOLCOMP" in body.upper().replace(" ", ""):
         raise NcError(line, "#VOLCOMP must stand alone in its block (004 p.21)")
+    special = _parse_control(line, body, names, warnings)
+    if special is not None:
+        return special
     exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
     if exchange is not None:
         return _parse_exchange(line, body, exchange, names, warnings)
@@ -478,6 +580,130 @@ def _parse_block(
             raise NcError(line, "$GOTO must stand alone in its block")
         b.goto_number = w.goto
     return b
+
+
+#: `$IF …`, `$ELSEIF …`, `$ELSE`, `$ENDIF`, alone in the block after an optional block number
+_BRANCH = re.compile(
+    r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?\$(?P<kind>IF|ELSEIF|ELSE|ENDIF)\b\s*(?P<rest>.*)"
+)
+#: `#MSG ["text"]` (000 p.96), alone in its block; the text keeps its case
+_MSG = re.compile(
+    r'(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*MSG\s*\[\s*"(?P<text>[^"]*)"\s*\]', re.IGNORECASE
+)
+#: `N150 ...`: the manuals' elision of the rest of a program (000 p.96)
+_ELISION = re.compile(r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?(?:\.\.\.+|…)")
+_CONDITION_TOKEN = re.compile(
+    r"""\s*(?:
+      (?P<va>V\s*\.\s*A\s*\.\s*(?P<word>[A-Z]+)_COMP_(?P<field>[A-Z]+)\s*
+          (?:\.\s*(?P<axis>[A-Z][A-Z0-9_]*)|\[\s*(?P<index>\d+)\s*\]))
+    | (?P<op>==|!=|<=|>=|<|>)
+    | (?P<logic>AND|OR)\b
+    | (?P<bool>TRUE|FALSE)\b
+    | (?P<number>[+-]?(?:\d+\.?\d*|\.\d+))
+    )""",
+    re.VERBOSE,
+)
+
+
+def _parse_control(
+    line: int, body: str, names: dict[str, int], warnings: list[Diagnostic]
+) -> Block | None:
+    """`$IF`/`$ELSEIF`/`$ELSE`/`$ENDIF`, `#MSG` and the elision `...` (000 p.96); None
+    for any other block."""
+    upper = body.upper()
+    m = _BRANCH.fullmatch(upper)
+    if m is not None:
+        kind, rest = m["kind"], m["rest"].strip()
+        b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None)
+        b.label = bool(m["colon"])
+        if kind in ("IF", "ELSEIF"):
+            if not rest:
+                raise NcError(line, f"${kind} needs a condition")
+            b.branch = Branch(kind, _parse_condition(line, rest, names))
+        elif rest:
+            raise NcError(line, f"${kind} must stand alone in its block, got {rest[:20]!r}")
+        else:
+            b.branch = Branch(kind)
+        return b
+    if re.search(r"\$(?:IF|ELSEIF|ELSE|ENDIF)\b", upper):
+        raise NcError(line, "$IF, $ELSEIF, $ELSE and $ENDIF begin their block")
+    m = _MSG.fullmatch(body)
+    if m is not None:
+        b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None)
+        b.label, b.message = bool(m["colon"]), m["text"]
+        return b
+    if re.search(r"#\s*MSG\b", upper):
+        raise NcError(line, '#MSG ["text"] must stand alone in its block (000 p.96)')
+    m = _ELISION.fullmatch(body.strip())
+    if m is not None:
+        warnings.append(_warning(line, "'...' (an elision in the manual's listing): skipped"))
+        return Block(line=line, text=body, number=int(m["n"]) if m["n"] else None)
+    return None
+
+
+def _parse_condition(line: int, text: str, names: dict[str, int]) -> Condition:
+    """`<operand> [<op> <operand>] {AND|OR …}` with the V.A. variables of 000 p.95-96."""
+    groups: list[list[tuple[Operand, str, Operand]]] = [[]]
+    pos, expect = 0, "operand"
+    left: Operand | None = None
+    right: Operand = 0.0
+    op: str | None = None
+
+    def close() -> None:
+        nonlocal left, op
+        if left is None or (op is not None and expect == "operand"):
+            raise NcError(line, f"$IF {text}: incomplete condition")
+        groups[-1].append((left, "!=", 0.0) if op is None else (left, op, right))
+        left, op = None, None
+
+    while pos < len(text):
+        m = _CONDITION_TOKEN.match(text, pos)
+        if m is None or m.end() == pos:
+            if not text[pos:].strip():
+                break
+            raise NcError(line, f"$IF: unexpected {text[pos:].strip()[:20]!r}")
+        pos = m.end()
+        if m["op"] or m["logic"]:
+            if expect != "operator" or (m["op"] and op is not None):
+                raise NcError(line, f"$IF {text}: unexpected {m['op'] or m['logic']!r}")
+            if m["op"]:
+                op, expect = m["op"], "operand"
+                continue
+            close()
+            if m["logic"] == "OR":
+                groups.append([])
+            expect = "operand"
+            continue
+        if expect != "operand":
+            raise NcError(line, f"$IF {text}: an operator (==, !=, <, >, AND, OR) is missing")
+        value = _operand(line, m, names)
+        if op is None:
+            left = value
+        else:
+            right = value
+        expect = "operator"
+    close()
+    return Condition(tuple(tuple(g) for g in groups))
+
+
+def _operand(line: int, m: re.Match[str], names: dict[str, int]) -> Operand:
+    if m["bool"]:
+        return 1.0 if m["bool"] == "TRUE" else 0.0
+    if m["number"] is not None:
+        return float(m["number"])
+    word, fld = m["word"], m["field"]
+    name = f"V.A.{word}_COMP_{fld}"
+    if fld not in VA_FIELDS:
+        raise NcError(line, f"{name}: the variables are _INIT, _ACTIVE and _CURR (000 p.95-96)")
+    if word not in VA_FIELDS[fld]:
+        known = " ".join(sorted(VA_FIELDS[fld]))
+        raise NcError(line, f"{name} does not exist (_{fld} is defined for {known}, 000 p.95-96)")
+    if m["axis"] is not None:
+        return VaVariable(KIND_WORDS[word], fld, _axis_slot(line, m["axis"], names))
+    index, count = int(m["index"]), len(set(names.values()))
+    if index >= count:
+        raise NcError(line, f"{name}[{index}]: the axis index is 0 … {count - 1}")
+    return VaVariable(KIND_WORDS[word], fld, index)
 
 
 def _parse_exchange(
@@ -632,6 +858,35 @@ def _resolve_gotos(blocks: list[Block]) -> None:
         b.goto = target
 
 
+def _resolve_branches(blocks: list[Block]) -> None:
+    """Pair every `$IF` with its `$ELSEIF`/`$ELSE`/`$ENDIF` (nested)."""
+    open_ifs: list[list[int]] = []
+    for i, b in enumerate(blocks):
+        br = b.branch
+        if br is None:
+            continue
+        if br.kind == "IF":
+            open_ifs.append([i])
+            continue
+        if not open_ifs:
+            raise NcError(b.line, f"${br.kind} without $IF")
+        members = open_ifs[-1]
+        last = blocks[members[-1]].branch
+        assert last is not None
+        if br.kind != "ENDIF" and last.kind == "ELSE":
+            raise NcError(b.line, f"${br.kind} after $ELSE (line {blocks[members[-1]].line})")
+        last.next = i
+        if br.kind != "ENDIF":
+            members.append(i)
+            continue
+        for j in open_ifs.pop():
+            member = blocks[j].branch
+            assert member is not None
+            member.end = i
+    if open_ifs:
+        raise NcError(blocks[open_ifs[-1][0]].line, "$IF without $ENDIF")
+
+
 def _check_feed(blocks: list[Block]) -> None:
     """G01 motion needs a feed programmed before it (in text order)."""
     motion, feed = 0, None
@@ -756,6 +1011,15 @@ class Player:
 
     def _execute(self, b: Block) -> None:
         """Run one block: modal words, G74, COMP, motion or dwell, then $GOTO/M30."""
+        if b.branch is not None:
+            self._branch(b.branch)
+            return
+        if b.message is not None:
+            self.port.message(b.message, b.line)
+            # the next block runs in the next cycle: a loop around a #MSG reports one
+            # message per cycle, not a thousand
+            self._wait = _Wait(until_cycle=self.cycle + 1)
+            return
         self._modal.update(b)
         if b.release or b.call:
             self._exchange(b)
@@ -788,6 +1052,26 @@ class Player:
         elif waits:
             wait.end = b.end
             self._wait = wait
+
+    def _branch(self, br: Branch) -> None:
+        """`$IF`: the first branch whose condition holds runs, else the `$ELSE` branch;
+        a `$ELSEIF`/`$ELSE` reached from the branch before it ends that branch. The
+        V.A. variables are read when the block is reached, i.e. after the blocks before
+        it have finished (000 p.95: reading them flushes the channel)."""
+        if br.kind in ("ELSEIF", "ELSE"):
+            self.index = br.end + 1
+            return
+        if br.kind == "ENDIF":
+            return
+        blocks = self.prog.blocks
+        current: Branch | None = br
+        while current is not None and current.kind in ("IF", "ELSEIF"):
+            assert current.condition is not None
+            if current.condition.holds(self.port):
+                return  # (self.index is already the block after the one that holds)
+            self.index = current.next + 1
+            current = blocks[current.next].branch
+        # an $ELSE or the $ENDIF: self.index is the block after it
 
     def _exchange(self, b: Block) -> None:
         """`#PUT AX` / `#CALL AX`: a released axis loses its manual-activation

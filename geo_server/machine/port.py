@@ -171,7 +171,35 @@ def resolved(result: Any = None, error: BaseException | None = None) -> Pending:
     return p
 
 
+#: Machine-wide objects whose value changes while a machine is quiescent (docs/design.md
+#: §13): the cycle counter, the overruns (an injected overrun slips the time line at rest)
+#: and the twin's clock and ambient temperature; and every object of the group below.
+_VARY_AT_REST = frozenset({"SIM::cycle_count", "SIM::overruns"})
+_VARY_AT_REST_GROUP = "TWIN::"
+
+
+def varies_at_rest(name: str) -> bool:
+    """Whether object `name` can change while the machine is quiescent (`Machine.skip`
+    advances only the counters and the twin). Every other object keeps the value of the
+    cycle the machine became quiescent in, so an on-change observer of it needs no
+    snapshot of a quiescent cycle (the ADS notifications, docs/design.md §13)."""
+    return name in _VARY_AT_REST or name.startswith(_VARY_AT_REST_GROUP)
+
+
 # ---------------------------------------------------------------------- protocols
+
+
+class CycleDemand(Protocol):
+    """An observer that needs the snapshots of chosen cycles (ADS notifications): the
+    exact engine publishes a cycle it computes or skips when `wants` says so, and wakes
+    for the next one `next_wanted` names. Both are called on the engine's thread (or a
+    request's catch-up) with the engine lock held, so they must be quick and lock-free."""
+
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        """Publish the snapshot of `cycle` (`quiescent`: the machine is at rest)."""
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        """The first cycle after `cycle` whose snapshot is wanted (None: none)."""
 
 
 class MachinePort(Protocol):

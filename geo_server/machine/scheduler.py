@@ -40,7 +40,7 @@ import numpy as np
 
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.machine import Machine
-from geo_server.machine.port import Operation, Pending
+from geo_server.machine.port import CycleDemand, Operation, Pending
 from geo_server.snapshot import filetime_now
 
 log = logging.getLogger(__name__)
@@ -197,6 +197,10 @@ class Scheduler:
         self._wake = threading.Event()
         self._every = 0  # observers that sample every cycle (`demand_every_cycle`)
         self._every_lock = threading.Lock()
+        #: observers of chosen cycles (`demand_cycles`); replaced, never mutated
+        self._demands: tuple[CycleDemand, ...] = ()
+        #: exact engine: snapshots published because a `CycleDemand` wanted them
+        self.demanded = 0
         self.computed = 0  # exact engine: cycles computed (the rest were skipped at rest)
         self.sync_stats = CycleStats(2000)  # exact engine: time of each catch-up (µs)
         self.wakes = 0
@@ -222,6 +226,8 @@ class Scheduler:
         self._overrun_cycles = 0
         self._overrun_every = 0
         self._on_overrun: Callable[[], bool] | None = None
+        #: set when overruns are cleared: a punctual wait for one ends at once
+        self._overrun_cut = threading.Event()
 
     @property
     def period_ns(self) -> int:
@@ -238,15 +244,49 @@ class Scheduler:
         TwinCAT task that exceeds its cycle. Both real-time engines slip their time line
         the same way, so every observer sees the same thing; stepped and free-running
         cycles have no time line and only count. `on_overrun` is called at each one
-        and ends them by returning False. `cycles` 0 ends them now."""
+        and ends them by returning False. `cycles` 0 ends them now — an overrun under way
+        included: the next cycle is due at once (docs/faults.md §2), not when the cleared
+        overrun would have ended."""
         with self._engine_lock:
             if cycles <= 0 or every <= 0:
                 self._next_overrun, self._on_overrun = _NEVER, None
+                self._overrun_cut.set()
+                if self.running_exact:
+                    # the time line slipped ahead of the machine: take back what is left
+                    self._give_back(self.machine.cycle - self.due())
             else:
+                self._overrun_cut.clear()
                 self._overrun_cycles, self._overrun_every = cycles, every
                 self._on_overrun = on_overrun
                 self._next_overrun = self.machine.cycle + every
         self._wake.set()
+
+    def _give_back(self, periods: int) -> None:
+        """An overrun cut short: `periods` of its slip were not lost after all."""
+        if periods <= 0:
+            return
+        self.t0 -= periods * self.period_ns
+        self.skipped -= periods
+        if self.mode == "realtime":
+            self.machine.epoch -= periods * self.machine.period_ticks
+
+    def _wait_overrun(self, deadline: int) -> int:
+        """Punctual engine: wait out an injected overrun until `deadline` (ns); cleared
+        meanwhile, it ends at once. The deadline of the next cycle."""
+        clock = self._clock
+        while not self._overrun_cut.is_set() and not self._stop.is_set():
+            delay = deadline - clock()
+            if delay <= 0:
+                return deadline
+            if self._sleep is time.sleep:
+                self._overrun_cut.wait(delay / 1e9)
+            else:  # a virtual clock (tests)
+                self._sleep(delay / 1e9)
+        now = clock()
+        if now < deadline:
+            self._give_back((deadline - now) // self.period_ns)
+            return now
+        return deadline
 
     def _overrun(self) -> int:
         """At the boundary after cycle `_next_overrun`: count the overrun and return the
@@ -310,6 +350,7 @@ class Scheduler:
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
         self._wake.set()
+        self._overrun_cut.set()  # a punctual engine waiting out an overrun stops too
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -419,6 +460,37 @@ class Scheduler:
 
         return release
 
+    def demand_cycles(self, demand: CycleDemand) -> Callable[[], None]:
+        """An observer needs the snapshots of the cycles `demand` wants (ADS
+        notifications, docs/design.md §13): until the returned function is called, the
+        exact engine publishes each such cycle it computes or skips — and only those, so
+        the cost follows what is sampled, not the cycle rate — and wakes for the next.
+        The other engines publish every cycle anyway."""
+        with self._every_lock:
+            self._demands = (*self._demands, demand)
+
+        def release() -> None:
+            with self._every_lock:
+                self._demands = tuple(d for d in self._demands if d is not demand)
+
+        self._wake.set()
+        return release
+
+    def _next_demanded(self, cycle: int, quiescent: bool) -> int | None:
+        """The first cycle after `cycle` a `CycleDemand` wants (None: none)."""
+        best: int | None = None
+        for d in self._demands:
+            c = d.next_wanted(cycle, quiescent)
+            if c is not None and (best is None or c < best):
+                best = c
+        return best
+
+    def _demanded(self, cycle: int, quiescent: bool) -> bool:
+        wanted = False
+        for d in self._demands:
+            wanted = d.wants(cycle, quiescent) or wanted  # each one counts its own
+        return wanted
+
     def advance(self, target: int, publish: bool = True) -> None:
         """Bring the machine to cycle `target` (call with the engine lock held): compute
         the cycles that do something, skip those of a quiescent machine, publish the
@@ -440,12 +512,21 @@ class Scheduler:
                 target -= slip  # the cycle due now, on the slipped time line
                 continue
             stop_at = min(target, self._next_overrun)
+            demands = self._demands
             if m.quiescent:
                 try:
                     if not every:
-                        m.skip(stop_at - m.cycle)
-                        if stop_at == target:
-                            break
+                        # skip to the next cycle an observer wants (if any before stop_at)
+                        nxt = self._next_demanded(m.cycle, True) if demands else None
+                        if nxt is None or nxt > stop_at:
+                            m.skip(stop_at - m.cycle)
+                            if stop_at == target:
+                                break
+                            continue
+                        m.skip(nxt - m.cycle)
+                        if self._demanded(nxt, True):
+                            m.publish()
+                            self.demanded += 1
                         continue
                     m.skip(1)
                     m.publish()
@@ -456,17 +537,29 @@ class Scheduler:
                 continue
             t0 = clock()
             before = m.cycle
-            if not every and stop_at - before >= 2 and self.before_cycle is None:
+            limit = stop_at
+            if demands and not every:
+                # a batch ends before the next cycle an observer wants published
+                nxt = self._next_demanded(before, False)
+                if nxt is not None and nxt <= stop_at:
+                    limit = nxt - 1
+            if not every and limit - before >= 2 and self.before_cycle is None:
                 # a steady stretch in one pass (docs/design.md §13.2), else single cycles
-                done = self._batch(stop_at - before)
+                done = self._batch(limit - before)
                 if done:
                     self.computed += done
                     rec(0.0, (clock() - t0) / 1000 / done, m.kernel_ns / 1000)
                     continue
             # only the last cycle of the batch is looked at (and every one while
-            # someone samples every cycle): the others need not build their snapshot
-            if not self._computed_cycle(bool(every) or (publish and m.cycle + 1 == target)):
+            # someone samples every cycle, and those an observer wants): the others
+            # need not build their snapshot
+            wanted = bool(demands) and not every and self._demanded(before + 1, False)
+            if not self._computed_cycle(
+                bool(every) or wanted or (publish and m.cycle + 1 == target)
+            ):
                 break
+            if wanted:
+                self.demanded += 1
         if publish:
             m.publish()
 
@@ -526,7 +619,14 @@ class Scheduler:
             return self.t0 + (m.cycle + (self.batch_observed if observed else self.batch)) * (
                 self.period_ns
             )
-        return now + int(self.idle_wake * 1e9)
+        idle = now + int(self.idle_wake * 1e9)
+        if self._demands:
+            # at rest, an observer of chosen cycles: wake for the next one it wants, at
+            # most every batch (the cycles of a batch are published together, in order)
+            nxt = self._next_demanded(m.cycle, True)
+            if nxt is not None:
+                return min(idle, self.t0 + max(nxt, m.cycle + self.batch) * self.period_ns)
+        return idle
 
     def _run_exact(self) -> None:
         clock = self._clock
@@ -627,7 +727,7 @@ class Scheduler:
                 # given up, which status reports as skipped_cycles)
                 deadline = now
             if self.machine.cycle >= self._next_overrun:
-                deadline += self._overrun() * period
+                deadline = self._wait_overrun(deadline + self._overrun() * period)
                 continue
             t0 = time.perf_counter_ns()
             self._guarded_cycle()
@@ -673,6 +773,7 @@ class Scheduler:
             "mode": self.mode,
             "engine": self.engine if self.mode == "realtime" else self.mode,
             "computed_cycles": self.computed,
+            "demanded_snapshots": self.demanded,
             "engine_wakes": self.wakes,
             **sync_summary(self.sync_stats),
             "overruns": m.overruns,

@@ -11,6 +11,7 @@ from typing import Any
 from geo_server.errors import AdsError
 from geo_server.recorder.compare import compare, parse_tolerances
 from geo_server.recorder.inputs import load_inputs
+from geo_server.recorder.paths import default_record_dir
 from geo_server.recorder.recorder import RecordSpec
 from geo_server.recorder.selection import SelectionError
 from geo_server.recorder.trace import TraceFileError, load_trace
@@ -72,17 +73,43 @@ def add_run_arguments(r: argparse.ArgumentParser) -> None:
         "--record-out",
         default="geo-trace.csv",
         metavar="FILE",
-        help="trace file (.csv or .parquet); the inputs go beside it as "
-        "FILE-stem.inputs.jsonl (default geo-trace.csv)",
+        help="trace file of --record (.csv or .parquet), where you say; the inputs go "
+        "beside it as FILE-stem.inputs.jsonl (default geo-trace.csv)",
+    )
+    g.add_argument(
+        "--record-dir",
+        metavar="DIR",
+        help="the only folder recordings asked for over an interface (Zenoh cmd/record) "
+        "are written to (default: recordings/ beside the start-up list; for the shipped "
+        "default machine ./recordings; a fleet: one subfolder per machine)",
     )
 
 
+def record_dir(
+    args: argparse.Namespace, machine: str = "", startup: Path | None = None
+) -> Path | None:
+    """The recordings folder of `--record-dir` (a fleet's machine: its subfolder, also
+    of the default folder beside `startup`); None: the service's default."""
+    if getattr(args, "record_dir", None):
+        base = Path(args.record_dir)
+    elif machine and startup is not None:
+        base = default_record_dir(startup)
+    else:
+        return None
+    return base / machine if machine else base
+
+
 def start_from_args(args: argparse.Namespace, service: Any) -> bool:
-    """`run --record`: start recording before the first cycle; False after saying why."""
+    """`run --record`: start recording before the first cycle; False after saying why.
+    Sets the recordings folder of `--record-dir` either way."""
+    service.record_dir = record_dir(args)
     if not getattr(args, "record", None):
         return True
     try:
-        st = service.start_recording(spec_from_args(args), args.record_out, args.machine)
+        # the local user's own file name: written where it says (docs/recorder.md §7)
+        st = service.start_recording(
+            spec_from_args(args), args.record_out, args.machine, local=True
+        )
     except (AdsError, ValueError) as exc:
         print(f"error: --record: {getattr(exc, 'message', exc)}", file=sys.stderr)
         return False

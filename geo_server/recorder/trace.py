@@ -4,13 +4,20 @@ metadata, or Parquet (pyarrow, the `parquet` extra) with the same metadata in it
 Columns: `cycle` (the GEO cycle the sample shows), `time_s` (cycle · cycle time), then
 one per recorded value, labelled `NAME@axis` (`NAME` for machine-wide objects), in the
 object's own unit (the value a read returns: increments, µm/m, …; booleans 0/1).
+
+Files are written by `TraceWriter`, piece by piece (a recording streams its rows while it
+records, docs/recorder.md §8), into a temporary file beside the target that replaces it
+atomically at the end (`listfile.writer.AtomicFile`, as `save` replaces a list): a crash
+leaves the old file or the whole new one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,9 +26,12 @@ import numpy as np
 
 from geo_server.dictionary import round_half_away
 from geo_server.errors import GeoError
+from geo_server.listfile.writer import AtomicFile
 
 MAGIC = "geo-server trace 1"
 FIXED = ("cycle", "time_s")
+#: Rows formatted at once when a whole trace is saved (bounds the text held in memory).
+SAVE_ROWS = 4096
 
 
 class TraceFileError(GeoError, ValueError):
@@ -76,36 +86,122 @@ class Trace:
     # ------------------------------------------------------------------ files
 
     def save(self, path: str | Path) -> Path:
-        """Write by suffix: `.parquet` (pyarrow) or anything else as CSV."""
+        """Write by suffix: `.parquet` (pyarrow) or anything else as CSV; atomically
+        (a temporary file beside `path` replaces it once complete)."""
         p = Path(path)
-        if p.suffix.lower() == ".parquet":
-            _write_parquet(self, p)
-        else:
-            p.write_text(self.to_csv(), encoding="utf-8")
+        w = TraceWriter(p, self.labels, self.types, self.units)
+        try:
+            for start in range(0, len(self), SAVE_ROWS):
+                w.write(self.data[start : start + SAVE_ROWS], self.meta)
+            w.commit(self.meta)
+        except BaseException:
+            w.abort()
+            raise
         return p
 
     def to_csv(self) -> str:
-        buf = io.StringIO()
-        buf.write(f"# {MAGIC}\n")
-        for key, value in {**self.meta, **self._columns_meta()}.items():
-            buf.write(f"# {key}: {value}\n")
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow([*FIXED, *self.labels])
-        for row in self.rows():
-            w.writerow([_cell(v) for v in row])
-        return buf.getvalue()
-
-    def _columns_meta(self) -> dict[str, str]:
-        return {
-            "types": json.dumps(self.types),
-            "units": json.dumps(self.units, ensure_ascii=False),
-        }
+        return csv_header(self.labels, self.types, self.units, self.meta) + format_rows(
+            self.data, self.types
+        )
 
 
-def _cell(v: Any) -> str:
-    if isinstance(v, bool):
-        return "1" if v else "0"
-    return repr(v) if isinstance(v, float) else str(v)
+def _columns_meta(types: list[str], units: list[str]) -> dict[str, str]:
+    return {"types": json.dumps(types), "units": json.dumps(units, ensure_ascii=False)}
+
+
+def csv_header(labels: list[str], types: list[str], units: list[str], meta: dict[str, str]) -> str:
+    """The `#` lines and the header row of a CSV trace."""
+    buf = io.StringIO()
+    buf.write(f"# {MAGIC}\n")
+    for key, value in {**meta, **_columns_meta(types, units)}.items():
+        buf.write(f"# {key}: {value}\n")
+    csv.writer(buf, lineterminator="\n").writerow([*FIXED, *labels])
+    return buf.getvalue()
+
+
+def format_rows(data: np.ndarray, types: list[str]) -> str:
+    """CSV lines of `data` (cycle, time_s, values), each value as `Trace.value` gives it
+    (booleans 0/1, integers rounded half away from zero, REAL64 in `repr`), formatted
+    column by column: numbers never need quoting."""
+    if not len(data):
+        return ""
+    cols: list[list[str]] = [
+        [str(c) for c in data[:, 0].astype(np.int64).tolist()],
+        [repr(t) for t in data[:, 1].tolist()],
+    ]
+    cols += [_format_column(data[:, 2 + i], t) for i, t in enumerate(types)]
+    return "".join(",".join(row) + "\n" for row in zip(*cols, strict=True))
+
+
+def _format_column(v: np.ndarray, type_name: str) -> list[str]:
+    if type_name == "BOOLEAN":
+        return ["1" if x else "0" for x in (v != 0).tolist()]
+    if type_name == "REAL64":
+        return [repr(x) for x in v.tolist()]
+    if not np.isfinite(v).all():  # (not from a recording: a hand-made Trace)
+        return [str(round_half_away(x)) if math.isfinite(x) else repr(x) for x in v.tolist()]
+    rounded = np.copysign(np.floor(np.abs(v) + 0.5), v).astype(np.int64)
+    return [str(x) for x in rounded.tolist()]
+
+
+class TraceWriter:
+    """A trace file written in pieces (docs/recorder.md §3, §8): `write` appends rows
+    (CSV lines, or a Parquet row group each), `commit` puts the file in place atomically,
+    `abort` removes it. The header (the metadata) is written with the first rows, so
+    what is known only when the trigger fires is in it. `path` must be a writable place
+    the caller has checked (a recording: `recorder.paths`)."""
+
+    def __init__(self, path: Path, labels: list[str], types: list[str], units: list[str]) -> None:
+        self.path = path
+        self.labels, self.types, self.units = labels, types, units
+        self.rows = 0
+        self._parquet = path.suffix.lower() == ".parquet"
+        self._pq: Any = None
+        self._started = False
+        if self._parquet:
+            _pyarrow()  # refused before a file is made when pyarrow is missing
+        self._file = AtomicFile(path)
+
+    def _start(self, meta: dict[str, str]) -> None:
+        self._started = True
+        if not self._parquet:
+            self._file.fh.write(csv_header(self.labels, self.types, self.units, meta).encode())
+            return
+        pa, pq = _pyarrow()
+        full = {"magic": MAGIC, **meta, **_columns_meta(self.types, self.units)}
+        fields = [pa.field("cycle", pa.int64()), pa.field("time_s", pa.float64())]
+        fields += [pa.field(label, pa.float64()) for label in self.labels]
+        schema = pa.schema(fields, metadata={k.encode(): v.encode() for k, v in full.items()})
+        self._pq = pq.ParquetWriter(self._file.fh, schema)
+
+    def write(self, data: np.ndarray, meta: dict[str, str]) -> None:
+        """Append `data` (typed rows: cycle, time_s, values); `meta` is used by the first
+        call only."""
+        if not self._started:
+            self._start(meta)
+        if not len(data):
+            return
+        if self._parquet:
+            pa, _pq = _pyarrow()
+            arrays = [pa.array(data[:, 0].astype(np.int64)), pa.array(data[:, 1])]
+            arrays += [pa.array(data[:, 2 + i]) for i in range(len(self.labels))]
+            self._pq.write_table(pa.Table.from_arrays(arrays, schema=self._pq.schema))
+        else:
+            self._file.fh.write(format_rows(data, self.types).encode())
+        self.rows += len(data)
+
+    def commit(self, meta: dict[str, str]) -> None:
+        if not self._started:
+            self._start(meta)
+        if self._pq is not None:
+            self._pq.close()
+        self._file.commit()
+
+    def abort(self) -> None:
+        if self._pq is not None:
+            with contextlib.suppress(Exception):
+                self._pq.close()
+        self._file.abort()
 
 
 def load_trace(path: str | Path) -> Trace:
@@ -186,16 +282,6 @@ def _pyarrow() -> Any:
             "Parquet needs pyarrow: pip install 'geo-server[parquet]' (or save as .csv)"
         ) from None
     return pa, pq
-
-
-def _write_parquet(trace: Trace, path: Path) -> None:
-    pa, pq = _pyarrow()
-    arrays = [pa.array(trace.cycles), pa.array(trace.data[:, 1])]
-    arrays += [pa.array(trace.data[:, 2 + i]) for i in range(len(trace.labels))]
-    meta = {"magic": MAGIC, **trace.meta, **trace._columns_meta()}
-    schema_meta = {k.encode(): v.encode() for k, v in meta.items()}
-    table = pa.Table.from_arrays(arrays, names=[*FIXED, *trace.labels])
-    pq.write_table(table.replace_schema_metadata(schema_meta), path)
 
 
 def _read_parquet(path: Path) -> Trace:

@@ -64,6 +64,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.errors import GeoError
+from geo_server.safefile import FileRefused, read_regular
 from geo_server.twin.model import (
     RIGID_COMPONENTS,
     RIGID_SQUARENESS,
@@ -135,12 +136,12 @@ def load_twin(path: Path | str, axis_names: Sequence[str] = ()) -> TwinConfig:
     """Read and validate a twin file; `axis_names` (if given) are the machine's axes,
     which the file's axes, motion axes and `over` axes must name."""
     path = Path(path)
-    try:
-        data = path.read_bytes()[: MAX_TWIN_BYTES + 1]
+    try:  # read on every reload: never blocking on a FIFO, never past the bound
+        data = read_regular(path, MAX_TWIN_BYTES)
+    except FileRefused as exc:
+        raise TwinFileError(path, 0, exc.reason) from None
     except OSError as exc:
         raise TwinFileError(path, 0, f"cannot read the twin file: {exc.strerror or exc}") from None
-    if len(data) > MAX_TWIN_BYTES:
-        raise TwinFileError(path, 0, f"larger than {MAX_TWIN_BYTES} bytes")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:

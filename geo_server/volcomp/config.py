@@ -7,11 +7,21 @@ max_records`, `vol_comp[i].file_name`, IDs 0-4); each one's VOLC list assigns th
 on content: what is wrong becomes a diagnostic with file and line (`volc.*` checks,
 docs/list_checks.md) and that compensation is not available, the machine still starts —
 the discipline of the GEO lists (docs/design.md §4).
+
+Files are read only inside the machine's folders (`MachineConfig.file_roots`: the
+start-up list's folder and `geo-server run --allow-dir`), whoever names them — the
+start-up list, a VOLC list's `file[j]`, the network (0x27C, `#VOLCOMP [ID.. UPDATE]`);
+a name resolving elsewhere is refused with `safefile.REFUSED` at the line naming it. A
+VOLC list named over the network that cannot be read as one (missing, a folder, a FIFO,
+not a VOLC list …) is refused with the same text: the answer says nothing about the
+file system (docs/security.md). Files are read through `safefile.read_regular`, bounded
+by `safefile.FileLimits`.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
 
@@ -19,6 +29,7 @@ from geo_server.listfile.schema import ListKind, lookup
 from geo_server.listfile.syntax import NotAListFileError, parse_list
 from geo_server.listfile.values import Reporter, Values, read_values
 from geo_server.model import AxisParams, MachineConfig
+from geo_server.safefile import LIMITS, REFUSED, is_inside
 from geo_server.volcomp.model import VolModel, build_model
 from geo_server.volcomp.names import AXES, LINEAR
 from geo_server.volcomp.paramfile import FORMATS, Block, ParamFileError, read_param_file
@@ -191,24 +202,34 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
     )
 
 
-def read_volc_list(path: Path, rep: Reporter) -> VolcConfig:
-    """Parse and check one VOLC list; `_Problem` if it cannot be used."""
+def read_volc_list(path: Path, rep: Reporter, *, from_network: bool = False) -> VolcConfig:
+    """Parse and check one VOLC list (at most `FileLimits.volc_list_bytes`); `_Problem`
+    if it cannot be used. `from_network`: the name came over the network, and whatever
+    keeps it from being read as a VOLC list is answered with `REFUSED` alone."""
     try:
-        parsed = parse_list(path)
-    except FileNotFoundError:
-        raise _Problem("volc.file", "volumetric compensation list not found", str(path)) from None
-    except NotAListFileError as exc:
-        raise _Problem("volc.file", str(exc), str(path), exc.line) from None
-    except OSError as exc:
-        raise _Problem(
-            "volc.file", f"volumetric compensation list unreadable: {exc}", str(path)
-        ) from None
-    if not any(lookup(ListKind.VOLC, e.base) for e in parsed.entries):
-        raise _Problem(
-            "volc.file",
-            "not a volumetric compensation list: none of its lines is an entry of one",
-            str(path),
-        )
+        try:
+            parsed = parse_list(path, LIMITS.volc_list_bytes)
+        except FileNotFoundError:
+            raise _Problem(
+                "volc.file", "volumetric compensation list not found", str(path)
+            ) from None
+        except NotAListFileError as exc:
+            raise _Problem("volc.file", str(exc), str(path), exc.line) from None
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            raise _Problem(
+                "volc.file", f"volumetric compensation list unreadable: {why}", str(path)
+            ) from None
+        if not any(lookup(ListKind.VOLC, e.base) for e in parsed.entries):
+            raise _Problem(
+                "volc.file",
+                "not a volumetric compensation list: none of its lines is an entry of one",
+                str(path),
+            )
+    except _Problem:
+        if from_network:
+            raise _Problem("volc.file", REFUSED) from None
+        raise
     values = read_values(parsed, ListKind.VOLC, rep)
     try:
         return _config(values, rep)
@@ -217,11 +238,15 @@ def read_volc_list(path: Path, rep: Reporter) -> VolcConfig:
         raise
 
 
-def _tables(cfg: VolcConfig, folder: Path) -> tuple[dict[str, ParamTable], int, tuple[str, ...]]:
+def _tables(
+    cfg: VolcConfig, folder: Path, roots: Sequence[Path]
+) -> tuple[dict[str, ParamTable], int, tuple[str, ...]]:
     blocks: list[Block] = []
     paths: list[str] = []
     for name, fmt, line in cfg.files:
         p = resolve(folder, name)
+        if not is_inside(p, roots):
+            raise _Problem("volc.file", REFUSED, cfg.path, line)
         try:
             pf = read_param_file(p, fmt)
         except FileNotFoundError:
@@ -286,14 +311,20 @@ def load_compensation(
     machine: dict[int, AxisParams],
     rep: Reporter,
     where: tuple[str, int] = ("", 0),
+    *,
+    roots: Sequence[Path],
+    from_network: bool = False,
 ) -> VolComp:
     """Load compensation `ident` from its VOLC list; report what is wrong and return it
-    unavailable then (never raises on content)."""
-    path = resolve(folder, file_name) if file_name else Path()
+    unavailable then (never raises on content). Files are read only inside `roots`
+    (see the module docstring); `from_network`: `file_name` came over the network."""
+    path = Path(os.path.abspath(resolve(folder, file_name))) if file_name else Path()
     try:
         if not file_name:
             raise _Problem(
-                "volc.config", f"vol_comp[{ident}].file_name missing: no VOLC list", *where
+                "volc.config",
+                REFUSED if from_network else f"vol_comp[{ident}].file_name missing: no VOLC list",
+                *where,
             )
         if not max_records:
             raise _Problem(
@@ -302,8 +333,10 @@ def load_compensation(
                 "records must be given)",
                 *where,
             )
-        cfg = read_volc_list(path, rep)
-        tables, records, paths = _tables(cfg, path.parent)
+        if not is_inside(path, roots):
+            raise _Problem("volc.file", REFUSED, *where)
+        cfg = read_volc_list(path, rep, from_network=from_network)
+        tables, records, paths = _tables(cfg, path.parent, roots)
         if records > max_records:
             raise _Problem(
                 "volc.file",
@@ -329,20 +362,34 @@ def reload_compensation(
 ) -> VolComp | None:
     """Compensation `ident` of a loaded machine read again from the VOLC list
     `file_name` (`#VOLCOMP UPDATE`, cnc_interpr_vol_comp_file_w: 004 p.23), with the
-    start-up list's `max_records`; None when the start-up list does not configure it."""
+    start-up list's `max_records`; None when the start-up list does not configure it.
+    Both are requests from the network: only inside `cfg.file_roots`, and a list that
+    cannot be read is answered with `REFUSED` alone."""
     comp = next((c for c in cfg.volumetric if c.id == ident), None)
     if comp is None:
         return None
     params = {a: ax.params for a, ax in cfg.axes.items()}
     return load_compensation(
-        ident, comp.max_records, file_name, cfg.startup_path.parent, params, rep
+        ident,
+        comp.max_records,
+        file_name,
+        cfg.startup_path.parent,
+        params,
+        rep,
+        roots=cfg.file_roots,
+        from_network=True,
     )
 
 
 def load_volumetric(
-    stup: Values, folder: Path, machine: dict[int, AxisParams], rep: Reporter
+    stup: Values,
+    folder: Path,
+    machine: dict[int, AxisParams],
+    rep: Reporter,
+    roots: Sequence[Path],
 ) -> tuple[VolComp, ...]:
-    """Every `vol_comp[i]` of the start-up list (004 p.12, p.36-37), IDs 0-4."""
+    """Every `vol_comp[i]` of the start-up list (004 p.12, p.36-37), IDs 0-4; their
+    files only from inside `roots` (`MachineConfig.file_roots`)."""
     maxes = stup.table("vol_comp[].max_records")
     names = stup.table("vol_comp[].file_name")
     out = []
@@ -374,6 +421,7 @@ def load_volumetric(
                 machine,
                 rep,
                 (item.entry.file, item.entry.line),
+                roots=roots,
             )
         )
     return tuple(out)

@@ -18,7 +18,13 @@ Conventions the manual leaves open, decided here:
 - Etalon: `[HEADER]` is metadata, ignored; another block that is not a parameter is
   ignored with a warning; `Gridpoints` only for component errors (the other parameters
   are constants, 004 p.31), over the component error's own axis; a parameter given twice
-  in one file is an error.
+  in one file is an error;
+- a file that is not one of the format at all (a header that is no column names, text
+  before the first `[NAME]`) is refused without quoting it (`NOT_CSV`, `NOT_ETALON`):
+  an error message never carries a line of a file that is not a correction file; a
+  correction file's own mistakes are quoted (a column name is a short word);
+- a file is read through `geo_server.safefile.read_regular`, at most
+  `FileLimits.correction_file_bytes` (docs/security.md).
 """
 
 from __future__ import annotations
@@ -28,9 +34,9 @@ import os
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
 from geo_server.errors import GeoError
+from geo_server.safefile import LIMITS, read_regular
 from geo_server.volcomp.names import (
     ARGUMENTS,
     COMPONENT_ERRORS,
@@ -46,12 +52,25 @@ ELISIONS = frozenset({"…", "...", ":"})
 ELISION_WARNING = "elision mark ignored"
 #: the first line of what the writers produce
 WRITTEN = "// written by geo-server"
+#: a line of a file that is no ISG CSV file at all (not quoted: it may be anything)
+NOT_CSV = (
+    "not an ISG CSV correction file: this line is neither a comment nor a header of "
+    "column names (004 p.32)"
+)
+#: a line of a file that is no Etalon exchange file at all (not quoted, like NOT_CSV)
+NOT_ETALON = (
+    "not an Etalon exchange file: this line is neither a comment nor a [NAME] block "
+    "header (004 p.33)"
+)
 
 # Python float syntax minus `_`, inf, nan: what a measuring system writes
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 # "CSV": whitespace, `,` or `;` between columns (004 p.32 prints blank-separated columns)
 _CSV_SEPARATORS = re.compile(r"[\s,;]+")
 _SECTION = re.compile(r"\[\s*([^\]]*?)\s*\]")
+# what may be quoted from a header or key: a word as short as a column name (EXX, C0B)
+# or a key (VALUE, Gridpoints); anything else may be a line of any file, never quoted
+_WORD = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,15}")
 # Not str.splitlines: it also breaks at \x0c, \x1c, \x85 …, so line numbers would differ
 # from the ones an editor shows.
 _NEWLINE = re.compile(r"\r\n?|\n")
@@ -175,6 +194,8 @@ class _CsvReader:
             )
         for i, name in enumerate(tokens):
             if name not in ARGUMENTS and name not in PARAMETERS:
+                if not _WORD.fullmatch(name):
+                    raise self.error(no, NOT_CSV)
                 raise self.error(
                     no,
                     f"unknown column {name!r}: neither an argument ({' '.join(ARGUMENTS)}) "
@@ -281,10 +302,12 @@ class _EtalonReader:
             self.open(no, section[1])
             return
         key, equals, value = text.partition("=")
+        if self.section is None:
+            if not equals or not _WORD.fullmatch(key.strip()):
+                raise self.error(no, NOT_ETALON)
+            raise self.error(no, f"{key.strip()} = … outside any [block]")
         if not equals:
             raise self.error(no, f"expected 'KEY = value' or '[NAME]', not {text!r}")
-        if self.section is None:
-            raise self.error(no, f"{key.strip()} = … outside any [block]")
         if self.is_parameter:
             self.parameter_entry(no, key.strip(), value.strip())
 
@@ -407,13 +430,15 @@ def read_param_file(path: str | os.PathLike[str], fmt: str) -> ParamFile:
     """Read one correction file in `fmt`, "ISG_CSV" or "ETALON_EXCHANGE" (004 p.12).
 
     UTF-8 (a BOM is dropped), else Latin-1: measuring software on Windows writes either.
-    Raises ParamFileError (unknown format, content) and OSError (FileNotFoundError …)."""
+    Only a regular file of at most `FileLimits.correction_file_bytes` is read
+    (`safefile.read_regular`). Raises ParamFileError (unknown format, content) and
+    OSError (FileNotFoundError, `safefile.FileRefused` …)."""
     name = os.fspath(path)
     if fmt not in FORMATS:
         raise ParamFileError(
             name, 0, f"unknown file format {fmt!r}: {' or '.join(FORMATS)} (004 p.12)"
         )
-    data = Path(name).read_bytes()
+    data = read_regular(name, LIMITS.correction_file_bytes)
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:

@@ -12,10 +12,21 @@ route. Tags answered: 1 status (u32 ADS error code), 3 TwinCAT version (major u8
 build u16), 5 host name (tag 4, Windows' OS version structure, is left out). The
 request's tags are read generously (a bad one ends the list); nothing but `UdpError` is
 raised on garbage.
+
+Add-route carries the target's user name (tag 13) and password (tag 2), NUL-terminated
+(pyads' `adsAddRouteToPLC`). It is accepted only when both equal the credentials given at
+start (`geo-server run --ads-route-user/--ads-route-password`, compared in constant time);
+without those, every add-route is refused. The refusal is status 0x704
+(ADSERR_DEVICE_INVALIDACCESS, 1796): what a TwinCAT 3 router answers to a wrong user name
+or password — captured as `04 07 00 00` in the status tag (stlehmann/pyads issue #460; the
+ADS library's `AddRemoteRoute` reads that status the same way). pyads' own
+`add_route_to_plc` expects the failure one byte off and raises "Unexpected response from
+PLC" for it, as it does against a real router.
 """
 
 from __future__ import annotations
 
+import hmac
 import struct
 from dataclasses import dataclass, field
 
@@ -27,6 +38,11 @@ SERVICE_DISCOVERY = 1
 SERVICE_ADD_ROUTE = 6
 RESPONSE = 0x8000_0000
 TAG_STATUS = 1
+TAG_PASSWORD = 2
+TAG_USER = 13
+#: The status of a refused add-route: what TwinCAT answers to wrong credentials
+#: (ADSERR_DEVICE_INVALIDACCESS; module docstring).
+ROUTE_REFUSED = 0x704
 TAG_TC_VERSION = 3
 TAG_HOST_NAME = 5
 #: Largest datagram looked at (an add-route request is about 100 bytes).
@@ -107,15 +123,37 @@ def add_route_response(req: UdpRequest, netid: str, error: int = 0) -> bytes:
     return _response(req, netid, [_tag(TAG_STATUS, struct.pack("<I", error))])
 
 
-def answer(datagram: bytes, netid: str, host_name: str, version: tuple[int, int, int]) -> bytes:
+def _text(tags: dict[int, bytes], tag: int) -> bytes:
+    return tags.get(tag, b"").split(b"\0", 1)[0]
+
+
+def route_allowed(req: UdpRequest, user: str | None, password: str | None) -> bool:
+    """Does add-route `req` carry exactly the credentials configured at start? Never
+    without them (None). Both are compared whatever the first gives, in constant time."""
+    if user is None or password is None:
+        return False
+    user_ok = hmac.compare_digest(_text(req.tags, TAG_USER), user.encode("utf-8"))
+    password_ok = hmac.compare_digest(_text(req.tags, TAG_PASSWORD), password.encode("utf-8"))
+    return user_ok and password_ok
+
+
+def answer(
+    datagram: bytes,
+    netid: str,
+    host_name: str,
+    version: tuple[int, int, int],
+    route_user: str | None = None,
+    route_password: str | None = None,
+) -> bytes:
     """The response to one datagram; `UdpError` when there is nothing to answer.
 
-    geo-server answers every NetId on its TCP port, so an add-route request only needs to
-    be acknowledged: it is accepted whatever user name and password it carries (the
-    interface listens on loopback unless told otherwise)."""
+    An add-route request is accepted (status 0) only with the credentials given at start
+    (`route_allowed`), else refused with `ROUTE_REFUSED`. Nothing else changes either
+    way: geo-server answers every NetId on its TCP port."""
     req = parse(datagram)
     if req.service == SERVICE_DISCOVERY:
         return discovery_response(req, netid, host_name, version)
     if req.service == SERVICE_ADD_ROUTE:
-        return add_route_response(req, netid)
+        ok = route_allowed(req, route_user, route_password)
+        return add_route_response(req, netid, 0 if ok else ROUTE_REFUSED)
     raise UdpError(f"service {req.service} is not answered")

@@ -45,8 +45,19 @@ and ADS requests:
   slices of bounded duration and answers other requests in between. A slice that runs
   later still samples the snapshot the pass began with, so every sample keeps the
   values (and the server the timestamp) of the cycle it was due at;
-- the number of registrations is capped per owner and in total (0x716 NOMOREHDLS
-  beyond either), which bounds the work of one pass and the memory of the table.
+- the number of registrations is capped per owner, per table (machine) and, through a
+  shared `NotificationPool`, for every table of a fleet together (0x716 NOMOREHDLS
+  beyond any), which bounds the work of one pass and the memory of the tables;
+- the cycles sampled follow the registrations, not the cycle rate (docs/design.md §13):
+  a registration is due on a grid, the cycles where `(cycle - phase) % interval == 0`
+  through its last sample, and the table tells the exact engine which cycles
+  it wants published (`wants`, `next_wanted`: the `CycleDemand` of `machine/port.py`).
+  An on-change registration of a value that cannot change while the machine is at rest
+  (`steady`, `machine.port.varies_at_rest`) wants no cycle of a quiescent stretch: its
+  value is the one it had when the stretch began, so the first cycle after the stretch
+  is checked instead — a machine at rest is not made to build a snapshot per cycle for
+  it. A sample taken later than its grid cycle for another reason (the loop or the
+  engine could not keep up) is counted in `late`.
 
 `NotificationTable` is driven by the server: `add`/`delete`/`drop_owner` from requests
 and disconnects, `begin(snapshot)` (or `sample(snapshot)`, a whole pass at once) on the
@@ -82,12 +93,29 @@ MAX_TOTAL = 550
 MAX_PER_OWNER = MAX_TOTAL // 2
 #: Largest registered length (0x717 INVALIDWATCHSIZE beyond).
 MAX_WATCH_SIZE = 64 * 1024
+#: Registrations every machine of a fleet together may hold (0x716 beyond): twice one
+#: machine's `MAX_TOTAL`. A fleet of 100 with this many on-change registrations at
+#: interval 1 still answers every machine within milliseconds (bench/fleet_isolation.py,
+#: docs/benchmarks.md).
+MAX_FLEET = 2 * MAX_TOTAL
 
 Reader = Callable[[int, int, int, Snapshot], bytes]
 #: Given (IG, IO, length, snapshot): check the address by reading it (raising AdsError like
 #: a read would) and return a getter of its bytes in any later snapshot. Lets a server do
 #: the address resolution once per registration instead of once per sample.
 Preparer = Callable[[int, int, int, Snapshot], Callable[[Snapshot], bytes]]
+#: Given (IG, IO): True when the value there cannot change while the machine is
+#: quiescent (`machine.port.varies_at_rest` is False for it, or it is a constant).
+Steady = Callable[[int, int], bool]
+
+
+class NotificationPool:
+    """The registrations several tables hold together (a fleet's machines): at most
+    `limit` (0x716 beyond)."""
+
+    def __init__(self, limit: int = MAX_FLEET) -> None:
+        self.limit = limit
+        self.count = 0
 
 
 @dataclass(eq=False, slots=True)
@@ -108,6 +136,11 @@ class Registration:
     last_cycle: int  # cycle of the last sample or check (at first: of the registration)
     last: bytes | None = None  # None until the first sample was sent
     hold_until: float = 0.0  # no sample before this `now` (monotonic seconds)
+    #: its value cannot change while the machine is quiescent (`Steady`)
+    steady: bool = False
+    #: grid of its samples after the first: cycles c with (c - phase) % interval == 0
+    phase: int | None = field(default=None, init=False)
+    due_at: int = field(default=0, init=False)  # the cycle it was scheduled for
     on_change: bool = field(init=False)
     #: The bucket (cycle) the registration waits in; None while a pass holds it.
     slot: int | None = field(default=None, init=False)
@@ -208,6 +241,8 @@ class SamplingPass:
                 schedule(reg, cycle + 1)  # checked again at the next pass
                 continue
             reg.last_cycle = cycle
+            if cycle > reg.due_at and reg.phase is not None and not (reg.on_change and reg.steady):
+                table.late += 1
             key = reg.key
             data = cache.get(key)
             if data is None:
@@ -220,8 +255,13 @@ class SamplingPass:
                 schedule(reg, reg.due)
                 continue
             # Next sample or check one interval on (inlined `_schedule`: a pass runs at
-            # the newest swept cycle, so that bucket has not been taken yet).
-            nxt = cycle + reg.interval
+            # the newest swept cycle, so that bucket has not been taken yet); a sample
+            # off the registration's grid (its first, or a late one) moves the grid.
+            interval = reg.interval
+            if reg.phase is None or (cycle - reg.phase) % interval:
+                table._on_grid(reg, cycle)
+            nxt = cycle + interval
+            reg.due_at = nxt
             if nxt <= swept:  # a newer pass began meanwhile
                 schedule(reg, nxt)
             else:
@@ -264,9 +304,14 @@ class NotificationTable:
         max_per_owner: int = MAX_PER_OWNER,
         max_total: int = MAX_TOTAL,
         prepare: Preparer | None = None,
+        pool: NotificationPool | None = None,
+        steady: Steady | None = None,
     ) -> None:
         self._read = read
         self._prepare = prepare
+        self._steady = steady
+        #: shared with the other machines of a fleet (its own when alone)
+        self.pool = pool if pool is not None else NotificationPool(max_total)
         self.cycle_s = cycle_s
         self.max_per_owner = max_per_owner
         self.max_total = max_total
@@ -278,6 +323,18 @@ class NotificationTable:
         self._swept: int | None = None
         self._active: SamplingPass | None = None  # the pass begun last
         self._handles = itertools.count(1)
+        #: samples taken later than their grid cycle (not counting on-change checks of
+        #: steady values, which a quiescent stretch defers by design)
+        self.late = 0
+        # The cycles wanted (`wants`): registrations before their first sample want
+        # every cycle; the others their grid, (interval, phase) -> registrations, kept
+        # for every registration and for those that need quiescent cycles too. The
+        # engine reads the tuples (replaced, never mutated) from its own thread.
+        self._first = 0
+        self._grid: dict[tuple[int, int], int] = {}
+        self._grid_rest: dict[tuple[int, int], int] = {}
+        self.grid: tuple[tuple[int, int], ...] = ()
+        self.grid_rest: tuple[tuple[int, int], ...] = ()
 
     def __len__(self) -> int:
         return len(self._regs)
@@ -343,7 +400,12 @@ class NotificationTable:
         if len(self._regs) >= self.max_total:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOMOREHDLS,
-                f"more than {self.max_total} notifications on this server",
+                f"more than {self.max_total} notifications on this machine",
+            )
+        if self.pool.count >= self.pool.limit:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOMOREHDLS,
+                f"more than {self.pool.limit} notifications on the machines of this server",
             )
         getter = self._getter(req.index_group, req.index_offset, req.length, snapshot)
         reg = Registration(
@@ -360,9 +422,12 @@ class NotificationTable:
             interval=cycles_for(req.cycle_time, self.cycle_s),
             last_cycle=snapshot.cycle,
             hold_until=hold_until,
+            steady=self._steady is not None and self._steady(req.index_group, req.index_offset),
         )
         reg.getter = getter
         self._regs[reg.handle] = reg
+        self.pool.count += 1
+        self._first += 1
         if own is None:
             own = self._by_owner[owner] = {}
         own[reg.handle] = reg
@@ -394,6 +459,14 @@ class NotificationTable:
     def _forget(self, reg: Registration) -> None:
         del self._regs[reg.handle]
         reg.alive = False
+        self.pool.count -= 1
+        if reg.phase is None:
+            self._first -= 1
+        else:
+            key = (reg.interval, reg.phase)
+            self._count(self._grid, key, -1)
+            if not (reg.on_change and reg.steady):
+                self._count(self._grid_rest, key, -1)
         if reg.slot is not None:
             bucket = self._buckets.get(reg.slot)
             if bucket is not None:
@@ -401,6 +474,62 @@ class NotificationTable:
                 if not bucket:
                     del self._buckets[reg.slot]
             reg.slot = None
+
+    # ------------------------------------------------------------------ cycles wanted
+
+    def _on_grid(self, reg: Registration, cycle: int) -> None:
+        """`reg` is sampled at `cycle`, off its grid (its first sample, or a late one):
+        from now on it is due on the grid through `cycle` (the interval counts from the
+        last sample)."""
+        old = reg.phase
+        reg.phase = cycle % reg.interval
+        key = (reg.interval, reg.phase)
+        rest = not (reg.on_change and reg.steady)
+        # the new grid point first, then the old one goes: the engine never sees neither
+        self._count(self._grid, key, +1)
+        if rest:
+            self._count(self._grid_rest, key, +1)
+        if old is None:
+            self._first -= 1
+        else:
+            self._count(self._grid, (reg.interval, old), -1)
+            if rest:
+                self._count(self._grid_rest, (reg.interval, old), -1)
+
+    def _count(self, grid: dict[tuple[int, int], int], key: tuple[int, int], delta: int) -> None:
+        n = grid.get(key, 0) + delta
+        if n > 0:
+            grid[key] = n
+            if n == delta:  # a new point of the grid
+                self._publish_grid()
+        else:
+            grid.pop(key, None)
+            self._publish_grid()
+
+    def _publish_grid(self) -> None:
+        self.grid = tuple(self._grid)
+        self.grid_rest = tuple(self._grid_rest)
+
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        """Whether a registration needs the snapshot of `cycle` (`quiescent`: the
+        machine is at rest, so on-change checks of steady values wait)."""
+        if self._first > 0:
+            return True
+        for interval, phase in self.grid_rest if quiescent else self.grid:
+            if (cycle - phase) % interval == 0:
+                return True
+        return False
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        """The first cycle after `cycle` that `wants` names (None: none)."""
+        if self._first > 0:
+            return cycle + 1
+        best: int | None = None
+        for interval, phase in self.grid_rest if quiescent else self.grid:
+            c = cycle + interval - (cycle - phase) % interval
+            if best is None or c < best:
+                best = c
+        return best
 
     def _schedule(self, reg: Registration, cycle: int) -> None:
         """Put `reg` in the bucket of `cycle` — or of the next cycle no pass has begun at
@@ -413,6 +542,7 @@ class NotificationTable:
             bucket = self._buckets[cycle] = {}
         bucket[reg.handle] = reg
         reg.slot = cycle
+        reg.due_at = cycle
 
     # ------------------------------------------------------------------ sampling
 

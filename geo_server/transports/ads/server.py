@@ -71,9 +71,11 @@ from geo_server.transports.ads.codec import (
     WriteRequest,
 )
 from geo_server.transports.ads.notifications import (
+    MAX_FLEET,
     MAX_PER_OWNER,
     MAX_TOTAL,
     Batch,
+    NotificationPool,
     NotificationTable,
     SamplingPass,
 )
@@ -84,8 +86,12 @@ log = logging.getLogger(__name__)
 #: Registrations sampled between two looks at the clock (keeps the budget check cheap).
 _SAMPLE_STEP = 32
 #: Snapshots handed from the cycle to the event loop and not sampled yet; beyond, the
-#: oldest go (their samples are delayed to a later cycle, never lost).
+#: oldest go (their samples are delayed to a later cycle, never lost). The exact engine
+#: stops handing them over earlier, at `AdsOptions.sample_backlog`.
 HANDOFF_MAX = 2000
+#: A machine's share of one sampling round is at least this long (seconds), however many
+#: machines have samples waiting: a pass makes progress in every round.
+_MIN_SHARE = 0.0002
 
 
 @dataclass
@@ -125,15 +131,43 @@ class AdsOptions:
     #: cyclic, every one sending every cycle, 0.65 ms alone. Twice as many (1100) took
     #: 0.45 / 0.7 ms on change and 1.2 ms cyclic: the loop no longer sampled every cycle.
     max_notifications_total: int = MAX_TOTAL
+    #: Notifications the machines behind one port (a fleet) may register together (0x716
+    #: beyond): 1100, twice one machine's. What a registration costs follows what it
+    #: samples (an on-change check of a value that cannot change at rest costs nothing
+    #: while the machine rests; docs/design.md §13), and sampling is shared fairly
+    #: between machines, so a fleet of 100 holding this many still answers every machine
+    #: (bench/fleet_isolation.py). Read from the server that listens.
+    max_notifications_fleet: int = MAX_FLEET
+    #: Snapshots waiting to be sampled at the machines behind the port together (read
+    #: from the server that listens), shared evenly (at least 16 each): 2000 cycles for
+    #: one machine, 20 each for 100. Beyond its share a machine's exact engine publishes
+    #: no more cycles for sampling until the loop caught up — those samples come later,
+    #: from a later cycle, and are counted (`status()["ads_notifications"]`) — so a loop
+    #: that cannot keep up sheds sampling work instead of piling it up.
+    sample_backlog: int = HANDOFF_MAX
     #: Longest stretch of notification sampling in one event-loop callback (seconds);
     #: a longer pass continues in a later loop iteration, so requests of every transport
     #: are answered in between. A late slice still sends the values and timestamp of the
     #: cycle its samples were due at.
     sample_budget: float = 0.002
-    #: Simultaneous ADS connections; one beyond is closed at once (counted in
-    #: `AdsStats.refused_connections`). With `max_frame` it bounds the memory clients can
-    #: make the server hold for unfinished frames to about 17 MiB.
+    #: Simultaneous ADS connections to one machine; one beyond is closed at once
+    #: (counted in `AdsStats.refused_connections`). With `max_frame` it bounds the memory
+    #: clients can make the server hold for unfinished frames to about 17 MiB. Behind one
+    #: port with several machines (a fleet) a connection counts at each machine it sends
+    #: a request to, and a request to a machine that has this many answers 0x716: one
+    #: machine's clients cannot take the port from the others'.
     max_connections: int = 128
+    #: Simultaneous connections to the port when it serves several machines (a fleet;
+    #: read from the server that listens): one beyond is closed at once.
+    max_connections_fleet: int = 512
+    #: Answers one connection may have outstanding (writes waiting for their cycle,
+    #: injected delays): beyond, the server stops reading that connection until half
+    #: of them are sent, so a client pipelining requests cannot queue unbounded work.
+    max_pending: int = 256
+    #: Requests one machine serves in one event-loop step (read from the server that
+    #: listens); the rest wait for the next step, their connections' reading paused:
+    #: a client flooding one machine delays that machine's answers, not the others'.
+    requests_per_step: int = 16
     #: A frame still unfinished this many seconds after its first byte arrived closes the
     #: connection (counted in `AdsStats.closed_incomplete`): a client that stopped in the
     #: middle of a frame must not keep its buffer alive. 0 disables the check.
@@ -148,9 +182,19 @@ class AdsOptions:
     udp_port: int | None = None
     #: host name the discovery answer gives
     host_name: str = "geo-server"
+    #: The credentials an add-route request on `udp_port` must carry (`geo-server run
+    #: --ads-route-user/--ads-route-password`); None: every add-route is refused with
+    #: 0x704, as TwinCAT refuses wrong credentials (discovery.py).
+    route_user: str | None = field(default=None, repr=False)
+    route_password: str | None = field(default=None, repr=False)
     #: Symbol handles one connection may hold (0x716 beyond; TwinCAT has no documented
     #: limit, but a client that never releases must not grow the server without bound).
     max_handles: int = 10_000
+    #: Symbol handles all connections together may hold at one machine (0x716 beyond).
+    max_handles_machine: int = 50_000
+    #: Symbol handles at every machine behind one port together (a fleet; 0x716 beyond;
+    #: read from the server that listens). About 60 bytes each: 12 MiB at most.
+    max_handles_fleet: int = 200_000
     #: With running cycles, no notification sample earlier than this many seconds after
     #: its registration (AdsLib drops samples that overtake its own bookkeeping).
     first_sample_hold: float = 0.005
@@ -176,6 +220,11 @@ class AdsStats:
     udp_dropped: int = 0  # datagrams that were not ADS UDP requests
     sampling_passes: int = 0  # notification sampling passes begun
     sampling_slices: int = 0  # passes continued in a later loop iteration (over budget)
+    #: cycles the engine would have published for sampling but the loop was behind
+    #: (`sample_backlog` snapshots waiting): their samples come from a later cycle
+    samples_refused: int = 0
+    refused_requests: int = 0  # answered 0x716: `max_connections` at this machine
+    deferred_requests: int = 0  # waited for a later loop step (`requests_per_step`)
 
 
 def _version() -> tuple[int, int, int]:
@@ -225,14 +274,35 @@ class AdsServer:
         self.devices: dict[str, AdsServer] = {self.options.netid: self}
         self.stats = AdsStats()
         cycle_s = service.cycle_s
-        self.notifications = NotificationTable(
+        #: the server that listens (itself when alone): it holds the port's totals
+        self.head: AdsServer = router if router is not None else self
+        self.notifications: NotificationTable = NotificationTable(
             self.service.read,
             cycle_s,
             self.options.max_notifications,
             self.options.max_notifications_total,
             prepare=self._notification_getter,
+            pool=(
+                router.notifications.pool
+                if router is not None
+                else NotificationPool(self.options.max_notifications_fleet)
+            ),
+            steady=self._steady,
         )
         self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
+        #: connections that sent this machine a request (`max_connections`)
+        self._attached: set[AdsConnection] = set()
+        #: symbol handles held here, by every connection (and at the head: fleet-wide)
+        self.handles_held = 0
+        self.fleet_handles = 0
+        #: what `status()` shows of the notifications (kept current, read by status)
+        self._status: dict[str, int] = {}
+        #: head: the machines with snapshots to sample, served in turn (`_sample_round`)
+        self._ready: deque[AdsServer] = deque()
+        self._round_pending = False
+        # requests served in this loop step (`take_turn`)
+        self._served = 0
+        self._step_reset = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: Callable[[], None] | None = None
         self._notify_invoke = 0
@@ -241,7 +311,6 @@ class AdsServer:
         self._handoff_pending = False
         # The sampling pass under way (with its FILETIME).
         self._pass: tuple[SamplingPass, int] | None = None
-        self._slice_pending = False
         # While registrations exist the cycle publishes every cycle's snapshot.
         self._every_cycle: Callable[[], None] | None = None
         self._major, self._minor, self._build = _version()
@@ -265,8 +334,12 @@ class AdsServer:
             raise ValueError(f"AMS NetId {options.netid} is served already")
         device = AdsServer(service, options, router=self)
         self.devices[options.netid] = device
-        # several NetIds behind one port: requests for any other get 0x7
+        # several NetIds behind one port: requests for any other get 0x7, and the port
+        # admits the fleet's connections (each machine still at most `max_connections`)
         self.options = replace(self.options, strict_netid=True)
+        self.listener.max_connections = max(
+            self.options.max_connections, self.options.max_connections_fleet
+        )
         return device
 
     async def start(self) -> None:
@@ -306,6 +379,7 @@ class AdsServer:
             self._unsubscribe = None
         self._pass = None
         self._handed.clear()
+        self._ready.clear()
         self._demand(False)
         if self._udp is not None:
             self._udp.close()
@@ -345,6 +419,8 @@ class AdsServer:
                 self.options.netid,
                 self.options.host_name,
                 (self._major, self._minor, self._build),
+                self.options.route_user,
+                self.options.route_password,
             )
         except discovery.UdpError as exc:
             self.stats.udp_dropped += 1
@@ -382,6 +458,9 @@ class AdsServer:
             self.stats.errors += 1
             conn.send(codec.response_frame(h, b"", AdsErrorCode.TARGET_MACHINE_NOT_FOUND))
             return
+        if conn not in self._attached and not self._attach(conn):
+            self._respond(conn, h, error_payload(h.command, AdsErrorCode.DEVICE_NOMOREHDLS))
+            return
         if h.target.port == SYSTEM_SERVICE_PORT:
             self._answer(conn, h, lambda: self._system_service(conn, packet))
             return
@@ -417,7 +496,7 @@ class AdsServer:
             return True
 
         async def later() -> None:
-            await asyncio.sleep(fault.value / 1000)
+            await fault.delay()  # cut short when the fault is cleared
             if conn.transport is not None and not conn.transport.is_closing():
                 self.serve_packet(conn, packet)
 
@@ -497,6 +576,7 @@ class AdsServer:
         if isinstance(req, DeleteNotificationRequest):
             self.notifications.delete(conn, req.handle)
             self._demand(len(self.notifications) > 0)
+            self._update_status()
             return codec.result_response(0)
         if isinstance(req, ReadStateRequest):
             return codec.read_state_response(0, AdsState.RUN, 0)
@@ -683,14 +763,26 @@ class AdsServer:
         table = conn.table(self)
         answer = symbols.handle_answer(table.next_handle + 1, sym, extended=read_length > 4)
         self._fit_size(len(answer), read_length)
-        if len(table.handles) >= self.options.max_handles:
-            raise AdsError(
-                AdsErrorCode.DEVICE_NOMOREHDLS,
-                f"{len(table.handles)} symbol handles are open on this connection",
-            )
+        self._check_handles(table)
         table.next_handle += 1
         table.handles[table.next_handle] = sym
+        self.handles_held += 1
+        self.head.fleet_handles += 1
         return answer
+
+    def _check_handles(self, table: HandleTable) -> None:
+        """0x716 when one more symbol handle would pass a cap: the connection's at this
+        machine, this machine's, or (at the head) every machine's behind the port."""
+        head = self.head
+        for held, cap, where in (
+            (len(table.handles), self.options.max_handles, "on this connection"),
+            (self.handles_held, self.options.max_handles_machine, "at this machine"),
+            (head.fleet_handles, head.options.max_handles_fleet, "at the machines of this port"),
+        ):
+            if held >= cap:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_NOMOREHDLS, f"{held} symbol handles are open {where}"
+                )
 
     def _lookup_address(self, req: ReadWriteRequest) -> bytes:
         """Group + 0x600: in (channel, axis) as two UNS32 (or two UNS16), the element in
@@ -721,6 +813,8 @@ class AdsServer:
         handle = struct.unpack("<I", data)[0]
         if conn.table(self).handles.pop(handle, None) is None:
             raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{handle:X}")
+        self.handles_held -= 1
+        self.head.fleet_handles -= 1
         return codec.result_response(0)
 
     # ------------------------------------------------------------------ reads
@@ -899,7 +993,7 @@ class AdsServer:
         if req.index_group == symbols.SYM_VALBYHND:
             ig, io = self._address(conn, req.index_group, req.index_offset)
             req = replace(req, index_group=ig, index_offset=io)
-        # every cycle's snapshot from now on, before the registration's first cycle
+        # the cycles the registrations want from now on, before the first one's cycle
         self._demand(True)
         try:
             reg = self.notifications.add(
@@ -907,16 +1001,65 @@ class AdsServer:
             )
         finally:
             self._demand(len(self.notifications) > 0)
+            self._update_status()
         return codec.add_notification_response(0, reg.handle)
 
     def _demand(self, on: bool) -> None:
-        """Ask the engine for every cycle's snapshot while registrations exist (the
-        exact engine publishes only the cycles someone looks at, docs/design.md §13)."""
+        """Ask the engine for the snapshots the registrations want while any exist (the
+        exact engine publishes only the cycles someone looks at, docs/design.md §13):
+        this server is the `CycleDemand` (`wants`). An engine without that (the cycle
+        process) is asked for every cycle's snapshot."""
         if on and self._every_cycle is None:
-            self._every_cycle = self.service.scheduler.demand_every_cycle()
+            sched = self.service.scheduler
+            demand_cycles = getattr(sched, "demand_cycles", None)
+            if demand_cycles is not None:
+                self._every_cycle = demand_cycles(self)
+            else:
+                self._every_cycle = sched.demand_every_cycle()
         elif not on and self._every_cycle is not None:
             self._every_cycle()
             self._every_cycle = None
+
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        """`CycleDemand` (engine thread): the registrations want `cycle` published,
+        unless `sample_backlog` snapshots already wait for the loop — then the engine
+        goes on without it (counted; those samples come from a later cycle)."""
+        if not self.notifications.wants(cycle, quiescent):
+            return False
+        if len(self._handed) >= self._backlog:
+            self.stats.samples_refused += 1
+            return False
+        return True
+
+    @property
+    def _backlog(self) -> int:
+        """This machine's share of the port's `sample_backlog`."""
+        head = self.head
+        return max(16, head.options.sample_backlog // len(head.devices))
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        """`CycleDemand` (engine thread): the next cycle the registrations want."""
+        return self.notifications.next_wanted(cycle, quiescent)
+
+    def _steady(self, ig: int, io: int) -> bool:
+        """The value a notification watches cannot change while the machine is at rest
+        (a constant service, an attribute, or an object `varies_at_rest` is False for)."""
+        if ig in _NOTIFIABLE_SERVICES:
+            return True
+        try:
+            obj, _axis, attr = self.service.resolve(ig, io)
+        except AdsError:
+            return False
+        return attr is not None or not self.service.varies_at_rest(obj)
+
+    def _update_status(self) -> None:
+        """What `status()["ads_notifications"]` shows (a dict the status reads)."""
+        st = self._status
+        st["registrations"] = len(self.notifications)
+        st["samples_late"] = self.notifications.late
+        st["samples_refused"] = self.stats.samples_refused
+        st["waiting_snapshots"] = len(self._handed)
+        self.service.status_extra["ads_notifications"] = st
 
     def _notification_getter(
         self, ig: int, io: int, length: int, snap: Snapshot
@@ -941,7 +1084,8 @@ class AdsServer:
         each must be taken from it), but at most one hand-off callback is queued at a
         time: one `call_soon_threadsafe` per cycle (each also waking the loop through its
         self-pipe) piles up callbacks whenever the loop is busy. `_on_cycle` works
-        through all snapshots handed over. When the loop falls `HANDOFF_MAX` cycles
+        through all snapshots handed over, in the head's rounds (`_sample_round`:
+        machines in turn). When the loop falls `HANDOFF_MAX` cycles
         behind the oldest ones go: sampling counts intervals in cycles
         (`NotificationTable.begin`), so a snapshot the loop never saw delays a sample,
         it does not lose one.
@@ -965,34 +1109,54 @@ class AdsServer:
             self._handoff_pending = False
 
     def _on_cycle(self) -> None:
-        """Event loop: sample the newest snapshot the cycle thread handed over."""
+        """Event loop: this machine has snapshots to sample; it joins the head's round."""
         self._handoff_pending = False
-        self._sample()
+        head = self.head
+        if self not in head._ready:
+            head._ready.append(self)
+        head._again()
 
-    def _sample_slice(self) -> None:
-        """Event loop: continue sampling in a later iteration (see `_sample`)."""
-        self._slice_pending = False
-        self._sample()
+    def _sample_round(self) -> None:
+        """Event loop (head): sample for at most `sample_budget` seconds, the machines
+        with snapshots waiting in turn (docs/design.md §13.1).
 
-    def _sample(self) -> None:
-        """Work on the sampling pass for at most `sample_budget` seconds.
-
-        A pass covers the registrations due at one snapshot; it is begun from the newest
-        snapshot when none is under way. When the budget runs out (thousands of due
-        registrations) the rest waits for `_sample_slice`, queued with `call_soon`: the
-        loop first answers the requests that arrived meanwhile on every transport. The
-        rest of the pass still samples its own snapshot and carries its timestamp —
-        values the client sees are those of the cycle they were due at, only later.
-        Passes follow each other in cycle order, one per snapshot handed over, within
-        the same budget; what the budget leaves waits for a later iteration.
+        Each machine of the round gets an equal share of the budget (at least
+        `_MIN_SHARE`) before the next one's turn; one with work left goes to the back of
+        the queue. What the budget leaves waits for a later loop iteration
+        (`call_soon`): the loop first answers the requests of every transport that
+        arrived meanwhile. So one machine's many registrations delay its own samples,
+        not the other machines' — nor anyone's requests by more than one budget.
         """
-        deadline = time.perf_counter() + self.options.sample_budget
+        self._round_pending = False
+        ready = self._ready
+        now = time.perf_counter()
+        deadline = now + self.options.sample_budget
+        for turn in range(len(ready)):
+            if not ready or (turn and now >= deadline):  # (the first turn always runs)
+                break
+            device = ready.popleft()
+            share = max(_MIN_SHARE, (deadline - now) / (len(ready) + 1))
+            if device._sample(min(deadline, now + share)):
+                ready.append(device)
+            now = time.perf_counter()
+        self._again()
+
+    def _sample(self, deadline: float) -> bool:
+        """Work on this machine's sampling passes until `deadline`; True when work is
+        left (a pass under way or snapshots waiting).
+
+        A pass covers the registrations due at one snapshot; it is begun from the oldest
+        snapshot handed over when none is under way. A pass cut short by the deadline
+        (thousands of due registrations) goes on in a later turn, still sampling its
+        own snapshot and carrying its timestamp — values the client sees are those of
+        the cycle they were due at, only later. Passes follow each other in cycle order.
+        """
         while True:
             if self._pass is None:
                 try:
                     snap = self._handed.popleft()
                 except IndexError:
-                    return  # every snapshot handed over is sampled
+                    break  # every snapshot handed over is sampled
                 self._pass = (self.notifications.begin(snap, time.monotonic()), snap.stamp)
                 self.stats.sampling_passes += 1
             samples, filetime = self._pass
@@ -1008,15 +1172,17 @@ class AdsServer:
                 self.stats.sampling_slices += 1
             if time.perf_counter() >= deadline:
                 break
-        self._again(self._pass is not None or bool(self._handed))
+        self._update_status()
+        return self._pass is not None or bool(self._handed)
 
-    def _again(self, more: bool) -> None:
-        """Continue sampling in a later loop iteration (other requests first)."""
-        if more and not self._slice_pending and not self._handoff_pending:
+    def _again(self) -> None:
+        """Head: another sampling round in a later loop iteration (other requests
+        first), while machines wait."""
+        if self._ready and not self._round_pending:
             loop = self._loop
             if loop is not None and not loop.is_closed():
-                self._slice_pending = True
-                loop.call_soon(self._sample_slice)
+                self._round_pending = True
+                loop.call_soon(self._sample_round)
 
     def _send_batch(self, batch: Batch, filetime: int) -> None:
         conn = batch.owner
@@ -1042,6 +1208,40 @@ class AdsServer:
         self.stats.connections += 1
         return True
 
+    def take_turn(self, packet: AmsPacket) -> bool:
+        """Head: may `packet` be served in this loop step? Each machine serves at most
+        `requests_per_step` requests per step (counted at the machine the request
+        targets); the counts start again in the next step."""
+        device = self.devices.get(packet.header.target.netid, self)
+        if device._served >= self.options.requests_per_step:
+            device.stats.deferred_requests += 1
+            return False
+        device._served += 1
+        if not device._step_reset and self._loop is not None:
+            device._step_reset = True
+            self._loop.call_soon(device._new_step)
+        return True
+
+    def _new_step(self) -> None:
+        self._served = 0
+        self._step_reset = False
+
+    def _attach(self, conn: AdsConnection) -> bool:
+        """`conn` sends this machine its first request: it counts towards this machine's
+        `max_connections` — False (the request is answered 0x716) when it is full."""
+        if len(self._attached) >= self.options.max_connections:
+            self.stats.refused_requests += 1
+            _log_rarely(
+                self.stats.refused_requests,
+                "ADS %s: refusing a request of %s: %d connections use this machine",
+                self.options.netid,
+                conn.peer,
+                len(self._attached),
+            )
+            return False
+        self._attached.add(conn)
+        return True
+
     def _disconnected(self, conn: AdsConnection) -> None:
         if self.router is None:
             self.listener.forget(conn)
@@ -1050,9 +1250,15 @@ class AdsServer:
             for device in self.devices.values():
                 if device is not self:
                     device._disconnected(conn)
+        self._attached.discard(conn)
+        table = conn.tables.pop(id(self), None)
+        if table is not None:
+            self.handles_held -= len(table.handles)
+            self.head.fleet_handles -= len(table.handles)
         n = self.notifications.drop_owner(conn)
         if n:
             log.debug("dropped %d notifications of %s", n, conn.peer)
+            self._update_status()
         if not len(self.notifications):
             self._demand(False)
 
@@ -1164,6 +1370,11 @@ class AdsConnection(asyncio.Protocol):
         #: symbol handles of this connection (0xF003), per device (AMS NetId) it
         #: talks to: one TCP connection may address every machine of a fleet
         self.tables: dict[int, HandleTable] = {}
+        # reading paused: the client does not read its answers / too many outstanding
+        self._paused_writing = False
+        self._paused_work = False
+        #: events read but not served yet: their machine had served its turn
+        self._queued: deque[codec.FrameEvent] = deque()
 
     def table(self, device: AdsServer) -> HandleTable:
         """This connection's symbol handles at `device`."""
@@ -1206,8 +1417,28 @@ class AdsConnection(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         loop = self.server._loop
         now = loop.time() if loop is not None else 0.0
-        for ev in self.framer.feed(data, now):
+        events = self.framer.feed(data, now)
+        if self._queued:  # (reading is paused; what was read already waits its turn)
+            self._queued.extend(events)
+        else:
+            self._handle(events)
+        self._arm_frame_timer()
+
+    def _handle(self, events: Sequence[codec.FrameEvent]) -> None:
+        """Serve `events` in order. A request for a machine that has served its
+        `requests_per_step` in this loop step waits, with the rest, for the next step
+        (reading paused meanwhile): a client pipelining requests to one machine takes
+        that machine's turn, not the other machines' (docs/design.md §13.1)."""
+        for i, ev in enumerate(events):
             if isinstance(ev, AmsPacket):
+                if not self.server.take_turn(ev):
+                    self._queued.extend(events[i:])
+                    if self.transport is not None and not self.transport.is_closing():
+                        self.transport.pause_reading()
+                    loop = self.server._loop
+                    if loop is not None:
+                        loop.call_soon(self._drain)
+                    return
                 self.server.handle_packet(self, ev)
             elif isinstance(ev, codec.RouterCommand):
                 self.server.handle_router(self, ev)
@@ -1226,7 +1457,16 @@ class AdsConnection(asyncio.Protocol):
                 if self.transport is not None:
                     self.transport.close()  # flushes the answers already queued
                 return
-        self._arm_frame_timer()
+
+    def _drain(self) -> None:
+        """A later loop step: serve the requests that waited for their machine's turn."""
+        if self.transport is None:
+            self._queued.clear()
+            return
+        events, self._queued = list(self._queued), deque()
+        self._handle(events)
+        if not self._queued:
+            self._resume_reading()
 
     def _arm_frame_timer(self) -> None:
         """Keep the timer in step with the unfinished frame (if any) after a feed."""
@@ -1269,10 +1509,17 @@ class AdsConnection(asyncio.Protocol):
 
     def pause_writing(self) -> None:
         # The client does not read its answers: stop reading its requests meanwhile.
+        self._paused_writing = True
         if self.transport is not None:
             self.transport.pause_reading()
 
     def resume_writing(self) -> None:
+        self._paused_writing = False
+        self._resume_reading()
+
+    def _resume_reading(self) -> None:
+        if self._paused_writing or self._paused_work or self._queued:
+            return
         if self.transport is not None and not self.transport.is_closing():
             self.transport.resume_reading()
 
@@ -1287,9 +1534,22 @@ class AdsConnection(asyncio.Protocol):
             self.transport.write(frame)
 
     def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run an answer that comes later. With `max_pending` of them outstanding the
+        connection stops reading requests until half are answered: the work one client
+        can queue is bounded, whatever it pipelines."""
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._done)
+        if len(self._tasks) >= self.server.options.max_pending and not self._paused_work:
+            self._paused_work = True
+            if self.transport is not None and not self.transport.is_closing():
+                self.transport.pause_reading()
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if self._paused_work and len(self._tasks) <= self.server.options.max_pending // 2:
+            self._paused_work = False
+            self._resume_reading()
 
     def abort(self) -> None:
         if self.transport is not None:

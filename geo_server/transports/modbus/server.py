@@ -66,7 +66,7 @@ from geo_server.transports.modbus.regmap import (
     UnitMap,
     exception_for,
 )
-from geo_server.transports.tcp import Listener
+from geo_server.transports.tcp import BACKLOG, Listener
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,9 @@ class ModbusOptions:
     #: `ServiceLimits.write_timeout`)
     write_timeout: float | None = None
     max_connections: int = 64
+    #: connections the listening socket queues before they are accepted (a fleet's
+    #: machines take fewer: `fleet.FLEET_BACKLOG`; geo_server/descriptors.py)
+    backlog: int = BACKLOG
     max_pipeline: int = 32  # requests queued per connection before reading pauses
     incomplete_frame_timeout: float = 5.0
 
@@ -129,7 +132,8 @@ class ModbusInterface:
             u: self.map.machine if a == 0 else self.map.axis for u, a in self.unit_axis.items()
         }
         self._device = device_objects()
-        self.listener = Listener(self.options.host, self.options.port, self.options.max_connections)
+        o = self.options
+        self.listener = Listener(o.host, o.port, o.max_connections, o.backlog)
         self.requests = 0
         self.faulted = 0  # requests an injected fault dropped, answered, delayed or cut off
         self.closed_for_framing = 0
@@ -203,7 +207,7 @@ class ModbusInterface:
         async def later() -> bytes:
             if fault.kind == "disconnect":
                 raise DropConnection
-            await asyncio.sleep(fault.value / 1000)
+            await fault.delay()  # cut short when the fault is cleared
             reply = self.serve(frame)
             return reply if isinstance(reply, bytes) else await reply
 
@@ -286,7 +290,7 @@ class ModbusInterface:
     def _connected(self, conn: ModbusConnection) -> bool:
         if self.listener.admit(conn):
             return True
-        log.warning("modbus: refusing %s: %d connections open", conn.peer, self.connection_count)
+        self.listener.say_refused("modbus", conn.peer)
         return False
 
     def _disconnected(self, conn: ModbusConnection) -> None:

@@ -31,7 +31,7 @@ from typing import Any
 
 import zenoh
 
-from geo_server.dictionary import ObjectDef
+from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
@@ -44,10 +44,6 @@ log = logging.getLogger(__name__)
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
 JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
-#: Most characters a JSON integer may have. More than any object type can hold (a REAL64
-#: ends near 1.8e308, 309 digits), so a longer one is refused (0x706) before Python
-#: converts it: that conversion is quadratic in the length and fails over 4300 digits.
-MAX_JSON_INT_CHARS = 330
 #: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
 PROBE_TIMEOUT_S = 1.0
 #: Least seconds between two rival probes, however often Zenoh reports changes.
@@ -99,6 +95,15 @@ class ZenohOptions:
     #: done at once when Zenoh reports a matching queryable or a liveliness change).
     rival_check_period: float = 5.0
 
+    def shrink_to(self, connections: int) -> None:
+        """Fit sessions and handshakes under way into `connections` descriptors, in
+        proportion (the descriptor plan of geo_server/descriptors.py)."""
+        total = self.max_sessions + self.accept_pending
+        if connections >= total:
+            return
+        self.max_sessions = max(1, connections * self.max_sessions // total)
+        self.accept_pending = max(1, connections - self.max_sessions)
+
     def zenoh_config(self) -> zenoh.Config:
         """The Zenoh configuration: the config file (if any), then our options.
 
@@ -129,35 +134,17 @@ def _error_payload(exc: AdsError) -> bytes:
     return json.dumps(exc.as_dict()).encode()
 
 
-def _bounded_int(text: str) -> int:
-    """`parse_int` of `json.loads`: refuse an integer too long for any object first."""
-    if len(text) > MAX_JSON_INT_CHARS:
-        raise AdsError(
-            AdsErrorCode.DEVICE_INVALIDDATA,
-            f"a JSON integer of {len(text)} characters is out of range for every object type",
-        )
-    return int(text)
-
-
 def _json_value(payload: bytes, obj: ObjectDef) -> Any:
     """The value of a JSON write, in the object's type (`ObjectDef.coerce_json`).
 
     The payload is a JSON value of the object's type, or `{"value": <that>}` (the form
     a sensor publishing JSON objects uses); an object with any other key is refused.
     Every refusal is 0x706 (invalid data): a value of the wrong JSON type is invalid
-    data, like one out of range; 0x705 stays for payloads of the wrong size.
+    data, like one out of range; 0x705 stays for payloads of the wrong size. The JSON
+    is read by `loads_json` and the value checked by `coerce_json`: the same rule as
+    the web HMI's writes.
     """
-    try:
-        value = json.loads(payload, parse_int=_bounded_int)
-    # RecursionError: deeply nested JSON ("[[[[…]]]]", well within MAX_PAYLOAD) is bad
-    # data like any other (0x706), not an internal error.
-    # ValueError: Python's own limit on long numbers, should one get past `_bounded_int`.
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
-        raise AdsError(
-            AdsErrorCode.DEVICE_INVALIDDATA, f"{obj.name}: payload is not JSON ({exc})", obj.name
-        ) from None
-    except AdsError as exc:
-        raise AdsError(exc.code, f"{obj.name}: {exc.message}", obj.name) from None
+    value = loads_json(payload, f"{obj.name}: payload", obj.name)
     if isinstance(value, dict):
         if set(value) != {"value"}:
             raise AdsError(
@@ -171,16 +158,7 @@ def _json_value(payload: bytes, obj: ObjectDef) -> Any:
 
 def _json_plan(payload: bytes) -> Any:
     """The JSON plan of `cmd/measure` (strict JSON: 0x706 otherwise)."""
-    try:
-        return json.loads(payload, parse_int=_bounded_int, parse_constant=_no_constant)
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
-        raise AdsError(
-            AdsErrorCode.DEVICE_INVALIDDATA, f"measure: the plan is not JSON ({exc})", "measure"
-        ) from None
-
-
-def _no_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not JSON")
+    return loads_json(payload, "measure: the plan", "measure", constants=False)
 
 
 class ZenohInterface:
@@ -216,6 +194,8 @@ class ZenohInterface:
         self._unsubscribe: list[Any] = []
         self.queries = 0
         self.faulted = 0  # queries an injected fault dropped, answered or delayed
+        self.puts = 0  # puts and deletes of other sessions on this machine's keys
+        self.refused_puts = 0  # of them, refused (reported in the errors list)
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
         #: Other sessions found answering for this machine: key (their Zenoh id, or
@@ -264,8 +244,16 @@ class ZenohInterface:
         )
         self._entities.append(querier)
         self._entities.append(querier.declare_matching_listener(self._on_matching))
+        # A put of a value on an object key is a write (docs/design.md §7): bridges
+        # through Zenoh's REST or MQTT plugins write with put. Only other sessions' puts:
+        # this session's own publications of the values are local.
+        self._entities.append(
+            s.declare_subscriber(f"{prefix}/**", self._on_put, allowed_origin=zenoh.Locality.REMOTE)
+        )
         # Only its matching status is used: does any subscriber listen to this machine?
-        self._watch = s.declare_publisher(f"{prefix}/**")
+        # Remote ones only: the put subscriber above (and, in a fleet sharing this
+        # session, the other machines') must not keep the publish loop awake.
+        self._watch = s.declare_publisher(f"{prefix}/**", allowed_destination=zenoh.Locality.REMOTE)
         self._entities.append(self._watch)
         # the publish loop sleeps while nobody listens; a new subscriber wakes it
         self._watched = asyncio.Event()
@@ -317,6 +305,60 @@ class ZenohInterface:
 
     def _accept(self, query: zenoh.Query) -> None:
         self._spawn(self._handle(query))
+
+    def _on_put(self, sample: zenoh.Sample) -> None:
+        """Zenoh thread: a put or delete of another session on this machine's keys."""
+        delete = sample.kind == zenoh.SampleKind.DELETE
+        key = str(sample.key_expr)
+        payload = b"" if delete else sample.payload.to_bytes()[: MAX_PAYLOAD + 1]
+        self._to_loop(self._accept_put, (key, None if delete else payload))
+
+    def _accept_put(self, put: tuple[str, bytes | None]) -> None:
+        self._spawn(self._put(*put))
+
+    async def _put(self, key: str, payload: bytes | None) -> None:
+        """A put writes the object of its key as a get with payload does (same checks,
+        applied by the cycle after it arrives); with no one to answer, a refusal goes to
+        the errors list (`cnc/<m>/errors`, `SIM::last_error`) naming the key. A delete
+        removes nothing (an object cannot be deleted): it is reported the same way."""
+        self.puts += 1
+        try:
+            if payload is None:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDACCESS,
+                    "an object cannot be deleted (put a value to write it)",
+                )
+            if len(payload) > MAX_PAYLOAD:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDSIZE, f"payload exceeds {MAX_PAYLOAD} bytes"
+                )
+            if self.options.read_only:
+                raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "this interface is read-only")
+            route = self.keys.parse(key)
+            if route.kind not in ("raw", "named"):
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDACCESS,
+                    "a put writes objects; commands and NC text take a get with payload",
+                )
+            await self._write(route, payload)
+        except AdsError as exc:
+            self.refused_puts += 1
+            what = "delete" if payload is None else "put"
+            text = f"zenoh {what} {key[:200]}: {exc.message} (ADS 0x{exc.code:X})"
+            await asyncio.to_thread(self.service.report, text)
+        except Exception:  # never let one bad put take the interface down
+            log.exception("zenoh put on %s failed", key[:200])
+
+    async def _write(self, route: Route, payload: bytes) -> tuple[bytes, zenoh.Encoding]:
+        """Write the object of a raw or named key: what is stored, as a reply payload."""
+        svc = self.service
+        if route.kind == "raw":
+            await svc.write_applied(route.index_group, route.index_offset, payload)
+            return payload, OCTET
+        assert route.obj is not None
+        value = _json_value(payload, route.obj)
+        stored = await svc.write_name_applied(route.obj.name, route.axis, value)
+        return json.dumps(stored).encode(), JSON
 
     async def _handle(self, query: zenoh.Query) -> None:
         self.queries += 1
@@ -370,7 +412,7 @@ class ZenohInterface:
             err = AdsError(int(fault.value), f"injected fault {fault.ident}: {fault.text}")
             query.reply_err(_error_payload(err), encoding=JSON)
             return True
-        await asyncio.sleep(fault.value / 1000)
+        await fault.delay()  # cut short when the fault is cleared
         return False
 
     def _answer_wildcard(self, query: zenoh.Query) -> None:
@@ -440,14 +482,9 @@ class ZenohInterface:
         if self.options.read_only:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, "this interface is read-only")
         svc = self.service
-        if route.kind == "raw":
-            await svc.write_applied(route.index_group, route.index_offset, payload)
-            query.reply(key, payload, encoding=OCTET)
-        elif route.kind == "named":
-            assert route.obj is not None
-            value = _json_value(payload, route.obj)
-            stored = await svc.write_name_applied(route.obj.name, route.axis, value)
-            query.reply(key, json.dumps(stored).encode(), encoding=JSON)
+        if route.kind in ("raw", "named"):
+            data, enc = await self._write(route, payload)
+            query.reply(key, data, encoding=enc)
         elif route.kind in ("reload", "save"):
             result = await svc.command(route.kind)
             if not result.ok:
@@ -738,8 +775,9 @@ def fault_command(service: ObjectService, payload: bytes) -> dict[str, Any]:
 
 def record_command(service: ObjectService, payload: bytes, machine: str) -> dict[str, Any]:
     """`cmd/record` (docs/recorder.md §7): `{"start": {"objects": [...], "every": N,
-    "trigger": "...", "pre": N, "post": N, "out": "trace.csv"}}`, `{"stop": true}` (writes
-    the trace and its inputs on the server's host), or `{}` (status)."""
+    "trigger": "...", "pre": N, "post": N, "out": "trace.csv", "overwrite": false}}`,
+    `{"stop": true}` (puts the trace and its inputs in place in the recordings folder on
+    the server's host), or `{}` (status). Runs in a worker thread (a stop writes)."""
     try:
         body = json.loads(payload or b"{}")
     except ValueError:
@@ -754,9 +792,19 @@ def record_command(service: ObjectService, payload: bytes, machine: str) -> dict
         spec_body = body["start"]
         if not isinstance(spec_body, dict):
             raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, "cmd/record: start takes an object")
-        file = str(spec_body.get("out") or "geo-trace.csv")
-        spec = {k: v for k, v in spec_body.items() if k != "out"}
-        out["recording"] = service.start_recording(spec, file, machine)
+        # `out` is a file name in the recordings folder (docs/recorder.md §7): checked
+        # by the service, which refuses paths elsewhere and existing files unless
+        # `overwrite` is true
+        file = spec_body.get("out", "geo-trace.csv")
+        overwrite = spec_body.get("overwrite", False)
+        if not isinstance(file, str) or not isinstance(overwrite, bool):
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDPARM,
+                "cmd/record: out must be a file name, overwrite true or false",
+                "record",
+            )
+        spec = {k: v for k, v in spec_body.items() if k not in ("out", "overwrite")}
+        out["recording"] = service.start_recording(spec, file, machine, overwrite=overwrite)
     elif "stop" in body:
         out["recording"] = service.stop_recording()
     else:

@@ -135,6 +135,12 @@ function updateAxes(live) {
   }
 }
 
+// the server's refusal: an object service error (ADS code) or the HTTP guard's (status)
+function refusal(body) {
+  if (body.code !== undefined) return `ADS 0x${body.code.toString(16).toUpperCase()}: ${body.message}`;
+  return body.status !== undefined ? `HTTP ${body.status}: ${body.message}` : body.message;
+}
+
 async function writeTempc(input, p, axis) {
   const msg = $(`#tempc-msg-${axis}`);
   let value;
@@ -149,7 +155,7 @@ async function writeTempc(input, p, axis) {
   msg.className = "msg"; msg.textContent = `writing ${p.name} …`;
   let body;
   try {
-    const r = await fetch("api/write", { method: "POST", headers: { "Content-Type": "application/json" },
+    const r = await fetch("api/write", { method: "POST", headers: postHeaders(),
                                           body: JSON.stringify({ name: p.name, axis, value }) });
     body = await r.json();
   } catch (e) {
@@ -159,7 +165,7 @@ async function writeTempc(input, p, axis) {
   if (body.ok) {
     msg.className = "msg ok"; msg.textContent = `${p.name} := ${body.value}`;
   } else {
-    msg.className = "msg error"; msg.textContent = `ADS 0x${body.code.toString(16).toUpperCase()}: ${body.message}`;
+    msg.className = "msg error"; msg.textContent = refusal(body);
   }
 }
 
@@ -517,7 +523,7 @@ async function command(name) {
   msg.className = "msg"; msg.textContent = `${name} …`;
   let body;
   try {
-    body = await (await fetch(`api/command/${name}`, { method: "POST" })).json();
+    body = await (await fetch(`api/command/${name}`, { method: "POST", headers: postHeaders(), body: "{}" })).json();
   } catch (e) {
     body = { ok: false, message: `no answer from the server (${e})` };
   }
@@ -529,7 +535,7 @@ async function command(name) {
     if (name === "reload") buildTables();
   } else {
     msg.className = "msg error";
-    msg.textContent = `${name} failed: ${(body.errors || []).join("; ") || body.message}`;
+    msg.textContent = `${name} failed: ${(body.errors || []).join("; ") || refusal(body)}`;
   }
   msg.title = msg.textContent;
 }

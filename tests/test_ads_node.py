@@ -67,6 +67,8 @@ def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None
     assert info["symbolCount"] == 4 * axis_objects + machine_objects  # X, Y, Z, C
     assert info["dataTypeCount"] == 6
     assert out["symbolVersion"] == 1
+    # readTcSystemExtendedState (index group 0xF0 on port 10000): RUN, never restarted
+    assert out["extendedState"] == {"adsState": "Run", "restartIndex": 0}
     assert out["readRaw"] == 4000.0  # TEMPC::coefficient of X, 000 p.24
     assert out["readValue"] == 4000.0
     assert out["readBool"] is True

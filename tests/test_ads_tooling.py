@@ -126,6 +126,22 @@ def test_system_service_on_port_10000(raw) -> None:
     assert raw.ask(Command.READ_STATE, port=SYSTEM).header.error_code == 0  # still served
 
 
+def test_extended_system_state_on_port_10000(raw) -> None:
+    """Index group 0xF0 on the system service: 16 bytes, as a TwinCAT 3 system service
+    answers Node's ads-client `readTcSystemExtendedState()` (it answered 0x702 before)."""
+    info = raw.ask(Command.READ_DEVICE_INFO, port=SYSTEM)
+    _, major, minor, build, _ = codec.parse_read_device_info_response(info.data)
+    result, data = read_on(raw, SYSTEM, 0xF0, 0, 16)
+    assert result == 0 and len(data) == 16
+    ads_state, device, restart, version, revision, build_, platform, os_type, flags = struct.unpack(
+        "<HHHBBHBBH", data[:14]
+    )
+    assert (ads_state, device, restart) == (5, 0, 0)  # RUN, never restarted
+    assert (version, revision, build_) == (major, minor, build)  # as ReadDeviceInfo
+    assert (platform, os_type, flags) == (0, 0, 0) and data[14:] == b"\0\0"
+    assert read_on(raw, SYSTEM, 0xF0, 0, 0)[0] == 0x705
+
+
 def test_state_notifications(raw, service) -> None:
     """0xF100 (ADS state RUN, device state 0) and 0xF008 (symbol version 1) on change:
     one first sample each, then nothing (they do not change)."""

@@ -19,6 +19,8 @@ async function main() {
   out.uploadInfo = client.metaData.plcUploadInfo;
   out.symbolVersion = client.metaData.plcSymbolVersion;
   out.deviceInfo = client.metaData.deviceInfo;
+  const ext = await client.readTcSystemExtendedState();
+  out.extendedState = { adsState: ext.adsStateStr, restartIndex: ext.restartIndex };
   const raw = await client.readRaw(0x120300, (1 << 16) | 0x43, 8);
   out.readRaw = raw.readDoubleLE(0);
   out.readValue = (await client.readValue("GEO.X.TEMPC.coefficient")).value;

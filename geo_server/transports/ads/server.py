@@ -654,6 +654,9 @@ class AdsServer:
             return codec.result_response(0)
         if isinstance(req, ReadRequest) and req.index_group == symbols.DEVICE_DATA:
             return codec.read_response(0, self._device_data(req.length))
+        if isinstance(req, ReadRequest) and req.index_group == symbols.SYSTEM_STATE_EXTENDED:
+            state = symbols.system_state_extended((self._major, self._minor, self._build))
+            return codec.read_response(0, _fixed(state, req.length, "the system state"))
         if isinstance(req, AddNotificationRequest) and req.index_group == symbols.DEVICE_DATA:
             return self._add_notification(conn, packet.header, req)
         if isinstance(req, DeleteNotificationRequest):

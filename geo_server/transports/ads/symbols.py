@@ -48,6 +48,9 @@ SYM_DT_UPLOAD = 0xF00E  # Read every data type entry
 SYM_UPLOADINFO2 = 0xF00F  # Read 24 bytes
 SYM_DT_INFOBYNAMEEX = 0xF011  # ReadWrite type name -> data type entry
 DEVICE_DATA = 0xF100  # Read / notification: ADS state u16, device state u16
+#: Read on the system service (port 10000): its extended state, 16 bytes (TwinCAT 3.1.4022
+#: and later; `system_state_extended`)
+SYSTEM_STATE_EXTENDED = 0xF0
 
 #: AdsDef.h `ADSSYMBOLFLAG_READONLY`
 SYMBOL_FLAG_READONLY = 0x0020
@@ -229,3 +232,17 @@ def decode_name(data: bytes) -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError:
         return raw.decode("latin-1")
+
+
+def system_state_extended(version: tuple[int, int, int]) -> bytes:
+    """The system service's extended state (index group 0xF0, 16 bytes, little-endian):
+    ADS state u16 (RUN), device state u16 (0), restart index u16 (0: the emulator's
+    system service never restarts), version u8, revision u8, build u16 (as ReadDeviceInfo
+    and discovery tell them), platform u8 and OS type u8 (0: not told), flags u16 (0: no
+    router-only mode, no redundancy, no data folder), 2 bytes reserved. This is what
+    Node's ads-client reads first (`readTcSystemExtendedState`) before ReadState."""
+    major, minor, build = version
+    run = 5  # ADSSTATE_RUN
+    return struct.pack(
+        "<HHHBBHBBH2x", run, 0, 0, major & 0xFF, minor & 0xFF, build & 0xFFFF, 0, 0, 0
+    )

@@ -252,7 +252,7 @@ def latencies(clients: dict[str, tuple[Any, Any]], n: int, seconds: float) -> di
 
 def part_flood(args: argparse.Namespace, env: dict[str, str]) -> str:
     ports = dict(zip(("zenoh", "modbus", "ads"), free_ports(3), strict=True))
-    argv = geo_server_argv(1.0, ports)
+    argv = geo_server_argv(1.0, ports, pythonpath=env.get("PYTHONPATH", ""))
     with ServerProcess(argv, "abuse-flood", env=env) as server:
         session = start_geo(server, ports)
         session.close()
@@ -345,7 +345,9 @@ def part_partial(args: argparse.Namespace, env: dict[str, str]) -> str:
     rows = []
     for size in (args.partial_size, 0):
         port = free_ports(1)[0]
-        argv = geo_server_argv(1.0, {"zenoh": 0, "modbus": 0, "ads": port})
+        argv = geo_server_argv(
+            1.0, {"zenoh": 0, "modbus": 0, "ads": port}, pythonpath=env.get("PYTHONPATH", "")
+        )
         argv = _without_options(argv, ("--zenoh-listen", "--modbus-port"))
         argv += ["--no-zenoh", "--no-modbus"]
         with ServerProcess(argv, "abuse-partial", env=env) as server:

@@ -8,6 +8,7 @@ stopped in a `finally` — SIGTERM first, SIGKILL when it does not exit in time.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import platform
@@ -179,12 +180,31 @@ class ServerProcess:
             print(f"[{self.name}] log kept in {self.log_path}:\n{self.log_tail()}", file=sys.stderr)
 
 
+@functools.cache
+def knows_option(option: str, pythonpath: str = "") -> bool:
+    """Whether `geo-server run` of the tree benchmarked (this one, or `pythonpath`, an
+    earlier commit's source) has `option`: a baseline may predate it."""
+    env = {**os.environ, **({"PYTHONPATH": pythonpath} if pythonpath else {})}
+    exe = str(Path(PYTHON).with_name("geo-server"))
+    out = subprocess.run([exe, "run", "--help"], capture_output=True, text=True, env=env)
+    return option in out.stdout
+
+
+def opcua_argv(pythonpath: str = "") -> list[str]:
+    """A free port for the OPC UA interface where the tree has one (on by default on
+    4840: two servers of one benchmark would collide there)."""
+    if not knows_option("--opcua-endpoint", pythonpath):
+        return []
+    return ["--opcua-endpoint", f"opc.tcp://{HOST}:{free_ports(1)[0]}"]
+
+
 def geo_server_argv(
     cycle_ms: float,
     ports: dict[str, int],
     machine: str = "local",
     extra: Sequence[str] = (),
     engine: str = "punctual",
+    pythonpath: str = "",
 ) -> list[str]:
     """`geo-server run --homed` on the given ports (zenoh, modbus, ads). The benchmarks
     of cycle lateness and request latency measure the punctual engine unless told
@@ -207,6 +227,7 @@ def geo_server_argv(
         str(ports["ads"]),
         "--status-period",
         "5",
+        *opcua_argv(pythonpath),
         *extra,
     ]
 

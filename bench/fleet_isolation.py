@@ -43,6 +43,7 @@ from common import (
     address,
     emit,
     free_ports,
+    opcua_argv,
     summary_us,
     table,
     wait_port,
@@ -338,6 +339,7 @@ def main() -> None:
         str(mbase),
         "--status-period",
         "1",
+        *opcua_argv(args.pythonpath or ""),
     ]
     targets = sorted({1, max(1, n // 2), n})
     out_rows: list[list[Any]] = []

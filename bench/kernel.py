@@ -17,11 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from geo_server.kernel import Kernel, ReferenceKernel
+from geo_server.kernel import Kernel
 
-# the synthetic machines are test support (tests/support/machines.py)
+# the synthetic machines and the reference kernel (the test oracle) are test support
+# (tests/support/machines.py, tests/support/reference.py)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from support.machines import Motion, full_machine
+from support.reference import ReferenceKernel
 
 
 def run(kernel_cls: type, n: int, cycles: int) -> tuple[float, float]:

@@ -29,6 +29,7 @@ from geo_server.interfaces import (
 )
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
+from geo_server.transports.opcua import args as opcua_args
 
 
 def _objects(args: argparse.Namespace) -> int:
@@ -151,11 +152,9 @@ def _run(args: argparse.Namespace) -> int:
             return 2
 
         return run_fleet(args)
+    from geo_server.compose import EngineOptions, build_machine
     from geo_server.listfile import ListFileError, load_machine
-    from geo_server.machine.machine import Machine
     from geo_server.machine.nc import NcError
-    from geo_server.machine.scheduler import Scheduler
-    from geo_server.service import ObjectService
 
     path = Path(args.startup) if args.startup else default_startup_list()
     try:
@@ -166,10 +165,8 @@ def _run(args: argparse.Namespace) -> int:
     for d in cfg.diagnostics:
         print(d, file=sys.stderr)
     _remove_orphans(cfg)
-    machine: Any
-    scheduler: Any
     if args.cycle_in == "process":
-        from geo_server.machine.process import SUPPORTED, ProcessScheduler, RemoteMachine
+        from geo_server.machine.process import SUPPORTED
 
         if not SUPPORTED:
             print(
@@ -177,19 +174,9 @@ def _run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return 2
-
-        machine = RemoteMachine(
-            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
-        )
-        scheduler = ProcessScheduler(
-            machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine
-        )
-    else:
-        machine = Machine(
-            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
-        )
-        scheduler = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
-    service = ObjectService(machine, scheduler)
+    built = build_machine(cfg, EngineOptions.from_args(args, args.cycle_in))
+    machine: Any = built.machine
+    scheduler, service = built.scheduler, built.service
     if not inject_faults(args.fault, service):
         return 2
     if not recorder_cli.start_from_args(args, service):
@@ -294,6 +281,16 @@ def _http(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
     return hmi, lambda: f"http: web HMI on {hmi.url} ({access_note(hmi.options)})"
 
 
+def _opcua(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
+    from geo_server.opcua_run import announce, options_from_args
+    from geo_server.transports.opcua.server import OpcUaInterface
+
+    startup = Path(args.startup) if args.startup else None
+    ua = OpcUaInterface({args.machine: service}, options_from_args(args, startup, args.caps))
+    announce(ua, f"Objects/{args.machine}")
+    return ua, lambda: f"opcua: {ua.endpoint} starting (README *OPC UA*)"
+
+
 def _connection_caps(args: argparse.Namespace) -> dict[str, int]:
     """Each interface's connection cap, fitted under the open-files limit (raised to the
     hard limit first; geo_server/descriptors.py): Zenoh's counts its sessions and the
@@ -313,6 +310,10 @@ def _connection_caps(args: argparse.Namespace) -> dict[str, int]:
         wanted["ads"] = AdsOptions.max_connections
     if args.http:
         wanted["http"] = HmiOptions.max_connections
+    if not args.no_opcua:
+        from geo_server.transports.opcua.server import OpcUaOptions
+
+        wanted["opcua"] = OpcUaOptions.max_connections
     caps, said = plan(wanted, BACKLOG * len(set(wanted) - {"zenoh"}))
     if said:
         print(said, file=sys.stderr, flush=True)
@@ -339,6 +340,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             ("modbus", args.no_modbus, _modbus),
             ("ads", args.no_ads, _ads),
             ("http", not args.http, _http),
+            ("opcua", args.no_opcua, _opcua),
         ):
             if disabled:
                 continue
@@ -610,6 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PASSWORD",
         help="password an add-route request must carry (see --ads-route-user)",
     )
+    opcua_args.add_arguments(r)
     recorder_cli.add_run_arguments(r)
     r.set_defaults(func=_run)
 
@@ -652,6 +655,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.command == "run" and args.cycle_in is None:
         args.cycle_in = default_cycle_in(engine=args.engine)
+    if args.command == "run" and (problem := opcua_args.check_args(args)):
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     if args.command == "run" and args.http:
         from geo_server.web.server import http_options
 

@@ -14,7 +14,6 @@ sit at group + 0x100 (name), 0x200 (type name), 0x300 (length), 0x400 (unit),
 
 from __future__ import annotations
 
-import contextvars
 import difflib
 import json
 import math
@@ -43,11 +42,6 @@ GROUP_PORTS: dict[str, int] = {"geo": GEO_AMS_PORT, "sim": GEO_AMS_PORT, "com": 
 TASK_GROUPS: dict[str, int] = {g: GROUPS[g] for g in ("geo", "sim")}
 #: The AMS ports objects are served on.
 AMS_PORTS: tuple[int, ...] = (GEO_AMS_PORT, COM_AMS_PORT)
-#: The AMS target port of the ADS request being resolved (set by the ADS server around
-#: a request; None: any port, e.g. a name-based interface).
-REQUEST_PORT: contextvars.ContextVar[int | None] = contextvars.ContextVar(
-    "ads_request_port", default=None
-)
 #: Attribute group offsets relative to an object group (docs/design.md §2).
 ATTRIBUTES: dict[int, str] = {
     0x100: "name",
@@ -528,8 +522,9 @@ class Dictionary:
         """Resolve an ADS address to (object, axis, attribute kind or None).
 
         Unknown index group -> 0x702, also a group of another task than the AMS port
-        asked (`port`, else `REQUEST_PORT`); unknown element ID or axis -> 0x703 (docs/
-        design.md §9).
+        asked (`port`: the ADS request's target port, passed explicitly; None: any
+        port, as a name-based interface asks); unknown element ID or axis -> 0x703
+        (docs/design.md §9).
         """
         attr: str | None = None
         group = next((g for g, ig in GROUPS.items() if ig == index_group), None)
@@ -540,7 +535,6 @@ class Dictionary:
                     break
         if group is None:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDGRP, f"unknown index group 0x{index_group:X}")
-        port = REQUEST_PORT.get() if port is None else port
         if port is not None and port != GROUP_PORTS[group]:
             task = "COM" if GROUP_PORTS[group] == COM_AMS_PORT else "GEO"
             raise AdsError(

@@ -311,6 +311,22 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "the machine's inputs held by a recording (awaiting its trigger, or not yet written)",
         "the oldest go (counted: `inputs_dropped`)",
     ),
+    ("opcua", "max_connections", "", "OPC UA connections", "closed at once"),
+    (
+        "opcua",
+        "max_monitored_items_per_session",
+        "",
+        "monitored items of geo-server variables in one session",
+        "BadTooManyMonitoredItems",
+    ),
+    (
+        "opcua",
+        "max_monitored_items",
+        "",
+        "monitored items of geo-server variables in all sessions",
+        "BadTooManyMonitoredItems",
+    ),
+    ("opcua", "max_subscriptions", "", "subscriptions in all sessions", "BadTooManySubscriptions"),
 ]
 
 
@@ -320,10 +336,12 @@ def _option_classes() -> dict[str, Any]:
     from geo_server.service import ServiceLimits
     from geo_server.transports.ads.server import AdsOptions
     from geo_server.transports.modbus.server import ModbusOptions
+    from geo_server.transports.opcua.server import OpcUaOptions
     from geo_server.transports.zenoh.server import ZenohOptions
     from geo_server.web.server import HmiOptions
 
     return {
+        "opcua": OpcUaOptions,
         "http": HmiOptions,
         "service": ServiceLimits,
         "ads": AdsOptions,
@@ -375,6 +393,7 @@ def limits_table() -> str:
     where = {"service": "all", "ads": "ADS", "modbus": "Modbus", "zenoh": "Zenoh", "files": "files"}
     where["recorder"] = "recorder"
     where["http"] = "HTTP"
+    where["opcua"] = "OPC UA"
     lines = [
         "| interface | limit | default | option | past it |",
         "|---|---|---|---|---|",

@@ -38,9 +38,26 @@ import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from enum import StrEnum
+from typing import Any, TypeVar
 
 from geo_server.errors import AdsErrorCode, GeoError
+
+
+class FaultKind(StrEnum):
+    """What a fault does (docs/faults.md): to a request (delay, drop, error,
+    disconnect), to the cycle (overrun) or to a sensor of the twin (stuck, noisy, open).
+    A `str` too: the text form and the JSON of `status()` are its value."""
+
+    DELAY = "delay"
+    DROP = "drop"
+    ERROR = "error"
+    DISCONNECT = "disconnect"
+    OVERRUN = "overrun"
+    STUCK = "stuck"
+    NOISY = "noisy"
+    OPEN = "open"
+
 
 #: The transports a fault can target; `all` means each of them.
 TRANSPORTS = ("ads", "modbus", "zenoh")
@@ -69,6 +86,33 @@ MAX_PATTERN = 64
 
 #: A request delayed by a fault looks this often (s) whether the fault was cleared.
 _DELAY_SLICE = 0.05
+
+
+R = TypeVar("R")
+
+
+def carry_out(
+    fault: Fault,
+    *,
+    drop: Callable[[], R],
+    error: Callable[[int], R],
+    disconnect: Callable[[], R],
+    delay: Callable[[], R],
+) -> R:
+    """The one dispatch on what a transport fault does to the request it hit
+    (docs/faults.md), shared by every transport: each passes what each kind means in its
+    protocol (`error` gets the code to answer with; `delay` serves the request after
+    `fault.delay()`)."""
+    match fault.kind:
+        case FaultKind.DROP:
+            return drop()
+        case FaultKind.ERROR:
+            return error(int(fault.value))
+        case FaultKind.DISCONNECT:
+            return disconnect()
+        case FaultKind.DELAY:
+            return delay()
+    raise FaultError(f"fault {fault.text!r}: {fault.kind} is not a transport fault")
 
 
 def _match_all(name: str) -> bool:
@@ -205,6 +249,7 @@ def _target(fault: Fault, text: str) -> None:
         raise FaultError(
             f"fault {fault.text!r}: {target} has no fault {fault.kind!r} ({', '.join(kinds)})"
         )
+    fault.kind = FaultKind(fault.kind)
     if fault.target == "zenoh" and fault.kind == "disconnect":
         raise FaultError(
             f"fault {fault.text!r}: Zenoh has no client connection to drop (a query is "

@@ -13,6 +13,7 @@ its own: a machine at rest costs next to nothing) and object service. The interf
   does (`AdsServer.add_device`), one NetId per machine; an unknown NetId gets 0x7.
 - **Modbus**: one port per machine, `--modbus-port` + i.
 - **Web HMI** (`--http`): the fleet's page at `/`, each machine's page at `/m/<name>/`.
+- **OPC UA**: one server; machine `m` is `Objects/m` (README *OPC UA*).
 
 The fleet file: `geo_server.fleetfile`.
 """
@@ -58,11 +59,9 @@ class Served:
 def run_fleet(args: argparse.Namespace) -> int:
     """`geo-server run --fleet FILE | --fleet-size N` (exit code)."""
     from geo_server import __version__
+    from geo_server.compose import EngineOptions, build_machine
     from geo_server.interfaces import inject_faults
     from geo_server.listfile import ListFileError, load_machine
-    from geo_server.machine.machine import Machine
-    from geo_server.machine.scheduler import Scheduler
-    from geo_server.service import ObjectService
 
     try:
         members = members_from_args(args)
@@ -78,16 +77,13 @@ def run_fleet(args: argparse.Namespace) -> int:
             print(f"error: {m.name}: {exc}", file=sys.stderr)
             return 2
         configs[m.startup] = cfg
-        machine = Machine(
-            cfg, cycle_s=args.cycle_ms / 1000.0, homed=args.homed, time_scale=args.time_scale
-        )
-        sched = Scheduler(machine, mode=args.mode, max_cycles=args.cycles, engine=args.engine)
-        service = ObjectService(machine, sched)
+        built = build_machine(cfg, EngineOptions.from_args(args))  # cycles on threads
+        service = built.service
         # a folder of recordings per machine: the same name never collides (docs/recorder.md §7)
         service.record_dir = recorder_cli.record_dir(args, m.name, cfg.startup_path)
         if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
             return 2
-        served.append(Served(m, service, sched))
+        served.append(Served(m, service, built.scheduler))
     print(
         f"geo-server {__version__}: a fleet of {len(served)} machines "
         f"({', '.join(s.member.name for s in served[:5])}{', …' if len(served) > 5 else ''}), "
@@ -189,6 +185,11 @@ def connection_caps(args: argparse.Namespace, machines: int) -> dict[str, int]:
     if args.http:
         wanted["http"] = HmiOptions.max_connections
         fixed += BACKLOG
+    if not args.no_opcua:  # one OPC UA server for the fleet
+        from geo_server.transports.opcua.server import OpcUaOptions
+
+        wanted["opcua"] = OpcUaOptions.max_connections
+        fixed += BACKLOG
     # every machine's port keeps at least MIN_CAP connections
     caps, said = plan(wanted, fixed, floors={"modbus": MIN_CAP * machines})
     if said:
@@ -213,17 +214,8 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
     except DescriptorError as exc:
         raise InterfaceStartError(str(exc)) from None
     closers: list[Any] = []
-    session = None
     try:
-        if not args.no_zenoh:
-            session = await _start_zenoh(args, served, closers)
-        if not args.no_modbus:
-            try:
-                await _start_modbus(args, served, closers)
-            except OSError as exc:
-                raise InterfaceStartError(start_failure("modbus", exc)) from exc
-        if not args.no_ads:
-            await _start_ads(args, served, closers)
+        session = await _start_interfaces(args, served, closers)
         for s in served:
             s.scheduler.start()
         lag = [0.0]
@@ -253,24 +245,53 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
             latest[0] = json.dumps(st).encode()
             if session is not None:
                 session.put(FLEET_STATUS_KEY, latest[0])
-            cycles = [m["cycle"] for m in st["machines"]]
-            print(
-                f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
-                f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
-                f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}",
-                flush=True,
-            )
-            if args.cycles and all(not s.scheduler.running for s in served):
+            if _report(args, served, st):
                 break
-            dead = [s.member.name for s in served if not s.scheduler.running]
-            if dead and not args.cycles:  # serving a frozen machine would look alive
-                raise CycleStoppedError(f"the GEO cycle of {', '.join(dead)} ended unexpectedly")
     finally:
         for close in reversed(closers):
             try:
                 await close()
             except Exception as exc:  # report and go on closing the others
                 print(f"warning: closing: {exc}", file=sys.stderr)
+
+
+async def _start_interfaces(
+    args: argparse.Namespace, served: list[Served], closers: list[Any]
+) -> Any:
+    """Start the fleet's interfaces (each one's closer appended to `closers` as it
+    starts); the Zenoh session, None without Zenoh."""
+    session = None
+    if not args.no_zenoh:
+        session = await _start_zenoh(args, served, closers)
+    if not args.no_modbus:
+        try:
+            await _start_modbus(args, served, closers)
+        except OSError as exc:
+            raise InterfaceStartError(start_failure("modbus", exc)) from exc
+    if not args.no_ads:
+        await _start_ads(args, served, closers)
+    if not args.no_opcua:
+        await _start_opcua(args, served, closers)
+    return session
+
+
+def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) -> bool:
+    """Print the fleet's status line; True when `--cycles` are done. A machine whose
+    cycle ended by itself otherwise: CycleStoppedError (serving a frozen machine would
+    look alive)."""
+    cycles = [m["cycle"] for m in st["machines"]]
+    print(
+        f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
+        f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
+        f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}",
+        flush=True,
+    )
+    if args.cycles and all(not s.scheduler.running for s in served):
+        return True
+    dead = [s.member.name for s in served if not s.scheduler.running]
+    if dead and not args.cycles:
+        raise CycleStoppedError(f"the GEO cycle of {', '.join(dead)} ended unexpectedly")
+    return False
 
 
 async def _cancel(task: asyncio.Future[None]) -> None:
@@ -339,6 +360,24 @@ async def _start_modbus(args: argparse.Namespace, served: list[Served], closers:
         await mb.start()
     first, last = served[0].member.modbus_port, served[-1].member.modbus_port
     print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
+
+
+async def _start_opcua(args: argparse.Namespace, served: list[Served], closers: list[Any]) -> None:
+    """One OPC UA server for the fleet, each machine under its own name (its
+    certificate beside the fleet file, or as for the start-up list of --fleet-size)."""
+    from geo_server.opcua_run import announce, options_from_args
+    from geo_server.transports.opcua.server import OpcUaInterface
+
+    where = args.fleet or args.startup
+    options = options_from_args(args, Path(where) if where else None, args.caps)
+    ua = OpcUaInterface({s.member.name: s.service for s in served}, options)
+    announce(ua, f"{len(served)} machines: Objects/<name>")
+    closers.append(ua.close)
+    try:
+        await ua.start()
+    except Exception as exc:  # a taken port
+        raise InterfaceStartError(start_failure("opcua", exc)) from exc
+    print(f"opcua: {ua.endpoint} starting (README *OPC UA*)", flush=True)
 
 
 async def _start_http(

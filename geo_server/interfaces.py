@@ -22,6 +22,7 @@ _PORT_OPTION = {
     "modbus": "--modbus-port PORT",
     "ads": "--ads-port PORT",
     "http": "--http HOST:PORT",
+    "opcua": "--opcua-endpoint opc.tcp://127.0.0.1:PORT (or --no-opcua)",
 }
 
 

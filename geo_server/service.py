@@ -24,56 +24,61 @@ Commands
     Objects marked `command` in the dictionary (`SIM::reload`, `SIM::save`) run that
     command instead of queueing a value; commands read or write list files, so
     `*_applied` run them in a worker thread, never on an event loop. One command runs at
-    a time; another one waits at most `command_wait` and then gets 0x708 (busy).
+    a time; another one waits at most `command_wait` and then gets 0x708 (busy). Each
+    command is a service of its own (`geo_server/commands/`); the methods here that name
+    one (`reload`, `save`, `run_nc`, `inject_fault`, `start_recording`, `measure`…) hand
+    over to it (`faults`, `nc`, `recordings`, `measurements`).
 
-Transports never reach into the kernel or the machine; they hold an `ObjectService`
-and map its `AdsError`s to their own codes.
+Addresses
+    `resolve(group, offset, port=…)`: an ADS request's AMS port is an argument (a task
+    serves only its own groups, 0x702); None (any port) for name-based interfaces.
+
+Interfaces never reach into the kernel or the machine (tests/test_architecture.py checks
+imports and attribute access); they hold an `ObjectService` and map its `AdsError`s to
+their own codes. What an engine can do beyond the ports (overruns, chosen cycles, the
+twin's sensors, input taps) is decided once here, by type, never by `getattr`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from geo_server.dictionary import Dictionary, ObjectDef
+from geo_server.commands.faults import FaultService
+from geo_server.commands.measure import MeasureService
+from geo_server.commands.nc import NcService
+from geo_server.commands.ports import ADSERR_DEVICE_SYNTAX, CommandLock, CommandResult, Ports
+from geo_server.commands.record import RecordingService
+from geo_server.commands.reload import reload_lists
+from geo_server.commands.save import format_value, save_lists
+from geo_server.commands.volumetric import update_volumetric
+from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
-from geo_server.faults import Fault, FaultError, Faults, parse_fault
-from geo_server.listfile import ListFileError, compare_max_points, load_machine, rewrite_values
-from geo_server.listfile.values import Reporter
-from geo_server.machine.nc import NcError, parse_program
+from geo_server.faults import Fault
+from geo_server.machine.machine import Machine
 from geo_server.machine.port import (
+    CycleDemand,
     CycleRunner,
     MachinePort,
+    Operation,
     Pending,
-    Reload,
-    Reset,
-    SensorFault,
-    StartProgram,
-    VolcUpdate,
     WriteObjects,
     chained,
     resolved,
     varies_at_rest,
 )
+from geo_server.machine.scheduler import Scheduler
 from geo_server.model import CompKind, Diagnostic, MachineConfig
-from geo_server.paths import is_product_data
-from geo_server.recorder import Recorder, RecordSpec, SelectionError, TraceFileError
-from geo_server.recorder.paths import check_target, default_record_dir, machine_files, output_path
+from geo_server.recorder import Recorder, RecordSpec
 from geo_server.recorder.recorder import RecorderLimits
 from geo_server.snapshot import Snapshot
-from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
-from geo_server.volcomp.config import reload_compensation
-from geo_server.volcomp.kernel import VOLC_ERROR
 
-#: ADS "syntax error in file" — a reload rejected because a list has errors.
-ADSERR_DEVICE_SYNTAX = AdsErrorCode.DEVICE_SYNTAX
 #: the longest a status or a server's own error waits for another thread's catch-up
 #: (seconds; a fleet's status asks every machine in turn)
 STATUS_SYNC_WAIT = 0.02
@@ -109,55 +114,6 @@ class PreparedWrite:
     value: Any
 
 
-@dataclass
-class CommandResult:
-    """Outcome of `reload` / `save`, as JSON for the transports."""
-
-    ok: bool
-    command: str
-    errors: list[str] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
-    files: list[str] = field(default_factory=list)
-    #: The ADS code of a failure: 0x70D list errors, 0x708 busy, 0x719 not applied in time.
-    code: int = 0
-    #: The manual's error ID of the first problem (e.g. 110591), 0 if none has one.
-    error_id: int = 0
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "ok": self.ok,
-            "command": self.command,
-            "errors": self.errors,
-            "warnings": self.warnings,
-            "files": self.files,
-        }
-
-    @property
-    def message(self) -> str:
-        """One line saying what happened (the reason of a rejection first)."""
-        if self.ok:
-            return f"{self.command} done" + (f": {', '.join(self.files)}" if self.files else "")
-        head = (
-            "reload rejected, machine unchanged"
-            if self.command == "reload"
-            else f"{self.command} failed"
-        )
-        return f"{head}: {'; '.join(self.errors)}"
-
-    def error(self) -> AdsError:
-        return AdsError(self.code or ADSERR_DEVICE_SYNTAX, self.message, self.command)
-
-
-def format_value(obj: ObjectDef, value: Any) -> str:
-    """A value as a list-file token: integers plain, REAL64 shortest round-trip form."""
-    if obj.type.name == "BOOLEAN":
-        return "1" if value else "0"
-    if obj.type.name == "REAL64":
-        f = float(value)
-        return str(int(f)) if f.is_integer() and abs(f) < 1e15 else repr(f)
-    return str(round(value))
-
-
 class ObjectService:
     """Reads, writes, batches, subscriptions and commands over one machine."""
 
@@ -168,31 +124,49 @@ class ObjectService:
         limits: ServiceLimits | None = None,
     ) -> None:
         if scheduler is None:
-            from geo_server.machine.scheduler import Scheduler
-
-            scheduler = Scheduler(machine, mode="stepped")  # type: ignore[arg-type]
+            if not isinstance(machine, Machine):
+                raise TypeError("a machine in another process comes with its scheduler")
+            scheduler = Scheduler(machine, mode="stepped")
         self.machine = machine
         self.scheduler = scheduler
         self.limits = limits or ServiceLimits()
-        if hasattr(scheduler, "idle_wake"):  # an engine that sleeps at rest: a heartbeat
-            scheduler.idle_wake = min(scheduler.idle_wake, self.limits.stall_after / 2)
+        # What the engine can do beyond the ports, decided once by its type: the engine
+        # in this process (overruns, chosen cycles, an idle wake) and the machine in
+        # this process (the twin's sensors, input taps); the cycle process has neither.
+        self._engine = scheduler if isinstance(scheduler, Scheduler) else None
+        self._local = machine if isinstance(machine, Machine) else None
+        if self._engine is not None:  # an engine that sleeps at rest: a heartbeat
+            self._engine.idle_wake = min(self._engine.idle_wake, self.limits.stall_after / 2)
         self.dictionary = machine.dictionary
-        self._command_lock = threading.Lock()
-        self._measure_lock = threading.Lock()
-        self._measure_cancel = threading.Event()
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
+        # The commands, each a service of its own over the same ports and rules
+        # (geo_server/commands, docs/design.md §5.7), built once here.
+        self._ports = Ports(
+            machine,
+            scheduler,
+            self.limits,
+            refuse_when_stalled=self._refuse_when_stalled,
+            settle_sync=self.settle_sync,
+            settle=self.settle,
+            report_now=self._report_now,
+            snapshot=self.fresh,
+        )
+        self._commands = CommandLock(self._ports)
+        local = self._local
         #: injected faults (docs/faults.md); the transports ask `faults.decide`
-        self.faults = Faults()
-        #: the recording a command started (docs/recorder.md §7) and where it goes
-        self.recording: Recorder | None = None
-        self._recording_lock = threading.Lock()
-        #: where recordings asked for over an interface go (`run --record-dir`); None:
-        #: `recordings/` beside the start-up list (recorder.paths.default_record_dir)
-        self.record_dir: Path | None = None
-        #: bounds of a recording (README *Limits*, docs/recorder.md §8)
-        self.record_limits = RecorderLimits()
+        self.faults = FaultService(
+            self._ports,
+            self._engine.set_overrun if self._engine is not None else None,
+            (lambda: local.twin) if local is not None else None,
+        )
+        #: NC text and reset
+        self.nc = NcService(self._ports)
+        #: ISO 230-2 measurements on the twin (docs/twin.md)
+        self.measurements = MeasureService(self._ports, self)
+        #: recordings asked for over an interface (docs/recorder.md §7)
+        self.recordings = RecordingService(self._ports, self)
 
     # ------------------------------------------------------------------ state
 
@@ -203,6 +177,32 @@ class ObjectService:
     @property
     def cycle_s(self) -> float:
         return self.machine.cycle_s
+
+    @property
+    def config(self) -> MachineConfig:
+        """The machine's configuration as loaded from its lists (the current one after
+        a reload): axes, parameters, tables, file paths."""
+        return self.machine.cfg
+
+    @property
+    def mode(self) -> str:
+        """How the cycles run: "stepped", "free" or "realtime" (docs/design.md §5.4)."""
+        return self.scheduler.mode
+
+    def demand_every_cycle(self) -> Callable[[], None]:
+        """Publish every cycle's snapshot until the returned function is called (an
+        observer that samples every cycle: a recording, `subscribe_changes`)."""
+        return self.scheduler.demand_every_cycle()
+
+    def tap_inputs(self, callback: Callable[[int, Operation], None]) -> Callable[[], None]:
+        """Call `callback(cycle, operation)` for each input the cycle applies (a
+        recording's inputs, docs/recorder.md §4) until the returned function is called;
+        the cycle in its own process has no taps (a no-op)."""
+        machine = self._local
+        if machine is None:
+            return lambda: None
+        machine.input_taps.append(callback)
+        return lambda: machine.input_taps.remove(callback)
 
     @property
     def running(self) -> bool:
@@ -253,8 +253,32 @@ class ObjectService:
 
     # ------------------------------------------------------------------ addressing
 
-    def resolve(self, index_group: int, index_offset: int) -> tuple[ObjectDef, int, str | None]:
-        return self.dictionary.resolve(index_group, index_offset, self.axes)
+    def resolve(
+        self, index_group: int, index_offset: int, *, port: int | None = None
+    ) -> tuple[ObjectDef, int, str | None]:
+        """The object, axis and attribute at an address; `port`: the AMS port the request
+        was sent to (a task serves only its own groups: 0x702), None: any."""
+        return self.dictionary.resolve(index_group, index_offset, self.axes, port)
+
+    def lookup_address(
+        self, index_group: int, element: int, channel: int, axis: int
+    ) -> tuple[int, int]:
+        """The address lookup (group + 0x600, docs/design.md §2): (group, offset) of an
+        element for (channel, axis), (0, 0) for none."""
+        return self.dictionary.lookup_address(index_group, element, channel, axis, self.axes)
+
+    def axis_names(self) -> dict[int, str]:
+        """Axis number -> axis name, in slot order (symbol names)."""
+        m = self.machine
+        return {m.axes[slot]: name for name, slot in sorted(m.names.items(), key=_by_slot)}
+
+    def demand_cycles(self, demand: CycleDemand) -> Callable[[], None]:
+        """Publish the cycles `demand` wants until the returned function is called
+        (ADS notifications; docs/design.md §13). An engine without that (the cycle
+        process) publishes every cycle's snapshot meanwhile."""
+        if self._engine is not None:
+            return self._engine.demand_cycles(demand)
+        return self.scheduler.demand_every_cycle()
 
     @staticmethod
     def varies_at_rest(obj: ObjectDef) -> bool:
@@ -280,13 +304,16 @@ class ObjectService:
         index_offset: int,
         length: int | None = None,
         snapshot: Snapshot | None = None,
+        *,
+        port: int | None = None,
     ) -> bytes:
         """ADS bytes of one object (or attribute) from one snapshot.
 
         `length` smaller than the object -> 0x705; larger -> the object's bytes only
-        (ADS returns the bytes actually read, never more than requested).
+        (ADS returns the bytes actually read, never more than requested). `port` as
+        in `resolve`.
         """
-        obj, axis, attr = self.resolve(index_group, index_offset)
+        obj, axis, attr = self.resolve(index_group, index_offset, port=port)
         if attr:
             data = obj.attribute(attr)
         else:
@@ -332,9 +359,12 @@ class ObjectService:
 
     # ------------------------------------------------------------------ writes: validation
 
-    def prepare(self, index_group: int, index_offset: int, data: bytes) -> PreparedWrite:
-        """Validate ADS bytes for a write (0x702/0x703/0x704/0x705/0x706)."""
-        obj, axis, attr = self.resolve(index_group, index_offset)
+    def prepare(
+        self, index_group: int, index_offset: int, data: bytes, *, port: int | None = None
+    ) -> PreparedWrite:
+        """Validate ADS bytes for a write (0x702/0x703/0x704/0x705/0x706); `port` as in
+        `resolve`."""
+        obj, axis, attr = self.resolve(index_group, index_offset, port=port)
         if attr is not None:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDACCESS, f"attribute of {obj.name} is read-only", obj.name
@@ -536,60 +566,21 @@ class ObjectService:
         st["stalled_for_s"] = round(stalled, 3)
         st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
         st["faults"] = self.faults.status()
-        if self.recording is not None:
-            st["recording"] = {**self.recording.status(), "file": str(self.recording.out)}
+        recording = self.recordings.status()
+        if recording is not None:
+            st["recording"] = recording
         st.update(self.status_extra)
         return st
 
-    # ------------------------------------------------------------------ faults
+    # ------------------------------------------------------------------ commands
 
     def inject_fault(self, fault: str | Fault) -> dict[str, Any]:
-        """Inject a fault (text as in docs/faults.md, or parsed) and return it as listed
-        in `status()["faults"]`. Transport faults act on the next request; a cycle
-        overrun from the next cycle on; a sensor fault at the next cycle boundary.
-        Raises `FaultError` (a clear message) for a fault this machine cannot have."""
-        f = parse_fault(fault) if isinstance(fault, str) else fault
-        if f.target == "cycle":
-            return self._inject_overrun(f)
-        if f.target == "sensor":
-            return self._inject_sensor(f)
-        return self.faults.add(f).as_dict()
+        """`faults.inject` (docs/faults.md)."""
+        return self.faults.inject(fault)
 
-    def _inject_overrun(self, f: Fault) -> dict[str, Any]:
-        set_overrun = getattr(self.scheduler, "set_overrun", None)
-        if set_overrun is None:
-            raise FaultError(
-                f"fault {f.text!r}: cycle overruns need the GEO cycle in a thread "
-                "(geo-server run --cycle-in thread)"
-            )
-        active = self.faults.of("cycle")
-        if active:
-            raise FaultError(
-                f"fault {f.text!r}: overrun fault {active[0].ident} is active; clear it first"
-            )
-        cycles = max(1, round(f.value / (self.cycle_s * 1000)))
-        added = self.faults.add(f)
-        set_overrun(cycles, f.every, lambda: self.faults.hit(added))
-        return added.as_dict()
-
-    def _inject_sensor(self, f: Fault) -> dict[str, Any]:
-        twin = getattr(self.machine, "twin", None)
-        if twin is None:
-            raise FaultError(
-                f"fault {f.text!r}: sensor faults need the GEO cycle in a thread "
-                "(geo-server run --cycle-in thread)"
-            )
-        try:
-            k = twin.sensor_index(f.sensor)
-        except LookupError as exc:
-            raise FaultError(f"fault {f.text!r}: {exc}") from None
-        if any(twin.sensor_index(g.sensor) == k for g in self.faults.of("sensor")):
-            raise FaultError(f"fault {f.text!r}: that sensor has a fault already; clear it first")
-        added = self.faults.add(f)
-        self._settle_op(SensorFault(k, f.kind, f.value))
-        return added.as_dict()
-
-    # ------------------------------------------------------------------ recording
+    def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
+        """`faults.clear` (docs/faults.md)."""
+        return self.faults.clear(ident)
 
     def start_recording(
         self,
@@ -600,79 +591,35 @@ class ObjectService:
         overwrite: bool = False,
         local: bool = False,
     ) -> dict[str, Any]:
-        """Start recording `spec` (docs/recorder.md) into `out` (CSV or .parquet, the
-        inputs beside it as `<stem>.inputs.jsonl`), streamed while it records and put in
-        place by `stop_recording`. An `out` from an interface (not `local`, the command
-        line's own) is a file name in the recordings folder, an existing file replaced
-        only with `overwrite`, never a file of the machine (recorder.paths); anything
-        else is refused with 0x70B, as are settings outside `record_limits`. One
-        recording at a time: another one is refused with 0x708."""
-        with self._recording_lock:
-            if self.recording is not None:
-                raise AdsError(
-                    AdsErrorCode.DEVICE_BUSY, "a recording runs already: stop it first", "record"
-                )
-            try:
-                if isinstance(spec, dict):
-                    spec = RecordSpec.from_json(spec, self.record_limits)
-                protected = machine_files(self.machine.cfg)
-                if local:
-                    target = Path(out)
-                    check_target(target, overwrite=True, protected=protected)
-                else:
-                    folder = self.record_dir or default_record_dir(self.machine.cfg.startup_path)
-                    folder.mkdir(parents=True, exist_ok=True)
-                    target = output_path(
-                        str(out),
-                        folder,
-                        overwrite=overwrite,
-                        protected=protected,
-                        max_text=self.record_limits.max_text,
-                    )
-                rec = Recorder(self, spec, name, out=target, limits=self.record_limits)
-                self.recording = rec.start()
-            except (SelectionError, ValueError) as exc:
-                raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc), "record") from None
-            except OSError as exc:  # the folder cannot be made or written
-                raise AdsError(
-                    AdsErrorCode.DEVICE_ERROR, f"record: cannot write {out}: {exc}", "record"
-                ) from None
-            return {**rec.status(), "file": str(target)}
+        """`recordings.start` (docs/recorder.md §7)."""
+        return self.recordings.start(spec, out, name, overwrite=overwrite, local=local)
 
     def stop_recording(self) -> dict[str, Any]:
-        """Stop the recording, write the rows it still holds and put its trace and
-        inputs in place (in the calling thread: call it off the event loop); what was
-        written."""
-        with self._recording_lock:
-            rec, self.recording = self.recording, None
-        if rec is None:
-            raise AdsError(AdsErrorCode.DEVICE_INVALIDSTATE, "no recording runs", "record")
-        try:
-            return rec.finish()
-        except (OSError, TraceFileError) as exc:
-            raise AdsError(AdsErrorCode.DEVICE_ERROR, str(exc), "record") from None
+        """`recordings.stop` (docs/recorder.md §7)."""
+        return self.recordings.stop()
 
-    def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
-        """Clear fault `ident` (None: every fault) and undo what it did: overruns stop,
-        a sensor reads its node again from its next sample. Returns the faults cleared;
-        an `ident` that is not active raises `FaultError`."""
-        gone = self.faults.remove(ident)
-        if ident is not None and not gone:
-            active = ", ".join(str(f["id"]) for f in self.faults.status()) or "none"
-            raise FaultError(f"no active fault {ident} (active: {active})")
-        for f in gone:
-            if f.target == "cycle":
-                self.scheduler.set_overrun(0, 0)  # type: ignore[attr-defined]
-            elif f.target == "sensor":
-                twin = self.machine.twin  # type: ignore[attr-defined]
-                self._settle_op(SensorFault(twin.sensor_index(f.sensor), ""))
-        return [f.as_dict() for f in gone]
+    @property
+    def recording(self) -> Recorder | None:
+        """The recording under way, if any."""
+        return self.recordings.recording
 
-    def _settle_op(self, op: SensorFault) -> None:
-        """Queue a machine operation; with cycles running, wait until it is applied."""
-        pending = self.scheduler.submit(op)
-        if self.running:
-            self.settle_sync(pending, self.limits.write_timeout)
+    @property
+    def record_dir(self) -> Path | None:
+        """Where recordings asked for over an interface go (`run --record-dir`)."""
+        return self.recordings.record_dir
+
+    @record_dir.setter
+    def record_dir(self, folder: Path | None) -> None:
+        self.recordings.record_dir = folder
+
+    @property
+    def record_limits(self) -> RecorderLimits:
+        """Bounds of a recording (README *Limits*, docs/recorder.md §8)."""
+        return self.recordings.limits
+
+    @record_limits.setter
+    def record_limits(self, limits: RecorderLimits) -> None:
+        self.recordings.limits = limits
 
     def errors(self) -> list[dict[str, Any]]:
         """The last 100 warnings and errors, oldest first."""
@@ -706,29 +653,9 @@ class ObjectService:
         self.scheduler.step(n)
         return self.snapshot
 
-    # ------------------------------------------------------------------ NC, reset
-
     def run_nc(self, text: str) -> Pending:
-        """Parse NC lines now and start them as MDI lines at the next cycle boundary.
-
-        Bad text -> 0x70D naming the line; text over `nc_max_bytes` or `nc_max_lines`
-        -> 0x705 (a long program belongs in a file: `geo-server run --program`)."""
-        size = len(text.encode("utf-8", errors="replace"))
-        lines = text.count("\n") + 1
-        lim = self.limits
-        if size > lim.nc_max_bytes or lines > lim.nc_max_lines:
-            raise AdsError(
-                AdsErrorCode.DEVICE_INVALIDSIZE,
-                f"NC text of {size} bytes / {lines} lines exceeds {lim.nc_max_bytes} bytes / "
-                f"{lim.nc_max_lines} lines",
-                "nc",
-            )
-        try:
-            prog = parse_program(text, self.machine.names, mdi=True)
-        except NcError as exc:
-            raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
-        self._refuse_when_stalled()
-        return self.scheduler.submit(StartProgram(prog, True, text))
+        """`nc.run`: NC text started as MDI lines at the next cycle boundary."""
+        return self.nc.run(text)
 
     async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
         """`run_nc` parsed in a worker thread; returns the cycle that started it."""
@@ -737,66 +664,24 @@ class ObjectService:
         return self.snapshot.cycle
 
     def reset(self) -> Pending:
-        """CNC reset at the next cycle boundary: program stopped, axes stopped."""
-        self._refuse_when_stalled()
-        return self.scheduler.submit(Reset())
+        """`nc.reset`: CNC reset at the next cycle boundary."""
+        return self.nc.reset()
 
     async def reset_applied(self, *, timeout: float | None = None) -> int:
-        await self.settle(self.reset(), timeout)
+        await self.settle(self.nc.reset(), timeout)
         return self.snapshot.cycle
 
-    # ------------------------------------------------------------------ commands
-
     def measure(self, spec: Any) -> dict[str, Any]:
-        """An ISO 230-2 positioning test on the twin (docs/twin.md), for `cmd/measure`:
-        `spec` is the JSON plan of `twin.measure.plan_from_json`; returns the evaluation
-        as a dict. Blocks until done: call it from a worker thread. On a running machine
-        it moves the axis through object writes and waits for the cycles (at most
-        `limits.measure_deadline` in all; `cancel_measure` ends it); in stepped mode it
-        steps the machine itself. A bad plan is 0x706; one measurement at a time, and a
-        test that cannot go on (axis not homed, moved by someone else, an NC error) is
-        0x708."""
-        try:
-            plan = plan_from_json(spec, self.machine.cfg)
-        except MeasureError as exc:
-            raise AdsError(AdsErrorCode.DEVICE_INVALIDDATA, str(exc), "measure") from None
-        if not self._measure_lock.acquire(blocking=False):
-            raise AdsError(AdsErrorCode.DEVICE_BUSY, "a measurement is running", "measure")
-        self._measure_cancel.clear()
-        try:
-            bench = (
-                LiveBench(
-                    self,
-                    timeout_s=self.limits.command_wait + 60.0,
-                    deadline_s=self.limits.measure_deadline,
-                    cancel=self._measure_cancel,
-                )
-                if self.running
-                else StepBench(self)
-            )
-            started = time.monotonic()
-            ev = run_test(bench, plan)
-        except MeasureError as exc:
-            raise AdsError(AdsErrorCode.DEVICE_BUSY, str(exc), "measure") from None
-        finally:
-            self._measure_lock.release()
-        return {
-            "ok": True,
-            "command": "measure",
-            "axis": plan.axis,
-            "runs": plan.runs,
-            "off": list(plan.compensation_off),
-            "host_s": round(time.monotonic() - started, 3),
-            **ev.as_dict(),
-        }
+        """`measurements.run` (docs/twin.md): blocks; call it from a worker thread."""
+        return self.measurements.run(spec)
 
     def cancel_measure(self) -> None:
-        """End a running `measure` at its next wait (the server is shutting down)."""
-        self._measure_cancel.set()
+        """`measurements.cancel`."""
+        self.measurements.cancel()
 
     def run_command(self, name: str, value: Any = None) -> CommandResult:
         """Run `reload`, `save` or `volcomp_update` in the caller's thread (see
-        `command`)."""
+        `command`), one at a time (`commands.ports.CommandLock`)."""
         if name == "reload":
             return self.reload()
         if name == "save":
@@ -810,156 +695,23 @@ class ObjectService:
         return await asyncio.to_thread(self.run_command, name)
 
     def reload(self, startup: Path | str | None = None) -> CommandResult:
-        """Reload the lists: validate everything first, swap atomically or reject.
-
-        Runs in the caller's thread up to the swap, which happens at a cycle boundary.
-        A rejected reload leaves the machine unchanged and is recorded in `errors()`.
-        """
-        if not self._command_lock.acquire(timeout=self.limits.command_wait):
-            return _busy("reload")
-        try:
-            result = self._reload(startup)
-        finally:
-            self._command_lock.release()
-        if not result.ok:
-            self._report_now(result.message, result.error_id)
-        return result
-
-    def _reload(self, startup: Path | str | None) -> CommandResult:
-        path = Path(startup) if startup else self.machine.cfg.startup_path
-        try:  # the folders the user allowed at start stay allowed
-            new = load_machine(path, self.machine.cfg.allow_dirs)
-        except ListFileError as exc:
-            return CommandResult(False, "reload", errors=[str(exc)], code=ADSERR_DEVICE_SYNTAX)
-        problems = _rejecting(new) + compare_max_points(self.machine.cfg, new)
-        if set(new.axes) != set(self.machine.cfg.axes):
-            problems.append(
-                Diagnostic(
-                    "error",
-                    f"the axes changed ({sorted(self.machine.cfg.axes)} -> "
-                    f"{sorted(new.axes)}); restart the server to change the machine layout",
-                )
-            )
-        warnings = [str(d) for d in new.diagnostics if d not in problems]
-        if problems:
-            return CommandResult(
-                False,
-                "reload",
-                [p.describe() for p in problems],
-                warnings,
-                code=ADSERR_DEVICE_SYNTAX,
-                error_id=next((p.error_id for p in problems if p.error_id), 0),
-            )
-        try:
-            self._refuse_when_stalled()
-            self.settle_sync(self.scheduler.submit(Reload(new)), self.limits.swap_timeout)
-        except AdsError as exc:
-            return CommandResult(False, "reload", errors=[exc.message], code=exc.code)
-        return CommandResult(True, "reload", warnings=warnings, files=new.list_files)
+        """Reload the lists (`commands.reload`): validate everything first, swap at a
+        cycle boundary or reject with the machine unchanged (recorded in `errors()`)."""
+        return self._commands.run("reload", lambda: reload_lists(self._ports, startup))
 
     def volcomp_update(self, file_name: str) -> CommandResult:
-        """cnc_interpr_vol_comp_file_w (004 p.23): read the VOLC list `file_name` and its
-        correction files for the compensation whose ID was written to
-        cnc_interpr_vol_comp_index_w (VOLC::index), here, off the cycle; the cycle then
-        swaps it in (switched off first, without movement). A list or file with errors
-        leaves the compensation as it was: 0x70D with the diagnostics."""
-        if not self._command_lock.acquire(timeout=self.limits.command_wait):
-            return _busy("volcomp_update")
-        try:
-            result = self._volcomp_update(file_name)
-        finally:
-            self._command_lock.release()
-        if not result.ok:
-            self._report_now(result.message + ": " + "; ".join(result.errors), result.error_id)
-        return result
-
-    def _volcomp_update(self, file_name: str) -> CommandResult:
-        ident = int(self.snapshot.value(self.dictionary.by_name("VOLC::index"), 0))
-        diags: list[Diagnostic] = []
-        new = reload_compensation(self.machine.cfg, ident, file_name, Reporter(diags))
-        if new is None:
-            return CommandResult(
-                False,
-                "volcomp_update",
-                [f"vol_comp[{ident}] is not configured in the start-up list (004 p.12)"],
-                code=AdsErrorCode.DEVICE_INVALIDDATA,
-                error_id=VOLC_ERROR,
-            )
-        warnings = [d.describe() for d in diags if d.severity != "error"]
-        if not new.available:
-            return CommandResult(
-                False,
-                "volcomp_update",
-                [d.describe() for d in diags if d.severity == "error"],
-                warnings,
-                code=ADSERR_DEVICE_SYNTAX,
-                error_id=VOLC_ERROR,
-            )
-        try:
-            self._refuse_when_stalled()
-            self.settle_sync(
-                self.scheduler.submit(VolcUpdate(ident, new)), self.limits.swap_timeout
-            )
-        except AdsError as exc:
-            return CommandResult(False, "volcomp_update", errors=[exc.message], code=exc.code)
-        return CommandResult(
-            True, "volcomp_update", warnings=warnings, files=[new.path, *new.param_files]
+        """cnc_interpr_vol_comp_file_w (`commands.volumetric`)."""
+        return self._commands.run(
+            "volcomp_update", lambda: update_volumetric(self._ports, file_name), detail=True
         )
 
     def save(self) -> CommandResult:
-        """Write the live TEMPC parameters back into the axis lists (atomic rewrite)."""
-        if not self._command_lock.acquire(timeout=self.limits.command_wait):
-            return _busy("save")
-        try:
-            result = self._save()
-        finally:
-            self._command_lock.release()
-        if not result.ok:
-            self._report_now(result.message, result.error_id)
-        return result
+        """Write the live TEMPC parameters back into the axis lists (`commands.save`)."""
+        return self._commands.run("save", lambda: save_lists(self._ports))
 
-    def _save(self) -> CommandResult:
-        startup = self.machine.cfg.startup_path
-        if is_product_data(startup):  # refused whatever changed: it is never saved
-            return CommandResult(
-                False, "save", errors=[_read_only_default(startup)], code=AdsErrorCode.DEVICE_ERROR
-            )
-        snap = self.snapshot
-        files: list[str] = []
-        errors: list[str] = []
-        for axis in self.axes:
-            params = self.machine.cfg.axes[axis].params
-            changes = self._changed_parameters(snap, axis)
-            if not changes:
-                continue
-            if not params.path:
-                errors.append(f"axis {axis}: no axis parameter list to save into")
-                continue
-            if is_product_data(params.path):
-                errors.append(_read_only_default(params.path))
-                continue
-            try:
-                rewrite_values(params.path, changes)
-            except (OSError, ListFileError) as exc:
-                errors.append(f"{params.path}: {exc}")
-                continue
-            _note_saved(self.dictionary, params, changes)
-            files.append(params.path)
-        return CommandResult(
-            not errors, "save", errors=errors, files=files, code=AdsErrorCode.DEVICE_ERROR
-        )
 
-    def _changed_parameters(self, snap: Snapshot, axis: int) -> dict[str, str]:
-        params = self.machine.cfg.axes[axis].params
-        changes: dict[str, str] = {}
-        for obj in self.dictionary.saved_parameters():  # objects with a `list_key`
-            if obj.type.name == "BOOLEAN" and params.temp_comp_manual_activation:
-                continue  # a manual-activation selection is not a list setting (000 §3.2)
-            live = snap.value(obj, axis)
-            stored = getattr(params, obj.param_attr or "")
-            if format_value(obj, live) != format_value(obj, stored):
-                changes[obj.list_key or ""] = format_value(obj, live)
-        return changes
+def _by_slot(item: tuple[str, int]) -> int:
+    return item[1]
 
 
 def check_readable(obj: ObjectDef) -> None:
@@ -991,43 +743,6 @@ def _single(pending: Pending) -> Pending:
     return chained(pending, first)
 
 
-def _read_only_default(path: str | Path) -> str:
-    """Why `save` does not write into `path`, a file of the shipped default machine
-    (docs/design.md §4.5)."""
-    return (
-        f"{path} belongs to the default machine shipped with geo-server, which is read-only "
-        "wherever it is installed; copy it with `geo-server init DIR` and run "
-        "`geo-server run DIR/hochlauf.lis` to save"
-    )
-
-
-def _busy(command: str) -> CommandResult:
-    return CommandResult(
-        False,
-        command,
-        errors=["another reload or save is still running; try again"],
-        code=AdsErrorCode.DEVICE_BUSY,
-    )
-
-
-def _rejecting(cfg: MachineConfig) -> list[Diagnostic]:
-    """Diagnostics that make a reload fail: errors and deactivated compensations."""
-    return [d for d in cfg.diagnostics if d.severity == "error" or d.deactivated is not None]
-
-
-def _note_saved(dictionary: Dictionary, params: Any, changes: dict[str, str]) -> None:
-    """After a save, the lists hold the live values: remember them as the stored ones."""
-    attrs = {o.list_key: o.param_attr or "" for o in dictionary.saved_parameters()}
-    for entry, text in changes.items():
-        attr = attrs[entry]
-        current = getattr(params, attr)
-        setattr(
-            params,
-            attr,
-            type(current)(float(text)) if not isinstance(current, bool) else text == "1",
-        )
-
-
 __all__ = [
     "ADSERR_DEVICE_SYNTAX",
     "CommandResult",
@@ -1036,4 +751,5 @@ __all__ = [
     "PreparedWrite",
     "ServiceLimits",
     "check_readable",
+    "format_value",
 ]

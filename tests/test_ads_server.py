@@ -434,13 +434,13 @@ def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
     handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
     c0 = service.snapshot.cycle
     hand_offs = []
-    on_cycle = ads._on_cycle
+    on_cycle = ads.sampler._on_cycle
 
     def counting(*args) -> None:  # (a per-cycle hand-off passed the snapshot along)
         hand_offs.append(service.snapshot.cycle)
         on_cycle(*args)
 
-    ads._on_cycle = counting  # what the cycle thread queues, looked up at each hand-off
+    ads.sampler._on_cycle = counting  # what the cycle thread queues, looked up at each hand-off
     busy, release = threading.Event(), threading.Event()
 
     def block() -> None:

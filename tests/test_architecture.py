@@ -44,7 +44,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (3, ("geo_server.volcomp",)),
     (4, ("geo_server.machine",)),
     (4, ("geo_server.recorder",)),  # records from a service it is handed (duck-typed)
-    (5, ("geo_server.service",)),
+    (5, ("geo_server.service", "geo_server.commands")),  # commands: services of their own
     (6, ("geo_server.transports",)),
     (6, ("geo_server.client",)),
     (6, ("geo_server.recorder.replay",)),  # builds its own stepped machine and service
@@ -52,6 +52,8 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (6, ("geo_server.web",)),  # an interface beside the transports: the same service
     (2, ("geo_server.web.views",)),  # pure: what an HMI shows, from a snapshot
     (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
+    (7, ("geo_server.compose",)),  # the composition root: machine, engine, service
+    (7, ("geo_server.opcua_run",)),  # `run`'s OPC UA options, certificate folder
     (8, ("geo_clients",)),
 ]
 #: What a transport may import outside its own package.
@@ -167,3 +169,63 @@ def test_transports_import_only_the_service_the_shared_types_and_the_dictionary(
                 continue
             bad.append(f"{module} -> {t}")
     assert bad == []
+
+
+#: The interfaces (docs/design.md §1.3): they reach the machine only through the object
+#: service, never through its attributes. `recorder.replay` builds its own stepped
+#: machine (a composition root of its own).
+INTERFACES = ("geo_server.transports", "geo_server.web", "geo_server.recorder")
+SEAM_EXEMPT = ("geo_server.recorder.replay",)
+#: What lies behind the service: the machine, its scheduler, the twin.
+BEHIND_THE_SEAM = frozenset({"machine", "scheduler", "twin"})
+
+
+def _holds_a_port(node: ast.expr) -> bool:
+    """Is `node` (the object of an attribute access or a getattr) the service or a
+    port reached through it (`service`, `self.service`, `svc`, `self._service`...)?"""
+    text = ast.unparse(node)
+    return any(word in text for word in ("service", "svc", "scheduler", "sched"))
+
+
+def seam_crossings(tree: ast.AST) -> list[str]:
+    """`x.machine` / `x.scheduler` / `x.twin` on the service, and getattr/hasattr on
+    the service or a port, in one module."""
+    found = []
+    for node in ast.walk(tree):
+        through_attribute = (
+            isinstance(node, ast.Attribute)
+            and node.attr in BEHIND_THE_SEAM
+            and _holds_a_port(node.value)
+        )
+        by_reflection = (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id in ("getattr", "hasattr", "setattr")
+            and bool(node.args)
+            and _holds_a_port(node.args[0])
+        )
+        if through_attribute or by_reflection:
+            found.append(f"{ast.unparse(node)} (line {getattr(node, 'lineno', 0)})")
+    return found
+
+
+def test_the_seam_is_held_by_attribute_access_too():
+    bad = []
+    for root, folder in ROOTS.items():
+        for path in folder.rglob("*.py"):
+            name = module_name(root, path)
+            if not name.startswith(INTERFACES) or name.startswith(SEAM_EXEMPT):
+                continue
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            bad += [f"{name}: {c}" for c in seam_crossings(tree)]
+    assert bad == []
+
+
+def test_the_seam_check_sees_a_crossing():
+    tree = ast.parse(
+        "self.service.machine.cfg\ngetattr(service.scheduler, 'mode')\nsvc.twin\n"
+        "self.options.machine\n"
+    )
+    # the service's machine; getattr on a port, and that port's access; the twin: not
+    # the Zenoh option that names the machine
+    assert len(seam_crossings(tree)) == 4

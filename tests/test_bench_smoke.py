@@ -27,6 +27,7 @@ def test_bench_server_runs_and_dumps_its_cycles(tmp_path):
             "--no-zenoh",
             "--no-modbus",
             "--no-ads",
+            "--no-opcua",
             "--homed",
             "--engine",
             "punctual",  # every cycle computed on its deadline: 60 lateness records

@@ -91,11 +91,15 @@ def test_objects_into_a_closed_pipe_ends_quietly(tmp_path):
     "cycle_in, engine", [("thread", "exact"), ("process", "exact"), ("process", "punctual")]
 )
 def test_run_serves_and_stops(tmp_path, cycle_in, engine):
-    zport, mport, aport = free_port(), free_port(), free_port()
+    zport, mport, aport, oport = free_port(), free_port(), free_port(), free_port()
     r = run(
         [
             *script("geo-server"),
             "run",
+            "--opcua-endpoint",
+            f"opc.tcp://127.0.0.1:{oport}",
+            "--opcua-cert-dir",
+            str(tmp_path / "opcua"),
             "--cycle-in",
             cycle_in,
             "--engine",
@@ -119,6 +123,7 @@ def test_run_serves_and_stops(tmp_path, cycle_in, engine):
     assert f"tcp/127.0.0.1:{zport}" in r.stdout
     assert f"127.0.0.1:{mport}" in r.stdout
     assert f"127.0.0.1:{aport}" in r.stdout
+    assert f"opcua: opc.tcp://127.0.0.1:{oport}" in r.stdout  # (ready later: background)
     # the punctual engine reports its lateness, the exact one what it computed
     assert ("lateness p50" if engine == "punctual" else "catch-up p50") in r.stdout
     assert f"{engine} engine, cycle in its own {cycle_in}" in r.stdout
@@ -129,7 +134,15 @@ def test_ctrl_c_stops_run_cleanly(tmp_path):
     """Ctrl-C reaches the whole process group (server and GEO-cycle process): `run`
     stops cleanly, exit 0, no traceback from either process."""
     proc = subprocess.Popen(
-        [*script("geo-server"), "run", "--no-zenoh", "--no-modbus", "--no-ads", *QUICK_STATUS],
+        [
+            *script("geo-server"),
+            "run",
+            "--no-zenoh",
+            "--no-modbus",
+            "--no-ads",
+            "--no-opcua",
+            *QUICK_STATUS,
+        ],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -153,7 +166,7 @@ def test_ctrl_c_stops_run_cleanly(tmp_path):
 def test_run_program_option(tmp_path):
     """`--program`: a missing or broken program is exit 2 with the reason (and the line),
     no traceback; a good one runs (here on a 2 ms cycle, for exactly 120 cycles)."""
-    base = [*script("geo-server"), "run", "--no-zenoh", "--no-modbus", "--no-ads"]
+    base = [*script("geo-server"), "run", "--no-zenoh", "--no-modbus", "--no-ads", "--no-opcua"]
     r = run([*base, "--program", str(tmp_path / "missing.nc")], tmp_path)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "error: NC program" in r.stderr and "missing.nc" in r.stderr
@@ -178,15 +191,21 @@ def test_run_program_option(tmp_path):
 
 @pytest.mark.parametrize(
     ("busy", "option"),
-    [("zenoh", "--zenoh-listen"), ("modbus", "--modbus-port"), ("ads", "--ads-port")],
+    [
+        ("zenoh", "--zenoh-listen"),
+        ("modbus", "--modbus-port"),
+        ("ads", "--ads-port"),
+        ("opcua", "--opcua-endpoint"),
+    ],
 )
 def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy, option):
     """A port in use ends `run` with exit 2 and one clear line that names the address
     and the option to change (no Rust source paths, no traceback), instead of a hang
     with the interfaces that did start still open."""
-    zport, mport, aport = free_port(), free_port(), free_port()
+    zport, mport, aport, oport = free_port(), free_port(), free_port(), free_port()
     blocker = socket.socket()
-    blocker.bind(("127.0.0.1", {"zenoh": zport, "modbus": mport, "ads": aport}[busy]))
+    ports = {"zenoh": zport, "modbus": mport, "ads": aport, "opcua": oport}
+    blocker.bind(("127.0.0.1", ports[busy]))
     blocker.listen()
     try:
         r = run(
@@ -201,6 +220,10 @@ def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy, option):
                 str(mport),
                 "--ads-port",
                 str(aport),
+                "--opcua-endpoint",
+                f"opc.tcp://127.0.0.1:{oport}",
+                "--opcua-cert-dir",
+                str(tmp_path / "opcua"),
             ],
             tmp_path,
             timeout=60,
@@ -253,7 +276,7 @@ def test_run_program_reports_its_end(tmp_path):
     """1 mm at 6000 mm/min takes 10 ms: the program ends long before the 300 cycles."""
     prog = tmp_path / "short.nc"
     prog.write_text("N10 G90 G01 X1 F6000\nN20 M30\n", encoding="utf-8")
-    quiet = ("--no-zenoh", "--no-modbus", "--no-ads", "--status-period", "0.05")
+    quiet = ("--no-zenoh", "--no-modbus", "--no-ads", "--no-opcua", "--status-period", "0.05")
     r = run(
         [
             *script("geo-server"),
@@ -297,7 +320,16 @@ def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):
     orphan.write_text("half a list")
     keep = folder / ".notes.tmp"
     keep.write_text("not ours")
-    quiet = ("--no-zenoh", "--no-modbus", "--no-ads", "--cycle-in", "thread", "--cycles", "5")
+    quiet = (
+        "--no-zenoh",
+        "--no-modbus",
+        "--no-ads",
+        "--no-opcua",
+        "--cycle-in",
+        "thread",
+        "--cycles",
+        "5",
+    )
     r = run([*script("geo-server"), "run", str(lists_copy), *quiet], tmp_path)
     assert r.returncode == 0, r.stderr
     assert not orphan.exists() and keep.exists()

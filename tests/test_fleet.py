@@ -102,7 +102,7 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
 @pytest.fixture
 def fleet(tmp_path: Path):
     zport, aport, mport = free_port(), free_port(), free_port()
-    mport2 = free_port()
+    mport2, oport = free_port(), free_port()
     f = tmp_path / "fleet.toml"
     f.write_text(
         f'[[machine]]\nname = "mill-a"\nmodbus_port = {mport}\n\n'
@@ -121,6 +121,8 @@ def fleet(tmp_path: Path):
         str(aport),
         "--ads-udp-port",
         "0",
+        "--opcua-endpoint",
+        f"opc.tcp://127.0.0.1:{oport}",
         "--status-period",
         "0.2",
     ]
@@ -147,6 +149,7 @@ def fleet(tmp_path: Path):
             "ads": f"127.0.0.1:{aport}",
             "aport": aport,
             "modbus": (mport, mport2),
+            "opcua": f"opc.tcp://127.0.0.1:{oport}",
             "out": out,
         }
     finally:
@@ -258,3 +261,26 @@ def test_every_machine_on_every_transport_by_name(fleet) -> None:
     r = client(fleet, "--via", "ads", "--machine", "drill-c", "read", "TEMPC::offset_0")
     assert r.returncode == 2 and "no machine named 'drill-c'" in r.stderr
     assert "fleet: 2 machines, cycles" in fleet["out"].read_text()
+
+
+def test_one_opcua_server_serves_every_machine_under_its_name(fleet) -> None:
+    """README *OPC UA*: a fleet's machines are Objects/<name> of one server."""
+    import asyncio
+
+    from asyncua import Client, ua
+
+    deadline = time.monotonic() + TIMEOUT
+    while "opcua: ready" not in fleet["out"].read_text(errors="replace"):
+        assert time.monotonic() < deadline, fleet["out"].read_text()
+        time.sleep(0.1)
+
+    async def scenario() -> tuple[float, float]:
+        async with Client(fleet["opcua"], timeout=10) as c:
+            ns = await c.get_namespace_index("urn:geo-server:cnc")
+            lathe = c.get_node(ua.NodeId("lathe-b/Axes/X/TEMPC/coefficient", ns))
+            mill = c.get_node(ua.NodeId("mill-a/Axes/X/TEMPC/coefficient", ns))
+            await lathe.write_value(ua.Variant(21.5, ua.VariantType.Double))  # applied
+            return await lathe.read_value(), await mill.read_value()
+
+    lathe, mill = asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+    assert (lathe, mill) == (21.5, 4000.0)

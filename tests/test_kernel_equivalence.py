@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from support.machines import Motion, full_machine, random_machine
+from support.reference import ReferenceKernel
 
-from geo_server.kernel import COMP_ORDER, Kernel, ReferenceKernel
+from geo_server.kernel import COMP_ORDER, Kernel
 
 OUTPUTS = ("target", "actual", "delta", "effective", "friction_current", "total_offset")
 

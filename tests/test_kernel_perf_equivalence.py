@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pytest
 from support.machines import Motion, random_machine
+from support.reference import ReferenceKernel, interp
 
-from geo_server.kernel import Kernel, ReferenceKernel
-from geo_server.kernel import kernel as kmod
-from geo_server.kernel.reference import interp
+from geo_server.kernel import Kernel
+from geo_server.kernel import crosstalk as kmod
 from geo_server.kernel.sin2 import Sin2Filter
 from geo_server.kernel.tables import Lookup, MergedTable
 from geo_server.kernel.triangulation import INSIDE_EPS, evaluate, triangulate

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.reference import ReferenceKernel
 
-from geo_server.kernel import COMP_ORDER, Kernel, ReferenceKernel
+from geo_server.kernel import COMP_ORDER, Kernel
 from geo_server.model import (
     AxisConfig,
     AxisParams,

@@ -13,10 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from support.reference import ReferenceKernel
 
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.kernel.common import COLUMN
-from geo_server.kernel.reference import ReferenceKernel
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.model import CompKind

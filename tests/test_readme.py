@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -64,11 +65,20 @@ def env() -> dict[str, str]:
     return e
 
 
+def _listens(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT).close()
+    except OSError:
+        return False
+    return True
+
+
 class Server:
     """`geo-server run` in a subprocess on free ports."""
 
     def __init__(self, startup: Path, args: list[str], cwd: Path) -> None:
         self.zport, self.mport, self.aport = free_port(), free_port(), free_port()
+        self.oport = free_port()
         cmd = [
             str(BIN / "geo-server"),
             "run",
@@ -80,6 +90,10 @@ class Server:
             str(self.mport),
             "--ads-port",
             str(self.aport),
+            "--opcua-endpoint",
+            f"opc.tcp://127.0.0.1:{self.oport}",
+            "--opcua-cert-dir",
+            str(cwd / "opcua"),
         ]
         # stderr into a file, not a pipe: nobody reads a pipe while the server runs, and
         # a server blocked on a full pipe answers nothing
@@ -104,7 +118,7 @@ class Server:
                 ).returncode
                 == 0
                 for via in ("zenoh", "modbus", "ads")
-            )
+            ) and _listens(self.oport)  # OPC UA starts in the background
             if ok:
                 return
             assert self.proc.poll() is None, self.log.read_text(encoding="utf-8")
@@ -116,6 +130,7 @@ class Server:
             text.replace("7447", str(self.zport))
             .replace("48898", str(self.aport))
             .replace("5020", str(self.mport))
+            .replace("4840", str(self.oport))
         )
 
     def close(self) -> None:

@@ -373,6 +373,7 @@ def test_cli_record_replay_compare(tmp_path, capsys, monkeypatch):
         "600",
         "--no-zenoh",
         "--no-ads",
+        "--no-opcua",
         "--modbus-port",
         "0",
         "--program",

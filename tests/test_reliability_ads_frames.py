@@ -162,7 +162,7 @@ def test_headers_announcing_more_than_the_largest_request_close_at_once(
         assert closed_by_server([s], timeout=0.3) == 0
     finally:
         s.close()
-    assert wait_until(server._loop, lambda: server.connection_count == 1)
+    assert wait_until(server.loop, lambda: server.connection_count == 1)
     plc_reads(plc, service)
 
 

@@ -78,7 +78,7 @@ def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_t
                 if ads.stats.sampling_passes:
                     break
                 await asyncio.sleep(0)
-            seen["pass_unfinished"] = ads._pass is not None
+            seen["pass_unfinished"] = ads.sampler._pass is not None
             seen["sent"] = ads.stats.notifications_sent
             seen["c6"] = service.step(5).cycle  # the cycle moves on meanwhile
 

@@ -65,7 +65,7 @@ def test_a_second_command_is_told_busy_within_the_bound(loop_thread, lists_copy)
     release = threading.Event()
 
     def long_command() -> None:  # holds the one command slot, as a slow save would
-        with svc._command_lock:
+        with svc._commands._lock:
             running.set()
             release.wait(TIMEOUT)
 

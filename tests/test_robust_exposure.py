@@ -68,6 +68,10 @@ class RunningServer:
             str(self.mport),
             "--ads-port",
             str(self.aport),
+            "--opcua-endpoint",
+            f"opc.tcp://127.0.0.1:{free_port()}",
+            "--opcua-cert-dir",
+            str(tmp / "opcua"),
             *flags,
         ]
         self.proc = subprocess.Popen(

@@ -113,7 +113,7 @@ def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
     sched = Scheduler(machine, mode="realtime")
     sched.stats = Broken()  # type: ignore[assignment]
     args = cli.build_parser().parse_args(
-        ["run", "--no-zenoh", "--no-modbus", "--no-ads", "--status-period", "0.05"]
+        ["run", "--no-zenoh", "--no-modbus", "--no-ads", "--no-opcua", "--status-period", "0.05"]
     )
     with pytest.raises(cli.CycleStoppedError, match="after cycle 1"):
         asyncio.run(cli._serve(args, ObjectService(machine, sched), sched))

@@ -44,7 +44,7 @@ class Server:
     limit; stderr goes to a file that is counted at the end."""
 
     def __init__(self, tmp: Path, limit: int = LIMIT) -> None:
-        self.ports = {k: free_port() for k in ("http", "ads", "modbus", "zenoh")}
+        self.ports = {k: free_port() for k in ("http", "ads", "modbus", "zenoh", "opcua")}
         self.stderr_path = tmp / "stderr.txt"
         self._stderr = self.stderr_path.open("wb")
 
@@ -68,6 +68,10 @@ class Server:
                 str(self.ports["modbus"]),
                 "--zenoh-listen",
                 f"tcp/127.0.0.1:{self.ports['zenoh']}",
+                "--opcua-endpoint",
+                f"opc.tcp://127.0.0.1:{self.ports['opcua']}",
+                "--opcua-cert-dir",
+                str(tmp / "opcua"),
                 "--status-period",
                 "3600",
             ],
@@ -281,7 +285,7 @@ resource.setrlimit(resource.RLIMIT_NOFILE, (int(sys.argv[1]), int(sys.argv[1])))
 from geo_server.descriptors import RESERVE, DescriptorError, open_descriptors
 from geo_server.fleet import FLEET_BACKLOG, connection_caps
 from geo_server.transports.tcp import BACKLOG
-args = argparse.Namespace(no_zenoh=False, no_modbus=False, no_ads=False, http=None)
+args = argparse.Namespace(no_zenoh=False, no_modbus=False, no_ads=False, http=None, no_opcua=True)
 try:
     caps = connection_caps(args, 100)
 except DescriptorError as exc:

@@ -34,7 +34,16 @@ from geo_server.web.views import LiveView
 
 WAIT_MS = 15_000
 #: `geo-server run` with the web HMI alone
-RUN = (sys.executable, "-m", "geo_server.cli", "run", "--no-zenoh", "--no-modbus", "--no-ads")
+RUN = (
+    sys.executable,
+    "-m",
+    "geo_server.cli",
+    "run",
+    "--no-zenoh",
+    "--no-modbus",
+    "--no-ads",
+    "--no-opcua",
+)
 ACCEL_POS = "accelerating, + direction"
 
 

@@ -36,7 +36,16 @@ COEFF = "TEMPC::coefficient"
 #: lists/achsmd1.lis: temp_comp_coefficient of axis 1
 LIST_COEFF = 4000.0
 #: `geo-server run` with the web HMI alone
-RUN = (sys.executable, "-m", "geo_server.cli", "run", "--no-zenoh", "--no-modbus", "--no-ads")
+RUN = (
+    sys.executable,
+    "-m",
+    "geo_server.cli",
+    "run",
+    "--no-zenoh",
+    "--no-modbus",
+    "--no-ads",
+    "--no-opcua",
+)
 
 
 class Served:

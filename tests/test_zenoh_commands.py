@@ -21,6 +21,8 @@ import pytest
 import zenoh
 from conftest import free_port, run_in, wait_until_routed
 
+import geo_server.commands.reload as reload_module
+import geo_server.commands.save as save_module
 import geo_server.service as service_module
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -127,7 +129,8 @@ def test_command_write_runs_off_the_loop(
         svc.step(1)
     # the file-touching function the command calls: blocks until the test releases it
     target = "load_machine" if command == "reload" else "rewrite_values"
-    original = getattr(service_module, target)
+    module = reload_module if command == "reload" else save_module  # (geo_server/commands)
+    original = getattr(module, target)
     started, release = threading.Event(), threading.Event()
     threads: list[str] = []
 
@@ -137,7 +140,7 @@ def test_command_write_runs_off_the_loop(
         release.wait(10.0)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(service_module, target, slow)
+    monkeypatch.setattr(module, target, slow)
     result: dict = {}
     writer = threading.Thread(
         target=lambda: result.update(reply=get(srv.session, key, payload, encoding))

@@ -48,6 +48,7 @@ def start_host(address: str, machine: str, router: str, tmp: Path) -> subprocess
         router,
         "--no-modbus",
         "--no-ads",
+        "--no-opcua",
         "--status-period",
         "60",
     ]

@@ -111,6 +111,8 @@ from typing import Any, Protocol, TypeVar
 from geo_clients.common import add_transport_arguments, client_from_args, transport_name
 from geo_server.dictionary import load_dictionary, round_half_away
 from geo_server.errors import AdsError, GeoError
+from geo_server.kernel.temperature import offset as tempc_offset
+from geo_server.kernel.temperature import slope as tempc_slope
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 log = logging.getLogger("geo_clients.plc_tempcomp")
@@ -168,7 +170,7 @@ class ErrorLine:
         cls, temperature: float, position_0: float, offset_0: float, coefficient: float
     ) -> ErrorLine:
         """The line `offset_0 + coefficient·1e-6·(s − position_0)` (000 p.15)."""
-        slope = coefficient * 1e-6
+        slope = tempc_slope(coefficient)
         return cls(temperature, offset_0 - slope * position_0, slope)
 
 
@@ -187,8 +189,9 @@ class Parameters:
 
 
 def compensation(p: Parameters, s: float) -> float:
-    """`Δs = offset_0 + coefficient·1e-6·(s − position_0)` (000 p.15; docs/design.md §6)."""
-    return p.offset_0 + p.coefficient * 1e-6 * (s - p.position_0)
+    """`Δs = offset_0 + coefficient·1e-6·(s − position_0)` (000 p.15; docs/design.md §6):
+    the kernel's own law (`geo_server.kernel.temperature.offset`)."""
+    return tempc_offset(p.offset_0, p.coefficient, p.position_0, s)
 
 
 def fit_line(points: Sequence[tuple[float, float]]) -> tuple[float, float]:

@@ -38,6 +38,7 @@ from typing import Any
 
 from geo_clients.common import open_client
 from geo_server.client import GeoClient
+from geo_server.compose import EngineOptions, build_machine
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
@@ -123,10 +124,12 @@ class GeoTestServer:
     ) -> None:
         self.startup = Path(startup) if startup else default_startup_list()
         self.cfg = load_machine(self.startup)
-        self.machine = Machine(
-            self.cfg, cycle_s=cycle_ms / 1000.0, homed=homed, time_scale=time_scale
+        built = build_machine(
+            self.cfg, EngineOptions(cycle_ms=cycle_ms, homed=homed, time_scale=time_scale)
         )
-        self.service = ObjectService(self.machine)
+        assert isinstance(built.machine, Machine)  # the cycle in this process: stepped
+        self.machine = built.machine
+        self.service = built.service
         #: the private recordings folder `close` removes (only that one)
         self._own_record_dir = None if record_dir else tempfile.mkdtemp(prefix="geo-rec-")
         self.service.record_dir = Path(record_dir or self._own_record_dir or "")
@@ -158,9 +161,10 @@ class GeoTestServer:
         self._closed = True
         for rec in self._recorders:
             rec.stop()
-        if self.service.recording is not None:  # one an interface started: not written
-            self.service.recording.abort()
-            self.service.recording = None
+        recordings = self.service.recordings
+        if recordings.recording is not None:  # one an interface started: not written
+            recordings.recording.abort()
+            recordings.recording = None
         for via, client in list(self._clients.items()):
             if via != "service":
                 with contextlib.suppress(Exception):

@@ -28,9 +28,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from geo_server.kernel import crosstalk, friction, sin2, temperature
 from geo_server.kernel.common import FRICT, LEAD, TEMP
-from geo_server.kernel.kernel import RING, Kernel
-from geo_server.kernel.triangulation import INSIDE_EPS
+from geo_server.kernel.friction import RING
+from geo_server.kernel.inputs import GatherWork, gather
+from geo_server.kernel.kernel import Kernel
+from geo_server.kernel.plane import PlaneWork, bilinear
+from geo_server.kernel.tables import interpolate
 
 
 def _offset(view: np.ndarray, base: np.ndarray) -> int:
@@ -95,12 +99,9 @@ class KernelBatch:
         self.MW = np.zeros((B, n))
         self.TT = np.zeros((B, n))
         g = k._gather
-        self.GB = np.zeros((B, len(g.G)))
-        ns = len(g.sign)
-        self.ns = ns
-        self.SGN = np.zeros((B, ns))
-        nw = len(g.w)
-        self.WT = np.zeros((B, nw))
+        self.gather = gw = GatherWork.batch(g, self.SB)  # `inputs.gather` over the pass
+        self.GB, self.SGN = gw.G, gw.sign
+        self.ns = len(g.sign)
         vec = k._vec
         V = vec.V
         self.V = np.zeros((B, len(V)))
@@ -113,45 +114,35 @@ class KernelBatch:
         if xt is not None:
             nx = len(xt.code)
             self.nx = nx
-            self.CODE = np.zeros((B, nx))
-            self.IDX = np.zeros((B, nx), dtype=np.int64)
-            self.NOW = np.zeros((B, nx, 3))
-            self.FXT = np.zeros((B, nx))
-            self.o_xt = _offset(vec.fac_xt, vec.fac)
+            o_xt = _offset(vec.fac_xt, vec.fac)
+            self.xt = crosstalk.StateWork.create(
+                self.SGN[:, :nx],
+                self.SGN[:, nx : 2 * nx],
+                self.GB[:, nx : 2 * nx],
+                self.FAC[:, o_xt : o_xt + nx],
+            )
+            self.NOW = self.xt.now
         l1 = k._l1
         if l1 is not None:
-            lk = l1.lookup
-            m = len(lk.qc)
             self.o_l1g = _offset(l1.raw, g.G)
             self.o_l1v = _offset(l1.out, V)
-            self.QC1 = np.zeros((B, m), dtype=complex)
-            self.QC1.real = lk.qc.real  # fixed row ids; crosstalk variants set per run
-            self.SEG1 = np.zeros((B, m, 3))
-            self.L1T = np.zeros((B, m))
+            self.LK1 = l1.lookup.batch(B)  # fixed row ids; crosstalk variants set per run
             self.nlin = len(l1.lin_rowid)
         pl = k._plane
-        if pl is not None:
-            P = pl.u.shape[1]
-            self.P = P
-            self.o_pl = _offset(pl.u, g.G)
-            self.FL = np.zeros((B, 2, P))
-            self.UV = np.zeros((B, 2, 2, P))
-            self.PW = np.zeros((B, 2, 2, P))
-            self.PT = np.zeros((B, 2, P))
-            self.K00 = np.zeros((B, P))
-            self.PK = np.zeros((B, 2, 2, P), dtype=np.int64)
-            self.PC = np.zeros((B, 2, 2, P))
+        self.plane: PlaneWork | None = None
+        if pl is not None:  # `plane.bilinear` over the pass: the cycles a leading axis
+            o_pl = _offset(pl.u, g.G)
+            u = self.GB[:, o_pl : o_pl + 2 * pl.P].reshape(B, 2, pl.P)
+            assert np.shares_memory(u, self.GB), "a view of the gather"
+            self.plane = PlaneWork.create(pl.P, u, self.V[:, : pl.P])
         tri = k._tri
         if tri is not None:
-            T, G3 = tri.H.shape[0], tri.H.shape[1]
-            G = G3 // 3
-            self.T = T
-            self.o_trig = _offset(tri.xy1, g.G)
-            self.LAMM = np.zeros((B, T, G3, 1))
-            self.TMIN = np.zeros((B, T, G))
-            self.TIN = np.zeros((B, T, G), dtype=bool)
-            self.SEL = np.zeros((B, T), dtype=np.int64)
-            self.COEF = np.zeros((B, T, 3))
+            T, G = tri.H.shape[0], tri.H.shape[1] // 3
+            o_trig = _offset(tri.xy1, g.G)
+            xy1 = self.GB[:, o_trig : o_trig + 3 * T].reshape(B, T, 3, 1)
+            out11 = self.V[:, self.o_tri : self.o_tri + T].reshape(B, T, 1, 1)
+            assert np.shares_memory(xy1, self.GB) and np.shares_memory(out11, self.V)
+            self.tri = crosstalk.Mode3Work.create(xy1, G, self.NOW[:, :T, 1], out11)
         ls = k._lsec
         if ls is not None:
             L = len(ls.d)
@@ -159,11 +150,8 @@ class KernelBatch:
             self.ADD = np.zeros((B, L, 2))
             self.ADD[:, :, 0] = ls.add[:, 0]
             self.LG = np.zeros((B, L, 2))
-            self.QCL = np.zeros((B, L), dtype=complex)
-            self.QF = self.QCL.view(float).reshape(B, L, 2)
+            self.LKL = ls.lookup.batch(B)
             self.LD = np.zeros((B, L))
-            self.SEGL = np.zeros((B, L, 3))
-            self.LT = np.zeros((B, L))
             self.VALL = np.zeros((B, L))
         fr = k._frict
         self.WPRE = np.ones((B, n))
@@ -194,7 +182,7 @@ class KernelBatch:
         if not self.ready():
             return False
         mul, add, subtract = np.multiply, np.add, np.subtract
-        copyto, minimum, maximum = np.copyto, np.minimum, np.maximum
+        copyto, minimum = np.copyto, np.minimum
         B = self.size
         src, fs = k._src, k._fr_state
         d = src.dir
@@ -232,91 +220,32 @@ class KernelBatch:
             subtract(MW, bt.pos0, TT)
         else:
             subtract(self.pos, bt.pos0, TT)
-        mul(TT, bt.tc6, TT)
-        add(bt.off0, TT, TG[:, :, TEMP])
+        temperature.offset_into(bt.off0, bt.tc6, TT, TG[:, :, TEMP])
 
         # the gather
         g = k._gather
         GB, ns = self.GB, self.ns
         if g.any:
-            SB.take(g.src, axis=1, out=GB)
-            if g.any_sign:
-                np.sign(GB[:, :ns], self.SGN)
-            if g.any_q:
-                if g.any_wrap:
-                    gw = GB[:, ns : ns + len(g.w)]
-                    np.mod(gw, g.w_per, self.WT)
-                    copyto(gw, self.WT, where=g.w_wrap)
-                q = GB[:, ns:]
-                subtract(q, g.q_sub, q)
-                np.divide(q, g.q_div, q)
+            gather(g, self.gather)
         FAC = self.FAC
         xt = k._xt
         if xt is not None:
-            nx = self.nx
-            code, idx = self.CODE, self.IDX
-            mul(self.SGN[:, :nx], 3.0, code)  # (3, 1)·(sign(v), sign(a)): exact
-            add(code, self.SGN[:, nx : 2 * nx], code)
-            add(code, xt.rowoff, idx, casting="unsafe")
-            xt.tab.take(idx, axis=0, out=self.NOW)
-            fx = self.FXT
-            mul(GB[:, nx : 2 * nx], self.NOW[:, :, 0], fx)
-            minimum(fx, 1.0, out=fx)
-            copyto(FAC[:, self.o_xt : self.o_xt + nx], fx)
+            crosstalk.state(xt.rowoff, xt.tab, self.xt)
         V = self.V
         l1 = k._l1
         if l1 is not None:
-            lk = l1.lookup
-            m = len(lk.qc)
-            QC1 = self.QC1
+            lkb = self.LK1
+            m = lkb.q.shape[1]
             if l1.has_lin:
-                QC1.real[:, : self.nlin] = self.NOW[:, self.nx - self.nlin :, 2]
-            QC1.imag = GB[:, self.o_l1g : self.o_l1g + m]
-            lk.seg_table.take(lk.keys.searchsorted(QC1, "right"), axis=0, out=self.SEG1)
-            lt = self.L1T
-            subtract(QC1.imag, self.SEG1[:, :, 0], lt)
-            mul(lt, self.SEG1[:, :, 2], lt)
-            add(lt, self.SEG1[:, :, 1], V[:, self.o_l1v : self.o_l1v + m])
-        pl = k._plane
-        if pl is not None:
-            P = self.P
-            u = GB[:, self.o_pl : self.o_pl + 2 * P].reshape(B, 2, P)
-            fl = self.FL
-            maximum(u, 0.0, out=u)
-            minimum(u, pl.last, out=u)
-            np.floor(u, fl)
-            minimum(fl, pl.lim, out=fl)
-            UV = self.UV
-            subtract(u, fl, UV[:, :, 1])
-            subtract(1.0, UV[:, :, 1], UV[:, :, 0])
-            pw = self.PW
-            mul(UV[:, 1][:, :, None, :], UV[:, 0][:, None, :, :], pw)
-            mul(fl, pl.sw, self.PT)
-            add(self.PT[:, 0], self.PT[:, 1], self.K00)
-            add(self.K00[:, None, None, :], pl.base4, self.PK, casting="unsafe")
-            pl.tab.take(self.PK, out=self.PC)
-            mul(pw, self.PC, pw)
-            out = V[:, :P]  # corners added in `step`'s order
-            add(pw[:, 0, 0], pw[:, 0, 1], out)
-            add(out, pw[:, 1, 0], out)
-            add(out, pw[:, 1, 1], out)
+                lkb.rowid[:, : self.nlin] = self.NOW[:, self.nx - self.nlin :, 2]
+            copyto(lkb.q, GB[:, self.o_l1g : self.o_l1g + m])
+            interpolate(lkb, V[:, self.o_l1v : self.o_l1v + m])
+        pl, pw = k._plane, self.plane
+        if pl is not None and pw is not None:
+            bilinear(pl, pw)
         tri = k._tri
         if tri is not None:
-            T = self.T
-            xy1 = GB[:, self.o_trig : self.o_trig + 3 * T].reshape(B, T, 3, 1)
-            lamm = self.LAMM
-            np.matmul(tri.H, xy1, out=lamm)  # per cycle the product `step` computes
-            lam = lamm.reshape(B, T, 3, -1)
-            tmin, tin, sel = self.TMIN, self.TIN, self.SEL
-            minimum(lam[:, :, 0], lam[:, :, 1], out=tmin)
-            minimum(tmin, lam[:, :, 2], out=tmin)
-            np.greater_equal(tmin, -INSIDE_EPS, tin)
-            tin.argmax(axis=2, out=sel)
-            add(sel, self.NOW[:, :T, 1], sel, casting="unsafe")
-            coef = self.COEF
-            tri.val.take(sel, axis=0, out=coef)
-            out11 = V[:, self.o_tri : self.o_tri + T].reshape(B, T, 1, 1)
-            np.matmul(coef[:, :, None, :], xy1, out=out11)
+            crosstalk.mode3(tri.H, tri.val, self.tri)
         fr = k._frict
         if fr.any:
             nfr = self.n_fr
@@ -334,8 +263,7 @@ class KernelBatch:
         add(f.kidx, self.AR, KI)
         minimum(KI, f.end, out=KI)
         f.table.take(KI, out=W)
-        mul(f.jump, W, T7)
-        subtract(TG, T7, ACT)
+        sin2.output(TG, f.jump, W, T7, ACT)
 
         ls = k._lsec
         if ls is not None:
@@ -346,29 +274,23 @@ class KernelBatch:
             if not ls.all_wc:
                 mul(t, ls.wc, t)
             SB.take(ls.src, axis=1, out=self.LG)
-            add(self.LG, self.ADD, self.QF)
-            lq = self.QCL.imag
+            lkb = self.LKL
+            add(self.LG, self.ADD, lkb.pairs)
+            lq = lkb.q
             if ls.any_wrap:
                 ld = self.LD
                 subtract(lq, ls.x0, ld)
                 np.mod(ld, ls.per, ld)
                 add(ld, ls.x0, ld)
                 copyto(lq, ld, where=ls.wrap)
-            lk = ls.lookup
-            lk.seg_table.take(lk.keys.searchsorted(self.QCL, "right"), axis=0, out=self.SEGL)
-            lt = self.LT
-            subtract(lq, self.SEGL[:, :, 0], lt)
-            mul(lt, self.SEGL[:, :, 2], lt)
             tl = TG[:, :, LEAD]
             if ls.all:
-                add(lt, self.SEGL[:, :, 1], tl)
+                interpolate(lkb, tl)
             else:
-                add(lt, self.SEGL[:, :, 1], self.VALL)
+                interpolate(lkb, self.VALL)
                 TGf[:, ls.flat] = self.VALL
             mul(tl, eff[:, LEAD], tl)
-            tld = T7[:, :, LEAD]
-            mul(f.jump[:, LEAD], W[:, :, LEAD], tld)
-            subtract(tl, tld, ACT[:, :, LEAD])
+            sin2.output(tl, f.jump[:, LEAD], W[:, :, LEAD], T7[:, :, LEAD], ACT[:, :, LEAD])
 
         # friction (000 §4.5): path, weights, the delay line
         C, PATH = self.C, self.PATH
@@ -376,17 +298,12 @@ class KernelBatch:
         np.abs(D, C[1:])
         np.add.accumulate(C, axis=0, out=PATH)
         cur = self.CUR
+        wpre = None
         if fr.any:
             wpre = self.WPRE
             wpre[:, fr.slots] = V[:, self.o_wpre :]
-            mul(TG[:, :, FRICT], wpre, cur)
-        else:
-            copyto(cur, TG[:, :, FRICT])
-        if fr.any_pd:
-            wp = self.WPOST
-            np.divide(PATH[1:], fr.pd, wp, where=fr.has_pd)
-            minimum(wp, 1.0, out=wp)
-            mul(cur, wp, cur)
+        pd = fr.pd if fr.any_pd else None
+        friction.weigh(TG[:, :, FRICT], wpre, PATH[1:], pd, fr.has_pd, self.WPOST, cur)
         wpos = fs.ring_pos
         rows = (wpos + np.arange(B)) % RING
         fs.ring[rows] = cur

@@ -1,14 +1,14 @@
-"""Static interpretation of a `MachineConfig`, shared by the fast and the reference kernel.
+"""Static interpretation of a `MachineConfig` for the kernel (its column layout, which
+compensation is selected at start-up, which sin² length belongs to which column).
 
-Only *configuration* is interpreted here (which compensation is selected at start-up,
-which sin² length belongs to which column, which preconditions apply); every per-cycle
-computation is written twice, once vectorised (`kernel.py`) and once per axis in plain
-Python (`reference.py`), so that the reference stays an independent oracle.
+The test oracle (tests/support/reference.py) states these rules once more from the
+manuals, so that it stays independent of the kernel (issue 33).
 """
 
 from __future__ import annotations
 
-from geo_server.dictionary import load_dictionary
+from collections.abc import Sequence
+
 from geo_server.model import AxisConfig, CompKind
 
 #: Column index c of every per-compensation array `[n, 7]`.
@@ -22,6 +22,8 @@ COMP_ORDER: tuple[CompKind, ...] = (
     CompKind.CROSSTALK,
 )
 BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
+#: Blocks of the kernel's source vector S (`kernel.SourceVector`): S[block·n + slot].
+POS, VEL, ACC, REV = range(4)
 #: Every compensation (`COMP OFF_ALL`, 000 §5.1 p.94).
 ALL_KINDS = CompKind(sum(COMP_ORDER))
 COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}
@@ -34,14 +36,6 @@ def hold_columns(kinds: CompKind) -> list[int]:
     return [COLUMN[k] for k in COMP_ORDER if kinds & k and k is not CompKind.FRICT]
 
 
-_TEMPC = load_dictionary().tempc_parameters()
-#: TEMPC parameters writable as CNC objects (000 §3.2.3, p.22), in element-ID order
-#: (coefficient 0x43, offset_0 0x44, position_0 0x45): their object field names and the
-#: `AxisParams` attributes (axis-list entries) they start from — both from the dictionary.
-TEMPC_FIELDS: tuple[str, ...] = tuple(o.key_field for o in _TEMPC)
-TEMPC_ATTRS: tuple[str, ...] = tuple(o.param_attr or "" for o in _TEMPC)
-
-
 def initial_direction(anwahl_losekomp: int) -> float:
     """Start-up direction state (000 §2.3.2, P-AXIS-00021; docs/design.md §3.6).
 
@@ -51,18 +45,18 @@ def initial_direction(anwahl_losekomp: int) -> float:
 
 
 def reload_changes(
-    old: AxisConfig, new: AxisConfig
+    old: AxisConfig, new: AxisConfig, tempc_attrs: Sequence[str]
 ) -> tuple[list[tuple[int, bool]], list[tuple[int, float]]]:
     """What a reload re-initialises for one axis (docs/design.md §12 "reload"): only
     what the new lists changed, so a COMP OFF or a live TEMPC write survives a reload
     that does not touch it. Returns (selection column, selected) pairs and (TEMPC row of
-    `TEMPC_ATTRS`, new value) pairs."""
+    `tempc_attrs` — `temperature.Bindings.attrs` — new value) pairs."""
     so, sn = initial_selection(old), initial_selection(new)
     selection = [(c, sn[c]) for c in range(len(sn)) if so[c] != sn[c]]
     po, pn = old.params, new.params
     tempc = [
         (row, float(getattr(pn, attr)))
-        for row, attr in enumerate(TEMPC_ATTRS)
+        for row, attr in enumerate(tempc_attrs)
         if getattr(po, attr) != getattr(pn, attr)
     ]
     return selection, tempc

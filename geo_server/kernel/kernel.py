@@ -1,7 +1,7 @@
 """Fast, data-oriented compensation kernel (docs/design.md §3, §5.1, §6, §11).
 
-Same semantics as `geo_server.kernel.reference.ReferenceKernel` (the readable statement
-and the test oracle), computed for all axes at once with numpy.
+Same semantics as `ReferenceKernel` (the readable statement and the test oracle, in
+tests/support/reference.py), computed for all axes at once with numpy.
 
 Why it is shaped like this: with the manual's table sizes the arithmetic per cycle is
 tiny; the cost is the *number* of numpy calls (~0.35 µs each plus Python overhead). So
@@ -9,17 +9,21 @@ the cycle is a fixed, short sequence of whole-array calls, and everything that c
 decided from the configuration is decided when the lists are loaded (construction and
 reload):
 
-* each compensation's preloaded arrays and scratch buffers are one data object with a
-  fixed layout (`PlaneTables`, `LsecTables`, ...), built by its `build` at load time,
-  or None when no axis has that compensation: a compensation nobody has configured
-  costs nothing; `step` binds the fields it needs to local names;
+* each compensation's module owns its preloaded arrays (one data object with a fixed
+  layout, built by its `build` at load time, or None when no axis has that compensation:
+  a compensation nobody has configured costs nothing) and its law, a function written
+  once for a single cycle and for a pass of steady cycles (`batch.py`) alike:
+  `temperature`, `plane`, `lsec`, `friction`, `crosstalk`, the 1-D tables
+  (`tables.interpolate`) and the sin² filter (`sin2`) (docs/design.md §13.3); `step`
+  orchestrates them in the manual's order;
 * the inputs are copied once into one source vector `S` (`SourceVector`); every input
   that only needs this cycle's commands (crosstalk state, friction sign, 1-D queries,
   plane, mode 3) comes from S with ONE `take` into `G` (`Gather`), then one `sign`, one
   subtract and one divide (0 and 1 as neutral values);
 * LSEC's complex query (row id 3j + 1 ± direction, position) is one gather from S and
   one add into the query's (real, imag) pairs;
-* `step` is one flat sequence of numpy calls: no helper calls in the hot path;
+* `step` is a flat sequence of numpy calls and law calls (a Python call costs about a
+  third of a numpy call: the laws are few and each does several numpy calls);
 * every 1-D table (cross, friction, crosstalk modes 1/2 and old model, the friction
   pre-reversal weight) is one row of a single `tables.MergedTable`: one `searchsorted`
   serves all of them; LSEC has its own (its lookup position needs this cycle's filtered
@@ -40,13 +44,13 @@ Column order (`COMP_ORDER`): BACKLASH, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTAL
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from geo_server.kernel import crosstalk, friction, sin2, temperature
 from geo_server.kernel.common import (
+    ACC,
     ALL_KINDS,
     BC,
     COLUMN,
@@ -55,31 +59,26 @@ from geo_server.kernel.common import (
     FRICT,
     LEAD,
     PLANE,
+    POS,
+    REV,
     TEMP,
-    TEMPC_ATTRS,
-    TEMPC_FIELDS,
+    VEL,
     filter_cycles,
     hold_columns,
     initial_direction,
     initial_selection,
     reload_changes,
 )
+from geo_server.kernel.crosstalk import CrosstalkTables, Mode3Tables
+from geo_server.kernel.friction import RING, FrictionState, FrictionTables
+from geo_server.kernel.inputs import Gather, GatherWork, SourceVector, gather
+from geo_server.kernel.lsec import ColumnViews, LsecTables
+from geo_server.kernel.plane import MasterWrap, PlaneTables, PlaneWork, bilinear
 from geo_server.kernel.sin2 import Sin2Filter
-from geo_server.kernel.tables import Lookup, MergedTable
-from geo_server.kernel.triangulation import INSIDE_EPS, Triangulation, evaluate, triangulate
+from geo_server.kernel.tables import Lookup, MergedTable, interpolate
+from geo_server.kernel.triangulation import evaluate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
-
-RING = 249  # friction delay line length: delay_cycles < 249 (000 p.79)
-#: Outside the hull, neighbouring regions overlap by this distance [units] so that
-#: rounding can never leave a point in no region; the value there is continuous, so the
-#: overlap changes results by at most REGION_TOL·|gradient| (≪ 1e-9 for real tables).
-REGION_TOL = 1e-6
-#: Blocks of the source vector S (`SourceVector`): S[block·n + slot].
-POS, VEL, ACC, REV = range(4)
-
-#: (is modulo, period) of the axis in a slot: a table over a modulo master wraps with it.
-MasterWrap = Callable[[int], tuple[bool, float]]
 
 
 def _i64(values: list | np.ndarray) -> np.ndarray:
@@ -88,139 +87,6 @@ def _i64(values: list | np.ndarray) -> np.ndarray:
 
 def _f64(values: list | np.ndarray) -> np.ndarray:
     return np.array(values, dtype=float).reshape(-1)
-
-
-def _xt_lut(veldep: bool, inv_acc: float, inv_dec: float) -> tuple[list[int], list[float]]:
-    """Correction column and 1/|a_ref| for the 9 sign combinations of (v, a).
-
-    Index 3·sign(v) + sign(a) + 4. Accelerating ⇔ a·v ≥ 0 (decelerate columns 2, 3);
-    negative direction ⇔ v < 0, or v = 0 and a < 0 (columns 1, 3 when velocity
-    dependent) — the reference's rules (docs/design.md §6.7), tabulated so that the
-    kernel needs no per-cycle comparisons.
-    """
-    cols, invs = [], []
-    for sv in (-1, 0, 1):
-        for sa in (-1, 0, 1):
-            accelerating = sv * sa >= 0
-            neg = sv < 0 or (sv == 0 and sa < 0)
-            cols.append((0 if accelerating else 2) + (1 if neg and veldep else 0))
-            invs.append(inv_acc if accelerating else inv_dec)
-    return cols, invs
-
-
-def _hull_cycle(tri: Triangulation) -> list[int] | None:
-    """Hull vertices in CCW order when the hull edges form one convex cycle that the
-    triangles cover; None otherwise (then the row uses the scalar `evaluate`)."""
-    nxt = {}
-    for a, b in tri.edges:
-        if a in nxt:
-            return None
-        nxt[a] = b
-    start = tri.edges[0][0]
-    cyc, v = [start], nxt.get(start)
-    while v is not None and v != start and len(cyc) <= len(tri.edges):
-        cyc.append(v)
-        v = nxt.get(v)
-    if v != start or len(cyc) != len(tri.edges):
-        return None
-    pts = tri.points
-    area = 0.0
-    scale = 0.0
-    for i, a in enumerate(cyc):
-        b, c = cyc[(i + 1) % len(cyc)], cyc[(i + 2) % len(cyc)]
-        (ax, ay), (bx, by), (cx, cy) = pts[a], pts[b], pts[c]
-        cross = (bx - ax) * (cy - by) - (by - ay) * (cx - bx)
-        scale = max(scale, abs(bx - ax) + abs(by - ay))
-        if cross < -1e-9 * scale * scale:  # a reflex hull vertex
-            return None
-        area += ax * by - bx * ay
-    tri_area = 0.0
-    for t in tri.triangles:
-        (ax, ay), (bx, by), (cx, cy) = (pts[v] for v in t)
-        tri_area += (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-    if abs(area - tri_area) > 1e-9 * max(abs(area), scale * scale):
-        return None
-    return cyc
-
-
-def _regions(tri: Triangulation, vals: np.ndarray) -> list[tuple] | None:
-    """Convex regions covering the plane with the mode-3 value affine in each.
-
-    Each region is (3 half-planes (a, b, c), 4 columns of (α, β, γ)); a point is in a
-    region when min(a·x + b·y + c) ≥ −INSIDE_EPS, and the value there is α·x + β·y + γ.
-    Triangles come first with the reference's own barycentric coefficients (so inside
-    the hull the region choice equals the reference's triangle choice); the exterior
-    regions' half-planes are unit normals scaled so that −INSIDE_EPS means −REGION_TOL.
-    """
-    pad = (0.0, 0.0, 1.0)  # always satisfied
-    kappa = INSIDE_EPS / REGION_TOL
-    pts = tri.points
-    out = []
-
-    def const(v: int) -> list[tuple[float, float, float]]:
-        return [(0.0, 0.0, float(vals[v, c])) for c in range(4)]
-
-    def edge_value(a: int, b: int) -> list[tuple[float, float, float]]:
-        # va + s·(vb − va), s = ((x − ax)·dx + (y − ay)·dy)·inv: affine in (x, y)
-        (ax, ay), (bx, by) = pts[a], pts[b]
-        dx, dy = bx - ax, by - ay
-        inv = 1.0 / (dx * dx + dy * dy)
-        res = []
-        for c in range(4):
-            dv = float(vals[b, c] - vals[a, c])
-            res.append(
-                (dv * dx * inv, dv * dy * inv, float(vals[a, c]) - dv * (ax * dx + ay * dy) * inv)
-            )
-        return res
-
-    def half(nx: float, ny: float, px: float, py: float) -> tuple[float, float, float]:
-        # κ·n·(p − p0) ≥ 0 with n a unit vector
-        return (kappa * nx, kappa * ny, -kappa * (nx * px + ny * py))
-
-    def unit(a: int, b: int) -> tuple[float, float]:
-        dx, dy = pts[b][0] - pts[a][0], pts[b][1] - pts[a][1]
-        ln = math.hypot(dx, dy)
-        return dx / ln, dy / ln
-
-    for t, coef in zip(tri.triangles, tri.bary, strict=True):
-        value = []
-        for c in range(4):
-            v = [float(vals[i, c]) for i in t]
-            value.append(tuple(sum(coef[k][j] * v[k] for k in range(3)) for j in range(3)))
-        out.append((tuple(coef), value))
-    if tri.triangles:
-        cyc = _hull_cycle(tri)
-        if cyc is None:
-            return None
-        m = len(cyc)
-        for i in range(m):
-            a, b = cyc[i], cyc[(i + 1) % m]
-            ux, uy = unit(a, b)
-            slab = (
-                half(ux, uy, *pts[a]),  # beyond a along the edge
-                half(-ux, -uy, *pts[b]),  # before b
-                half(uy, -ux, *pts[a]),  # outside (right of the CCW edge)
-            )
-            out.append((slab, edge_value(a, b)))
-        for i in range(m):
-            p, v, w = cyc[i - 1], cyc[i], cyc[(i + 1) % m]
-            u1, u2 = unit(p, v), unit(v, w)
-            wedge = (half(*u1, *pts[v]), half(-u2[0], -u2[1], *pts[v]), pad)
-            out.append((wedge, const(v)))
-        return out
-    # no triangles: a chain of collinear points sorted along the line, or one point
-    (a0, b0) = tri.edges[0]
-    if a0 == b0:
-        return [((pad, pad, pad), const(a0))]
-    for a, b in tri.edges:
-        ux, uy = unit(a, b)
-        out.append(((half(ux, uy, *pts[a]), half(-ux, -uy, *pts[b]), pad), edge_value(a, b)))
-    first, last = tri.edges[0][0], tri.edges[-1][1]
-    ux, uy = unit(*tri.edges[0])
-    out.append(((half(-ux, -uy, *pts[first]), pad, pad), const(first)))
-    ux, uy = unit(*tri.edges[-1])
-    out.append(((half(ux, uy, *pts[last]), pad, pad), const(last)))
-    return out
 
 
 # ---------------------------------------------------------------------- load time
@@ -277,58 +143,6 @@ class Rows:
                 elif x.mode != 2 or x.master_pos1_ax_nr in slot:
                     r.lin.append(i)
         return r
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class SourceVector:
-    """S = [pos | vel | acc | trunc(rev) | 0 | 1 | direction]: this cycle's commands and
-    the direction state in one vector, so that every per-cycle input is a gather from S.
-
-    The direction is the sign of the command velocity, held at standstill; it starts from
-    `anwahl_losekomp` (000 §2.3.2, P-AXIS-00021; docs/design.md §3.6) and is kept across
-    reloads.
-    """
-
-    n: int
-    S: np.ndarray
-    inputs: np.ndarray  # S[:4n]: filled with one concatenate
-    pos: np.ndarray
-    vel: np.ndarray
-    rev: np.ndarray  # cycles until a reversal known in advance (< 0: none)
-    dir: np.ndarray  # ±1
-    dp: np.ndarray  # (direction, position) as one [2, n] view of S
-    zero: int  # index of the constant 0
-    one: int  # index of the constant 1
-
-    @classmethod
-    def create(cls, n: int, init_dir: list[float]) -> SourceVector:
-        S = np.zeros(5 * n + 2)
-        S[4 * n + 1] = 1.0
-        d = S[4 * n + 2 :]
-        d[:] = init_dir
-        dp = np.lib.stride_tricks.as_strided(
-            S[4 * n + 2 :], shape=(2, n), strides=(-(4 * n + 2) * 8, 8), writeable=False
-        )
-        return cls(
-            n=n,
-            S=S,
-            inputs=S[: 4 * n],
-            pos=S[:n],
-            vel=S[n : 2 * n],
-            rev=S[3 * n : 4 * n],
-            dir=d,
-            dp=dp,
-            zero=4 * n,
-            one=4 * n + 1,
-        )
-
-    def index(self, block: int, slots: np.ndarray | int) -> np.ndarray | int:
-        """Index into S of block (POS, VEL, ACC, REV) of the axes in `slots`."""
-        return block * self.n + slots
-
-    def dir_index(self, slots: np.ndarray) -> np.ndarray:
-        """Index into S of the direction of the axes in `slots`."""
-        return 4 * self.n + 2 + slots
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -401,17 +215,19 @@ class EffectiveTables:
 class BacklashTemp:
     """Backlash (000 §2; docs/design.md §6.1) and temperature (000 §3.1 p.15; §6.2).
 
-    Laid out so that both targets take one subtract and one multiply:
+    Laid out so that both take one subtract:
 
-        (backlash, temp − offset_0) = ((d, s) − (init, position_0)) · (lose/2, coef·1e-6)
+        (d − init, s − position_0) = (d, s) − (init, position_0)
+
+    then backlash = (d − init)·lose/2 and the temperature law `temperature.offset_into`.
 
     Backlash is 0 in the start-up direction and d·lose after a reversal; with d, init
     ∈ {±1} that is (d − init)·lose/2, exactly. s is the command position, wrapped into
     [0, period) on a modulo axis (docs/design.md §3.8). `par` has the rows [init dir,
     lose/2, coefficient·1e-6, (unused), coefficient, offset_0, position_0]; its last three
-    rows are the live TEMPC parameters (000 §3.2.3 objects 0x43–0x45, `TEMPC_ATTRS`
-    order), of which the machine keeps views: the block is allocated once and its static
-    rows are refilled in place on reload (`load`).
+    rows are the live TEMPC parameters (000 §3.2.3 objects 0x43–0x45, in the order of
+    `temperature.Bindings`), of which the machine keeps views: the block is allocated once
+    and its static rows are refilled in place on reload (`load`).
     """
 
     par: np.ndarray  # [7, n]
@@ -423,21 +239,23 @@ class BacklashTemp:
     off0: np.ndarray
     pos0: np.ndarray
     sub: np.ndarray  # rows (init dir, position_0)
-    mul: np.ndarray  # rows (lose/2, coefficient·1e-6)
     t: np.ndarray  # [2, n] scratch
+    t_dir: np.ndarray  # t[0]
     t_pos: np.ndarray  # t[1]
-    out: np.ndarray  # (backlash, temperature) target columns as [2, n]
+    out_bc: np.ndarray  # the backlash target column
     out_temp: np.ndarray
     any_modulo: bool = False
     period: np.ndarray | None = None  # modulo period (1 on other axes)
     not_modulo: np.ndarray | None = None
 
     @classmethod
-    def create(cls, axes: list[AxisConfig], target: np.ndarray) -> BacklashTemp:
+    def create(
+        cls, axes: list[AxisConfig], target: np.ndarray, tempc_attrs: tuple[str, ...]
+    ) -> BacklashTemp:
         n = len(axes)
         par = np.zeros((7, n))
         tempc = par[4:7]
-        for row, attr in enumerate(TEMPC_ATTRS):
+        for row, attr in enumerate(tempc_attrs):
             tempc[row] = [getattr(ax.params, attr) for ax in axes]
         t = np.zeros((2, n))
         bt = cls(
@@ -450,10 +268,10 @@ class BacklashTemp:
             off0=tempc[1],
             pos0=tempc[2],
             sub=par[0:7:6],
-            mul=par[1:3],
             t=t,
+            t_dir=t[0],
             t_pos=t[1],
-            out=target[:, 0:2].T,
+            out_bc=target[:, BC],
             out_temp=target[:, TEMP],
         )
         bt.tempc_changed()
@@ -467,7 +285,7 @@ class BacklashTemp:
         self.period, self.not_modulo = period, ~modulo
 
     def tempc_changed(self) -> None:
-        np.multiply(self.coef, 1e-6, out=self.tc6)
+        temperature.slope_into(self.coef, self.tc6)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -520,144 +338,6 @@ class TargetVector:
             wpre=V[o_wpre:],
             fac_xt=fac[o_tri:o_fr],
             fac_fr=fac[o_fr:o_cross],
-        )
-
-
-@dataclass(slots=True, eq=False)
-class Gather:
-    """G = S[src]: every input that only needs this cycle's commands, with one `take`.
-
-    G = [xt vel | xt acc | friction vel | 1-D queries | plane (u, v) | mode 3 (x, y, 1)].
-    One `sign` serves the first three parts (`ns` entries), one subtract and one divide
-    the query parts q = G[ns:], q ← (q − sub)/div (neutral 0 and 1 where nothing is
-    scaled); before that, the 1-D and plane queries over a modulo master (the first `nw`
-    query entries) are wrapped into [0, period) (000 p.31). `layout` allocates G from the
-    part sizes; each compensation's builder fills `src`, `sub`, `div`, `per` and `wrap`
-    for its part (arrays over the whole of G) and keeps views of its values.
-    """
-
-    G: np.ndarray
-    src: np.ndarray  # index into S of every entry
-    sub: np.ndarray
-    div: np.ndarray
-    per: np.ndarray
-    wrap: np.ndarray
-    sign_in: np.ndarray  # G[:ns]
-    sign: np.ndarray  # sign(G[:ns])
-    q: np.ndarray  # G[ns:]
-    q_sub: np.ndarray
-    q_div: np.ndarray
-    w: np.ndarray  # G[ns:ns + nw]: the entries that may wrap
-    w_per: np.ndarray
-    w_wrap: np.ndarray
-    w_tmp: np.ndarray
-    any: bool
-    any_sign: bool
-    any_q: bool
-    any_wrap: bool = False
-
-    @classmethod
-    def layout(cls, ns: int, nw: int, nq: int) -> Gather:
-        """`ns` sign entries, then `nq` query entries of which the first `nw` may wrap."""
-        ng = ns + nq
-        G = np.zeros(ng)
-        src = np.full(ng, -1, dtype=np.int64)
-        sub, div, per = np.zeros(ng), np.ones(ng), np.ones(ng)
-        wrap = np.zeros(ng, dtype=bool)
-        return cls(
-            G=G,
-            src=src,
-            sub=sub,
-            div=div,
-            per=per,
-            wrap=wrap,
-            sign_in=G[:ns],
-            sign=np.zeros(ns),
-            q=G[ns:],
-            q_sub=sub[ns:],
-            q_div=div[ns:],
-            w=G[ns : ns + nw],
-            w_per=per[ns : ns + nw],
-            w_wrap=wrap[ns : ns + nw],
-            w_tmp=np.zeros(nw),
-            any=bool(ng),
-            any_sign=bool(ns),
-            any_q=bool(nq),
-        )
-
-    def finish(self) -> None:
-        """After every part has been filled."""
-        assert (self.src >= 0).all(), "every gather entry has a source"
-        self.any_wrap = bool(self.w_wrap.any())
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class CrosstalkTables:
-    """Crosstalk, new model (000 §4.6 p.84; docs/design.md §6.7): correction column and
-    ratio min(|a|/a_ref, 1) of every mode 1/2/3 row (mode-3 rows first).
-
-    The sign code 3·sign(v) + sign(a) + 4 of the dynamic master picks, per row, one row of
-    `tab`: (sign(a)/(|a_ref|·UNITS_PER_MM), mode-3 region block, 1-D variant row id), so
-    that a·tab[0] = |a|/|a_ref| (a in units/s², a_ref in mm/s²) without an abs and a
-    divide. The ratio,
-    clamped to 1 (docs/design.md §12), is the row's factor in the target vector; the
-    mode-3 and 1-D builders fill columns 1 and 2 of `tab` and read `now`.
-    """
-
-    col: np.ndarray  # [rows·9] correction column per sign code
-    w31: np.ndarray  # code = (3, 1)·(sign(v), sign(a))
-    sign: np.ndarray  # [2, rows] (sign(v), sign(a)): a view of the gather's signs
-    acc: np.ndarray  # [rows] a of the dynamic master: a view of G
-    code: np.ndarray
-    idx: np.ndarray
-    rowoff: np.ndarray  # 9·row + 4
-    tab: np.ndarray  # [rows·9, 3]
-    now: np.ndarray  # [rows, 3] this cycle's rows of `tab`
-    ratio: np.ndarray  # now[:, 0]
-    fac: np.ndarray  # the rows' factors in the target vector
-
-    @classmethod
-    def build(
-        cls,
-        axes: list[AxisConfig],
-        rows: list[int],
-        slot: dict[int, int],
-        src: SourceVector,
-        g: Gather,
-        part: slice,
-        fac: np.ndarray,
-    ) -> CrosstalkTables | None:
-        if not rows:
-            return None
-        k = len(rows)
-        xs = [axes[i].comp.crosstalk for i in rows]
-        dyn = _i64([slot[x.master_dyn_ax_nr] for x in xs])
-        g.src[part] = np.concatenate([src.index(VEL, dyn), src.index(ACC, dyn)])
-        cols, invs = [], []
-        for x in xs:
-            c, v = _xt_lut(
-                bool(x.velocity_dependent),
-                1.0 / abs(x.acceleration) if x.acceleration else 0.0,
-                1.0 / abs(x.deceleration) if x.deceleration else 0.0,
-            )
-            cols.append(c)
-            invs.append(v)
-        sa = np.tile(np.array([-1.0, 0.0, 1.0] * 3), k)
-        tab = np.zeros((k * 9, 3))
-        tab[:, 0] = sa * _f64(invs) / UNITS_PER_MM
-        now = np.zeros((k, 3))
-        return cls(
-            col=_i64(cols),
-            w31=np.array([3.0, 1.0]),
-            sign=g.sign[part].reshape(2, k),
-            acc=g.G[part][k:],
-            code=np.zeros(k),
-            idx=np.zeros(k, dtype=np.int64),
-            rowoff=np.arange(k, dtype=float) * 9 + 4,
-            tab=tab,
-            now=now,
-            ratio=now[:, 0],
-            fac=fac,
         )
 
 
@@ -769,422 +449,15 @@ class Lookup1DTables:
         )
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class PlaneTables:
-    """Plane (000 §4.3 p.38–43; docs/design.md §6.4): bilinear on table[j][i], j along
-    master 2, i along master 1, positions clamped to the grid.
-
-    u = clamp((q − start)/interval, 0, last) (the gather gives (q − start)/interval),
-    cell = min(floor(u), last − 1); all tables are concatenated into `tab`, and the four
-    corners of the cell are gathered with one `take` at base + j0·stride + i0 + corner
-    offset.
-    """
-
-    u: np.ndarray  # [2, P] (u, v): a view of G
-    last: np.ndarray  # [2, P] last index along each master
-    lim: np.ndarray  # max(last − 1, 0)
-    fl: np.ndarray  # [2, P] floor, then cell
-    frac: np.ndarray  # [2, P] fractions (u − cell)
-    gfrac: np.ndarray  # [2, P] 1 − fraction
-    wv: np.ndarray  # (1 − fv | fv) as [2, 1, P]
-    wu: np.ndarray  # (1 − fu | fu) as [1, 2, P]
-    w: np.ndarray  # [2, 2, P] corner weights [j, i]
-    w4: np.ndarray  # the same as [4, P]
-    sw: np.ndarray  # [2, P] (1, stride): flat cell index = i0 + j0·stride
-    tmp: np.ndarray  # [2, P]
-    tmp0: np.ndarray
-    tmp1: np.ndarray
-    k00: np.ndarray  # [P] flat cell index
-    k00b: np.ndarray  # k00 as [1, 1, P]
-    base4: np.ndarray  # [2, 2, P] corner offsets in `tab`
-    k: np.ndarray  # [2, 2, P] corner indices
-    c: np.ndarray  # [2, 2, P] corner values
-    tab: np.ndarray
-    out: np.ndarray  # the targets: a view of the target vector
-
-    @classmethod
-    def build(
-        cls,
-        axes: list[AxisConfig],
-        rows: list[int],
-        slot: dict[int, int],
-        src: SourceVector,
-        master_wrap: MasterWrap,
-        g: Gather,
-        part: slice,
-        out: np.ndarray,
-    ) -> PlaneTables | None:
-        P = len(rows)
-        if not P:
-            return None
-        ps = [axes[i].comp.plane for i in rows]
-        m = np.array([[slot[x.master1_ax_nr] for x in ps], [slot[x.master2_ax_nr] for x in ps]])
-        w = [[master_wrap(int(s)) for s in row] for row in m]
-        g.src[part] = src.index(POS, m).reshape(-1)
-        g.sub[part] = _f64(
-            [[x.start_position_master1 for x in ps], [x.start_position_master2 for x in ps]]
-        )
-        g.div[part] = _f64([[x.interval1 for x in ps], [x.interval2 for x in ps]])
-        g.wrap[part] = np.array([[a for a, _ in r] for r in w], dtype=bool).reshape(-1)
-        g.per[part] = _f64([[b for _, b in r] for r in w])
-        tabs = [np.atleast_2d(np.asarray(x.table, dtype=float)) for x in ps]
-        last = np.array(
-            [[t.shape[1] - 1 for t in tabs], [t.shape[0] - 1 for t in tabs]], dtype=float
-        )
-        stride = np.array([t.shape[1] for t in tabs], dtype=float)
-        sizes = [t.size for t in tabs]
-        base = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(float)
-        step1 = (last[0] > 0).astype(float)
-        step2 = (last[1] > 0) * stride
-        # corner offsets [j, i]: (j0, i0), (j0, i1), (j1, i0), (j1, i1) — the reference's order
-        base4 = np.stack(
-            [np.stack([base, base + step1]), np.stack([base + step2, base + step2 + step1])]
-        )
-        uv = np.zeros((2, 2, P))  # [axis u/v][1 − frac, frac]
-        wts = np.zeros((2, 2, P))
-        tmp = np.zeros((2, P))
-        k00 = np.zeros(P)
-        return cls(
-            u=g.G[part].reshape(2, P),
-            last=last,
-            lim=np.maximum(last - 1, 0),
-            fl=np.zeros((2, P)),
-            frac=uv[:, 1],
-            gfrac=uv[:, 0],
-            wv=uv[1][:, None, :],
-            wu=uv[0][None, :, :],
-            w=wts,
-            w4=wts.reshape(4, P),
-            sw=np.stack([np.ones(P), stride]),
-            tmp=tmp,
-            tmp0=tmp[0],
-            tmp1=tmp[1],
-            k00=k00,
-            k00b=k00[None, None, :],
-            base4=base4,
-            k=np.zeros((2, 2, P), dtype=np.int64),
-            c=np.zeros((2, 2, P)),
-            tab=np.concatenate([t.ravel() for t in tabs]),
-            out=out,
-        )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Mode3Tables:
-    """Crosstalk mode 3 (000 §4.6 p.84; docs/design.md §6.7, §12): the first convex
-    region containing (x, y) of the row's correction column, and its affine value
-    (see `_regions`); rows whose hull is not a plain convex cycle use the scalar
-    `evaluate` (`slow`).
-
-    λ[j, v·G + g] = (a, b, c)[j, v, g] · (x, y, 1)[j] for every half-plane v of every
-    region g: one stacked matmul; then min over v, ≥ −INSIDE_EPS, first region wins.
-    """
-
-    xy1: np.ndarray  # [T, 3] (x, y, 1): a view of G
-    xy1c: np.ndarray  # as [T, 3, 1]
-    H: np.ndarray  # [T, 3·G, 3] half-planes
-    lamm: np.ndarray  # [T, 3·G, 1]
-    lam0: np.ndarray  # λ of half-plane 0, 1, 2: [T, G]
-    lam1: np.ndarray
-    lam2: np.ndarray
-    min: np.ndarray  # [T, G]
-    inside: np.ndarray  # [T, G]
-    sel: np.ndarray  # [T] chosen region (+ block of the column)
-    off_now: np.ndarray  # [T] this cycle's region block (CrosstalkTables.now)
-    val: np.ndarray  # [T·4·G, 3] (α, β, γ) per region and column
-    coef: np.ndarray  # [T, 3]
-    coef1: np.ndarray  # as [T, 1, 3]
-    out: np.ndarray  # [T] the values: a view of the target vector
-    out11: np.ndarray  # as [T, 1, 1]
-    colv: np.ndarray  # correction column per sign code
-    slow: list[tuple[int, Triangulation, list[list[float]]]]
-
-    @classmethod
-    def build(
-        cls,
-        axes: list[AxisConfig],
-        rows: list[int],
-        slot: dict[int, int],
-        src: SourceVector,
-        g: Gather,
-        part: slice,
-        out: np.ndarray,
-        xt: CrosstalkTables | None,
-    ) -> Mode3Tables | None:
-        T = len(rows)
-        if not T:
-            return None
-        xs = [axes[i].comp.crosstalk for i in rows]
-        regs, slow = [], []
-        for j, x in enumerate(xs):
-            corr = np.atleast_2d(np.asarray(x.corrections, dtype=float))
-            m = min(len(x.ax_1), len(x.ax_2), corr.shape[0])
-            t = triangulate(tuple((float(x.ax_1[i]), float(x.ax_2[i])) for i in range(m)))
-            r = _regions(t, corr) if t.edges else None
-            if r is None:  # unusual hull: this row uses the scalar reference evaluation
-                slow.append((j, t, [list(map(float, corr[:, c])) for c in range(4)]))
-                r = []
-            regs.append(r)
-        G = max(1, max(len(r) for r in regs))
-        never = ((0.0, 0.0, -1.0),) * 3
-        H = np.zeros((T, 3, G, 3))
-        H[...] = -1.0  # padding: λ = −1 never matches
-        H[..., 0] = H[..., 1] = 0.0
-        VALC = np.zeros((T, 4, G, 3))
-        for j, r in enumerate(regs):
-            for k, (hp, val) in enumerate(r or [(never, [(0.0, 0.0, 0.0)] * 4)]):
-                for v in range(3):
-                    H[j, v, k] = hp[v]
-                for c in range(4):
-                    VALC[j, c, k] = val[c]
-        # region block of (row j, column c) starts at (4·j + c)·G, per sign code
-        cols = xt.col.reshape(-1, 9)[:T]
-        xt.tab[: T * 9, 1] = ((np.arange(T)[:, None] * 4 + cols) * G).reshape(-1)
-        p1 = [slot[x.master_pos1_ax_nr] for x in xs]
-        p2 = [slot[x.master_pos2_ax_nr] for x in xs]
-        g.src[part] = _i64(
-            [[src.index(POS, a), src.index(POS, b), src.one] for a, b in zip(p1, p2, strict=True)]
-        )
-        xy1 = g.G[part].reshape(T, 3)
-        lamm = np.zeros((T, 3 * G, 1))
-        lam = lamm.reshape(T, 3, G)
-        coef = np.zeros((T, 3))
-        return cls(
-            xy1=xy1,
-            xy1c=xy1[:, :, None],
-            H=np.ascontiguousarray(H.reshape(T, 3 * G, 3)),
-            lamm=lamm,
-            lam0=lam[:, 0],
-            lam1=lam[:, 1],
-            lam2=lam[:, 2],
-            min=np.zeros((T, G)),
-            inside=np.zeros((T, G), dtype=bool),
-            sel=np.zeros(T, dtype=np.int64),
-            off_now=xt.now[:T, 1],
-            val=VALC.reshape(-1, 3),
-            coef=coef,
-            coef1=coef[:, None, :],
-            out=out,
-            out11=out.reshape(T, 1, 1),
-            colv=cols.reshape(-1),
-            slow=slow,
-        )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ColumnViews:
-    """One column c of the kernel's [n, 7] arrays and of its sin² filter (views)."""
-
-    target: np.ndarray
-    actual: np.ndarray
-    effective: np.ndarray
-    prev: np.ndarray  # output of the previous cycle
-    event: np.ndarray
-    tmp: np.ndarray
-    jump: np.ndarray
-    weight: np.ndarray
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class LsecTables:
-    """Leadscrew error (000 §4.4; docs/design.md §6.5): −Δs at the command position plus
-    this cycle's filtered cross and plane outputs (command alone with
-    `set_pos_without_comp`), from `pos`, or from `neg` while moving negative when
-    bilateral; a `modulo` table wraps into [first setpoint, first + period).
-
-    Its own `MergedTable` with three rows per axis j: 3j (neg; = pos when unilateral),
-    3j + 1 (unused), 3j + 2 (pos), values negated once here. One gather of (direction,
-    command position) from S and one add of (3j + 1, cross + plane) give the complex
-    query (row id 3j + 1 ± 1, position) directly. Then its own sin² pass on column LEAD
-    (its reversal events were set with the others').
-    """
-
-    lookup: Lookup
-    src: np.ndarray  # [L, 2] index into S of (direction, position)
-    g: np.ndarray  # [L, 2] scratch
-    add: np.ndarray  # [L, 2] (3j + 1, cross + plane)
-    t: np.ndarray  # add[:, 1]
-    qf: np.ndarray  # the query as [L, 2] (row id, position) pairs
-    cp: np.ndarray  # [2, L] index into actual.reshape(-1) of (cross, plane)
-    cpv: np.ndarray  # [2, L]
-    cp0: np.ndarray
-    cp1: np.ndarray
-    wc: np.ndarray  # 0 with set_pos_without_comp, else 1
-    all_wc: bool
-    x0: np.ndarray  # first setpoint
-    per: np.ndarray  # the table's period
-    wrap: np.ndarray
-    any_wrap: bool
-    d: np.ndarray  # [L] scratch
-    all: bool  # every axis has LSEC: straight into the target column
-    flat: np.ndarray  # index into target.reshape(-1) of the LSEC targets
-    val: np.ndarray  # [L]
-    col: ColumnViews  # column LEAD
-
-    @classmethod
-    def build(
-        cls,
-        axes: list[AxisConfig],
-        rows: list[int],
-        src: SourceVector,
-        modulo: np.ndarray,
-        period: np.ndarray,
-        col: ColumnViews,
-    ) -> LsecTables | None:
-        L = len(rows)
-        if not L:
-            return None
-        ls = [axes[i].comp.lsec for i in rows]
-        tables = []
-        for x in ls:
-            tables.append((x.setpoint, x.neg if x.bilateral else x.pos))
-            tables.append((np.zeros(1), np.zeros(1)))
-            tables.append((x.setpoint, x.pos))
-        # the table holds measured errors Δs = s_actual − s_programmed: apply −Δs
-        tables = [(np.asarray(k, dtype=float), -np.asarray(v, dtype=float)) for k, v in tables]
-        lookup = Lookup(MergedTable(tables), np.arange(L, dtype=float) * 3 + 1)
-        slots = _i64(rows)
-        add = np.zeros((L, 2))
-        add[:, 0] = np.arange(L, dtype=float) * 3 + 1
-        wc = _f64([0.0 if x.set_pos_without_comp else 1.0 for x in ls])
-        x0 = _f64([float(x.setpoint[0]) for x in ls])
-        # the table's period: the axis period on a modulo axis, else the distance between
-        # first and last setpoint (000 §4.4: they are one period apart)
-        spans = _f64([float(x.setpoint[-1] - x.setpoint[0]) for x in ls])
-        per = np.where(modulo[slots], period[slots], spans)
-        wrap = np.logical_and([x.modulo for x in ls], per > 0)
-        cpv = np.zeros((2, L))
-        return cls(
-            lookup=lookup,
-            src=np.stack([src.dir_index(slots), src.index(POS, slots)], axis=1),
-            g=np.zeros((L, 2)),
-            add=add,
-            t=add[:, 1],
-            qf=lookup.pairs,
-            cp=np.stack([slots * 7 + CROSS, slots * 7 + PLANE]),
-            cpv=cpv,
-            cp0=cpv[0],
-            cp1=cpv[1],
-            wc=wc,
-            all_wc=bool(wc.all()),
-            x0=x0,
-            per=np.where(per > 0, per, 1.0),
-            wrap=wrap,
-            any_wrap=bool(wrap.any()),
-            d=np.zeros(L),
-            all=rows == list(range(len(axes))),
-            flat=slots * 7 + LEAD,
-            val=np.zeros(L),
-            col=col,
-        )
-
-
-@dataclass(slots=True, eq=False)
-class FrictionState:
-    """Friction (000 §4.5 p.64–79; docs/design.md §6.6) state kept across reloads: the
-    delay line of every axis (one row per cycle; rows of axes without friction carry
-    zeros, as in the reference's per-axis delay lines) and the path since the last
-    reversal."""
-
-    ring: np.ndarray  # [RING, n]
-    ring_flat: np.ndarray
-    ring_rows: list[np.ndarray]  # ring[i], for every write position i
-    ring_pos: int
-    path: np.ndarray
-    dpos: np.ndarray  # |pos − previous pos|
-    target: np.ndarray  # the friction column of the kernel's arrays (views)
-    actual: np.ndarray
-    effective: np.ndarray
-
-    @classmethod
-    def create(cls, target: np.ndarray, actual: np.ndarray, eff: np.ndarray) -> FrictionState:
-        n = len(target)
-        ring = np.zeros((RING, n))
-        return cls(
-            ring=ring,
-            ring_flat=ring.reshape(-1),
-            ring_rows=list(ring),
-            ring_pos=0,
-            path=np.full(n, np.inf),
-            dpos=np.zeros(n),
-            target=target[:, FRICT],
-            actual=actual[:, FRICT],
-            effective=eff[:, FRICT],
-        )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FrictionTables:
-    """Friction (000 §4.5 p.64–79; docs/design.md §6.6) parameters of one load.
-
-    base = sign(v)·scaling_factor/1000·table(|v|) (the table is a row of the merged 1-D
-    lookup; sign·scale is its factor in the target vector); weighted before a reversal by
-    r/(lookahead + 1) (`wpre`, from the merged lookup) and after it by min(1, path /
-    position_delay) (`wpost`); the output is the value written `delay_cycles` ago.
-    """
-
-    any: bool  # some axis has friction
-    slots: np.ndarray
-    scale: np.ndarray  # scaling_factor/1000
-    sign: np.ndarray  # sign(v): a view of the gather's signs
-    fac: np.ndarray  # sign·scale: a view of the target vector's factors
-    wpre_in: np.ndarray  # pre-reversal weights: a view of the target vector
-    wpre: np.ndarray  # [n], 1 on axes without friction
-    pd: np.ndarray  # position_delay (0: no post-reversal weight)
-    has_pd: np.ndarray
-    any_pd: bool
-    wpost: np.ndarray  # [n]
-    ridx_rows: list[np.ndarray]  # per write position: read index of every axis
-    rv: np.ndarray  # [n] scratch
-
-    @classmethod
-    def build(
-        cls,
-        axes: list[AxisConfig],
-        rows: list[int],
-        src: SourceVector,
-        g: Gather,
-        part: slice,
-        fac: np.ndarray,
-        wpre_in: np.ndarray,
-    ) -> FrictionTables:
-        n = len(axes)
-        slots = _i64(rows)
-        g.src[part] = src.index(VEL, slots)
-        pd = np.zeros(n)
-        delay = np.zeros(n, dtype=np.int64)
-        for i in rows:
-            fr = axes[i].comp.frict
-            pd[i] = float(fr.position_delay)
-            delay[i] = int(fr.delay_cycles)
-        has_pd = pd > 0
-        # read index of every axis for every write position: (pos − delay) mod RING
-        pos = np.arange(RING)[:, None]
-        ridx = ((pos - delay[None, :]) % RING) * n + np.arange(n)[None, :]
-        return cls(
-            any=bool(rows),
-            slots=slots,
-            scale=_f64([axes[i].comp.frict.scaling_factor / 1000.0 for i in rows]),
-            sign=g.sign[part],
-            fac=fac,
-            wpre_in=wpre_in,
-            wpre=np.ones(n),
-            pd=pd,
-            has_pd=has_pd,
-            any_pd=bool(has_pd.any()),
-            wpost=np.ones(n),
-            ridx_rows=list(ridx),
-            rv=np.zeros(n),
-        )
-
-
 # ---------------------------------------------------------------------- the kernel
 
 
 class Kernel:
     """Vectorised compensation kernel for a whole machine (interface: see package doc)."""
 
-    def __init__(self, cfg: MachineConfig) -> None:
+    def __init__(self, cfg: MachineConfig, tempc: temperature.Bindings | None = None) -> None:
+        #: the TEMPC parameter objects of the machine's dictionary (`write_tempc`)
+        self.tempc = tempc or temperature.default_bindings()
         self.axis_numbers = np.array(sorted(cfg.axes), dtype=np.int64)
         n = len(self.axis_numbers)
         self.n = n
@@ -1202,7 +475,7 @@ class Kernel:
         self._src = SourceVector.create(
             n, [initial_direction(ax.params.anwahl_losekomp) for ax in axes]
         )
-        self._bt = BacklashTemp.create(axes, self.target)
+        self._bt = BacklashTemp.create(axes, self.target, self.tempc.attrs)
         self._fr_state = FrictionState.create(self.target, self.actual, self.effective)
         self._filter: Sin2Filter | None = None
         self._first = True
@@ -1274,18 +547,49 @@ class Kernel:
         o_pl = ns + L1
         o_tri = o_pl + 2 * P
         self._gather = g = Gather.layout(ns, L1 + 2 * P, L1 + 2 * P + 3 * T)
+        self._gather_work = GatherWork.of(g, src.S)
         self._xt = xt = CrosstalkTables.build(
             axes, rows.tri + rows.lin, slot, src, g, slice(0, 2 * nxt), vec.fac_xt
         )
         self._l1 = Lookup1DTables.build(
             axes, rows, slot, src, master_wrap, g, slice(ns, o_pl), vec.l1, xt
         )
-        self._plane = PlaneTables.build(
-            axes, rows.plane, slot, src, master_wrap, g, slice(o_pl, o_tri), vec.plane
+        self._plane = pl = PlaneTables.build(
+            axes, rows.plane, slot, src, master_wrap, g, slice(o_pl, o_tri)
         )
-        self._tri = Mode3Tables.build(
+        self._plane_work = None if pl is None else PlaneWork.create(pl.P, pl.u, vec.plane)
+        self._tri = tri = Mode3Tables.build(
             axes, rows.tri, slot, src, g, slice(o_tri, o_tri + 3 * T), vec.tri, xt
         )
+        # the single cycle's work of the crosstalk laws: the tables' own buffers
+        self._xt_work = None
+        if xt is not None:
+            self._xt_work = crosstalk.StateWork(
+                sign_v=xt.sign[0],
+                sign_a=xt.sign[1],
+                acc=xt.acc,
+                code=xt.code,
+                idx=xt.idx,
+                now=xt.now,
+                ratio=xt.ratio,
+                fac=xt.fac,
+            )
+        self._tri_work = None
+        if tri is not None:
+            self._tri_work = crosstalk.Mode3Work(
+                xy1c=tri.xy1c,
+                lamm=tri.lamm,
+                lam0=tri.lam0,
+                lam1=tri.lam1,
+                lam2=tri.lam2,
+                min=tri.min,
+                inside=tri.inside,
+                sel=tri.sel,
+                off_now=tri.off_now,
+                coef=tri.coef,
+                coef1=tri.coef1,
+                out11=tri.out11,
+            )
         self._frict = FrictionTables.build(
             axes, rows.frict, src, g, slice(2 * nxt, ns), vec.fac_fr, vec.wpre
         )
@@ -1387,7 +691,7 @@ class Kernel:
     def write_tempc(self, slot: int, field: str, value: float) -> None:
         """TEMPC parameter write: a step event with temp_comp_n_cycles (docs/design.md
         §3.5)."""
-        self._bt.tempc[TEMPC_FIELDS.index(field), slot] = float(value)
+        self._bt.tempc[self.tempc.fields.index(field), slot] = float(value)
         self._bt.tempc_changed()
         self._pending[slot, TEMP] = True
         self._pending_any = True
@@ -1403,7 +707,7 @@ class Kernel:
         self._setup(cfg)
         tempc = self._bt.tempc
         for i, a in enumerate(self.axis_numbers):
-            selection, values = reload_changes(old.axes[int(a)], cfg.axes[int(a)])
+            selection, values = reload_changes(old.axes[int(a)], cfg.axes[int(a)], self.tempc.attrs)
             for c, on in selection:
                 self.selected[i, c] = on
             for row, value in values:
@@ -1422,13 +726,13 @@ class Kernel:
         homed: np.ndarray,
         reversal_in: np.ndarray,
     ) -> None:
-        """One GEO cycle for every axis (docs/design.md §5.1 step 3).
-
-        Written as one flat sequence of numpy calls on local names (attribute lookups
-        and helper calls cost as much as a small numpy call here).
+        """One GEO cycle for every axis (docs/design.md §5.1 step 3): the compensations'
+        laws (their modules, docs/design.md §13.3) in the manual's order, with the
+        bookkeeping between them as numpy calls on local names (attribute lookups cost
+        as much as a small numpy call here).
         """
         mul, add, subtract = np.multiply, np.add, np.subtract
-        copyto, minimum, maximum = np.copyto, np.minimum, np.maximum
+        copyto = np.copyto
         tgt, act, eff, ev = self.target, self.actual, self.effective, self._event
         prev, t1, tflat = self._prev, self._t1, self._tflat
         src, fs = self._src, self._fr_state
@@ -1476,8 +780,8 @@ class Kernel:
         np.logical_and(b7, eff, b7)
         np.logical_or(ev, b7, ev)
 
-        # backlash (d − init)·lose/2 (000 §2) and temperature offset_0 + coefficient·1e-6
-        # ·(s − position_0) (000 §3.1 p.15): see `BacklashTemp`
+        # backlash (d − init)·lose/2 (000 §2) and temperature (000 §3.1 p.15, the law in
+        # `temperature`): see `BacklashTemp`
         bt = self._bt
         btt = bt.t
         subtract(src.dp, bt.sub, btt)  # (d − init, s − position_0)
@@ -1485,34 +789,17 @@ class Kernel:
             np.mod(pos, bt.period, t1)
             copyto(t1, pos, where=bt.not_modulo)
             subtract(t1, bt.pos0, bt.t_pos)
-        mul(btt, bt.mul, bt.out)
-        add(bt.off0, bt.out_temp, bt.out_temp)
+        mul(bt.t_dir, bt.half_lose, bt.out_bc)
+        temperature.offset_into(bt.off0, bt.tc6, bt.t_pos, bt.out_temp)
 
         # the inputs of cross, plane, crosstalk and friction: one gather from S
         g = self._gather
         if g.any:
-            S.take(g.src, out=g.G)
-            if g.any_sign:
-                np.sign(g.sign_in, g.sign)
-            if g.any_q:
-                q = g.q
-                if g.any_wrap:  # modulo master: position wrapped into [0, period)
-                    gw, gt = g.w, g.w_tmp
-                    np.mod(gw, g.w_per, gt)
-                    copyto(gw, gt, where=g.w_wrap)
-                subtract(q, g.q_sub, q)
-                np.divide(q, g.q_div, q)
+            gather(g, self._gather_work)
         xt = self._xt
         if xt is not None:
-            # crosstalk (000 §4.6 p.84): column by accelerate/decelerate × direction and
-            # the ratio |a|/a_ref clamped to 1 (docs/design.md §12), every new-model row
-            code, idx = xt.code, xt.idx
-            np.dot(xt.w31, xt.sign, out=code)
-            add(code, xt.rowoff, idx, casting="unsafe")
-            xt.tab.take(idx, axis=0, out=xt.now)
-            fx = xt.fac
-            mul(xt.acc, xt.ratio, fx)
-            minimum(fx, 1.0, out=fx)
+            # crosstalk (000 §4.6 p.84): `crosstalk.state` of every new-model row
+            crosstalk.state(xt.rowoff, xt.tab, self._xt_work)
         l1 = self._l1
         if l1 is not None:
             # cross (000 §4.2), friction base (§4.5), crosstalk modes 1/2 and old model
@@ -1521,54 +808,15 @@ class Kernel:
             if l1.has_lin:  # this cycle's correction column of the crosstalk rows
                 copyto(l1.lin_rowid, l1.lin_now)
             copyto(lk.q, l1.raw)
-            lk.seg_table.take(lk.keys.searchsorted(lk.qc, "right"), axis=0, out=lk.seg)
-            lt = lk.tmp
-            subtract(lk.q, lk.x0, lt)
-            mul(lt, lk.slope, lt)
-            add(lt, lk.y0, l1.out)
-        pl = self._plane
-        if pl is not None:
-            # plane (000 §4.3): u = clamp((q − start)/interval, 0, last);
-            # cell = min(floor(u), last − 1); bilinear on table[j][i]
-            u, fl = pl.u, pl.fl
-            maximum(u, 0.0, out=u)
-            minimum(u, pl.last, out=u)
-            np.floor(u, fl)
-            minimum(fl, pl.lim, out=fl)
-            subtract(u, fl, pl.frac)
-            subtract(1.0, pl.frac, pl.gfrac)
-            # weights [j, i] = (1 − fv | fv)_j · (1 − fu | fu)_i
-            pw = pl.w
-            mul(pl.wv, pl.wu, pw)
-            # corner indices: base + j0·stride + i0 + corner offset
-            mul(fl, pl.sw, pl.tmp)
-            add(pl.tmp0, pl.tmp1, pl.k00)
-            pk, pc = pl.k, pl.c
-            add(pl.k00b, pl.base4, pk, casting="unsafe")
-            pl.tab.take(pk, out=pc)
-            mul(pw, pc, pw)
-            po = pl.out  # the corners in a fixed order (the batch adds them alike)
-            add(pw[0, 0], pw[0, 1], po)
-            add(po, pw[1, 0], po)
-            add(po, pw[1, 1], po)
+            interpolate(lk, l1.out)
+        pl, pw = self._plane, self._plane_work
+        if pl is not None and pw is not None:  # plane (000 §4.3): `plane.bilinear`
+            bilinear(pl, pw)
         tri = self._tri
         if tri is not None:
-            # crosstalk mode 3 (000 §4.6 p.84, docs/design.md §12): first region
-            # containing (x, y), then its affine value in the selected column (× ratio via
-            # the factor vector). λ may round differently from the reference's order by
-            # an ulp: the value is continuous across region boundaries, so this moves
-            # results by ≪ 1e-9.
-            xy1c = tri.xy1c
-            np.matmul(tri.H, xy1c, out=tri.lamm)
-            tmin, tin, sel = tri.min, tri.inside, tri.sel
-            minimum(tri.lam0, tri.lam1, out=tmin)  # cheaper than a reduce
-            minimum(tmin, tri.lam2, out=tmin)
-            np.greater_equal(tmin, -INSIDE_EPS, tin)
-            tin.argmax(axis=1, out=sel)  # first region wins
-            add(sel, tri.off_now, sel, casting="unsafe")
-            coef = tri.coef
-            tri.val.take(sel, axis=0, out=coef)
-            np.matmul(tri.coef1, xy1c, out=tri.out11)  # (α, β, γ)·(x, y, 1)
+            # crosstalk mode 3 (000 §4.6 p.84): `crosstalk.mode3` (× ratio via the factor
+            # vector); a row with an unusual hull evaluates its triangulation
+            crosstalk.mode3(tri.H, tri.val, self._tri_work)
             if tri.slow:
                 vt, xy1 = tri.out, tri.xy1
                 for j, t, cols in tri.slow:
@@ -1595,8 +843,7 @@ class Kernel:
         f.table.take(kidx, out=w)
         subtract(tgt, prev, t7)
         copyto(jump, t7, where=ev)
-        mul(jump, w, t7)
-        subtract(tgt, t7, act)
+        sin2.output(tgt, jump, w, t7, act)
         if self._any_held:  # COMP … NO_MOVE: output held (LSEC reads the held values)
             copyto(act, prev, where=self.held)
 
@@ -1617,23 +864,18 @@ class Kernel:
                 np.mod(lt, ls.per, lt)
                 add(lt, ls.x0, lt)
                 copyto(lq, lt, where=ls.wrap)
-            lk.seg_table.take(lk.keys.searchsorted(lk.qc, "right"), axis=0, out=lk.seg)
-            lt = lk.tmp
-            subtract(lk.q, lk.x0, lt)
-            mul(lt, lk.slope, lt)
             c = ls.col
             tl = c.target
             if ls.all:
-                add(lt, lk.y0, tl)
+                interpolate(lk, tl)
             else:
-                add(lt, lk.y0, ls.val)
+                interpolate(lk, ls.val)
                 tflat.put(ls.flat, ls.val)
             mul(tl, c.effective, tl)
             tld = c.tmp
             subtract(tl, c.prev, tld)
             copyto(c.jump, tld, where=c.event)
-            mul(c.jump, c.weight, tld)
-            subtract(tl, tld, c.actual)
+            sin2.output(tl, c.jump, c.weight, tld, c.actual)
             if self._any_held:
                 copyto(c.actual, c.prev, where=self.held[:, LEAD])
 
@@ -1647,18 +889,12 @@ class Kernel:
         # this cycle's value into the delay line: sign(v)·scale·table(|v|) (0 when not
         # effective) × the pre-reversal and the post-reversal weight
         cur = fs.ring_rows[wpos]
-        if fr.any:
-            # before the reversal: r/(lookahead + 1) while 0 ≤ r ≤ lookahead
+        wpre = None
+        if fr.any:  # the pre-reversal weights: from the merged lookup
             wpre = fr.wpre
             wpre.put(fr.slots, fr.wpre_in)
-            mul(fs.target, wpre, cur)
-        else:
-            copyto(cur, fs.target)
-        if fr.any_pd:  # after the reversal: min(1, path / position_delay)
-            wp = fr.wpost
-            np.divide(path, fr.pd, wp, where=fr.has_pd)
-            minimum(wp, 1.0, out=wp)
-            mul(cur, wp, cur)
+        pd = fr.pd if fr.any_pd else None
+        friction.weigh(fs.target, wpre, path, pd, fr.has_pd, fr.wpost, cur)
         # delay line: read `delay_cycles` back; output only while effective
         rv = fr.rv
         fs.ring_flat.take(fr.ridx_rows[wpos], out=rv)

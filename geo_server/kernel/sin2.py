@@ -69,3 +69,12 @@ class Sin2Filter:
         np.copyto(self.kidx, self.off, where=event)
         self.succ.take(self.kidx, out=self.kidx)  # buffered (mode "raise"): safe in place
         self.table.take(self.kidx, out=self.w)
+
+
+def output(
+    target: np.ndarray, jump: np.ndarray, w: np.ndarray, tmp: np.ndarray, out: np.ndarray
+) -> None:
+    """out = target − J·w (docs/design.md §3.4): the filtered output of every column, for a
+    single cycle (`Kernel.step`) and a pass of steady cycles (`KernelBatch.run`) alike."""
+    np.multiply(jump, w, tmp)
+    np.subtract(target, tmp, out)

@@ -57,23 +57,37 @@ class MergedTable:
 
 
 class Lookup:
-    """Preallocated query/result buffers of one `MergedTable` for a fixed row count."""
+    """Preallocated query/result buffers of one `MergedTable` for a fixed row count, for
+    one cycle (`lead` = ()) or a pass of B cycles (`lead` = (B,), `batch`)."""
 
-    def __init__(self, table: MergedTable, row_ids: np.ndarray) -> None:
+    def __init__(self, table: MergedTable, row_ids: np.ndarray, lead: tuple[int, ...] = ()) -> None:
         n = len(row_ids)
+        self.table, self.row_ids = table, row_ids
         self.keys, self.seg_table = table.keys, table.seg
-        self.qc = np.zeros(n, dtype=complex)
+        self.qc = np.zeros((*lead, n), dtype=complex)
         self.qc.real = row_ids
-        self.pairs = self.qc.view(float).reshape(n, 2)  # view: (row id, position) pairs
+        self.pairs = self.qc.view(float).reshape(*lead, n, 2)  # (row id, position) pairs
         self.q = self.qc.imag  # view: write the query positions here
         self.rowid = self.qc.real  # view: write per-cycle variant row ids here
-        self.seg = np.zeros((n, 3))
-        self.x0, self.y0, self.slope = self.seg[:, 0], self.seg[:, 1], self.seg[:, 2]
-        self.tmp = np.zeros(n)
+        self.seg = np.zeros((*lead, n, 3))
+        self.x0, self.y0, self.slope = self.seg[..., 0], self.seg[..., 1], self.seg[..., 2]
+        self.tmp = np.zeros((*lead, n))
+
+    def batch(self, size: int) -> Lookup:
+        """The same lookup for a pass of `size` cycles (the cycles a leading axis)."""
+        return Lookup(self.table, self.row_ids, (size,))
 
     def __call__(self, out: np.ndarray) -> None:
-        """out = table_row(q) for the queries in `qc` (5 numpy calls)."""
-        self.seg_table.take(self.keys.searchsorted(self.qc, "right"), axis=0, out=self.seg)
-        np.subtract(self.q, self.x0, self.tmp)
-        np.multiply(self.tmp, self.slope, self.tmp)
-        np.add(self.tmp, self.y0, out)
+        """`interpolate`."""
+        interpolate(self, out)
+
+
+def interpolate(lk: Lookup, out: np.ndarray) -> None:
+    """out = table_row(q) for the queries in `lk.qc` (5 numpy calls): the 1-D law of every
+    table (linear, edges held: docs/design.md §6.0) — cross, friction, crosstalk modes 1/2
+    and old model, LSEC — for a single cycle and a pass alike."""
+    lk.seg_table.take(lk.keys.searchsorted(lk.qc, "right"), axis=0, out=lk.seg)
+    t = lk.tmp
+    np.subtract(lk.q, lk.x0, t)
+    np.multiply(t, lk.slope, t)
+    np.add(t, lk.y0, out)

@@ -349,7 +349,8 @@ CHECKS: tuple[Check, ...] = (
         "crosstalk.adapt1",
         _CT,
         70657,
-        "mode 2/3: `master_pos1_ax_nr` missing, not an axis, or the slave",
+        "mode 2/3: `master_pos1_ax_nr` missing or not an axis of the machine (the "
+        "compensated axis itself is allowed)",
         "000 §4.6.4 p.92–93 (new model only)",
     ),
     Check(

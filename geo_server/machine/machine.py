@@ -20,16 +20,16 @@ import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from time import monotonic, perf_counter_ns
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from geo_server.dictionary import Dictionary, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
-from geo_server.kernel import COMP_ORDER, Kernel
+from geo_server.kernel import COMP_ORDER, Kernel, temperature
 from geo_server.kernel.batch import KernelBatch, batch_limit
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.listfile.values import Reporter
@@ -57,6 +57,49 @@ from geo_server.volcomp.config import reload_compensation
 from geo_server.volcomp.kernel import VOLC_ERROR, VolKernel
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class _MachineColumns:
+    """Columns of the machine objects `Machine._build_snapshot` writes from the machine's
+    own state (the other machine objects are 0 or come from elsewhere)."""
+
+    cycle_count: int
+    cycle_time_us: int
+    overruns: int
+    last_error_id: int
+    program_running: int
+    program_line: int
+    ambient_temperature: int
+    twin_time: int
+    spindle_on: int
+    volc_active: int
+    volc_available: int
+    volc_index: int
+    volc_tool_length: int
+    volc_incorrect: int
+
+    #: the object of each field, in field order
+    OBJECTS: ClassVar[tuple[str, ...]] = (
+        "SIM::cycle_count",
+        "SIM::cycle_time_us",
+        "SIM::overruns",
+        "SIM::last_error_id",
+        "SIM::program_running",
+        "SIM::program_line",
+        "TWIN::ambient_temperature",
+        "TWIN::time",
+        "TWIN::spindle_on",
+        "VOLC::active",
+        "VOLC::available",
+        "VOLC::index",
+        "VOLC::tool_length",
+        "VOLC::incorrect",
+    )
+
+    @classmethod
+    def of(cls, mcol: Callable[[str], int]) -> _MachineColumns:
+        return cls(*(mcol(name) for name in cls.OBJECTS))
 
 
 def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -109,7 +152,9 @@ class Machine:
         self.layout = ObjectLayout(self.dictionary)
         self.axes: tuple[int, ...] = tuple(sorted(cfg.axes))
         self.names = {cfg.axes[a].params.name.upper(): i for i, a in enumerate(self.axes)}
-        self.kernel = Kernel(cfg)
+        #: the TEMPC parameter objects of this machine's dictionary (000 §3.2.3)
+        self.tempc = temperature.bindings(self.dictionary)
+        self.kernel = Kernel(cfg, self.tempc)
         self.volc = self._new_volc(cfg)
         #: cnc_interpr_vol_comp_index_w: the compensation the next file write updates
         self.volc_index = 0
@@ -382,7 +427,7 @@ class Machine:
         command positions, added to the output; a correction beyond its s_limit stops
         the program (004 p.14: "the axis is stopped in a controlled manner")."""
         mo = self.motion
-        if not self.volc.step(mo.pos, mo.homed):
+        if not self.volc.step(mo.pos, mo.homed, self.kernel.drive_enabled):
             if self.player is not None and self.player.running:
                 self.player.abort()
             mo.stop()
@@ -517,7 +562,8 @@ class Machine:
         where: list[tuple[str, int] | None] = [None] * len(self.layout.axis_objects)
         for name, (attr, kind) in _FROM_COMP.items():
             where[col(name)] = ("machine" if attr == "delta" else attr, COLUMN[kind])
-        for name, src in _FROM_STATE.items():
+        tempc_rows = {name: _tempc_row(row) for row, name in enumerate(self.tempc.names) if name}
+        for name, src in {**_FROM_STATE, **tempc_rows}.items():
             if isinstance(src, str):  # a column of the machine buffer
                 where[col(name)] = ("machine", _MBUF[src])
             else:
@@ -535,25 +581,7 @@ class Machine:
         self._columns = np.array(
             [offset[w[0]] + w[1] if w else offset["zero"] for w in where], dtype=np.int64
         )
-        mcol = self.layout.mcol
-        self._mcols = tuple(
-            mcol(n)
-            for n in (
-                "SIM::cycle_count",
-                "SIM::cycle_time_us",
-                "SIM::overruns",
-                "SIM::last_error_id",
-                "SIM::program_running",
-                "SIM::program_line",
-                "TWIN::ambient_temperature",
-                "TWIN::time",
-                "TWIN::spindle_on",
-                "VOLC::active",
-                "VOLC::available",
-                "VOLC::index",
-                "VOLC::tool_length",
-            )
-        )
+        self._mc = _MachineColumns.of(self.layout.mcol)
         self._mach_template = [0.0] * len(self.layout.machine_objects)
         self._text_slot = self.layout.text_index["SIM::last_error"]
         self._volc_file_slot = self.layout.text_index["VOLC::file"]
@@ -585,22 +613,23 @@ class Machine:
         np.concatenate(self._pieces, axis=1, out=self._stack)
         v = self._stack.take(self._columns, axis=1)
         mach = self._mach_template.copy()
-        c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12 = self._mcols
-        mach[c0] = self.cycle & 0xFFFF_FFFF
-        mach[c1] = round(self.cycle_s * 1e6)
-        mach[c2] = self.overruns
-        mach[c3] = self.last_error_id
+        mc = self._mc
+        mach[mc.cycle_count] = self.cycle & 0xFFFF_FFFF
+        mach[mc.cycle_time_us] = round(self.cycle_s * 1e6)
+        mach[mc.overruns] = self.overruns
+        mach[mc.last_error_id] = self.last_error_id
         player = self.player
         if player is not None:
-            mach[c4] = float(player.running)
-            mach[c5] = player.line
-        mach[c6] = self.twin.ambient
-        mach[c7] = self.twin.time
-        mach[c8] = float(self.spindle_on)
+            mach[mc.program_running] = float(player.running)
+            mach[mc.program_line] = player.line
+        mach[mc.ambient_temperature] = self.twin.ambient
+        mach[mc.twin_time] = self.twin.time
+        mach[mc.spindle_on] = float(self.spindle_on)
         volc = self.volc
-        mach[c9], mach[c10] = volc.active_mask, volc.available_mask
-        mach[c11] = self.volc_index
-        mach[c12] = volc.tool_length
+        mach[mc.volc_active], mach[mc.volc_available] = volc.active_mask, volc.available_mask
+        mach[mc.volc_index] = self.volc_index
+        mach[mc.volc_tool_length] = volc.tool_length
+        mach[mc.volc_incorrect] = volc.incorrect_mask
         self._texts[self._text_slot] = self.last_error
         self._texts[self._volc_file_slot] = volc.file_of(self.volc_index)
         return Snapshot(
@@ -637,7 +666,7 @@ class Machine:
             self._record(diagnostic)
             snap = self.snapshot
             machine = snap.machine.copy()
-            machine[self._mcols[3]] = self.last_error_id
+            machine[self._mc.last_error_id] = self.last_error_id
             texts = list(snap.texts)
             texts[self._text_slot] = self.last_error
             self.snapshot = replace(snap, machine=machine, texts=tuple(texts))
@@ -669,8 +698,11 @@ class Machine:
     def apply_write(self, name: str, axis: int, value: Any) -> None:
         """Apply a validated object write (runs at a cycle boundary, docs/design.md §5 step 1)."""
         obj = self.dictionary.by_name(name)
-        handler = _WRITE_HANDLERS[obj.name]
-        handler(self, self.slot(axis) if obj.scope == "axis" else -1, value)
+        slot = self.slot(axis) if obj.scope == "axis" else -1
+        if obj.name in self.tempc.names:  # a TEMPC parameter of this dictionary
+            self.kernel.write_tempc(slot, obj.key_field, float(value))
+            return
+        _WRITE_HANDLERS[obj.name](self, slot, value)
 
     def set_comp(self, slot: int, kinds: CompKind, on: bool) -> int:
         """COMP ON/OFF (manual §5.1). Returns 70495 for `COMP ON FRICT` without
@@ -684,7 +716,22 @@ class Machine:
         return 0
 
     def program_end(self) -> None:
-        """M30 / reset: manual-activation compensations are deselected (manual §5.1)."""
+        """M30: manual-activation compensations are deselected (manual §5.1); a
+        volumetric compensation linked to the channel that is still active is reduced
+        without movement, with an error at the M30's line (004 p.24)."""
+        self._deselect_all_manual()
+        line = self.player.line if self.player is not None else 0
+        for ident in self.volc.program_end():
+            self.report(
+                VOLC_ERROR,
+                f"volumetric compensation {ident} is linked to the channel "
+                "(associate_to_channel 1) and still active at program end: its values "
+                "reduced without movement (004 p.24)",
+                line,
+            )
+
+    def _deselect_all_manual(self) -> None:
+        """Program end and reset: every axis' manual-activation compensations (§5.1)."""
         for slot in range(len(self.axes)):
             self._deselect_manual(slot)
 
@@ -770,7 +817,7 @@ class Machine:
         if self.player is not None and self.player.running:
             self.player.abort()
         self.motion.stop()
-        self.program_end()
+        self._deselect_all_manual()
         self.volc.reset()  # 004 p.24: every volumetric compensation off, no movement
         self._volc_loading.clear()  # an UPDATE still reading is given up
 
@@ -855,7 +902,14 @@ class Machine:
                 if cmd.update:
                     self._volc_update(ident)
                 else:
-                    volc.switch(ident, cmd.on, cmd.no_move, cmd.cfact, self.motion.homed)
+                    volc.switch(
+                        ident,
+                        cmd.on,
+                        cmd.no_move,
+                        cmd.cfact,
+                        self.motion.homed,
+                        self.kernel.drive_enabled,
+                    )
         except (KeyError, ValueError) as exc:
             return VOLC_ERROR, str(exc.args[0]) if exc.args else str(exc)
         return 0, ""
@@ -1034,22 +1088,10 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
 }
 
 
-#: kenngr.achs_typ of each axis kind (002 P-AXIS-00018).
 def _tempc_row(row: int) -> Callable[[Machine], np.ndarray]:
+    """The live TEMPC parameter of row `row` (`temperature.Bindings` order): a row of the
+    kernel's parameter block, bound per machine from its own dictionary."""
     return lambda m: m.kernel.tempc_params[row]
-
-
-# The live TEMPC parameters (coefficient, offset_0, position_0) are rows of the kernel's
-# parameter block, in the dictionary's order (`TEMPC_FIELDS`).
-for _row, _obj in enumerate(load_dictionary().tempc_parameters()):
-    _FROM_STATE[_obj.name] = _tempc_row(_row)
-
-
-def _set_tempc(field: str) -> Callable[[Machine, int, Any], None]:
-    def apply(m: Machine, slot: int, value: Any) -> None:
-        m.kernel.write_tempc(slot, field, float(value))
-
-    return apply
 
 
 def _move(m: Machine, slot: int, target: float) -> None:
@@ -1072,7 +1114,7 @@ def _volc_switch(m: Machine, ident: int, on: bool) -> None:
     """cnc_vol_comp_enable/disable_index_w (004 p.22): like #VOLCOMP ON/OFF [ID..]. An
     ID that is not configured or not available answers 0x706 (invalid data)."""
     try:
-        m.volc.switch(ident, on, homed=m.motion.homed)
+        m.volc.switch(ident, on, homed=m.motion.homed, drive=m.kernel.drive_enabled)
     except (KeyError, ValueError) as exc:
         message = str(exc.args[0]) if exc.args else str(exc)
         m.report(VOLC_ERROR, message)
@@ -1088,7 +1130,6 @@ def _set_homed(m: Machine, slot: int, value: Any) -> None:
 
 _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     "TEMPC::activated": lambda m, s, v: _set_tempc_activated(m, s, bool(v)),
-    **{o.name: _set_tempc(o.key_field) for o in load_dictionary().tempc_parameters()},
     "SIM::target_position": lambda m, s, v: _move(m, s, float(v)),
     "SIM::homed": _set_homed,
     "SIM::drive_enable": lambda m, s, v: m.set_drive_enable(s, bool(v)),

@@ -163,7 +163,8 @@ class MachinePort(Protocol):
         ...
 
     def program_end(self) -> None:
-        """M30: deselect manual-activation compensations (000 §5.1)."""
+        """M30: deselect manual-activation compensations (000 §5.1); reduce the volumetric
+        compensations linked to the channel (004 p.24)."""
         ...
 
     def release_axis(self, slot: int) -> None:

@@ -204,7 +204,7 @@ class Recorder:
         self.out = out
         self.limits = limits
         axes = tuple(service.axes)
-        names = {a: service.machine.cfg.axes[a].params.name for a in axes}
+        names = {a: service.config.axes[a].params.name for a in axes}
         self.columns = resolve_columns(spec.objects, service.dictionary, axes, names)
         self.trigger: Trigger | None = None
         if spec.trigger:
@@ -255,7 +255,7 @@ class Recorder:
         self.inputs_dropped = 0
         self._undo: list[Callable[[], None]] = []
         # the file side (out): the writer thread and what it writes into
-        self._realtime = getattr(service.scheduler, "mode", "stepped") == "realtime"
+        self._realtime = service.mode == "realtime"
         self._trace_file: TraceWriter | None = None
         self._inputs_file: AtomicFile | None = None
         self._writer: threading.Thread | None = None
@@ -282,13 +282,9 @@ class Recorder:
         if self.out is not None:
             self._open_files(self.out)
         try:
-            machine = self.service.machine
             if self.spec.inputs:
-                taps = getattr(machine, "input_taps", None)
-                if taps is not None:
-                    taps.append(self._on_input)
-                    self._undo.append(lambda: taps.remove(self._on_input))
-            self._undo.append(self.service.scheduler.demand_every_cycle())
+                self._undo.append(self.service.tap_inputs(self._on_input))
+            self._undo.append(self.service.demand_every_cycle())
             self._undo.append(self.service.subscribe(self._on_cycle))
         except BaseException:
             self.abort()

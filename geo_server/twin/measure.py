@@ -41,6 +41,7 @@ import numpy as np
 
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import GeoError
+from geo_server.kernel.temperature import offset as tempc_offset
 from geo_server.listfile import rewrite_values
 from geo_server.listfile.writer import write_atomic
 from geo_server.model import COMP_NAMES, SELECTED_OBJECTS, MachineConfig
@@ -492,7 +493,7 @@ class ReferencePoint:
         p0, off, coef = self.tempc
 
         def active(p_mm: float) -> float:  # µm the temperature compensation adds now
-            return off + coef * 1e-6 * (p_mm * UNITS_PER_MM - p0) / UNITS_PER_UM
+            return off + tempc_offset(0.0, coef, p0, p_mm * UNITS_PER_MM) / UNITS_PER_UM
 
         rows = iso230.reference_rows(axis, self.temperature, self.evaluation)
         return [(a, round(t, 3), p, round(dev + active(p), 4)) for a, t, p, dev in rows]

@@ -21,9 +21,11 @@ by `safefile.FileLimits`.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
+
+import numpy as np
 
 from geo_server.listfile.schema import ListKind, lookup
 from geo_server.listfile.syntax import NotAListFileError, parse_list
@@ -31,7 +33,7 @@ from geo_server.listfile.values import Reporter, Values, read_values
 from geo_server.model import AxisParams, MachineConfig
 from geo_server.safefile import LIMITS, REFUSED, is_inside
 from geo_server.volcomp.model import VolModel, build_model
-from geo_server.volcomp.names import AXES, LINEAR
+from geo_server.volcomp.names import AXES, COMPONENT_ERRORS, LINEAR, POSITION_ERRORS
 from geo_server.volcomp.paramfile import FORMATS, Block, ParamFileError, read_param_file
 from geo_server.volcomp.tables import ParamTable, TableError, build_tables
 
@@ -274,7 +276,40 @@ def _tables(
                     t.file,
                     t.line,
                 )
-    return tables, records, tuple(paths)
+    return _constants(tables), records, tuple(paths)
+
+
+def _constants(tables: Mapping[str, ParamTable]) -> dict[str, ParamTable]:
+    """The position errors and the ISG parameters as the constants the model takes
+    (004 p.31: position errors "are global quantities and have only one value"; P0?,
+    N0?, P?k, V?k, IDk, LNk describe the machine, p.30). A header may still name
+    arguments with them (p.32: "typically (but not necessarily) constant"): records that
+    all give one value are that constant; values that differ over the arguments are
+    refused at the block naming them — the manual's model has no place for a varying
+    one (a variation over the travel is a component error), and taking it as 0 would
+    report a compensation active that corrects nothing (docs/volumetric.md §3)."""
+    out = dict(tables)
+    for name, t in tables.items():
+        if not t.arguments or name in COMPONENT_ERRORS:
+            continue
+        raw = t.values if t.mode == "GRID" else t.point_values
+        values = np.unique(np.asarray(raw, dtype=float).ravel())
+        if len(values) != 1:
+            what = (
+                "a position error, a global quantity with one value (004 p.31)"
+                if name in POSITION_ERRORS
+                else "a constant of the machine model (004 p.30)"
+            )
+            raise _Problem(
+                "volc.file",
+                f"{name} is {what}, but its values over ({', '.join(t.arguments)}) differ "
+                f"({values[0]:g} … {values[-1]:g}); give a variation over the travel as a "
+                "component error (E<direction><axis>, 004 p.29-30)",
+                t.file,
+                t.line,
+            )
+        out[name] = ParamTable(name, (), (), np.array(float(values[0])), file=t.file, line=t.line)
+    return out
 
 
 def _assign(

@@ -1,10 +1,13 @@
 """The volumetric compensations of one machine in the GEO cycle (004 §4, docs/volumetric.md §5).
 
 Per compensation: whether it is wanted (automatic activation, `#VOLCOMP ON/OFF`, the
-enable/disable CNC objects), whether it can act (available, every axis referenced,
-s_limit defined), the ramp of `filter_steps` (004 p.22), the `CFACT_*` weights of the
-activation (004 p.21), `negate`/`set_to_zero` (004 p.16) and the `s_limit` watch (004
-p.14). `offset` is what the drives get added, per machine axis slot, in increments.
+enable/disable CNC objects), whether it can act (available, every axis referenced and
+its drive enabled, s_limit defined), the ramp of `filter_steps` (004 p.22), the
+`CFACT_*` weights of the activation (004 p.21), `negate`/`set_to_zero` (004 p.16) and
+the `s_limit` watch (004 p.14). `offset` is what the drives get added, per machine axis
+slot, in increments. The error case and the program end of 004 p.24 (an axis in error
+state marks the compensation incorrect; M30 reduces one linked to the channel):
+docs/volumetric.md §5.
 """
 
 from __future__ import annotations
@@ -45,6 +48,9 @@ class CompState:
     tip: tuple[float, float, float] = (0.0, 0.0, 0.0)  # tool point at `tip_length`
     tip_length: float = float("nan")
     linear_list: list[int] = field(default_factory=list)
+    #: marked incorrect (004 p.24): an axis of its chain went into error state while it
+    #: was active; cleared by the CNC reset and by the next ON (VOLC::incorrect)
+    incorrect: bool = False
 
     @property
     def active(self) -> bool:
@@ -104,11 +110,13 @@ class VolKernel:
         no_move: bool = False,
         cfact: tuple[float, float, float] | None = None,
         homed: np.ndarray | None = None,
+        drive: np.ndarray | None = None,
     ) -> None:
         """`#VOLCOMP ON/OFF [ID=.. NO_MOVE CFACT_*]` or the enable/disable objects: ramp
         over `filter_steps` (004 p.22), at once with NO_MOVE. CFACT_* are non-modal:
         every ON without them weighs 1 (004 p.21). ON needs every axis of the chain
-        referenced (`homed`, 004 p.20) and s_limit defined (p.14)."""
+        referenced (`homed`) and error-free (its `drive` enabled, 004 p.20) and s_limit
+        defined (p.14); it clears the mark "incorrect" (p.24)."""
         st = self.get(ident)
         if on and st.evaluator is None:
             raise ValueError(f"volumetric compensation {ident} is not available: {st.comp.problem}")
@@ -116,6 +124,11 @@ class VolKernel:
             raise ValueError(
                 f"volumetric compensation {ident}: every axis of the chain must be "
                 "referenced (004 p.20)"
+            )
+        if on and drive is not None and not drive[st.slots].all():
+            raise ValueError(
+                f"volumetric compensation {ident}: every axis of the chain must be "
+                f"error-free, the drive of {self._names(st, drive)} is not enabled (004 p.20)"
             )
         if on:
             missing = [a for a, lim in zip("XYZ", st.limits, strict=True) if lim <= 0]
@@ -125,6 +138,7 @@ class VolKernel:
                     f"not defined for {', '.join(missing)} (004 p.14)"
                 )
             st.cfact = np.array(cfact if cfact is not None else (1.0, 1.0, 1.0))
+            st.incorrect = False
         st.wanted = on
         steps = st.comp.config.filter_steps if st.comp.config else 0
         st.step = 1.0 if no_move or steps <= 1 else 1.0 / steps
@@ -139,8 +153,28 @@ class VolKernel:
             st.wanted = False
             st.target = st.factor = 0.0
             st.value = [0.0, 0.0, 0.0]
+            st.incorrect = False
         self._refresh()
         self.offset[:] = 0.0
+
+    def program_end(self) -> list[int]:
+        """M30 (004 p.24: "If compensations are still active at program end (M30) and
+        they are linked to the current channel, an error is output and the compensation
+        values of the affected axes are reduced without any additional movement"): every
+        active compensation with `associate_to_channel 1` is switched off at once, as the
+        reset does; the IDs returned, the caller reports the error with the M30's line.
+        The others stay as they are (docs/volumetric.md §5)."""
+        ended = []
+        for st in self._active:
+            cfg = st.comp.config
+            if cfg is not None and cfg.associate_to_channel and st.active:
+                st.wanted = False
+                st.target = st.factor = 0.0
+                st.value = [0.0, 0.0, 0.0]
+                ended.append(st.comp.id)
+        if ended:
+            self._refresh()
+        return ended
 
     def update(self, ident: int, comp: VolComp) -> None:
         """`#VOLCOMP [ID.. UPDATE]` or the CNC objects: the new configuration replaces
@@ -160,7 +194,10 @@ class VolKernel:
         self.tool_length = old.tool_length
         for ident, st in old.states.items():
             new = self.states.get(ident)
-            if new is None or new.evaluator is None or not st.active:
+            if new is None or new.evaluator is None:
+                continue
+            new.incorrect = st.incorrect  # (a reload is no reset)
+            if not st.active:
                 continue
             new.wanted, new.factor, new.target = st.wanted, st.factor, st.target
             new.step, new.cfact = st.step, st.cfact
@@ -175,6 +212,11 @@ class VolKernel:
     def active_mask(self) -> int:
         """VOLC::active: bit i for compensation i active or ramping."""
         return sum(1 << i for i, s in self.states.items() if s.active)
+
+    @property
+    def incorrect_mask(self) -> int:
+        """VOLC::incorrect: bit i for compensation i marked incorrect (004 p.24)."""
+        return sum(1 << i for i, s in self.states.items() if s.incorrect)
 
     @property
     def available_mask(self) -> int:
@@ -194,20 +236,35 @@ class VolKernel:
 
     # ------------------------------------------------------------------ the cycle
 
-    def auto_activate(self, homed: np.ndarray) -> None:
-        """Automatic activation (004 p.20: "as soon as all participating axes allow
-        it"): a wanted, available compensation whose axes are all referenced starts —
-        checked every cycle, so one waiting for an axis starts while others act."""
+    def auto_activate(self, homed: np.ndarray, drive: np.ndarray | None = None) -> None:
+        """Automatic activation (004 p.20: "as soon as all participating axes allow it
+        (error-free, referenced, etc.)"): a wanted, available compensation whose axes
+        are all referenced with their drives enabled starts — checked every cycle, so
+        one waiting for an axis starts while others act."""
         for st in self.states.values():
             if not st.wanted or st.target > 0 or st.evaluator is None:
                 continue
-            if not homed[st.slots].all():
+            if not homed[st.slots].all() or (drive is not None and not drive[st.slots].all()):
                 continue
             try:
-                self.switch(st.comp.id, True, homed=homed)
+                self.switch(st.comp.id, True, homed=homed, drive=drive)
             except ValueError as exc:
                 st.wanted = False
                 self.report(VOLC_ERROR, str(exc))
+
+    def _names(self, st: CompState, ok: np.ndarray) -> str:
+        """The chain axes of `st` whose entry in `ok` is False, by their names."""
+        bad = [s for s in st.slot_list if not ok[s]]
+        return ", ".join(self.params[s].name or f"#{s}" for s in bad)
+
+    def _fault(self, st: CompState, homed: np.ndarray, drive: np.ndarray | None) -> str:
+        """Why an axis of `st`'s chain is in error state (004 p.24), "" if none: it lost
+        its reference, or its drive is no longer enabled (`SIM::drive_enable`)."""
+        if not homed[st.slots].all():
+            return f"axis {self._names(st, homed)} lost its reference"
+        if drive is not None and not drive[st.slots].all():
+            return f"the drive of axis {self._names(st, drive)} is not enabled"
+        return ""
 
     def _off(self, st: CompState, why: str) -> None:
         """Switch `st` off without movement (004 p.24, the error case) and say why."""
@@ -216,20 +273,26 @@ class VolKernel:
         st.target = st.factor = 0.0
         st.value = [0.0, 0.0, 0.0]
 
-    def step(self, pos: np.ndarray, homed: np.ndarray) -> bool:
+    def step(self, pos: np.ndarray, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
         """Compute `offset` for command positions `pos` (increments). False when a
         compensation had to be switched off in this cycle (the sum on an axis beyond its
-        s_limit, 004 p.14, or an axis no longer referenced, p.20/p.24): the error is
-        reported, the caller stops the program."""
-        self.auto_activate(homed)
+        s_limit, 004 p.14, or an axis of its chain in error state — no longer referenced
+        or its `drive` no longer enabled — p.20/p.24, which also marks it incorrect): the
+        error is reported, the caller stops the program."""
+        self.auto_activate(homed, drive)
         off = self.offset
         off[:] = 0.0
         if not self._active:
             return True
         ok = True
         for st in self._active:
-            if not homed[st.slots].all():
-                self._off(st, "an axis lost its reference: switched off without movement")
+            fault = self._fault(st, homed, drive)
+            if fault:
+                self._off(
+                    st,
+                    f"{fault}: marked incorrect, switched off without movement (004 p.24)",
+                )
+                st.incorrect = True
                 ok = False
                 continue
             if st.factor != st.target:

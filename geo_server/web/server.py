@@ -193,7 +193,7 @@ class HmiServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         #: set while a page is open (wakes the sampling at once when one opens)
         self._watched = asyncio.Event()
-        self._cfg: MachineConfig = service.machine.cfg
+        self._cfg: MachineConfig = service.config
         self._tables_json = ""
         self.view = LiveView(d, self._cfg, service.axes)
         self.trends = self._new_trends()
@@ -276,7 +276,7 @@ class HmiServer:
     def hello(self) -> dict[str, Any]:
         """The first message of a socket: what the page is built from."""
         svc = self.service
-        cfg = svc.machine.cfg
+        cfg = svc.config
         return {
             "type": "hello",
             "version": __version__,
@@ -325,7 +325,7 @@ class HmiServer:
 
     def _reconfigured(self) -> bool:
         """After a reload (from any interface) the tables and units may have changed."""
-        cfg = self.service.machine.cfg
+        cfg = self.service.config
         if cfg is self._cfg:
             return False
         self._cfg, self._tables_json = cfg, ""

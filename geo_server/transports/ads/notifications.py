@@ -353,10 +353,13 @@ class NotificationTable:
         """Cycles with registrations waiting in them (for tests and statistics)."""
         return len(self._buckets)
 
-    def _getter(self, ig: int, io: int, length: int, snap: Snapshot) -> Callable[[Snapshot], bytes]:
+    def _getter(
+        self, ig: int, io: int, length: int, snap: Snapshot, prepare: Preparer | None = None
+    ) -> Callable[[Snapshot], bytes]:
         """Check the address by reading it from `snap`; a getter for later snapshots."""
-        if self._prepare is not None:
-            return self._prepare(ig, io, length, snap)
+        prepare = prepare or self._prepare
+        if prepare is not None:
+            return prepare(ig, io, length, snap)
         read = self._read
         read(ig, io, length, snap)
         return lambda later: read(ig, io, length, later)
@@ -371,8 +374,12 @@ class NotificationTable:
         req: AddNotificationRequest,
         snapshot: Snapshot,
         hold_until: float = 0.0,
+        prepare: Preparer | None = None,
+        steady: Steady | None = None,
     ) -> Registration:
-        """Register (the address is checked by reading it from `snapshot`).
+        """Register (the address is checked by reading it from `snapshot`). `prepare`
+        and `steady` stand in for the table's own for this registration (the ADS server
+        passes the request's AMS port along in them).
 
         AdsError: 0x713 unsupported mode, 0x705 zero length, 0x717 too long, 0x716 too
         many handles (of this owner or in total), and whatever reading the address
@@ -407,7 +414,8 @@ class NotificationTable:
                 AdsErrorCode.DEVICE_NOMOREHDLS,
                 f"more than {self.pool.limit} notifications on the machines of this server",
             )
-        getter = self._getter(req.index_group, req.index_offset, req.length, snapshot)
+        getter = self._getter(req.index_group, req.index_offset, req.length, snapshot, prepare)
+        steady = steady or self._steady
         reg = Registration(
             handle=next(self._handles),
             owner=owner,
@@ -422,7 +430,7 @@ class NotificationTable:
             interval=cycles_for(req.cycle_time, self.cycle_s),
             last_cycle=snapshot.cycle,
             hold_until=hold_until,
-            steady=self._steady is not None and self._steady(req.index_group, req.index_offset),
+            steady=steady is not None and steady(req.index_group, req.index_offset),
         )
         reg.getter = getter
         self._regs[reg.handle] = reg

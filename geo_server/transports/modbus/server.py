@@ -39,7 +39,7 @@ from typing import Any
 import geo_server
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError
-from geo_server.faults import Fault
+from geo_server.faults import Fault, carry_out
 from geo_server.service import ObjectService
 from geo_server.transports.modbus.codec import (
     DeviceIdRequest,
@@ -197,21 +197,29 @@ class ModbusInterface:
 
     def _faulted(self, frame: Frame, fault: Fault) -> bytes | Awaitable[bytes]:
         fc = frame.pdu[0] if frame.pdu else 0
-        if fault.kind == "drop":
-            return b""
-        if fault.kind == "error":
-            code = int(fault.value)
+
+        def error(code: int) -> bytes | Awaitable[bytes]:
             exc = code if code < 0x100 else exception_for(AdsError(code, "injected fault"))
             return adu(frame.transaction, frame.unit, exception_pdu(fc, exc))
 
-        async def later() -> bytes:
-            if fault.kind == "disconnect":
-                raise DropConnection
+        async def disconnect() -> bytes:
+            raise DropConnection
+
+        async def delayed() -> bytes:
             await fault.delay()  # cut short when the fault is cleared
             reply = self.serve(frame)
             return reply if isinstance(reply, bytes) else await reply
 
-        return later()
+        def drop() -> bytes | Awaitable[bytes]:
+            return b""  # no reply
+
+        return carry_out(
+            fault,
+            drop=drop,
+            error=error,
+            disconnect=disconnect,  # the awaitable raises: the connection is closed
+            delay=delayed,
+        )
 
     def serve(self, frame: Frame) -> bytes | Awaitable[bytes]:
         """The reply to one request (no fault decided any more)."""

@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import Coroutine
+from collections.abc import Awaitable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,7 +34,7 @@ import zenoh
 from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
-from geo_server.faults import FaultError
+from geo_server.faults import FaultError, carry_out
 from geo_server.service import ObjectService, check_readable
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
@@ -406,14 +406,23 @@ class ZenohInterface:
         if fault is None:
             return False
         self.faulted += 1
-        if fault.kind == "drop":
+
+        async def answered() -> bool:  # dropped, or answered with the error
             return True
-        if fault.kind == "error":
-            err = AdsError(int(fault.value), f"injected fault {fault.ident}: {fault.text}")
+
+        def error(code: int) -> Awaitable[bool]:
+            err = AdsError(code, f"injected fault {fault.ident}: {fault.text}")
             query.reply_err(_error_payload(err), encoding=JSON)
-            return True
-        await fault.delay()  # cut short when the fault is cleared
-        return False
+            return answered()
+
+        async def delayed() -> bool:
+            await fault.delay()  # cut short when the fault is cleared
+            return False
+
+        # (no Zenoh fault disconnects: a query has no connection of its own to drop)
+        return await carry_out(
+            fault, drop=answered, error=error, disconnect=answered, delay=delayed
+        )
 
     def _answer_wildcard(self, query: zenoh.Query) -> None:
         """One reply per readable key the wildcard matches, all from one snapshot.

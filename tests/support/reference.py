@@ -2,6 +2,10 @@
 
 This is the readable statement of docs/design.md §3 and §6 and the oracle the fast
 kernel (`geo_server.kernel.kernel.Kernel`) is tested against. It has the same interface.
+It is a test oracle, not product (issue 33): written from the manuals, it shares no code
+with the kernel but the list parser's model (`geo_server.model`) and the Delaunay
+triangulation of crosstalk mode 3 (`geo_server.kernel.triangulation`); the configuration
+rules the kernel keeps in `geo_server.kernel.common` are stated here once more.
 Manual references: 000 = TF5200 axis compensation EN v1.51 (PDF page numbers).
 
 Per cycle and axis (docs/design.md §5.1 step 3 order: temperature, cross, plane,
@@ -25,27 +29,94 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from geo_server.kernel.common import (
-    ALL_KINDS,
-    BC,
-    COLUMN,
-    CROSS,
-    CROSSTALK,
-    FRICT,
-    LEAD,
-    PLANE,
-    TEMP,
-    TEMPC_ATTRS,
-    TEMPC_FIELDS,
-    filter_cycles,
-    hold_columns,
-    initial_direction,
-    initial_selection,
-    reload_changes,
-)
 from geo_server.kernel.triangulation import Triangulation, evaluate, triangulate
 from geo_server.model import AxisConfig, CompKind, MachineConfig
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
+
+#: Column of every compensation in the `[n, 7]` arrays (the kernel's interface).
+COMP_ORDER: tuple[CompKind, ...] = (
+    CompKind.BACKLASH,
+    CompKind.TEMP,
+    CompKind.CROSS,
+    CompKind.PLANE,
+    CompKind.LEAD,
+    CompKind.FRICT,
+    CompKind.CROSSTALK,
+)
+BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
+ALL_KINDS = CompKind(sum(COMP_ORDER))  # COMP OFF_ALL (000 §5.1 p.94)
+COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}
+#: The TEMPC parameters writable as objects (000 §3.2.3 p.22: coefficient 0x43, offset_0
+#: 0x44, position_0 0x45) and the axis-list entries they start from (P-AXIS-00274,
+#: -00273, -00272).
+TEMPC_FIELDS = ("coefficient", "offset_0", "position_0")
+TEMPC_ATTRS = ("temp_comp_coefficient", "temp_comp_offset_0", "temp_comp_position_0")
+
+
+def hold_columns(kinds: CompKind) -> list[int]:
+    """COMP … NO_MOVE holds position offsets only (000 §5.1 p.94): not friction."""
+    return [COLUMN[k] for k in COMP_ORDER if kinds & k and k is not CompKind.FRICT]
+
+
+def initial_direction(anwahl_losekomp: int) -> float:
+    """P-AXIS-00021 (000 §2.3.2): 2 = last motion negative, else positive."""
+    return -1.0 if anwahl_losekomp == 2 else 1.0
+
+
+def initial_selection(ax: AxisConfig) -> list[bool]:
+    """Selected at start-up: by the axis parameter, unless the list asks for manual
+    activation (000 §3.2 p.17, §2.3.2, §4.2–4.6, §5.1 p.94)."""
+    p, comp = ax.params, ax.comp
+
+    def manual(part: object) -> bool:
+        return bool(part is not None and getattr(part, "manual_activation", False))
+
+    return [
+        p.anwahl_losekomp != 0,
+        p.temp_comp and not p.temp_comp_manual_activation,
+        p.crosscomp and not manual(comp.cross if comp else None),
+        p.crosscomp2 and not manual(comp.plane if comp else None),
+        p.ssfk and not manual(comp.lsec if comp else None),
+        p.frict_comp,
+        p.crosstalk and not manual(comp.crosstalk if comp else None),
+    ]
+
+
+def filter_cycles(ax: AxisConfig) -> list[int]:
+    """sin² length per column (docs/design.md §3.4): backlash and LSEC n_backlash_cyc
+    (P-AXIS-00243), TEMP temp_comp_n_cycles (P-AXIS-00275), cross/plane/crosstalk their
+    list's n_cycles, friction 1; N ≤ 1 is a jump."""
+    p, comp = ax.params, ax.comp
+
+    def n_of(part: object) -> int:
+        return int(getattr(part, "n_cycles", 0)) if part is not None else 0
+
+    ns = [
+        p.n_backlash_cyc,
+        p.temp_comp_n_cycles,
+        n_of(comp.cross if comp else None),
+        n_of(comp.plane if comp else None),
+        p.n_backlash_cyc,
+        1,
+        n_of(comp.crosstalk if comp else None),
+    ]
+    return [max(1, int(n)) for n in ns]
+
+
+def reload_changes(
+    old: AxisConfig, new: AxisConfig
+) -> tuple[list[tuple[int, bool]], list[tuple[int, float]]]:
+    """A reload re-initialises only what the new lists changed (docs/design.md §12)."""
+    so, sn = initial_selection(old), initial_selection(new)
+    po, pn = old.params, new.params
+    return (
+        [(c, sn[c]) for c in range(7) if so[c] != sn[c]],
+        [
+            (row, float(getattr(pn, a)))
+            for row, a in enumerate(TEMPC_ATTRS)
+            if getattr(po, a) != getattr(pn, a)
+        ],
+    )
 
 
 def interp(x: Sequence[float], y: Sequence[float], q: float) -> float:

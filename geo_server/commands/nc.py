@@ -1,0 +1,43 @@
+"""NC text and reset (docs/design.md §5.7, §5.9): MDI lines parsed now and started at
+the next cycle boundary; a CNC reset at the next cycle boundary."""
+
+from __future__ import annotations
+
+from geo_server.commands.ports import ADSERR_DEVICE_SYNTAX, Ports
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.machine.nc import NcError, parse_program
+from geo_server.machine.port import Pending, Reset, StartProgram
+
+
+class NcService:
+    """NC lines and reset of one machine."""
+
+    def __init__(self, ports: Ports) -> None:
+        self.ports = ports
+
+    def run(self, text: str) -> Pending:
+        """Parse NC lines now and start them as MDI lines at the next cycle boundary.
+
+        Bad text -> 0x70D naming the line; text over `nc_max_bytes` or `nc_max_lines`
+        -> 0x705 (a long program belongs in a file: `geo-server run --program`)."""
+        size = len(text.encode("utf-8", errors="replace"))
+        lines = text.count("\n") + 1
+        lim = self.ports.limits
+        if size > lim.nc_max_bytes or lines > lim.nc_max_lines:
+            raise AdsError(
+                AdsErrorCode.DEVICE_INVALIDSIZE,
+                f"NC text of {size} bytes / {lines} lines exceeds {lim.nc_max_bytes} bytes / "
+                f"{lim.nc_max_lines} lines",
+                "nc",
+            )
+        try:
+            prog = parse_program(text, self.ports.machine.names, mdi=True)
+        except NcError as exc:
+            raise AdsError(ADSERR_DEVICE_SYNTAX, str(exc), "nc") from None
+        self.ports.refuse_when_stalled()
+        return self.ports.scheduler.submit(StartProgram(prog, True, text))
+
+    def reset(self) -> Pending:
+        """CNC reset at the next cycle boundary: program stopped, axes stopped."""
+        self.ports.refuse_when_stalled()
+        return self.ports.scheduler.submit(Reset())

@@ -1,0 +1,855 @@
+"""The OPC UA interface (README *OPC UA*, docs/security.md): a thin shell of asyncua over
+the object service, like the Zenoh interface (docs/design.md §7).
+
+- **Address space**: generated from the dictionary (`space.py`); one server serves
+  every machine of a fleet, each under its own name below `Objects`.
+- **Reads** answer the exact-engine observation of the read's wall time
+  (`ObjectService.current`), stamped with the cycle's time as the source timestamp.
+- **Writes** of the Value attribute go through the service's write path
+  (`prepare_name` + `apply_writes`: the same range checks, applied by the next cycle);
+  the writes of one request are applied in one cycle. An `AdsError` maps to a status
+  code (`STATUS`, README *Errors and their codes*).
+- **Monitored items** of our variables are sampled once per GEO cycle (or at the
+  smallest sampling interval asked for the variable, in whole cycles) while any exists:
+  each sampled cycle whose value changed is one notification with the cycle's time as
+  its source timestamp. Bounded per session and in total (`OpcUaOptions`).
+- **Methods** Reload, Save, RunNc, Reset, InjectFault, ClearFaults: the commands of the
+  other interfaces with the same results (JSON text) and errors (status codes).
+- **Security**: anonymous unless `user`/`password` are given; Basic256Sha256
+  SignAndEncrypt with a self-signed certificate made on first start (`certs.py`) beside
+  None (or alone with `encrypt_only`); `read_only` refuses writes and methods.
+
+asyncua is imported only when the interface starts (it takes about 0.3 s to import).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import hmac
+import importlib
+import json
+import logging
+import math
+import os
+import socket
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.faults import FaultError
+from geo_server.service import ObjectService
+from geo_server.snapshot import Snapshot
+from geo_server.transports.opcua.args import parse_endpoint
+from geo_server.transports.opcua.space import (
+    METHODS,
+    NAMESPACE_URI,
+    MethodSpec,
+    VariableSpec,
+    machine_variables,
+)
+
+log = logging.getLogger(__name__)
+
+#: ADS return code -> OPC UA status code name (README *Errors and their codes*).
+STATUS: dict[int, str] = {
+    AdsErrorCode.DEVICE_INVALIDGRP: "BadNodeIdUnknown",
+    AdsErrorCode.DEVICE_INVALIDOFFSET: "BadNodeIdUnknown",
+    AdsErrorCode.DEVICE_INVALIDACCESS: "BadNotWritable",
+    AdsErrorCode.DEVICE_INVALIDSIZE: "BadOutOfRange",
+    AdsErrorCode.DEVICE_INVALIDDATA: "BadOutOfRange",
+    AdsErrorCode.DEVICE_NOTREADY: "BadResourceUnavailable",
+    AdsErrorCode.DEVICE_BUSY: "BadInvalidState",
+    AdsErrorCode.DEVICE_INVALIDPARM: "BadInvalidArgument",
+    AdsErrorCode.DEVICE_SYNTAX: "BadSyntaxError",
+    AdsErrorCode.DEVICE_ERROR: "BadInternalError",
+    AdsErrorCode.DEVICE_SRVNOTSUPP: "BadNotSupported",
+    AdsErrorCode.DEVICE_TIMEOUT: "BadTimeout",
+}
+#: Status of a write of a variant of the wrong type (checked before the service).
+TYPE_MISMATCH = "BadTypeMismatch"
+#: Status of a write or method call on a read-only interface.
+READ_ONLY = "BadUserAccessDenied"
+#: Snapshots waiting to be sampled, per machine, while the loop is behind; older ones
+#: are dropped (counted in `late_samples`).
+SAMPLE_QUEUE = 256
+#: A value of each type for the node's creation (reads then ask the service).
+_ZERO: dict[str, Any] = {"Boolean": False, "String": "", "Double": 0.0}
+for _t in ("UInt16", "UInt32", "Int32"):
+    _ZERO[_t] = 0
+_FILETIME_EPOCH = dt.datetime(1601, 1, 1, tzinfo=dt.UTC)
+
+
+def probe_port(host: str, port: int) -> None:
+    """OSError now when `host:port` cannot be listened on (taken by another server),
+    before a background start (`OpcUaOptions.background`) would find out."""
+    infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        if os.name == "posix":  # as asyncio's create_server, which listens afterwards
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+
+
+def _ua() -> Any:
+    """asyncua's `ua` module, imported when first needed. Typed as Any: its stubs type
+    numbers as NewTypes (`Int16`, `UInt32`) that plain ints do not satisfy."""
+    from asyncua import ua
+
+    return ua
+
+
+def quiet_library() -> None:
+    """asyncua logs every client's mistake (a refused session, a bad request, a closed
+    socket) as a warning or an error with its traceback: one misbehaving client would
+    flood the console (docs/security.md). Unless logging was configured for it, only
+    its critical messages are shown; the clients get status codes."""
+    lib = logging.getLogger("asyncua")
+    if lib.level == logging.NOTSET:
+        lib.setLevel(logging.CRITICAL)
+
+
+def status_name(exc: AdsError) -> str:
+    """The OPC UA status code (name) of a refusal (`STATUS`; else BadInternalError)."""
+    return STATUS.get(exc.code, "BadInternalError")
+
+
+def source_time(snap: Snapshot) -> dt.datetime:
+    """The cycle's place on the time line (`Snapshot.stamp`, FILETIME) as UTC time."""
+    return _FILETIME_EPOCH + dt.timedelta(microseconds=snap.stamp // 10)
+
+
+@dataclass
+class OpcUaOptions:
+    """The OPC UA endpoint, its security and its limits (README *Limits*)."""
+
+    endpoint: str = "opc.tcp://127.0.0.1:4840"
+    read_only: bool = False
+    #: With both set, a session needs this user name and password (anonymous refused).
+    user: str | None = None
+    password: str | None = None
+    #: Folder of the server's certificate and key (made on first start); None: no
+    #: encrypted endpoint.
+    cert_dir: Path | None = None
+    #: Offer only Basic256Sha256 SignAndEncrypt (no unencrypted endpoint).
+    encrypt_only: bool = False
+    #: TCP connections at once (asyncua's own default: 1000); more are refused.
+    max_connections: int = 64
+    #: Monitored items of geo-server variables in one session; more are refused with
+    #: BadTooManyMonitoredItems. 1000 is ten HMI screens of 100 values.
+    max_monitored_items_per_session: int = 1000
+    #: Monitored items of geo-server variables in all sessions together (each costs a
+    #: comparison per sampled cycle on the loop the other interfaces share).
+    max_monitored_items: int = 5000
+    #: Subscriptions in all sessions together (asyncua's own default: 1000).
+    max_subscriptions: int = 256
+    #: `start` checks the port, then returns; the server (about 1.5 s of asyncua
+    #: building its standard address space) comes up while the other interfaces and
+    #: the GEO cycle already serve (`geo-server run`). How it ended goes to
+    #: `OpcUaInterface.on_started`.
+    background: bool = False
+
+    def shrink_to(self, connections: int) -> None:
+        """Fit the connection cap into `connections` descriptors (geo_server/descriptors.py)."""
+        self.max_connections = max(1, min(self.max_connections, connections))
+
+    @property
+    def host_port(self) -> tuple[str, int]:
+        return parse_endpoint(self.endpoint)
+
+
+@dataclass
+class _Var:
+    """A variable node of one machine and its sampling state."""
+
+    spec: VariableSpec
+    service: ObjectService
+    machine: str
+    node_id: Any  # ua.NodeId
+    monitors: int = 0
+    every: int = 1  # sampled every `every` cycles while monitored
+    last: Any = None
+
+
+class _Demand:
+    """The cycles the monitored variables of one machine need (the engine's
+    `CycleDemand`, docs/design.md §13): every `step`-th cycle, and while the machine is at
+    rest only when one of them can change at rest (`ObjectService.varies_at_rest`):
+    the others cannot change then, so there is nothing to notify. Called on the engine's
+    thread: it only reads two fields the loop sets."""
+
+    def __init__(self) -> None:
+        self.step = 1
+        self.at_rest = False
+
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        return cycle % self.step == 0 and (self.at_rest or not quiescent)
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        if quiescent and not self.at_rest:
+            return None
+        return (cycle // self.step + 1) * self.step
+
+
+class OpcUaInterface:
+    """Serve the objects of one machine, or of every machine of a fleet, over OPC UA."""
+
+    def __init__(
+        self, services: Mapping[str, ObjectService], options: OpcUaOptions | None = None
+    ) -> None:
+        """`services`: machine name -> its object service."""
+        self.services = dict(services)
+        self.options = options or OpcUaOptions()
+        self.server: Any = None
+        self.port = 0
+        self.ns = 0
+        self._vars: dict[Any, _Var] = {}
+        self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
+        self._hold: dict[str, Callable[[], None]] = {}
+        self._queue: dict[str, deque[Snapshot]] = {}
+        self._demands: dict[str, _Demand] = {}
+        self._watched: dict[str, list[_Var]] = {}
+        self._drain: asyncio.Task[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.late_samples = 0
+        self.notifications = 0
+        #: the background start (`OpcUaOptions.background`), its failure, and who is
+        #: told when it is done (with the failure or None; after a failure the other
+        #: interfaces keep serving)
+        self.starting: asyncio.Future[None] | None = None
+        self.failure: BaseException | None = None
+        self.on_started: Callable[[BaseException | None], None] | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def start(self) -> None:
+        """Serve: at once, or with `options.background` once the address space is
+        built (see there); the port is checked now either way."""
+        if not self.options.background:
+            await self._start()
+            return
+        host, port = self.options.host_port
+        if port:
+            await asyncio.to_thread(probe_port, host, port)
+        self.port = port
+        self.starting = asyncio.ensure_future(self._start())
+        self.starting.add_done_callback(self._started)
+
+    def _started(self, task: asyncio.Future[None]) -> None:
+        if task.cancelled():
+            return
+        self.failure = task.exception()
+        if self.on_started is not None:
+            self.on_started(self.failure)
+
+    async def _start(self) -> None:
+        # imported off the loop: 0.3 s the other interfaces would wait otherwise
+        await asyncio.to_thread(importlib.import_module, "asyncua")
+        from asyncua import Server
+
+        ua = _ua()
+
+        self._loop = asyncio.get_running_loop()
+        quiet_library()
+        opts = self.options
+        host, port = opts.host_port
+        users: Any = _Users(opts.user, opts.password)  # asyncua's UserManager protocol
+        server = Server(user_manager=users)
+        self.server = server
+        await server.init()
+        iserver = server.iserver
+        iserver.max_connections = opts.max_connections
+        iserver.max_subscriptions = opts.max_subscriptions
+        server.set_endpoint(f"opc.tcp://{host}:{port}/")
+        server.set_server_name("geo-server")
+        await server.set_application_uri("urn:geo-server:server")
+        policies = [] if opts.encrypt_only else [ua.SecurityPolicyType.NoSecurity]
+        if opts.cert_dir is not None:
+            from geo_server.transports.opcua.certs import ensure_certificate
+
+            cert, key = await asyncio.to_thread(
+                ensure_certificate, opts.cert_dir, "urn:geo-server:server", host
+            )
+            await server.load_certificate(str(cert))
+            await server.load_private_key(str(key))
+            policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
+        if not policies:
+            raise ValueError("encrypt_only needs a certificate folder (cert_dir)")
+        server.set_security_policy(policies)
+        anonymous = opts.user is None
+        server.set_identity_tokens(
+            [ua.AnonymousIdentityToken] if anonymous else [ua.UserNameIdentityToken]
+        )
+        self.ns = await server.register_namespace(NAMESPACE_URI)
+        for machine, service in self.services.items():
+            await self._build(machine, service)
+        self._hook()
+        await server.start()
+        assert server.bserver is not None
+        self.port = server.bserver.port
+
+    async def close(self) -> None:
+        if self.starting is not None and not self.starting.done():
+            self.starting.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self.starting
+        for release in self._hold.values():
+            release()
+        self._hold.clear()
+        if self._drain is not None:
+            self._drain.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._drain
+        if self.server is not None:
+            server, self.server = self.server, None
+            with contextlib.suppress(Exception):
+                await server.stop()
+
+    @property
+    def endpoint(self) -> str:
+        host, _ = self.options.host_port
+        return f"opc.tcp://{host}:{self.port}"
+
+    # ------------------------------------------------------------------ address space
+
+    async def _build(self, machine: str, service: ObjectService) -> None:
+        """The machine's object, its folders and variables (`space.machine_variables`)
+        with their properties, added in one batch, then its methods."""
+        ua = _ua()
+
+        ns = self.ns
+        names = {int(a): n for a, n in service.status()["axis_names"].items()}
+        objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
+        items = [_object_item(ua.NodeId(machine, ns), objects, ua.QualifiedName(machine, ns))]
+        folders: set[tuple[str, ...]] = {()}
+        specs = machine_variables(machine, service.dictionary, names)
+        for spec in specs:
+            for depth in range(1, len(spec.path)):
+                path = spec.path[:depth]
+                if path not in folders:
+                    folders.add(path)
+                    parent = ua.NodeId("/".join((machine, *path[:-1])), ns)
+                    node_id = ua.NodeId("/".join((machine, *path)), ns)
+                    items.append(_object_item(node_id, parent, ua.QualifiedName(path[-1], ns)))
+            items += self._variable_items(service, spec)
+        results = self.server.iserver.isession.iserver.node_mgt_service.add_nodes(items)
+        for item, result in zip(items, results, strict=True):
+            if not result.StatusCode.is_good():
+                raise RuntimeError(f"OPC UA node {item.RequestedNewNodeId}: {result.StatusCode}")
+        aspace = self.server.iserver.aspace
+        for spec in specs:
+            node_id = ua.NodeId(spec.node_id, ns)
+            var = _Var(spec, service, machine, node_id)
+            self._vars[node_id] = var
+            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, self._reader(var))
+            # a sample written into the node notifies its monitored items, nothing else
+            aspace.set_attribute_value_setter(node_id, ua.AttributeIds.Value, _keep)
+        root = self.server.get_node(ua.NodeId(machine, ns))
+        for method in METHODS:
+            await self._method(root, machine, service, method)
+
+    def _variable_items(self, service: ObjectService, spec: VariableSpec) -> list[Any]:
+        """The AddNodesItems of one variable and its properties (EngineeringUnits,
+        EURange, AdsAddress)."""
+        ua = _ua()
+
+        ns = self.ns
+        vtype = getattr(ua.VariantType, spec.ua_type)
+        node_id = ua.NodeId(spec.node_id, ns)
+        level = (ua.AccessLevel.CurrentRead.mask if spec.readable else 0) | (
+            ua.AccessLevel.CurrentWrite.mask if spec.writable else 0
+        )
+        user_level = level & ~(ua.AccessLevel.CurrentWrite.mask if self.options.read_only else 0)
+        attrs = ua.VariableAttributes(
+            DisplayName=ua.LocalizedText(spec.path[-1]),
+            Description=ua.LocalizedText(spec.description),
+            Value=ua.Variant(_ZERO[spec.ua_type], vtype),
+            DataType=ua.NodeId(vtype.value),
+            ValueRank=ua.ValueRank.Scalar,
+            AccessLevel=level,
+            UserAccessLevel=user_level,
+            MinimumSamplingInterval=service.cycle_s * 1000.0,
+        )
+        items = [
+            ua.AddNodesItem(
+                ParentNodeId=ua.NodeId("/".join(spec.node_id.split("/")[:-1]), ns),
+                ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent),
+                RequestedNewNodeId=node_id,
+                BrowseName=ua.QualifiedName(spec.path[-1], ns),
+                NodeClass=ua.NodeClass.Variable,
+                NodeAttributes=attrs,
+                TypeDefinition=ua.NodeId(ua.ObjectIds.BaseDataVariableType),
+            )
+        ]
+        props: list[tuple[str, Any]] = []
+        if spec.unit:
+            eu = ua.EUInformation(
+                NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
+                UnitId=-1,
+                DisplayName=ua.LocalizedText(spec.unit),
+                Description=ua.LocalizedText(spec.obj.unit),
+            )
+            props.append(("EngineeringUnits", ua.Variant(eu)))
+        if spec.eu_range is not None:
+            props.append(("EURange", ua.Variant(ua.Range(*spec.eu_range))))
+        props.append(("AdsAddress", ua.Variant(spec.ads_address, ua.VariantType.String)))
+        for name, value in props:
+            datatype = {
+                "EngineeringUnits": ua.NodeId(ua.ObjectIds.EUInformation),
+                "EURange": ua.NodeId(ua.ObjectIds.Range),
+            }.get(name, ua.NodeId(ua.ObjectIds.String))
+            items.append(
+                ua.AddNodesItem(
+                    ParentNodeId=node_id,
+                    ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasProperty),
+                    RequestedNewNodeId=ua.NodeId(f"{spec.node_id}/{name}", ns),
+                    BrowseName=ua.QualifiedName(name, 0 if name != "AdsAddress" else ns),
+                    NodeClass=ua.NodeClass.Variable,
+                    NodeAttributes=ua.VariableAttributes(
+                        DisplayName=ua.LocalizedText(name),
+                        Value=value,
+                        DataType=datatype,
+                        ValueRank=ua.ValueRank.Scalar,
+                        AccessLevel=ua.AccessLevel.CurrentRead.mask,
+                        UserAccessLevel=ua.AccessLevel.CurrentRead.mask,
+                    ),
+                    TypeDefinition=ua.NodeId(ua.ObjectIds.PropertyType),
+                )
+            )
+        return items
+
+    def _reader(self, var: _Var) -> Callable[[Any, Any], Any]:
+        ua = _ua()
+
+        def read(node_id: Any, attr: Any) -> Any:
+            if not var.spec.readable:
+                return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNotReadable))
+            try:
+                snap = var.service.current()
+            except AdsError as exc:
+                return ua.DataValue(StatusCode=_status(exc))
+            return self._datavalue(var, snap.value(var.spec.obj, var.spec.axis), snap)
+
+        return read
+
+    def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
+        ua = _ua()
+
+        vtype = getattr(ua.VariantType, var.spec.ua_type)
+        return ua.DataValue(
+            ua.Variant(value, vtype),
+            SourceTimestamp=source_time(snap),
+            ServerTimestamp=dt.datetime.now(dt.UTC),
+        )
+
+    async def _method(
+        self, root: Any, machine: str, service: ObjectService, spec: MethodSpec
+    ) -> None:
+        ua = _ua()
+
+        inputs = []
+        for name, type_name, text in spec.inputs:
+            arg = ua.Argument()
+            arg.Name = name
+            arg.DataType = ua.NodeId(getattr(ua.ObjectIds, type_name))
+            arg.ValueRank = -1
+            arg.Description = ua.LocalizedText(text)
+            inputs.append(arg)
+        out = ua.Argument()
+        out.Name = "result"
+        out.DataType = ua.NodeId(ua.ObjectIds.String)
+        out.ValueRank = -1
+        out.Description = ua.LocalizedText("the command's result as JSON")
+        node = await root.add_method(
+            ua.NodeId(f"{machine}/{spec.name}", self.ns),
+            f"{self.ns}:{spec.name}",
+            self._caller(service, spec),
+            inputs,
+            [out],
+        )
+        await node.write_attribute(
+            ua.AttributeIds.Description,
+            ua.DataValue(
+                ua.Variant(ua.LocalizedText(spec.description), ua.VariantType.LocalizedText)
+            ),
+        )
+
+    def _caller(self, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
+        ua = _ua()
+
+        async def call(parent: Any, *args: Any) -> Any:
+            if self.options.read_only:
+                return ua.StatusCode(getattr(ua.StatusCodes, READ_ONLY))
+            if len(args) < len(spec.inputs):
+                return ua.StatusCode(ua.StatusCodes.BadArgumentsMissing)
+            if len(args) > len(spec.inputs):
+                return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+            texts = []
+            for arg in args:
+                if not isinstance(arg, ua.Variant) or arg.VariantType != ua.VariantType.String:
+                    return ua.StatusCode(ua.StatusCodes.BadTypeMismatch)
+                texts.append(str(arg.Value or ""))
+            try:
+                body = await run_method(service, spec.name, texts)
+            except AdsError as exc:
+                log.info("opcua %s refused: %s", spec.name, exc.message)
+                return _status(exc)
+            return [ua.Variant(json.dumps(body), ua.VariantType.String)]
+
+        return call
+
+    # ------------------------------------------------------------------ hooks
+
+    def _hook(self) -> None:
+        """Route the writes, monitored items and their removal of our variables through
+        this interface; everything else stays asyncua's."""
+        ua = _ua()
+        iserver = self.server.iserver
+        attrs = iserver.attribute_service
+        write = attrs.write
+
+        async def hooked_write(params: Any, user: Any = None) -> list[Any]:
+            return await self._write(params, user, write)
+
+        attrs.write = hooked_write
+        aspace = iserver.aspace
+        add, delete = aspace.add_datachange_callback, aspace.delete_datachange_callback
+
+        def hooked_add(node_id: Any, attr: Any, callback: Any) -> Any:
+            result = add(node_id, attr, callback)
+            var = self._vars.get(node_id)
+            sampled = attr == ua.AttributeIds.Value  # (other attributes never change)
+            if var is not None and sampled and result[0].is_good():
+                self._handles[result[1]] = node_id
+                self._monitor(var, +1)
+            return result
+
+        def hooked_delete(handle: int) -> Any:
+            node_id = self._handles.pop(handle, None)
+            if node_id is not None:
+                self._monitor(self._vars[node_id], -1)
+            return delete(handle)
+
+        aspace.add_datachange_callback = hooked_add
+        aspace.delete_datachange_callback = hooked_delete
+        subs = iserver.subscription_service
+        create = subs.create_monitored_items
+
+        async def hooked_create(params: Any) -> list[Any]:
+            return await self._create_items(params, create)
+
+        subs.create_monitored_items = hooked_create
+
+    # ------------------------------------------------------------------ writes
+
+    async def _write(self, params: Any, user: Any, write: Any) -> list[Any]:
+        ua = _ua()
+
+        items = list(params.NodesToWrite)
+        results: list[Any] = [None] * len(items)
+        others = [i for i, w in enumerate(items) if w.NodeId not in self._vars]
+        if others:
+            sub = ua.WriteParameters(NodesToWrite=[items[i] for i in others])
+            done = await (write(sub, user) if user is not None else write(sub))
+            for i, status in zip(others, done, strict=True):
+                results[i] = status
+        ours = [i for i, w in enumerate(items) if w.NodeId in self._vars]
+        by_service: dict[int, tuple[ObjectService, list[tuple[int, Any]]]] = {}
+        for i in ours:
+            w = items[i]
+            var = self._vars[w.NodeId]
+            status, prepared = self._prepare(var, w)
+            if status is not None:
+                results[i] = status
+            else:
+                by_service.setdefault(id(var.service), (var.service, []))[1].append((i, prepared))
+        for service, group in by_service.values():
+            for i, status in await self._apply(service, group):
+                results[i] = status
+        return results
+
+    def _prepare(self, var: _Var, w: Any) -> tuple[Any, Any]:
+        """(a refusal's status, None) or (None, the prepared write)."""
+        ua = _ua()
+
+        if w.AttributeId != ua.AttributeIds.Value:
+            return ua.StatusCode(ua.StatusCodes.BadNotWritable), None
+        if self.options.read_only:
+            return ua.StatusCode(getattr(ua.StatusCodes, READ_ONLY)), None
+        if not var.spec.writable:
+            return ua.StatusCode(ua.StatusCodes.BadNotWritable), None
+        if w.IndexRange:
+            return ua.StatusCode(ua.StatusCodes.BadIndexRangeInvalid), None
+        variant = w.Value.Value if w.Value is not None else None
+        expected = getattr(ua.VariantType, var.spec.ua_type)
+        if variant is None or variant.VariantType != expected or variant.is_array:
+            return ua.StatusCode(getattr(ua.StatusCodes, TYPE_MISMATCH)), None
+        try:
+            prepared = var.service.prepare_name(var.spec.obj.name, var.spec.axis, variant.Value)
+        except AdsError as exc:
+            return _status(exc), None
+        return None, prepared
+
+    async def _apply(
+        self, service: ObjectService, group: list[tuple[int, Any]]
+    ) -> list[tuple[int, Any]]:
+        """Apply the prepared writes of one machine: values in one cycle, each command
+        (reload/save by object) on its own."""
+        ua = _ua()
+
+        out: list[tuple[int, Any]] = []
+        values = [(i, p) for i, p in group if not ObjectService.is_command(p.obj)]
+        commands = [(i, p) for i, p in group if ObjectService.is_command(p.obj)]
+        batches = ([values] if values else []) + [[c] for c in commands]
+        for batch in batches:
+            try:
+                errors = await service.apply_writes([p for _, p in batch])
+            except AdsError as exc:
+                out += [(i, _status(exc)) for i, _ in batch]
+                continue
+            for (i, _), err in zip(batch, errors, strict=True):
+                out.append((i, ua.StatusCode() if err is None else _status(err)))
+        return out
+
+    # ------------------------------------------------------------------ monitored items
+
+    async def _create_items(self, params: Any, create: Any) -> list[Any]:
+        """Refuse the items of our variables past the limits (BadTooManyMonitoredItems),
+        revise their sampling interval to whole GEO cycles, create the rest."""
+        ua = _ua()
+
+        subs = self.server.iserver.subscription_service
+        sub = subs.subscriptions.get(params.SubscriptionId)
+        session = getattr(sub, "session_id", None)
+        in_session = sum(
+            1
+            for s in subs.subscriptions.values()
+            if s.session_id == session
+            for m in s.monitored_item_srv._monitored_items.values()
+            if m.read_value_id is not None and m.read_value_id.NodeId in self._vars
+        )
+        total = sum(v.monitors for v in self._vars.values())
+        opts = self.options
+        keep: list[int] = []
+        refused: list[int] = []
+        intervals: list[tuple[int, _Var, int, float]] = []
+        for i, item in enumerate(params.ItemsToCreate):
+            var = self._vars.get(item.ItemToMonitor.NodeId)
+            is_value = item.ItemToMonitor.AttributeId == ua.AttributeIds.Value
+            if var is not None and is_value:
+                if (
+                    in_session >= opts.max_monitored_items_per_session
+                    or total >= opts.max_monitored_items
+                ):
+                    refused.append(i)
+                    continue
+                in_session += 1
+                total += 1
+                cycle_ms = var.service.cycle_s * 1000.0
+                asked = max(float(item.RequestedParameters.SamplingInterval), cycle_ms)
+                every = max(1, round(asked / cycle_ms))
+                intervals.append((len(keep), var, every, every * cycle_ms))
+            keep.append(i)
+        created: list[Any] = []
+        if keep:
+            sub_params = ua.CreateMonitoredItemsParameters(
+                SubscriptionId=params.SubscriptionId,
+                TimestampsToReturn=params.TimestampsToReturn,
+                ItemsToCreate=[params.ItemsToCreate[i] for i in keep],
+            )
+            created = await create(sub_params)
+            for k, var, every, ms in intervals:
+                if created[k].StatusCode.is_good():
+                    var.every = every if var.monitors <= 1 else min(var.every, every)
+                    created[k].RevisedSamplingInterval = ms
+                    self._retune(var.machine)
+        results: list[Any] = [None] * len(params.ItemsToCreate)
+        for k, i in enumerate(keep):
+            results[i] = created[k]
+        for i in refused:
+            results[i] = ua.MonitoredItemCreateResult(
+                StatusCode=ua.StatusCode(ua.StatusCodes.BadTooManyMonitoredItems)
+            )
+        return results
+
+    def _monitor(self, var: _Var, delta: int) -> None:
+        """Count the monitored items of `var`; the first one of a machine starts
+        sampling it every cycle, the last one's removal stops that."""
+        var.monitors = max(0, var.monitors + delta)
+        if var.monitors == 0:
+            var.last = None
+            var.every = 1
+        watched = any(v.monitors for v in self._vars.values() if v.machine == var.machine)
+        if watched and var.machine not in self._hold:
+            self._hold[var.machine] = self._sample(var.machine, var.service)
+        elif not watched and var.machine in self._hold:
+            self._hold.pop(var.machine)()
+        self._retune(var.machine)
+
+    def _retune(self, machine: str) -> None:
+        """The machine's monitored variables (sampled by `_drain_queue`) and the cycles
+        they need (`_Demand`)."""
+        watched = [v for v in self._vars.values() if v.machine == machine and v.monitors]
+        self._watched[machine] = [v for v in watched if v.spec.readable]
+        demand = self._demands.get(machine)
+        if demand is None:
+            return
+        demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
+        demand.at_rest = any(ObjectService.varies_at_rest(v.spec.obj) for v in watched)
+
+    def _sample(self, machine: str, service: ObjectService) -> Callable[[], None]:
+        """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
+        loop = self._loop
+        assert loop is not None
+        queue = self._queue.setdefault(machine, deque())
+
+        def on_cycle(snap: Snapshot) -> None:  # the cycle's thread: hand over, return
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
+                loop.call_soon_threadsafe(self._arrived, machine, snap)
+
+        wanted = self._demands[machine] = _Demand()
+        release = service.demand_cycles(wanted)  # the exact engine publishes only those
+        # `subscribe` hands over the snapshots themselves, with their time stamps
+        unsubscribe = service.subscribe(on_cycle)
+
+        def stop() -> None:
+            unsubscribe()
+            release()
+            self._demands.pop(machine, None)
+            queue.clear()
+
+        return stop
+
+    def _arrived(self, machine: str, snap: Snapshot) -> None:
+        queue = self._queue.setdefault(machine, deque())
+        if machine not in self._hold:
+            return
+        if len(queue) >= SAMPLE_QUEUE:
+            queue.popleft()
+            self.late_samples += 1
+        queue.append(snap)
+        if self._drain is None or self._drain.done():
+            self._drain = asyncio.ensure_future(self._drain_queue())
+
+    async def _drain_queue(self) -> None:
+        """Write each sampled cycle's changed values into the nodes: asyncua turns each
+        write into one notification per monitored item."""
+        ua = _ua()
+
+        aspace = self.server.iserver.aspace
+        while True:
+            batch = [(m, q.popleft()) for m, q in self._queue.items() if q]
+            if not batch:
+                return
+            for machine, snap in batch:
+                for var in self._watched.get(machine, ()):
+                    if snap.cycle % var.every:
+                        continue
+                    value = snap.value(var.spec.obj, var.spec.axis)
+                    if value == var.last:
+                        continue
+                    var.last = value
+                    self.notifications += 1
+                    await aspace.write_attribute_value(
+                        var.node_id, ua.AttributeIds.Value, self._datavalue(var, value, snap)
+                    )
+
+
+async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:
+    """One command by method name, as the other interfaces run it: the result as JSON,
+    or the AdsError of its refusal."""
+    if name in ("Reload", "Save"):
+        result = await service.command(name.lower())
+        if not result.ok:
+            raise result.error()
+        return result.as_dict()
+    if name == "RunNc":
+        cycle = await service.run_nc_applied(args[0])
+        return {"ok": True, "command": "nc", "cycle": cycle}
+    if name == "Reset":
+        cycle = await service.reset_applied()
+        return {"ok": True, "command": "reset", "cycle": cycle}
+    try:
+        if name == "InjectFault":
+            injected = await asyncio.to_thread(service.inject_fault, args[0])
+            return {"ok": True, "command": "fault", "injected": injected}
+        if name == "ClearFaults":
+            which = args[0].strip()
+            ident = None if which == "all" else _fault_id(which)
+            cleared = await asyncio.to_thread(service.clear_faults, ident)
+            return {"ok": True, "command": "fault", "cleared": cleared}
+    except FaultError as exc:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc)) from None
+    raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown method {name!r}")
+
+
+def _fault_id(text: str) -> int:
+    if not text.isdigit() or len(text) > 9:
+        raise FaultError(f'ClearFaults takes a fault id or "all", not {text[:40]!r}')
+    return int(text)
+
+
+def _status(exc: AdsError) -> Any:
+    ua = _ua()
+
+    return ua.StatusCode(getattr(ua.StatusCodes, status_name(exc)))
+
+
+def _object_item(node_id: Any, parent: Any, name: Any) -> Any:
+    """The AddNodesItem of a folder (a machine, `Axes`, an axis, a group)."""
+    ua = _ua()
+
+    return ua.AddNodesItem(
+        ParentNodeId=parent,
+        ReferenceTypeId=ua.NodeId(ua.ObjectIds.Organizes),
+        RequestedNewNodeId=node_id,
+        BrowseName=name,
+        NodeClass=ua.NodeClass.Object,
+        NodeAttributes=ua.ObjectAttributes(DisplayName=ua.LocalizedText(name.Name)),
+        TypeDefinition=ua.NodeId(ua.ObjectIds.FolderType),
+    )
+
+
+def _keep(node: Any, attr: Any, value: Any) -> None:
+    """The value setter of our variables: a sample is not stored (reads ask the service)."""
+
+
+class _Users:
+    """asyncua's user manager: anonymous sessions when no user is configured, else only
+    that user name and password (compared in constant time). Sessions get the role
+    User, never Admin: the access levels of every node apply to them."""
+
+    def __init__(self, user: str | None, password: str | None) -> None:
+        self.user = user
+        self.password = password
+
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> Any:
+        from asyncua.server.user_managers import User, UserRole
+
+        if self.user is None:
+            return User(role=UserRole.User)
+        if username is None or password is None or self.password is None:
+            return None
+        ok = hmac.compare_digest(username.encode(), self.user.encode())
+        ok &= hmac.compare_digest(password.encode(), self.password.encode())
+        return User(role=UserRole.User, name=username) if ok else None
+
+
+__all__ = [
+    "STATUS",
+    "OpcUaInterface",
+    "OpcUaOptions",
+    "run_method",
+    "source_time",
+    "status_name",
+]

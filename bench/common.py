@@ -301,6 +301,14 @@ def start_geo(server: ServerProcess, ports: dict[str, int], min_cycles: int = 20
     Zenoh session connected to it (the caller closes it)."""
     for key in ("zenoh", "modbus", "ads"):
         wait_port(ports[key], 30.0, server.proc)
+    if "--opcua-endpoint" in server.argv:
+        # the OPC UA interface builds its address space on the loop after the start
+        # (about 1.5 s here): measured before it is ready, the first case pays for it
+        deadline = time.monotonic() + 60.0
+        while "opcua: ready" not in server.log_text():
+            if server.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"OPC UA did not get ready:\n{server.log_tail()}")
+            time.sleep(0.05)
     session = zenoh_session(f"tcp/{HOST}:{ports['zenoh']}")
     try:
         wait_cycles(session, min_cycles, 30.0, server.proc)

@@ -82,6 +82,13 @@ from geo_server.snapshot import Snapshot
 #: the longest a status or a server's own error waits for another thread's catch-up
 #: (seconds; a fleet's status asks every machine in turn)
 STATUS_SYNC_WAIT = 0.02
+#: Refused writes and NC text reported in the error list per second at most (a client
+#: sending bad values in a loop must not flood the list and its publications); the rest
+#: are counted (`status()["refusals_unreported"]`).
+REFUSALS_PER_SECOND = 10
+#: The refusals that are reported: a value out of range or not valid (0x706) and NC
+#: text that does not parse (0x70D); each answer carries its reason as well.
+REPORTED_REFUSALS = frozenset({AdsErrorCode.DEVICE_INVALIDDATA, ADSERR_DEVICE_SYNTAX})
 
 
 @dataclass(frozen=True)
@@ -130,6 +137,8 @@ class ObjectService:
         self.machine = machine
         self.scheduler = scheduler
         self.limits = limits or ServiceLimits()
+        self._refusal_window = (0.0, 0)  # (second, reported in it)
+        self.refusals_unreported = 0
         # What the engine can do beyond the ports, decided once by its type: the engine
         # in this process (overruns, chosen cycles, an idle wake) and the machine in
         # this process (the twin's sensors, input taps); the cycle process has neither.
@@ -370,23 +379,50 @@ class ObjectService:
                 AdsErrorCode.DEVICE_INVALIDACCESS, f"attribute of {obj.name} is read-only", obj.name
             )
         self._check_writable(obj)
-        return PreparedWrite(obj, axis, obj.decode(data))
+        return PreparedWrite(obj, axis, self._noted(obj.decode, data))
 
     def prepare_name(self, name: str, axis: int, value: Any) -> PreparedWrite:
         """Validate a decoded value (JSON, CLI) for a write."""
         obj = self.lookup(name, axis)
         self._check_writable(obj)
-        return PreparedWrite(obj, axis, obj.coerce(value))
+        return PreparedWrite(obj, axis, self._noted(obj.coerce, value))
 
     def prepare_object(self, obj: ObjectDef, axis: int, value: Any) -> PreparedWrite:
         """Validate a value for an object the caller has already resolved."""
         self._check_writable(obj)
-        return PreparedWrite(obj, axis, obj.coerce(value))
+        return PreparedWrite(obj, axis, self._noted(obj.coerce, value))
 
     @staticmethod
     def is_command(obj: ObjectDef) -> bool:
         """Does writing `obj` run a command (reload/save) rather than queue a value?"""
         return obj.command is not None
+
+    def _noted(self, convert: Callable[[Any], Any], value: Any) -> Any:
+        """`convert(value)`; a refused value (0x706) is also put in the error list and
+        `SIM::last_error` (`note_refusal`), not only answered."""
+        try:
+            return convert(value)
+        except AdsError as exc:
+            self.note_refusal(exc, "write")
+            raise
+
+    def note_refusal(self, exc: AdsError, what: str) -> None:
+        """Put a refused write or NC text (`REPORTED_REFUSALS`) in the error list, where
+        `SIM::last_error` and every interface's error list show it: at most
+        `REFUSALS_PER_SECOND`, the rest counted. Recorded at the next cycle boundary,
+        without waiting for it (the caller is answering a request)."""
+        if exc.code not in REPORTED_REFUSALS:
+            return
+        second = float(int(time.monotonic()))
+        start, count = self._refusal_window
+        if start != second:
+            start, count = second, 0
+        if count >= REFUSALS_PER_SECOND:
+            self.refusals_unreported += 1
+            return
+        self._refusal_window = (start, count + 1)
+        text = f"{what} refused: {exc.message} (ADS 0x{exc.code:X})"
+        self.machine.record(Diagnostic("error", text, entry=exc.name))
 
     def _check_writable(self, obj: ObjectDef) -> None:
         if not obj.writable:
@@ -566,6 +602,7 @@ class ObjectService:
         st["stalled_for_s"] = round(stalled, 3)
         st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
         st["faults"] = self.faults.status()
+        st["refusals_unreported"] = self.refusals_unreported
         recording = self.recordings.status()
         if recording is not None:
             st["recording"] = recording
@@ -654,8 +691,13 @@ class ObjectService:
         return self.snapshot
 
     def run_nc(self, text: str) -> Pending:
-        """`nc.run`: NC text started as MDI lines at the next cycle boundary."""
-        return self.nc.run(text)
+        """`nc.run`: NC text started as MDI lines at the next cycle boundary (NC text
+        that does not parse, 0x70D, is also put in the error list: `note_refusal`)."""
+        try:
+            return self.nc.run(text)
+        except AdsError as exc:
+            self.note_refusal(exc, "NC text")
+            raise
 
     async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
         """`run_nc` parsed in a worker thread; returns the cycle that started it."""

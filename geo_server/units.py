@@ -59,6 +59,19 @@ def raw_unit(obj: ObjectDef) -> str:
     return "" if unit == "-" else unit
 
 
+#: quantity -> the raw increment on a rotary axis or spindle, where the dictionary's unit
+#: (`[0.1 µm]`, `[µm/s]`) names the linear one (docs/design.md §3.1)
+_ROTARY_RAW = {"position": "0.0001°", "offset": "0.0001°", "velocity": "0.001°/s"}
+
+
+def raw_unit_on(obj: ObjectDef, axis_type: int) -> str:
+    """`raw_unit` for an axis of `axis_type`: a position or offset of a rotary axis
+    counts 0.0001°, not 0.1 µm."""
+    if axis_type != LINEAR and obj.quantity in _ROTARY_RAW and raw_unit(obj) != "Incr.":
+        return _ROTARY_RAW[obj.quantity]
+    return raw_unit(obj)
+
+
 def show(obj: ObjectDef, value: Any, axis_type: int = LINEAR, raw: bool = False) -> Shown:
     """`value` of `obj` in engineering units (or as it is with `raw`)."""
     scales = _SCALES.get(obj.quantity or "")
@@ -88,5 +101,6 @@ __all__ = [
     "Shown",
     "parse_axis_names",
     "raw_unit",
+    "raw_unit_on",
     "show",
 ]

@@ -420,3 +420,37 @@ def test_reset_deselects_manual_activation_compensations(default_cfg):
     machine.step(1)
     assert svc.read_name("TEMPC::activated", 1) is False
     assert machine.player is not None and not machine.player.running
+
+
+# ---------------------------------------------------------------------- refusals listed
+
+
+def test_refused_writes_and_nc_text_are_in_the_error_list(default_cfg):
+    """Issue 31: a refused write (0x706) and NC text that does not parse (0x70D) are
+    answered and also listed, as a rejected reload is: in the errors and in
+    SIM::last_error. At most ten a second are listed, the rest counted."""
+    from geo_server.errors import AdsError
+    from geo_server.service import REFUSALS_PER_SECOND, ObjectService
+
+    service = ObjectService(Machine(default_cfg, homed=True))
+    with pytest.raises(AdsError) as refused:
+        service.write_name("TEMPC::coefficient", 1, 20000)  # range ±10000 µm/m (000 p.22)
+    assert refused.value.code == 0x706
+    with pytest.raises(AdsError) as bad_nc:
+        service.run_nc("G01 X10 F$")
+    assert bad_nc.value.code == 0x70D
+    service.step(1)
+    last_two = [e["message"] for e in service.errors()[-2:]]
+    assert last_two[0].startswith("write refused: ") and last_two[0].endswith("(ADS 0x706)")
+    assert "TEMPC::coefficient" in last_two[0]
+    assert last_two[1].startswith("NC text refused: ") and last_two[1].endswith("(ADS 0x70D)")
+    assert service.read_name("SIM::last_error", 0).endswith(last_two[1])
+    # a client sending bad values in a loop: the list takes ten a second, counts the rest
+    before = len(service.errors())
+    for _ in range(3 * REFUSALS_PER_SECOND):
+        with pytest.raises(AdsError):
+            service.write_name("TEMPC::coefficient", 1, 20000)
+    service.step(1)
+    listed = len(service.errors()) - before
+    assert listed <= 2 * REFUSALS_PER_SECOND  # the loop may straddle a second
+    assert listed + service.status()["refusals_unreported"] == 3 * REFUSALS_PER_SECOND

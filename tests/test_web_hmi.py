@@ -167,6 +167,17 @@ def test_the_page_shows_every_axis_live(page, served):
     expect(tempc_input(page, 1, "TEMPC::coefficient")).to_have_value("4000")
     expect(tempc_input(page, 1, "TEMPC::offset_0")).to_have_value("40")
     expect(page.locator("#axis-1 .hint[data-hint='offset_0']")).to_have_text("= 4.0 µm")
+    # the raw unit of an offset: 0.1 µm on linear X, 0.0001° on rotary C (design.md §3.1)
+    label = "#axis-{} .tempc label:has-text('offset_0') small"
+    expect(page.locator(label.format(1))).to_have_text("[0.1 µm]")
+    expect(page.locator(label.format(4))).to_have_text("[0.0001°]")
+    # a rotary axis' 4 decimals fit their column (C's leadscrew value, -0.0007 °, used to
+    # run into its unit)
+    expect(page.locator("#axis-4 tr[data-comp='LSEC'] .act")).not_to_have_text("–")
+    overflowing = page.eval_on_selector_all(
+        ".comps td.num", "cells => cells.filter(c => c.scrollWidth > c.clientWidth).length"
+    )
+    assert overflowing == 0
     # X at 0 mm: 4.0 µm + 4000·10⁻⁶·(0 − 0.01 mm) = 3.96 µm → TEMPC::actual_offset 4.0 µm
     row = page.locator("#axis-1 tr[data-comp='TEMP']")
     expect(row.locator(".act")).to_have_text("4.0")

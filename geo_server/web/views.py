@@ -11,7 +11,7 @@ from typing import Any
 from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.model import MachineConfig
 from geo_server.snapshot import Snapshot
-from geo_server.units import ACHS_TYP, LINEAR, raw_unit, show
+from geo_server.units import ACHS_TYP, LINEAR, ROTARY, raw_unit, raw_unit_on, show
 
 
 @dataclass(frozen=True)
@@ -120,6 +120,7 @@ def object_info(obj: ObjectDef) -> dict[str, Any]:
         "field": obj.key_field,
         "type": obj.type.name,
         "unit": raw_unit(obj),
+        "rotary_unit": raw_unit_on(obj, ROTARY),
         "min": obj.min,
         "max": obj.max,
     }

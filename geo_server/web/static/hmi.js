@@ -92,17 +92,18 @@ function tempcEditor(hello, ax) {
   const root = el("div", { class: "tempc" });
   for (const p of hello.tempc) {
     const boolean = p.type === "BOOLEAN";
+    const unit = ax.rotary ? p.rotary_unit : p.unit;  // 0.0001° on a rotary axis, not 0.1 µm
     const input = boolean
       ? el("input", { type: "checkbox", "data-name": p.name, "data-axis": ax.axis })
       : el("input", { type: "text", inputmode: "decimal", "data-name": p.name, "data-axis": ax.axis,
-                      title: `${p.name}: ${p.min ?? "–"} … ${p.max ?? "–"} ${p.unit}; Enter writes` });
+                      title: `${p.name}: ${p.min ?? "–"} … ${p.max ?? "–"} ${unit}; Enter writes` });
     input.addEventListener(boolean ? "change" : "keydown", (ev) => {
       if (boolean || ev.key === "Enter") writeTempc(input, p, ax.axis);
       else if (ev.key === "Escape") { input.classList.remove("pending"); input.blur(); }
     });
     input.addEventListener("input", () => input.classList.add("pending"));
     const label = el("label", { text: p.field });
-    if (p.unit) label.append(" ", el("small", { text: `[${p.unit}]` }));
+    if (unit) label.append(" ", el("small", { text: `[${unit}]` }));
     root.append(label, input, el("span", { class: "hint", "data-hint": p.field }));
   }
   root.append(el("span", { class: "msg", id: `tempc-msg-${ax.axis}` }));

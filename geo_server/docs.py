@@ -53,7 +53,7 @@ def checks_page() -> str:
 #: Pages under docs/ and what writes them.
 def symbols_page() -> str:
     """Every ADS symbol pattern, from the dictionary (`transports/ads/symbols.py`)."""
-    from geo_server.dictionary import load_dictionary
+    from geo_server.dictionary import COM_AMS_PORT, load_dictionary
     from geo_server.transports.ads.symbols import has_symbol, symbol_name
 
     rows = [
@@ -80,7 +80,8 @@ def symbols_page() -> str:
         "`GEO.X.TEMPC.coefficient`), machine-wide objects once; names are case-insensitive. "
         "Served on AMS port 551: handles (0xF003/0xF005/0xF006), info by name (0xF009), "
         "uploads (0xF00B/0xF00C/0xF00E/0xF00F) — see [design.md](design.md) §9. The COM "
-        "task's objects (AMS port 553, index group 0x120100) have no symbols: address them "
+        f"task's objects (AMS port {COM_AMS_PORT}, index group 0x{GROUPS['com']:X}) have no "
+        "symbols: address them "
         "by index group and offset ([volumetric.md](volumetric.md)).\n\n" + "\n".join(rows) + "\n"
     )
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import shutil
 import socket
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,6 +16,18 @@ from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir, default_startup_list
 from geo_server.service import ObjectService
+
+#: `geo-server run` with the web HMI alone (every other interface off)
+RUN_HTTP_ONLY = (
+    sys.executable,
+    "-m",
+    "geo_server.cli",
+    "run",
+    "--no-zenoh",
+    "--no-modbus",
+    "--no-ads",
+    "--no-opcua",
+)
 
 
 def free_port() -> int:

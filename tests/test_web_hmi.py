@@ -11,7 +11,6 @@ import re
 import shutil
 import socket
 import subprocess
-import sys
 import threading
 import time
 import urllib.error
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import aiohttp
 import pytest
+from conftest import RUN_HTTP_ONLY
 
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
@@ -33,17 +33,6 @@ from geo_server.web.tables import tables
 from geo_server.web.views import LiveView
 
 WAIT_MS = 15_000
-#: `geo-server run` with the web HMI alone
-RUN = (
-    sys.executable,
-    "-m",
-    "geo_server.cli",
-    "run",
-    "--no-zenoh",
-    "--no-modbus",
-    "--no-ads",
-    "--no-opcua",
-)
 ACCEL_POS = "accelerating, + direction"
 
 
@@ -480,7 +469,7 @@ def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
     port = blocker.getsockname()[1]
     try:
         r = subprocess.run(
-            [*RUN, "--cycles", "50", "--http", f"127.0.0.1:{port}"],
+            [*RUN_HTTP_ONLY, "--cycles", "50", "--http", f"127.0.0.1:{port}"],
             cwd=tmp_path,
             capture_output=True,
             text=True,
@@ -498,7 +487,7 @@ def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
 def test_run_serves_the_page_on_an_ephemeral_port(tmp_path):
     """`--http 127.0.0.1:0`: the banner names the port the page is served on."""
     proc = subprocess.Popen(
-        [*RUN, "--homed", "--http", "127.0.0.1:0"],
+        [*RUN_HTTP_ONLY, "--homed", "--http", "127.0.0.1:0"],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -548,7 +537,7 @@ def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
     )
     with open(tmp_path / "err.txt", "wb") as err:  # (a pipe nobody reads could fill up)
         proc = subprocess.Popen(
-            [*RUN, "--fleet", str(fleet), "--homed", "--http", "127.0.0.1:0"],
+            [*RUN_HTTP_ONLY, "--fleet", str(fleet), "--homed", "--http", "127.0.0.1:0"],
             cwd=tmp_path,
             stdout=subprocess.PIPE,
             stderr=err,

@@ -13,12 +13,12 @@ import json
 import re
 import socket
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import aiohttp
 import pytest
+from conftest import RUN_HTTP_ONLY
 
 import geo_server.dictionary as dictionary_module
 from geo_server.cli import build_parser, main
@@ -35,17 +35,6 @@ EVIL = "http://evil.example"
 COEFF = "TEMPC::coefficient"
 #: lists/achsmd1.lis: temp_comp_coefficient of axis 1
 LIST_COEFF = 4000.0
-#: `geo-server run` with the web HMI alone
-RUN = (
-    sys.executable,
-    "-m",
-    "geo_server.cli",
-    "run",
-    "--no-zenoh",
-    "--no-modbus",
-    "--no-ads",
-    "--no-opcua",
-)
 
 
 class Served:
@@ -409,7 +398,7 @@ def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
     """`geo-server run --read-only --http`: the single-machine HMI refused nothing
     before; now its hello says read_only and a write with the printed token is 0x704."""
     proc = subprocess.Popen(
-        [*RUN, str(lists_copy), "--homed", "--read-only", "--http", "127.0.0.1:0"],
+        [*RUN_HTTP_ONLY, str(lists_copy), "--homed", "--read-only", "--http", "127.0.0.1:0"],
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,

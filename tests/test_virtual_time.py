@@ -222,6 +222,25 @@ def test_every_cycle_is_published_while_someone_samples_every_cycle(cfg) -> None
     assert [c for c, _ in seen[31:]] == [110]
 
 
+def test_a_cycle_the_engine_computed_unpublished_is_published_to_the_observer(cfg) -> None:
+    """The engine's own wake-up computes cycles without publishing them (a moving
+    machine, nobody looking); an observer arriving in the cycle the engine reached must
+    still be served that cycle, not the last one published (it was once served the
+    cycle before under load: the sync found nothing left to compute and published
+    nothing)."""
+    vc, m, sched = driven(cfg)
+    m.submit(WriteObjects((("SIM::target_position", 1, 50_000.0),)))  # X moves 5 mm
+    vc.t += 10 * P
+    sched.sync()
+    assert m.snapshot.cycle == 10 and not m.quiescent
+    vc.t += 7 * P
+    with sched._engine_lock:  # what `_run_exact` does on its wake-up
+        sched.advance(sched.due(), publish=False)
+    assert m.cycle == 17 and m.snapshot.cycle < 17
+    sched.sync()
+    assert m.snapshot.cycle == 17
+
+
 def test_an_axis_without_friction_stops_inside_a_thermal_window(cfg) -> None:
     """Y has no friction (nothing in the kernel's delay line): the machine is at rest as
     soon as Y stands, but the motion heat Y gathered since the last thermal update is

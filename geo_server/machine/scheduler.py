@@ -502,6 +502,10 @@ class Scheduler:
         m = self.machine
         target = self._reachable(target)
         if target <= m.cycle:
+            if publish:
+                # the engine's own wake-up may have computed the cycle due without
+                # publishing it: the observer must still see it, not the one before
+                m.publish()
             return
         every = self._every
         rec, clock = self.stats.record, time.perf_counter_ns

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import multiprocessing
 import os
 import socket
 import struct
@@ -261,9 +262,13 @@ def register_all(
     }
 
 
-def flood(port: int, netid: str, connections: int, depth: int, stop: threading.Event) -> list[int]:
-    """Keep `depth` Reads in flight on each of `connections` connections to `netid`."""
-    done = [0]
+def flood(port: int, netid: str, connections: int, depth: int, stop: Any, done: Any) -> None:
+    """Keep `depth` Reads in flight on each of `connections` connections to `netid`
+    until `stop` is set; the answers counted in `done`. Runs in a process of its own:
+    in the probing process its threads would hold the probe's interpreter lock for
+    whole switch intervals (5 ms), which measured the client, not the server."""
+    count = [0]
+    lock = threading.Lock()
 
     def one(i: int) -> None:
         try:
@@ -283,7 +288,8 @@ def flood(port: int, netid: str, connections: int, depth: int, stop: threading.E
                 if not data:
                     break
                 n = sum(isinstance(ev, AmsPacket) for ev in framer.feed(data))
-                done[0] += n
+                with lock:
+                    count[0] += n
                 if n:
                     s.sendall(frame * n)
         s.close()
@@ -294,7 +300,7 @@ def flood(port: int, netid: str, connections: int, depth: int, stop: threading.E
     stop.wait()
     for t in threads:
         t.join(5)
-    return done
+    done.value = count[0]
 
 
 def rows(phase: str, result: dict[str, Any]) -> list[list[Any]]:
@@ -379,23 +385,21 @@ def main() -> None:
             after = probe(targets, aport, mbase, args.seconds, args.timeout)
             out_rows += rows("client gone", after)
             print("after done", flush=True)
-            stop = threading.Event()
-            result: list[list[int]] = []
-            t = threading.Thread(
-                target=lambda: result.append(
-                    flood(aport, BASE_NETID, args.flood_connections, args.flood_depth, stop)
-                ),
+            ctx = multiprocessing.get_context("spawn")
+            stop, answered = ctx.Event(), ctx.Value("q", 0)
+            flooder = ctx.Process(
+                target=flood,
+                args=(aport, BASE_NETID, args.flood_connections, args.flood_depth, stop, answered),
                 daemon=True,
             )
-            t.start()
-            time.sleep(0.5)
+            flooder.start()
+            time.sleep(1.0)
             others = [m for m in targets if m != 1] or [1]
             flooded = probe(others, aport, mbase, args.seconds, args.timeout)
             stop.set()
-            t.join(10)
+            flooder.join(10)
             out_rows += rows("flood on m1", flooded)
-            if result:
-                notes.append(f"flood: {result[0][0]} reads answered on machine 1")
+            notes.append(f"flood: {answered.value} reads answered on machine 1")
         finally:
             session.close()
     md = (

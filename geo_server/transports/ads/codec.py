@@ -32,6 +32,7 @@ unknown AMS/TCP header kind is unrecoverable (the stream can no longer be delimi
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -165,6 +166,7 @@ class AdsState(IntEnum):
 # ---------------------------------------------------------------------- addresses
 
 
+@functools.lru_cache(maxsize=1024)  # a few NetIds per server: parsed once, not per frame
 def netid_to_bytes(netid: str) -> bytes:
     """`"127.0.0.1.1.1"` -> 6 bytes; anything else raises ValueError."""
     parts = netid.split(".")
@@ -176,6 +178,7 @@ def netid_to_bytes(netid: str) -> bytes:
         raise ValueError(f"invalid AMS NetId {netid!r}") from None
 
 
+@functools.lru_cache(maxsize=1024)
 def netid_from_bytes(raw: bytes) -> str:
     return ".".join(str(b) for b in raw)
 

@@ -49,6 +49,9 @@ class AdsConnection(Connection, asyncio.Protocol):
         self._paused_work = False
         #: events read but not served yet: their machine had served its turn
         self._queued: deque[codec.FrameEvent] = deque()
+        #: answers of the frames being served, written together (`_handle`); None:
+        #: not serving frames, `send` writes at once
+        self._corked: list[bytes] | None = None
 
     # (Equality and hash are object identity, the C defaults: a connection is a key of
     # the notification table and of every sampled route, looked up per sample.)
@@ -92,10 +95,24 @@ class AdsConnection(Connection, asyncio.Protocol):
         self._arm_frame_timer()
 
     def _handle(self, events: Sequence[codec.FrameEvent]) -> None:
-        """Serve `events` in order. A request for a machine that has served its
-        `requests_per_step` in this loop step waits, with the rest, for the next step
-        (reading paused meanwhile): a client pipelining requests to one machine takes
-        that machine's turn, not the other machines' (docs/design.md §13.1)."""
+        """Serve `events` in order, their answers written in one go (one system call for
+        a client that pipelines, not one per answer: the send was a third of a flooded
+        machine's cost, docs/benchmarks.md). A request for a machine that has served
+        its `requests_per_step` in this loop step waits, with the rest, for the next
+        step (reading paused meanwhile): a client pipelining requests to one machine
+        takes that machine's turn, not the other machines' (docs/design.md §13.1)."""
+        self._corked = []
+        try:
+            self._serve_events(events)
+        finally:
+            self._uncork()
+
+    def _uncork(self) -> None:
+        corked, self._corked = self._corked, None
+        if corked:
+            self.send(corked[0] if len(corked) == 1 else b"".join(corked))
+
+    def _serve_events(self, events: Sequence[codec.FrameEvent]) -> None:
         for i, ev in enumerate(events):
             if isinstance(ev, AmsPacket):
                 if not self.server.take_turn(ev):
@@ -121,6 +138,7 @@ class AdsConnection(Connection, asyncio.Protocol):
                 self.server.stats.closed_for_framing += 1
                 log.warning("ADS closing %s: %s", self.peer, ev.reason)
                 self._cancel_frame_timer()
+                self._uncork()  # the answers before the bad frame go out first
                 if self.transport is not None:
                     self.transport.close()  # flushes the answers already queued
                 return
@@ -197,7 +215,9 @@ class AdsConnection(Connection, asyncio.Protocol):
         return self.transport.get_write_buffer_size() if self.transport is not None else 0
 
     def send(self, frame: bytes) -> None:
-        if self.transport is not None and not self.transport.is_closing():
+        if self._corked is not None:  # serving a batch of frames: written at its end
+            self._corked.append(frame)
+        elif self.transport is not None and not self.transport.is_closing():
             self.transport.write(frame)
 
     def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
@@ -224,6 +244,7 @@ class AdsConnection(Connection, asyncio.Protocol):
 
     def close(self) -> None:
         """Close after the answers already queued."""
+        self._uncork()
         if self.transport is not None:
             self.transport.close()
 

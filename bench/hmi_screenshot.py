@@ -15,6 +15,7 @@ import asyncio
 import threading
 import time
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -44,8 +45,8 @@ def main() -> None:
     hmi = HmiServer(service, HmiOptions(port=0, machine="local"))
     asyncio.run_coroutine_threadsafe(hmi.start(), loop).result(10)
     sched.start()
-    service.write_name("TWIN::spindle_on", 0, True)
-    service.write_name("TEMPC::coefficient", 2, 45.0)
+    access.write_name(service, "TWIN::spindle_on", 0, True)
+    access.write_name(service, "TEMPC::coefficient", 2, 45.0)
     machine.start_program(PROGRAM)
     from playwright.sync_api import sync_playwright
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from common import emit, table
 
+from geo_server import access
 from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
@@ -62,7 +63,7 @@ def run(cycles: int) -> str:
     machine = Machine(load_machine(default_startup_list()), homed=True)
     service = ObjectService(machine)
     machine.start_program(PROGRAM)
-    service.step(200)
+    access.step(service, 200)
     spec = RecordSpec(list(TWENTY), samples=cycles * 20 + 10)
     columns = len(Recorder(service, spec).columns)
     off, on = [], []
@@ -73,7 +74,7 @@ def run(cycles: int) -> str:
         rec.stop()
     base, rec_on = np.concatenate(off), np.concatenate(on)
     probe = Recorder(service, RecordSpec(list(TWENTY), samples=100_001))
-    snap = service.snapshot
+    snap = service.current(stale_ok=True)
     samples = np.empty(20000)
     for i in range(len(samples)):
         probe._last_cycle = -1
@@ -118,17 +119,17 @@ def _reset_peak() -> None:
 def memory_child(rows: int) -> dict[str, float]:
     """One recording of `*` over `rows` cycles to a CSV file (in this process)."""
     service = ObjectService(Machine(load_machine(default_startup_list()), homed=True))
-    service.record_dir = Path(tempfile.mkdtemp(prefix="geo-bench-rec-"))
-    service.step(5)
+    service.recordings.record_dir = Path(tempfile.mkdtemp(prefix="geo-bench-rec-"))
+    access.step(service, 5)
     gc.collect()
     before = _status("VmRSS")
-    st = service.start_recording({"objects": ["*"]}, "star.csv")
-    service.step(rows)
+    st = service.recordings.start({"objects": ["*"]}, "star.csv")
+    access.step(service, rows)
     gc.collect()
     recording = _status("VmRSS")
     _reset_peak()
     t0 = time.perf_counter()
-    done = service.stop_recording()
+    done = service.recordings.stop()
     stop_s = time.perf_counter() - t0
     peak = _status("VmHWM")
     return {
@@ -149,21 +150,21 @@ def inputs_child(writes: int) -> dict[str, float]:
     from geo_server.machine.port import WriteObjects
 
     service = ObjectService(Machine(load_machine(default_startup_list()), homed=True))
-    service.record_dir = Path(tempfile.mkdtemp(prefix="geo-bench-rec-"))
+    service.recordings.record_dir = Path(tempfile.mkdtemp(prefix="geo-bench-rec-"))
     trigger = {"objects": ["SIM::cycle_count"], "trigger": "SIM::cycle_count < 0"}
-    service.start_recording(trigger, "never.csv")
+    service.recordings.start(trigger, "never.csv")
     gc.collect()
     before = _status("VmRSS")
     t0 = time.perf_counter()
     for _ in range(writes // 100):
         for k in range(100):
             service.machine.submit(WriteObjects((("TEMPC::offset_0", 1, 40 + k),)))
-        service.step(1)
+        access.step(service, 1)
     elapsed = time.perf_counter() - t0
     gc.collect()
     grown = _status("VmRSS") - before
     st = service.status()["recording"]
-    service.stop_recording()
+    service.recordings.stop()
     return {
         "writes": writes,
         "kept": st["inputs"],

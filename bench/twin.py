@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.model import MachineConfig
@@ -86,7 +87,7 @@ def measure(cfg: MachineConfig, cycles: int, block: int = 200) -> dict[str, floa
         flip = -flip
         for slot, nr in enumerate(axes):
             span = 200_000 if cfg.axes[nr].params.kind == "T" else 100_000
-            svc.write_name("SIM::target_position", nr, flip * span * (1 + slot % 3))
+            access.write_name(svc, "SIM::target_position", nr, flip * span * (1 + slot % 3))
 
     def timed_step(*args: object) -> None:
         t0 = time.perf_counter_ns()

@@ -18,15 +18,8 @@ from typing import Any
 
 from geo_server import __version__
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
-from geo_server.descriptors import AcceptLog, DescriptorError, plan
-from geo_server.dictionary import COLUMNS, GEO_AMS_PORT, dictionary_markdown, load_dictionary
-from geo_server.interfaces import (
-    CycleStoppedError,
-    InterfaceStartError,
-    inject_faults,
-    serve,
-    start_failure,
-)
+from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
+from geo_server.interfaces import CycleStoppedError, inject_faults, serve
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 from geo_server.transports.opcua import args as opcua_args
@@ -209,149 +202,19 @@ def _remove_orphans(cfg: Any) -> None:
         print(f"removed {tmp}: left over from an interrupted save", file=sys.stderr)
 
 
-def _zenoh(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
-
-    opts = ZenohOptions(
-        machine=args.machine,
-        mode=args.zenoh_mode,
-        listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
-        connect=args.zenoh_connect or [],
-        config_file=args.zenoh_config,
-        multicast_scouting=args.zenoh_scouting,
-        read_only=args.read_only or args.zenoh_read_only,
-    )
-    if "zenoh" in args.caps:  # sessions and handshakes shrunk alike (`_connection_caps`)
-        opts.shrink_to(args.caps["zenoh"])
-    return (
-        ZenohInterface(service, opts),
-        lambda: (
-            f"zenoh: machine {args.machine!r} on {', '.join(opts.listen)} "
-            f"(keys cnc/{args.machine}/**)"
-        ),
-    )
-
-
-def _modbus(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-
-    read_only = args.read_only or args.modbus_read_only
-    mb = ModbusInterface(
-        service,
-        ModbusOptions(
-            host=args.modbus_host,
-            port=args.modbus_port,
-            read_only=read_only,
-            max_connections=args.caps.get("modbus", ModbusOptions.max_connections),
-        ),
-    )
-    return mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"
-
-
-def _ads(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.transports.ads.server import AdsOptions, AdsServer
-
-    read_only = args.read_only or args.ads_read_only
-    opts = AdsOptions(
-        host=args.ads_host,
-        port=args.ads_port,
-        netid=args.ads_netid,
-        read_only=read_only,
-        udp_port=args.ads_udp_port or None,
-        route_user=args.ads_route_user,
-        route_password=args.ads_route_password,
-        max_connections=args.caps.get("ads", AdsOptions.max_connections),
-    )
-    ads = AdsServer(service, opts)
-
-    def banner() -> str:
-        line = f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"
-        if ads.udp_port is not None:
-            return line + f", discovery udp://{args.ads_host}:{ads.udp_port}"
-        return line + (f" (discovery off: {ads.udp_error})" if ads.udp_error else "")
-
-    return ads, banner
-
-
-def _http(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.web.server import HmiServer, access_note, http_options
-
-    caps = {"max_connections": args.caps["http"]} if "http" in args.caps else {}
-    hmi = HmiServer(service, http_options(args, machine=args.machine, **caps))
-    return hmi, lambda: f"http: web HMI on {hmi.url} ({access_note(hmi.options)})"
-
-
-def _opcua(args: argparse.Namespace, service: Any) -> tuple[Any, Any]:
-    from geo_server.opcua_run import announce, options_from_args
-    from geo_server.transports.opcua.server import OpcUaInterface
-
-    startup = Path(args.startup) if args.startup else None
-    ua = OpcUaInterface({args.machine: service}, options_from_args(args, startup, args.caps))
-    announce(ua, f"Objects/{args.machine}")
-    return ua, lambda: f"opcua: {ua.endpoint} starting (README *OPC UA*)"
-
-
-def _connection_caps(args: argparse.Namespace) -> dict[str, int]:
-    """Each interface's connection cap, fitted under the open-files limit (raised to the
-    hard limit first; geo_server/descriptors.py): Zenoh's counts its sessions and the
-    handshakes under way."""
-    from geo_server.transports.ads.server import AdsOptions
-    from geo_server.transports.modbus.server import ModbusOptions
-    from geo_server.transports.tcp import BACKLOG
-    from geo_server.transports.zenoh.server import ZenohOptions
-    from geo_server.web.server import HmiOptions
-
-    wanted = {}
-    if not args.no_zenoh:
-        wanted["zenoh"] = ZenohOptions.max_sessions + ZenohOptions.accept_pending
-    if not args.no_modbus:
-        wanted["modbus"] = ModbusOptions.max_connections
-    if not args.no_ads:
-        wanted["ads"] = AdsOptions.max_connections
-    if args.http:
-        wanted["http"] = HmiOptions.max_connections
-    if not args.no_opcua:
-        from geo_server.transports.opcua.server import OpcUaOptions
-
-        wanted["opcua"] = OpcUaOptions.max_connections
-    caps, said = plan(wanted, BACKLOG * len(set(wanted) - {"zenoh"}))
-    if said:
-        print(said, file=sys.stderr, flush=True)
-    return caps
-
-
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
+    from geo_server.compose import Interfaces
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         # Windows has no loop signal handlers: Ctrl-C arrives as KeyboardInterrupt there
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
-    interfaces: list[Any] = []
-    AcceptLog().install(loop)
+    interfaces = Interfaces.plan(args)  # the composition root: caps, then each interface
     try:
-        args.caps = _connection_caps(args)
-    except DescriptorError as exc:
-        raise InterfaceStartError(str(exc)) from None
-    try:
-        for name, disabled, build in (
-            ("zenoh", args.no_zenoh, _zenoh),
-            ("modbus", args.no_modbus, _modbus),
-            ("ads", args.no_ads, _ads),
-            ("http", not args.http, _http),
-            ("opcua", args.no_opcua, _opcua),
-        ):
-            if disabled:
-                continue
-            iface, describe = build(args, service)
-            # Registered before start() so a half-started interface is closed too.
-            interfaces.append(iface)
-            try:
-                await iface.start()
-            except Exception as exc:  # OSError (port busy), zenoh.ZError, bad config
-                raise InterfaceStartError(start_failure(name, exc)) from exc
-            print(describe(), flush=True)
+        await interfaces.start_machine(args, service)
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
         # Listen for the program's events before its first cycle can run: an error in
@@ -391,13 +254,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
             if finished:
                 break
     finally:
-        # Reverse order of start; one interface failing to close must not keep the
-        # others (and their ports) open.
-        for iface in reversed(interfaces):
-            try:
-                await iface.close()
-            except Exception as exc:  # report and go on closing the others
-                print(f"warning: closing {type(iface).__name__}: {exc}", file=sys.stderr)
+        await interfaces.close()  # reverse order of start, a half-started one too
 
 
 class ProgramReport:
@@ -408,7 +265,7 @@ class ProgramReport:
     def __init__(self, path: str, service: Any) -> None:
         self.path = path
         self.service = service
-        d = service.dictionary
+        d = service.info.dictionary
         self._running = d.by_name("SIM::program_running")
         self._line = d.by_name("SIM::program_line")
         self._started = False
@@ -424,7 +281,7 @@ class ProgramReport:
     def update(self) -> None:
         if self._done:
             return
-        snap = self.service.fresh()
+        snap = self.service.current(stale_ok=True)
         running = snap.value(self._running, 0)
         line = snap.value(self._line, 0)
         if not self._started and (running or line):  # (or it ran between two looks)
@@ -440,7 +297,7 @@ class ProgramReport:
 
     def line(self) -> str:
         if self._started and not self._done:
-            return f"  program line {self.service.snapshot.value(self._line, 0)}"
+            return f"  program line {self.service.current(stale_ok=True).value(self._line, 0)}"
         return ""
 
 
@@ -548,11 +405,18 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument(
         "--http-token",
         metavar="TOKEN",
-        help="the secret edits, reload and save need (default: a new random one each "
-        "run, printed in the page's URL)",
+        default=os.environ.get("GEO_SERVER_HTTP_TOKEN"),
+        help="the secret edits, reload and save need (default: GEO_SERVER_HTTP_TOKEN, else "
+        "a new random one each run, printed in the page's URL)",
     )
     h.add_argument("--http-user", metavar="USER", help="HTTP Basic authentication on everything")
-    h.add_argument("--http-password", metavar="PASSWORD", help="its password (with --http-user)")
+    h.add_argument(
+        "--http-password",
+        metavar="PASSWORD",
+        default=os.environ.get("GEO_SERVER_HTTP_PASSWORD"),
+        help="its password (with --http-user; or the environment's GEO_SERVER_HTTP_PASSWORD, "
+        "which other users cannot see in the process list)",
+    )
     h.add_argument(
         "--http-read-only", action="store_true", help="the HMI shows, refuses every edit"
     )
@@ -610,7 +474,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument(
         "--ads-route-password",
         metavar="PASSWORD",
-        help="password an add-route request must carry (see --ads-route-user)",
+        default=os.environ.get("GEO_SERVER_ADS_ROUTE_PASSWORD"),
+        help="password an add-route request must carry (see --ads-route-user; or the "
+        "environment's GEO_SERVER_ADS_ROUTE_PASSWORD)",
     )
     opcua_args.add_arguments(r)
     recorder_cli.add_run_arguments(r)

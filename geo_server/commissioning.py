@@ -27,6 +27,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from geo_server import access
 from geo_server.errors import GeoError
 from geo_server.kernel.common import initial_direction
 from geo_server.listfile import ListFileError, load_machine
@@ -231,7 +232,7 @@ def _measure(args: argparse.Namespace) -> int:
         before = run_test(bench, plan, name)
         c = commission(before, axis, lsec.bilateral, direction)
         written += write_lists(c, cfg.axes[axis].params.path, comp.path)
-        reload = svc.reload()
+        reload = svc.commands.reload()
         if not reload.ok:
             raise MeasureError(f"the lists written do not load: {reload.message}")
         print("lists written and reloaded; measuring with every compensation on")
@@ -266,7 +267,7 @@ def _measure(args: argparse.Namespace) -> int:
         if args.plot:
             written += _plots(out, name, ev, None, unit, position_unit)
     result["written"] = written
-    result["simulated_s"] = float(svc.read_name("TWIN::time", 0))
+    result["simulated_s"] = float(access.read_name(svc, "TWIN::time", 0))
     result["host_s"] = round(time.perf_counter() - started, 3)
     _write(out / "result.json", json.dumps(result, indent=1, default=float))
     print(f"\n{result['simulated_s']:.0f} s of machine time in {result['host_s']:.1f} s")

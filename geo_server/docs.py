@@ -356,9 +356,9 @@ def _option_classes() -> dict[str, Any]:
 def _fault_and_descriptor_rows() -> list[str]:
     """Bounds that are constants, not options: faults (docs/faults.md) and the
     descriptors kept beside the connection caps (geo_server/descriptors.py)."""
+    from geo_server.compose import FLEET_BACKLOG
     from geo_server.descriptors import RESERVE
     from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
-    from geo_server.fleet import FLEET_BACKLOG
     from geo_server.transports.tcp import BACKLOG
 
     return [
@@ -371,7 +371,7 @@ def _fault_and_descriptor_rows() -> list[str]:
         f"| all | accept queue of each TCP listener | {BACKLOG} | `tcp.BACKLOG` | "
         "counted in the descriptor budget |",
         f"| Modbus | accept queue of each machine's port in a fleet | {FLEET_BACKLOG} | "
-        "`fleet.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
+        "`compose.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
         "4 connections, or the fleet does not start |",
         f"| all | descriptors kept for files and the runtime | {RESERVE} | "
         "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",

@@ -69,7 +69,7 @@ def inject_faults(specs: list[str] | None, service: Any, label: str = "") -> boo
     False (after saying why) when one cannot be."""
     for spec in specs or ():
         try:
-            fault = service.inject_fault(spec)
+            fault = service.faults.inject(spec)
         except FaultError as exc:
             print(f"error: {label}{exc}", file=sys.stderr)
             return False

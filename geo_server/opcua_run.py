@@ -8,11 +8,14 @@ import os
 import sys
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from geo_server.interfaces import start_failure
 from geo_server.paths import default_startup_list, is_product_data
-from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
+from geo_server.transports.opcua.server import OpcUaOptions
+
+if TYPE_CHECKING:  # built by the composition root only (geo_server/compose.py)
+    from geo_server.transports.opcua.server import OpcUaInterface
 
 
 def user_folder() -> Path:

@@ -1,4 +1,14 @@
-"""The object service: the one API every transport calls.
+"""The object service: the one narrow API every interface calls.
+
+`ObjectService` has sixteen public methods — addresses (`resolve`, `lookup`), the
+snapshot due now (`current`), reads (`read`, `read_many`), the write lifecycle
+(`prepare`, `prepare_name`, `submit_writes`, `apply_writes`), subscriptions
+(`subscribe`, `subscribe_changes`, `subscribe_events`, `demand_cycles`) and the state
+(`status`, `errors`, `report`) — and a few attributes that are services of their own:
+`info` (`MachineInfo`: axes, cycle time, configuration, mode, dictionary), `faults`,
+`nc`, `commands`, `recordings`, `measurements` (`geo_server/commands/`). Reads and
+writes by name for tests, the command line and the clients are functions over these
+methods (`geo_server.access`).
 
 Reads
     `read(group, offset, length)` answers from the latest published snapshot with ADS
@@ -10,33 +20,33 @@ Reads
     and `status()` says `"stalled": true` (status itself is always answered).
 
 Writes: the write lifecycle lives here, once, for every transport
-    `prepare`/`prepare_name` validate at once (0x702…0x706). `write_applied` /
-    `write_name_applied` / `apply_writes` queue the values for the next cycle boundary
-    and return when the cycle that applied them has published its snapshot — so a read
-    sent after the answer sees the value. In stepped mode nobody runs that cycle until
-    the test steps: they return as soon as the values are queued. A write not applied
-    within the timeout is *withdrawn* before the caller hears 0x719: a write reported as
-    failed never takes effect later. One the cycle has already taken is always
-    acknowledged, however late (it will take effect). While the cycle is stalled new
-    writes are refused at once with 0x707 and are not queued.
+    `prepare`/`prepare_name` validate at once (0x702…0x706). `submit_writes` queues the
+    values for the next cycle boundary; `apply_writes` also returns when the cycle that
+    applied them has published its snapshot — so a read sent after the answer sees the
+    value. In stepped mode nobody runs that cycle until the test steps: it returns as
+    soon as the values are queued. A write not applied within the timeout is
+    *withdrawn* before the caller hears 0x719: a write reported as failed never takes
+    effect later. One the cycle has already taken is always acknowledged, however late
+    (it will take effect). While the cycle is stalled new writes are refused at once
+    with 0x707 and are not queued.
 
 Commands
-    Objects marked `command` in the dictionary (`SIM::reload`, `SIM::save`) run that
-    command instead of queueing a value; commands read or write list files, so
-    `*_applied` run them in a worker thread, never on an event loop. One command runs at
-    a time; another one waits at most `command_wait` and then gets 0x708 (busy). Each
-    command is a service of its own (`geo_server/commands/`); the methods here that name
-    one (`reload`, `save`, `run_nc`, `inject_fault`, `start_recording`, `measure`…) hand
-    over to it (`faults`, `nc`, `recordings`, `measurements`).
+    Objects marked `command` in the dictionary (`SIM::reload`, `SIM::save`, `VOLC::file`)
+    run that command instead of queueing a value (`commands.run`); commands read or
+    write list files, so `apply_writes` runs them in a worker thread, never on an event
+    loop. One command runs at a time; another one waits at most `command_wait` and then
+    gets 0x708 (busy). Each command is a service of its own (`geo_server/commands/`)
+    over the same ports and rules (`commands.ports.Ports`).
 
 Addresses
     `resolve(group, offset, port=…)`: an ADS request's AMS port is an argument (a task
     serves only its own groups, 0x702); None (any port) for name-based interfaces.
 
 Interfaces never reach into the kernel or the machine (tests/test_architecture.py checks
-imports and attribute access); they hold an `ObjectService` and map its `AdsError`s to
-their own codes. What an engine can do beyond the ports (overruns, chosen cycles, the
-twin's sensors, input taps) is decided once here, by type, never by `getattr`.
+imports, attribute access, and that they call only the names above); they hold an
+`ObjectService` and map its `AdsError`s to their own codes. What an engine can do beyond
+the ports (overruns, chosen cycles, the twin's sensors, input taps) is decided once here,
+by type, never by `getattr`.
 """
 
 from __future__ import annotations
@@ -46,37 +56,30 @@ import contextlib
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from geo_server.commands.faults import FaultService
+from geo_server.commands.lists import CommandService
 from geo_server.commands.measure import MeasureService
 from geo_server.commands.nc import NcService
-from geo_server.commands.ports import ADSERR_DEVICE_SYNTAX, CommandLock, CommandResult, Ports
+from geo_server.commands.ports import ADSERR_DEVICE_SYNTAX, CommandResult, Ports
 from geo_server.commands.record import RecordingService
-from geo_server.commands.reload import reload_lists
-from geo_server.commands.save import format_value, save_lists
-from geo_server.commands.volumetric import update_volumetric
-from geo_server.dictionary import ObjectDef
+from geo_server.commands.save import format_value
+from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
-from geo_server.faults import Fault
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import (
     CycleDemand,
     CycleRunner,
     MachinePort,
-    Operation,
     Pending,
     WriteObjects,
-    chained,
     resolved,
-    varies_at_rest,
 )
+from geo_server.machine.port import varies_at_rest as _varies_at_rest
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import CompKind, Diagnostic, MachineConfig
-from geo_server.recorder import Recorder, RecordSpec
-from geo_server.recorder.recorder import RecorderLimits
 from geo_server.snapshot import Snapshot
 
 #: the longest a status or a server's own error waits for another thread's catch-up
@@ -121,8 +124,63 @@ class PreparedWrite:
     value: Any
 
 
+class MachineInfo:
+    """What an interface may know of the machine it serves (`ObjectService.info`): its
+    axes, cycle time, configuration (the current one after a reload), how its cycles
+    run, and the object dictionary. Read live: a reload replaces the configuration."""
+
+    def __init__(self, machine: MachinePort, scheduler: CycleRunner) -> None:
+        self._machine = machine
+        self._scheduler = scheduler
+
+    @property
+    def axes(self) -> tuple[int, ...]:
+        """The logical axis numbers, in slot order."""
+        return self._machine.axes
+
+    @property
+    def cycle_s(self) -> float:
+        """The GEO cycle time in seconds."""
+        return self._machine.cycle_s
+
+    @property
+    def config(self) -> MachineConfig:
+        """The machine's configuration as loaded from its lists (the current one after
+        a reload): axes, parameters, tables, file paths."""
+        return self._machine.cfg
+
+    @property
+    def dictionary(self) -> Dictionary:
+        """The object dictionary (objects/objects.toml, docs/design.md §2)."""
+        return self._machine.dictionary
+
+    @property
+    def mode(self) -> str:
+        """How the cycles run: "stepped", "free" or "realtime" (docs/design.md §5.4)."""
+        return self._scheduler.mode
+
+    @property
+    def running(self) -> bool:
+        """True while cycles run by themselves (real time, free-running)."""
+        return self._scheduler.running
+
+    def axis_names(self) -> dict[int, str]:
+        """Axis number -> axis name, in slot order (symbol names)."""
+        m = self._machine
+        return {m.axes[slot]: name for name, slot in sorted(m.names.items(), key=_by_slot)}
+
+    def lookup_address(
+        self, index_group: int, element: int, channel: int, axis: int
+    ) -> tuple[int, int]:
+        """The address lookup (group + 0x600, docs/design.md §2): (group, offset) of an
+        element for (channel, axis), (0, 0) for none."""
+        m = self._machine
+        return m.dictionary.lookup_address(index_group, element, channel, axis, m.axes)
+
+
 class ObjectService:
-    """Reads, writes, batches, subscriptions and commands over one machine."""
+    """Reads, writes, batches and subscriptions over one machine (the narrow service);
+    its commands, faults, recordings and measurements are services of their own."""
 
     def __init__(
         self,
@@ -137,16 +195,18 @@ class ObjectService:
         self.machine = machine
         self.scheduler = scheduler
         self.limits = limits or ServiceLimits()
+        #: axes, cycle time, configuration, mode, dictionary
+        self.info = MachineInfo(machine, scheduler)
         self._refusal_window = (0.0, 0)  # (second, reported in it)
-        self.refusals_unreported = 0
+        self._refusals_unreported = 0
         # What the engine can do beyond the ports, decided once by its type: the engine
         # in this process (overruns, chosen cycles, an idle wake) and the machine in
         # this process (the twin's sensors, input taps); the cycle process has neither.
         self._engine = scheduler if isinstance(scheduler, Scheduler) else None
-        self._local = machine if isinstance(machine, Machine) else None
+        local = machine if isinstance(machine, Machine) else None
         if self._engine is not None:  # an engine that sleeps at rest: a heartbeat
             self._engine.idle_wake = min(self._engine.idle_wake, self.limits.stall_after / 2)
-        self.dictionary = machine.dictionary
+        self._dictionary = machine.dictionary
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
@@ -157,13 +217,14 @@ class ObjectService:
             scheduler,
             self.limits,
             refuse_when_stalled=self._refuse_when_stalled,
-            settle_sync=self.settle_sync,
-            settle=self.settle,
+            settle_sync=self._settle_sync,
+            settle=self._settle,
             report_now=self._report_now,
-            snapshot=self.fresh,
+            snapshot=self._fresh,
+            note_refusal=self._note_refusal,
         )
-        self._commands = CommandLock(self._ports)
-        local = self._local
+        #: reload, save, volcomp_update (the list files), one at a time
+        self.commands = CommandService(self._ports)
         #: injected faults (docs/faults.md); the transports ask `faults.decide`
         self.faults = FaultService(
             self._ports,
@@ -177,58 +238,37 @@ class ObjectService:
         #: recordings asked for over an interface (docs/recorder.md §7)
         self.recordings = RecordingService(self._ports, self)
 
-    # ------------------------------------------------------------------ state
+    # ------------------------------------------------------------------ snapshots
 
-    @property
-    def axes(self) -> tuple[int, ...]:
-        return self.machine.axes
+    def current(self, *, stale_ok: bool = False) -> Snapshot:
+        """The snapshot of the cycle due now (docs/design.md §13: the exact engine
+        catches up first; other engines publish on their own), or 0x707 while the GEO
+        cycle is stalled or cannot catch up in time. `stale_ok`: the last snapshot there
+        is instead of 0x707 (a cycle number to report, an observer's own sample)."""
+        if not self.scheduler.sync() and not stale_ok:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOTREADY,
+                "the GEO cycle is busy catching up (the host stalled): no current values",
+            )
+        snap = self.machine.snapshot
+        if stale_ok:
+            return snap
+        stalled = self._stalled_for()
+        if stalled:
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOTREADY,
+                f"the GEO cycle is stalled: no cycle for {stalled:.1f} s (last cycle {snap.cycle})",
+            )
+        return snap
 
-    @property
-    def cycle_s(self) -> float:
-        return self.machine.cycle_s
+    def _fresh(self) -> Snapshot:
+        return self.current(stale_ok=True)
 
-    @property
-    def config(self) -> MachineConfig:
-        """The machine's configuration as loaded from its lists (the current one after
-        a reload): axes, parameters, tables, file paths."""
-        return self.machine.cfg
-
-    @property
-    def mode(self) -> str:
-        """How the cycles run: "stepped", "free" or "realtime" (docs/design.md §5.4)."""
-        return self.scheduler.mode
-
-    def demand_every_cycle(self) -> Callable[[], None]:
-        """Publish every cycle's snapshot until the returned function is called (an
-        observer that samples every cycle: a recording, `subscribe_changes`)."""
-        return self.scheduler.demand_every_cycle()
-
-    def tap_inputs(self, callback: Callable[[int, Operation], None]) -> Callable[[], None]:
-        """Call `callback(cycle, operation)` for each input the cycle applies (a
-        recording's inputs, docs/recorder.md §4) until the returned function is called;
-        the cycle in its own process has no taps (a no-op)."""
-        machine = self._local
-        if machine is None:
-            return lambda: None
-        machine.input_taps.append(callback)
-        return lambda: machine.input_taps.remove(callback)
-
-    @property
-    def running(self) -> bool:
-        """True while cycles run by themselves (real time, free-running)."""
-        return self.scheduler.running
-
-    @property
-    def snapshot(self) -> Snapshot:
-        """The snapshot of the cycle due now (the exact engine catches up first), also
-        while the cycle is stalled — then the last one there is (see `current`)."""
-        return self.fresh()
-
-    def stalled_for(self) -> float:
+    def _stalled_for(self) -> float:
         """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
         heartbeat is checked by a catch-up that does not wait (the exact engine sleeps
         at rest: a late wake is no stall; a hung engine holds its lock)."""
-        if not self.running:
+        if not self.scheduler.running:
             return 0.0
         if not self._started_at:
             self._started_at = time.monotonic()
@@ -237,29 +277,6 @@ class ObjectService:
             age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
         return age if age > self.limits.stall_after else 0.0
 
-    def fresh(self) -> Snapshot:
-        """The snapshot of the cycle due now (docs/design.md §13): the exact engine
-        catches up first; other engines publish on their own."""
-        self.scheduler.sync()
-        return self.machine.snapshot
-
-    def current(self) -> Snapshot:
-        """The snapshot of the cycle due now, or 0x707 while the GEO cycle is stalled or
-        cannot catch up in time."""
-        if not self.scheduler.sync():
-            raise AdsError(
-                AdsErrorCode.DEVICE_NOTREADY,
-                "the GEO cycle is busy catching up (the host stalled): no current values",
-            )
-        snap = self.machine.snapshot
-        stalled = self.stalled_for()
-        if stalled:
-            raise AdsError(
-                AdsErrorCode.DEVICE_NOTREADY,
-                f"the GEO cycle is stalled: no cycle for {stalled:.1f} s (last cycle {snap.cycle})",
-            )
-        return snap
-
     # ------------------------------------------------------------------ addressing
 
     def resolve(
@@ -267,39 +284,12 @@ class ObjectService:
     ) -> tuple[ObjectDef, int, str | None]:
         """The object, axis and attribute at an address; `port`: the AMS port the request
         was sent to (a task serves only its own groups: 0x702), None: any."""
-        return self.dictionary.resolve(index_group, index_offset, self.axes, port)
-
-    def lookup_address(
-        self, index_group: int, element: int, channel: int, axis: int
-    ) -> tuple[int, int]:
-        """The address lookup (group + 0x600, docs/design.md §2): (group, offset) of an
-        element for (channel, axis), (0, 0) for none."""
-        return self.dictionary.lookup_address(index_group, element, channel, axis, self.axes)
-
-    def axis_names(self) -> dict[int, str]:
-        """Axis number -> axis name, in slot order (symbol names)."""
-        m = self.machine
-        return {m.axes[slot]: name for name, slot in sorted(m.names.items(), key=_by_slot)}
-
-    def demand_cycles(self, demand: CycleDemand) -> Callable[[], None]:
-        """Publish the cycles `demand` wants until the returned function is called
-        (ADS notifications; docs/design.md §13). An engine without that (the cycle
-        process) publishes every cycle's snapshot meanwhile."""
-        if self._engine is not None:
-            return self._engine.demand_cycles(demand)
-        return self.scheduler.demand_every_cycle()
-
-    @staticmethod
-    def varies_at_rest(obj: ObjectDef) -> bool:
-        """Whether `obj` can change while the machine is quiescent (`machine/port.py`
-        `varies_at_rest`; docs/design.md §13): an on-change observer of any other object
-        needs no snapshot of a quiescent cycle."""
-        return varies_at_rest(obj.name)
+        return self._dictionary.resolve(index_group, index_offset, self.machine.axes, port)
 
     def lookup(self, name: str, axis: int) -> ObjectDef:
         """Object by name for `axis`; 0x703 when the axis does not exist."""
-        obj = self.dictionary.by_name(name)
-        if obj.scope == "axis" and axis not in self.axes:
+        obj = self._dictionary.by_name(name)
+        if obj.scope == "axis" and axis not in self.machine.axes:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis} is not configured", obj.name
             )
@@ -351,21 +341,6 @@ class ObjectService:
                 out.append(exc)
         return out
 
-    def read_name(self, name: str, axis: int = 0, snapshot: Snapshot | None = None) -> Any:
-        """Decoded value of an object by name (a write-only one shows what its snapshot
-        column holds: the Modbus view; ADS and Zenoh refuse it with `check_readable`)."""
-        obj = self.lookup(name, axis)
-        return (snapshot or self.current()).value(obj, axis)
-
-    def read_axis(self, axis: int, group: str = "geo") -> dict[str, Any]:
-        """Every object of `group` for one axis, decoded, from one snapshot."""
-        snap = self.current()
-        return {
-            o.name: snap.value(o, axis)
-            for o in self.dictionary.group_objects(group)
-            if axis in self.axes
-        }
-
     # ------------------------------------------------------------------ writes: validation
 
     def prepare(
@@ -378,35 +353,26 @@ class ObjectService:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDACCESS, f"attribute of {obj.name} is read-only", obj.name
             )
-        self._check_writable(obj)
+        _check_writable(obj)
         return PreparedWrite(obj, axis, self._noted(obj.decode, data))
 
-    def prepare_name(self, name: str, axis: int, value: Any) -> PreparedWrite:
-        """Validate a decoded value (JSON, CLI) for a write."""
-        obj = self.lookup(name, axis)
-        self._check_writable(obj)
+    def prepare_name(self, name: str | ObjectDef, axis: int, value: Any) -> PreparedWrite:
+        """Validate a decoded value (JSON, CLI) for a write; `name` may be an object the
+        caller has resolved already (its axis is not checked again)."""
+        obj = self.lookup(name, axis) if isinstance(name, str) else name
+        _check_writable(obj)
         return PreparedWrite(obj, axis, self._noted(obj.coerce, value))
-
-    def prepare_object(self, obj: ObjectDef, axis: int, value: Any) -> PreparedWrite:
-        """Validate a value for an object the caller has already resolved."""
-        self._check_writable(obj)
-        return PreparedWrite(obj, axis, self._noted(obj.coerce, value))
-
-    @staticmethod
-    def is_command(obj: ObjectDef) -> bool:
-        """Does writing `obj` run a command (reload/save) rather than queue a value?"""
-        return obj.command is not None
 
     def _noted(self, convert: Callable[[Any], Any], value: Any) -> Any:
         """`convert(value)`; a refused value (0x706) is also put in the error list and
-        `SIM::last_error` (`note_refusal`), not only answered."""
+        `SIM::last_error` (`_note_refusal`), not only answered."""
         try:
             return convert(value)
         except AdsError as exc:
-            self.note_refusal(exc, "write")
+            self._note_refusal(exc, "write")
             raise
 
-    def note_refusal(self, exc: AdsError, what: str) -> None:
+    def _note_refusal(self, exc: AdsError, what: str) -> None:
         """Put a refused write or NC text (`REPORTED_REFUSALS`) in the error list, where
         `SIM::last_error` and every interface's error list show it: at most
         `REFUSALS_PER_SECOND`, the rest counted. Recorded at the next cycle boundary,
@@ -418,27 +384,13 @@ class ObjectService:
         if start != second:
             start, count = second, 0
         if count >= REFUSALS_PER_SECOND:
-            self.refusals_unreported += 1
+            self._refusals_unreported += 1
             return
         self._refusal_window = (start, count + 1)
         text = f"{what} refused: {exc.message} (ADS 0x{exc.code:X})"
         self.machine.record(Diagnostic("error", text, entry=exc.name))
 
-    def _check_writable(self, obj: ObjectDef) -> None:
-        if not obj.writable:
-            raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is read-only", obj.name)
-
     # ------------------------------------------------------------------ writes: queueing
-
-    def write(self, index_group: int, index_offset: int, data: bytes) -> Pending:
-        """Validate ADS bytes now and apply them at the next cycle boundary (a command
-        object runs its command here, in the caller's thread). The future's result is
-        None, or it raises the error applying the value raised."""
-        return _single(self.submit_writes([self.prepare(index_group, index_offset, data)]))
-
-    def write_name(self, name: str, axis: int, value: Any) -> Pending:
-        """Validate a decoded value (JSON, CLI) and apply it at the next cycle boundary."""
-        return _single(self.submit_writes([self.prepare_name(name, axis, value)]))
 
     def submit_writes(self, writes: Sequence[PreparedWrite]) -> Pending:
         """Queue validated writes as one operation (all applied in the same cycle).
@@ -454,7 +406,7 @@ class ObjectService:
                     f"{commands[0].obj.name} must be written on its own",
                     commands[0].obj.name,
                 )
-            result = self.run_command(commands[0].obj.command or "", commands[0].value)
+            result = self.commands.run(commands[0].obj.command or "", commands[0].value)
             if not result.ok:
                 raise result.error()
             return resolved(result)
@@ -462,24 +414,6 @@ class ObjectService:
         return self.scheduler.submit(
             WriteObjects(tuple((w.obj.name, w.axis, w.value) for w in writes))
         )
-
-    async def write_applied(
-        self, index_group: int, index_offset: int, data: bytes, *, timeout: float | None = None
-    ) -> None:
-        """Validate, queue and wait until applied (see the module docstring)."""
-        errors = await self.apply_writes([self.prepare(index_group, index_offset, data)], timeout)
-        if errors[0] is not None:
-            raise errors[0]
-
-    async def write_name_applied(
-        self, name: str, axis: int, value: Any, *, timeout: float | None = None
-    ) -> Any:
-        """`write_applied` by name with a decoded value; returns the value as stored."""
-        w = self.prepare_name(name, axis, value)
-        errors = await self.apply_writes([w], timeout)
-        if errors[0] is not None:
-            raise errors[0]
-        return w.value
 
     async def apply_writes(
         self, writes: Sequence[PreparedWrite], timeout: float | None = None
@@ -495,19 +429,19 @@ class ObjectService:
             await asyncio.to_thread(self.submit_writes, writes)
             return [None] * len(writes)
         pending = self.submit_writes(writes)
-        outcome = await self.settle(pending, timeout)
+        outcome = await self._settle(pending, timeout)
         if outcome is None:  # stepped: queued, applied at the next step
             return [None] * len(writes)
         return [e if isinstance(e, AdsError) else None for e in outcome]
 
-    async def settle(self, pending: Pending, timeout: float | None = None) -> Any:
+    async def _settle(self, pending: Pending, timeout: float | None = None) -> Any:
         """Wait for a queued operation (running cycles only; stepped: None at once).
 
         After `timeout` (default `write_timeout`) the operation is withdrawn and 0x719
         raised; if a cycle has taken it already, wait on for its outcome (withdrawal is
         retried in case the cycle process was merely stopped while taking operations).
         """
-        if pending.done() or not self.running:
+        if pending.done() or not self.scheduler.running:
             return pending.result() if pending.done() else None
         limit = self.limits.write_timeout if timeout is None else timeout
         wrapped = asyncio.wrap_future(pending)
@@ -518,9 +452,9 @@ class ObjectService:
             done, _ = await asyncio.wait({wrapped}, timeout=0.25)
         return wrapped.result()
 
-    def settle_sync(self, pending: Pending, timeout: float) -> Any:
-        """`settle` for a caller's thread (commands)."""
-        if pending.done() or not self.running:
+    def _settle_sync(self, pending: Pending, timeout: float) -> Any:
+        """`_settle` for a caller's thread (commands, a measurement)."""
+        if pending.done() or not self.scheduler.running:
             return pending.result() if pending.done() else None
         deadline = time.monotonic() + timeout
         while True:
@@ -532,7 +466,7 @@ class ObjectService:
                 deadline = time.monotonic() + 0.25
 
     def _refuse_when_stalled(self) -> None:
-        stalled = self.stalled_for()
+        stalled = self._stalled_for()
         if stalled:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,
@@ -544,8 +478,8 @@ class ObjectService:
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
         """Call `callback(snapshot)` after every published cycle, on the thread that
         publishes it. The exact engine publishes only the cycles someone looks at (and
-        every cycle while `scheduler.demand_every_cycle()` is held, as `subscribe_changes`
-        and the ADS notifications do); the other engines publish every cycle.
+        every cycle while `demand_cycles()` is held, as `subscribe_changes` and a
+        recording do); the other engines publish every cycle.
 
         Keep it short and hand work to your own thread or event loop. Returns a function
         that unsubscribes.
@@ -584,9 +518,18 @@ class ObjectService:
         """Call `callback(event)` for every new warning or error (machine or server).
 
         It runs on the reporting thread — the cycle's, with the cycle's lock held — so
-        it must hand the event on and return: calling `status`, `report`, `fresh` or
-        `current` from it would wait for the cycle it is called from."""
+        it must hand the event on and return: calling `status`, `report` or `current`
+        from it would wait for the cycle it is called from."""
         return self.machine.subscribe_events(callback)
+
+    def demand_cycles(self, demand: CycleDemand | None = None) -> Callable[[], None]:
+        """Publish the cycles `demand` wants until the returned function is called (ADS
+        notifications; docs/design.md §13); None: every cycle's snapshot, also at rest
+        (an observer that samples every cycle: a recording). An engine that cannot
+        choose (the cycle process) publishes every cycle's snapshot meanwhile."""
+        if demand is not None and self._engine is not None:
+            return self._engine.demand_cycles(demand)
+        return self.scheduler.demand_every_cycle()
 
     # ------------------------------------------------------------------ status, events
 
@@ -597,66 +540,17 @@ class ObjectService:
         catches up first, so `cycle` is the cycle due now (`_catch_up`)."""
         self._catch_up()
         st = dict(self.scheduler.status())
-        stalled = self.stalled_for()
+        stalled = self._stalled_for()
         st["stalled"] = bool(stalled)
         st["stalled_for_s"] = round(stalled, 3)
-        st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.axes}
+        st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.machine.axes}
         st["faults"] = self.faults.status()
-        st["refusals_unreported"] = self.refusals_unreported
+        st["refusals_unreported"] = self._refusals_unreported
         recording = self.recordings.status()
         if recording is not None:
             st["recording"] = recording
         st.update(self.status_extra)
         return st
-
-    # ------------------------------------------------------------------ commands
-
-    def inject_fault(self, fault: str | Fault) -> dict[str, Any]:
-        """`faults.inject` (docs/faults.md)."""
-        return self.faults.inject(fault)
-
-    def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
-        """`faults.clear` (docs/faults.md)."""
-        return self.faults.clear(ident)
-
-    def start_recording(
-        self,
-        spec: RecordSpec | dict[str, Any],
-        out: str | Path = "geo-trace.csv",
-        name: str = "",
-        *,
-        overwrite: bool = False,
-        local: bool = False,
-    ) -> dict[str, Any]:
-        """`recordings.start` (docs/recorder.md §7)."""
-        return self.recordings.start(spec, out, name, overwrite=overwrite, local=local)
-
-    def stop_recording(self) -> dict[str, Any]:
-        """`recordings.stop` (docs/recorder.md §7)."""
-        return self.recordings.stop()
-
-    @property
-    def recording(self) -> Recorder | None:
-        """The recording under way, if any."""
-        return self.recordings.recording
-
-    @property
-    def record_dir(self) -> Path | None:
-        """Where recordings asked for over an interface go (`run --record-dir`)."""
-        return self.recordings.record_dir
-
-    @record_dir.setter
-    def record_dir(self, folder: Path | None) -> None:
-        self.recordings.record_dir = folder
-
-    @property
-    def record_limits(self) -> RecorderLimits:
-        """Bounds of a recording (README *Limits*, docs/recorder.md §8)."""
-        return self.recordings.limits
-
-    @record_limits.setter
-    def record_limits(self, limits: RecorderLimits) -> None:
-        self.recordings.limits = limits
 
     def errors(self) -> list[dict[str, Any]]:
         """The last 100 warnings and errors, oldest first."""
@@ -675,7 +569,7 @@ class ObjectService:
         """Before a status or a server's own error: the exact engine computes up to the
         cycle due now (docs/design.md §13) — not while the cycle is stalled, when the
         answer must come at once and tells the last cycle there is."""
-        if not self.stalled_for():  # (briefly: a status must answer, caught up or not)
+        if not self._stalled_for():  # (briefly: a status must answer, caught up or not)
             self.scheduler.sync(wait=STATUS_SYNC_WAIT, record=False)
 
     def _report_now(self, message: str, error_id: int = 0) -> None:
@@ -683,83 +577,35 @@ class ObjectService:
         client that asks for the errors right after the answer finds it."""
         pending = self.report(message, error_id=error_id)
         with contextlib.suppress(TimeoutError):
-            pending.result(timeout=self.limits.write_timeout if self.running else 0)
-
-    def step(self, n: int = 1) -> Snapshot:
-        """Run `n` cycles (stepped mode)."""
-        self.scheduler.step(n)
-        return self.snapshot
-
-    def run_nc(self, text: str) -> Pending:
-        """`nc.run`: NC text started as MDI lines at the next cycle boundary (NC text
-        that does not parse, 0x70D, is also put in the error list: `note_refusal`)."""
-        try:
-            return self.nc.run(text)
-        except AdsError as exc:
-            self.note_refusal(exc, "NC text")
-            raise
-
-    async def run_nc_applied(self, text: str, *, timeout: float | None = None) -> int:
-        """`run_nc` parsed in a worker thread; returns the cycle that started it."""
-        pending = await asyncio.to_thread(self.run_nc, text)
-        await self.settle(pending, timeout)
-        return self.snapshot.cycle
-
-    def reset(self) -> Pending:
-        """`nc.reset`: CNC reset at the next cycle boundary."""
-        return self.nc.reset()
-
-    async def reset_applied(self, *, timeout: float | None = None) -> int:
-        await self.settle(self.nc.reset(), timeout)
-        return self.snapshot.cycle
-
-    def measure(self, spec: Any) -> dict[str, Any]:
-        """`measurements.run` (docs/twin.md): blocks; call it from a worker thread."""
-        return self.measurements.run(spec)
-
-    def cancel_measure(self) -> None:
-        """`measurements.cancel`."""
-        self.measurements.cancel()
-
-    def run_command(self, name: str, value: Any = None) -> CommandResult:
-        """Run `reload`, `save` or `volcomp_update` in the caller's thread (see
-        `command`), one at a time (`commands.ports.CommandLock`)."""
-        if name == "reload":
-            return self.reload()
-        if name == "save":
-            return self.save()
-        if name == "volcomp_update":
-            return self.volcomp_update(str(value))
-        raise AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}")
-
-    async def command(self, name: str) -> CommandResult:
-        """Run `reload` or `save` in a worker thread (never on the event loop)."""
-        return await asyncio.to_thread(self.run_command, name)
-
-    def reload(self, startup: Path | str | None = None) -> CommandResult:
-        """Reload the lists (`commands.reload`): validate everything first, swap at a
-        cycle boundary or reject with the machine unchanged (recorded in `errors()`)."""
-        return self._commands.run("reload", lambda: reload_lists(self._ports, startup))
-
-    def volcomp_update(self, file_name: str) -> CommandResult:
-        """cnc_interpr_vol_comp_file_w (`commands.volumetric`)."""
-        return self._commands.run(
-            "volcomp_update", lambda: update_volumetric(self._ports, file_name), detail=True
-        )
-
-    def save(self) -> CommandResult:
-        """Write the live TEMPC parameters back into the axis lists (`commands.save`)."""
-        return self._commands.run("save", lambda: save_lists(self._ports))
+            pending.result(timeout=self.limits.write_timeout if self.scheduler.running else 0)
 
 
-def _by_slot(item: tuple[str, int]) -> int:
-    return item[1]
+def is_command(obj: ObjectDef) -> bool:
+    """Does writing `obj` run a command (reload/save/volcomp_update) rather than queue a
+    value?"""
+    return obj.command is not None
+
+
+def varies_at_rest(obj: ObjectDef) -> bool:
+    """Whether `obj` can change while the machine is quiescent (`machine/port.py`
+    `varies_at_rest`; docs/design.md §13): an on-change observer of any other object
+    needs no snapshot of a quiescent cycle."""
+    return _varies_at_rest(obj.name)
 
 
 def check_readable(obj: ObjectDef) -> None:
     """0x704 for a write-only object (a read by address or by Zenoh key)."""
     if not obj.readable:
         raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is write-only", obj.name)
+
+
+def _check_writable(obj: ObjectDef) -> None:
+    if not obj.writable:
+        raise AdsError(AdsErrorCode.DEVICE_INVALIDACCESS, f"{obj.name} is read-only", obj.name)
+
+
+def _by_slot(item: tuple[str, int]) -> int:
+    return item[1]
 
 
 def _not_applied(limit: float) -> AdsError:
@@ -771,27 +617,16 @@ def _not_applied(limit: float) -> AdsError:
     )
 
 
-def _single(pending: Pending) -> Pending:
-    """The outcome of a one-item `WriteObjects` as None or its error raised (a command's
-    CommandResult is passed on as it is)."""
-
-    def first(outcome: Any) -> Any:
-        if isinstance(outcome, tuple):
-            if outcome[0] is not None:
-                raise outcome[0]
-            return None
-        return outcome
-
-    return chained(pending, first)
-
-
 __all__ = [
     "ADSERR_DEVICE_SYNTAX",
     "CommandResult",
     "CompKind",
+    "MachineInfo",
     "ObjectService",
     "PreparedWrite",
     "ServiceLimits",
     "check_readable",
     "format_value",
+    "is_command",
+    "varies_at_rest",
 ]

@@ -24,6 +24,7 @@ import pytest
 from conftest import run_in
 from pyads.errorcodes import ERROR_CODES
 
+from geo_server import access
 from geo_server.client.ads_client import AdsClient, close_port_first
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
@@ -162,10 +163,10 @@ def wait_for(loop, predicate, timeout: float = TIMEOUT) -> bool:
 
 def move_axes(service: ObjectService) -> None:
     """Give the objects non-trivial values: move every axis and retune TEMPC."""
-    for i, axis in enumerate(service.axes):
-        service.write_name("SIM::target_position", axis, 20000 * (i + 1))
-    service.write_name("TEMPC::offset_0", 1, 55)
-    service.step(60)
+    for i, axis in enumerate(service.info.axes):
+        access.write_name(service, "SIM::target_position", axis, 20000 * (i + 1))
+    access.write_name(service, "TEMPC::offset_0", 1, 55)
+    access.step(service, 60)
 
 
 CYCLE_COUNT_IO = (0 << 16) | D.by_name("SIM::cycle_count").id  # machine object, axis 0
@@ -181,7 +182,7 @@ def step_sampled(service: ObjectService, loop, n: int = 1) -> list[int]:
     """
     cycles = []
     for _ in range(n):
-        cycles.append(service.step(1).cycle)
+        cycles.append(access.step(service, 1).cycle)
         run_in(loop, asyncio.sleep(0))
     return cycles
 
@@ -202,16 +203,16 @@ def test_read_every_geo_and_sim_object(plc, service) -> None:
     move_axes(service)
     objs = readable("geo") + readable("sim")
     assert len(readable("geo")) >= 24
-    for axis in service.axes:
+    for axis in service.info.axes:
         for obj in objs:
             io = obj.index_offset(axis)
             value = plc.read(obj.index_group, io, PLCTYPE[obj.type.name])
-            assert value == service.read_name(obj.name, axis), (obj.name, axis)
+            assert value == access.read_name(service, obj.name, axis), (obj.name, axis)
             raw = plc.read(obj.index_group, io, ctypes.c_ubyte * obj.length, return_ctypes=True)
             assert bytes(raw) == service.read(obj.index_group, io), (obj.name, axis)
     for obj in [o for o in D.group_objects("sim", "machine") if o.readable]:
         value = plc.read(obj.index_group, obj.index_offset(0), PLCTYPE[obj.type.name])
-        assert value == service.read_name(obj.name, 0), obj.name
+        assert value == access.read_name(service, obj.name, 0), obj.name
 
 
 def test_attribute_groups_of_every_object(plc, service) -> None:
@@ -237,17 +238,17 @@ def test_write_writable_tempc_objects(plc, service) -> None:
         "TEMPC::position_0": (1234, pyads.PLCTYPE_DINT),
         "TEMPC::activated": (False, pyads.PLCTYPE_BOOL),
     }
-    before = {n: service.read_name(n, axis) for n in writes}
+    before = {n: access.read_name(service, n, axis) for n in writes}
     for name, (value, t) in writes.items():
         obj = D.by_name(name)
         plc.write(obj.index_group, obj.index_offset(axis), value, t)
     # stepped mode: acknowledged when queued, applied at the next cycle boundary
-    assert {n: service.read_name(n, axis) for n in writes} == before
-    service.step(1)
+    assert {n: access.read_name(service, n, axis) for n in writes} == before
+    access.step(service, 1)
     for name, (value, t) in writes.items():
         obj = D.by_name(name)
         assert plc.read(obj.index_group, obj.index_offset(axis), t) == value
-        assert service.read_name(name, axis) == value
+        assert access.read_name(service, name, axis) == value
 
 
 # ---------------------------------------------------------------------- pyads: errors
@@ -286,8 +287,8 @@ def test_read_only_option_rejects_writes(loop_thread, service) -> None:
     conn.open()
     try:
         assert err_code(conn.write, GEO, 0x10043, 1.0, pyads.PLCTYPE_LREAL) == 0x704
-        assert conn.read(GEO, 0x10043, pyads.PLCTYPE_LREAL) == service.read_name(
-            "TEMPC::coefficient", 1
+        assert conn.read(GEO, 0x10043, pyads.PLCTYPE_LREAL) == access.read_name(
+            service, "TEMPC::coefficient", 1
         )
     finally:
         conn.close()
@@ -329,9 +330,9 @@ def test_sum_write_per_item_codes(plc, service) -> None:
     )
     errors = pyads.pyads_ex.adsSumWriteBytes(plc._port, plc._adr, 3, buf)
     assert errors == ["no error", ERROR_CODES[0x704], "no error"]
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", 1) == 111.0
-    assert service.read_name("TEMPC::offset_0", 2) == 77
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 111.0
+    assert access.read_name(service, "TEMPC::offset_0", 2) == 77
 
 
 # ---------------------------------------------------------------------- pyads: notifications
@@ -348,13 +349,13 @@ def test_on_change_notifications_follow_the_service(plc, service, loop_thread) -
     attr = pyads.NotificationAttrib(4)  # SERVERONCHA, every cycle
     handle, user = plc.add_device_notification((GEO, 0x10042), attr, callback)
     expected: list[int] = []
-    offset_0 = service.read_name("TEMPC::offset_0", 1)
+    offset_0 = access.read_name(service, "TEMPC::offset_0", 1)
     for k in range(60):
         if k % 10 == 0:
             offset_0 += 25
             plc.write(GEO, 0x10044, offset_0, pyads.PLCTYPE_DINT)
         step_sampled(service, loop_thread)  # every cycle sampled (hand-offs coalesce)
-        v = service.snapshot.value(ACTUAL_OFFSET, 1)
+        v = service.current(stale_ok=True).value(ACTUAL_OFFSET, 1)
         if not expected or v != expected[-1]:
             expected.append(v)
     assert len(expected) > 10  # the sin² ramps really produced a sequence
@@ -365,7 +366,7 @@ def test_on_change_notifications_follow_the_service(plc, service, loop_thread) -
     assert stamps == sorted(stamps)
     assert abs(codec.filetime_to_unix(stamps[-1]) - time.time()) < 60
     plc.del_device_notification(handle, user)
-    service.step(30)
+    access.step(service, 30)
     with pytest.raises(queue.Empty):
         q.get(timeout=0.2)
 
@@ -382,7 +383,7 @@ def test_cyclic_notifications_every_n_cycles(plc, service) -> None:
     # (each pyads write is a round trip through the loop, so the loop samples every cycle)
     for k in range(1, 21):
         plc.write(GEO, 0x10043, 1000.0 + k, pyads.PLCTYPE_LREAL)
-        service.step(1)
+        access.step(service, 1)
     # the first sample one cycle after the registration, then every 5 cycles from it
     sent_at = [1001.0, 1006.0, 1011.0, 1016.0]
     got = [q.get(timeout=TIMEOUT) for _ in sent_at]
@@ -406,10 +407,10 @@ def test_cyclic_interval_counts_from_the_last_sample(plc, service, loop_thread) 
 
     attr = pyads.NotificationAttrib(4, pyads.ADSTRANS_SERVERCYCLE, max_delay=0, cycle_time=3)
     handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
-    c0 = service.snapshot.cycle
+    c0 = service.current(stale_ok=True).cycle
     cycles = step_sampled(service, loop_thread, 16)
     assert cycles == list(range(c0 + 1, c0 + 17))
-    assert service.read_name("SIM::cycle_count") == cycles[-1]  # the value is the cycle
+    assert access.read_name(service, "SIM::cycle_count") == cycles[-1]  # the value is the cycle
     expected = [c0 + 1, c0 + 4, c0 + 7, c0 + 10, c0 + 13, c0 + 16]
     assert [q.get(timeout=TIMEOUT) for _ in expected] == expected
     with pytest.raises(queue.Empty):
@@ -432,12 +433,12 @@ def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
 
     attr = pyads.NotificationAttrib(4, pyads.ADSTRANS_SERVERCYCLE, max_delay=0, cycle_time=2)
     handles = plc.add_device_notification((SIM, CYCLE_COUNT_IO), attr, callback)
-    c0 = service.snapshot.cycle
+    c0 = service.current(stale_ok=True).cycle
     hand_offs = []
     on_cycle = ads.sampler._on_cycle
 
     def counting(*args) -> None:  # (a per-cycle hand-off passed the snapshot along)
-        hand_offs.append(service.snapshot.cycle)
+        hand_offs.append(service.current(stale_ok=True).cycle)
         on_cycle(*args)
 
     ads.sampler._on_cycle = counting  # what the cycle thread queues, looked up at each hand-off
@@ -450,7 +451,7 @@ def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
     loop_thread.call_soon_threadsafe(block)
     assert busy.wait(TIMEOUT)
     try:
-        service.step(50)
+        access.step(service, 50)
     finally:
         release.set()
     run_in(loop_thread, asyncio.sleep(0))
@@ -476,7 +477,7 @@ def test_notifications_removed_when_client_disconnects(ads, loop_thread, service
     close_port_first(conn)  # AdsLib deletes its notifications, then drops the TCP link
     assert wait_for(loop_thread, lambda: len(ads.notifications) == 0)
     assert wait_for(loop_thread, lambda: ads.connection_count == 0)
-    service.step(5)  # nothing to send to anyone: no error
+    access.step(service, 5)  # nothing to send to anyone: no error
 
 
 # ---------------------------------------------------------------------- running scheduler
@@ -517,17 +518,17 @@ def test_ads_client_by_name_raw_and_sum(ads, service) -> None:
     move_axes(service)
     with AdsClient(port=ads.port, netid=next_netid()) as c:
         assert c.device_info()[0] == "geo-server"
-        assert c.read("TEMPC::coefficient", 1) == service.read_name("TEMPC::coefficient", 1)
+        assert c.read("TEMPC::coefficient", 1) == access.read_name(service, "TEMPC::coefficient", 1)
         assert c.read_raw(GEO, 0x10043, 8) == service.read(GEO, 0x10043)
         assert c.read_raw(GEO, 0x10043, 64) == service.read(GEO, 0x10043)  # never more
         assert c.read_raw(0x120400, 0x10043, 256) == COEFFICIENT.attribute("name")
         assert c.write("TEMPC::coefficient", 1, 77) == 77.0
-        service.step(1)
+        access.step(service, 1)
         assert c.read("TEMPC::coefficient", 1) == 77.0
         c.write_raw(GEO, 0x10044, struct.pack("<i", -5))
-        service.step(1)
+        access.step(service, 1)
         assert c.read("TEMPC::offset_0", 1) == -5
-        assert c.read_axis(2) == service.read_axis(2)
+        assert c.read_axis(2) == access.read_axis(service, 2)
         mixed = c.sum_read_raw([(GEO, 0x10043, 8), (GEO, 0x1FFFF, 4)])
         assert mixed[0] == service.read(GEO, 0x10043)
         assert isinstance(mixed[1], AdsError) and mixed[1].code == 0x703
@@ -539,10 +540,10 @@ def test_ads_client_by_name_raw_and_sum(ads, service) -> None:
         assert exc.value.code == 0x703
         q: queue.Queue = queue.Queue()
         h = c.subscribe("TEMPC::coefficient", 1, lambda v, ts: q.put(v))
-        service.step(1)
+        access.step(service, 1)
         assert q.get(timeout=TIMEOUT) == 77.0
         c.write("TEMPC::coefficient", 1, 78.5)
-        service.step(1)
+        access.step(service, 1)
         assert q.get(timeout=TIMEOUT) == 78.5
         c.unsubscribe(h)
 
@@ -553,14 +554,14 @@ def test_ads_client_by_name_raw_and_sum(ads, service) -> None:
 def test_coalesced_requests_are_all_answered(raw, service) -> None:
     frames = [
         raw.frame(Command.READ, codec.read_request(GEO, (a << 16) | 0x43, 8), 100 + a)
-        for a in service.axes
+        for a in service.info.axes
     ]
     raw.sock.sendall(b"".join(frames))
     got = {}
     for _ in frames:
         p = raw.packet()
         got[p.header.invoke_id] = codec.parse_read_response(p.data)
-    assert got == {100 + a: (0, service.read(GEO, (a << 16) | 0x43)) for a in service.axes}
+    assert got == {100 + a: (0, service.read(GEO, (a << 16) | 0x43)) for a in service.info.axes}
 
 
 def test_request_split_into_single_bytes(raw, service) -> None:
@@ -633,7 +634,7 @@ def test_read_write_plain_and_with_data(raw, service) -> None:
     assert raw.read_write(GEO, 0x10043, 8, b"") == (0, service.read(GEO, 0x10043))
     code, data = raw.read_write(GEO, 0x10044, 4, struct.pack("<i", 12))
     assert code == 0 and len(data) == 4  # stepped: read back before the cycle applies it
-    service.step(1)
+    access.step(service, 1)
     assert raw.read(GEO, 0x10044, 4) == (0, struct.pack("<i", 12))
     assert raw.read_write(GEO, 0x10042, 4, struct.pack("<i", 12))[0] == 0x704
 
@@ -661,8 +662,8 @@ def test_sum_read_ex2_and_sum_read_write(raw, service) -> None:
     results = codec.parse_sum_read_ex_response(data, 3)
     assert results[0] == (0, service.read(GEO, 0x10043))
     assert results[1][0] == 0 and results[2] == (0x704, b"")
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", 2) == 5.0
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", 2) == 5.0
     # unsupported sum group
     assert raw.read_write(SumGroup.ADD_DEVICE_NOTIFICATION, 0, 8, b"")[0] == 0x702
 
@@ -722,8 +723,8 @@ def test_notification_frames_on_the_wire(raw, ads, service, loop_thread) -> None
         raw.ask(Command.ADD_DEVICE_NOTIFICATION, add).data
     )
     assert code == 0 and handle > 0
-    service.write_name("TEMPC::offset_0", 1, 500)
-    snap = service.step(1)
+    access.write_name(service, "TEMPC::offset_0", 1, 500)
+    snap = access.step(service, 1)
     p = raw.packet()
     assert p.header.command == Command.DEVICE_NOTIFICATION
     assert p.header.source == raw.target and p.header.target == raw.source
@@ -761,7 +762,7 @@ def test_raw_disconnect_drops_notifications(ads, loop_thread, service) -> None:
     )
     c.close()
     assert wait_for(loop_thread, lambda: len(ads.notifications) == 0)
-    service.step(3)
+    access.step(service, 3)
 
 
 def test_strict_netid(loop_thread, service) -> None:
@@ -788,8 +789,8 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     assert (row["value"], row["unit"], row["raw"]) == (0.01, "mm", 100)
     assert client_main([*base, "write", "--axis", "3", "TEMPC::position_0", "-5"]) == 0
     capsys.readouterr()
-    service.step(1)
-    assert service.read_name("TEMPC::position_0", 3) == -5
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::position_0", 3) == -5
     assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
     # by address: attribute groups answer their attribute, writes to them get 0x704

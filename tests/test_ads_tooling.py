@@ -19,6 +19,7 @@ import test_ads_server
 from test_ads_server import GEO, TIMEOUT, Raw, start_server
 
 import geo_server
+from geo_server import access
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsAddr, Command
 from geo_server.transports.ads.server import AdsServer
@@ -154,7 +155,7 @@ def test_state_notifications(raw, service) -> None:
         raw.ask(Command.ADD_DEVICE_NOTIFICATION, req).data
     )
     assert result == 0 and handle2 != handle
-    service.step(1)
+    access.step(service, 1)
     got: dict[int, bytes] = {}
     while len(got) < 2:
         pkt = raw.packet()
@@ -208,8 +209,8 @@ def test_handles(raw, service) -> None:
     # writes by handle: the same range checks and codes as by address
     pkt = raw.ask(Command.WRITE, codec.write_request(VALBYHND, handle, struct.pack("<d", 12.5)))
     assert codec.parse_result(pkt.data) == 0
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", 2) == 12.5
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", 2) == 12.5
     bad = raw.ask(Command.WRITE, codec.write_request(VALBYHND, handle, b"\0\0\0\0"))
     assert codec.parse_result(bad.data) == 0x705  # 4 bytes for an LREAL
     nan = raw.ask(
@@ -284,7 +285,7 @@ def test_upload(raw, service) -> None:
     assert code == 0
     count, size = struct.unpack("<II", info)
     # every object of the GEO task's port (the COM task's, port 553, has no symbols)
-    geo = [o for o in service.dictionary.objects if o.group != "com"]
+    geo = [o for o in service.info.dictionary.objects if o.group != "com"]
     axis_objects = sum(1 for o in geo if o.scope == "axis")
     machine_objects = len(geo) - axis_objects
     assert count == axis_objects * 4 + machine_objects  # X, Y, Z, C
@@ -335,8 +336,8 @@ def test_pyads_by_name(plc, service) -> None:
     assert plc.read_by_name("GEO.X.TEMPC.activated") is True
     assert plc.read_by_name("GEO.SIM.axis_names") == "1=X 2=Y 3=Z 4=C"
     plc.write_by_name("GEO.X.TEMPC.offset_0", 55)
-    service.step(1)
-    assert service.read_name("TEMPC::offset_0", 1) == 55
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::offset_0", 1) == 55
     with pytest.raises(pyads.ADSError) as err:
         plc.write_by_name("GEO.X.TEMPC.coefficient", float("inf"))
     assert err.value.err_code == 0x706
@@ -374,12 +375,12 @@ def test_pyads_state_info_and_notification_by_name(ads, plc, service) -> None:
 
     handles = plc.add_device_notification("GEO.X.TEMPC.coefficient", attr, on_change)
     try:
-        service.step(1)
+        access.step(service, 1)
         import time
 
         deadline = time.monotonic() + TIMEOUT
         while not got and time.monotonic() < deadline:
-            service.step(1)
+            access.step(service, 1)
             time.sleep(0.01)
         assert got and got[0] == 4000.0
     finally:

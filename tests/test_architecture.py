@@ -45,6 +45,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (4, ("geo_server.machine",)),
     (4, ("geo_server.recorder",)),  # records from a service it is handed (duck-typed)
     (5, ("geo_server.service", "geo_server.commands")),  # commands: services of their own
+    (5, ("geo_server.access",)),  # reads and writes by name over the narrow service
     (6, ("geo_server.transports",)),
     (6, ("geo_server.client",)),
     (6, ("geo_server.recorder.replay",)),  # builds its own stepped machine and service
@@ -64,6 +65,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.snapshot",
     "geo_server.events",
     "geo_server.service",
+    "geo_server.access",  # reads and writes by name, over the service's public methods
     "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
 )
@@ -229,3 +231,128 @@ def test_the_seam_check_sees_a_crossing():
     # the service's machine; getattr on a port, and that port's access; the twin: not
     # the Zenoh option that names the machine
     assert len(seam_crossings(tree)) == 4
+
+
+#: The narrow service (docs/design.md §5.7): at most this many public methods, and no
+#: public properties (the machine's facts are `info`'s).
+NARROW_METHODS = 16
+#: What an interface may use of the object service besides its public methods: the
+#: services beside them, and the status items an interface adds.
+SERVICE_ATTRIBUTES = frozenset(
+    {"info", "faults", "nc", "commands", "recordings", "measurements", "status_extra"}
+)
+
+
+def narrow_names() -> frozenset[str]:
+    from geo_server.service import ObjectService
+
+    public = {n for n in vars(ObjectService) if not n.startswith("_")}
+    return frozenset(public) | SERVICE_ATTRIBUTES
+
+
+def _is_the_service(node: ast.expr) -> bool:
+    """`service`, `svc`, `self.service`, `self._service`, `dev.service`: the object
+    service itself (not a service or port reached through it)."""
+    text = ast.unparse(node)
+    return text.rsplit(".", 1)[-1] in ("service", "_service", "svc")
+
+
+def wide_uses(tree: ast.AST, allowed: frozenset[str]) -> list[str]:
+    """Attributes of the object service, in one module, that are not `allowed`."""
+    return [
+        f"{ast.unparse(node)} (line {node.lineno})"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute)
+        and _is_the_service(node.value)
+        and node.attr not in allowed
+    ]
+
+
+def test_the_object_service_is_narrow():
+    from geo_server.service import ObjectService
+
+    public = {n: v for n, v in vars(ObjectService).items() if not n.startswith("_")}
+    methods = [n for n, v in public.items() if callable(v)]
+    assert len(methods) <= NARROW_METHODS, sorted(methods)
+    assert sorted(set(public) - set(methods)) == []  # no properties: `info` has them
+
+
+def test_interfaces_use_only_the_narrow_service():
+    allowed = narrow_names()
+    bad = []
+    for root, folder in ROOTS.items():
+        for path in folder.rglob("*.py"):
+            name = module_name(root, path)
+            if not name.startswith(INTERFACES) or name.startswith(SEAM_EXEMPT):
+                continue
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            bad += [f"{name}: {c}" for c in wide_uses(tree, allowed)]
+    assert bad == []
+
+
+def test_the_narrow_service_check_sees_a_wide_use():
+    tree = ast.parse(
+        "service.read_name('x')\nself.service.info.axes\nsvc.machine\n"
+        "dev.service.current()\nservice.nc.run('G1')\nself.options.service.step(1)\n"
+    )
+    # read_name and machine are not the service's, info, current and nc are; the check
+    # goes by name, so `step` on anything called service counts too
+    assert len(wide_uses(tree, narrow_names())) == 3
+
+
+#: The interfaces' servers: only the composition root builds them (docs/design.md §1.2),
+#: besides the packages that define them (a fleet's HMI holds an `HmiServer` per
+#: machine, `AdsServer.add_device` a server per AMS NetId).
+SERVERS = frozenset(
+    {"ZenohInterface", "ModbusInterface", "AdsServer", "HmiServer", "FleetHmi", "OpcUaInterface"}
+)
+SERVERS_BUILT_IN = ("geo_server.compose", "geo_server.transports", "geo_server.web")
+
+
+def server_uses(tree: ast.AST) -> list[str]:
+    """Calls of an interface's server class (`AdsServer(...)`, `m.AdsServer(...)`) and
+    imports of one — an import under `if TYPE_CHECKING:` (for annotations) excepted."""
+    typing_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and ast.unparse(node.test).endswith("TYPE_CHECKING")
+        for stmt in node.body
+        for inner in ast.walk(stmt)
+    }
+    found = []
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.Call):
+            func = node.func
+            called = func.id if isinstance(func, ast.Name) else getattr(func, "attr", "")
+            if called in SERVERS:
+                found.append(f"{ast.unparse(node.func)}(...) (line {node.lineno})")
+        elif isinstance(node, ast.ImportFrom | ast.Import):
+            found += [
+                f"import {a.name} (line {node.lineno})" for a in node.names if a.name in SERVERS
+            ]
+    return found
+
+
+def test_only_the_composition_root_builds_an_interface():
+    """In `geo_server` and `geo_clients`; tests and benchmarks build one to try it alone."""
+    bad = []
+    for root, folder in ROOTS.items():
+        for path in folder.rglob("*.py"):
+            name = module_name(root, path)
+            if name.startswith(SERVERS_BUILT_IN):
+                continue
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            bad += [f"{name}: {use}" for use in server_uses(tree)]
+    assert bad == []
+
+
+def test_the_server_check_sees_a_construction():
+    tree = ast.parse(
+        "from geo_server.transports.ads.server import AdsOptions, AdsServer\n"
+        "AdsServer(svc, AdsOptions(port=0))\nmodbus.ModbusInterface(svc)\n"
+        "if TYPE_CHECKING:\n    from geo_server.web.server import HmiServer\n"
+    )
+    # the import and the two constructions; not the options, not the annotation's import
+    assert len(server_uses(tree)) == 3

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import pytest
 from conftest import free_port, run_in
 
+from geo_server import access
 from geo_server.client.cli import main
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -29,7 +30,7 @@ class Servers:
     def __init__(self, loop, startup) -> None:
         self.loop = loop
         self.service = ObjectService(Machine(load_machine(startup), homed=True))
-        self.service.step(25)  # ramps of the start-up selections ended
+        access.step(self.service, 25)  # ramps of the start-up selections ended
         self.zenoh_ep = f"tcp/127.0.0.1:{free_port()}"
         self.ifaces = [
             ZenohInterface(self.service, ZenohOptions(machine="cli", listen=[self.zenoh_ep])),
@@ -90,8 +91,8 @@ def test_read_several_targets_by_axis_name_in_engineering_units(servers, via, ca
 
 @pytest.mark.parametrize("via", VIAS)
 def test_raw_units_and_a_rotary_axis(servers, via, capfd):
-    servers.service.write_name("SIM::set_position", 4, 1_234_567)  # C at 123.4567°
-    servers.service.step(1)
+    access.write_name(servers.service, "SIM::set_position", 4, 1_234_567)  # C at 123.4567°
+    access.step(servers.service, 1)
     code, out, _ = run(
         servers, via, "--raw", "read", "--axis", "1", "TEMPC::actual_offset", capfd=capfd
     )
@@ -115,7 +116,7 @@ def test_reload_and_save_on_every_transport(servers, via, lists_copy, capfd):
         servers, via, "write", "--axis", "X", "TEMPC::coefficient", "4321", capfd=capfd
     )
     assert code == 0, err
-    servers.service.step(1)
+    access.step(servers.service, 1)
     code, out, err = run(servers, via, "save", capfd=capfd)
     assert code == 0, err
     assert "saved" in out
@@ -139,10 +140,10 @@ def test_a_rejected_reload_says_why_on_every_transport(servers, via, lists_copy,
     assert err.startswith("error: reload rejected, machine unchanged: ")
     assert f"achsmd1.lis:{line}: " in err and "lr_param.temp_comp_coefficient" in err
     assert "warning" not in err and "deactivated" not in err
-    servers.service.step(1)
+    access.step(servers.service, 1)
     code, out, err = run(servers, via, "errors", capfd=capfd)
     assert code == 0 and "reload rejected, machine unchanged" in out
-    assert servers.service.read_name("TEMPC::coefficient", 1) == 4000.0
+    assert access.read_name(servers.service, "TEMPC::coefficient", 1) == 4000.0
 
 
 @pytest.mark.parametrize("via", VIAS)
@@ -150,10 +151,10 @@ def test_status_is_readable_text_and_json_on_request(servers, via, capfd):
     code, out, err = run(servers, via, "status", capfd=capfd)
     assert code == 0, err
     lines = out.splitlines()
-    assert lines[0].startswith(f"cycle {servers.service.snapshot.cycle}  1000 µs")
+    assert lines[0].startswith(f"cycle {servers.service.current(stale_ok=True).cycle}  1000 µs")
     assert "axes 1 X, 2 Y, 3 Z, 4 C" in lines
     code, out, _ = run(servers, via, "--json", "status", capfd=capfd)
-    assert json.loads(out)["cycle"] == servers.service.snapshot.cycle
+    assert json.loads(out)["cycle"] == servers.service.current(stale_ok=True).cycle
 
 
 def test_nc_and_reset_say_they_need_zenoh(servers, capfd):
@@ -187,7 +188,7 @@ def test_an_injected_ads_error_names_the_object_asked_for(servers, capfd):
     """`read --axis X TEMPC::coefficient` with every ADS request answered 0x707: the
     message names the object asked for (and the one read on the way: the axis names),
     not just an address."""
-    servers.service.inject_fault("ads:error=0x707")
+    servers.service.faults.inject("ads:error=0x707")
     code, _, err = run(servers, "ads", "read", "--axis", "X", "TEMPC::coefficient", capfd=capfd)
     assert code == 1
     assert err.strip() == (

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir
@@ -78,7 +79,7 @@ def _run(m: Machine, svc: ObjectService, program: str, reads: list[tuple[str, in
         p = m.player
         assert p is not None
         row: dict = {"line": p.line, "error": p.error}
-        row.update({f"{n}@{a}": svc.read_name(n, a) for n, a in reads})
+        row.update({f"{n}@{a}": access.read_name(svc, n, a) for n, a in reads})
         rows.append(row)
         if not p.running:
             return rows
@@ -91,7 +92,7 @@ def test_crosstalk_manual_activation(manual_machine):
     in the negative direction (000 §4.6 p.84, p.91); 0 again after `#PUT AX [Y]`; and
     deselected at M30 although `#CALL AX` brought Y back and COMP switched it on again."""
     m, svc = manual_machine
-    assert svc.read_name("CROSSTALK::activated", Y) is False
+    assert access.read_name(svc, "CROSSTALK::activated", Y) is False
     prog = (
         "N10 G91 G01 X20 F6000\n"
         "N20 Y[COMP ON CROSSTALK]\n"
@@ -124,7 +125,7 @@ def test_crosstalk_manual_activation(manual_machine):
     cruise = [r for r in by_line[3] if r["SIM::acceleration@1"] == 0 and r["SIM::velocity@1"]]
     assert cruise and all(r["CROSSTALK::actual_offset@2"] == 0 for r in cruise)
     assert by_line[7][-1]["CROSSTALK::activated@2"] is True  # COMP ON after #CALL AX
-    assert svc.read_name("CROSSTALK::activated", Y) is False  # M30
+    assert access.read_name(svc, "CROSSTALK::activated", Y) is False  # M30
 
 
 def test_lsec_and_temperature_manual_activation_and_axis_release(manual_machine):
@@ -133,10 +134,10 @@ def test_lsec_and_temperature_manual_activation_and_axis_release(manual_machine)
     n_backlash_cyc 10 and temp_comp_n_cycles 20. At −490 mm LSEC is −table[1].pos = −15.
     `#PUT AX [X]` deselects both and ramps them out; backlash (automatic) stays."""
     m, svc = manual_machine
-    assert svc.read_name("ssfk activated", X) is False
-    assert svc.read_name("TEMPC::activated", X) is False
-    assert svc.read_name("LSEC::sum epsilon", X) == 0
-    assert svc.read_name("TEMPC::actual_offset", X) == 0
+    assert access.read_name(svc, "ssfk activated", X) is False
+    assert access.read_name(svc, "TEMPC::activated", X) is False
+    assert access.read_name(svc, "LSEC::sum epsilon", X) == 0
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == 0
     reads = [
         ("LSEC::sum epsilon", X),
         ("TEMPC::actual_offset", X),
@@ -151,8 +152,8 @@ def test_lsec_and_temperature_manual_activation_and_axis_release(manual_machine)
         assert r["LSEC::sum epsilon@1"] == rhaz(9 * sin2(min(k, 10), 10)), k
     # M30 deselects them again: the ramps back to 0 run after the program's end
     m.step(25)
-    assert svc.read_name("LSEC::sum epsilon", X) == 0
-    assert svc.read_name("TEMPC::activated", X) is False
+    assert access.read_name(svc, "LSEC::sum epsilon", X) == 0
+    assert access.read_name(svc, "TEMPC::activated", X) is False
 
     prog = (
         "N10 X[COMP ON LEAD TEMP]\nN20 G90 G01 X-490 F6000\nN30 #PUT AX [X]\n"

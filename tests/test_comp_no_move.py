@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import pytest
 
+from geo_server import access
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
 
@@ -64,11 +65,11 @@ def run(
         rows.append(
             Row(
                 line=player.line,
-                velocity=svc.read_name("SIM::velocity", axis),
-                command=svc.read_name("SIM::command_position", axis),
-                value=svc.read_name(obj, axis),
-                selected=svc.read_name(selected, axis),
-                extra={f"{n}@{a}": svc.read_name(n, a) for n, a in extra},
+                velocity=access.read_name(svc, "SIM::velocity", axis),
+                command=access.read_name(svc, "SIM::command_position", axis),
+                value=access.read_name(svc, obj, axis),
+                selected=access.read_name(svc, selected, axis),
+                extra={f"{n}@{a}": access.read_name(svc, n, a) for n, a in extra},
             )
         )
         if not player.running:
@@ -94,7 +95,7 @@ HELD_X = 40 + 4000e-6 * (1_000_000 - 100)
 
 
 def x_at_100_mm(machine: Machine, svc: ObjectService) -> None:
-    svc.write_name("SIM::set_position", X, 1_000_000)
+    access.write_name(svc, "SIM::set_position", X, 1_000_000)
     machine.step(25)  # temp_comp_n_cycles 20: the ramp of the new position is over
 
 
@@ -121,8 +122,8 @@ def test_temp_off_no_move_holds_the_offset_through_a_dwell(machine, svc):
     temp_comp_n_cycles = 20 from the first cycle of the move."""
     x_at_100_mm(machine, svc)
     held = HELD_X
-    assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held) == 4040
-    output = svc.read_name("SIM::output_position", X)
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == rhaz(held) == 4040
+    output = access.read_name(svc, "SIM::output_position", X)
     # X's LSEC at 100 mm is −table[60].pos = 42 (lists/achskw1.lis): the issue's 1 004 082
     assert output == 1_000_000 + 4040 + 42
     prog = "N10 X[COMP OFF TEMP NO_MOVE]\nN20 G04 0.05\nN30 G91 G01 X1 F6000\nN40 M30\n"
@@ -213,7 +214,7 @@ def test_every_kind_is_held_until_the_next_motion_off_and_on(machine, svc, case)
     if case.prepare:
         run(machine, svc, case.prepare + "M30\n", case.axis, case.obj, case.selected)
         machine.step(40)
-    v0 = svc.read_name(case.obj, case.axis)
+    v0 = access.read_name(svc, case.obj, case.axis)
     assert v0 != 0  # otherwise holding could not be told from switching
     if case.kind == "BACKLASH":
         assert v0 == -1000
@@ -314,35 +315,35 @@ def test_tempc_activated_write_executes_a_held_offset(machine, svc):
     """`TEMPC::activated` written acts at once, also on an offset a NO_MOVE held back."""
     hold_x_temp(machine, svc)
     machine.step(50)
-    assert svc.read_name("TEMPC::actual_offset", X) == 4040
-    svc.write_name("TEMPC::activated", X, False)  # already off: only the release
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == 4040
+    access.write_name(svc, "TEMPC::activated", X, False)  # already off: only the release
     held = HELD_X
     for k in range(1, 21):
         machine.run_cycle()
-        assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k
+        assert access.read_name(svc, "TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k
 
 
 def test_a_comp_that_changes_nothing_holds_nothing(machine, svc):
     """Z's cross compensation is on: `Z[COMP ON CROSS NO_MOVE]` switches nothing, so its
     value keeps following the master X (000 §4.2)."""
-    before = svc.read_name("CROSSC::actual_offset", Z)
+    before = access.read_name(svc, "CROSSC::actual_offset", Z)
     prog = "N10 Z[COMP ON CROSS NO_MOVE]\nN20 G90 G01 X-300 F60000\nN30 M30\n"
     run(machine, svc, prog, Z, "CROSSC::actual_offset", "CROSSC::activated")
     assert not machine.kernel.held.any()
     machine.step(30)
-    assert svc.read_name("CROSSC::actual_offset", Z) != before
+    assert access.read_name(svc, "CROSSC::actual_offset", Z) != before
 
 
 def test_no_move_while_the_axis_moves_is_executed_with_that_motion(machine, svc):
     """The axis is jogging when the COMP arrives: its offset is executed with that
     motion (there is no standstill to hold it through)."""
     x_at_100_mm(machine, svc)
-    svc.write_name("SIM::target_position", X, 2_000_000)
+    access.write_name(svc, "SIM::target_position", X, 2_000_000)
     machine.step(5)
     machine.start_program("X[COMP OFF TEMP NO_MOVE]\n", mdi=True)
     machine.step(25)
     assert not machine.kernel.held.any()
-    assert svc.read_name("TEMPC::actual_offset", X) == 0
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == 0
 
 
 def test_monitoring_sees_a_no_move_switch_of_the_same_cycle(machine, svc):
@@ -363,9 +364,9 @@ def test_a_manual_move_executes_a_held_offset(machine, svc):
     write (jog) moves the axis and executes the held offset."""
     hold_x_temp(machine, svc)
     machine.step(100)
-    assert svc.read_name("TEMPC::actual_offset", X) == 4040  # still held
-    svc.write_name("SIM::target_position", X, 1_010_000)  # applied at the next cycle
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == 4040  # still held
+    access.write_name(svc, "SIM::target_position", X, 1_010_000)  # applied at the next cycle
     held = HELD_X
     for k in range(1, 21):
         machine.run_cycle()
-        assert svc.read_name("TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k
+        assert access.read_name(svc, "TEMPC::actual_offset", X) == rhaz(held * cos2(k, 20)), k

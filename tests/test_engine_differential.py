@@ -90,7 +90,7 @@ class Live:
         return self.sched.t0 if isinstance(self.sched, Scheduler) else self.machine.t0
 
     def epoch(self) -> int:
-        snap = self.service.fresh()
+        snap = self.service.current(stale_ok=True)
         return snap.stamp - snap.cycle * TICKS
 
     def close(self) -> None:
@@ -161,7 +161,7 @@ def run_scenario(live: Live, plc: pyads.Connection) -> list[tuple[int, int, byte
     while time.monotonic() - start < 1.6:
         elapsed = time.monotonic() - start
         if not done["program"] and elapsed > 0.1:
-            live.service.run_nc(PROGRAM).result(TIMEOUT)
+            live.service.nc.run(PROGRAM).result(TIMEOUT)
             done["program"] = True
         for key, at, delta in (("w1", 0.45, 60), ("w2", 0.9, -35)):
             if not done[key] and elapsed > at:

@@ -23,6 +23,7 @@ from geo_clients.plc_tempcomp import (
 )
 from geo_clients.testing import GeoTestServer
 
+from geo_server import access
 from geo_server.client import cli as client_cli
 from geo_server.client.modbus_client import ModbusClient
 from geo_server.errors import AdsError
@@ -313,7 +314,7 @@ def _overrun_under_a_virtual_clock(fault: str) -> tuple[ObjectService, Scheduler
     service = ObjectService(m, sched)
     sched.drive()
     t0 = sched.t0
-    service.inject_fault(fault)
+    service.faults.inject(fault)
 
     def cycle_at(us: int) -> int:
         vc.t = t0 + us * 1000
@@ -341,7 +342,7 @@ def test_an_overrun_slips_the_exact_engines_time_line():
     st = service.status()
     assert (st["overruns"], st["skipped_cycles"]) == (2, 20)
     assert service.status()["faults"][0]["hits"] == 2
-    service.clear_faults()
+    service.faults.clear()
     assert cycle_at(400_000) == 380  # no more slips
 
 
@@ -353,7 +354,7 @@ def test_clearing_an_overrun_ends_it_at_once_exact_engine():
     assert cycle_at(100_000) == 100
     assert cycle_at(3_000_000) == 100  # the overrun: no cycle for 60 s
     assert service.status()["skipped_cycles"] == 60_000
-    service.clear_faults()
+    service.faults.clear()
     assert cycle_at(3_001_000) == 101  # the next period, not 57 s later
     assert service.status()["skipped_cycles"] == 2_900  # 2.9 s were lost, not 60
     assert cycle_at(3_101_000) == 201
@@ -365,10 +366,10 @@ def test_clearing_an_overrun_ends_it_at_once_punctual_engine():
     service = ObjectService(m, sched)
     sched.start()
     try:
-        service.inject_fault("cycle:overrun=60000")
+        service.faults.inject("cycle:overrun=60000")
         assert _until(lambda: m.overruns >= 1)
         stalled_at = m.cycle
-        service.clear_faults()
+        service.faults.clear()
         assert _until(lambda: m.cycle > stalled_at + 10)  # cycles again, long before 60 s
         assert service.status()["skipped_cycles"] < 30_000
     finally:
@@ -647,7 +648,7 @@ def test_plc_retries_through_a_cycle_overrun():
         client = ModbusClient("127.0.0.1", iface.port, timeout=2.0)
         try:
             assert client.read("TEMPC::coefficient", 1) == COEFFICIENT_X
-            service.inject_fault("cycle:overrun=800,count=1,every=1")
+            service.faults.inject("cycle:overrun=800,count=1,every=1")
             ad = _adapter(client, retries=6, retry_delay=0.2, sleep=time.sleep)
             r = ad.tick(0.0)
         finally:
@@ -658,7 +659,7 @@ def test_plc_retries_through_a_cycle_overrun():
         st = service.status()
         assert (st["overruns"], st["skipped_cycles"]) == (1, 800)
         assert st["faults"] == []  # count 1: used up
-        assert service.read_name("TEMPC::offset_0", 1) == 40
+        assert access.read_name(service, "TEMPC::offset_0", 1) == 40
     finally:
         close()
 

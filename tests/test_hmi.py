@@ -8,6 +8,7 @@ from the server; the live view is driven by real Zenoh publications and rendered
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 
@@ -26,6 +27,8 @@ from geo_clients.hmi import (
     snapshot_csv,
 )
 from geo_clients.testing import GeoTestServer
+
+from geo_server import access
 
 pytest_plugins = ["geo_clients.pytest_plugin"]
 
@@ -50,7 +53,7 @@ def argv(srv: GeoTestServer, *extra: str) -> list[str]:
 
 def expected_axis(srv: GeoTestServer, axis: int) -> dict:
     """The snapshot entry of one axis, built from the server's own values."""
-    r = srv.service.read_name
+    r = functools.partial(access.read_name, srv.service)
     entry = {"axis": axis, **{f: r(n, axis) for f, n in AXIS_FIELDS}}
     comps = {}
     for cv in COMPENSATIONS:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geo_server import access
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -36,39 +37,41 @@ def sin2_ramp(start: float, target: float, k: int, n: int) -> float:
 
 def test_temperature_manual_example_through_the_objects(service):
     # 000 p.17: position_0 100, offset_0 40, coefficient 4000 µm/m; X homed at 100 mm.
-    service.write_name("SIM::set_position", 1, 1_000_000)
-    service.step(25)  # temp_comp_n_cycles 20: the start-up ramp is over
+    access.write_name(service, "SIM::set_position", 1, 1_000_000)
+    access.step(service, 25)  # temp_comp_n_cycles 20: the start-up ramp is over
     expected = 40 + 4000e-6 * (1_000_000 - 100)  # 4039.6
-    assert service.read_name("TEMPC::actual_offset", 1) == rhaz(expected) == 4040
-    assert service.read_name("TEMPC::f_is_active", 1) is True
+    assert access.read_name(service, "TEMPC::actual_offset", 1) == rhaz(expected) == 4040
+    assert access.read_name(service, "TEMPC::f_is_active", 1) is True
     # the drive gets command + every position compensation; the display does not
-    total = service.read_name("SIM::total_offset", 1)
-    assert service.read_name("SIM::command_position", 1) == 1_000_000
-    assert service.read_name("SIM::output_position", 1) == 1_000_000 + total
+    total = access.read_name(service, "SIM::total_offset", 1)
+    assert access.read_name(service, "SIM::command_position", 1) == 1_000_000
+    assert access.read_name(service, "SIM::output_position", 1) == 1_000_000 + total
 
 
 def test_temperature_coefficient_write_ramps_cycle_by_cycle(service):
-    service.write_name("SIM::set_position", 1, 1_000_000)
-    service.step(25)
+    access.write_name(service, "SIM::set_position", 1, 1_000_000)
+    access.step(service, 25)
     old = 40 + 4000e-6 * 999_900
     new = 40 + 2500e-6 * 999_900
-    service.write_name("TEMPC::coefficient", 1, 2500.0)
+    access.write_name(service, "TEMPC::coefficient", 1, 2500.0)
     for k in range(1, 21):
-        service.step(1)
-        assert service.read_name("TEMPC::actual_offset", 1) == rhaz(sin2_ramp(old, new, k, 20))
-    assert service.read_name("TEMPC::coefficient", 1) == 2500.0
+        access.step(service, 1)
+        assert access.read_name(service, "TEMPC::actual_offset", 1) == rhaz(
+            sin2_ramp(old, new, k, 20)
+        )
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 2500.0
 
 
 def test_unhomed_axis_has_no_temperature_offset(default_cfg):
     svc = ObjectService(Machine(default_cfg, homed=False))
-    svc.write_name("SIM::set_position", 1, 1_000_000)
-    svc.step(30)
-    assert svc.read_name("TEMPC::activated", 1) is True
-    assert svc.read_name("TEMPC::f_is_active", 1) is False
-    assert svc.read_name("TEMPC::actual_offset", 1) == 0
-    svc.write_name("SIM::homed", 1, True)
-    svc.step(20)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 4040
+    access.write_name(svc, "SIM::set_position", 1, 1_000_000)
+    access.step(svc, 30)
+    assert access.read_name(svc, "TEMPC::activated", 1) is True
+    assert access.read_name(svc, "TEMPC::f_is_active", 1) is False
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 0
+    access.write_name(svc, "SIM::homed", 1, True)
+    access.step(svc, 20)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 4040
 
 
 # ------------------------------------------------------------------------- backlash
@@ -76,21 +79,21 @@ def test_unhomed_axis_has_no_temperature_offset(default_cfg):
 
 def test_backlash_manual_example_reversal(service):
     # 000 p.13: lose 1000, anwahl_losekomp 1 (positive), n_backlash_cyc 10.
-    service.step(2)
-    assert service.read_name("BC::conf. backlash", 1) == 1000
-    assert service.read_name("BC::actual backlash", 1) == 0
-    service.write_name("SIM::target_position", 1, -100_000)  # move negative: a reversal
+    access.step(service, 2)
+    assert access.read_name(service, "BC::conf. backlash", 1) == 1000
+    assert access.read_name(service, "BC::actual backlash", 1) == 0
+    access.write_name(service, "SIM::target_position", 1, -100_000)  # move negative: a reversal
     previous = 0
     for k in range(1, 11):
-        service.step(1)
+        access.step(service, 1)
         expected = rhaz(-1000 * math.sin(math.pi * k / 20) ** 2)
-        assert service.read_name("BC::actual backlash", 1) == expected
-        assert service.read_name("BC::delta backlash", 1) == expected - previous
-        assert service.read_name("BC::sum backlash", 1) == -1000
+        assert access.read_name(service, "BC::actual backlash", 1) == expected
+        assert access.read_name(service, "BC::delta backlash", 1) == expected - previous
+        assert access.read_name(service, "BC::sum backlash", 1) == -1000
         previous = expected
-    service.step(1)
-    assert service.read_name("BC::actual backlash", 1) == -1000
-    assert service.read_name("BC::delta backlash", 1) == 0
+    access.step(service, 1)
+    assert access.read_name(service, "BC::actual backlash", 1) == -1000
+    assert access.read_name(service, "BC::delta backlash", 1) == 0
 
 
 # ------------------------------------------------------------------------- COMP, monitoring
@@ -110,8 +113,8 @@ def test_comp_off_is_program_global(machine):
     _run_until_done(machine)
     machine.step(25)
     svc = ObjectService(machine)
-    assert svc.read_name("TEMPC::activated", 1) is False
-    assert svc.read_name("TEMPC::actual_offset", 1) == 0
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 0
 
 
 def test_manual_activation_is_deselected_at_program_end(default_cfg):
@@ -119,34 +122,34 @@ def test_manual_activation_is_deselected_at_program_end(default_cfg):
     machine = Machine(default_cfg, homed=True)
     svc = ObjectService(machine)
     machine.step(1)
-    assert svc.read_name("TEMPC::activated", 1) is False  # manual: off until COMP ON
+    assert access.read_name(svc, "TEMPC::activated", 1) is False  # manual: off until COMP ON
     machine.start_program("N10 X[COMP ON TEMP]\nN20 G04 0.05\nN30 M30\n")
     machine.step(5)
-    assert svc.read_name("TEMPC::activated", 1) is True
+    assert access.read_name(svc, "TEMPC::activated", 1) is True
     _run_until_done(machine)
-    assert svc.read_name("TEMPC::activated", 1) is False
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
 
 
 def test_comp_on_frict_without_parameter_is_70495(service):
     # Y has lr_param.frict_comp 0 in the default machine.
-    service.run_nc("Y[COMP ON FRICT]")
-    service.step(3)
+    service.nc.run("Y[COMP ON FRICT]")
+    access.step(service, 3)
     assert [e["error_id"] for e in service.errors()][-1] == 70495
-    assert service.read_name("SIM::last_error_id") == 70495
+    assert access.read_name(service, "SIM::last_error_id") == 70495
 
 
 def test_required_compensations_are_monitored_70435(default_cfg):
     # Y: prog_movement_requires_compensations LEAD | TEMP; unhomed, neither is effective.
     svc = ObjectService(Machine(default_cfg, homed=False))
-    svc.run_nc("G01 Y10 F1000")
-    svc.step(5)
+    svc.nc.run("G01 Y10 F1000")
+    access.step(svc, 5)
     assert [e["error_id"] for e in svc.errors()][-1] == 70435
-    assert svc.read_name("SIM::command_position", 2) == 0  # the move was not started
-    svc.write_name("SIM::homed", 2, True)
-    svc.step(2)
-    svc.run_nc("G01 Y10 F1000")
-    svc.step(2000)
-    assert svc.read_name("SIM::command_position", 2) == 100_000
+    assert access.read_name(svc, "SIM::command_position", 2) == 0  # the move was not started
+    access.write_name(svc, "SIM::homed", 2, True)
+    access.step(svc, 2)
+    svc.nc.run("G01 Y10 F1000")
+    access.step(svc, 2000)
+    assert access.read_name(svc, "SIM::command_position", 2) == 100_000
     assert [e["error_id"] for e in svc.errors()].count(70435) == 1
 
 
@@ -154,7 +157,7 @@ def test_required_compensations_are_monitored_70435(default_cfg):
 
 
 def test_read_lengths_and_batch_from_one_snapshot(service):
-    service.step(1)
+    access.step(service, 1)
     with pytest.raises(AdsError) as e:
         service.read(0x120300, 0x10043, 4)
     assert e.value.code == 0x705
@@ -166,7 +169,7 @@ def test_read_lengths_and_batch_from_one_snapshot(service):
     assert isinstance(out[1], AdsError) and out[1].code == 0x703
     assert out[2] == (1).to_bytes(4, "little")
     with pytest.raises(AdsError) as e:
-        service.write_name("BC::actual backlash", 1, 5)
+        access.write_name(service, "BC::actual backlash", 1, 5)
     assert e.value.code == 0x704
 
 
@@ -187,7 +190,7 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
         text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 99999"),
         encoding="utf-8",
     )
-    result = svc.reload()
+    result = svc.commands.reload()
     assert not result.ok
     assert any("achsmd1.lis" in e and "temp_comp_coefficient" in e for e in result.errors)
     assert a.cfg is cfg_before
@@ -198,32 +201,36 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
 
 def test_valid_reload_ramps_to_the_new_value(lists_copy: Path):
     svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
-    svc.write_name("SIM::set_position", 1, 1_000_000)
-    svc.step(30)
+    access.write_name(svc, "SIM::set_position", 1, 1_000_000)
+    access.step(svc, 30)
     axis_list = Path(svc.machine.cfg.axes[1].params.path)
     text = axis_list.read_text(encoding="utf-8")
     axis_list.write_text(
         text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 2000"),
         encoding="utf-8",
     )
-    result = svc.reload()
+    result = svc.commands.reload()
     assert result.ok, result.errors
     old, new = 40 + 4000e-6 * 999_900, 40 + 2000e-6 * 999_900
-    svc.step(10)
-    assert svc.read_name("TEMPC::actual_offset", 1) == rhaz(sin2_ramp(old, new, 10, 20)) == 3040
-    svc.step(10)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
-    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
+    access.step(svc, 10)
+    assert (
+        access.read_name(svc, "TEMPC::actual_offset", 1)
+        == rhaz(sin2_ramp(old, new, 10, 20))
+        == 3040
+    )
+    access.step(svc, 10)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2040
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == 2000.0
 
 
 def test_save_round_trips(lists_copy: Path):
     svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
     axis_list = Path(svc.machine.cfg.axes[1].params.path)
     before = axis_list.read_bytes()
-    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-    svc.write_name("TEMPC::offset_0", 1, -7)
-    svc.step(1)
-    result = svc.save()
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.write_name(svc, "TEMPC::offset_0", 1, -7)
+    access.step(svc, 1)
+    result = svc.commands.save()
     assert result.ok and result.files == [str(axis_list)]
     after = axis_list.read_bytes()
     assert after == before.replace(b"coefficient 4000 ", b"coefficient 1234.5 ").replace(
@@ -232,7 +239,7 @@ def test_save_round_trips(lists_copy: Path):
     cfg = load_machine(lists_copy)
     assert cfg.axes[1].params.temp_comp_coefficient == 1234.5
     assert cfg.axes[1].params.temp_comp_offset_0 == -7
-    assert svc.save().files == []  # nothing changed since: nothing written
+    assert svc.commands.save().files == []  # nothing changed since: nothing written
 
 
 # ------------------------------------------------------------------------- determinism
@@ -285,36 +292,36 @@ def test_realtime_scheduler_runs_and_reports(default_cfg):
     assert st["cycle"] > 50  # ~300 cycles at 1 ms; generous for a loaded CI machine
     assert st["cycle"] == machine.cycle
     assert st["lateness_p50_us"] >= 0 and st["lateness_max_us"] >= st["lateness_p99_us"]
-    assert ObjectService(machine, sched).read_name("SIM::cycle_time_us") == 1000
+    assert access.read_name(ObjectService(machine, sched), "SIM::cycle_time_us") == 1000
 
 
 def test_nc_while_a_program_runs_is_refused_and_reset_stops_it(service):
-    service.run_nc("G90 G01 X50 F6000")
-    service.step(100)  # X still moving (50 mm at 100 mm/s takes 500 ms)
-    assert service.read_name("SIM::velocity", 1) != 0
-    fut = service.run_nc("G90 G01 X-50 F6000")
-    write = service.write_name("TEMPC::coefficient", 1, 4100.0)
-    service.step(1)
+    service.nc.run("G90 G01 X50 F6000")
+    access.step(service, 100)  # X still moving (50 mm at 100 mm/s takes 500 ms)
+    assert access.read_name(service, "SIM::velocity", 1) != 0
+    fut = service.nc.run("G90 G01 X-50 F6000")
+    write = access.write_name(service, "TEMPC::coefficient", 1, 4100.0)
+    access.step(service, 1)
     assert write.result(timeout=1) is None  # the cycle ran; the write was answered
     with pytest.raises(AdsError) as e:
         fut.result(timeout=1)
     assert e.value.code == 0x708
-    assert service.read_name("TEMPC::coefficient", 1) == 4100.0
-    service.reset()
-    service.step(400)  # a controlled stop, then standstill
-    assert service.read_name("SIM::velocity", 1) == 0
-    service.run_nc("G90 G01 X0 F6000")
-    service.step(2000)
-    assert service.read_name("SIM::command_position", 1) == 0
-    assert service.snapshot.cycle == 2501
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 4100.0
+    service.nc.reset()
+    access.step(service, 400)  # a controlled stop, then standstill
+    assert access.read_name(service, "SIM::velocity", 1) == 0
+    service.nc.run("G90 G01 X0 F6000")
+    access.step(service, 2000)
+    assert access.read_name(service, "SIM::command_position", 1) == 0
+    assert service.current(stale_ok=True).cycle == 2501
 
 
 def test_a_move_the_machine_cannot_start_ends_the_program_not_the_cycle(service):
-    service.write_name("SIM::target_position", 1, 500_000)  # a single-axis move
-    service.step(10)
-    service.run_nc("G90 G01 X0 F6000")  # X is busy: the program must end with an error
-    service.step(3)
-    assert service.snapshot.cycle == 13
+    access.write_name(service, "SIM::target_position", 1, 500_000)  # a single-axis move
+    access.step(service, 10)
+    service.nc.run("G90 G01 X0 F6000")  # X is busy: the program must end with an error
+    access.step(service, 3)
+    assert service.current(stale_ok=True).cycle == 13
     assert "NC program stopped" in service.errors()[-1]["message"]
 
 
@@ -325,7 +332,7 @@ def _first_moving_cycle(machine: Machine, program: str) -> int:
     machine.start_program(program)
     for n in range(1, 200):
         machine.run_cycle()
-        if svc.read_name("SIM::velocity", 1) != 0:
+        if access.read_name(svc, "SIM::velocity", 1) != 0:
             return n
     raise AssertionError("X never moved")
 
@@ -353,14 +360,16 @@ def test_lsec_objects_on_y_follow_the_table_by_direction(machine):
     machine.start_program("G90 G01 Y6 F6000\nM30\n")  # from 0 in the positive direction
     _run_until_done(machine)
     machine.step(10)  # reversal ramp (n_backlash_cyc 5) over
-    assert svc.read_name("ssfk activated", 2) is True
-    assert svc.read_name("LSEC::active", 2) is True
-    assert svc.read_name("LSEC::sum epsilon", 2) == round(-(14 + frac * 1))  # −14.39 → −14
-    assert svc.read_name("LSEC::epsilon", 2) == 0  # standing: no change this cycle
+    assert access.read_name(svc, "ssfk activated", 2) is True
+    assert access.read_name(svc, "LSEC::active", 2) is True
+    assert access.read_name(svc, "LSEC::sum epsilon", 2) == round(-(14 + frac * 1))  # −14.39 → −14
+    assert access.read_name(svc, "LSEC::epsilon", 2) == 0  # standing: no change this cycle
     machine.start_program("G90 G01 Y7 F6000\nG01 Y6\nM30\n")  # arrive from above
     _run_until_done(machine)
     machine.step(10)
-    assert svc.read_name("LSEC::sum epsilon", 2) == round(-(178 + frac * 2))  # −178.77 → −179
+    assert access.read_name(svc, "LSEC::sum epsilon", 2) == round(
+        -(178 + frac * 2)
+    )  # −178.77 → −179
 
 
 def test_rejected_reload_of_a_broken_compensation_list_keeps_the_old_tables(lists_copy: Path):
@@ -369,7 +378,7 @@ def test_rejected_reload_of_a_broken_compensation_list_keeps_the_old_tables(list
     svc = ObjectService(machine)
     cfg_before = machine.cfg
     machine.step(30)
-    before = svc.read_name("LSEC::sum epsilon", 2)
+    before = access.read_name(svc, "LSEC::sum epsilon", 2)
     comp = lists_copy.parent / "achskw2.lis"
     comp.write_text(
         comp.read_text(encoding="utf-8").replace(
@@ -377,13 +386,13 @@ def test_rejected_reload_of_a_broken_compensation_list_keeps_the_old_tables(list
         ),
         encoding="utf-8",
     )
-    result = svc.reload()
+    result = svc.commands.reload()
     assert not result.ok
     assert any("achskw2.lis" in e for e in result.errors)
     assert machine.cfg is cfg_before
     machine.step(10)
-    assert svc.read_name("LSEC::active", 2) is True
-    assert svc.read_name("LSEC::sum epsilon", 2) == before == -98  # Y at 0, neg table
+    assert access.read_name(svc, "LSEC::active", 2) is True
+    assert access.read_name(svc, "LSEC::sum epsilon", 2) == before == -98  # Y at 0, neg table
 
 
 def test_invalid_table_is_selected_but_not_effective(lists_copy: Path):
@@ -400,9 +409,9 @@ def test_invalid_table_is_selected_but_not_effective(lists_copy: Path):
     machine = Machine(load_machine(lists_copy), homed=True)
     svc = ObjectService(machine)
     machine.step(20)
-    assert svc.read_name("ssfk activated", 2) is True
-    assert svc.read_name("LSEC::active", 2) is False
-    assert svc.read_name("LSEC::sum epsilon", 2) == 0
+    assert access.read_name(svc, "ssfk activated", 2) is True
+    assert access.read_name(svc, "LSEC::active", 2) is False
+    assert access.read_name(svc, "LSEC::sum epsilon", 2) == 0
 
 
 def test_reset_deselects_manual_activation_compensations(default_cfg):
@@ -413,12 +422,12 @@ def test_reset_deselects_manual_activation_compensations(default_cfg):
     svc = ObjectService(machine)
     machine.start_program("N10 X[COMP ON TEMP]\nN20 G04 10\nN30 M30\n")
     machine.step(40)
-    assert svc.read_name("TEMPC::activated", 1) is True
+    assert access.read_name(svc, "TEMPC::activated", 1) is True
     # X at 0: offset_0 + coefficient·1e-6·(s − position_0) = 40 + 4000e-6·(0 − 100) = 39.6
-    assert svc.read_name("TEMPC::actual_offset", 1) == 40
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 40
     machine.reset()
     machine.step(1)
-    assert svc.read_name("TEMPC::activated", 1) is False
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
     assert machine.player is not None and not machine.player.running
 
 
@@ -434,23 +443,23 @@ def test_refused_writes_and_nc_text_are_in_the_error_list(default_cfg):
 
     service = ObjectService(Machine(default_cfg, homed=True))
     with pytest.raises(AdsError) as refused:
-        service.write_name("TEMPC::coefficient", 1, 20000)  # range ±10000 µm/m (000 p.22)
+        access.write_name(service, "TEMPC::coefficient", 1, 20000)  # range ±10000 µm/m (000 p.22)
     assert refused.value.code == 0x706
     with pytest.raises(AdsError) as bad_nc:
-        service.run_nc("G01 X10 F$")
+        service.nc.run("G01 X10 F$")
     assert bad_nc.value.code == 0x70D
-    service.step(1)
+    access.step(service, 1)
     last_two = [e["message"] for e in service.errors()[-2:]]
     assert last_two[0].startswith("write refused: ") and last_two[0].endswith("(ADS 0x706)")
     assert "TEMPC::coefficient" in last_two[0]
     assert last_two[1].startswith("NC text refused: ") and last_two[1].endswith("(ADS 0x70D)")
-    assert service.read_name("SIM::last_error", 0).endswith(last_two[1])
+    assert access.read_name(service, "SIM::last_error", 0).endswith(last_two[1])
     # a client sending bad values in a loop: the list takes ten a second, counts the rest
     before = len(service.errors())
     for _ in range(3 * REFUSALS_PER_SECOND):
         with pytest.raises(AdsError):
-            service.write_name("TEMPC::coefficient", 1, 20000)
-    service.step(1)
+            access.write_name(service, "TEMPC::coefficient", 1, 20000)
+    access.step(service, 1)
     listed = len(service.errors()) - before
     assert listed <= 2 * REFUSALS_PER_SECOND  # the loop may straddle a second
     assert listed + service.status()["refusals_unreported"] == 3 * REFUSALS_PER_SECOND

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from support.reference import ReferenceKernel
 
+from geo_server import access
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.kernel.common import COLUMN
 from geo_server.listfile import load_machine
@@ -134,24 +135,24 @@ def test_drive_enable_is_a_precondition_of_cross_and_of_70435(tmp_path):
     startup = _machine(tmp_path, {"X": REQUIRES_CROSS}, {"X": CROSS_X})
     m = Machine(load_machine(startup), cycle_s=0.001, homed=True)
     svc = ObjectService(m)
-    assert svc.read_name("SIM::drive_enable", 1) is True  # on at start-up
-    svc.step(2)
-    assert svc.read_name("CROSSC::f_is_active", 1) is True
-    assert svc.read_name("CROSSC::actual_offset", 1) == 50  # Y = 0: table[0]
-    svc.write_name("SIM::drive_enable", 1, False)
-    svc.step(2)
-    assert svc.read_name("SIM::drive_enable", 1) is False
-    assert svc.read_name("CROSSC::activated", 1) is True  # still selected ...
-    assert svc.read_name("CROSSC::f_is_active", 1) is False  # ... but not effective
-    assert svc.read_name("CROSSC::actual_offset", 1) == 0  # n_cycles 0: at once
+    assert access.read_name(svc, "SIM::drive_enable", 1) is True  # on at start-up
+    access.step(svc, 2)
+    assert access.read_name(svc, "CROSSC::f_is_active", 1) is True
+    assert access.read_name(svc, "CROSSC::actual_offset", 1) == 50  # Y = 0: table[0]
+    access.write_name(svc, "SIM::drive_enable", 1, False)
+    access.step(svc, 2)
+    assert access.read_name(svc, "SIM::drive_enable", 1) is False
+    assert access.read_name(svc, "CROSSC::activated", 1) is True  # still selected ...
+    assert access.read_name(svc, "CROSSC::f_is_active", 1) is False  # ... but not effective
+    assert access.read_name(svc, "CROSSC::actual_offset", 1) == 0  # n_cycles 0: at once
     _run(m, "N10 G01 X10 F6000\nM30")
     assert m.player is not None and m.player.error is not None
     assert (m.player.error.error_id, m.player.error.line) == (70435, 1)
     assert m.position(0) == 0.0  # X did not move
     # Y's drive is not X's: only the compensated axis' enable counts
-    svc.write_name("SIM::drive_enable", 1, True)
-    svc.write_name("SIM::drive_enable", 2, False)
-    svc.step(2)
+    access.write_name(svc, "SIM::drive_enable", 1, True)
+    access.write_name(svc, "SIM::drive_enable", 2, False)
+    access.step(svc, 2)
     _run(m, "N10 G01 X10 F6000\nM30")
     assert m.player.finished and m.player.error is None
     assert m.position(0) == 100_000.0
@@ -164,21 +165,21 @@ def test_drive_actual_position_follows_only_an_enabled_drive(tmp_path):
     startup = _machine(tmp_path, {"X": ["lr_param.crosscomp 1"]}, {"X": CROSS_X})
     m = Machine(load_machine(startup), cycle_s=0.001, homed=True)
     svc = ObjectService(m)
-    svc.write_name("SIM::set_position", 1, 100_000)
-    svc.step(2)
-    assert svc.read_name("SIM::output_position", 1) == 100_050
-    assert svc.read_name("SIM::drive_actual_position", 1) == 100_050
-    svc.write_name("SIM::drive_enable", 1, False)
-    svc.write_name("SIM::set_position", 1, 200_000)
-    svc.step(2)
+    access.write_name(svc, "SIM::set_position", 1, 100_000)
+    access.step(svc, 2)
+    assert access.read_name(svc, "SIM::output_position", 1) == 100_050
+    assert access.read_name(svc, "SIM::drive_actual_position", 1) == 100_050
+    access.write_name(svc, "SIM::drive_enable", 1, False)
+    access.write_name(svc, "SIM::set_position", 1, 200_000)
+    access.step(svc, 2)
     # the output is the command alone now (cross not effective); the drive stayed
-    assert svc.read_name("SIM::output_position", 1) == 200_000
-    assert svc.read_name("SIM::drive_actual_position", 1) == 100_050
-    svc.write_name("SIM::drive_enable", 1, True)
-    svc.step(2)  # cross effective again (n_cycles 0): 200 000 + 50
-    assert svc.read_name("SIM::drive_actual_position", 1) == 200_050
+    assert access.read_name(svc, "SIM::output_position", 1) == 200_000
+    assert access.read_name(svc, "SIM::drive_actual_position", 1) == 100_050
+    access.write_name(svc, "SIM::drive_enable", 1, True)
+    access.step(svc, 2)  # cross effective again (n_cycles 0): 200 000 + 50
+    assert access.read_name(svc, "SIM::drive_actual_position", 1) == 200_050
     with pytest.raises(AdsError) as exc:  # read-only, like SIM::output_position
-        svc.write_name("SIM::drive_actual_position", 1, 0)
+        access.write_name(svc, "SIM::drive_actual_position", 1, 0)
     assert exc.value.code == AdsErrorCode.DEVICE_INVALIDACCESS
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geo_server import access
 from geo_server.cli import main as cli_main
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
@@ -120,8 +121,8 @@ def test_plan_errors_are_specific(tmp_path):
     # side (ISO 230-2 §5): refused
     with pytest.raises(MeasureError, match="overrun"):
         run_test(bench, plan(overrun=0.0))
-    svc.write_name("SIM::homed", 1, False)
-    svc.step(1)
+    access.write_name(svc, "SIM::homed", 1, False)
+    access.step(svc, 1)
     with pytest.raises(MeasureError, match="not homed"):
         run_test(bench, plan())
     cfg = svc.machine.cfg
@@ -180,7 +181,7 @@ def test_the_loop_closes_on_a_simple_machine(tmp_path):
     text = (tmp_path / "achskw1.lis").read_text(encoding="utf-8")
     assert "kw.ssfk.table[1].pos 50\n" in text and "kw.ssfk.table[2].pos 100\n" in text
     assert "getriebe[0].lose 40\n" in (tmp_path / "achsmd1.lis").read_text(encoding="utf-8")
-    assert svc.reload().ok
+    assert svc.commands.reload().ok
     after = run_test(bench, plan())
     assert np.abs(after.mean_up).max() < 0.01 and np.abs(after.mean_down).max() < 0.01
     assert after.accuracy < 0.02 and before.accuracy == pytest.approx(14.0)
@@ -343,7 +344,7 @@ def test_measure_on_a_free_running_machine(tmp_path):
     svc = ObjectService(machine, sched)
     sched.start()
     try:
-        reply = svc.measure({"axis": "X", "runs": 2, "dwell_s": 0.01})
+        reply = svc.measurements.run({"axis": "X", "runs": 2, "dwell_s": 0.01})
     finally:
         sched.stop()
     assert reply["figures"]["systematic"] == pytest.approx(14.0, abs=1e-6)
@@ -386,11 +387,11 @@ def test_the_compensations_are_restored_exactly(tmp_path):
     svc = stepped(simple_machine(tmp_path))
     bench = StepBench(svc)
     bench.nc("X[COMP OFF BACKLASH]")
-    assert not svc.read_name("SIM::backlash_selected", 1)
-    assert not svc.read_name("SIM::friction_selected", 1)
+    assert not access.read_name(svc, "SIM::backlash_selected", 1)
+    assert not access.read_name(svc, "SIM::friction_selected", 1)
     run_test(bench, plan(compensation_off=("LEAD", "BACKLASH", "FRICT")))
-    assert svc.read_name("ssfk activated", 1)
-    assert not svc.read_name("SIM::backlash_selected", 1)
+    assert access.read_name(svc, "ssfk activated", 1)
+    assert not access.read_name(svc, "SIM::backlash_selected", 1)
     with pytest.raises(MeasureError, match="P-ERR-70495"):  # an NC error is not ignored
         bench.nc("X[COMP ON FRICT]")
 

@@ -15,6 +15,7 @@ import subprocess
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 
 MBPOLL = shutil.which("mbpoll")
@@ -25,8 +26,8 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture
 def port(loop_thread, service):
-    service.write_name("SIM::set_position", 2, -1_234_567)
-    service.step(3)
+    access.write_name(service, "SIM::set_position", 2, -1_234_567)
+    access.step(service, 3)
     iface = ModbusInterface(service, ModbusOptions(port=0))
     run_in(loop_thread, iface.start())
     yield iface.port
@@ -54,35 +55,35 @@ def test_read_sgn32(port, service):
     ref = 0x4004  # SIM::command_position, unit 2
     r = mbpoll(port, 2, ref, "4:int")
     assert r.returncode == 0, r.stderr
-    assert int(value_at(r.stdout, ref)) == service.read_name("SIM::command_position", 2)
-    assert service.read_name("SIM::command_position", 2) == -1_234_567
+    assert int(value_at(r.stdout, ref)) == access.read_name(service, "SIM::command_position", 2)
+    assert access.read_name(service, "SIM::command_position", 2) == -1_234_567
     r = mbpoll(port, 1, 4 * 0x42, "4:int")  # TEMPC::actual_offset
-    assert int(value_at(r.stdout, 4 * 0x42)) == service.read_name("TEMPC::actual_offset", 1)
+    assert int(value_at(r.stdout, 4 * 0x42)) == access.read_name(service, "TEMPC::actual_offset", 1)
 
 
 def test_read_machine_unit_zero(port, service):
     r = mbpoll(port, 0, 0x4004, "4:int")  # SIM::cycle_count
     assert r.returncode == 0, r.stderr
-    assert int(value_at(r.stdout, 0x4004)) == service.read_name("SIM::cycle_count") == 3
+    assert int(value_at(r.stdout, 0x4004)) == access.read_name(service, "SIM::cycle_count") == 3
 
 
 def test_coil_read_and_write(port, service):
     r = mbpoll(port, 1, 0x41, "0")  # TEMPC::activated
     assert r.returncode == 0, r.stderr
-    assert value_at(r.stdout, 0x41) == str(int(service.read_name("TEMPC::activated", 1)))
-    new = not service.read_name("TEMPC::activated", 1)
+    assert value_at(r.stdout, 0x41) == str(int(access.read_name(service, "TEMPC::activated", 1)))
+    new = not access.read_name(service, "TEMPC::activated", 1)
     r = mbpoll(port, 1, 0x41, "0", str(int(new)))
     assert r.returncode == 0, r.stderr
-    service.step(1)
-    assert service.read_name("TEMPC::activated", 1) is new
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::activated", 1) is new
     assert value_at(mbpoll(port, 1, 0x41, "0").stdout, 0x41) == str(int(new))
 
 
 def test_write_sgn32(port, service):
     r = mbpoll(port, 3, 4 * 0x44, "4:int", "-250")  # TEMPC::offset_0
     assert r.returncode == 0, r.stderr
-    service.step(1)
-    assert service.read_name("TEMPC::offset_0", 3) == -250
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::offset_0", 3) == -250
 
 
 def test_exceptions_reach_mbpoll(port):

@@ -17,6 +17,7 @@ import pytest
 from conftest import run_in
 from pymodbus.client import ModbusTcpClient
 
+from geo_server import access
 from geo_server.client.modbus_client import ModbusClient
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
@@ -49,7 +50,7 @@ def start(loop, service, **kw) -> ModbusInterface:
 
 @pytest.fixture
 def server(loop_thread, service) -> Iterator[ModbusInterface]:
-    service.step(5)
+    access.step(service, 5)
     iface = start(loop_thread, service)
     yield iface
     run_in(loop_thread, iface.close())
@@ -70,7 +71,7 @@ def geo(server) -> Iterator[ModbusClient]:
 
 
 def regs_of(service: ObjectService, o, axis: int) -> list[int]:
-    return encode(o, service.snapshot.value(o, axis))
+    return encode(o, service.current(stale_ok=True).value(o, axis))
 
 
 def exc(rr) -> int:
@@ -80,9 +81,9 @@ def exc(rr) -> int:
 
 def move(service: ObjectService) -> None:
     """Give the machine non-trivial values: moves on every axis, some cycles."""
-    for axis in service.axes:
-        service.write_name("SIM::target_position", axis, 123_456 * axis)
-    service.step(40)
+    for axis in service.info.axes:
+        access.write_name(service, "SIM::target_position", axis, 123_456 * axis)
+    access.step(service, 40)
 
 
 # ---------------------------------------------------------------------- reads
@@ -95,7 +96,7 @@ def test_port_zero_is_ephemeral(server):
 
 def test_every_object_of_every_axis(server, client, service):
     move(service)
-    for axis in (0, *service.axes):
+    for axis in (0, *service.info.axes):
         um = MM.machine if axis == 0 else MM.axis
         for o in um.objects:
             a, n = register_address(o), register_count(o)
@@ -106,18 +107,18 @@ def test_every_object_of_every_axis(server, client, service):
             assert ir.registers == want, (axis, o.name)
             if o.type.name == "BOOLEAN":
                 di = client.read_discrete_inputs(bit_address(o), count=1, device_id=axis)
-                assert di.bits[0] == service.snapshot.value(o, axis), (axis, o.name)
+                assert di.bits[0] == service.current(stale_ok=True).value(o, axis), (axis, o.name)
                 if o.writable:
                     co = client.read_coils(bit_address(o), count=1, device_id=axis)
-                    assert co.bits[0] == service.snapshot.value(o, axis)
+                    assert co.bits[0] == service.current(stale_ok=True).value(o, axis)
 
 
 def test_client_read_matches_service(server, geo, service):
     move(service)
-    for axis in service.axes:
+    for axis in service.info.axes:
         for o in MM.axis.objects:
-            assert geo.read(o.name, axis) == service.read_name(o.name, axis), o.name
-    assert geo.read("SIM::cycle_count") == service.read_name("SIM::cycle_count") > 0
+            assert geo.read(o.name, axis) == access.read_name(service, o.name, axis), o.name
+    assert geo.read("SIM::cycle_count") == access.read_name(service, "SIM::cycle_count") > 0
     ig, io = 0x120300, (1 << 16) | 0x43
     assert geo.read_raw(ig, io, 8) == service.read(ig, io, 8)
     assert geo.read_raw(0x120400, io, 256).rstrip(b"\0") == b"TEMPC::coefficient"
@@ -128,7 +129,7 @@ def test_client_read_matches_service(server, geo, service):
 
 def test_block_read_across_objects(server, client, service):
     move(service)
-    snap = service.snapshot
+    snap = service.current(stale_ok=True)
     start_ = register_address(obj("TEMPC::activated"))  # 0x41 … 0x45: 20 registers
     rr = client.read_holding_registers(start_, count=20, device_id=2)
     want = MM.axis.read_registers(start_, 20, lambda o: snap.value(o, 2))
@@ -149,7 +150,7 @@ def test_block_read_never_mixes_cycles(loop_thread, machine):
     iface = start(loop_thread, service)
     sched.start()
     try:
-        service.write_name("SIM::target_position", 1, 50_000_000)
+        access.write_name(service, "SIM::target_position", 1, 50_000_000)
         with ModbusTcpClient("127.0.0.1", port=iface.port, timeout=TIMEOUT, retries=0) as c:
             seen = set()
             for _ in range(200):
@@ -173,13 +174,13 @@ def test_concurrent_clients(server, service):
     move(service)
     errors: list[BaseException] = []
     a = register_address(obj("TEMPC::coefficient"))
-    want = {axis: regs_of(service, obj("TEMPC::coefficient"), axis) for axis in service.axes}
+    want = {axis: regs_of(service, obj("TEMPC::coefficient"), axis) for axis in service.info.axes}
 
     def worker() -> None:
         try:
             with ModbusTcpClient("127.0.0.1", port=server.port, timeout=TIMEOUT, retries=0) as c:
                 for i in range(50):
-                    axis = service.axes[i % len(service.axes)]
+                    axis = service.info.axes[i % len(service.info.axes)]
                     assert (
                         c.read_holding_registers(a, count=4, device_id=axis).registers
                         == (want[axis])
@@ -211,7 +212,7 @@ def test_device_identification(server, client, geo):
 
 def test_write_every_writable_tempc_object(server, client, service):
     axis = 2
-    before = service.read_name("TEMPC::actual_offset", axis)
+    before = access.read_name(service, "TEMPC::actual_offset", axis)
     coef = obj("TEMPC::coefficient")
     a = register_address(coef)
     rr = client.write_registers(a, encode(coef, 4000.0), device_id=axis)  # FC 16, 4 words
@@ -230,39 +231,39 @@ def test_write_every_writable_tempc_object(server, client, service):
     assert not rr.isError()
     assert not client.write_coil(0x41, True, device_id=axis).isError()  # FC 5
     # stepped: nothing applied before the next cycle boundary
-    assert service.read_name("TEMPC::offset_0", axis) != -2500
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", axis) == 4000.0
-    assert service.read_name("TEMPC::offset_0", axis) == -2500
-    assert service.read_name("TEMPC::position_0", axis) == 1000
-    assert service.read_name("TEMPC::activated", axis) is True
+    assert access.read_name(service, "TEMPC::offset_0", axis) != -2500
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", axis) == 4000.0
+    assert access.read_name(service, "TEMPC::offset_0", axis) == -2500
+    assert access.read_name(service, "TEMPC::position_0", axis) == 1000
+    assert access.read_name(service, "TEMPC::activated", axis) is True
     assert client.read_holding_registers(a, count=4, device_id=axis).registers == [
         0x40AF,
         0x4000,
         0,
         0,
     ]
-    service.step(60)  # past the sin² ramp of temp_comp_n_cycles
+    access.step(service, 60)  # past the sin² ramp of temp_comp_n_cycles
     after = client.read_holding_registers(4 * 0x42, count=2, device_id=axis).registers
     assert after == regs_of(service, obj("TEMPC::actual_offset"), axis)
-    assert service.read_name("TEMPC::actual_offset", axis) != before
+    assert access.read_name(service, "TEMPC::actual_offset", axis) != before
     # FC 6 on a one-register BOOLEAN, FC 15 on a coil: deactivate again
     assert not client.write_register(4 * 0x41, 0, device_id=axis).isError()
-    service.step(1)
-    assert service.read_name("TEMPC::activated", axis) is False
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::activated", axis) is False
     assert not client.write_coils(0x41, [True], device_id=axis).isError()
-    service.step(1)
+    access.step(service, 1)
     assert client.read_coils(0x41, count=1, device_id=axis).bits[0] is True
     # other axes untouched
-    assert service.read_name("TEMPC::offset_0", 1) != -2500
+    assert access.read_name(service, "TEMPC::offset_0", 1) != -2500
 
 
 def test_client_write_and_raw(server, geo, service):
     assert geo.write("TEMPC::coefficient", 1, 12.5) == 12.5
     geo.write_raw(0x120300, (1 << 16) | 0x44, (-7).to_bytes(4, "little", signed=True))
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", 1) == 12.5
-    assert service.read_name("TEMPC::offset_0", 1) == -7
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 12.5
+    assert access.read_name(service, "TEMPC::offset_0", 1) == -7
     with pytest.raises(AdsError) as info:
         geo.write("TEMPC::actual_offset", 1, 5)
     assert info.value.code == AdsErrorCode.DEVICE_INVALIDACCESS
@@ -358,9 +359,11 @@ def wait_until(loop, predicate, timeout: float = TIMEOUT) -> bool:
 def test_sim_objects_move_the_axis(server, geo, service):
     geo.write("SIM::feed", 1, 100_000)
     geo.write("SIM::target_position", 1, 20_000)
-    service.step(2000)
+    access.step(service, 2000)
     assert geo.read("SIM::command_position", 1) == 20_000
-    assert geo.read("SIM::command_position", 1) == service.read_name("SIM::command_position", 1)
+    assert geo.read("SIM::command_position", 1) == access.read_name(
+        service, "SIM::command_position", 1
+    )
 
 
 # ---------------------------------------------------------------------- exceptions
@@ -414,7 +417,7 @@ def test_read_only_option(loop_thread, service):
 
 def test_units_are_machine_zero_and_every_axis(service):
     iface = ModbusInterface(service, ModbusOptions(port=0))
-    assert set(iface.unit_maps) == {0, 255, *service.axes}
+    assert set(iface.unit_maps) == {0, 255, *service.info.axes}
 
 
 def test_unit_255_is_the_machine_unit(server, client, service):
@@ -458,8 +461,8 @@ def test_geo_client_via_modbus(server, capsys):
     assert '"raw": 40' in capsys.readouterr().out  # offset_0 40 increments = 4.0 µm
     assert client_main([*base, "write", "--axis", "2", "TEMPC::offset_0", "-250"]) == 0
     capsys.readouterr()
-    server.service.step(1)
-    assert server.service.read_name("TEMPC::offset_0", 2) == -250
+    access.step(server.service, 1)
+    assert access.read_name(server.service, "TEMPC::offset_0", 2) == -250
     assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
     assert client_main([*base, "status"]) == 0  # from the emulator objects

@@ -21,6 +21,7 @@ import zenoh
 from conftest import free_port, run_in, wait_until_routed
 from test_nc import AXES, FakePort, K, play
 
+from geo_server import access
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -278,9 +279,9 @@ def test_messages_reach_errors_zenoh_and_the_web_hmi(loop_thread: asyncio.Abstra
     sub = zs.declare_subscriber("cnc/t/errors", lambda s: got.put(json.loads(s.payload.to_bytes())))
     try:
         wait_until_routed(zs, "cnc/t/status")
-        svc.run_nc(MANUAL.read_text(encoding="utf-8"))
+        svc.nc.run(MANUAL.read_text(encoding="utf-8"))
         for _ in range(300):
-            svc.step()
+            access.step(svc)
         want = [
             {"severity": "message", "message": msg, "file": "<nc>", "line": line}
             for msg, line in (NOT_INIT_CROSS, NOT_ACTIVE_CROSS)
@@ -308,5 +309,5 @@ def test_messages_reach_errors_zenoh_and_the_web_hmi(loop_thread: asyncio.Abstra
 def test_bad_nc_text_is_refused_over_the_service_with_the_line():
     svc = ObjectService(Machine(load_machine(default_startup_list()), cycle_s=0.001))
     with pytest.raises(AdsError) as exc:
-        svc.run_nc("N10 G74 X1\n$IF V.A.BACKLASH_COMP_INIT.X != TRUE\n$ENDIF")
+        svc.nc.run("N10 G74 X1\n$IF V.A.BACKLASH_COMP_INIT.X != TRUE\n$ENDIF")
     assert "line 2" in str(exc.value) and "BACKLASH_COMP_INIT" in str(exc.value)

@@ -20,6 +20,7 @@ from asyncua.ua.uaerrors import UaStatusCodeError
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from geo_server import access
 from geo_server.machine.machine import Machine
 from geo_server.opcua_run import cert_folder
 from geo_server.service import ObjectService
@@ -71,7 +72,7 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
     """Browsing Objects/local finds every object of every axis (the ADS symbol names),
     each with its type, access, unit, range, description, ADS address and value."""
     names = {int(a): n for a, n in service.status()["axis_names"].items()}
-    specs = {s.node_id: s for s in machine_variables("local", service.dictionary, names)}
+    specs = {s.node_id: s for s in machine_variables("local", service.info.dictionary, names)}
 
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -149,7 +150,7 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                 lathe = node_of(c, ns, "lathe/Axes/X/TEMPC/coefficient")
                 await mill.write_value(ua.Variant(11.0, ua.VariantType.Double))
                 for s in services.values():
-                    s.step(1)
+                    access.step(s, 1)
                 assert await mill.read_value() == 11.0
                 assert await lathe.read_value() == 4000.0
         finally:
@@ -169,9 +170,9 @@ def test_write_goes_through_the_service_with_its_checks(service: ObjectService) 
                 ns = await c.get_namespace_index(NAMESPACE_URI)
                 coef = node_of(c, ns, "local/Axes/X/TEMPC/coefficient")
                 await coef.write_value(ua.Variant(12.5, ua.VariantType.Double))
-                service.step(1)  # applied by the next cycle, as every interface's write
+                access.step(service, 1)  # applied by the next cycle, as every interface's write
                 assert await coef.read_value() == 12.5
-                assert service.read_name("TEMPC::coefficient", 1) == 12.5
+                assert access.read_name(service, "TEMPC::coefficient", 1) == 12.5
 
                 async def refused(node: Any, variant: ua.Variant) -> int:
                     with pytest.raises(UaStatusCodeError) as err:
@@ -204,8 +205,8 @@ def test_write_goes_through_the_service_with_its_checks(service: ObjectService) 
                         ua.DataValue(ua.Variant(ua.LocalizedText("x"))),
                     )
                 assert err.value.code == bad.BadNotWritable
-                service.step(1)
-                assert service.read_name("TEMPC::coefficient", 1) == 12.5  # none applied
+                access.step(service, 1)
+                assert access.read_name(service, "TEMPC::coefficient", 1) == 12.5  # none applied
                 # an anonymous session is not an administrator: the server's own nodes
                 # keep their access levels
                 with pytest.raises(UaStatusCodeError):
@@ -234,8 +235,12 @@ def test_writes_of_one_request_are_applied_in_one_cycle(service: ObjectService) 
                     ua.AttributeIds.Value,
                 )
                 assert [r.name for r in results] == ["Good"] * 3 + ["BadOutOfRange"]
-                cycle = service.step(1).cycle
-                assert [service.read_name("TEMPC::offset_0", a) for a in (1, 2, 3)] == [1, 2, 3]
+                cycle = access.step(service, 1).cycle
+                assert [access.read_name(service, "TEMPC::offset_0", a) for a in (1, 2, 3)] == [
+                    1,
+                    2,
+                    3,
+                ]
                 assert cycle == service.current().cycle
         finally:
             await iface.close()
@@ -291,14 +296,14 @@ def test_one_notification_per_sampled_cycle_with_its_time(service: ObjectService
                 await handler.until(1, "local/SIM/cycle_count")  # the initial value
                 samples: list[Any] = []
                 for _ in range(10):
-                    samples.append(service.step(1))
+                    samples.append(access.step(service, 1))
                 got = await handler.until(11, "local/SIM/cycle_count")
                 assert [v for v, _ in got] == [first + i for i in range(11)]
                 assert [t for _, t in got[1:]] == [source_time(s) for s in samples]
                 # a value that does not change is not notified again
                 assert len([x for x in handler.changes if x[0].endswith("coefficient")]) == 1
                 await coef.write_value(ua.Variant(3.5, ua.VariantType.Double))
-                service.step(1)
+                access.step(service, 1)
                 got = await handler.until(2, "local/Axes/X/TEMPC/coefficient")
                 assert got[-1][0] == 3.5
         finally:
@@ -318,7 +323,7 @@ def test_sampling_interval_in_whole_cycles(service: ObjectService) -> None:
                 sub = await c.create_subscription(10, handler)
                 await sub.subscribe_data_change(count, sampling_interval=5)
                 await handler.until(1, "local/SIM/cycle_count")
-                service.step(10)
+                access.step(service, 10)
                 got = await handler.until(3, "local/SIM/cycle_count")
                 assert [v % 5 for v, _ in got[1:]] == [0, 0]
         finally:
@@ -396,7 +401,7 @@ def test_every_method_with_results_and_errors(service: ObjectService, lists_copy
                 names = {(await m.read_browse_name()).Name for m in await root.get_methods()}
                 assert names == {m.name for m in METHODS}
                 assert (await call("Reload"))["ok"] is True
-                own.step(1)
+                access.step(own, 1)
                 assert (await call("Save"))["ok"] is True
                 assert (await call("Reset"))["command"] == "reset"
                 assert (await call("RunNc", "G01 X10 F1000"))["command"] == "nc"
@@ -510,7 +515,7 @@ def test_sign_and_encrypt_with_a_certificate_made_once(
                 ns = await c.get_namespace_index(NAMESPACE_URI)
                 coef = node_of(c, ns, "local/Axes/X/TEMPC/coefficient")
                 await coef.write_value(ua.Variant(7.0, ua.VariantType.Double))
-                service.step(1)
+                access.step(service, 1)
                 assert await coef.read_value() == 7.0
         finally:
             await iface.close()

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.machine.scheduler import Scheduler
 from geo_server.service import ObjectService
 from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
@@ -70,4 +71,4 @@ def test_node_opcua_reads_and_writes_the_coefficient(loop_thread, machine) -> No
     assert out["write"] == "Good"
     assert out["writeOutOfRange"] == "BadOutOfRange"
     assert out["after"] == 12.5
-    assert service.read_name("TEMPC::coefficient", 1) == 12.5
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 12.5

@@ -18,6 +18,7 @@ import pyads
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.ipc import ChannelError, FrameDecoder, OutBuffer, encode_frame
@@ -99,14 +100,14 @@ def wait_cycle(machine, n: int, timeout: float = 20.0) -> None:
 
 def test_acknowledged_write_is_in_the_snapshot_and_ramps(remote):
     machine, _, svc = remote
-    assert svc.read_name("TEMPC::actual_offset", 1) == 40  # X at 0: 40 + 4000e-6·(0 − 100)
-    fut = svc.write_name("TEMPC::offset_0", 1, 140.0)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 40  # X at 0: 40 + 4000e-6·(0 − 100)
+    fut = access.write_name(svc, "TEMPC::offset_0", 1, 140.0)
     assert fut.result(timeout=5) is None
     cycle = machine.cycle
     # acknowledged only once the snapshot of the cycle that applied it is here
-    assert svc.read_name("TEMPC::offset_0", 1) == 140.0
+    assert access.read_name(svc, "TEMPC::offset_0", 1) == 140.0
     wait_cycle(machine, cycle + 25)  # temp_comp_n_cycles 20
-    assert svc.read_name("TEMPC::actual_offset", 1) == 140  # 140 − 0.4
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 140  # 140 − 0.4
     st = svc.status()
     assert st["cycle_in"] == "process" and st["mode"] == "realtime"
     assert st["cycle"] >= cycle + 25 and st["cycle_pid"] not in (None, os.getpid())
@@ -116,12 +117,12 @@ def test_errors_and_events_cross_the_process_boundary(remote):
     _, _, svc = remote
     seen = []
     svc.subscribe_events(seen.append)
-    svc.run_nc("G91 G01 X50 F600").result(timeout=5)  # runs for seconds
+    svc.nc.run("G91 G01 X50 F600").result(timeout=5)  # runs for seconds
     with pytest.raises(AdsError) as e:
-        svc.run_nc("G91 G01 X-50 F600").result(timeout=5)
+        svc.nc.run("G91 G01 X-50 F600").result(timeout=5)
     assert e.value.code == 0x708  # refused by the machine in the child, code kept
-    svc.reset().result(timeout=5)
-    svc.run_nc("Y[COMP ON FRICT]").result(timeout=5)  # Y has frict_comp 0: 70495
+    svc.nc.reset().result(timeout=5)
+    svc.nc.run("Y[COMP ON FRICT]").result(timeout=5)  # Y has frict_comp 0: 70495
     end = time.monotonic() + 5
     while not any(ev.diagnostic.error_id == 70495 for ev in seen):
         assert time.monotonic() < end, seen
@@ -143,16 +144,16 @@ def test_reload_swaps_in_the_child_and_here(lists_copy: Path):
             encoding="utf-8",
         )
         before = machine.cfg
-        result = svc.reload()
+        result = svc.commands.reload()
         assert result.ok, result.errors
         assert machine.cfg is not before
         assert machine.cfg.axes[1].params.temp_comp_offset_0 == 90
         cycle = machine.cycle
         wait_cycle(machine, cycle + 25)
-        assert svc.read_name("TEMPC::actual_offset", 1) == 90  # 90 − 0.4
+        assert access.read_name(svc, "TEMPC::actual_offset", 1) == 90  # 90 − 0.4
         # save takes the live values from the snapshot received here
-        svc.write_name("TEMPC::coefficient", 1, 4100.0).result(timeout=5)
-        saved = svc.save()
+        access.write_name(svc, "TEMPC::coefficient", 1, 4100.0).result(timeout=5)
+        saved = svc.commands.save()
         assert saved.ok and saved.files == [str(axis_list)]
         assert "lr_param.temp_comp_coefficient 4100" in axis_list.read_text(encoding="utf-8")
     finally:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from geo_clients.testing import GeoTestServer, check_golden
 
+from geo_server import access
 from geo_server.cli import main as server_main
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
@@ -104,7 +105,7 @@ def test_trigger_grammar(srv):
 def test_recording_every_cycle_holds_what_a_read_returns(srv):
     rec = srv.record("TEMPC::offset_0@X", "SIM::cycle_count", "TEMPC::actual_offset@1")
     srv.step(9)
-    srv.service.write_name("TEMPC::offset_0", 1, 140)  # applied in cycle 10
+    access.write_name(srv.service, "TEMPC::offset_0", 1, 140)  # applied in cycle 10
     srv.step(31)
     trace = rec.stop()
     assert trace.labels == ["TEMPC::offset_0@1", "SIM::cycle_count", "TEMPC::actual_offset@1"]
@@ -131,7 +132,7 @@ def test_every_n_cycles(srv):
 def test_trigger_with_pre_and_post_samples(srv):
     rec = srv.record("TEMPC::offset_0@1", trigger="TEMPC::offset_0@1 > 100", pre=3, post=5, every=1)
     srv.step(9)
-    srv.service.write_name("TEMPC::offset_0", 1, 140)  # cycle 10 fires the trigger
+    access.write_name(srv.service, "TEMPC::offset_0", 1, 140)  # cycle 10 fires the trigger
     srv.step(4)
     assert rec.triggered_at == 10 and not rec.done
     srv.step(10)
@@ -152,7 +153,7 @@ def test_a_rising_edge_trigger_on_an_nc_program(srv):
         post=2,
     )
     srv.step(5)
-    srv.service.run_nc("G91 G01 X1 F6000")  # started in cycle 6
+    srv.service.nc.run("G91 G01 X1 F6000")  # started in cycle 6
     srv.step(10)
     trace = rec.stop()
     assert trace.column("SIM::program_running").tolist() == [0, 0, 1, 1, 1]
@@ -173,7 +174,7 @@ def test_recording_in_a_real_time_machine_has_no_gaps():
     rec = Recorder(service, RecordSpec(["SIM::cycle_count", "SIM::command_position@1"])).start()
     sched.start()
     try:
-        service.run_nc("G91 G01 X2 F6000")
+        service.nc.run("G91 G01 X2 F6000")
         time.sleep(0.4)
     finally:
         trace = rec.stop()
@@ -252,11 +253,11 @@ def _scenario(s: GeoTestServer) -> Recorder:
     rec = s.record(*SELECTION)
     s.step(25)
     s.write("TEMPC::coefficient", 1, 4300.0)
-    s.service.run_nc("G91 G01 X5 Y-3 F3000\nG01 X-2 F6000")
+    s.service.nc.run("G91 G01 X5 Y-3 F3000\nG01 X-2 F6000")
     s.step(400)
     s.write("TWIN::ambient_temperature", 0, 31.5)
     s.step(200)
-    s.service.reset()
+    s.service.nc.reset()
     s.step(100)
     return rec
 
@@ -463,5 +464,5 @@ def test_a_bare_service_needs_no_loop_or_transport():
     m = Machine(load_machine(default_startup_list()), homed=True)
     service = ObjectService(m)
     rec = Recorder(service, RecordSpec(["SIM::cycle_count"])).start()
-    service.step(3)
+    access.step(service, 3)
     assert rec.stop().cycles.tolist() == [1, 2, 3]

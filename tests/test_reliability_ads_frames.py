@@ -24,6 +24,7 @@ import pyads
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.client.ads_client import close_port_first
 from geo_server.dictionary import load_dictionary
 from geo_server.transports.ads import codec
@@ -118,7 +119,7 @@ def plc(server) -> Iterator[pyads.Connection]:
 
 
 def plc_reads(plc: pyads.Connection, service) -> None:
-    expected = service.read_name("TEMPC::coefficient", 1)
+    expected = access.read_name(service, "TEMPC::coefficient", 1)
     assert plc.read(GEO, COEFFICIENT_IO, pyads.PLCTYPE_LREAL) == expected
 
 

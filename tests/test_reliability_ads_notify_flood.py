@@ -151,7 +151,7 @@ def test_notification_flood_is_capped_and_every_transport_keeps_answering(full) 
     ads = full.ads
     assert ads is not None
     per, total = ads.options.max_notifications, ads.options.max_notifications_total
-    addrs = addresses(len(full.service.axes))
+    addrs = addresses(len(full.service.info.axes))
     readers = [Reader(full, via).start() for via in ("ads", "modbus", "zenoh")]
     n_conns = math.ceil(total / per) + 1  # enough to hit the total cap, and one more
     conns = [FloodConnection(ads.port, n) for n in range(n_conns)]

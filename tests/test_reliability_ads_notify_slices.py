@@ -20,6 +20,7 @@ from collections import defaultdict
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.dictionary import load_dictionary
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import (
@@ -70,7 +71,7 @@ def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_t
         async def probe() -> None:
             # The cycle runs here, on the loop's thread, so nothing of the loop runs
             # between it and the iterations counted below.
-            seen["c1"] = service.step(1).cycle  # every registration due: one hand-off
+            seen["c1"] = access.step(service, 1).cycle  # every registration due: one hand-off
             # One loop iteration runs one slice (each slice queues the next with
             # call_soon): wait, one iteration at a time, until the pass has begun; it
             # must then still be unfinished (N registrations take several slices).
@@ -80,7 +81,7 @@ def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_t
                 await asyncio.sleep(0)
             seen["pass_unfinished"] = ads.sampler._pass is not None
             seen["sent"] = ads.stats.notifications_sent
-            seen["c6"] = service.step(5).cycle  # the cycle moves on meanwhile
+            seen["c6"] = access.step(service, 5).cycle  # the cycle moves on meanwhile
 
         run_in(loop_thread, probe())
         c1 = seen["c1"]

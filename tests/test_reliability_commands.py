@@ -13,6 +13,7 @@ import time
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -52,7 +53,7 @@ def test_reload_of_a_fifo_list_is_refused_at_once_over_modbus(loop_thread, lists
         (err,) = [e for e in svc.errors() if "reload rejected" in e["message"]]
         assert "reload rejected, machine unchanged:" in err["message"]
         assert "achsmd1.lis" in err["message"] and "FIFO" in err["message"]
-        assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+        assert access.read_name(svc, "TEMPC::coefficient", 1) == 4000.0
     finally:
         run_in(loop_thread, iface.close())
 
@@ -65,7 +66,7 @@ def test_a_second_command_is_told_busy_within_the_bound(loop_thread, lists_copy)
     release = threading.Event()
 
     def long_command() -> None:  # holds the one command slot, as a slow save would
-        with svc._commands._lock:
+        with svc.commands.lock._lock:
             running.set()
             release.wait(TIMEOUT)
 
@@ -73,13 +74,13 @@ def test_a_second_command_is_told_busy_within_the_bound(loop_thread, lists_copy)
     worker.start()
     try:
         assert running.wait(TIMEOUT)
-        result = svc.save()
+        result = svc.commands.save()
         assert not result.ok and result.code == AdsErrorCode.DEVICE_BUSY
         assert result.errors == ["another reload or save is still running; try again"]
         with pytest.raises(AdsError) as err:
-            run_in(loop_thread, svc.write_name_applied("SIM::reload", 0, 1))
+            run_in(loop_thread, access.write_name_applied(svc, "SIM::reload", 0, 1))
         assert err.value.code == AdsErrorCode.DEVICE_BUSY
     finally:
         release.set()
         worker.join(TIMEOUT)
-    assert svc.reload().ok  # free again
+    assert svc.commands.reload().ok  # free again

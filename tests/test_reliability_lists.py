@@ -30,6 +30,7 @@ from pathlib import Path
 import pytest
 
 import geo_server.listfile.syntax as syntax
+from geo_server import access
 from geo_server.cli import main
 from geo_server.listfile import (
     MAX_LIST_BYTES,
@@ -164,13 +165,13 @@ def test_parse_list_raises_an_oserror_naming_the_line(tmp_path: Path) -> None:
 
 def _service(startup: Path) -> ObjectService:
     svc = ObjectService(Machine(load_machine(startup), homed=True))
-    svc.step(3)
+    access.step(svc, 3)
     return svc
 
 
 def _axis_1_values(svc: ObjectService) -> tuple[object, ...]:
     return tuple(
-        svc.read_name(name, 1)
+        access.read_name(svc, name, 1)
         for name in ("TEMPC::coefficient", "TEMPC::offset_0", "BC::conf. backlash")
     )
 
@@ -190,12 +191,12 @@ def test_rejected_reload_keeps_the_running_values(lists_copy: Path, case: str, r
     assert _axis_1_values(svc) == (4000.0, 40, 1000)
     axis_list = _axis_list(lists_copy)
     axis_list.write_bytes(BAD_AXIS_LISTS[case][0](_lf_text(lists_copy)))
-    result = svc.reload()
+    result = svc.commands.reload()
     assert not result.ok
     [error] = result.errors
     assert error.startswith(str(axis_list)) and reason in error
     assert svc.machine.cfg is cfg_before
-    svc.step(3)
+    access.step(svc, 3)
     assert _axis_1_values(svc) == (4000.0, 40, 1000)
 
 
@@ -375,7 +376,7 @@ def test_fifo_replacing_an_axis_list_fails_the_reload(lists_copy: Path) -> None:
     axis_list.unlink()
     os.mkfifo(axis_list)
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        fut = pool.submit(svc.reload)
+        fut = pool.submit(svc.commands.reload)
         try:
             result = fut.result(timeout=10)
         except concurrent.futures.TimeoutError:
@@ -463,9 +464,9 @@ def test_save_into_a_list_replaced_by_utf16_reports_it(lists_copy: Path) -> None
     axis_list = _axis_list(lists_copy)
     axis_list.write_bytes(_lf_text(lists_copy).encode("utf-16"))
     before = axis_list.read_bytes()
-    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-    svc.step(1)
-    result = svc.save()
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.step(svc, 1)
+    result = svc.commands.save()
     assert not result.ok
     assert result.files == []
     assert result.errors == [f"{axis_list}: {UTF16_BOM}"]

@@ -18,6 +18,7 @@ from collections.abc import Iterator
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.dictionary import load_dictionary
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -165,7 +166,7 @@ def test_a_hundred_pipelined_requests_in_random_segments(loop_thread, machine):
                 assert (tid, unit) == (2 * i + 2, 2)
                 assert list(struct.unpack(">4H", pdu[2:])) == encode(COEF, v), i
             assert nothing_more(s)
-        assert service.read_name("TEMPC::coefficient", 2) == values[-1]
+        assert access.read_name(service, "TEMPC::coefficient", 2) == values[-1]
     finally:
         sched.stop()
         run_in(loop_thread, iface.close())

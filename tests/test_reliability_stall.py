@@ -18,6 +18,7 @@ from collections.abc import Iterator
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
@@ -89,25 +90,25 @@ def quick_to_notice(lists_copy) -> Iterator[Stoppable]:
 def test_a_write_that_timed_out_is_withdrawn_and_never_applied(slow_to_notice, loop_thread):
     m = slow_to_notice
     svc = m.service
-    before = svc.read_name("TEMPC::coefficient", 1)
+    before = access.read_name(svc, "TEMPC::coefficient", 1)
     m.stop_cycle()
     with pytest.raises(AdsError) as err:
-        run_in(loop_thread, svc.write_name_applied("TEMPC::coefficient", 1, before + 111.0))
+        run_in(loop_thread, access.write_name_applied(svc, "TEMPC::coefficient", 1, before + 111.0))
     assert err.value.code == AdsErrorCode.DEVICE_TIMEOUT
     m.resume_cycle()
     resumed = m.machine.cycle
     wait_for(lambda: m.machine.cycle > resumed + 200)
-    assert svc.read_name("TEMPC::coefficient", 1) == before  # withdrawn: never applied
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == before  # withdrawn: never applied
     # and the machine takes writes again
-    run_in(loop_thread, svc.write_name_applied("TEMPC::coefficient", 1, before + 1.0))
-    assert svc.read_name("TEMPC::coefficient", 1) == before + 1.0
+    run_in(loop_thread, access.write_name_applied(svc, "TEMPC::coefficient", 1, before + 1.0))
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == before + 1.0
 
 
 def test_a_modbus_write_answered_busy_never_takes_effect(slow_to_notice, loop_thread):
     m = slow_to_notice
     iface = ModbusInterface(m.service, ModbusOptions(port=0, write_timeout=0.5))
     run_in(loop_thread, iface.start())
-    before = m.service.read_name("TEMPC::coefficient", 2)
+    before = access.read_name(m.service, "TEMPC::coefficient", 2)
     addr = register_address(COEF)
     pdu = struct.pack(">BHHB", 16, addr, 4, 8) + struct.pack(">4H", *encode(COEF, before - 7.5))
     try:
@@ -118,7 +119,7 @@ def test_a_modbus_write_answered_busy_never_takes_effect(slow_to_notice, loop_th
         m.resume_cycle()
         resumed = m.machine.cycle
         wait_for(lambda: m.machine.cycle > resumed + 200)
-        assert m.service.read_name("TEMPC::coefficient", 2) == before
+        assert access.read_name(m.service, "TEMPC::coefficient", 2) == before
     finally:
         run_in(loop_thread, iface.close())
 
@@ -132,7 +133,7 @@ def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, li
     axis1.write_text(text.replace("temp_comp_coefficient 4000", "temp_comp_coefficient 1234"))
     cfg_before = m.machine.cfg
     m.stop_cycle()
-    result = svc.reload()
+    result = svc.commands.reload()
     assert not result.ok and result.code == AdsErrorCode.DEVICE_TIMEOUT
     assert "reload rejected, machine unchanged" in result.message
     m.resume_cycle()
@@ -140,9 +141,9 @@ def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, li
     wait_for(lambda: m.machine.cycle > resumed + 200)
     # the cycle process owns the error list: the rejection is in it once it resumed
     assert any("reload rejected" in e["message"] for e in svc.errors())
-    assert "reload rejected" in svc.read_name("SIM::last_error", 0)
+    assert "reload rejected" in access.read_name(svc, "SIM::last_error", 0)
     assert m.machine.cfg is cfg_before
-    assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == 4000.0
 
 
 def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice, loop_thread):
@@ -162,14 +163,14 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
             svc.read(0x120300, 0x10043)
         assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         with pytest.raises(AdsError) as err:  # refused at once, nothing queued
-            svc.write_name("TEMPC::coefficient", 1, 1.0)
+            access.write_name(svc, "TEMPC::coefficient", 1, 1.0)
         assert err.value.code == AdsErrorCode.DEVICE_NOTREADY
         with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
             s.sendall(read)
             assert s.recv(64) == struct.pack(">HHHB", 4, 0, 3, 1) + b"\x83\x06"
         m.resume_cycle()
         wait_for(lambda: not svc.status()["stalled"])
-        assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+        assert access.read_name(svc, "TEMPC::coefficient", 1) == 4000.0
         with socket.create_connection(("127.0.0.1", iface.port), timeout=TIMEOUT) as s:
             s.sendall(read)
             assert s.recv(64)[7:9] == b"\x03\x08"

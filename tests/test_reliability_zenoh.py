@@ -23,6 +23,7 @@ import zenoh
 from conftest import free_port, run_in
 from robust.harness import FullServer
 
+from geo_server import access
 from geo_server.client.cli import main as client_main
 from geo_server.client.zenoh_client import ServerConflictError, ZenohClient
 from geo_server.dictionary import load_dictionary
@@ -207,7 +208,7 @@ def test_nc_text_over_the_interface_limit_is_0x705_and_the_cycle_runs(loop_threa
             wait_for(lambda: srv.cycle > before + 10, TIMEOUT, "GEO cycles after the refusal")
             assert c.nc("X[COMP OFF TEMP]")["ok"] is True
             wait_for(
-                lambda: srv.service.read_name("TEMPC::activated", 1) is False,
+                lambda: access.read_name(srv.service, "TEMPC::activated", 1) is False,
                 TIMEOUT,
                 "the NC line applied",
             )
@@ -231,13 +232,13 @@ def test_nc_is_parsed_off_the_event_loop(stepped, zs, monkeypatch):
     """The service's NC entry point runs in a worker thread, not on the loop that every
     other query (and ADS, Modbus) shares."""
     threads: list[str] = []
-    original = stepped.service.run_nc
+    original = stepped.service.nc.run
 
     def recording(text: str):
         threads.append(threading.current_thread().name)
         return original(text)
 
-    monkeypatch.setattr(stepped.service, "run_nc", recording)
+    monkeypatch.setattr(stepped.service.nc, "run", recording)
     oks, errs = get(zs, "cnc/t/nc", b"X[COMP OFF TEMP]")
     assert not errs and json.loads(oks[0][1])["ok"] is True
     assert threads and threads[0] != "test-loop", threads  # conftest's loop thread
@@ -254,8 +255,8 @@ def test_wildcard_over_everything_answers_every_readable_key(stepped, zs):
     keys = [k for k, _ in oks]
     assert len(keys) == len(set(keys))
     assert "cnc/t/status" in keys and "cnc/t/errors" in keys
-    assert json.loads(dict(oks)["cnc/t/status"])["axes"] == list(stepped.service.axes)
-    space = KeySpace("t", D, stepped.service.axes)
+    assert json.loads(dict(oks)["cnc/t/status"])["axes"] == list(stepped.service.info.axes)
+    space = KeySpace("t", D, stepped.service.info.axes)
     assert set(keys) == set(space.readable_keys())
     named = space.named_routes()
     write_only = {k for k, r in named.items() if r.obj is not None and not r.obj.readable}
@@ -299,16 +300,16 @@ REFUSED = [
 
 @pytest.mark.parametrize("key,payload", REFUSED)
 def test_writes_of_the_wrong_json_type_are_0x706(stepped, zs, key, payload, caplog):
-    obj = KeySpace("t", D, stepped.service.axes).parse(f"cnc/t/{key}").obj
+    obj = KeySpace("t", D, stepped.service.info.axes).parse(f"cnc/t/{key}").obj
     assert obj is not None
-    before = stepped.service.read_name(obj.name, 1)
+    before = access.read_name(stepped.service, obj.name, 1)
     oks, errs = get(zs, f"cnc/t/{key}", payload)
     assert oks == []
     assert [e["ads_error"] for e in errs] == [0x706], errs
     assert len(errs[0]["message"]) < 300  # names the problem, never echoes 5000 digits
     assert "zenoh query failed" not in caplog.text  # no traceback (it was 0x700)
-    stepped.service.step(2)
-    assert stepped.service.read_name(obj.name, 1) == before
+    access.step(stepped.service, 2)
+    assert access.read_name(stepped.service, obj.name, 1) == before
 
 
 ACCEPTED = [
@@ -328,10 +329,10 @@ ACCEPTED = [
 def test_writes_of_the_right_json_type_still_work(stepped, zs, key, payload, value):
     oks, errs = get(zs, f"cnc/t/{key}", payload)
     assert errs == [] and json.loads(oks[0][1]) == value
-    stepped.service.step(1)
-    obj = KeySpace("t", D, stepped.service.axes).parse(f"cnc/t/{key}").obj
+    access.step(stepped.service, 1)
+    obj = KeySpace("t", D, stepped.service.info.axes).parse(f"cnc/t/{key}").obj
     assert obj is not None
-    assert stepped.service.read_name(obj.name, 1) == value
+    assert access.read_name(stepped.service, obj.name, 1) == value
 
 
 def test_geo_client_write_still_takes_command_line_text(stepped, capsys):
@@ -346,8 +347,8 @@ def test_geo_client_write_still_takes_command_line_text(stepped, capsys):
         ("TEMPC::activated", "1", True),
     ]:
         assert client_main([*base, "write", "--axis", "1", name, text]) == 0, name
-        svc.step(1)
-        assert svc.read_name(name, 1) == value
+        access.step(svc, 1)
+        assert access.read_name(svc, name, 1) == value
     capsys.readouterr()
     assert client_main([*base, "write", "--axis", "1", "TEMPC::coefficient", "abc"]) == 1
     assert "ADS 0x706" in capsys.readouterr().err

@@ -27,6 +27,7 @@ import time
 
 from robust.harness import TIMEOUT, FullServer, next_netid
 
+from geo_server import access
 from geo_server.client import connect
 
 VIAS = ("zenoh", "modbus", "ads")
@@ -55,11 +56,11 @@ def test_concurrent_writers_on_all_transports(loop_thread, lists_copy):
         watched = [(OWN, k) for k in (1, 2, 3)] + [(SHARED, SHARED_AXIS)]
 
         def on_change(changed: dict) -> None:  # cycle thread, after every cycle
-            cycle = service.snapshot.cycle
+            cycle = service.current(stale_ok=True).cycle
             for key, value in changed.items():
                 observed.setdefault(key, []).append((cycle, value))
 
-        initial = {key: service.read_name(*key) for key in watched}
+        initial = {key: access.read_name(service, *key) for key in watched}
         unsubscribe = service.subscribe_changes(watched, on_change)
         time.sleep(0.05)  # the observer's first call reports the initial values
         assert all(observed[key] for key in watched)
@@ -155,7 +156,7 @@ def test_concurrent_writers_on_all_transports(loop_thread, lists_copy):
             }
             for key, value in final.items():
                 assert value != initial[key]
-                assert service.read_name(*key) == value, key
+                assert access.read_name(service, *key) == value, key
                 for via, c in clients.items():
                     assert c.read(*key) == value, (via, key)
 

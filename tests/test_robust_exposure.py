@@ -125,7 +125,7 @@ def test_option_defaults_are_loopback():
     assert AdsOptions().host == LOOPBACK
     args = build_parser().parse_args(["run"])
     assert args.modbus_host == LOOPBACK and args.ads_host == LOOPBACK
-    assert args.zenoh_listen is None  # -> ZenohOptions' tcp/127.0.0.1:7447 (cli._zenoh)
+    assert args.zenoh_listen is None  # -> ZenohOptions' tcp/127.0.0.1:7447 (compose._zenoh_options)
     assert args.zenoh_scouting is False and not args.zenoh_connect
     assert not (args.read_only or args.zenoh_read_only or args.modbus_read_only)
     assert not args.ads_read_only

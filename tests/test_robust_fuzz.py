@@ -22,6 +22,7 @@ import pytest
 import zenoh
 from robust.harness import CHECKER_AXIS, TIMEOUT, Checker, FullServer
 
+from geo_server import access
 from geo_server.client.zenoh_client import client_config
 from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsAddr, Command
@@ -56,7 +57,7 @@ def run_with_checkers(srv: FullServer, fuzz) -> dict:
     assert srv.scheduler.running and srv.scheduler.cycle_errors == 0
     # the fuzzed transport did not change what the checkers own
     for c in checkers:
-        assert srv.service.read_name(c.name, CHECKER_AXIS) == c.value(c.rounds)
+        assert access.read_name(srv.service, c.name, CHECKER_AXIS) == c.value(c.rounds)
     return stats
 
 

@@ -283,7 +283,7 @@ def test_a_fleet_fits_its_ports_under_the_limit() -> None:
 import argparse, resource, sys
 resource.setrlimit(resource.RLIMIT_NOFILE, (int(sys.argv[1]), int(sys.argv[1])))
 from geo_server.descriptors import RESERVE, DescriptorError, open_descriptors
-from geo_server.fleet import FLEET_BACKLOG, connection_caps
+from geo_server.compose import FLEET_BACKLOG, connection_caps
 from geo_server.transports.tcp import BACKLOG
 args = argparse.Namespace(no_zenoh=False, no_modbus=False, no_ads=False, http=None, no_opcua=True)
 try:

@@ -31,6 +31,7 @@ from conftest import run_in
 from test_volcomp import add_volc, smooth_files
 from test_zenoh_commands import OCTET, Served, get
 
+from geo_server import access
 from geo_server.client.ads_client import close_port_first
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsErrorCode
@@ -144,9 +145,9 @@ def serves(r: Rig) -> None:
     assert not errs and json.loads(oks[0][1]) == 4000.0
     oks, errs = get(r.zenoh.session, "cnc/t/cmd/reload", b"{}", JSON)
     assert not errs and json.loads(oks[0][1])["ok"] is True, errs
-    r.service.step(1)
-    r.service.write_name("TEMPC::coefficient", 1, 4001.0)
-    r.service.step(1)
+    access.step(r.service, 1)
+    access.write_name(r.service, "TEMPC::coefficient", 1, 4001.0)
+    access.step(r.service, 1)
     oks, errs = get(r.zenoh.session, "cnc/t/cmd/save", b"{}", JSON)
     assert not errs and json.loads(oks[0][1])["files"] == [str(r.folder / "achsmd1.lis")], errs
 
@@ -199,7 +200,7 @@ def test_every_refused_name_gets_one_answer_on_every_interface(rig: Rig) -> None
     try:
         for what, name in _names(r).items():
             assert r.write_ads(name) == AdsErrorCode.DEVICE_SYNTAX, what  # 0x70D
-            r.service.step(1)  # the error list takes the report at the next cycle
+            access.step(r.service, 1)  # the error list takes the report at the next cycle
             assert r.last_error() == LAST_ERROR, what
             body = r.write_zenoh(name)
             assert body == {
@@ -219,7 +220,7 @@ def test_every_refused_name_gets_one_answer_on_every_interface(rig: Rig) -> None
     said = r.everything_said()
     assert SECRET not in said and "/etc" not in said and "outside" not in said
     assert "FIFO" not in said and "device" not in said and "not found" not in said
-    assert r.service.read_name("VOLC::available", 0) == 1  # compensation 0 unchanged
+    assert access.read_name(r.service, "VOLC::available", 0) == 1  # compensation 0 unchanged
     serves(r)
 
 
@@ -241,8 +242,8 @@ def test_a_name_inside_the_folders_still_updates(rig: Rig) -> None:
         (str(r.allowed / "v.lis"), r.allowed / "v.lis"),
     ):
         assert r.write_ads(name) == 0, (name, r.last_error())
-        r.service.step(1)
-        assert r.service.read_name("VOLC::file", 0) == str(shown)
+        access.step(r.service, 1)
+        assert access.read_name(r.service, "VOLC::file", 0) == str(shown)
 
 
 def test_a_fifo_never_blocks_the_update_reload_or_save(rig: Rig) -> None:
@@ -258,10 +259,10 @@ def test_a_fifo_never_blocks_the_update_reload_or_save(rig: Rig) -> None:
         "correction file fifo.csv unreadable: is a FIFO, not a regular file" in (errs[0]["message"])
     )
     assert r.write_ads("volc0.lis") == AdsErrorCode.DEVICE_SYNTAX
-    r.service.step(1)
+    access.step(r.service, 1)
     assert "is a FIFO, not a regular file" in r.last_error()
-    r.service.write_name("TEMPC::coefficient", 1, 4002.0)
-    r.service.step(1)
+    access.write_name(r.service, "TEMPC::coefficient", 1, 4002.0)
+    access.step(r.service, 1)
     oks, errs = get(r.zenoh.session, "cnc/t/cmd/save", b"{}", JSON)
     assert not errs and json.loads(oks[0][1])["ok"] is True
 
@@ -334,14 +335,14 @@ def test_nc_volcomp_update_reads_only_inside(rig: Rig) -> None:
     assert not errs, errs
     m = r.service.machine
     for _ in range(100_000):  # the files are read in a worker thread: step until it is done
-        r.service.step(1)
+        access.step(r.service, 1)
         if m.player is None or not m.player.running:
             break
     assert m.player is None or not m.player.running
     last = r.last_error()
     assert "#VOLCOMP [ID0 UPDATE] failed, compensation unchanged" in last
     assert REFUSED in last and SECRET not in r.everything_said()
-    assert r.service.read_name("VOLC::available", 0) == 1
+    assert access.read_name(r.service, "VOLC::available", 0) == 1
     (r.folder / "volc0.lis").write_text(smooth_files(r.folder), encoding="utf-8")
     serves(r)
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 from geo_clients.testing import GeoTestServer
 
+from geo_server import access
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.port import WriteObjects
@@ -55,7 +56,7 @@ def refused(srv: GeoTestServer, body: dict) -> AdsError:
     with pytest.raises(AdsError) as info:
         record(srv, body)
     assert info.value.code == INVALID, info.value  # never 0x700
-    assert srv.service.recording is None
+    assert srv.service.recordings.recording is None
     return info.value
 
 
@@ -172,7 +173,7 @@ def test_the_command_line_sets_the_folder_and_a_fleet_gets_one_per_machine(tmp_p
     with GeoTestServer(lists_copy) as srv:
         args = argparse.Namespace(record_dir=str(tmp_path / "rec"), record=None)
         assert recorder_cli.start_from_args(args, srv.service)
-        assert srv.service.record_dir == tmp_path / "rec"
+        assert srv.service.recordings.record_dir == tmp_path / "rec"
         srv.start("zenoh")
         record(srv, start("a.csv"))
         record(srv, {"stop": True})
@@ -245,12 +246,12 @@ def test_a_recording_of_every_object_streams_in_bounded_memory(tmp_path, suffix)
     the same cycles holds."""
     with GeoTestServer(record_dir=tmp_path) as srv:
         svc = srv.service
-        svc.start_recording({"objects": ["*"], "samples": 10_000_000}, f"long{suffix}")
-        long_ring = svc.recording.buffer_bytes
-        svc.stop_recording()
-        svc.run_nc("G91 G01 X1 Y-1 F6000")  # moving: values change every cycle
-        svc.start_recording({"objects": ["*"]}, f"star{suffix}", srv.machine_name)
-        rec = svc.recording
+        svc.recordings.start({"objects": ["*"], "samples": 10_000_000}, f"long{suffix}")
+        long_ring = svc.recordings.recording.buffer_bytes
+        svc.recordings.stop()
+        svc.nc.run("G91 G01 X1 Y-1 F6000")  # moving: values change every cycle
+        svc.recordings.start({"objects": ["*"]}, f"star{suffix}", srv.machine_name)
+        rec = svc.recordings.recording
         mem = srv.record("*")
         assert rec.buffer_bytes == long_ring <= LIMITS.buffer_bytes
         assert rec.capacity == 1 + ROOM_CHUNKS * rec.chunk < 3000
@@ -261,7 +262,7 @@ def test_a_recording_of_every_object_streams_in_bounded_memory(tmp_path, suffix)
         assert not (tmp_path / f"star{suffix}").exists()
         temps = [p for p in tmp_path.iterdir() if p.name.startswith(f".star{suffix}.")]
         assert len(temps) == 1 and temps[0].stat().st_size > 0
-        done = svc.stop_recording()
+        done = svc.recordings.stop()
         golden = mem.stop()
     assert done["rows"] == 3000 and done["dropped"] == 0
     streamed = load_trace(tmp_path / f"star{suffix}")
@@ -278,15 +279,15 @@ def test_a_triggered_recording_streams_what_an_in_memory_one_holds(tmp_path):
     with GeoTestServer(record_dir=tmp_path) as srv:
         svc = srv.service
         spec = {"objects": ["TEMPC::*@1", "SIM::cycle_count"], "trigger": "SIM::cycle_count > 500"}
-        svc.start_recording({**spec, "pre": 300, "post": 5000}, "t.csv", srv.machine_name)
-        rec = svc.recording
+        svc.recordings.start({**spec, "pre": 300, "post": 5000}, "t.csv", srv.machine_name)
+        rec = svc.recordings.recording
         mem = srv.record(*spec["objects"], trigger=spec["trigger"], pre=300, post=5000)
         srv.step(450)
         assert rec.status()["waiting"] and rec.status()["rows"] == 300
         assert rec._written == 0  # awaiting the trigger, only the ring holds them
-        srv.service.write_name("TEMPC::offset_0", 1, 140)
+        access.write_name(srv.service, "TEMPC::offset_0", 1, 140)
         srv.step(2000)
-        done = svc.stop_recording()
+        done = svc.recordings.stop()
         golden = mem.stop()
     streamed = load_trace(tmp_path / "t.csv")
     assert done["rows"] == len(golden) == 300 + 1 + 1949
@@ -304,16 +305,16 @@ def test_a_real_time_recording_to_a_file_has_no_gaps(tmp_path):
     m = Machine(load_machine(default_startup_list()), homed=True)
     sched = Scheduler(m, mode="realtime", engine="exact")
     service = ObjectService(m, sched)
-    service.record_dir = tmp_path
-    service.start_recording({"objects": ["SIM::cycle_count", "TEMPC::*@1"]}, "rt.csv")
+    service.recordings.record_dir = tmp_path
+    service.recordings.start({"objects": ["SIM::cycle_count", "TEMPC::*@1"]}, "rt.csv")
     sched.start()
     try:
-        service.run_nc("G91 G01 X2 F6000")
+        service.nc.run("G91 G01 X2 F6000")
         deadline = time.monotonic() + 30
-        while service.recording.status()["rows"] < 300 and time.monotonic() < deadline:
+        while service.recordings.recording.status()["rows"] < 300 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
-        done = service.stop_recording()
+        done = service.recordings.stop()
         sched.stop()
     trace = load_trace(tmp_path / "rt.csv")
     assert done["dropped"] == 0 and done["rows"] == len(trace) >= 300
@@ -327,12 +328,12 @@ def test_inputs_while_the_trigger_is_awaited_are_bounded(tmp_path):
     limit = 64 * 1024
     with GeoTestServer(record_dir=tmp_path) as srv:
         svc = srv.service
-        svc.record_limits = RecorderLimits(input_buffer_bytes=limit)
+        svc.recordings.limits = RecorderLimits(input_buffer_bytes=limit)
         never = {"objects": ["SIM::cycle_count"], "trigger": "SIM::cycle_count < 0"}
-        svc.start_recording(never, "never.csv")
-        rec = svc.recording
+        svc.recordings.start(never, "never.csv")
+        rec = svc.recordings.recording
         spec = RecordSpec(never["objects"], trigger=never["trigger"])
-        mem = Recorder(svc, spec, limits=svc.record_limits).start()  # in memory: the same
+        mem = Recorder(svc, spec, limits=svc.recordings.limits).start()  # in memory: the same
         for _ in range(40):
             for k in range(100):
                 svc.machine.submit(WriteObjects((("TEMPC::offset_0", 1, 40 + k),)))
@@ -344,7 +345,7 @@ def test_inputs_while_the_trigger_is_awaited_are_bounded(tmp_path):
         kept = mem.inputs
         assert kept[-1]["items"] == [["TEMPC::offset_0", 1, 139]]  # the newest are kept
         mem.stop()
-        svc.stop_recording()
+        svc.recordings.stop()
     lines = load_inputs(tmp_path / "never.inputs.jsonl")
     assert len(lines) == st["inputs"]
 

@@ -15,6 +15,7 @@ import zenoh
 from test_zenoh_commands import OCTET, Served, get
 
 import geo_server.paths
+from geo_server import access
 from geo_server.errors import AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -47,9 +48,9 @@ def test_save_refuses_the_installed_default_machine(tmp_path: Path, monkeypatch)
     svc = ObjectService(Machine(load_machine(lists / "hochlauf.lis"), homed=True))
     axis_list = lists / "achsmd1.lis"
     before = axis_list.read_bytes()
-    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-    svc.step(1)
-    result = svc.save()
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.step(svc, 1)
+    result = svc.commands.save()
     assert not result.ok
     assert result.files == []
     assert result.errors == [_refusal(lists / "hochlauf.lis")]
@@ -64,9 +65,9 @@ def test_save_refuses_the_checkout_default_machine(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(geo_server.paths, "CHECKOUT", tmp_path)
     svc = ObjectService(Machine(load_machine(lists / "hochlauf.lis"), homed=True))
     before = _digests(lists)
-    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-    svc.step(1)
-    result = svc.save()
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.step(svc, 1)
+    result = svc.commands.save()
     assert (result.ok, result.files) == (False, [])
     assert result.errors == [_refusal(lists / "hochlauf.lis")]
     assert _digests(lists) == before
@@ -86,9 +87,9 @@ def test_an_axis_list_of_the_default_machine_named_from_elsewhere_is_not_saved(t
     assert cfg.axes[1].params.path == str(shipped / "achsmd1.lis")
     before = _digests(shipped)
     svc = ObjectService(Machine(cfg, homed=True))
-    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-    svc.step(1)
-    result = svc.save()
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.step(svc, 1)
+    result = svc.commands.save()
     assert (result.ok, result.files) == (False, [])
     assert result.errors == [_refusal(shipped / "achsmd1.lis")]
     assert _digests(shipped) == before
@@ -109,8 +110,8 @@ def test_saving_this_checkouts_default_machine_over_zenoh_is_refused(loop_thread
         ):
             for change in (False, True):
                 if change:
-                    svc.write_name("TEMPC::coefficient", 1, 1234.5)
-                    svc.step(1)
+                    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+                    access.step(svc, 1)
                 oks, errs = get(s.session, key, payload, encoding)
                 assert not oks and len(errs) == 1, (key, oks, errs)
                 assert errs[0]["ads_error"] == AdsErrorCode.DEVICE_ERROR, errs

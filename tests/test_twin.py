@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import run_in
 
+from geo_server import access
 from geo_server.errors import AdsError
 from geo_server.listfile import ListFileError, load_machine
 from geo_server.machine.machine import Machine
@@ -46,12 +47,12 @@ def service(startup: Path, **options) -> ObjectService:
 
 
 def value(svc: ObjectService, name: str, axis: int = 1) -> float:
-    return float(svc.read_name(name, axis))
+    return float(access.read_name(svc, name, axis))
 
 
 def jump(svc: ObjectService, position: int) -> None:
-    svc.write_name("SIM::set_position", 1, position)
-    svc.step(1)
+    access.write_name(svc, "SIM::set_position", 1, position)
+    access.step(svc, 1)
 
 
 # ---------------------------------------------------------------------- geometry
@@ -84,13 +85,13 @@ def test_reversal_and_linear_error_by_hand(tmp_path):
             "[axis.X]\nreversal = 8.0\nlinear = { offset = 0.0, slope = 20.0, reference = 0.0 }\n",
         )
     )
-    svc.write_name("SIM::target_position", 1, 1_000_000)
-    svc.step(2000)
+    access.write_name(svc, "SIM::target_position", 1, 1_000_000)
+    access.step(svc, 2000)
     assert value(svc, "TWIN::residual") == pytest.approx(20, abs=1e-9)  # 20e-6 · 1e6
-    svc.write_name("SIM::target_position", 1, 1_200_000)
-    svc.step(2000)
-    svc.write_name("SIM::target_position", 1, 1_000_000)
-    svc.step(2000)
+    access.write_name(svc, "SIM::target_position", 1, 1_200_000)
+    access.step(svc, 2000)
+    access.write_name(svc, "SIM::target_position", 1, 1_000_000)
+    access.step(svc, 2000)
     assert value(svc, "TWIN::residual") == pytest.approx(20 + 80, abs=1e-9)
 
 
@@ -124,7 +125,7 @@ def test_the_exponential_at_t_tau(tmp_path):
     10 µm/m/K about 0, X at 100 mm is 10e-6 · 6.3212 K · 100 mm = 6.3212 µm long."""
     svc = service(one_axis(tmp_path, THERMAL))
     jump(svc, 1_000_000)
-    svc.step(999)  # 1000 cycles in all
+    access.step(svc, 999)  # 1000 cycles in all
     assert value(svc, "TWIN::time", 0) == pytest.approx(100.0, abs=1e-9)
     expected_temp = 30 - 10 * math.exp(-1)  # 26.3212
     assert value(svc, "TWIN::sensor_temperature") == pytest.approx(round(expected_temp, 3))
@@ -141,12 +142,12 @@ def test_same_seed_same_numbers_whatever_the_time_scale_option(tmp_path):
     runs = []
     for _ in range(2):
         svc = service(startup)
-        svc.write_name("SIM::target_position", 1, 2_000_000)
-        svc.step(3000)
+        access.write_name(svc, "SIM::target_position", 1, 2_000_000)
+        access.step(svc, 3000)
         runs.append([value(svc, n) for n in ("TWIN::sensor_temperature", "TWIN::true_position")])
     assert runs[0] == runs[1]
     fast = service(startup, time_scale=1000.0)
-    fast.step(100)
+    access.step(fast, 100)
     assert value(fast, "TWIN::time", 0) == pytest.approx(100.0)
 
 
@@ -186,7 +187,7 @@ def test_a_bad_twin_file_fails_the_start_and_the_reload_keeps_the_old_twin(tmp_p
     with pytest.raises(ListFileError) as err:
         load_machine(startup)
     assert f"{tmp_path / 'twin.toml'}:2:" in str(err.value)
-    result = svc.reload()
+    result = svc.commands.reload()
     assert not result.ok and "twin.toml:2" in result.message
     twin_before = svc.machine.cfg.twin
     assert twin_before is not None and twin_before.axes["X"].reversal == 5.0
@@ -195,11 +196,11 @@ def test_a_bad_twin_file_fails_the_start_and_the_reload_keeps_the_old_twin(tmp_p
 def test_a_reload_keeps_the_temperatures(tmp_path):
     startup = one_axis(tmp_path, THERMAL)
     svc = service(startup)
-    svc.step(500)  # 50 s: 30 − 10·e^−0.5 = 23.935 °C
+    access.step(svc, 500)  # 50 s: 30 − 10·e^−0.5 = 23.935 °C
     warm = value(svc, "TWIN::sensor_temperature")
     assert warm == pytest.approx(round(30 - 10 * math.exp(-0.5), 3))
-    assert svc.reload().ok
-    svc.step(1)
+    assert svc.commands.reload().ok
+    access.step(svc, 1)
     assert value(svc, "TWIN::sensor_temperature") == pytest.approx(warm, abs=0.01)
 
 
@@ -210,16 +211,16 @@ def test_a_reload_keeps_the_ambient_profile_and_the_chamber(tmp_path):
         tmp_path, THERMAL.replace("ambient = [[0, 30.0]]", "ambient = [[0, 20.0], [100, 30.0]]")
     )
     svc = service(startup)
-    svc.step(500)  # 50 s: the profile says 25 °C
-    assert svc.reload().ok
+    access.step(svc, 500)  # 50 s: the profile says 25 °C
+    assert svc.commands.reload().ok
     assert value(svc, "TWIN::ambient_temperature", 0) == pytest.approx(25.0)
-    svc.write_name("TWIN::soak", 0, 1)
-    svc.step(2)
+    access.write_name(svc, "TWIN::soak", 0, 1)
+    access.step(svc, 2)
     assert value(svc, "TWIN::sensor_temperature") == pytest.approx(25.0, abs=0.01)
-    svc.write_name("TWIN::ambient_temperature", 0, 40.0)
-    svc.step(1)
-    assert svc.reload().ok
-    svc.step(1000)  # 100 s later the profile would say 30 °C; the chamber holds 40
+    access.write_name(svc, "TWIN::ambient_temperature", 0, 40.0)
+    access.step(svc, 1)
+    assert svc.commands.reload().ok
+    access.step(svc, 1000)  # 100 s later the profile would say 30 °C; the chamber holds 40
     assert value(svc, "TWIN::ambient_temperature", 0) == 40.0
 
 
@@ -230,11 +231,11 @@ def test_out_of_the_box_compensation_on_and_off_differ(default_cfg):
     """The default lists are what a commissioning at 20 °C of the default twin gives:
     with them on, X at 123.45 mm is within a few µm; with them off, ~0.5 mm off."""
     svc = ObjectService(Machine(default_cfg, homed=True))
-    svc.write_name("SIM::target_position", 1, 1_234_500)
-    svc.step(3000)
+    access.write_name(svc, "SIM::target_position", 1, 1_234_500)
+    access.step(svc, 3000)
     on = value(svc, "TWIN::residual")
-    svc.run_nc("X[COMP OFF_ALL]")
-    svc.step(200)
+    svc.nc.run("X[COMP OFF_ALL]")
+    access.step(svc, 200)
     off = value(svc, "TWIN::residual")
     assert abs(on) < 30  # 3 µm: cyclic error, scatter, the temperature line's 2nd order
     assert abs(off) > 4000  # 0.4 mm: the manual's 4000 µm/m temperature line, the pitch
@@ -253,8 +254,8 @@ def test_twin_objects_over_every_transport(loop_thread, default_cfg):
     from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
     svc = ObjectService(Machine(default_cfg, homed=True))
-    svc.write_name("SIM::target_position", 1, 654_321)
-    svc.step(2000)
+    access.write_name(svc, "SIM::target_position", 1, 654_321)
+    access.step(svc, 2000)
     expected = value(svc, "TWIN::true_position")
     ep = f"tcp/127.0.0.1:{free_port()}"
     ifaces = [
@@ -275,7 +276,7 @@ def test_twin_objects_over_every_transport(loop_thread, default_cfg):
             raw = a.read_raw(0x12F300, (1 << 16) | 0x11, 8)
             assert struct.unpack("<d", raw)[0] == expected
         with pytest.raises(AdsError):  # read-only
-            svc.write_name("TWIN::true_position", 1, 0)
+            access.write_name(svc, "TWIN::true_position", 1, 0)
     finally:
         for iface in reversed(ifaces):
             run_in(loop_thread, iface.close())

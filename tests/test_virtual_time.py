@@ -18,6 +18,7 @@ import random
 import numpy as np
 import pytest
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
@@ -274,7 +275,7 @@ def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> 
     vc, m, sched = driven(cfg)
     svc = ObjectService(m, sched)
     vc.t += 5 * P
-    assert svc.read_name("SIM::cycle_count") == 5
+    assert access.read_name(svc, "SIM::cycle_count") == 5
     held, release = threading.Event(), threading.Event()
 
     def hold() -> None:
@@ -288,15 +289,15 @@ def test_a_catch_up_that_cannot_happen_in_time_is_not_served_as_current(cfg) -> 
         assert held.wait(5)
         vc.t += 5 * P
         with pytest.raises(AdsError) as err:
-            svc.read_name("SIM::cycle_count")
+            access.read_name(svc, "SIM::cycle_count")
         assert err.value.code == 0x707
         with pytest.raises(AdsError) as err:
-            svc.write_name("TEMPC::offset_0", 1, 60)
+            access.write_name(svc, "TEMPC::offset_0", 1, 60)
         assert err.value.code == 0x707
     finally:
         release.set()
         t.join(5)
-    assert svc.read_name("SIM::cycle_count") == 10
+    assert access.read_name(svc, "SIM::cycle_count") == 10
 
 
 def test_a_status_is_an_observation_too(cfg) -> None:

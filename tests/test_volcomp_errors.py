@@ -27,6 +27,7 @@ from conftest import run_in
 from test_volcomp import add_volc, smooth_files, value
 from test_zenoh_commands import JSON, Served, get
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.listfile.checks import EMU_VOLC_ERROR
 from geo_server.machine.machine import Machine
@@ -134,8 +135,8 @@ def test_the_m30_error_reaches_zenoh_and_the_web_hmi(loop_thread, lists_copy: Pa
     hmi = HmiServer(s.service, HmiOptions(port=0, machine="t"))
     run_in(loop_thread, hmi.start())
     try:
-        s.service.run_nc("#VOLCOMP ON [ID0 NO_MOVE]\nM30\n")
-        s.service.step(4)
+        s.service.nc.run("#VOLCOMP ON [ID0 NO_MOVE]\nM30\n")
+        access.step(s.service, 4)
 
         def linked_errors(events: list[dict]) -> list[tuple[int, str, int]]:
             return [
@@ -232,13 +233,13 @@ def test_incorrect_over_zenoh_with_the_drive_switched_by_a_zenoh_write(
     m = machine(lists_copy, smooth_files(lists_copy.parent))
     s = Served(loop_thread, ObjectService(m))
     try:
-        s.service.run_nc("#VOLCOMP ON [ID0 NO_MOVE]\n")
-        s.service.step(3)
+        s.service.nc.run("#VOLCOMP ON [ID0 NO_MOVE]\n")
+        access.step(s.service, 3)
         oks, errs = get(s.session, "cnc/t/sim/machine/volc_incorrect")
         assert not errs and json.loads(oks[0][1]) == 0
         oks, errs = get(s.session, "cnc/t/sim/axis/2/drive_enable", b"false", JSON)
         assert not errs, errs
-        s.service.step(2)
+        access.step(s.service, 2)
         oks, errs = get(s.session, "cnc/t/sim/machine/volc_incorrect")
         assert not errs and json.loads(oks[0][1]) == 1
         oks, errs = get(s.session, "cnc/t/sim/machine/volc_active")

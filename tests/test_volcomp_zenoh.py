@@ -12,6 +12,7 @@ import pytest
 from test_volcomp import add_volc, smooth_files
 from test_zenoh_commands import JSON, OCTET, Served, get, get_err
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
@@ -37,7 +38,7 @@ def test_enable_update_disable_through_zenoh(served_volc: Served) -> None:
     s, svc = served_volc, served_volc.service
     oks, errs = get(s.session, "cnc/t/ads/553/0x120100/0x291", struct.pack("<H", 0), OCTET)
     assert not errs and len(oks) == 1
-    svc.step(6)  # filter_steps 4
+    access.step(svc, 6)  # filter_steps 4
     assert value(s, "cnc/t/sim/machine/volc_active") == 1
     # EXX = 2e-5·x at x = 100 mm: −2e-5·100/1.00002 mm = −19.9996 increments
     assert value(s, "cnc/t/sim/axis/1/volc_correction") == -20
@@ -49,18 +50,18 @@ def test_enable_update_disable_through_zenoh(served_volc: Served) -> None:
     )
     oks, errs = get(s.session, "cnc/t/com/cnc_interpr_vol_comp_index_w", b"0", JSON)
     assert not errs
-    svc.step(1)
+    access.step(svc, 1)
     path = str(folder / "v2.lis").encode() + b"\0"
     oks, errs = get(s.session, "cnc/t/ads/553/0x120100/0x27c", path, OCTET)
     assert not errs, errs
-    svc.step(1)
+    access.step(svc, 1)
     assert value(s, "cnc/t/sim/machine/volc_file") == str(folder / "v2.lis")
     assert value(s, "cnc/t/sim/machine/volc_active") == 0  # switched off by the update
     get(s.session, "cnc/t/com/cnc_vol_comp_enable_index_w", b"0", JSON)
-    svc.step(6)
+    access.step(svc, 6)
     assert value(s, "cnc/t/sim/axis/1/volc_correction") == -40
     get(s.session, "cnc/t/com/cnc_vol_comp_disable_index_w", b"0", JSON)
-    svc.step(6)
+    access.step(svc, 6)
     assert value(s, "cnc/t/sim/machine/volc_active") == 0
 
 

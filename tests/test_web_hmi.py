@@ -21,6 +21,7 @@ import aiohttp
 import pytest
 from conftest import RUN_HTTP_ONLY
 
+from geo_server import access
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -116,7 +117,7 @@ def open_page(browser, served):
     pg.errors = []
     pg.on("pageerror", lambda e: pg.errors.append(str(e)))
     pg.goto(served.page_url)
-    last = served.service.axes[-1]
+    last = served.service.info.axes[-1]
     pg.wait_for_selector(
         f"#axis-{last} .v[data-f='command_position']:not(:text('–'))", timeout=WAIT_MS
     )
@@ -183,7 +184,7 @@ def test_the_page_shows_every_axis_live(page, served):
 def test_a_value_changes_when_the_axis_moves(page, served, tmp_path):
     from playwright.sync_api import expect
 
-    served.service.run_nc("G90 G01 X10 Y-5 F6000")  # 10 mm at 100 mm/s
+    served.service.nc.run("G90 G01 X10 Y-5 F6000")  # 10 mm at 100 mm/s
     expect(cell(page, 1, "command_position")).to_have_text("10.0000 mm", timeout=WAIT_MS)
     expect(cell(page, 2, "command_position")).to_have_text("-5.0000 mm", timeout=WAIT_MS)
     # the tables' marker follows: the cross table of Z over X and the plane over X/Y
@@ -202,17 +203,17 @@ def test_a_tempc_edit_reaches_the_server(page, served):
     box.fill("4321.5")
     box.press("Enter")
     expect(page.locator("#tempc-msg-1")).to_have_text("TEMPC::coefficient := 4321.5")
-    assert served.service.read_name("TEMPC::coefficient", 1) == 4321.5
+    assert access.read_name(served.service, "TEMPC::coefficient", 1) == 4321.5
     off = tempc_input(page, 3, "TEMPC::offset_0")
     off.fill("-25")
     off.press("Enter")
     expect(page.locator("#tempc-msg-3")).to_have_text("TEMPC::offset_0 := -25")
-    assert served.service.read_name("TEMPC::offset_0", 3) == -25
+    assert access.read_name(served.service, "TEMPC::offset_0", 3) == -25
     expect(page.locator("#axis-3 .hint[data-hint='offset_0']")).to_have_text("= -2.5 µm")
     # a flag: the checkbox switches the temperature compensation of C on
     tempc_input(page, 4, "TEMPC::activated").check()
     expect(page.locator("#tempc-msg-4")).to_have_text("TEMPC::activated := true")
-    assert served.service.read_name("TEMPC::activated", 4) is True
+    assert access.read_name(served.service, "TEMPC::activated", 4) is True
 
 
 def test_an_out_of_range_edit_shows_the_servers_error(page, served):
@@ -227,11 +228,11 @@ def test_an_out_of_range_edit_shows_the_servers_error(page, served):
         "ADS 0x706: TEMPC::coefficient: 20000 outside the range -10000 … 10000 [µm/m]"
     )
     expect(page.locator("#tempc-msg-1")).to_have_class("msg error")
-    assert served.service.read_name("TEMPC::coefficient", 1) == 4000.0
+    assert access.read_name(served.service, "TEMPC::coefficient", 1) == 4000.0
     box.fill("abc")
     box.press("Enter")
     expect(page.locator("#tempc-msg-1")).to_have_text("TEMPC::coefficient: 'abc' is not a number")
-    assert served.service.read_name("TEMPC::coefficient", 1) == 4000.0
+    assert access.read_name(served.service, "TEMPC::coefficient", 1) == 4000.0
 
 
 def test_save_and_reload_buttons(page, served):
@@ -254,7 +255,7 @@ def test_save_and_reload_buttons(page, served):
     page.wait_for_function(f"() => {x_lsec} === 2.5", timeout=WAIT_MS)
     # … and by a reload from another interface (the page is told to fetch the tables)
     kw1.write_text(kw1.read_text().replace("table[1].pos 25 ", "table[1].pos -5 "))
-    assert served.service.run_command("reload").ok
+    assert served.service.commands.run("reload").ok
     page.wait_for_function(f"() => {x_lsec} === -0.5", timeout=WAIT_MS)
     # the saved coefficient came back with the lists
     expect(tempc_input(page, 2, "TEMPC::coefficient")).to_have_value("33.5")
@@ -268,7 +269,7 @@ def test_new_errors_and_faults_show_up(page, served):
     expect(first).to_contain_text("coolant pressure low (from the test)", timeout=WAIT_MS)
     expect(first.locator("td").nth(1)).to_have_text("error")
     expect(first.locator("td").nth(2)).to_have_text("4711")
-    served.service.inject_fault("ads:error=0x707,count=2")
+    served.service.faults.inject("ads:error=0x707,count=2")
     expect(page.locator("#faults")).to_have_text(
         "Injected faults: #1 ads:error=0x707,count=2 (0 hits)", timeout=WAIT_MS
     )
@@ -337,7 +338,7 @@ def test_tables_in_engineering_units():
 
 def test_tables_endpoint(served):
     got = served.get("/api/tables")
-    assert got == json.loads(json.dumps(tables(served.machine.cfg, served.service.axes)))
+    assert got == json.loads(json.dumps(tables(served.machine.cfg, served.service.info.axes)))
     assert [t["title"] for t in got] == [
         "X leadscrew error (LSEC)",
         "X friction compensation (FRICT)",
@@ -352,10 +353,10 @@ def test_tables_endpoint(served):
 def test_live_payload_of_a_stepped_machine():
     m = Machine(load_machine(default_startup_list()), homed=True)
     service = ObjectService(m)
-    service.run_nc("G91 G01 X1 F6000")
-    service.step(500)
-    view = LiveView(service.dictionary, m.cfg, service.axes)
-    live = view.push(service.snapshot, 1.5)
+    service.nc.run("G91 G01 X1 F6000")
+    access.step(service, 500)
+    view = LiveView(service.info.dictionary, m.cfg, service.info.axes)
+    live = view.push(service.current(stale_ok=True), 1.5)
     x = live["axes"]["1"]
     assert live["cycle"] == 500 and x["command_position"] == 1.0  # mm
     assert x["tempc"]["coefficient"] == 4000.0 and x["comps"]["TEMP"][:2] == [True, True]
@@ -365,23 +366,23 @@ def test_live_payload_of_a_stepped_machine():
     assert view.trend_fields == ("total_offset", "residual", "sensor_temperature")
     assert len(view.trend_point(live)) == 12
     # the sample taken while no page is open: the same numbers without the push
-    assert view.trend_sample(service.snapshot) == view.trend_point(live)
-    assert view.trend_sample(service.snapshot)[2] == 20.0  # X's sensor, °C
+    assert view.trend_sample(service.current(stale_ok=True)) == view.trend_point(live)
+    assert view.trend_sample(service.current(stale_ok=True))[2] == 20.0  # X's sensor, °C
 
 
 def test_live_payload_without_twin(tmp_path):
     m = Machine(load_machine(copy_lists(tmp_path, twin=False)), homed=True)
     service = ObjectService(m)
-    service.step(20)
-    view = LiveView(service.dictionary, m.cfg, service.axes)
-    live = view.push(service.snapshot, 0.0)
+    access.step(service, 20)
+    view = LiveView(service.info.dictionary, m.cfg, service.info.axes)
+    live = view.push(service.current(stale_ok=True), 0.0)
     x = live["axes"]["1"]
     assert not view.has_twin and "residual" not in x and "sensor_temperature" not in x
     # total offsets at rest: X 4.0 (TEMPC) + 0.9 (LSEC) µm, Y -9.8 µm (LSEC), Z -2.0
     # (TEMPC) + 8.3 (cross) - 2.0 (plane) µm, C -0.0007° (LSEC, 7 increments)
     assert view.trend_fields == ("total_offset",)
     assert view.trend_point(live) == [4.9, -9.8, 4.3, -0.0007]
-    assert view.trend_sample(service.snapshot) == [4.9, -9.8, 4.3, -0.0007]
+    assert view.trend_sample(service.current(stale_ok=True)) == [4.9, -9.8, 4.3, -0.0007]
 
 
 def test_nobody_watching_costs_one_sample_a_second(tmp_path):
@@ -447,7 +448,7 @@ def test_a_read_only_server_refuses_edits_and_commands(tmp_path):
         assert body["message"] == "this interface is read-only"
         status, body = s.post("/api/command/save", {})
         assert (status, body["code"]) == (400, 0x704)
-        assert s.service.read_name("TEMPC::coefficient", 1) == 4000.0  # lists/achsmd1.lis
+        assert access.read_name(s.service, "TEMPC::coefficient", 1) == 4000.0  # lists/achsmd1.lis
     finally:
         s.close()
 

@@ -8,8 +8,10 @@ Each attack is refused with an HTTP 4xx/5xx and a message, the machine is unchan
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import json
+import os
 import re
 import socket
 import subprocess
@@ -21,6 +23,7 @@ import pytest
 from conftest import RUN_HTTP_ONLY
 
 import geo_server.dictionary as dictionary_module
+from geo_server import access
 from geo_server.cli import build_parser, main
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
@@ -86,7 +89,7 @@ class Served:
 
     def coefficient(self, name: str | None = None) -> float:
         svc = self.services[name] if name else self.service
-        return float(svc.read_name(COEFF, 1))
+        return float(access.read_name(svc, COEFF, 1))
 
     def list_bytes(self) -> dict[str, bytes]:
         return {p.name: p.read_bytes() for p in sorted(self.lists.glob("*.lis"))}
@@ -429,6 +432,58 @@ def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
         proc.stdout.close()
 
 
+def test_passwords_come_from_the_environment_not_the_process_list(tmp_path, lists_copy):
+    """A password on the command line is visible to every user in `ps`; the environment
+    (GEO_SERVER_HTTP_PASSWORD) is not: the server asks for it, and it is in no argument."""
+    env = {**os.environ, "GEO_SERVER_HTTP_PASSWORD": "s3cret-from-env"}
+    argv = [*RUN_HTTP_ONLY, str(lists_copy), "--homed", "--http", "127.0.0.1:0"]
+    proc = subprocess.Popen(
+        [*argv, "--http-user", "operator"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        line = next(line for line in proc.stdout if line.startswith("http: "))
+        base = line.split()[4].partition("?token=")[0]
+        with open(f"/proc/{proc.pid}/cmdline", "rb") as f:
+            assert b"s3cret" not in f.read()
+
+        async def go():
+            out = []
+            for auth in (b"", b"operator:wrong", b"operator:s3cret-from-env"):
+                headers = {"Authorization": "Basic " + base64.b64encode(auth).decode()}
+                async with (
+                    aiohttp.ClientSession() as session,
+                    session.get(base + "api/state", headers=headers) as r,
+                ):
+                    out.append(r.status)
+            return out
+
+        assert asyncio.run(go()) == [401, 401, 200]
+    finally:
+        proc.terminate()
+        proc.wait(15)
+        proc.stdout.close()
+
+
+def test_the_route_and_opcua_passwords_come_from_the_environment_too(monkeypatch):
+    monkeypatch.setenv("GEO_SERVER_ADS_ROUTE_PASSWORD", "route-pw")
+    monkeypatch.setenv("GEO_SERVER_OPCUA_PASSWORD", "ua-pw")
+    monkeypatch.setenv("GEO_SERVER_HTTP_TOKEN", "tok-from-env")
+    args = build_parser().parse_args(["run", "--ads-route-user", "eng", "--opcua-user", "ua"])
+    assert (args.ads_route_password, args.opcua_password, args.http_token) == (
+        "route-pw",
+        "ua-pw",
+        "tok-from-env",
+    )
+    # the command line still wins
+    args = build_parser().parse_args(["run", "--ads-route-password", "cli-pw"])
+    assert args.ads_route_password == "cli-pw"
+
+
 def test_the_command_line_checks_the_http_options(capsys):
     assert main(["run", "--http", "127.0.0.1:0", "--http-user", "op"]) == 2
     assert "--http-user and --http-password go together" in capsys.readouterr().err
@@ -562,7 +617,7 @@ def no_matching(monkeypatch):
 
 
 def test_a_name_longer_than_any_is_refused_before_matching(served, no_matching):
-    d = served.service.dictionary
+    d = served.service.info.dictionary
     long_name = "TEMPC::" + "c" * 50_000
 
     async def go(session):
@@ -584,8 +639,12 @@ def test_a_name_longer_than_any_is_refused_before_matching(served, no_matching):
         f"longer than any object's name (at most {d.max_name_chars})"
     )
     assert len(text) < 300  # the name is not sent back
-    # 1 MB is over the body bound: refused unread (aiohttp's 413)
-    assert big_status == 413 and "Maximum request body size 65536 exceeded" in big_text
+    # 1 MB is over the body bound: refused on its Content-Length, before a byte of it
+    # is read (aiohttp's own bound would read and discard it)
+    assert big_status == 413
+    assert json.loads(big_text)["message"] == (
+        "a body of 1000038 bytes; at most 65536 are accepted"
+    )
     assert no_matching == []
     assert served.coefficient() == LIST_COEFF
 

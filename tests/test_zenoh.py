@@ -17,6 +17,7 @@ import pytest
 import zenoh
 from conftest import free_port, run_in, wait_until_routed
 
+from geo_server import access
 from geo_server.client.cli import main as client_main
 from geo_server.dictionary import load_dictionary
 from geo_server.listfile import load_machine
@@ -109,12 +110,12 @@ def get_err(session, key, payload=None, encoding=None) -> dict:
 
 def test_raw_read_of_every_geo_object(server, zs):
     service = server.service
-    for axis in service.axes:
+    for axis in service.info.axes:
         for obj in D.group_objects("geo"):
             io = (axis << 16) | obj.id
             data = get_one(zs, f"cnc/t/ads/551/0x120300/0x{io:x}")
             assert len(data) == obj.length, obj.name
-            assert obj.decode(data) == service.read_name(obj.name, axis), (obj.name, axis)
+            assert obj.decode(data) == access.read_name(service, obj.name, axis), (obj.name, axis)
 
 
 def test_named_read_of_the_manual_temperature_parameters(server, zs):
@@ -140,14 +141,14 @@ def test_wildcard_answers_once_per_object(server, zs):
         "position_0",
     ]
     oks, _ = get(zs, "cnc/t/axis/*/bc/conf_backlash")
-    assert len(oks) == len(server.service.axes)
+    assert len(oks) == len(server.service.info.axes)
 
 
 def test_status_and_errors(server, zs):
-    server.service.step(3)
+    access.step(server.service, 3)
     status = json.loads(get_one(zs, "cnc/t/status"))
     assert status["cycle"] == 3
-    assert status["axes"] == list(server.service.axes)
+    assert status["axes"] == list(server.service.info.axes)
     assert isinstance(json.loads(get_one(zs, "cnc/t/errors")), list)
 
 
@@ -157,25 +158,25 @@ def test_status_and_errors(server, zs):
 def test_writes_of_each_tempc_object_and_their_effect(server, zs):
     svc = server.service
     # X to 100 mm: Δs = 40 + 4000e-6·(1_000_000 − 100) = 4039.6 -> 4040 (000 p.17 example).
-    svc.write_name("SIM::set_position", 1, 1_000_000)
-    svc.step(25)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 4040
+    access.write_name(svc, "SIM::set_position", 1, 1_000_000)
+    access.step(svc, 25)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 4040
     enc = zenoh.Encoding.APPLICATION_JSON
     assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/coefficient", b"2000", enc)) == 2000.0
-    svc.step(20)  # temp_comp_n_cycles 20: the ramp ends in the 20th cycle
+    access.step(svc, 20)  # temp_comp_n_cycles 20: the ramp ends in the 20th cycle
     # 40 + 2000e-6·999_900 = 2039.8 -> 2040
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2040
     get_one(zs, "cnc/t/axis/1/tempc/offset_0", b'{"value": 100}', enc)
-    svc.step(20)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
+    access.step(svc, 20)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
     raw = struct.pack("<i", 0)
     get_one(zs, "cnc/t/ads/551/0x120300/0x10045", raw, zenoh.Encoding.APPLICATION_OCTET_STREAM)
-    svc.step(20)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 0.002·1_000_000
+    access.step(svc, 20)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2100  # 100 + 0.002·1_000_000
     get_one(zs, "cnc/t/axis/1/tempc/activated", b"false", enc)
-    svc.step(20)
-    assert svc.read_name("TEMPC::activated", 1) is False
-    assert svc.read_name("TEMPC::actual_offset", 1) == 0
+    access.step(svc, 20)
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 0
 
 
 @pytest.mark.parametrize(
@@ -199,19 +200,19 @@ def test_errors_are_reply_err_with_the_ads_code(server, zs, key, payload, code):
     err = get_err(zs, key, payload, zenoh.Encoding.APPLICATION_JSON if payload else None)
     assert err["ads_error"] == code
     assert err["message"]
-    server.service.step(1)  # the cycle keeps running
-    assert server.service.snapshot.cycle == 1
+    access.step(server.service, 1)  # the cycle keeps running
+    assert server.service.current(stale_ok=True).cycle == 1
 
 
 def test_garbage_leaves_values_untouched(server, zs):
-    before = server.service.read_axis(1)
+    before = access.read_axis(server.service, 1)
     for payload in (b"\xff\xfe", b"nan", b"1e999", b'"text"'):
         oks, errs = get(
             zs, "cnc/t/axis/1/tempc/coefficient", payload, zenoh.Encoding.APPLICATION_JSON
         )
         assert errs and not oks
-    server.service.step(2)
-    assert server.service.read_axis(1)["TEMPC::coefficient"] == before["TEMPC::coefficient"]
+    access.step(server.service, 2)
+    assert access.read_axis(server.service, 1)["TEMPC::coefficient"] == before["TEMPC::coefficient"]
 
 
 # ---------------------------------------------------------------------------- publications
@@ -226,8 +227,8 @@ def test_publications_arrive_on_a_subscriber(server, zs):
     try:
         # published on change only: the server must know the subscriber before it changes
         wait_until_routed(zs, "cnc/t/status")
-        server.service.write_name("SIM::set_position", 1, 1_000_000)
-        server.service.step(25)
+        access.write_name(server.service, "SIM::set_position", 1, 1_000_000)
+        access.step(server.service, 25)
         values = []
         while 4040 not in values:  # the manual's example value, after the ramp
             key, value = q.get(timeout=TIMEOUT)  # at most 25 distinct values: bounded
@@ -269,12 +270,12 @@ def test_nothing_is_computed_for_publication_while_nobody_subscribes(loop_thread
 
 def test_nc_switches_temperature_compensation_off(server, zs):
     svc = server.service
-    svc.step(1)
-    assert svc.read_name("TEMPC::activated", 1) is True
+    access.step(svc, 1)
+    assert access.read_name(svc, "TEMPC::activated", 1) is True
     reply = json.loads(get_one(zs, "cnc/t/nc", b"X[COMP OFF TEMP]", zenoh.Encoding.TEXT_PLAIN))
     assert reply["ok"] is True
-    svc.step(3)
-    assert svc.read_name("TEMPC::activated", 1) is False
+    access.step(svc, 3)
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
 
 
 def test_save_and_reload(loop_thread, lists_copy: Path):
@@ -285,7 +286,7 @@ def test_save_and_reload(loop_thread, lists_copy: Path):
         axis_list = Path(service.machine.cfg.axes[1].params.path)
         before = axis_list.read_bytes()
         get_one(s, "cnc/t/axis/1/tempc/coefficient", b"1234.5", zenoh.Encoding.APPLICATION_JSON)
-        service.step(1)
+        access.step(service, 1)
         result = json.loads(get_one(s, "cnc/t/cmd/save", b"{}"))
         assert result["ok"] and str(axis_list) in result["files"]
         after = axis_list.read_bytes()
@@ -294,16 +295,16 @@ def test_save_and_reload(loop_thread, lists_copy: Path):
         # a valid reload keeps the saved value
         result = json.loads(get_one(s, "cnc/t/cmd/reload", b"{}"))
         assert result["ok"], result
-        service.step(1)
-        assert service.read_name("TEMPC::coefficient", 1) == 1234.5
+        access.step(service, 1)
+        assert access.read_name(service, "TEMPC::coefficient", 1) == 1234.5
         # a broken list: the reload is rejected as a whole, nothing changes
-        values = service.read_axis(1)
+        values = access.read_axis(service, 1)
         axis_list.write_bytes(after.replace(b"1234.5", b"99999", 1))  # out of range
         err = get_err(s, "cnc/t/cmd/reload", b"{}")
         assert err["ads_error"] == 0x70D
         assert "99999" in err["message"] or "coefficient" in err["message"]
-        service.step(1)
-        assert service.read_axis(1)["TEMPC::coefficient"] == values["TEMPC::coefficient"]
+        access.step(service, 1)
+        assert access.read_axis(service, 1)["TEMPC::coefficient"] == values["TEMPC::coefficient"]
     finally:
         s.close()
         srv.close()
@@ -321,8 +322,8 @@ def test_two_servers_through_a_router(loop_thread, default_cfg):
     sb = Server(loop_thread, b, machine="lathe", connect=[router_ep])
     client = zenoh.open(session_config([router_ep], mode="client"))
     try:
-        a.step(7)
-        b.step(3)
+        access.step(a, 7)
+        access.step(b, 3)
         assert json.loads(get_one(client, "cnc/mill/sim/machine/cycle_count")) == 7
         assert json.loads(get_one(client, "cnc/lathe/sim/machine/cycle_count")) == 3
         oks, _ = get(client, "cnc/*/sim/machine/cycle_count")
@@ -354,8 +355,8 @@ def test_geo_client_read_write(server, capsys):
     assert out == {"name": "TEMPC::offset_0", "axis": 1, "value": 4.0, "unit": "µm", "raw": 40}
     assert client_main([*base, "write", "--axis", "1", "TEMPC::coefficient", "3000"]) == 0
     capsys.readouterr()
-    server.service.step(1)
-    assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
+    access.step(server.service, 1)
+    assert access.read_name(server.service, "TEMPC::coefficient", 1) == 3000.0
     assert client_main([*base, "write", "--axis", "1", "BC::actual backlash", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
 
@@ -378,20 +379,20 @@ def test_geo_client_by_address_reads_attribute_groups(server, capsys):
     assert "ADS 0x704" in capsys.readouterr().err
     assert client_main([*base, "write", "0x120300", "0x10043", "3000"]) == 0
     assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient = 3000.0 µm/m"
-    server.service.step(1)
-    assert server.service.read_name("TEMPC::coefficient", 1) == 3000.0
+    access.step(server.service, 1)
+    assert access.read_name(server.service, "TEMPC::coefficient", 1) == 3000.0
 
 
 def test_geo_client_commands(server, capsys):
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     svc = server.service
-    svc.step(4)
+    access.step(svc, 4)
     assert client_main([*base, "--json", "status"]) == 0
     assert json.loads(capsys.readouterr().out)["cycle"] == 4
     assert client_main([*base, "--json", "nc", "X[COMP OFF TEMP]"]) == 0
     assert json.loads(capsys.readouterr().out)["ok"] is True
-    svc.step(2)
-    assert svc.read_name("TEMPC::activated", 1) is False
+    access.step(svc, 2)
+    assert access.read_name(svc, "TEMPC::activated", 1) is False
     assert client_main([*base, "nc", "G05 X1"]) == 1  # not in the supported subset
     assert "ADS 0x70D" in capsys.readouterr().err
     assert client_main([*base, "--json", "errors"]) == 0
@@ -455,9 +456,9 @@ def test_access_control_config_refuses_a_denied_key(loop_thread, service, tmp_pa
         ]:
             oks, errs = get(s, key, payload, timeout=1.0)
             assert oks == [] and errs == [], key
-        service.step(25)
-        assert service.read_name("TEMPC::offset_0", 1) == 55
-        assert service.read_name("TEMPC::coefficient", 1) == 4000.0
+        access.step(service, 25)
+        assert access.read_name(service, "TEMPC::offset_0", 1) == 55
+        assert access.read_name(service, "TEMPC::coefficient", 1) == 4000.0
     finally:
         s.close()
         run_in(loop_thread, iface.close())
@@ -477,9 +478,9 @@ def test_read_only_interface_rejects_writes(loop_thread, service):
             ("cnc/ro/cmd/save", b"{}"),
         ]:
             assert get_err(s, key, payload)["ads_error"] == 0x704
-        service.step(2)
-        assert service.read_name("TEMPC::coefficient", 1) == 4000.0
-        assert service.read_name("TEMPC::activated", 1) is True
+        access.step(service, 2)
+        assert access.read_name(service, "TEMPC::coefficient", 1) == 4000.0
+        assert access.read_name(service, "TEMPC::activated", 1) is True
     finally:
         s.close()
         run_in(loop_thread, iface.close())
@@ -501,26 +502,26 @@ def test_a_put_is_a_write_and_a_refused_one_is_reported(server, zs):
     key like a get with payload; a refused put or a delete has no one to answer, so the
     errors list says why, naming the key."""
     svc = server.service
-    svc.write_name("SIM::set_position", 1, 1_000_000)  # X at 100 mm
-    svc.step(25)
+    access.write_name(svc, "SIM::set_position", 1, 1_000_000)  # X at 100 mm
+    access.step(svc, 25)
     zs.put("cnc/t/axis/1/tempc/coefficient", b"2000")
     _until(lambda: server.iface.puts == 1)
-    svc.step(20)  # the ramp of temp_comp_n_cycles = 20
+    access.step(svc, 20)  # the ramp of temp_comp_n_cycles = 20
     # 40 + 2000e-6·(1_000_000 − 100) = 2039.8 -> 2040 (000 p.15)
-    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2040
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == 2000.0
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2040
     zs.put("cnc/t/ads/551/0x120300/0x10044", struct.pack("<i", 100))  # offset_0, raw
     _until(lambda: server.iface.puts == 2)
-    svc.step(20)
-    assert svc.read_name("TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
+    access.step(svc, 20)
+    assert access.read_name(svc, "TEMPC::actual_offset", 1) == 2100  # 100 + 1999.8
     # refused: out of range, read-only, a command, a delete — the value stays
     zs.put("cnc/t/axis/1/tempc/coefficient", b"20000")
     zs.put("cnc/t/axis/1/bc/actual_backlash", b"5")
     zs.put("cnc/t/cmd/save", b"")
     zs.delete("cnc/t/axis/1/tempc/coefficient")
     _until(lambda: server.iface.refused_puts == 4)
-    svc.step(1)
-    assert svc.read_name("TEMPC::coefficient", 1) == 2000.0
+    access.step(svc, 1)
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == 2000.0
     messages = [e["message"] for e in svc.errors()[-4:]]
     assert messages[0].startswith("zenoh put cnc/t/axis/1/tempc/coefficient: ")
     assert messages[0].endswith("(ADS 0x706)")
@@ -544,7 +545,7 @@ def test_the_servers_own_publications_are_not_puts(server, zs):
     sub = zs.declare_subscriber("cnc/t/axis/1/tempc/coefficient", got.put)
     try:
         wait_until_routed(zs, "cnc/t/status")
-        server.service.step(3)
+        access.step(server.service, 3)
         got.get(timeout=TIMEOUT)  # a publication came
     finally:
         sub.undeclare()

@@ -24,9 +24,11 @@ from conftest import free_port, run_in, wait_until_routed
 import geo_server.commands.reload as reload_module
 import geo_server.commands.save as save_module
 import geo_server.service as service_module
+from geo_server import access
+from geo_server.commands.lists import CommandService
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
-from geo_server.service import ObjectService
+from geo_server.service import ObjectService, is_command
 from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
 TIMEOUT = 5.0
@@ -125,8 +127,8 @@ def test_command_write_runs_off_the_loop(
     srv = served_lists
     svc = srv.service
     if command == "save":  # save writes only changed parameters: change one
-        svc.write_name("TEMPC::coefficient", 1, 1234.5)
-        svc.step(1)
+        access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+        access.step(svc, 1)
     # the file-touching function the command calls: blocks until the test releases it
     target = "load_machine" if command == "reload" else "rewrite_values"
     module = reload_module if command == "reload" else save_module  # (geo_server/commands)
@@ -179,30 +181,30 @@ def test_command_write_keeps_its_error_codes(served_lists, key, payload, encodin
     assert get_err(srv.session, key, payload, encoding)["ads_error"] == 0x70D
     bad = b"2" if encoding == JSON else struct.pack("<H", 2)  # SIM::reload accepts only 1
     assert get_err(srv.session, key, bad, encoding)["ads_error"] == 0x706
-    svc.step(1)
-    assert svc.read_name("TEMPC::coefficient", 1) == 4000.0
+    access.step(svc, 1)
+    assert access.read_name(svc, "TEMPC::coefficient", 1) == 4000.0
 
 
 def test_service_async_writes_run_commands_in_a_worker_thread(loop_thread, service, monkeypatch):
-    """Every transport gets it: `ObjectService.write_applied`/`write_name_applied`."""
+    """Every transport gets it: `access.write_applied`/`write_name_applied`."""
     threads: list[str] = []
-    assert service.is_command(service.dictionary.by_name("SIM::reload"))
-    assert service.is_command(service.dictionary.by_name("SIM::save"))
-    assert not service.is_command(service.dictionary.by_name("TEMPC::coefficient"))
+    assert is_command(service.info.dictionary.by_name("SIM::reload"))
+    assert is_command(service.info.dictionary.by_name("SIM::save"))
+    assert not is_command(service.info.dictionary.by_name("TEMPC::coefficient"))
 
     def fake_save(self):
         threads.append(threading.current_thread().name)
         return service_module.CommandResult(True, "save")
 
-    monkeypatch.setattr(ObjectService, "save", fake_save)
-    assert run_in(loop_thread, service.write_name_applied("SIM::save", 0, 1)) == 1
-    run_in(loop_thread, service.write_applied(0x12F300, 0x5, struct.pack("<H", 1)))
+    monkeypatch.setattr(CommandService, "save", fake_save)
+    assert run_in(loop_thread, access.write_name_applied(service, "SIM::save", 0, 1)) == 1
+    run_in(loop_thread, access.write_applied(service, 0x12F300, 0x5, struct.pack("<H", 1)))
     assert len(threads) == 2 and LOOP_THREAD not in threads, threads
     # plain values are queued (stepped: acknowledged at once) and applied at the next cycle
-    run_in(loop_thread, service.write_name_applied("TEMPC::coefficient", 1, 1500))
-    assert service.read_name("TEMPC::coefficient", 1) == 4000.0
-    service.step(1)
-    assert service.read_name("TEMPC::coefficient", 1) == 1500.0
+    run_in(loop_thread, access.write_name_applied(service, "TEMPC::coefficient", 1, 1500))
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 4000.0
+    access.step(service, 1)
+    assert access.read_name(service, "TEMPC::coefficient", 1) == 1500.0
 
 
 # ---------------------------------------------------------------------------- 2. hand-off
@@ -259,7 +261,7 @@ def test_wildcard_on_attribute_group_explains_concrete_keys(served):
 def test_wildcards_that_match_still_answer_once_per_key(served):
     oks, errs = get(served.session, "cnc/t/axis/*/tempc/coefficient")
     assert not errs
-    assert len(oks) == len(served.service.axes)
+    assert len(oks) == len(served.service.info.axes)
 
 
 # ---------------------------------------------------------------------------- 4. publications
@@ -278,8 +280,8 @@ def test_value_status_and_error_publications(served):
         # published once, on change: the server must know the subscribers before
         wait_until_routed(served.session, "cnc/t/status")
         svc = served.service
-        svc.write_name("TEMPC::coefficient", 1, 2500)
-        svc.step(1)
+        access.write_name(svc, "TEMPC::coefficient", 1, 2500)
+        access.step(svc, 1)
         svc.machine.report(4242, "test error")
         seen: dict[str, object] = {}
         deadline = time.monotonic() + TIMEOUT  # status keeps coming: bound the loop itself
@@ -288,7 +290,7 @@ def test_value_status_and_error_publications(served):
             key, value = q.get(timeout=TIMEOUT)
             seen[key.rsplit("/", 1)[1]] = value
         assert seen["errors"]["error_id"] == 4242
-        assert seen["status"]["axes"] == list(svc.axes)
+        assert seen["status"]["axes"] == list(svc.info.axes)
     finally:
         for sub in subs:
             sub.undeclare()

@@ -392,16 +392,7 @@ def parse_reference(text: str, path: str = "<reference>") -> ReferenceTable:
             header = [c.lower() for c in cells]
             cols = _section_columns(header, where)
             continue
-        if header is None:
-            raise ReferenceTableError(f"{where}: the first line must be a header (axis, …)")
-        if len(cells) != len(header):
-            raise ReferenceTableError(f"{where}: {len(cells)} values for {len(header)} columns")
-        try:
-            values = {k: float(cells[i]) * f for k, (i, f) in cols.items()}
-        except ValueError as exc:
-            raise ReferenceTableError(f"{where}: not a number ({exc})") from None
-        if not all(math.isfinite(v) for v in values.values()):
-            raise ReferenceTableError(f"{where}: values must be finite")
+        values = _row_values(cells, header, cols, where)
         axis, temp = int(values["axis"]), values["temperature"]
         key = (axis, temp)
         if "deviation" in values:
@@ -423,6 +414,39 @@ def parse_reference(text: str, path: str = "<reference>") -> ReferenceTable:
             p0 = values["position_0"]
             line = ErrorLine.from_parameters(temp, p0, values["offset_0"], values["coefficient"])
             line_rows[key] = (lineno, line, p0)
+    axes = _reference_axes(points, line_rows, first_line, path)
+    if not axes:
+        raise ReferenceTableError(f"{path}: no measurements")
+    return ReferenceTable(axes, path, "+".join(sorted(forms)))
+
+
+def _row_values(
+    cells: list[str], header: list[str] | None, cols: dict[str, tuple[int, float]], where: str
+) -> dict[str, float]:
+    """The values of one data row by column name, in the section's units (`cols`: the
+    index and unit factor of each column): one per column of its header, all finite."""
+    if header is None:
+        raise ReferenceTableError(f"{where}: the first line must be a header (axis, …)")
+    if len(cells) != len(header):
+        raise ReferenceTableError(f"{where}: {len(cells)} values for {len(header)} columns")
+    try:
+        values = {k: float(cells[i]) * f for k, (i, f) in cols.items()}
+    except ValueError as exc:
+        raise ReferenceTableError(f"{where}: not a number ({exc})") from None
+    if not all(math.isfinite(v) for v in values.values()):
+        raise ReferenceTableError(f"{where}: values must be finite")
+    return values
+
+
+def _reference_axes(
+    points: dict[tuple[int, float], list[tuple[float, float]]],
+    line_rows: dict[tuple[int, float], tuple[int, ErrorLine, float]],
+    first_line: dict[tuple[int, float], int],
+    path: str,
+) -> dict[int, AxisReference]:
+    """Every axis' error lines, ordered by temperature: one fitted through the measured
+    points of each (axis, temperature) (`fit_line`; `first_line` says where an error is)
+    and the lines given as rows (`line_rows`: line number, line, position_0)."""
     axes: dict[int, AxisReference] = {}
     for (axis, temp), pts in sorted(points.items()):
         try:
@@ -440,9 +464,7 @@ def parse_reference(text: str, path: str = "<reference>") -> ReferenceTable:
         ref.row_position_0.add(p0)
     for ref in axes.values():
         ref.lines.sort(key=lambda ln: ln.temperature)
-    if not axes:
-        raise ReferenceTableError(f"{path}: no measurements")
-    return ReferenceTable(axes, path, "+".join(sorted(forms)))
+    return axes
 
 
 def load_reference(path: str | Path) -> ReferenceTable:

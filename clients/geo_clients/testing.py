@@ -4,7 +4,9 @@
 service in **stepped** mode (no cycle runs until the test steps, so every value is
 deterministic: docs/design.md §5) and an asyncio loop thread on which the transports run. The
 transports start on demand, each on an ephemeral port of 127.0.0.1: Zenoh in peer mode
-with multicast scouting off and an explicit listen endpoint, Modbus TCP, ADS/AMS-TCP.
+with multicast scouting off and an explicit listen endpoint, Modbus TCP, ADS/AMS-TCP —
+built by the composition root (`geo_server.compose.loopback_interface`) as `geo-server
+run`'s are.
 
     with GeoTestServer() as srv:                  # default machine, every axis homed
         srv.move("X", 1_000_000)                  # 100 mm, steps until in position
@@ -37,8 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from geo_clients.common import open_client
+from geo_server import access
 from geo_server.client import GeoClient
-from geo_server.compose import EngineOptions, build_machine
+from geo_server.compose import EngineOptions, build_machine, loopback_interface
 from geo_server.dictionary import ObjectDef, load_dictionary
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
@@ -74,12 +77,12 @@ class ServiceClient:
         self.service = service
 
     def read(self, name: str, axis: int = 0) -> Any:
-        return self.service.read_name(name, axis)
+        return access.read_name(self.service, name, axis)
 
     def write(self, name: str, axis: int, value: Any) -> Any:
         obj = self.service.lookup(name, axis)
         v = obj.coerce(value)
-        fut = self.service.write_name(name, axis, v)
+        fut = access.write_name(self.service, name, axis, v)
         if fut.done():
             fut.result()  # reload/save run at once: raise their error
         return v
@@ -88,7 +91,7 @@ class ServiceClient:
         return self.service.read(index_group, index_offset, length or None)
 
     def write_raw(self, index_group: int, index_offset: int, data: bytes) -> None:
-        fut = self.service.write(index_group, index_offset, data)
+        fut = access.write(self.service, index_group, index_offset, data)
         if fut.done():
             fut.result()
 
@@ -132,7 +135,7 @@ class GeoTestServer:
         self.service = built.service
         #: the private recordings folder `close` removes (only that one)
         self._own_record_dir = None if record_dir else tempfile.mkdtemp(prefix="geo-rec-")
-        self.service.record_dir = Path(record_dir or self._own_record_dir or "")
+        self.service.recordings.record_dir = Path(record_dir or self._own_record_dir or "")
         self.machine_name = machine_name
         self.timeout = timeout
         self.publish_period = publish_period
@@ -197,27 +200,16 @@ class GeoTestServer:
         for via in vias:
             if via == "service" or via in self._interfaces:
                 continue
-            if via == "zenoh":
-                from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
-
-                port = _free_port()
-                opts = ZenohOptions(
-                    machine=self.machine_name,
-                    listen=[f"tcp/127.0.0.1:{port}"],
-                    publish_period=self.publish_period,
-                    status_period=self.status_period,
-                )
-                iface: Any = ZenohInterface(self.service, opts)
-            elif via == "modbus":
-                from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-
-                iface = ModbusInterface(self.service, ModbusOptions(port=0))
-            elif via == "ads":
-                from geo_server.transports.ads.server import AdsOptions, AdsServer
-
-                iface = AdsServer(self.service, AdsOptions(port=0, netid=self.netid))
-            else:
+            if via not in VIAS:
                 raise ValueError(f"unknown transport {via!r} (one of {', '.join(VIAS)})")
+            iface = loopback_interface(  # built by the composition root, as `run`'s are
+                via,
+                self.service,
+                machine=self.machine_name,
+                netid=self.netid,
+                publish_period=self.publish_period,
+                status_period=self.status_period,
+            )
             self._run(iface.start())
             self._interfaces[via] = iface
         return self
@@ -258,7 +250,7 @@ class GeoTestServer:
 
     @property
     def axes(self) -> tuple[int, ...]:
-        return self.service.axes
+        return self.service.info.axes
 
     @property
     def cycle(self) -> int:
@@ -266,7 +258,7 @@ class GeoTestServer:
 
     @property
     def snapshot(self) -> Snapshot:
-        return self.service.snapshot
+        return self.service.current(stale_ok=True)
 
     def axis(self, axis: int | str) -> int:
         """Logical axis number of `axis` (a number or an axis name such as `"X"`)."""
@@ -279,7 +271,7 @@ class GeoTestServer:
 
     def step(self, n: int = 1) -> Snapshot:
         """Run `n` GEO cycles now."""
-        return self.service.step(n)
+        return access.step(self.service, n)
 
     def run_until(
         self, predicate: Callable[[GeoTestServer], bool], max_cycles: int = MAX_CYCLES
@@ -304,8 +296,8 @@ class GeoTestServer:
         `wait`, step until it is in position. `feed` in µm/s (SIM::feed). Returns cycles."""
         a = self.axis(axis)
         if feed is not None:
-            self.service.write_name("SIM::feed", a, feed)
-        self.service.write_name("SIM::target_position", a, round(position))
+            access.write_name(self.service, "SIM::feed", a, feed)
+        access.write_name(self.service, "SIM::target_position", a, round(position))
         self.step(1)
         if not wait:
             return 1
@@ -314,17 +306,17 @@ class GeoTestServer:
 
     def set_position(self, axis: int | str, position: float) -> None:
         """Jump the command position without motion (SIM::set_position) and step once."""
-        self.service.write_name("SIM::set_position", self.axis(axis), round(position))
+        access.write_name(self.service, "SIM::set_position", self.axis(axis), round(position))
         self.step(1)
 
     def home(self, axis: int | str) -> None:
         """Home `axis` in place (SIM::homed := TRUE) and step once."""
-        self.service.write_name("SIM::homed", self.axis(axis), True)
+        access.write_name(self.service, "SIM::homed", self.axis(axis), True)
         self.step(1)
 
     def nc(self, text: str, *, wait: bool = True, max_cycles: int = MAX_CYCLES) -> int:
         """Run NC lines (docs/design.md §5 player) and, with `wait`, step until they are done."""
-        self.service.run_nc(text)
+        self.service.nc.run(text)
         self.step(1)
         if not wait:
             return 1
@@ -356,14 +348,14 @@ class GeoTestServer:
         """Inject a fault (docs/faults.md: `ads:error=0x707,count=2`, `sensor@X:stuck`,
         …); returns it as `status()["faults"]` lists it (its `id` clears it)."""
         # a sensor fault lands at the next cycle boundary: in stepped mode, now
-        result = self.service.inject_fault(fault)
+        result = self.service.faults.inject(fault)
         if result["target"] == "sensor":
             self.step(1)
         return result
 
     def clear_faults(self, ident: int | None = None) -> list[dict[str, Any]]:
         """Clear fault `ident`, or every fault (None); returns those cleared."""
-        cleared = self.service.clear_faults(ident)
+        cleared = self.service.faults.clear(ident)
         if any(f["target"] == "sensor" for f in cleared):
             self.step(1)
         return cleared
@@ -545,16 +537,6 @@ def _check(what: str, got: Any, expected: Any, abs_tol: float) -> None:
     if not ok:
         tol = f" ± {abs_tol}" if abs_tol else ""
         raise AssertionError(f"{what}: expected {expected!r}{tol}, got {got!r}")
-
-
-def _free_port() -> int:
-    """An ephemeral TCP port on 127.0.0.1 that was free a moment ago (Zenoh needs a port
-    number up front; Modbus and ADS bind port 0 and report theirs)."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @contextlib.contextmanager

@@ -44,6 +44,7 @@ class MeasureService:
                     timeout_s=limits.command_wait + 60.0,
                     deadline_s=limits.measure_deadline,
                     cancel=self._cancel,
+                    settle=self.ports.settle_sync,
                 )
                 if self.ports.running
                 else StepBench(self.host)

@@ -3,6 +3,8 @@ the next cycle boundary; a CNC reset at the next cycle boundary."""
 
 from __future__ import annotations
 
+import asyncio
+
 from geo_server.commands.ports import ADSERR_DEVICE_SYNTAX, Ports
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.nc import NcError, parse_program
@@ -18,8 +20,16 @@ class NcService:
     def run(self, text: str) -> Pending:
         """Parse NC lines now and start them as MDI lines at the next cycle boundary.
 
-        Bad text -> 0x70D naming the line; text over `nc_max_bytes` or `nc_max_lines`
-        -> 0x705 (a long program belongs in a file: `geo-server run --program`)."""
+        Bad text -> 0x70D naming the line, also put in the error list
+        (`Ports.note_refusal`); text over `nc_max_bytes` or `nc_max_lines` -> 0x705 (a
+        long program belongs in a file: `geo-server run --program`)."""
+        try:
+            return self._start(text)
+        except AdsError as exc:
+            self.ports.note_refusal(exc, "NC text")
+            raise
+
+    def _start(self, text: str) -> Pending:
         size = len(text.encode("utf-8", errors="replace"))
         lines = text.count("\n") + 1
         lim = self.ports.limits
@@ -37,7 +47,19 @@ class NcService:
         self.ports.refuse_when_stalled()
         return self.ports.scheduler.submit(StartProgram(prog, True, text))
 
+    async def run_applied(self, text: str, *, timeout: float | None = None) -> int:
+        """`run`, parsed in a worker thread, and wait until the cycle started it (the
+        service's timeout/withdraw rule); returns the cycle that started it."""
+        pending = await asyncio.to_thread(self.run, text)
+        await self.ports.settle(pending, timeout)
+        return self.ports.snapshot().cycle
+
     def reset(self) -> Pending:
         """CNC reset at the next cycle boundary: program stopped, axes stopped."""
         self.ports.refuse_when_stalled()
         return self.ports.scheduler.submit(Reset())
+
+    async def reset_applied(self, *, timeout: float | None = None) -> int:
+        """`reset` and wait until a cycle applied it; returns that cycle."""
+        await self.ports.settle(self.reset(), timeout)
+        return self.ports.snapshot().cycle

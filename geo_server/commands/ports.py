@@ -50,6 +50,8 @@ class Ports:
     report_now: Callable[[str, int], None]
     #: the snapshot of the cycle due now
     snapshot: Callable[[], Snapshot]
+    #: put a refused value or NC text in the error list as well (at most ten a second)
+    note_refusal: Callable[[AdsError, str], None]
 
     @property
     def running(self) -> bool:

@@ -5,11 +5,14 @@ one at a time, into the recordings folder (never a file of the machine), within
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from geo_server.commands.ports import Ports
 from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.machine.machine import Machine
+from geo_server.machine.port import Operation
 from geo_server.recorder import Recorder, RecordSpec, SelectionError, TraceFileError
 from geo_server.recorder.paths import check_target, default_record_dir, machine_files, output_path
 from geo_server.recorder.recorder import RecorderLimits
@@ -89,6 +92,16 @@ class RecordingService:
             return rec.finish()
         except (OSError, TraceFileError) as exc:
             raise AdsError(AdsErrorCode.DEVICE_ERROR, str(exc), "record") from None
+
+    def tap_inputs(self, callback: Callable[[int, Operation], None]) -> Callable[[], None]:
+        """Call `callback(cycle, operation)` for each input the cycle applies (a
+        recording's inputs, docs/recorder.md §4) until the returned function is called;
+        the cycle in its own process has no taps (a no-op)."""
+        machine = self.ports.machine
+        if not isinstance(machine, Machine):
+            return lambda: None
+        machine.input_taps.append(callback)
+        return lambda: machine.input_taps.remove(callback)
 
     def status(self) -> dict[str, Any] | None:
         """What `status()["recording"]` shows; None while none runs."""

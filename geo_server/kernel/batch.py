@@ -33,6 +33,7 @@ from geo_server.kernel.common import FRICT, LEAD, TEMP
 from geo_server.kernel.friction import RING
 from geo_server.kernel.inputs import GatherWork, gather
 from geo_server.kernel.kernel import Kernel
+from geo_server.kernel.lsec import LsecTables
 from geo_server.kernel.plane import PlaneWork, bilinear
 from geo_server.kernel.tables import interpolate
 
@@ -174,31 +175,65 @@ class KernelBatch:
             self._build()
         return True
 
-    def run(self, homed: np.ndarray) -> bool:
-        """`size` cycles of `Kernel.step` with the commands in `pos`/`vel`/`acc`/`rev`
-        and the homing flags `homed` (unchanged throughout). False, with nothing
-        changed, when the stretch is not steady (see the module docstring)."""
+    def _steady(self, homed: np.ndarray) -> bool:
+        """The stretch is steady (see the module docstring): no reversal, and the
+        effective flags stay those of the last cycle. Changes nothing but scratch."""
         k = self.k
-        if not self.ready():
-            return False
-        mul, add, subtract = np.multiply, np.add, np.subtract
-        copyto, minimum = np.copyto, np.minimum
-        B = self.size
-        src, fs = k._src, k._fr_state
-        d = src.dir
         # no reversal: the sign of every velocity is 0 or the held direction
         sv = self.sgn_v
         np.sign(self.vel, sv)
-        mul(sv, d, sv)
+        np.multiply(sv, k._src.dir, sv)
         np.less(sv, 0.0, self.flip)
         if np.count_nonzero(self.flip):
             return False
         # the effective flags are those of the last cycle: the selection only changes
         # in a cycle that applies an operation or a program block (never in a steady
         # stretch), so they stay as long as the homing flags do
-        et = k._eff
-        if np.count_nonzero(np.not_equal(homed, et.homed_in)):
+        return not np.count_nonzero(np.not_equal(homed, k._eff.homed_in))
+
+    def _lsec(self, ls: LsecTables, eff: np.ndarray, jump: np.ndarray) -> None:
+        """LSEC (000 §4.4) over the pass, as `Kernel._lsec_cycle` does for one cycle:
+        looked up at the command position plus each cycle's filtered cross and plane
+        outputs, then through its own sin² column (no events in a steady stretch)."""
+        mul, add, subtract = np.multiply, np.add, np.subtract
+        self.ACTf.take(ls.cp, axis=1, out=self.CPV)
+        t = self.ADD[:, :, 1]
+        add(self.CPV[:, 0], self.CPV[:, 1], t)
+        if not ls.all_wc:
+            mul(t, ls.wc, t)
+        self.SB.take(ls.src, axis=1, out=self.LG)
+        lkb = self.LKL
+        add(self.LG, self.ADD, lkb.pairs)
+        lq = lkb.q
+        if ls.any_wrap:
+            ld = self.LD
+            subtract(lq, ls.x0, ld)
+            np.mod(ld, ls.per, ld)
+            add(ld, ls.x0, ld)
+            np.copyto(lq, ld, where=ls.wrap)
+        tl = self.TG[:, :, LEAD]
+        if ls.all:
+            interpolate(lkb, tl)
+        else:
+            interpolate(lkb, self.VALL)
+            self.TGf[:, ls.flat] = self.VALL
+        mul(tl, eff[:, LEAD], tl)
+        sin2.output(
+            tl, jump[:, LEAD], self.W[:, :, LEAD], self.T7[:, :, LEAD], self.ACT[:, :, LEAD]
+        )
+
+    def run(self, homed: np.ndarray) -> bool:
+        """`size` cycles of `Kernel.step` with the commands in `pos`/`vel`/`acc`/`rev`
+        and the homing flags `homed` (unchanged throughout). False, with nothing
+        changed, when the stretch is not steady (see the module docstring)."""
+        k = self.k
+        if not self.ready() or not self._steady(homed):
             return False
+        mul, add, subtract = np.multiply, np.add, np.subtract
+        copyto, minimum = np.copyto, np.minimum
+        B = self.size
+        src, fs = k._src, k._fr_state
+        d = src.dir
         eff = k.effective
 
         # ---- from here on the stretch is steady: compute it
@@ -266,31 +301,8 @@ class KernelBatch:
         sin2.output(TG, f.jump, W, T7, ACT)
 
         ls = k._lsec
-        if ls is not None:
-            ACTf = self.ACTf
-            ACTf.take(ls.cp, axis=1, out=self.CPV)
-            t = self.ADD[:, :, 1]
-            add(self.CPV[:, 0], self.CPV[:, 1], t)
-            if not ls.all_wc:
-                mul(t, ls.wc, t)
-            SB.take(ls.src, axis=1, out=self.LG)
-            lkb = self.LKL
-            add(self.LG, self.ADD, lkb.pairs)
-            lq = lkb.q
-            if ls.any_wrap:
-                ld = self.LD
-                subtract(lq, ls.x0, ld)
-                np.mod(ld, ls.per, ld)
-                add(ld, ls.x0, ld)
-                copyto(lq, ld, where=ls.wrap)
-            tl = TG[:, :, LEAD]
-            if ls.all:
-                interpolate(lkb, tl)
-            else:
-                interpolate(lkb, self.VALL)
-                TGf[:, ls.flat] = self.VALL
-            mul(tl, eff[:, LEAD], tl)
-            sin2.output(tl, f.jump[:, LEAD], W[:, :, LEAD], T7[:, :, LEAD], ACT[:, :, LEAD])
+        if ls is not None:  # LSEC (000 §4.4)
+            self._lsec(ls, eff, f.jump)
 
         # friction (000 §4.5): path, weights, the delay line
         C, PATH = self.C, self.PATH

@@ -731,7 +731,7 @@ class Kernel:
         bookkeeping between them as numpy calls on local names (attribute lookups cost
         as much as a small numpy call here).
         """
-        mul, add, subtract = np.multiply, np.add, np.subtract
+        mul, subtract = np.multiply, np.subtract
         copyto = np.copyto
         tgt, act, eff, ev = self.target, self.actual, self.effective, self._event
         prev, t1, tflat = self._prev, self._t1, self._tflat
@@ -756,29 +756,7 @@ class Kernel:
         np.less(t1, 0.0, rev)
         np.negative(d, out=d, where=rev)
 
-        # effective = selected ∧ preconditions (docs/design.md §6.8); a change is a step
-        # event (§3.5)
-        et = self._eff
-        copyto(et.homed_in, homed)
-        ne = et.ne
-        et.homed.take(et.h, out=et.hb)
-        np.logical_and(et.hb0, et.hb1, ne)
-        if self._drives_off:  # cross and plane need the drive enabled (000 p.97 item 4)
-            for col in (CROSS, PLANE):
-                np.logical_and(ne[:, col], self.drive_enabled, out=ne[:, col])
-        copyto(self.preconditions, ne)
-        np.logical_and(ne, self.selected, ne)
-        np.not_equal(ne, eff, ev)
-        copyto(eff, ne)
-        if self._pending_any:  # TEMPC writes, reload
-            np.logical_or(ev, self._pending, ev)
-            self._pending.fill(False)
-            self._pending_any = False
-        # reversal: step event of backlash and bilateral LSEC (P-AXIS-00243)
-        b7 = et.b7
-        np.logical_and(et.rev_mask, self._rev_col, b7)
-        np.logical_and(b7, eff, b7)
-        np.logical_or(ev, b7, ev)
+        self._effective_now(homed)
 
         # backlash (d − init)·lose/2 (000 §2) and temperature (000 §3.1 p.15, the law in
         # `temperature`): see `BacklashTemp`
@@ -813,15 +791,8 @@ class Kernel:
         if pl is not None and pw is not None:  # plane (000 §4.3): `plane.bilinear`
             bilinear(pl, pw)
         tri = self._tri
-        if tri is not None:
-            # crosstalk mode 3 (000 §4.6 p.84): `crosstalk.mode3` (× ratio via the factor
-            # vector); a row with an unusual hull evaluates its triangulation
-            crosstalk.mode3(tri.H, tri.val, self._tri_work)
-            if tri.slow:
-                vt, xy1 = tri.out, tri.xy1
-                for j, t, cols in tri.slow:
-                    col = int(tri.colv[xt.idx[j]])
-                    vt[j] = evaluate(t, cols[col], xy1[j, 0], xy1[j, 1])
+        if tri is not None:  # crosstalk mode 3 (000 §4.6 p.84)
+            self._mode3(tri, xt)
         fr = self._frict
         if fr.any:  # friction factor: sign(v)·scaling_factor/1000 (000 §4.5)
             mul(fr.sign, fr.scale, fr.fac)
@@ -848,38 +819,96 @@ class Kernel:
             copyto(act, prev, where=self.held)
 
         ls = self._lsec
-        if ls is not None:
-            # LSEC (000 §4.4): see `LsecTables`
-            lk = ls.lookup
-            t = ls.t
-            self._aflat.take(ls.cp, out=ls.cpv)
-            add(ls.cp0, ls.cp1, t)
-            if not ls.all_wc:  # set_pos_without_comp: command position only
-                mul(t, ls.wc, t)
-            S.take(ls.src, out=ls.g)
-            add(ls.g, ls.add, ls.qf)  # (row id, position)
-            if ls.any_wrap:  # modulo table: wrap into [x0, x0 + period)
-                lq, lt = lk.q, ls.d
-                subtract(lq, ls.x0, lt)
-                np.mod(lt, ls.per, lt)
-                add(lt, ls.x0, lt)
-                copyto(lq, lt, where=ls.wrap)
-            c = ls.col
-            tl = c.target
-            if ls.all:
-                interpolate(lk, tl)
-            else:
-                interpolate(lk, ls.val)
-                tflat.put(ls.flat, ls.val)
-            mul(tl, c.effective, tl)
-            tld = c.tmp
-            subtract(tl, c.prev, tld)
-            copyto(c.jump, tld, where=c.event)
-            sin2.output(tl, c.jump, c.weight, tld, c.actual)
-            if self._any_held:
-                copyto(c.actual, c.prev, where=self.held[:, LEAD])
+        if ls is not None:  # LSEC (000 §4.4)
+            self._lsec_cycle(ls, S, tflat)
+        self._friction_cycle(fs, fr, rev, dpos)  # friction (000 §4.5)
 
-        # friction (000 §4.5): reversal weights and the delay line, for every axis
+        subtract(act, prev, self.delta)
+        np.matmul(act, self._not_fr, out=self.total_offset)  # Σ columns but friction
+
+    # The parts of `step` below are methods of their own only to keep `step` readable
+    # (ruff C901): a call costs less than one numpy call, and each takes what `step`
+    # already holds in local names as arguments.
+
+    def _effective_now(self, homed: np.ndarray) -> None:
+        """Effective = selected ∧ preconditions (docs/design.md §6.8; cross and plane
+        also need the drive enabled, 000 §5.3 p.97 item 4); a change is a step event
+        (§3.5), as are pending TEMPC writes and reloads, and a reversal for backlash and
+        bilateral LSEC (P-AXIS-00243)."""
+        copyto = np.copyto
+        eff, ev = self.effective, self._event
+        et = self._eff
+        copyto(et.homed_in, homed)
+        ne = et.ne
+        et.homed.take(et.h, out=et.hb)
+        np.logical_and(et.hb0, et.hb1, ne)
+        if self._drives_off:  # cross and plane need the drive enabled (000 p.97 item 4)
+            for col in (CROSS, PLANE):
+                np.logical_and(ne[:, col], self.drive_enabled, out=ne[:, col])
+        copyto(self.preconditions, ne)
+        np.logical_and(ne, self.selected, ne)
+        np.not_equal(ne, eff, ev)
+        copyto(eff, ne)
+        if self._pending_any:  # TEMPC writes, reload
+            np.logical_or(ev, self._pending, ev)
+            self._pending.fill(False)
+            self._pending_any = False
+        # reversal: step event of backlash and bilateral LSEC (P-AXIS-00243)
+        b7 = et.b7
+        np.logical_and(et.rev_mask, self._rev_col, b7)
+        np.logical_and(b7, eff, b7)
+        np.logical_or(ev, b7, ev)
+
+    def _mode3(self, tri: Mode3Tables, xt: CrosstalkTables | None) -> None:
+        """Crosstalk mode 3 (000 §4.6 p.84): `crosstalk.mode3` (× ratio via the factor
+        vector); a row with an unusual hull evaluates its triangulation."""
+        crosstalk.mode3(tri.H, tri.val, self._tri_work)
+        if tri.slow:
+            vt, xy1 = tri.out, tri.xy1
+            for j, t, cols in tri.slow:
+                col = int(tri.colv[xt.idx[j]])
+                vt[j] = evaluate(t, cols[col], xy1[j, 0], xy1[j, 1])
+
+    def _lsec_cycle(self, ls: LsecTables, S: np.ndarray, tflat: np.ndarray) -> None:
+        """LSEC (000 §4.4; the tables: `LsecTables`): looked up at the command position
+        plus this cycle's filtered cross and plane outputs, so after the sin² filter of
+        the other columns, then through its own filter column."""
+        mul, add, subtract = np.multiply, np.add, np.subtract
+        copyto = np.copyto  # (four names in one assignment would build a tuple)
+        lk = ls.lookup
+        t = ls.t
+        self._aflat.take(ls.cp, out=ls.cpv)
+        add(ls.cp0, ls.cp1, t)
+        if not ls.all_wc:  # set_pos_without_comp: command position only
+            mul(t, ls.wc, t)
+        S.take(ls.src, out=ls.g)
+        add(ls.g, ls.add, ls.qf)  # (row id, position)
+        if ls.any_wrap:  # modulo table: wrap into [x0, x0 + period)
+            lq, lt = lk.q, ls.d
+            subtract(lq, ls.x0, lt)
+            np.mod(lt, ls.per, lt)
+            add(lt, ls.x0, lt)
+            copyto(lq, lt, where=ls.wrap)
+        c = ls.col
+        tl = c.target
+        if ls.all:
+            interpolate(lk, tl)
+        else:
+            interpolate(lk, ls.val)
+            tflat.put(ls.flat, ls.val)
+        mul(tl, c.effective, tl)
+        tld = c.tmp
+        subtract(tl, c.prev, tld)
+        copyto(c.jump, tld, where=c.event)
+        sin2.output(tl, c.jump, c.weight, tld, c.actual)
+        if self._any_held:
+            copyto(c.actual, c.prev, where=self.held[:, LEAD])
+
+    def _friction_cycle(
+        self, fs: FrictionState, fr: FrictionTables, rev: np.ndarray, dpos: np.ndarray
+    ) -> None:
+        """Friction (000 §4.5): reversal weights and the delay line, for every axis."""
+        add, copyto = np.add, np.copyto
         path = fs.path
         copyto(path, 0.0, where=rev)  # path since the last reversal
         np.abs(dpos, dpos)
@@ -898,7 +927,4 @@ class Kernel:
         # delay line: read `delay_cycles` back; output only while effective
         rv = fr.rv
         fs.ring_flat.take(fr.ridx_rows[wpos], out=rv)
-        mul(rv, fs.effective, fs.actual)  # = friction_current
-
-        subtract(act, prev, self.delta)
-        np.matmul(act, self._not_fr, out=self.total_offset)  # Σ columns but friction
+        np.multiply(rv, fs.effective, fs.actual)  # = friction_current

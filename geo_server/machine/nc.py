@@ -503,20 +503,49 @@ def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
         if mode is None:
             raise NcError(line, "#VOLCOMP ALL needs ON or OFF")
         return VolcompCommand(mode == "ON", None)
-    words = re.sub(r"\s*=\s*", "=", args or "").replace(",", " ").split()
+    w = _volcomp_words(line, args)
+    ident = w.ident
+    if ident is None:
+        raise NcError(line, "#VOLCOMP: name the compensation with ID=.. (0 … 4) or use ALL")
+    if ident > 4:
+        raise NcError(line, f"#VOLCOMP ID={ident}: the IDs are 0 … 4 (004 p.21)")
+    if w.update:
+        if mode is not None or w.no_move or w.weighted:
+            raise NcError(
+                line, "#VOLCOMP [ID=.. UPDATE] takes no ON/OFF, NO_MOVE or CFACT (004 p.21)"
+            )
+        return VolcompCommand(False, (ident,), update=True)
+    if mode is None:
+        raise NcError(line, "#VOLCOMP needs ON, OFF or [ID=.. UPDATE]")
+    if w.weighted and mode != "ON":
+        raise NcError(line, "#VOLCOMP: CFACT_* only with ON (004 p.21)")
+    return VolcompCommand(mode == "ON", (ident,), w.no_move, tuple(w.cfact) if w.weighted else None)  # type: ignore[arg-type]
+
+
+@dataclass(slots=True)
+class _VolcompWords:
+    """The words in the brackets of one `#VOLCOMP` (004 p.21)."""
+
     ident: int | None = None
-    no_move = update = False
-    cfact = [1.0, 1.0, 1.0]
-    weighted = False
-    for word in words:
+    no_move: bool = False
+    update: bool = False
+    cfact: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # CFACT_X, _Y, _Z
+    weighted: bool = False  # some CFACT_* given
+
+
+def _volcomp_words(line: int, args: str | None) -> _VolcompWords:
+    """ID=.., NO_MOVE, UPDATE and CFACT_X/Y/Z=.. (0.0 … 1.0) of `#VOLCOMP [..]` (004
+    p.21), separated by blanks or commas, `=` with or without blanks around it."""
+    w = _VolcompWords()
+    for word in re.sub(r"\s*=\s*", "=", args or "").replace(",", " ").split():
         if (mi := _VOLCOMP_ID.match(word)) is not None:
-            if ident is not None:
-                raise NcError(line, f"#VOLCOMP: one ID per command ({ident} and {mi[1]})")
-            ident = int(mi[1])
+            if w.ident is not None:
+                raise NcError(line, f"#VOLCOMP: one ID per command ({w.ident} and {mi[1]})")
+            w.ident = int(mi[1])
         elif word == "NO_MOVE":
-            no_move = True
+            w.no_move = True
         elif word == "UPDATE":
-            update = True
+            w.update = True
         elif (mc := _VOLCOMP_CFACT.match(word)) is not None:
             value = float(mc[2])
             if not 0.0 <= value <= 1.0:
@@ -524,27 +553,13 @@ def _parse_volcomp(line: int, number: str | None, rest: str) -> VolcompCommand:
                     line,
                     f"#VOLCOMP CFACT_{mc[1]}={value:g}: permitted values are 0.0 … 1.0 (004 p.21)",
                 )
-            cfact["XYZ".index(mc[1])] = value
-            weighted = True
+            w.cfact["XYZ".index(mc[1])] = value
+            w.weighted = True
         else:
             raise NcError(
                 line, f"#VOLCOMP: unknown word {word!r} (ID=.., NO_MOVE, CFACT_X/Y/Z=.., UPDATE)"
             )
-    if ident is None:
-        raise NcError(line, "#VOLCOMP: name the compensation with ID=.. (0 … 4) or use ALL")
-    if ident > 4:
-        raise NcError(line, f"#VOLCOMP ID={ident}: the IDs are 0 … 4 (004 p.21)")
-    if update:
-        if mode is not None or no_move or weighted:
-            raise NcError(
-                line, "#VOLCOMP [ID=.. UPDATE] takes no ON/OFF, NO_MOVE or CFACT (004 p.21)"
-            )
-        return VolcompCommand(False, (ident,), update=True)
-    if mode is None:
-        raise NcError(line, "#VOLCOMP needs ON, OFF or [ID=.. UPDATE]")
-    if weighted and mode != "ON":
-        raise NcError(line, "#VOLCOMP: CFACT_* only with ON (004 p.21)")
-    return VolcompCommand(mode == "ON", (ident,), no_move, tuple(cfact) if weighted else None)  # type: ignore[arg-type]
+    return w
 
 
 def _parse_block(

@@ -80,6 +80,145 @@ def _outcome(fut: Future[Any]) -> tuple[bool, Any]:
     return False, ("exc", f"{type(exc).__name__}: {exc}")
 
 
+class _ChildChannel:
+    """The cycle process's end of the channel (`_child_main`): it drains the server's
+    commands into the machine and writes one frame per published cycle (see the module
+    docstring), without ever blocking."""
+
+    __slots__ = (
+        "acks",
+        "dec",
+        "events",
+        "exact",
+        "fd",
+        "held",
+        "machine",
+        "out",
+        "sched",
+        "sent",
+        "slots",
+        "status_sent",
+        "wake_fd",
+    )
+
+    def __init__(self, fd: int, sched: Scheduler, slots: SlotTable, wake_conn: Any) -> None:
+        self.fd = fd
+        self.sched = sched
+        self.machine = sched.machine
+        self.slots = slots
+        self.exact = sched.exact
+        self.out, self.dec = OutBuffer(), FrameDecoder()
+        self.acks: list[tuple[int, bool, Any]] = []
+        self.events: list[Event] = []
+        self.wake_fd = wake_conn.fileno() if wake_conn is not None else -1
+        if self.wake_fd >= 0:
+            os.set_blocking(self.wake_fd, False)
+        self.held: Snapshot | None = None  # exact engine: the newest snapshot not framed yet
+        self.sent = -1  # cycle of the last snapshot framed
+        self.status_sent = 0  # cycle of the last status
+
+    def on_done(self, seq: int, fut: Future[Any]) -> None:
+        ok, payload = _outcome(fut)
+        self.acks.append((seq, ok, payload))
+
+    def drain(self) -> None:
+        """Take every command the server has sent (never waits)."""
+        while True:
+            try:
+                data = os.read(self.fd, 1 << 16)
+            except BlockingIOError:
+                return
+            if not data:  # the server process is gone
+                self.sched.request_stop()
+                return
+            for msg in self.dec.feed(data):
+                self._command(msg)
+
+    def _command(self, msg: tuple[Any, ...]) -> None:
+        sched = self.sched
+        if msg[0] == "op":
+            _, seq, slot, op, arrival = msg
+            if self.slots.take(slot):  # else withdrawn: the server answered already
+                if self.exact:  # the cycles before its arrival run without it
+                    sched.advance(min(arrival, sched.due()))
+                pending = self.machine.submit(op)
+                pending.add_done_callback(functools.partial(self.on_done, seq))
+        elif msg[0] == "every":
+            sched._every = int(msg[1])
+        elif msg[0] == "stop":
+            sched.request_stop()
+
+    def frame(self, snap: Snapshot, status: dict[str, Any] | None) -> tuple[Any, ...]:
+        return (
+            "cycle",
+            snap.cycle,
+            snap.values.tobytes(),
+            snap.machine.tobytes(),
+            snap.texts,
+            self.acks[:],
+            self.events[:],
+            status,
+            snap.stamp,
+            self.sched.t0,
+        )
+
+    def on_cycle(self, snap: Snapshot) -> None:
+        sched = self.sched
+        # every STATUS_EVERY cycles (the exact engine skips over cycles: at the first
+        # snapshot of each new hundred)
+        status = None
+        if snap.cycle // STATUS_EVERY != self.status_sent // STATUS_EVERY:
+            status = sched.status()
+            self.status_sent = snap.cycle
+        quiet = not self.acks and not self.events and status is None
+        if self.exact and quiet and not sched._every:
+            # framed once the batch is done (`wait`), unless a newer one comes first
+            self.held = snap
+            return
+        self.held = None
+        self.out.add(self.frame(snap, status), droppable=quiet and not sched._every)
+        self.sent = snap.cycle
+        self.acks.clear()
+        self.events.clear()
+        self.flush()
+
+    def flush(self) -> None:
+        try:
+            self.out.flush(lambda b: os.write(self.fd, b))
+        except OSError:  # the server process is gone
+            self.sched.request_stop()
+
+    def wait(self, seconds: float) -> None:
+        """Exact engine: frame the batch's last snapshot, then sleep until the deadline,
+        a command or a wake-up, and take the commands."""
+        held, fd, wake_fd = self.held, self.fd, self.wake_fd
+        if held is not None and held.cycle > self.sent:
+            self.out.add(self.frame(held, None), droppable=True)
+            self.sent = held.cycle
+        self.held = None
+        self.flush()
+        fds = [fd] if wake_fd < 0 else [fd, wake_fd]
+        try:
+            ready, _, _ = select.select(fds, [], [], seconds)
+        except InterruptedError:
+            ready = []
+        if wake_fd in ready:
+            with contextlib.suppress(BlockingIOError, OSError):
+                while os.read(wake_fd, 4096):
+                    pass
+        if fd in ready:
+            self.drain()
+
+    def close(self) -> None:
+        """The last cycle once more (never dropped) with the final status, then
+        everything still buffered, written blocking: the server reads until end of
+        file."""
+        self.out.add(self.frame(self.machine.snapshot, self.sched.status()))
+        os.set_blocking(self.fd, True)
+        with contextlib.suppress(OSError):
+            self.out.flush(lambda b: os.write(self.fd, b))
+
+
 def _child_main(
     conn: Any,
     cfg: MachineConfig,
@@ -106,117 +245,18 @@ def _child_main(
     machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
     sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
     sched.idle_wake = IDLE_WAKE_PROCESS  # a frame well within SYNC_DEAD of the last
-    out, dec = OutBuffer(), FrameDecoder()
-    acks: list[tuple[int, bool, Any]] = []
-    events: list[Event] = []
-    exact = sched.exact
-    wake_fd = wake_conn.fileno() if wake_conn is not None else -1
-    if wake_fd >= 0:
-        os.set_blocking(wake_fd, False)
-    held: list[Snapshot] = []  # exact engine: the newest snapshot not framed yet
-    sent = [-1, 0]  # cycles of the last snapshot framed and of the last status
-
-    def on_done(seq: int, fut: Future[Any]) -> None:
-        ok, payload = _outcome(fut)
-        acks.append((seq, ok, payload))
-
-    def drain() -> None:
-        while True:
-            try:
-                data = os.read(fd, 1 << 16)
-            except BlockingIOError:
-                return
-            if not data:  # the server process is gone
-                sched.request_stop()
-                return
-            for msg in dec.feed(data):
-                if msg[0] == "op":
-                    _, seq, slot, op, arrival = msg
-                    if slots.take(slot):  # else withdrawn: the server answered already
-                        if exact:  # the cycles before its arrival run without it
-                            sched.advance(min(arrival, sched.due()))
-                        pending = machine.submit(op)
-                        pending.add_done_callback(functools.partial(on_done, seq))
-                elif msg[0] == "every":
-                    sched._every = int(msg[1])
-                elif msg[0] == "stop":
-                    sched.request_stop()
-
-    def frame(snap: Snapshot, status: dict[str, Any] | None) -> tuple[Any, ...]:
-        return (
-            "cycle",
-            snap.cycle,
-            snap.values.tobytes(),
-            snap.machine.tobytes(),
-            snap.texts,
-            acks[:],
-            events[:],
-            status,
-            snap.stamp,
-            sched.t0,
-        )
-
-    def on_cycle(snap: Snapshot) -> None:
-        # every STATUS_EVERY cycles (the exact engine skips over cycles: at the first
-        # snapshot of each new hundred)
-        status = None
-        if snap.cycle // STATUS_EVERY != sent[1] // STATUS_EVERY:
-            status = sched.status()
-            sent[1] = snap.cycle
-        quiet = not acks and not events and status is None
-        if exact and quiet and not sched._every:
-            # framed once the batch is done (`wait`), unless a newer one comes first
-            held[:] = [snap]
-            return
-        held.clear()
-        out.add(frame(snap, status), droppable=quiet and not sched._every)
-        sent[0] = snap.cycle
-        acks.clear()
-        events.clear()
-        flush()
-
-    def flush() -> None:
-        try:
-            out.flush(lambda b: os.write(fd, b))
-        except OSError:  # the server process is gone
-            sched.request_stop()
-
-    def wait(seconds: float) -> None:
-        """Exact engine: frame the batch's last snapshot, then sleep until the deadline,
-        a command or a wake-up, and take the commands."""
-        if held and held[0].cycle > sent[0]:
-            out.add(frame(held[0], None), droppable=True)
-            sent[0] = held[0].cycle
-        held.clear()
-        flush()
-        fds = [fd] if wake_fd < 0 else [fd, wake_fd]
-        try:
-            ready, _, _ = select.select(fds, [], [], seconds)
-        except InterruptedError:
-            ready = []
-        if wake_fd in ready:
-            with contextlib.suppress(BlockingIOError, OSError):
-                while os.read(wake_fd, 4096):
-                    pass
-        if fd in ready:
-            drain()
-
-    machine.subscribe(on_cycle)
-    machine.subscribe_events(events.append)
-    if exact:
-        sched.waiter = wait
+    channel = _ChildChannel(fd, sched, slots, wake_conn)
+    machine.subscribe(channel.on_cycle)
+    machine.subscribe_events(channel.events.append)
+    if channel.exact:
+        sched.waiter = channel.wait
     else:
-        sched.before_cycle = drain
+        sched.before_cycle = channel.drain
     finish = setup(sched) if setup is not None else None
     sched.run_here()
     if finish is not None:
         finish()
-    # The last cycle once more (never dropped) with the final status, then everything
-    # still buffered, written blocking: the server reads until end of file.
-    out.add(frame(machine.snapshot, sched.status()))
-    os.set_blocking(fd, True)
-    with contextlib.suppress(OSError):
-        out.flush(lambda b: os.write(fd, b))
+    channel.close()
 
 
 #: The cycle process exchanges frames over an OS pipe with plain file descriptors

@@ -407,7 +407,14 @@ class Scheduler:
         if not self.exact or not self.running_exact:
             return True
         t0 = time.perf_counter_ns()
-        self._observed_at = self._clock()
+        now = self._observed_at = self._clock()
+        m = self.machine
+        if m.snapshot.cycle == m.cycle == (now - self.t0) // self.period_ns:
+            # the cycle due is computed and published already (requests faster than the
+            # cycle): nothing to take the engine for (the engine never runs ahead of due)
+            if record:
+                self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
+            return True
         if not self._engine_lock.acquire(timeout=wait if wait > 0 else -1, blocking=wait > 0):
             return False
         try:
@@ -508,7 +515,6 @@ class Scheduler:
                 m.publish()
             return
         every = self._every
-        rec, clock = self.stats.record, time.perf_counter_ns
         while m.cycle < target and not self._stop.is_set():
             if m.cycle >= self._next_overrun:
                 slip = self._overrun()
@@ -516,56 +522,73 @@ class Scheduler:
                 target -= slip  # the cycle due now, on the slipped time line
                 continue
             stop_at = min(target, self._next_overrun)
-            demands = self._demands
             if m.quiescent:
-                try:
-                    if not every:
-                        # skip to the next cycle an observer wants (if any before stop_at)
-                        nxt = self._next_demanded(m.cycle, True) if demands else None
-                        if nxt is None or nxt > stop_at:
-                            m.skip(stop_at - m.cycle)
-                            if stop_at == target:
-                                break
-                            continue
-                        m.skip(nxt - m.cycle)
-                        if self._demanded(nxt, True):
-                            m.publish()
-                            self.demanded += 1
-                        continue
-                    m.skip(1)
-                    m.publish()
-                except Exception:  # as `_guarded_cycle`: logged, counted, time goes on
-                    self.cycle_errors += 1
-                    log.exception("GEO cycle %d (skipped at rest) failed", m.cycle)
+                if self._skip_at_rest(stop_at, stop_at == target, every):
                     break
-                continue
-            t0 = clock()
-            before = m.cycle
-            limit = stop_at
-            if demands and not every:
-                # a batch ends before the next cycle an observer wants published
-                nxt = self._next_demanded(before, False)
-                if nxt is not None and nxt <= stop_at:
-                    limit = nxt - 1
-            if not every and limit - before >= 2 and self.before_cycle is None:
-                # a steady stretch in one pass (docs/design.md §13.2), else single cycles
-                done = self._batch(limit - before)
-                if done:
-                    self.computed += done
-                    rec(0.0, (clock() - t0) / 1000 / done, m.kernel_ns / 1000)
-                    continue
-            # only the last cycle of the batch is looked at (and every one while
-            # someone samples every cycle, and those an observer wants): the others
-            # need not build their snapshot
-            wanted = bool(demands) and not every and self._demanded(before + 1, False)
-            if not self._computed_cycle(
-                bool(every) or wanted or (publish and m.cycle + 1 == target)
-            ):
+            elif not self._compute_next(stop_at, target, publish, every):
                 break
-            if wanted:
-                self.demanded += 1
         if publish:
             m.publish()
+
+    def _skip_at_rest(self, stop_at: int, last: bool, every: int) -> bool:
+        """`advance` on a quiescent machine, towards `stop_at`: skip to the next cycle
+        an observer wants (published) or to `stop_at`; one cycle, published, while
+        someone samples every cycle. True when `advance` is done: `stop_at` is reached
+        and it is the target (`last`), or the skip failed."""
+        m = self.machine
+        try:
+            if not every:
+                # skip to the next cycle an observer wants (if any before stop_at)
+                nxt = self._next_demanded(m.cycle, True) if self._demands else None
+                if nxt is None or nxt > stop_at:
+                    m.skip(stop_at - m.cycle)
+                    return last
+                m.skip(nxt - m.cycle)
+                if self._demanded(nxt, True):
+                    m.publish()
+                    self.demanded += 1
+                return False
+            m.skip(1)
+            m.publish()
+        except Exception:  # as `_guarded_cycle`: logged, counted, time goes on
+            self.cycle_errors += 1
+            log.exception("GEO cycle %d (skipped at rest) failed", m.cycle)
+            return True
+        return False
+
+    def _compute_next(self, stop_at: int, target: int, publish: bool, every: int) -> bool:
+        """`advance` on a machine that is not at rest: the next cycles up to `stop_at`,
+        a steady stretch in one pass (docs/design.md §13.2) or else one cycle, which
+        builds its snapshot when it is looked at (`publish` and the `target`, an
+        observer's cycle, or every one while someone samples every cycle). False when
+        the cycle failed: `advance` stops."""
+        m = self.machine
+        clock = time.perf_counter_ns
+        demands = self._demands
+        t0 = clock()
+        before = m.cycle
+        limit = stop_at
+        if demands and not every:
+            # a batch ends before the next cycle an observer wants published
+            nxt = self._next_demanded(before, False)
+            if nxt is not None and nxt <= stop_at:
+                limit = nxt - 1
+        if not every and limit - before >= 2 and self.before_cycle is None:
+            # a steady stretch in one pass (docs/design.md §13.2), else single cycles
+            done = self._batch(limit - before)
+            if done:
+                self.computed += done
+                self.stats.record(0.0, (clock() - t0) / 1000 / done, m.kernel_ns / 1000)
+                return True
+        # only the last cycle of the batch is looked at (and every one while
+        # someone samples every cycle, and those an observer wants): the others
+        # need not build their snapshot
+        wanted = bool(demands) and not every and self._demanded(before + 1, False)
+        if not self._computed_cycle(bool(every) or wanted or (publish and m.cycle + 1 == target)):
+            return False
+        if wanted:
+            self.demanded += 1
+        return True
 
     def _batch(self, left: int) -> int:
         """Run a steady stretch of up to `left` (at most `BATCH_MAX`) cycles in one pass

@@ -102,12 +102,12 @@ def record_dir(
 def start_from_args(args: argparse.Namespace, service: Any) -> bool:
     """`run --record`: start recording before the first cycle; False after saying why.
     Sets the recordings folder of `--record-dir` either way."""
-    service.record_dir = record_dir(args)
+    service.recordings.record_dir = record_dir(args)
     if not getattr(args, "record", None):
         return True
     try:
         # the local user's own file name: written where it says (docs/recorder.md §7)
-        st = service.start_recording(
+        st = service.recordings.start(
             spec_from_args(args), args.record_out, args.machine, local=True
         )
     except (AdsError, ValueError) as exc:
@@ -119,10 +119,10 @@ def start_from_args(args: argparse.Namespace, service: Any) -> bool:
 
 def finish(service: Any) -> None:
     """Write the recording (once its trigger's samples are in, or at the end of `run`)."""
-    if service.recording is None:
+    if service.recordings.recording is None:
         return
     try:
-        done = service.stop_recording()
+        done = service.recordings.stop()
     except AdsError as exc:
         print(f"error: recording: {exc.message}", file=sys.stderr)
         return

@@ -1,10 +1,10 @@
 """Recording chosen objects every N cycles, with a trigger (docs/recorder.md §1–3, §8).
 
 The recorder subscribes to the object service: its callback runs on the thread that
-publishes each cycle, and it holds `demand_every_cycle` so the exact engine publishes
-every cycle while it records. Per sample it copies the selected values straight from the
-snapshot's arrays into a preallocated ring (`np.take` with precomputed flat indices): no
-dict lookups, no allocation, no I/O on the cycle's thread.
+publishes each cycle, and it holds `demand_cycles()` (every cycle) so the exact engine
+publishes every cycle while it records. Per sample it copies the selected values
+straight from the snapshot's arrays into a preallocated ring (`np.take` with precomputed
+flat indices): no dict lookups, no allocation, no I/O on the cycle's thread.
 
 A recording *to a file* (`out`) streams: a writer thread of its own takes the rows from
 the ring chunk by chunk (`CHUNK_BYTES`), types them and appends them to a temporary file
@@ -203,12 +203,12 @@ class Recorder:
         self.name = name
         self.out = out
         self.limits = limits
-        axes = tuple(service.axes)
-        names = {a: service.config.axes[a].params.name for a in axes}
-        self.columns = resolve_columns(spec.objects, service.dictionary, axes, names)
+        axes = tuple(service.info.axes)
+        names = {a: service.info.config.axes[a].params.name for a in axes}
+        self.columns = resolve_columns(spec.objects, service.info.dictionary, axes, names)
         self.trigger: Trigger | None = None
         if spec.trigger:
-            self.trigger = parse_trigger(spec.trigger, service.dictionary, axes, names)
+            self.trigger = parse_trigger(spec.trigger, service.info.dictionary, axes, names)
         self._axis_cols = [c for c in self.columns if c.obj.scope == "axis"]
         self._machine_cols = [c for c in self.columns if c.obj.scope == "machine"]
         self._ordered = [*self._axis_cols, *self._machine_cols]
@@ -247,7 +247,7 @@ class Recorder:
         self._halted = False
         #: samples not taken because the writer was a whole ring behind (real time only)
         self.dropped = 0
-        self._cycle_ms = service.cycle_s * 1000
+        self._cycle_ms = service.info.cycle_s * 1000
         # inputs as JSON lines: those held and their size; `_input_count` ever kept
         self._inputs: deque[str] = deque()
         self._inputs_bytes = 0
@@ -255,7 +255,7 @@ class Recorder:
         self.inputs_dropped = 0
         self._undo: list[Callable[[], None]] = []
         # the file side (out): the writer thread and what it writes into
-        self._realtime = service.mode == "realtime"
+        self._realtime = service.info.mode == "realtime"
         self._trace_file: TraceWriter | None = None
         self._inputs_file: AtomicFile | None = None
         self._writer: threading.Thread | None = None
@@ -283,8 +283,8 @@ class Recorder:
             self._open_files(self.out)
         try:
             if self.spec.inputs:
-                self._undo.append(self.service.tap_inputs(self._on_input))
-            self._undo.append(self.service.demand_every_cycle())
+                self._undo.append(self.service.recordings.tap_inputs(self._on_input))
+            self._undo.append(self.service.demand_cycles())
             self._undo.append(self.service.subscribe(self._on_cycle))
         except BaseException:
             self.abort()

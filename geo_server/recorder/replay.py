@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.recorder.inputs import json_to_op
@@ -51,7 +52,7 @@ def replay(
                 )
             machine.submit(json_to_op(line, machine.names, where))
             i += 1
-        service.step(1)
+        access.step(service, 1)
     trace = recorder.stop()
     trace.meta["replayed"] = str(startup)
     return trace

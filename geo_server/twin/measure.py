@@ -196,7 +196,7 @@ class StepBench:
 
     def __init__(self, service: Any, max_cycles_per_move: int = 200_000) -> None:
         """`service`: a `geo_server.service.ObjectService` in stepped mode (duck-typed:
-        this layer sits below the service)."""
+        this layer sits below the service); the bench steps its scheduler."""
         self.svc = service
         self.max_cycles = max_cycles_per_move
         self._periods: dict[int, float] = {}
@@ -205,14 +205,14 @@ class StepBench:
         """The modulo period in increments (0: not a modulo axis): the command position
         of a modulo axis reads wrapped (docs/design.md §3.8). Looked up once per axis."""
         if axis not in self._periods:
-            params = self.svc.machine.cfg.axes[axis].params
+            params = self.svc.info.config.axes[axis].params
             self._periods[axis] = float(params.modulo_period) if params.modulo else 0.0
         return self._periods[axis]
 
     def at(self, axis: int, position: float) -> bool:
-        if self.svc.read_name("SIM::velocity", axis) != 0:
+        if self.read("SIM::velocity", axis) != 0:
             return False
-        diff = float(self.svc.read_name("SIM::command_position", axis)) - round(position)
+        diff = float(self.read("SIM::command_position", axis)) - round(position)
         period = self._period(axis)
         if period:
             diff = (diff + period / 2) % period - period / 2
@@ -223,22 +223,22 @@ class StepBench:
         for _ in range(self.max_cycles):
             if self.at(axis, position):
                 return
-            self.svc.step(1)
+            self.svc.scheduler.step(1)
         raise MeasureError(f"axis {axis} did not reach {position:.0f} increments")
 
     def dwell(self, seconds: float) -> None:
-        self.svc.step(max(1, round(seconds / float(self.svc.cycle_s))))
+        self.svc.scheduler.step(max(1, round(seconds / float(self.svc.info.cycle_s))))
 
     def true_position(self, axis: int) -> float:
-        return float(self.svc.read_name("TWIN::true_position", axis))
+        return float(self.read("TWIN::true_position", axis))
 
     def nc(self, text: str) -> None:
         """Run NC lines to their end; MeasureError if they report an error."""
-        since = self.svc.snapshot.cycle
-        pending = self.svc.run_nc(text)
+        since = self._cycle()
+        pending = self.svc.nc.run(text)
         for _ in range(self.max_cycles):
-            self.svc.step(1)
-            if not self.svc.read_name("SIM::program_running", 0):
+            self.svc.scheduler.step(1)
+            if not self.read("SIM::program_running", 0):
                 break
         else:
             raise MeasureError(f"NC {text!r} did not end")
@@ -254,13 +254,22 @@ class StepBench:
                 raise MeasureError(f"NC {text!r}: {e['message']}")
 
     def read(self, name: str, axis: int) -> Any:
-        return self.svc.read_name(name, axis)
+        """An object's value from the snapshot due now (0x707 while stalled)."""
+        return self.svc.current().value(self.svc.lookup(name, axis), axis)
 
     def write(self, name: str, axis: int, value: object) -> None:
-        pending = self.svc.write_name(name, axis, value)
-        self.svc.step(1)
+        pending = self._submit(name, axis, value)
+        self.svc.scheduler.step(1)
         if pending.done():
-            pending.result()
+            _raise_refused(pending.result())
+
+    def _submit(self, name: str, axis: int, value: object) -> Any:
+        """Validate and queue one object write (the future of `submit_writes`)."""
+        return self.svc.submit_writes([self.svc.prepare_name(name, axis, value)])
+
+    def _cycle(self) -> int:
+        """The cycle of the latest snapshot (also while stalled)."""
+        return int(self.svc.current(stale_ok=True).cycle)
 
 
 class LiveBench(StepBench):
@@ -274,8 +283,13 @@ class LiveBench(StepBench):
         timeout_s: float = 120.0,
         deadline_s: float = 3600.0,
         cancel: threading.Event | None = None,
+        *,
+        settle: Callable[[Any, float], Any],
     ) -> None:
+        """`settle(pending, timeout)`: the service's wait for a queued operation (its
+        timeout/withdraw rule, `commands.ports.Ports.settle_sync`)."""
         super().__init__(service)
+        self.settle = settle
         self.timeout = timeout_s
         self.deadline = time.monotonic() + deadline_s
         self.cancel = cancel or threading.Event()
@@ -287,25 +301,32 @@ class LiveBench(StepBench):
                 raise MeasureError("the measurement was cancelled")
             if time.monotonic() > deadline:
                 raise MeasureError(f"{what} did not happen in time")
-            time.sleep(max(float(self.svc.cycle_s), 0.0005))
+            time.sleep(max(float(self.svc.info.cycle_s), 0.0005))
 
     def move(self, axis: int, position: float) -> None:
         self.write("SIM::target_position", axis, round(position))
         self._until(lambda: self.at(axis, position), f"axis {axis} reaching {position:.0f}")
 
     def dwell(self, seconds: float) -> None:
-        start = self.svc.snapshot.cycle
-        cycles = max(1, round(seconds / float(self.svc.cycle_s)))
-        self._until(lambda: bool(self.svc.snapshot.cycle >= start + cycles), "the dwell")
+        start = self._cycle()
+        cycles = max(1, round(seconds / float(self.svc.info.cycle_s)))
+        self._until(lambda: self._cycle() >= start + cycles, "the dwell")
 
     def write(self, name: str, axis: int, value: object) -> None:
-        self.svc.settle_sync(self.svc.write_name(name, axis, value), self.timeout)
+        _raise_refused(self.settle(self._submit(name, axis, value), self.timeout))
 
     def nc(self, text: str) -> None:
-        since = self.svc.snapshot.cycle
-        self.svc.settle_sync(self.svc.run_nc(text), self.timeout)
-        self._until(lambda: not self.svc.read_name("SIM::program_running", 0), f"NC {text!r}")
+        since = self._cycle()
+        self.settle(self.svc.nc.run(text), self.timeout)
+        self._until(lambda: not self.read("SIM::program_running", 0), f"NC {text!r}")
         self._check_errors(text, since)
+
+
+def _raise_refused(outcome: Any) -> None:
+    """The error a one-item object write raised when the cycle applied it (the outcome
+    of `submit_writes` is a tuple with None or the error of each item)."""
+    if isinstance(outcome, tuple) and outcome[0] is not None:
+        raise outcome[0]
 
 
 # ---------------------------------------------------------------------- a plan from JSON

@@ -273,6 +273,46 @@ class VolKernel:
         st.target = st.factor = 0.0
         st.value = [0.0, 0.0, 0.0]
 
+    def _correct(self, st: CompState, pos: np.ndarray) -> None:
+        """`st.value`: the correction of the active compensation `st` at the command
+        positions `pos` (increments), its ramp advanced by one cycle (`filter_steps`,
+        004 p.22), weighed by `CFACT_*` (p.21) and `negate`/`set_to_zero` (p.16), at the
+        tool point of the current tool length (its own P0, N0, p.15)."""
+        if st.factor != st.target:
+            d = st.target - st.factor
+            st.factor = st.target if abs(d) <= st.step else st.factor + math.copysign(st.step, d)
+        ev = st.evaluator
+        assert ev is not None
+        if st.tip_length != self.tool_length:  # its own P0, N0 (004 p.15)
+            t = ev.model.tool_point(self.tool_length)
+            st.tip, st.tip_length = (float(t[0]), float(t[1]), float(t[2])), self.tool_length
+        q = [pos.item(s) / UNITS_PER_MM for s in st.slot_list]
+        st.raw = ev.correction_one(q, st.tip)
+        w = st.factor * UNITS_PER_MM
+        cf, mo = st.cfact, st.modify
+        st.value = [st.raw[k] * cf.item(k) * mo.item(k) * w for k in range(3)]
+
+    def _within_limits(self, off: np.ndarray) -> bool:
+        """s_limit bounds what the axis gets, the sum `off` of every compensation (004
+        p.14): a compensation with an axis beyond its limit is switched off (reported).
+        False if one was."""
+        ok = True
+        for st in self._active:
+            if not st.active:
+                continue
+            for k, s in enumerate(st.linear_list):
+                lim = st.limits.item(k)
+                if abs(off.item(s)) > lim:
+                    self._off(
+                        st,
+                        f"correction of {'XYZ'[k]} {off.item(s):.0f} exceeds "
+                        f"lr_param.vol_comp.s_limit {lim:.0f} (P-AXIS-00525, 004 p.14): "
+                        "switched off",
+                    )
+                    ok = False
+                    break
+        return ok
+
     def step(self, pos: np.ndarray, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
         """Compute `offset` for command positions `pos` (increments). False when a
         compensation had to be switched off in this cycle (the sum on an axis beyond its
@@ -295,38 +335,11 @@ class VolKernel:
                 st.incorrect = True
                 ok = False
                 continue
-            if st.factor != st.target:
-                d = st.target - st.factor
-                st.factor = (
-                    st.target if abs(d) <= st.step else st.factor + math.copysign(st.step, d)
-                )
-            ev = st.evaluator
-            assert ev is not None
-            if st.tip_length != self.tool_length:  # its own P0, N0 (004 p.15)
-                t = ev.model.tool_point(self.tool_length)
-                st.tip, st.tip_length = (float(t[0]), float(t[1]), float(t[2])), self.tool_length
-            q = [pos.item(s) / UNITS_PER_MM for s in st.slot_list]
-            st.raw = ev.correction_one(q, st.tip)
-            w = st.factor * UNITS_PER_MM
-            cf, mo = st.cfact, st.modify
-            st.value = [st.raw[k] * cf.item(k) * mo.item(k) * w for k in range(3)]
+            self._correct(st, pos)
             for k, s in enumerate(st.linear_list):
                 off[s] += st.value[k]
-        # s_limit bounds what the axis gets, the sum of every compensation (004 p.14)
-        for st in self._active:
-            if not st.active:
-                continue
-            for k, s in enumerate(st.linear_list):
-                lim = st.limits.item(k)
-                if abs(off.item(s)) > lim:
-                    self._off(
-                        st,
-                        f"correction of {'XYZ'[k]} {off.item(s):.0f} exceeds "
-                        f"lr_param.vol_comp.s_limit {lim:.0f} (P-AXIS-00525, 004 p.14): "
-                        "switched off",
-                    )
-                    ok = False
-                    break
+        if not self._within_limits(off):
+            ok = False
         if not ok:
             off[:] = 0.0
             for st in self._active:

@@ -80,8 +80,12 @@ class Guard:
         allowed_hosts: Iterable[str] = (),
         user: str = "",
         password: str = "",
+        max_body: int = 0,
     ) -> None:
         self.token = token.encode()
+        #: a body announced larger than this is refused before a byte of it is read
+        #: (0: no bound here; aiohttp's `client_max_size` still stops the reading)
+        self.max_body = max_body
         self._extra = [h.strip().lower() for h in allowed_hosts if h.strip()]
         self._auth = (user.encode(), password.encode()) if user else None
         self.hosts: frozenset[str] = frozenset()
@@ -151,6 +155,15 @@ class Guard:
         if (writes or upgrade) and origin is not None and _netloc(origin) != host:
             return refusal(403, f"requests from {origin[:100]!r} are not accepted")
         if writes:
+            size = request.content_length
+            if self.max_body and size is not None and size > self.max_body:
+                # refused on its Content-Length, the connection closed: reading (and
+                # discarding) a megabyte per request would be the attacker's lever
+                response = refusal(
+                    413, f"a body of {size} bytes; at most {self.max_body} are accepted"
+                )
+                response.force_close()
+                return response
             if request.content_type != "application/json":
                 return refusal(
                     415, f"the body must be application/json, not {request.content_type!r}"

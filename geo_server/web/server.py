@@ -39,7 +39,7 @@ from typing import Any
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from geo_server import __version__
+from geo_server import __version__, access
 from geo_server.dictionary import MAX_AXIS, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -170,7 +170,9 @@ def _with_token(options: HmiOptions) -> HmiOptions:
 
 
 def _guard(options: HmiOptions) -> Guard:
-    return Guard(options.token, options.allowed_hosts, options.user, options.password)
+    return Guard(
+        options.token, options.allowed_hosts, options.user, options.password, options.max_body
+    )
 
 
 class HmiServer:
@@ -180,7 +182,7 @@ class HmiServer:
         self.service = service
         self.options = _with_token(options or HmiOptions())
         self.guard = _guard(self.options)
-        d = service.dictionary
+        d = service.info.dictionary
         self.tempc = [object_info(o) for o in writable_tempc(d)]
         self._writable = {o.name for o in writable_tempc(d)}
         #: open pages: each socket with its transport (to drop a page that stops reading)
@@ -193,9 +195,9 @@ class HmiServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         #: set while a page is open (wakes the sampling at once when one opens)
         self._watched = asyncio.Event()
-        self._cfg: MachineConfig = service.config
+        self._cfg: MachineConfig = service.info.config
         self._tables_json = ""
-        self.view = LiveView(d, self._cfg, service.axes)
+        self.view = LiveView(d, self._cfg, service.info.axes)
         self.trends = self._new_trends()
         #: pushes sent (samples taken while a page was open)
         self.pushes = 0
@@ -204,7 +206,7 @@ class HmiServer:
         self.address = ""
 
     def _new_trends(self) -> Trends:
-        series = len(self.service.axes) * len(self.view.trend_fields)
+        series = len(self.service.info.axes) * len(self.view.trend_fields)
         return Trends(series, self.options.trend_seconds, 1 / self.options.period)
 
     # ------------------------------------------------------------------ lifecycle
@@ -276,7 +278,7 @@ class HmiServer:
     def hello(self) -> dict[str, Any]:
         """The first message of a socket: what the page is built from."""
         svc = self.service
-        cfg = svc.config
+        cfg = svc.info.config
         return {
             "type": "hello",
             "version": __version__,
@@ -291,7 +293,7 @@ class HmiServer:
                     "name": cfg.axes[a].params.name,
                     "rotary": cfg.axes[a].params.kind != "T",
                 }
-                for a in svc.axes
+                for a in svc.info.axes
             ],
             "comps": [{"key": c.key, "title": c.title} for c in COMPENSATIONS],
             "tempc": self.tempc,
@@ -325,12 +327,12 @@ class HmiServer:
 
     def _reconfigured(self) -> bool:
         """After a reload (from any interface) the tables and units may have changed."""
-        cfg = self.service.config
+        cfg = self.service.info.config
         if cfg is self._cfg:
             return False
         self._cfg, self._tables_json = cfg, ""
         fields = self.view.trend_fields
-        self.view = LiveView(self.service.dictionary, cfg, self.service.axes)
+        self.view = LiveView(self.service.info.dictionary, cfg, self.service.info.axes)
         if self.view.trend_fields != fields:  # a twin came or went
             self.trends = self._new_trends()
         return True
@@ -451,7 +453,7 @@ class HmiServer:
         self._reconfigured()
         if not self._tables_json:  # once per configuration, off the loop (tens of ms)
             cfg = self._cfg
-            text = await asyncio.to_thread(_tables_json, cfg, self.service.axes)
+            text = await asyncio.to_thread(_tables_json, cfg, self.service.info.axes)
             if cfg is self._cfg:
                 self._tables_json = text
             return web.Response(text=text, content_type="application/json")
@@ -477,7 +479,7 @@ class HmiServer:
                     obj.name,
                 )
             value = obj.coerce_json(value)
-            stored = await self.service.write_name_applied(obj.name, axis, value)
+            stored = await access.write_name_applied(self.service, obj.name, axis, value)
         except AdsError as exc:
             return _refused(exc)
         return web.json_response({"ok": True, "name": obj.name, "axis": axis, "value": stored})
@@ -488,7 +490,7 @@ class HmiServer:
             return _refused(READ_ONLY)
         if name not in ("reload", "save"):
             return _refused(AdsError(AdsErrorCode.DEVICE_SRVNOTSUPP, f"unknown command {name!r}"))
-        result = await self.service.command(name)
+        result = await self.service.commands.run_applied(name)
         body = result.as_dict()
         if not result.ok:
             body = {**result.error().as_dict(), **body}

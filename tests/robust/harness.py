@@ -108,7 +108,7 @@ class FullServer:
             self.zenoh_endpoint if self.zenoh else "",
             self.modbus.port if self.modbus else 0,
             self.ads.port if self.ads else 0,
-            len(self.service.axes),
+            len(self.service.info.axes),
         )
 
     def client(self, via: str):
@@ -117,7 +117,7 @@ class FullServer:
 
     @property
     def cycle(self) -> int:
-        return self.service.snapshot.cycle
+        return self.service.current(stale_ok=True).cycle
 
 
 class Endpoints:

@@ -14,6 +14,7 @@ import os
 import sys
 from pathlib import Path
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
@@ -22,12 +23,12 @@ from geo_server.service import ObjectService
 
 def worker(folder: str, rows: int) -> None:
     service = ObjectService(Machine(load_machine(default_startup_list()), homed=True))
-    service.record_dir = Path(folder)
+    service.recordings.record_dir = Path(folder)
     print(f"ready {os.getpid()}", flush=True)
     for _ in range(100_000):  # killed long before the end
-        service.start_recording({"objects": ["*"]}, "golden.csv", "kill", overwrite=True)
-        service.step(rows)
-        service.stop_recording()
+        service.recordings.start({"objects": ["*"]}, "golden.csv", "kill", overwrite=True)
+        access.step(service, rows)
+        service.recordings.stop()
     os._exit(0)
 
 

@@ -3,7 +3,7 @@
 Imports geo-server once, then, per line `go <coefA> <offA> <coefB> <offB>` on stdin,
 forks a worker that loads the machine from the start-up list given as argv[1] (the
 current state of the lists), prints `ready <pid>`, and then alternately writes the A and
-the B values of axis 1 and calls `ObjectService.save()` — as fast as it can, until the
+the B values of axis 1 and calls `service.commands.save()` — as fast as it can, until the
 parent kills it with SIGKILL. The zygote reaps the worker and prints `dead <signal>`.
 Forking keeps the 30 rounds cheap (no interpreter start and numpy import per kill).
 """
@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import sys
 
+from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
@@ -23,10 +24,10 @@ def worker(startup: str, a: tuple[float, int], b: tuple[float, int]) -> None:
     print(f"ready {os.getpid()}", flush=True)
     for j in range(100_000):  # killed long before the end
         coef, off = a if j % 2 == 0 else b
-        service.write_name("TEMPC::coefficient", 1, coef)
-        service.write_name("TEMPC::offset_0", 1, off)
-        service.step(1)
-        result = service.save()
+        access.write_name(service, "TEMPC::coefficient", 1, coef)
+        access.write_name(service, "TEMPC::offset_0", 1, off)
+        access.step(service, 1)
+        result = service.commands.save()
         if not result.ok:
             print(f"save failed: {result.errors}", flush=True)
             os._exit(3)

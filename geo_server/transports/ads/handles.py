@@ -143,7 +143,9 @@ def lookup_address(dev: Device, port: int | None, req: ReadWriteRequest) -> byte
             f"address lookup: (channel, axis) has 8 bytes, not {len(req.data)}",
         )
     fit_size(8, req.read_length, dev.options.max_answer)
-    ig, io = dev.service.lookup_address(req.index_group, req.index_offset & 0xFFFF, channel, axis)
+    ig, io = dev.service.info.lookup_address(
+        req.index_group, req.index_offset & 0xFFFF, channel, axis
+    )
     return codec.read_response(0, struct.pack("<II", ig, io))
 
 

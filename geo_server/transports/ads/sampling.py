@@ -13,6 +13,7 @@ from dataclasses import replace
 from typing import Protocol, cast
 
 from geo_server.errors import AdsError
+from geo_server.service import varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.ads import codec, handles, symbols
 from geo_server.transports.ads.codec import AddNotificationRequest, AmsHeader, Stamp
@@ -33,7 +34,7 @@ def add_notification(
 ) -> bytes:
     """AddDeviceNotification at the task (or system) port `port`."""
     hold = 0.0
-    if dev.service.running:
+    if dev.service.info.running:
         hold = time.monotonic() + dev.options.first_sample_hold
     if req.index_group == symbols.SYM_VALBYHND:
         ig, io = handles.address(dev, conn, port, req.index_group, req.index_offset)
@@ -47,7 +48,7 @@ def add_notification(
             h.source,
             h.target,
             req,
-            dev.service.fresh(),
+            dev.service.current(stale_ok=True),
             hold_until=hold,
             prepare=lambda ig, io, length, snap: _getter(dev, port, ig, io, length, snap),
             steady=lambda ig, io: _steady(dev, port, ig, io),
@@ -93,7 +94,7 @@ def _steady(dev: Device, port: int, ig: int, io: int) -> bool:
         obj, _axis, attr = dev.service.resolve(ig, io, port=port)
     except AdsError:
         return False
-    return attr is not None or not dev.service.varies_at_rest(obj)
+    return attr is not None or not varies_at_rest(obj)
 
 
 class _Sink(Protocol):

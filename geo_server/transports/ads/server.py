@@ -89,7 +89,7 @@ class AdsServer:
         self.head: AdsServer = router if router is not None else self
         self.notifications: NotificationTable = NotificationTable(
             self.service.read,
-            service.cycle_s,
+            service.info.cycle_s,
             self.options.max_notifications,
             self.options.max_notifications_total,
             pool=(
@@ -234,7 +234,9 @@ class AdsServer:
     def symbols(self) -> symbols.SymbolTable:
         """The machine's symbol table (built on first use: the axes are fixed)."""
         if self._symbols is None:
-            self._symbols = symbols.SymbolTable(self.service.dictionary, self.service.axis_names())
+            self._symbols = symbols.SymbolTable(
+                self.service.info.dictionary, self.service.info.axis_names()
+            )
         return self._symbols
 
     # ------------------------------------------------------------------ dispatch

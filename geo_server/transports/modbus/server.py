@@ -90,7 +90,7 @@ class ModbusOptions:
     write_timeout: float | None = None
     max_connections: int = 64
     #: connections the listening socket queues before they are accepted (a fleet's
-    #: machines take fewer: `fleet.FLEET_BACKLOG`; geo_server/descriptors.py)
+    #: machines take fewer: `compose.FLEET_BACKLOG`; geo_server/descriptors.py)
     backlog: int = BACKLOG
     max_pipeline: int = 32  # requests queued per connection before reading pauses
     incomplete_frame_timeout: float = 5.0
@@ -120,10 +120,10 @@ class ModbusInterface:
     def __init__(self, service: ObjectService, options: ModbusOptions | None = None) -> None:
         self.service = service
         self.options = options or ModbusOptions()
-        self.map = ModbusMap.build(service.dictionary)
+        self.map = ModbusMap.build(service.info.dictionary)
         #: unit id -> the axis of its objects' index offsets (0: machine-wide)
         self.unit_axis = {MACHINE_UNIT: 0, DIRECT_UNIT: 0}
-        for axis in service.axes:
+        for axis in service.info.axes:
             if 1 <= axis <= MAX_UNIT:
                 self.unit_axis[axis] = axis
             else:
@@ -277,7 +277,7 @@ class ModbusInterface:
         pairs = um.decode_write(req.function, req.address, req.values)
         svc = self.service
         axis = self.unit_axis[frame.unit]
-        prepared = [svc.prepare_object(obj, axis, value) for obj, value in pairs]
+        prepared = [svc.prepare_name(obj, axis, value) for obj, value in pairs]
 
         async def applied() -> bytes:
             try:
@@ -427,13 +427,4 @@ class ModbusConnection(asyncio.Protocol):
             self.transport.abort()
 
 
-async def start_modbus(
-    service: ObjectService, options: ModbusOptions | None = None
-) -> ModbusInterface:
-    """Create and start a Modbus interface (convenience for `geo-server run`)."""
-    iface = ModbusInterface(service, options)
-    await iface.start()
-    return iface
-
-
-__all__ = ["ModbusInterface", "ModbusOptions", "device_objects", "start_modbus"]
+__all__ = ["ModbusInterface", "ModbusOptions", "device_objects"]

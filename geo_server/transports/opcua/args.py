@@ -3,6 +3,7 @@ server: the parser is built for every command."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -49,7 +50,12 @@ def add_arguments(parser: Any) -> None:
         "--opcua-read-only", action="store_true", help="reject OPC UA writes and methods"
     )
     o.add_argument("--opcua-user", metavar="USER", help="sessions need this user (no anonymous)")
-    o.add_argument("--opcua-password", metavar="PASSWORD", help="its password (with --opcua-user)")
+    o.add_argument(
+        "--opcua-password",
+        metavar="PASSWORD",
+        default=os.environ.get("GEO_SERVER_OPCUA_PASSWORD"),
+        help="its password (with --opcua-user; or the environment's GEO_SERVER_OPCUA_PASSWORD)",
+    )
     o.add_argument(
         "--opcua-encrypt-only",
         action="store_true",

@@ -42,7 +42,7 @@ from typing import Any
 
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.faults import FaultError
-from geo_server.service import ObjectService
+from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua.args import parse_endpoint
 from geo_server.transports.opcua.space import (
@@ -178,7 +178,7 @@ class _Var:
 class _Demand:
     """The cycles the monitored variables of one machine need (the engine's
     `CycleDemand`, docs/design.md §13): every `step`-th cycle, and while the machine is at
-    rest only when one of them can change at rest (`ObjectService.varies_at_rest`):
+    rest only when one of them can change at rest (`geo_server.service.varies_at_rest`):
     the others cannot change then, so there is nothing to notify. Called on the engine's
     thread: it only reads two fields the loop sets."""
 
@@ -326,7 +326,7 @@ class OpcUaInterface:
         objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
         items = [_object_item(ua.NodeId(machine, ns), objects, ua.QualifiedName(machine, ns))]
         folders: set[tuple[str, ...]] = {()}
-        specs = machine_variables(machine, service.dictionary, names)
+        specs = machine_variables(machine, service.info.dictionary, names)
         for spec in specs:
             for depth in range(1, len(spec.path)):
                 path = spec.path[:depth]
@@ -372,7 +372,7 @@ class OpcUaInterface:
             ValueRank=ua.ValueRank.Scalar,
             AccessLevel=level,
             UserAccessLevel=user_level,
-            MinimumSamplingInterval=service.cycle_s * 1000.0,
+            MinimumSamplingInterval=service.info.cycle_s * 1000.0,
         )
         items = [
             ua.AddNodesItem(
@@ -602,8 +602,8 @@ class OpcUaInterface:
         ua = _ua()
 
         out: list[tuple[int, Any]] = []
-        values = [(i, p) for i, p in group if not ObjectService.is_command(p.obj)]
-        commands = [(i, p) for i, p in group if ObjectService.is_command(p.obj)]
+        values = [(i, p) for i, p in group if not is_command(p.obj)]
+        commands = [(i, p) for i, p in group if is_command(p.obj)]
         batches = ([values] if values else []) + [[c] for c in commands]
         for batch in batches:
             try:
@@ -649,7 +649,7 @@ class OpcUaInterface:
                     continue
                 in_session += 1
                 total += 1
-                cycle_ms = var.service.cycle_s * 1000.0
+                cycle_ms = var.service.info.cycle_s * 1000.0
                 asked = max(float(item.RequestedParameters.SamplingInterval), cycle_ms)
                 every = max(1, round(asked / cycle_ms))
                 intervals.append((len(keep), var, every, every * cycle_ms))
@@ -699,7 +699,7 @@ class OpcUaInterface:
         if demand is None:
             return
         demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
-        demand.at_rest = any(ObjectService.varies_at_rest(v.spec.obj) for v in watched)
+        demand.at_rest = any(varies_at_rest(v.spec.obj) for v in watched)
 
     def _sample(self, machine: str, service: ObjectService) -> Callable[[], None]:
         """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
@@ -763,24 +763,24 @@ async def run_method(service: ObjectService, name: str, args: list[str]) -> dict
     """One command by method name, as the other interfaces run it: the result as JSON,
     or the AdsError of its refusal."""
     if name in ("Reload", "Save"):
-        result = await service.command(name.lower())
+        result = await service.commands.run_applied(name.lower())
         if not result.ok:
             raise result.error()
         return result.as_dict()
     if name == "RunNc":
-        cycle = await service.run_nc_applied(args[0])
+        cycle = await service.nc.run_applied(args[0])
         return {"ok": True, "command": "nc", "cycle": cycle}
     if name == "Reset":
-        cycle = await service.reset_applied()
+        cycle = await service.nc.reset_applied()
         return {"ok": True, "command": "reset", "cycle": cycle}
     try:
         if name == "InjectFault":
-            injected = await asyncio.to_thread(service.inject_fault, args[0])
+            injected = await asyncio.to_thread(service.faults.inject, args[0])
             return {"ok": True, "command": "fault", "injected": injected}
         if name == "ClearFaults":
             which = args[0].strip()
             ident = None if which == "all" else _fault_id(which)
-            cleared = await asyncio.to_thread(service.clear_faults, ident)
+            cleared = await asyncio.to_thread(service.faults.clear, ident)
             return {"ok": True, "command": "fault", "cleared": cleared}
     except FaultError as exc:
         raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc)) from None

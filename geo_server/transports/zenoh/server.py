@@ -31,6 +31,7 @@ from typing import Any
 
 import zenoh
 
+from geo_server import access
 from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -176,7 +177,7 @@ class ZenohInterface:
         self.service = service
         self.options = options or ZenohOptions()
         self._shared = session
-        self.keys = KeySpace(self.options.machine, service.dictionary, service.axes)
+        self.keys = KeySpace(self.options.machine, service.info.dictionary, service.info.axes)
         # KeyExprs built once: a wildcard get intersects every readable key and the
         # publish loop puts every cycle; building (and validating) a KeyExpr from a str
         # each time is pure overhead on the loop the GEO cycle shares the GIL with.
@@ -266,7 +267,7 @@ class ZenohInterface:
         for unsub in self._unsubscribe:
             unsub()
         self._unsubscribe.clear()
-        self.service.cancel_measure()  # a worker thread driving the machine for cmd/measure
+        self.service.measurements.cancel()  # a worker thread driving the machine for cmd/measure
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -353,11 +354,11 @@ class ZenohInterface:
         """Write the object of a raw or named key: what is stored, as a reply payload."""
         svc = self.service
         if route.kind == "raw":
-            await svc.write_applied(route.index_group, route.index_offset, payload)
+            await access.write_applied(svc, route.index_group, route.index_offset, payload)
             return payload, OCTET
         assert route.obj is not None
         value = _json_value(payload, route.obj)
-        stored = await svc.write_name_applied(route.obj.name, route.axis, value)
+        stored = await access.write_name_applied(svc, route.obj.name, route.axis, value)
         return json.dumps(stored).encode(), JSON
 
     async def _handle(self, query: zenoh.Query) -> None:
@@ -495,7 +496,7 @@ class ZenohInterface:
             data, enc = await self._write(route, payload)
             query.reply(key, data, encoding=enc)
         elif route.kind in ("reload", "save"):
-            result = await svc.command(route.kind)
+            result = await svc.commands.run_applied(route.kind)
             if not result.ok:
                 body = {**result.error().as_dict(), **result.as_dict()}
                 query.reply_err(json.dumps(body).encode(), encoding=JSON)
@@ -507,7 +508,7 @@ class ZenohInterface:
         elif route.kind == "measure":
             spec = _json_plan(payload)
             # minutes of motion: in a worker thread, the loop keeps serving everyone else
-            outcome = await asyncio.to_thread(svc.measure, spec)
+            outcome = await asyncio.to_thread(svc.measurements.run, spec)
             query.reply(key, json.dumps(outcome).encode(), encoding=JSON)
         elif route.kind == "fault":
             body = await asyncio.to_thread(fault_command, svc, payload)
@@ -516,7 +517,7 @@ class ZenohInterface:
             body = await asyncio.to_thread(record_command, svc, payload, self.options.machine)
             query.reply(key, json.dumps(body).encode(), encoding=JSON)
         elif route.kind == "reset":
-            cycle = await svc.reset_applied()
+            cycle = await svc.nc.reset_applied()
             body = {"ok": True, "command": "reset", "cycle": cycle}
             query.reply(key, json.dumps(body).encode(), encoding=JSON)
         else:
@@ -527,7 +528,7 @@ class ZenohInterface:
 
         Parsing and queueing a program takes time in proportion to its length, and on the
         loop that would hold up every other query; so the service parses it off the loop
-        (`run_nc_applied`), and the size is checked first, before the text is decoded.
+        (`nc.run_applied`), and the size is checked first, before the text is decoded.
         """
         limit = self.options.max_nc_bytes
         if len(payload) > limit:
@@ -541,7 +542,7 @@ class ZenohInterface:
             text = payload.decode("utf-8")
         except UnicodeDecodeError:
             raise AdsError(AdsErrorCode.DEVICE_SYNTAX, "NC text must be UTF-8") from None
-        cycle = await self.service.run_nc_applied(text)
+        cycle = await self.service.nc.run_applied(text)
         return {"ok": True, "lines": text.count("\n") + 1, "cycle": cycle}
 
     # ------------------------------------------------------------------ rivals
@@ -720,7 +721,7 @@ class ZenohInterface:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(watched.wait(), WATCH_RECHECK_S)
                 continue
-            snap = self.service.fresh()  # the cycle due now (docs/design.md §13)
+            snap = self.service.current(stale_ok=True)  # the cycle due now (docs/design.md §13)
             if self._session is not None and (last is None or snap.cycle != last.cycle):
                 for obj, axis in snap.changed(last):
                     entry = named.get((obj.name, axis))
@@ -770,12 +771,12 @@ def fault_command(service: ObjectService, payload: bytes) -> dict[str, Any]:
     out: dict[str, Any] = {"ok": True, "command": "fault"}
     try:
         if "inject" in body:
-            out["injected"] = service.inject_fault(str(body["inject"]))
+            out["injected"] = service.faults.inject(str(body["inject"]))
         if "clear" in body:
             which = body["clear"]
             if which != "all" and (isinstance(which, bool) or not isinstance(which, int)):
                 raise FaultError(f'cmd/fault: clear takes a fault id or "all", not {which!r}')
-            out["cleared"] = service.clear_faults(None if which == "all" else which)
+            out["cleared"] = service.faults.clear(None if which == "all" else which)
     except FaultError as exc:
         raise AdsError(AdsErrorCode.DEVICE_INVALIDPARM, str(exc)) from None
     out["faults"] = service.faults.status()
@@ -813,9 +814,9 @@ def record_command(service: ObjectService, payload: bytes, machine: str) -> dict
                 "record",
             )
         spec = {k: v for k, v in spec_body.items() if k not in ("out", "overwrite")}
-        out["recording"] = service.start_recording(spec, file, machine, overwrite=overwrite)
+        out["recording"] = service.recordings.start(spec, file, machine, overwrite=overwrite)
     elif "stop" in body:
-        out["recording"] = service.stop_recording()
+        out["recording"] = service.recordings.stop()
     else:
         st = service.status().get("recording")
         out["recording"] = st

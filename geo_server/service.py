@@ -411,9 +411,7 @@ class ObjectService:
                 raise result.error()
             return resolved(result)
         self._refuse_when_stalled()
-        return self.scheduler.submit(
-            WriteObjects(tuple((w.obj.name, w.axis, w.value) for w in writes))
-        )
+        return self.scheduler.submit(WriteObjects(tuple((w.obj, w.axis, w.value) for w in writes)))
 
     async def apply_writes(
         self, writes: Sequence[PreparedWrite], timeout: float | None = None

@@ -26,7 +26,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from geo_server.dictionary import Dictionary, load_dictionary
+from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
@@ -521,9 +521,9 @@ class Machine:
                 return None
         raise TypeError(f"not a machine operation: {op!r}")
 
-    def _apply_item(self, name: str, axis: int, value: Any) -> BaseException | None:
+    def _apply_item(self, obj: ObjectDef | str, axis: int, value: Any) -> BaseException | None:
         try:
-            self.apply_write(name, axis, value)
+            self.apply_write(obj, axis, value)
         except AdsError as exc:
             return exc
         return None
@@ -695,9 +695,11 @@ class Machine:
     def slot(self, axis: int) -> int:
         return self.axes.index(axis)
 
-    def apply_write(self, name: str, axis: int, value: Any) -> None:
-        """Apply a validated object write (runs at a cycle boundary, docs/design.md §5 step 1)."""
-        obj = self.dictionary.by_name(name)
+    def apply_write(self, obj: ObjectDef | str, axis: int, value: Any) -> None:
+        """Apply a validated object write (runs at a cycle boundary, docs/design.md §5 step
+        1): `obj` as the service resolved it (a name: looked up here)."""
+        if isinstance(obj, str):
+            obj = self.dictionary.by_name(obj)
         slot = self.slot(axis) if obj.scope == "axis" else -1
         if obj.name in self.tempc.names:  # a TEMPC parameter of this dictionary
             self.kernel.write_tempc(slot, obj.key_field, float(value))

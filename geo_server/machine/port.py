@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
-    from geo_server.dictionary import Dictionary
+    from geo_server.dictionary import Dictionary, ObjectDef
     from geo_server.events import Event
     from geo_server.machine.nc import Program
     from geo_server.model import Diagnostic, MachineConfig
@@ -34,11 +34,14 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class WriteObjects:
-    """Validated object writes `(object name, axis, value)`, applied in one cycle, in
-    order. The outcome is a tuple with one entry per item: None, or the exception that
-    item raised (the other items are applied all the same)."""
+    """Validated object writes `(object, axis, value)`, applied in one cycle, in order.
+    The object is the definition the service resolved the address or name to, carried
+    to the machine as it is (no second lookup); a name is looked up in the machine's
+    dictionary (recorded inputs replayed, tests). The outcome is a tuple with one entry
+    per item: None, or the exception that item raised (the other items are applied all
+    the same)."""
 
-    items: tuple[tuple[str, int, Any], ...]
+    items: tuple[tuple[ObjectDef | str, int, Any], ...]
 
 
 @dataclass(frozen=True)

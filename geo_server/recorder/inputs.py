@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from geo_server.dictionary import ObjectDef
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import (
     Operation,
@@ -36,7 +37,7 @@ def op_to_json(cycle: int, op: Operation) -> dict[str, Any] | None:
     """The line for `op`, applied after cycle `cycle`; None for what is not replayed."""
     match op:
         case WriteObjects(items):
-            return {"cycle": cycle, "op": "write", "items": [list(i) for i in items]}
+            return {"cycle": cycle, "op": "write", "items": [[_name(o), a, v] for o, a, v in items]}
         case StartProgram(_program, mdi, text):
             return {"cycle": cycle, "op": "nc", "text": text, "mdi": mdi}
         case Reset():
@@ -52,6 +53,10 @@ def op_to_json(cycle: int, op: Operation) -> dict[str, Any] | None:
                 "sigma": sigma,
             }
     return None
+
+
+def _name(obj: ObjectDef | str) -> str:
+    return obj if isinstance(obj, str) else obj.name
 
 
 def json_to_op(line: dict[str, Any], names: dict[str, int], where: str) -> Operation:

@@ -332,6 +332,66 @@ def test_sampling_interval_in_whole_cycles(service: ObjectService) -> None:
     run(scenario)
 
 
+def test_one_read_request_is_answered_from_one_cycle(
+    service: ObjectService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The values of one Read request come from one snapshot, as an ADS sum read's: here
+    every observation of the machine is followed by a cycle, so values taken one by one
+    would each come from another cycle."""
+    real = service.current
+
+    def current(**kw: Any) -> Any:
+        snap = real(**kw)
+        service.scheduler.step(1)  # the next observation sees the next cycle
+        return snap
+
+    monkeypatch.setattr(service, "current", current)
+
+    async def scenario() -> None:
+        iface = await started({"local": service}, options())
+        try:
+            async with client(iface) as c:
+                ns = await c.get_namespace_index(NAMESPACE_URI)
+                paths = ["SIM/cycle_count", "Axes/X/TEMPC/coefficient", "SIM/overruns"]
+                nodes = [node_of(c, ns, f"local/{p}") for p in paths]
+                values = await c.read_attributes(nodes)
+                assert len({v.SourceTimestamp for v in values}) == 1
+                then = await c.read_attributes(nodes[:1])
+                assert then[0].Value.Value == values[0].Value.Value + 1
+        finally:
+            await iface.close()
+
+    run(scenario)
+
+
+def test_an_item_with_a_deadband_beside_a_plain_one(service: ObjectService) -> None:
+    """An item with a filter of its own (an absolute deadband of 1.5) is notified by
+    asyncua's rules; a plain item of the same variable gets every change beside it."""
+
+    async def scenario() -> None:
+        iface = await started({"local": service}, options())
+        try:
+            async with client(iface) as c:
+                ns = await c.get_namespace_index(NAMESPACE_URI)
+                coef = node_of(c, ns, "local/Axes/X/TEMPC/coefficient")
+                name = "local/Axes/X/TEMPC/coefficient"
+                plain, banded = Collect(), Collect()
+                await (await c.create_subscription(10, plain)).subscribe_data_change(coef)
+                await (await c.create_subscription(10, banded)).deadband_monitor(coef, 1.5)
+                await plain.until(1, name)
+                await banded.until(1, name)
+                for n, value in enumerate((3.0, 3.5, 10.0), start=2):
+                    await coef.write_value(ua.Variant(value, ua.VariantType.Double))
+                    access.step(service, 1)
+                    await plain.until(n, name)
+                assert [v for v, _ in await plain.until(4, name)] == [4000.0, 3.0, 3.5, 10.0]
+                assert [v for v, _ in await banded.until(3, name)] == [4000.0, 3.0, 10.0]
+        finally:
+            await iface.close()
+
+    run(scenario)
+
+
 def test_monitored_items_are_bounded_per_session_and_in_total(service: ObjectService) -> None:
     async def scenario() -> None:
         opts = options(max_monitored_items_per_session=3, max_monitored_items=5)

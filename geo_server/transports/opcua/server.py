@@ -4,7 +4,8 @@ the object service, like the Zenoh interface (docs/design.md §7).
 - **Address space**: generated from the dictionary (`space.py`); one server serves
   every machine of a fleet, each under its own name below `Objects`.
 - **Reads** answer the exact-engine observation of the read's wall time
-  (`ObjectService.current`), stamped with the cycle's time as the source timestamp.
+  (`ObjectService.current`, once per Read request and machine: the values of one
+  request come from one cycle), stamped with the cycle's time as the source timestamp.
 - **Writes** of the Value attribute go through the service's write path
   (`prepare_name` + `apply_writes`: the same range checks, applied by the next cycle);
   the writes of one request are applied in one cycle. An `AdsError` maps to a status
@@ -12,7 +13,8 @@ the object service, like the Zenoh interface (docs/design.md §7).
 - **Monitored items** of our variables are sampled once per GEO cycle (or at the
   smallest sampling interval asked for the variable, in whole cycles) while any exists:
   each sampled cycle whose value changed is one notification with the cycle's time as
-  its source timestamp. Bounded per session and in total (`OpcUaOptions`).
+  its source timestamp, put straight into each item's queue (one DataValue shared by
+  the items of a variable). Bounded per session and in total (`OpcUaOptions`).
 - **Methods** Reload, Save, RunNc, Reset, InjectFault, ClearFaults: the commands of the
   other interfaces with the same results (JSON text) and errors (status codes).
 - **Security**: anonymous unless `user`/`password` are given; Basic256Sha256
@@ -20,6 +22,8 @@ the object service, like the Zenoh interface (docs/design.md §7).
   None (or alone with `encrypt_only`); `read_only` refuses writes and methods.
 
 asyncua is imported only when the interface starts (it takes about 0.3 s to import).
+The address space (asyncua's standard nodes, then ours) is built off the loop with the
+cyclic garbage collector paused, and frozen afterwards (`_collector_paused`).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import gc
 import hmac
 import importlib
 import json
@@ -35,7 +40,7 @@ import math
 import os
 import socket
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -123,6 +128,27 @@ def source_time(snap: Snapshot) -> dt.datetime:
     return _FILETIME_EPOCH + dt.timedelta(microseconds=snap.stamp // 10)
 
 
+@contextlib.contextmanager
+def _collector_paused() -> Iterator[None]:
+    """Build the address space without the cyclic garbage collector, then freeze it.
+
+    asyncua's standard address space is about half a million objects, made at once.
+    While they are made, the collector would run its oldest generation several times
+    over all of them (0.1-0.3 s each, holding the GIL: every interface and the GEO cycle
+    wait), about 0.5 s of a 1.3 s start, and again soon after as they age. They live as
+    long as the server, so they are moved out of the collector's reach
+    (`gc.freeze`, undone by `OpcUaInterface.close`): later collections skip them. The
+    build makes almost no cyclic garbage (ten objects), so little is frozen with it."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()
+
+
 @dataclass
 class OpcUaOptions:
     """The OPC UA endpoint, its security and its limits (README *Limits*)."""
@@ -170,6 +196,8 @@ class _Var:
     service: ObjectService
     machine: str
     node_id: Any  # ua.NodeId
+    vtype: Any = None  # ua.VariantType of its values
+    attval: Any = None  # asyncua's AttributeValue of its Value (the items' callbacks)
     monitors: int = 0
     every: int = 1  # sampled every `every` cycles while monitored
     last: Any = None
@@ -214,6 +242,9 @@ class OpcUaInterface:
         self._demands: dict[str, _Demand] = {}
         self._watched: dict[str, list[_Var]] = {}
         self._drain: asyncio.Task[None] | None = None
+        self._woken = False  # a `_wake` is on its way to the loop
+        self._stamped: tuple[Any, dt.datetime] = (None, _FILETIME_EPOCH)
+        self._frozen = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self.late_samples = 0
         self.notifications = 0
@@ -251,15 +282,26 @@ class OpcUaInterface:
         await asyncio.to_thread(importlib.import_module, "asyncua")
         from asyncua import Server
 
-        ua = _ua()
-
         self._loop = asyncio.get_running_loop()
         quiet_library()
         opts = self.options
-        host, port = opts.host_port
         users: Any = _Users(opts.user, opts.password)  # asyncua's UserManager protocol
         server = Server(user_manager=users)
         self.server = server
+        with _collector_paused():
+            self._frozen = True
+            await self._init_and_build(server)
+        self._hook()
+        await server.start()
+        assert server.bserver is not None
+        self.port = server.bserver.port
+
+    async def _init_and_build(self, server: Any) -> None:
+        """asyncua's standard address space (filled in a thread by asyncua), the
+        endpoint and its security, then the nodes of every machine."""
+        ua = _ua()
+        opts = self.options
+        host, port = opts.host_port
         await server.init()
         iserver = server.iserver
         iserver.max_connections = opts.max_connections
@@ -287,10 +329,6 @@ class OpcUaInterface:
         self.ns = await server.register_namespace(NAMESPACE_URI)
         for machine, service in self.services.items():
             await self._build(machine, service)
-        self._hook()
-        await server.start()
-        assert server.bserver is not None
-        self.port = server.bserver.port
 
     async def close(self) -> None:
         if self.starting is not None and not self.starting.done():
@@ -308,6 +346,9 @@ class OpcUaInterface:
             server, self.server = self.server, None
             with contextlib.suppress(Exception):
                 await server.stop()
+        if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
+            self._frozen = False
+            gc.unfreeze()
 
     @property
     def endpoint(self) -> str:
@@ -318,11 +359,20 @@ class OpcUaInterface:
 
     async def _build(self, machine: str, service: ObjectService) -> None:
         """The machine's object, its folders and variables (`space.machine_variables`)
-        with their properties, added in one batch, then its methods."""
+        with their properties, added in one batch off the loop (about 0.1 s of asyncua
+        per machine; nothing serves them yet), then its methods."""
+        ua = _ua()
+
+        names = {int(a): n for a, n in service.status()["axis_names"].items()}
+        await asyncio.to_thread(self._add_variables, machine, service, names)
+        root = self.server.get_node(ua.NodeId(machine, self.ns))
+        for method in METHODS:
+            await self._method(root, machine, service, method)
+
+    def _add_variables(self, machine: str, service: ObjectService, names: dict[int, str]) -> None:
         ua = _ua()
 
         ns = self.ns
-        names = {int(a): n for a, n in service.status()["axis_names"].items()}
         objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
         items = [_object_item(ua.NodeId(machine, ns), objects, ua.QualifiedName(machine, ns))]
         folders: set[tuple[str, ...]] = {()}
@@ -341,16 +391,18 @@ class OpcUaInterface:
             if not result.StatusCode.is_good():
                 raise RuntimeError(f"OPC UA node {item.RequestedNewNodeId}: {result.StatusCode}")
         aspace = self.server.iserver.aspace
+        value = ua.AttributeIds.Value
         for spec in specs:
             node_id = ua.NodeId(spec.node_id, ns)
-            var = _Var(spec, service, machine, node_id)
+            vtype = getattr(ua.VariantType, spec.ua_type)
+            attval = aspace[node_id].attributes[value]
+            var = _Var(spec, service, machine, node_id, vtype, attval)
             self._vars[node_id] = var
-            aspace.set_attribute_value_callback(node_id, ua.AttributeIds.Value, self._reader(var))
-            # a sample written into the node notifies its monitored items, nothing else
-            aspace.set_attribute_value_setter(node_id, ua.AttributeIds.Value, _keep)
-        root = self.server.get_node(ua.NodeId(machine, ns))
-        for method in METHODS:
-            await self._method(root, machine, service, method)
+            # asyncua's own reads of the value (a new monitored item's first value);
+            # a client's Read goes through `_read`
+            aspace.set_attribute_value_callback(node_id, value, self._reader(var))
+            # nothing is stored into the node: reads ask the service
+            aspace.set_attribute_value_setter(node_id, value, _keep)
 
     def _variable_items(self, service: ObjectService, spec: VariableSpec) -> list[Any]:
         """The AddNodesItems of one variable and its properties (EngineeringUnits,
@@ -423,26 +475,56 @@ class OpcUaInterface:
         return items
 
     def _reader(self, var: _Var) -> Callable[[Any, Any], Any]:
+        def read(node_id: Any, attr: Any) -> Any:
+            return self._read_var(var, {})
+
+        return read
+
+    def _read(self, params: Any) -> list[Any]:
+        """asyncua's Read service (`AttributeService.read`) with the Value of our
+        variables answered here: one `service.current()` per machine and request (its
+        values come from one cycle, as an ADS sum read's), asyncua's address space for
+        every other attribute and node."""
+        value = _ua().AttributeIds.Value
+        read_attribute = self.server.iserver.aspace.read_attribute_value
+        snaps: dict[str, Snapshot | AdsError] = {}
+        out = []
+        for item in params.NodesToRead:
+            var = self._vars.get(item.NodeId) if item.AttributeId == value else None
+            if var is None:
+                out.append(read_attribute(item.NodeId, item.AttributeId))
+            else:
+                out.append(self._read_var(var, snaps))
+        return out
+
+    def _read_var(self, var: _Var, snaps: dict[str, Snapshot | AdsError]) -> Any:
+        """The DataValue of one variable from the machine's snapshot of this request
+        (`snaps`, taken now if it has none yet)."""
         ua = _ua()
 
-        def read(node_id: Any, attr: Any) -> Any:
-            if not var.spec.readable:
-                return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNotReadable))
+        if not var.spec.readable:
+            return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNotReadable))
+        snap = snaps.get(var.machine)
+        if snap is None:
             try:
                 snap = var.service.current()
             except AdsError as exc:
-                return ua.DataValue(StatusCode=_status(exc))
-            return self._datavalue(var, snap.value(var.spec.obj, var.spec.axis), snap)
-
-        return read
+                snap = exc
+            snaps[var.machine] = snap
+        if isinstance(snap, AdsError):
+            return ua.DataValue(StatusCode=_status(snap))
+        return self._datavalue(var, snap.value(var.spec.obj, var.spec.axis), snap)
 
     def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
         ua = _ua()
 
-        vtype = getattr(ua.VariantType, var.spec.ua_type)
+        stamped, stamp = self._stamped
+        if stamped is not snap:  # (the cycle's time once per snapshot, not per value)
+            stamp = source_time(snap)
+            self._stamped = (snap, stamp)
         return ua.DataValue(
-            ua.Variant(value, vtype),
-            SourceTimestamp=source_time(snap),
+            ua.Variant(value, var.vtype),
+            SourceTimestamp=stamp,
             ServerTimestamp=dt.datetime.now(dt.UTC),
         )
 
@@ -505,11 +587,12 @@ class OpcUaInterface:
     # ------------------------------------------------------------------ hooks
 
     def _hook(self) -> None:
-        """Route the writes, monitored items and their removal of our variables through
-        this interface; everything else stays asyncua's."""
+        """Route the reads, writes, monitored items and their removal of our variables
+        through this interface; everything else stays asyncua's."""
         ua = _ua()
         iserver = self.server.iserver
         attrs = iserver.attribute_service
+        attrs.read = self._read
         write = attrs.write
 
         async def hooked_write(params: Any, user: Any = None) -> list[Any]:
@@ -708,8 +791,17 @@ class OpcUaInterface:
         queue = self._queue.setdefault(machine, deque())
 
         def on_cycle(snap: Snapshot) -> None:  # the cycle's thread: hand over, return
-            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
-                loop.call_soon_threadsafe(self._arrived, machine, snap)
+            # (deque appends and pops are atomic; the loop is woken once for all the
+            # snapshots that arrive until it drains them, not once per cycle)
+            queue.append(snap)
+            if len(queue) > SAMPLE_QUEUE:
+                with contextlib.suppress(IndexError):
+                    queue.popleft()
+                    self.late_samples += 1
+            if not self._woken:
+                self._woken = True
+                with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
+                    loop.call_soon_threadsafe(self._wake)
 
         wanted = self._demands[machine] = _Demand()
         release = service.demand_cycles(wanted)  # the exact engine publishes only those
@@ -724,25 +816,18 @@ class OpcUaInterface:
 
         return stop
 
-    def _arrived(self, machine: str, snap: Snapshot) -> None:
-        queue = self._queue.setdefault(machine, deque())
-        if machine not in self._hold:
-            return
-        if len(queue) >= SAMPLE_QUEUE:
-            queue.popleft()
-            self.late_samples += 1
-        queue.append(snap)
+    def _wake(self) -> None:
+        self._woken = False  # (before draining: a snapshot arriving now wakes again)
         if self._drain is None or self._drain.done():
             self._drain = asyncio.ensure_future(self._drain_queue())
 
     async def _drain_queue(self) -> None:
-        """Write each sampled cycle's changed values into the nodes: asyncua turns each
-        write into one notification per monitored item."""
-        ua = _ua()
-
-        aspace = self.server.iserver.aspace
+        """Each sampled cycle's changed values, one DataValue each, to the monitored
+        items of their variables (`_notify`), in cycle order, each snapshot followed by
+        the loop's other work (the cycle's thread keeps adding snapshots: draining them
+        without a pause could hold the loop for good)."""
         while True:
-            batch = [(m, q.popleft()) for m, q in self._queue.items() if q]
+            batch = [(m, s) for m, q in self._queue.items() for s in _taken(q)]
             if not batch:
                 return
             for machine, snap in batch:
@@ -754,9 +839,43 @@ class OpcUaInterface:
                         continue
                     var.last = value
                     self.notifications += 1
-                    await aspace.write_attribute_value(
-                        var.node_id, ua.AttributeIds.Value, self._datavalue(var, value, snap)
-                    )
+                    await self._notify(var, self._datavalue(var, value, snap))
+                await asyncio.sleep(0)
+
+    async def _notify(self, var: _Var, dv: Any) -> None:
+        """`dv` to every monitored item of `var`, as asyncua's `datachange_callback` does
+        after a write of the node, without its deep copy of the value per item (most of
+        its cost: `dv` is made for this and never changed): the item's last value, a
+        notification when value or status differ (the default trigger, StatusValue),
+        queued for the item's subscription with the item's queue size. An item with a
+        trigger or deadband of its own goes through asyncua's callback."""
+        from asyncua.server.monitored_item_service import MonitoredItemService
+
+        ua = _ua()
+
+        for handle, callback in list(var.attval.datachange_callbacks.items()):
+            owner = getattr(callback, "__self__", None)
+            if isinstance(owner, MonitoredItemService):
+                mid = owner._monitored_datachange.get(handle)
+                item = owner._monitored_items.get(mid) if mid is not None else None
+                if mid is None or item is None:  # deleted meanwhile
+                    continue
+                if _plain(item.filter):
+                    if item.mode == ua.MonitoringMode.Disabled:
+                        continue
+                    values = item.mvalue
+                    old = values.current_dvalue
+                    values.old_dvalue, values.current_dvalue = old, dv
+                    if old is None or old.StatusCode != dv.StatusCode or old.Value != dv.Value:
+                        note = ua.MonitoredItemNotification(
+                            ClientHandle=item.client_handle, Value=dv
+                        )
+                        await owner.isub.enqueue_datachange_event(mid, note, item.queue_size)
+                    continue
+            try:
+                await callback(handle, dv)
+            except Exception:  # as asyncua's write: one broken callback, not the others
+                log.exception("opcua monitored item %s", handle)
 
 
 async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:
@@ -811,6 +930,33 @@ def _object_item(node_id: Any, parent: Any, name: Any) -> Any:
         NodeClass=ua.NodeClass.Object,
         NodeAttributes=ua.ObjectAttributes(DisplayName=ua.LocalizedText(name.Name)),
         TypeDefinition=ua.NodeId(ua.ObjectIds.FolderType),
+    )
+
+
+def _taken(queue: deque[Snapshot]) -> list[Snapshot]:
+    """The snapshots in `queue` now, taken out (the cycle's thread may drop the oldest
+    meanwhile: `SAMPLE_QUEUE`)."""
+    out = []
+    for _ in range(len(queue)):
+        try:
+            out.append(queue.popleft())
+        except IndexError:
+            break
+    return out
+
+
+def _plain(flt: Any) -> bool:
+    """No filter (None, or an empty ExtensionObject as asyncua's client sends), or a
+    DataChangeFilter that asks for the default: a notification when the status or the
+    value changes, without a deadband (OPC UA 1.05 Part 4 §7.22.2)."""
+    if not flt:
+        return True
+    ua = _ua()
+
+    return (
+        isinstance(flt, ua.DataChangeFilter)
+        and flt.Trigger == ua.DataChangeTrigger.StatusValue
+        and flt.DeadbandType == ua.DeadbandType.None_
     )
 
 

@@ -170,6 +170,10 @@ class Machine:
             for slot in range(len(self.axes)):
                 self.motion.home(slot)
         self.cycle = 0
+        #: cycles computed (not skipped): a snapshot published at rest is reused by the
+        #: next publish at rest only if none was computed in between (`publish`)
+        self._computed = 0
+        self._rest_key: tuple[int, int] | None = None
         self.overruns = 0
         #: FILETIME (100 ns ticks since 1601) of cycle 0; cycle c ends at epoch + c·T.
         #: A real-time scheduler sets it when it starts; stepped, it is the creation time.
@@ -266,6 +270,7 @@ class Machine:
                     self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
                 )
                 self.cycle += 1
+                self._computed += 1
                 self.heartbeat = monotonic()
                 if self._rest_streak >= 1:  # (only then can the next cycles be quiescent)
                     self._rest_after = self._at_rest()
@@ -333,6 +338,7 @@ class Machine:
             if player is not None and player.running:
                 player.skip(n)
             self.cycle += n
+            self._computed += n
             self.heartbeat = monotonic()
             self._rest_streak = 0  # an axis moved in every cycle
             self._rest_after = False
@@ -411,9 +417,17 @@ class Machine:
         with self._cycle_lock:
             if self.snapshot.cycle == self.cycle:
                 return self.snapshot
-            mo = self.motion
-            self.twin.evaluate(self._output, mo.pos, mo.vel)
-            snap = self.snapshot = self._build_snapshot()
+            key = (self._computed, self.twin.rest_events)
+            if key == self._rest_key and self._src_owner == self._owner():
+                # at rest since a snapshot published at rest, and no event of the twin
+                # since: every axis value is what it was (docs/design.md §13); only the
+                # machine objects (cycle, twin time, ambient…) and the stamp move on
+                snap = self.snapshot = self._snapshot_of(self.snapshot.values)
+            else:
+                mo = self.motion
+                self.twin.evaluate(self._output, mo.pos, mo.vel)
+                snap = self.snapshot = self._build_snapshot()
+                self._rest_key = key if self.quiescent else None
             self.snapshot_time = monotonic()
         for listener in self.listeners:
             try:
@@ -549,8 +563,8 @@ class Machine:
         if `kernel` or `motion` is ever replaced.
         """
         col = self.layout.col
-        k, mo = self.kernel, self.motion
-        self._src_owner = (k, mo, self.twin, self.volc)
+        k = self.kernel
+        self._src_owner = self._owner()
         n = len(self.axes)
         pieces: dict[str, np.ndarray] = {
             "actual": k.actual,
@@ -590,10 +604,14 @@ class Machine:
             f"{a}={self.cfg.axes[a].params.name or a}" for a in self.axes
         )
 
+    def _owner(self) -> tuple[object, ...]:
+        """The parts whose arrays the snapshot's columns are taken from."""
+        return (self.kernel, self.motion, self.twin, self.volc)
+
     def _build_snapshot(self) -> Snapshot:
         """docs/design.md §5 step 4: every object of every axis, from this cycle's state."""
         k, mo = self.kernel, self.motion
-        if self._src_owner != (k, mo, self.twin, self.volc):
+        if self._src_owner != self._owner():
             self._layout_sources()
         mb = self._mbuf_cols
         # Deltas are differences of the published (rounded) values of this cycle and
@@ -611,7 +629,11 @@ class Machine:
         np.divide(mo.acc, UNITS_PER_MM, out=mb[3])
         np.divide(mo.feed, UNITS_PER_UM, out=mb[4])
         np.concatenate(self._pieces, axis=1, out=self._stack)
-        v = self._stack.take(self._columns, axis=1)
+        return self._snapshot_of(self._stack.take(self._columns, axis=1))
+
+    def _snapshot_of(self, v: np.ndarray) -> Snapshot:
+        """The snapshot of the cycle reached with the axis values `v` and the machine
+        objects and texts of the present state."""
         mach = self._mach_template.copy()
         mc = self._mc
         mach[mc.cycle_count] = self.cycle & 0xFFFF_FFFF

@@ -68,6 +68,8 @@ class TwinEngine:
         self.dt = cycle_s * self.time_scale  # simulated seconds per cycle
         self.cycles = 0
         self.time = 0.0  # cycles · dt (a product, never a running sum that drifts)
+        #: stretches at rest (`advance`) in which a thermal update or a sensor sample ran
+        self.rest_events = 0
         axes = [cfg.axes.get(name, AxisTwin(name)) for name in self.names]
         self.period = np.array(list(modulo) or [0.0] * n, dtype=float)
         # state
@@ -342,7 +344,7 @@ class TwinEngine:
         every = self.thermal_every
         nodes: _RestNodes | None = None  # made at the first thermal update
         has_nodes = len(self.node_temp) > 0
-        thermal = False
+        thermal = sampled = False
         while True:
             nxt = min((self.cycles // every + 1) * every, self._sample_cycle())
             if nxt > end:
@@ -362,10 +364,13 @@ class TwinEngine:
                 if nodes is not None:
                     nodes.store()  # the sensors read the nodes
                 self._sample_sensors()
+                sampled = True
         if thermal:  # (the lines follow the temperatures only)
             if nodes is not None:
                 nodes.store()
             self._update_lines()
+        if thermal or sampled:
+            self.rest_events += 1  # the outputs at rest may differ (`Machine.publish`)
         self.cycles = end
         self.time = end * self.dt
         if evaluate:

@@ -361,6 +361,14 @@ class Machine:
 
     # ------------------------------------------------------------------ virtual time
 
+    def slip(self, periods: int, overrun: bool = True) -> None:
+        """The engine's time line moved by `periods` cycles without them (an overrun, or
+        part of one given back with a negative count): the stamps keep naming their
+        cycle's wall time (epoch + cycle·T); `overrun` counts one (SIM::overruns)."""
+        self.epoch += periods * self.period_ticks
+        if overrun:
+            self.overruns += 1
+
     def set_epoch(self, epoch: int) -> None:
         """Put cycle 0 at FILETIME `epoch` (a real-time engine starting its time line);
         the published snapshot gets its stamp on the new time line."""

@@ -268,7 +268,7 @@ class Scheduler:
         self.t0 -= periods * self.period_ns
         self.skipped -= periods
         if self.mode == "realtime":
-            self.machine.epoch -= periods * self.machine.period_ticks
+            self.machine.slip(-periods, overrun=False)
 
     def _wait_overrun(self, deadline: int) -> int:
         """Punctual engine: wait out an injected overrun until `deadline` (ns); cleared
@@ -295,12 +295,10 @@ class Scheduler:
             self._next_overrun, self._on_overrun = _NEVER, None
             return 0
         k = self._overrun_cycles
-        m = self.machine
-        m.overruns += 1
+        # (stepped, there is no wall time line to slip: only the overrun is counted)
+        self.machine.slip(k if self.mode == "realtime" else 0)
         self.skipped += k
         self._next_overrun += self._overrun_every
-        if self.mode == "realtime":
-            m.epoch += k * m.period_ticks  # the stamps keep naming their cycle's wall time
         return k
 
     # ------------------------------------------------------------------ control
@@ -621,8 +619,7 @@ class Scheduler:
         if lag > self.max_lag and not m.quiescent:
             give_up = lag - 1
             self.t0 += give_up * self.period_ns
-            m.epoch += give_up * m.period_ticks
-            m.overruns += 1
+            m.slip(give_up)
             self.skipped += give_up
             target = m.cycle + 1
         return target
@@ -747,7 +744,7 @@ class Scheduler:
             if late > self.max_catchup * period:
                 # Too far behind to catch up: resynchronise and say so (an overrun), and
                 # count the cycles given up so that status shows the whole stall.
-                self.machine.overruns += 1
+                self.machine.slip(0)  # counted; the stamps keep counting cycles
                 self.skipped += late // period
                 # (the stamps keep counting cycles: epoch + cycle·T, so a stamp always
                 # names its cycle; after an overrun they trail wall time by the cycles

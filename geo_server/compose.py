@@ -292,15 +292,11 @@ class Interfaces:
     async def _fleet_modbus(
         self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
     ) -> None:
-        from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+        from geo_server.transports.modbus.server import ModbusInterface
 
         for m, service in machines:
-            options = ModbusOptions(
-                host=args.modbus_host,
-                port=m.modbus_port,
-                read_only=args.read_only or args.modbus_read_only,
-                max_connections=self.caps["modbus"],
-                backlog=FLEET_BACKLOG,
+            options = _modbus_options(
+                args, m.modbus_port, max_connections=self.caps["modbus"], backlog=FLEET_BACKLOG
             )
             await self.start("modbus", ModbusInterface(service, options))
         first, last = machines[0][0].modbus_port, machines[-1][0].modbus_port
@@ -309,26 +305,15 @@ class Interfaces:
     async def _fleet_ads(
         self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
     ) -> None:
-        from geo_server.transports.ads.server import AdsOptions, AdsServer
-
-        def options(m: Member, **kw: Any) -> AdsOptions:
-            read_only = args.read_only or args.ads_read_only
-            return AdsOptions(host=args.ads_host, netid=m.netid, read_only=read_only, **kw)
+        from geo_server.transports.ads.server import AdsServer
 
         (head, service), last = machines[0], machines[-1][0]
         ads = AdsServer(
             service,
-            options(
-                head,
-                port=args.ads_port,
-                udp_port=args.ads_udp_port or None,
-                route_user=args.ads_route_user,
-                route_password=args.ads_route_password,
-                max_connections_fleet=self.caps["ads"],
-            ),
+            _ads_options(args, head.netid, listener=True, max_connections_fleet=self.caps["ads"]),
         )
         for m, other in machines[1:]:
-            ads.add_device(other, options(m))
+            ads.add_device(other, _ads_options(args, m.netid))
         await self.start(
             "ads",
             ads,
@@ -373,37 +358,51 @@ def _zenoh(args: argparse.Namespace, service: ObjectService, caps: dict[str, int
     )
 
 
-def _modbus(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+def _modbus_options(args: argparse.Namespace, port: int, **more: Any) -> Any:
+    """One machine's Modbus options from `geo-server run`'s command line (one machine or
+    a fleet's member, on its own port)."""
+    from geo_server.transports.modbus.server import ModbusOptions
 
-    mb = ModbusInterface(
-        service,
-        ModbusOptions(
-            host=args.modbus_host,
-            port=args.modbus_port,
-            read_only=args.read_only or args.modbus_read_only,
-            max_connections=caps.get("modbus", ModbusOptions.max_connections),
-        ),
+    return ModbusOptions(
+        host=args.modbus_host,
+        port=port,
+        read_only=args.read_only or args.modbus_read_only,
+        **more,
     )
+
+
+def _ads_options(
+    args: argparse.Namespace, netid: str, *, listener: bool = False, **more: Any
+) -> Any:
+    """One machine's ADS options from the command line; `listener`: the machine that owns
+    the TCP and UDP ports (the only one of a single run, a fleet's first)."""
+    from geo_server.transports.ads.server import AdsOptions
+
+    if listener:
+        more.update(
+            port=args.ads_port,
+            udp_port=args.ads_udp_port or None,
+            route_user=args.ads_route_user,
+            route_password=args.ads_route_password,
+        )
+    return AdsOptions(
+        host=args.ads_host, netid=netid, read_only=args.read_only or args.ads_read_only, **more
+    )
+
+
+def _modbus(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
+    from geo_server.transports.modbus.server import ModbusInterface
+
+    more = {"max_connections": caps["modbus"]} if "modbus" in caps else {}
+    mb = ModbusInterface(service, _modbus_options(args, args.modbus_port, **more))
     return mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"
 
 
 def _ads(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.transports.ads.server import AdsOptions, AdsServer
+    from geo_server.transports.ads.server import AdsServer
 
-    ads = AdsServer(
-        service,
-        AdsOptions(
-            host=args.ads_host,
-            port=args.ads_port,
-            netid=args.ads_netid,
-            read_only=args.read_only or args.ads_read_only,
-            udp_port=args.ads_udp_port or None,
-            route_user=args.ads_route_user,
-            route_password=args.ads_route_password,
-            max_connections=caps.get("ads", AdsOptions.max_connections),
-        ),
-    )
+    more = {"max_connections": caps["ads"]} if "ads" in caps else {}
+    ads = AdsServer(service, _ads_options(args, args.ads_netid, listener=True, **more))
 
     def line() -> str:
         said = f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"

@@ -397,18 +397,30 @@ def test_the_command_line_makes_the_hmi_read_only(flag):
     assert http_options(args).read_only is False
 
 
-def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
-    """`geo-server run --read-only --http`: the single-machine HMI refused nothing
-    before; now its hello says read_only and a write with the printed token is 0x704."""
+@contextlib.contextmanager
+def http_run(tmp_path, lists_copy, *more: str, env=None):
+    """`geo-server run` with the web HMI alone on an ephemeral port: (process, the
+    `http: ` line it printed); stopped on leaving."""
     proc = subprocess.Popen(
-        [*RUN_HTTP_ONLY, str(lists_copy), "--homed", "--read-only", "--http", "127.0.0.1:0"],
+        [*RUN_HTTP_ONLY, str(lists_copy), "--homed", "--http", "127.0.0.1:0", *more],
         cwd=tmp_path,
+        env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
     )
     try:
-        line = next(line for line in proc.stdout if line.startswith("http: "))
+        yield proc, next(line for line in proc.stdout if line.startswith("http: "))
+    finally:
+        proc.terminate()
+        proc.wait(15)
+        proc.stdout.close()
+
+
+def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
+    """`geo-server run --read-only --http`: the single-machine HMI refused nothing
+    before; now its hello says read_only and a write with the printed token is 0x704."""
+    with http_run(tmp_path, lists_copy, "--read-only") as (_proc, line):
         assert line.endswith("(read-only)\n"), line
         url = line.split()[4]
         base, _, token = url.partition("?token=")
@@ -426,27 +438,13 @@ def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
         read_only, (status, body) = asyncio.run(go())
         assert read_only is True
         assert (status, body["code"]) == (400, 0x704)
-    finally:
-        proc.terminate()
-        proc.wait(15)
-        proc.stdout.close()
 
 
 def test_passwords_come_from_the_environment_not_the_process_list(tmp_path, lists_copy):
     """A password on the command line is visible to every user in `ps`; the environment
     (GEO_SERVER_HTTP_PASSWORD) is not: the server asks for it, and it is in no argument."""
     env = {**os.environ, "GEO_SERVER_HTTP_PASSWORD": "s3cret-from-env"}
-    argv = [*RUN_HTTP_ONLY, str(lists_copy), "--homed", "--http", "127.0.0.1:0"]
-    proc = subprocess.Popen(
-        [*argv, "--http-user", "operator"],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    try:
-        line = next(line for line in proc.stdout if line.startswith("http: "))
+    with http_run(tmp_path, lists_copy, "--http-user", "operator", env=env) as (proc, line):
         base = line.split()[4].partition("?token=")[0]
         with open(f"/proc/{proc.pid}/cmdline", "rb") as f:
             assert b"s3cret" not in f.read()
@@ -463,10 +461,6 @@ def test_passwords_come_from_the_environment_not_the_process_list(tmp_path, list
             return out
 
         assert asyncio.run(go()) == [401, 401, 200]
-    finally:
-        proc.terminate()
-        proc.wait(15)
-        proc.stdout.close()
 
 
 def test_the_route_and_opcua_passwords_come_from_the_environment_too(monkeypatch):

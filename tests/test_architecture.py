@@ -32,6 +32,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
             "geo_server.errors",
             "geo_server.console",
             "geo_server.safefile",  # reads files on request: bounded, never blocking
+            "geo_server.jit",  # the compiler of the cycle's laws
         ),
     ),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
@@ -356,3 +357,26 @@ def test_the_server_check_sees_a_construction():
     )
     # the import and the two constructions; not the options, not the annotation's import
     assert len(server_uses(tree)) == 3
+
+
+def test_every_compiled_module_keys_the_jit_cache():
+    """The machine code cache is keyed by the modules that define compiled functions
+    (`geo_server.jit.MODULES`): a module that compiles and is not listed could be served
+    from a stale cache after an edit (numba itself only checks the file of the function
+    it compiles, not the files of the laws it calls)."""
+    from geo_server import jit
+
+    root = ROOTS["geo_server"]
+    compiling = set()
+    for path in root.rglob("*.py"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.ImportFrom)
+                and node.module == "geo_server.jit"
+                and any(a.name == "compiled" for a in node.names)
+            ):
+                compiling.add(path.relative_to(root).as_posix())
+    # the modules whose plain functions others compile, and the constants they read
+    read = {"jit.py", "kernel/common.py", "kernel/layout.py", "kernel/temperature.py"}
+    assert compiling | read == set(jit.MODULES), set(jit.MODULES) ^ (compiling | read)

@@ -25,7 +25,6 @@ from geo_server.paths import default_startup_list
 
 def state(m: Machine) -> list[np.ndarray]:
     k, mo, tw = m.kernel, m.motion, m.twin
-    f, fs = k._filter, k._fr_state
     return [
         k.actual,
         k.target,
@@ -33,13 +32,15 @@ def state(m: Machine) -> list[np.ndarray]:
         k.delta,
         k.effective,
         k.total_offset,
-        f.kidx,
-        f.w,
-        f.jump,
-        k._src.S,
-        fs.path,
-        fs.ring,
-        np.array([fs.ring_pos]),
+        # the whole of the kernel's state: sin² filter, direction, friction path and
+        # delay line, the commands of the last cycle, the flags
+        k.F7,
+        k.B7,
+        k.I7,
+        k.F1,
+        k.B1,
+        k.G,
+        k.ring,
         mo.pos,
         mo.vel,
         mo.acc,
@@ -126,7 +127,8 @@ def test_random_machines_batches_equal_single_cycles(n: int, seed: int) -> None:
 
 def test_a_batch_refuses_what_is_not_steady() -> None:
     """Nothing changes when the batch says no (at rest, with an operation queued), and
-    a batch stops before the cycle in which a move ends."""
+    a batch ends with the cycle in which a move ends (the program sees the arrival at
+    the start of the next cycle, as after single cycles)."""
     m = Machine(load_machine(default_startup_list()), homed=True)
     m.step(3)
     before = [a.copy() for a in state(m)]
@@ -142,17 +144,18 @@ def test_a_batch_refuses_what_is_not_steady() -> None:
     m.step(1)
     left = int(m.motion._nc[0] - m.motion._k[0])
     assert left > 2
-    assert m.run_batch(left + 5) == left - 1  # up to the cycle before the arrival
-    assert m.motion.vel[0] != 0.0
-    assert m.run_batch(2) == 0  # the arrival is a single cycle
-    m.step(1)
+    assert m.run_batch(left + 5) == left  # up to the cycle of the arrival
     assert m.motion.pos[0] == 10_000.0 and m.motion.vel[0] == 0.0  # X1: arrived
+    assert m.player is not None and m.player.running  # it sees the arrival next cycle
+    m.step(1)
+    assert not m.player.running  # the program's end
 
 
-def test_a_long_friction_delay_shortens_the_pass() -> None:
-    """A delay of d cycles reads the delay line d rows back: a pass of more than
-    249 − d cycles would read a row it writes later, so passes stop at that length
-    (and the numbers stay those of single cycles)."""
+def test_a_long_friction_delay_keeps_the_pass_whole() -> None:
+    """A delay of d cycles reads the delay line d rows back. A pass is the single cycle
+    in a loop, so it reads each row after the cycle that wrote it, whatever d: the pass
+    keeps its length (the array pass of earlier versions had to stop at 249 − d) and
+    the numbers stay those of single cycles."""
     cfg = random_machine(3, 4)
     for a, letter in zip(sorted(cfg.axes), "XYZ", strict=True):
         cfg.axes[a].params.name = letter
@@ -162,5 +165,5 @@ def test_a_long_friction_delay_shortens_the_pass() -> None:
     m = Machine(cfg, homed=True)
     m.start_program(program(["X", "Y", "Z"]))
     m.step(5)
-    assert m.run_batch(16) == 4  # 249 − 245
+    assert m.run_batch(16) == 16
     run_pair(cfg, seed=4, cycles=800, writes={})

@@ -11,7 +11,7 @@ import numpy as np
 from geo_clients import plc_tempcomp
 
 from geo_server.dictionary import Dictionary, load_dictionary
-from geo_server.kernel import temperature
+from geo_server.kernel import step, temperature
 from geo_server.kernel.common import TEMP
 from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
@@ -39,16 +39,15 @@ def test_kernel_target_is_the_law() -> None:
     assert plc_tempcomp.compensation(params, s) == expected
 
 
-def test_law_over_arrays_is_the_scalar_law() -> None:
+def test_compiled_law_is_the_scalar_law() -> None:
+    """The kernel's cycle runs `temperature.offset` compiled (geo_server.jit): the same
+    IEEE operations in the same order (no fused multiply-add, no reassociation), so the
+    same numbers as the plain Python the PLC client and the measurement tool call."""
     rng = np.random.default_rng(3)
-    off0, coef, pos0, s = (rng.uniform(-1e5, 1e5, 50) for _ in range(4))
-    slopes = np.empty(50)
-    temperature.slope_into(coef, slopes)
-    rel = s - pos0
-    out = np.empty(50)
-    temperature.offset_into(off0, slopes, rel, out)
-    scalar = [temperature.offset(*v) for v in zip(off0, coef, pos0, s, strict=True)]
-    assert out.tolist() == scalar
+    args = [rng.uniform(-1e5, 1e5, 200) for _ in range(4)]
+    args[1][:50] = rng.uniform(-1e4, 1e4, 50).round(1)  # coefficients as lists give them
+    for v in zip(*args, strict=True):
+        assert step._offset(*v) == temperature.offset(*v)
 
 
 def _renamed_dictionary() -> Dictionary:

@@ -25,7 +25,7 @@ from geo_server.machine.nc import parse_program
 from geo_server.machine.port import StartProgram, WriteObjects
 from geo_server.machine.scheduler import Scheduler
 from geo_server.paths import default_startup_list
-from geo_server.twin.engine import _interp
+from geo_server.twin.engine import ambient_at
 
 P = 1_000_000  # 1 ms in ns
 MOVES = "N10 G90 G01 X120 Y-40 F6000\nN20 X-30 Y25\nN30 G04 X0.02\nN40 X60 Z-10\nM30\n"
@@ -101,15 +101,17 @@ def test_a_machine_that_moves_or_ramps_is_not_quiescent(cfg) -> None:
     assert m.quiescent
 
 
-def test_np_interp_on_python_floats() -> None:
+def test_compiled_ambient_is_np_interp() -> None:
+    """The twin's ambient profile follows `np.interp` (linear, held outside), compiled."""
     xp = [0.0, 7200.0, 14400.0, 20000.5]
     fp = [20.0, 23.0, 23.0, 19.25]
+    amb = np.array([xp, fp])
     rng = random.Random(3)
     xs = [*xp, -1.0, 1e9, *(rng.uniform(-100, 21000) for _ in range(5000))]
     xs += [math.nextafter(x, math.inf) for x in xp] + [math.nextafter(x, -math.inf) for x in xp]
     for x in xs:
-        assert _interp(x, xp, fp) == float(np.interp(x, xp, fp)), x
-    assert _interp(5.0, [1.0], [4.0]) == float(np.interp(5.0, [1.0], [4.0]))
+        assert ambient_at(x, amb) == float(np.interp(x, xp, fp)), x
+    assert ambient_at(5.0, np.array([[1.0], [4.0]])) == float(np.interp(5.0, [1.0], [4.0]))
 
 
 def test_unpublished_cycles_then_published_are_the_same_snapshots(cfg) -> None:

@@ -1,11 +1,11 @@
 """Temperature compensation TEMPC (000 §3; docs/design.md §6.2): its law and its objects.
 
 The law, `offset_0 + coefficient·1e-6·(s − position_0)` (000 §3.1 p.15), is stated here once
-and used by the kernel's single cycle and its pass of steady cycles (`offset_into`, on their
-preallocated arrays), by the measurement tool (`twin/measure.py`) and by the PLC client's
-expected value (`geo_clients/plc_tempcomp.py`, `offset`). The same IEEE operations run in the
-same order in every form: the coefficient is scaled first (`slope`), then multiplied by the
-position relative to position_0, then offset_0 is added.
+(`offset`) and used by the kernel's cycle (compiled, `kernel.step`), by the measurement tool
+(`twin/measure.py`) and by the PLC client's expected value (`geo_clients/plc_tempcomp.py`) as
+plain Python: the coefficient is scaled first (`slope`), then multiplied by the position
+relative to position_0, then offset_0 is added. This module imports no compiler, so a
+client that only needs the law does not load one.
 
 The writable TEMPC parameters (000 §3.2.3 objects 0x43–0x45) are bound to the kernel's rows
 from the dictionary the machine was given (`bindings`), not from a module-level load of
@@ -15,8 +15,6 @@ the default one.
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, NamedTuple
-
-import numpy as np
 
 if TYPE_CHECKING:
     from geo_server.dictionary import Dictionary
@@ -31,20 +29,10 @@ def slope(coefficient: float) -> float:
 
 
 def offset(offset_0: float, coefficient: float, position_0: float, s: float) -> float:
-    """Δs at command position `s` (000 §3.1 p.15), unrounded, in the units of offset_0."""
-    return offset_0 + slope(coefficient) * (s - position_0)
-
-
-def slope_into(coefficient: np.ndarray, out: np.ndarray) -> None:
-    """`slope` of every axis into `out` (the kernel keeps it until the next TEMPC write)."""
-    np.multiply(coefficient, SCALE, out=out)
-
-
-def offset_into(offset_0: np.ndarray, slopes: np.ndarray, rel: np.ndarray, out: np.ndarray) -> None:
-    """`offset` over arrays: `rel` holds s − position_0 (overwritten with slope·rel), the
-    result goes to `out` (a single cycle [n] or a pass of cycles [b, n])."""
-    np.multiply(rel, slopes, out=rel)
-    np.add(offset_0, rel, out=out)
+    """Δs at command position `s` (000 §3.1 p.15), unrounded, in the units of offset_0.
+    Plain Python that the kernel compiles (`kernel.step`): `slope` written out, as the
+    compiled code calls no Python function."""
+    return offset_0 + coefficient * SCALE * (s - position_0)
 
 
 #: The law's parameters, in the order of the kernel's rows (coefficient, offset_0,

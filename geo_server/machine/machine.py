@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -30,9 +30,9 @@ from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
-from geo_server.kernel.batch import KernelBatch, batch_limit
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.listfile.values import Reporter
+from geo_server.machine.cycle import PLAN, TWIN_SHIFT, cycles
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
 from geo_server.machine.port import (
@@ -111,9 +111,6 @@ def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
     return out
 
 
-#: buffers of this many batch sizes are kept, the least recently used dropped first (the
-#: engine uses a few: its wake-up interval, the catch-ups of requests, the rest of a move)
-_BATCHES_KEPT = 24
 #: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
 VOLC_LOAD_TIMEOUT = 30.0
 
@@ -193,14 +190,14 @@ class Machine:
         self._queue: deque[tuple[Operation, Pending]] = deque()
         self._queue_lock = threading.Lock()
         self._cycle_lock = threading.Lock()
-        self._batches: OrderedDict[int, tuple[KernelBatch, np.ndarray, np.ndarray]] = OrderedDict()
-        self._batch_limit = (-1, 0)  # (kernel generation, `batch_limit` of its tables)
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
         self._rounded = np.zeros((n, 7))  # scratch: rounded actual values
         self._prev_rounded = np.zeros((n, 7))  # scratch: rounded values of the cycle before
         # per-cycle derived snapshot values, one buffer (columns: `_MBUF`)
-        self._mbuf = np.zeros((n, _MBUF["lose"] + 1))
+        # (a row per column, so that each column is a contiguous vector for the
+        # compiled cycle; `_mbuf` is its [n, 13] view)
+        self._mbuf = np.zeros((_MBUF["lose"] + 1, n)).T
         self._mbuf_cols = (
             self._mbuf[:, _MBUF["delta"] : _MBUF["delta"] + 7],
             self._mbuf[:, _MBUF["display"]],
@@ -249,26 +246,16 @@ class Machine:
                 self._rest_after = False
                 applied = self._apply_queue()
                 self._step_program()
-                self.motion.step()
-                self.motion.reversal_in(self._reversal)
-                k = self.kernel
                 t0 = perf_counter_ns()
-                k.step(
-                    self.motion.pos,
-                    self.motion.vel,
-                    self.motion.acc,
-                    self.motion.homed,
-                    self._reversal,
-                )
-                np.add(self.motion.pos, k.total_offset, out=self._output)
+                self._compute(1)
                 if self.volc.states:
                     self._volumetric()
-                np.copyto(self._drive_act, self._output, where=k.drive_enabled)
+                    np.copyto(self._drive_act, self._output, where=self.kernel.drive_enabled)
                 self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
-                self.twin.step(
-                    self._output, self.motion.pos, self.motion.vel, self.spindle_on, publish
-                )
+                if publish:
+                    mo = self.motion
+                    self.twin.evaluate(self._output, mo.pos, mo.vel)
                 self.cycle += 1
                 self._computed += 1
                 self.heartbeat = monotonic()
@@ -297,46 +284,30 @@ class Machine:
     # ------------------------------------------------------------------ batches
 
     def run_batch(self, n: int) -> int:
-        """Run up to `n` of the next cycles in one pass while they form a *steady
-        stretch* (docs/design.md §13.2): nothing queued, an axis moving throughout and
-        no move starting or ending (`Motion.steady_cycles`), the program (if any) only
-        waiting for that motion, no reversal, no step event, no held output. Returns
-        the cycles run: 0 when fewer than two are steady (nothing has changed then: run
-        single cycles). The numbers are those of as many calls of
-        `run_cycle(publish=False)` (tests/test_batch.py): the snapshot of the cycle
-        reached is left to `publish`."""
+        """Run up to `n` of the next cycles in one pass while nothing but the compiled
+        cycle acts (docs/design.md §13.2): nothing queued, an axis moving, the program
+        (if any) only waiting for that motion, no volumetric compensation acting. The
+        pass ends after the first cycle with an event (an arrival, a sensor sample, a
+        velocity that changes sign). Returns the cycles run: 0 when no pass is possible
+        (nothing has changed then: run single cycles). The numbers are those of as many
+        calls of `run_cycle(publish=False)`, by construction (`cycle.cycles`; tests/
+        test_batch.py): the snapshot of the cycle reached is left to `publish`."""
         if n < 2 or self._queue or self.cycle == 0 or self.volc.busy:
             return 0
         mo = self.motion
         with self._cycle_lock:
-            k = self.kernel
-            if self._batch_limit[0] != k.generation:  # (once per load of the tables)
-                self._batch_limit = (k.generation, batch_limit(k))
-            n = min(n, mo.steady_cycles(), self._batch_limit[1])
-            if n < 2 or self._queue:
+            if self._queue or not mo._moving.any():
                 return 0
             player = self.player
             if player is not None and player.running:
                 waits = player.motion_wait()
                 if not waits or not mo._moving[list(waits)].any():
                     return 0
-            kb, rev, out = self._batch(n)
-            if not kb.ready():
-                return 0
-            mo.sample(kb.pos, kb.vel, kb.acc, rev)
-            np.copyto(kb.rev, rev)
             t0 = perf_counter_ns()
-            if not kb.run(mo.homed):
-                return 0
+            n = self._compute(n)
             self.kernel_ns = (perf_counter_ns() - t0) // n
-            mo.advance(kb.pos, kb.vel, kb.acc)
-            np.copyto(self._reversal, rev[-1])
-            np.add(kb.pos, kb.total, out=out)
-            self.twin.step_steady(out, kb.pos, kb.vel, self.spindle_on)
-            np.copyto(self._output, out[-1])
-            np.copyto(self._drive_act, self._output, where=k.drive_enabled)
             if player is not None and player.running:
-                player.skip(n)
+                player.skip(n)  # (it waits for the motion: nothing else changes for it)
             self.cycle += n
             self._computed += n
             self.heartbeat = monotonic()
@@ -344,20 +315,41 @@ class Machine:
             self._rest_after = False
         return n
 
-    def _batch(self, n: int) -> tuple[KernelBatch, np.ndarray, np.ndarray]:
-        """The kernel batch of `n` cycles with the machine's own [n, axes] buffers
-        (reversal counts, outputs), made at its first use."""
-        kept = self._batches
-        got = kept.get(n)
-        if got is None or got[0].k is not self.kernel:
-            if len(kept) >= _BATCHES_KEPT:
-                kept.popitem(last=False)  # the size used least recently
-            shape = (n, len(self.axes))
-            got = KernelBatch(self.kernel, n), np.zeros(shape, dtype=np.int64), np.zeros(shape)
-            kept[n] = got
-        else:
-            kept.move_to_end(n)
-        return got
+    def _compute(self, count: int) -> int:
+        """Up to `count` cycles of the compiled part (`cycle.cycles`: motion, kernel,
+        output, the twin's state), with what it leaves to Python in between: a queued
+        move to plan (in the middle of its cycle), the twin's events after a cycle.
+        Stops after a cycle with events; returns the cycles computed (at least 1)."""
+        mo, tw, k = self.motion, self.twin, self.kernel
+        done = 0
+        resume = False
+        while True:
+            ran, flags = cycles(
+                count - done,
+                resume,
+                mo.F,
+                mo.I,
+                mo.B,
+                mo.dt,
+                *k.arrays(),
+                tw.A,
+                tw.N,
+                tw.S,
+                tw.C,
+                tw.amb,
+                self.spindle_on,
+                self._reversal,
+                self._output,
+                self._drive_act,
+            )
+            done += ran
+            if flags & PLAN:  # the arrived axes' queued moves start (first step next cycle)
+                mo.start_queued()
+                resume = True
+                continue
+            if flags >> TWIN_SHIFT:
+                tw.events(flags >> TWIN_SHIFT, mo.vel)
+            return done
 
     # ------------------------------------------------------------------ virtual time
 

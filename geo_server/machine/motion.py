@@ -38,6 +38,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from geo_server.errors import GeoError
+from geo_server.jit import compiled
 from geo_server.model import AxisParams
 from geo_server.units import UNITS_PER_MM
 
@@ -47,8 +48,40 @@ from geo_server.units import UNITS_PER_MM
 #: T/dt = 3000.0000000004 still counts as 3000 cycles.
 _CYCLE_EPS = 1e-6
 
-#: Up to this many moving axes `Motion.step` runs per axis in Python (see `_step_scalar`).
-_SCALAR_MAX = 6
+# Rows of the motion's arrays (`Motion.F`, `Motion.I`, `Motion.B`; compile-time
+# constants of `profile_step`). Floats: the commands, the limits, the profile of each
+# axis' move (start, signed distance, acceleration time, start of deceleration, total
+# time, normalised peak velocity and jerk, u at the end of phase A), the directions and
+# the queued move.
+(
+    POS,
+    VEL,
+    ACC,
+    TARGET,
+    FEED,
+    V_MAX,
+    A_MAX,
+    PERIOD,
+    P0,
+    DIST,
+    TA,
+    TD,
+    TT,
+    W,
+    J,
+    UB0,
+    DIR,
+    NEXT_DIR,
+    Q_TARGET,
+    Q_FEED,
+) = range(20)
+NF = 20
+K, NC = range(2)  # integers: steps taken, duration in cycles
+NI = 2
+HOMED, MODULO, MOVING, QUEUED, DONE = range(5)  # booleans
+NB = 5
+#: `profile_step`'s result: an axis arrived this cycle; one of them has a queued move
+ARRIVED, START_QUEUED = 1, 2
 
 
 class MotionError(GeoError, ValueError):
@@ -70,50 +103,33 @@ class Motion:
             raise MotionError(f"cycle time must be > 0, got {dt}")
         self.dt = float(dt)
         self.n = n = len(params)
-        self.v_max = np.array([p.v_max for p in params], dtype=np.float64)
-        self.a_max = np.array([p.a_max for p in params], dtype=np.float64) * UNITS_PER_MM
         bad = [p.log_nr for p in params if p.v_max <= 0 or p.a_max <= 0]
         if bad:
             raise MotionError(f"axes {bad}: v_max and a_max must be > 0")
-        self.modulo = np.array([p.modulo for p in params], dtype=bool)
-        self.period = np.array(
-            [p.modulo_period if p.modulo else 0.0 for p in params], dtype=np.float64
-        )
-        self.homed = np.array([p.homed for p in params], dtype=bool)
-        self.pos = np.array([p.start_position for p in params], dtype=np.float64)
-        self.vel = np.zeros(n)
-        self.acc = np.zeros(n)
-        self.target = self.pos.copy()
-        self.feed = self.v_max.copy()
-        self._init_profile(n)
-
-    def _init_profile(self, n: int) -> None:
-        """Allocate the per-axis profile parameters and the step() scratch buffers."""
-        self._moving = np.zeros(n, dtype=bool)
-        self._p0 = self.pos.copy()
-        self._dist = np.zeros(n)
-        self._ta = np.zeros(n)
-        self._td = np.zeros(n)  # start of deceleration, T − ta
-        self._tt = np.zeros(n)  # total time T
-        self._w = np.zeros(n)
-        self._j = np.zeros(n)
-        self._ub0 = np.zeros(n)  # u at the end of phase A, ½·w·ta
-        self._k = np.zeros(n, dtype=np.int64)
-        self._nc = np.zeros(n, dtype=np.int64)  # duration N in cycles
-        self._dir = np.zeros(n)  # sign of the current/last move
-        self._next_dir = np.zeros(n)  # announced direction of the next move
-        self._queued = np.zeros(n, dtype=bool)
-        self._q_target = np.zeros(n)
-        self._q_feed = np.zeros(n)
-        self._t = np.zeros(n)
-        self._u = np.zeros(n)
-        self._du = np.zeros(n)
-        self._ddu = np.zeros(n)
-        self._s = np.zeros(n)
-        self._r = np.zeros(n)
-        self._m = np.zeros(n, dtype=bool)
-        self._done = np.zeros(n, dtype=bool)
-        self._ki = np.zeros(n, dtype=np.int64)
+        #: the compiled step's arrays (rows above): the attributes below are their rows
+        self.F = np.zeros((NF, n))
+        self.I = np.zeros((NI, n), dtype=np.int64)
+        self.B = np.zeros((NB, n), dtype=bool)
+        f, b = self.F, self.B
+        self.pos, self.vel, self.acc, self.target = f[POS], f[VEL], f[ACC], f[TARGET]
+        self.feed, self.v_max, self.a_max, self.period = f[FEED], f[V_MAX], f[A_MAX], f[PERIOD]
+        self.homed, self.modulo = b[HOMED], b[MODULO]
+        self._moving, self._queued, self._done = b[MOVING], b[QUEUED], b[DONE]
+        self._p0, self._dist, self._ta, self._td, self._tt = f[P0], f[DIST], f[TA], f[TD], f[TT]
+        self._w, self._j, self._ub0 = f[W], f[J], f[UB0]
+        self._dir, self._next_dir = f[DIR], f[NEXT_DIR]  # the current/last move's sign
+        self._q_target, self._q_feed = f[Q_TARGET], f[Q_FEED]
+        self._k, self._nc = self.I[K], self.I[NC]
+        self.v_max[:] = [p.v_max for p in params]
+        self.a_max[:] = [p.a_max * UNITS_PER_MM for p in params]
+        self.modulo[:] = [p.modulo for p in params]
+        self.period[:] = [p.modulo_period if p.modulo else 0.0 for p in params]
+        self.homed[:] = [p.homed for p in params]
+        self.pos[:] = [p.start_position for p in params]
+        self.target[:] = self.pos
+        self._p0[:] = self.pos
+        self.feed[:] = self.v_max
+        self._m = np.zeros(n, dtype=bool)  # scratch of `display_pos`
 
     # ------------------------------------------------------------------ commands
 
@@ -236,198 +252,29 @@ class Motion:
         return out
 
     def reversal_in(self, out: np.ndarray) -> None:
-        """Cycles until the planned velocity changes sign, per axis (−1 if none known).
-
-        A reversal is known when the next move (queued with `queue_next` or announced
-        with `announce_next`) goes against the current/last move direction. The value
-        is the number of `step()` calls until the current move arrives at rest, 0 when
-        the axis already rests and the next move will reverse it, else −1.
-        `out` must be an int64 (or float64) array of length n; nothing is allocated.
-        """
-        np.multiply(self._next_dir, self._dir, out=self._s)
-        np.less(self._s, 0.0, out=self._m)
-        np.subtract(self._nc, self._k, out=self._ki)
-        np.copyto(out, self._ki, casting="unsafe")
-        np.logical_not(self._m, out=self._m)
-        np.copyto(out, -1, where=self._m)
+        """Cycles until the planned velocity changes sign, per axis (−1 if none known):
+        `reversal_in` of the compiled cycle, into `out` (int64, length n)."""
+        reversal_in(self.F, self.I, out)
 
     # ------------------------------------------------------------------ the cycle
 
     def step(self) -> None:
-        """Advance one cycle: update `pos`, `vel`, `acc` in place (no allocation).
+        """Advance one cycle: update `pos`, `vel`, `acc` in place (`profile_step`).
 
         In the cycle a move reaches its duration the axis snaps to its target with
         vel = acc = 0; a queued move of that axis is then planned (first sample next
         cycle).
         """
-        mv = self._moving
-        moving = np.flatnonzero(mv)
-        if len(moving) == 0:  # nothing changes at rest
-            return
-        if len(moving) <= _SCALAR_MAX:
-            self._step_scalar(moving.tolist())
-            return
-        np.add(self._k, mv, out=self._k, casting="unsafe")
-        np.multiply(self._k, self.dt, out=self._t)
-        u, du, ddu, s, r, m = self._u, self._du, self._ddu, self._s, self._r, self._m
-        self._eval_profile(self._t, u, du, ddu, s, r, m)
-        np.greater_equal(self._k, self._nc, out=self._done)
-        np.logical_and(self._done, mv, out=self._done)
-        self._apply(mv, u, du, ddu, s, self.pos, self.vel, self.acc)
-        np.copyto(self.pos, self.target, where=self._done)
-        np.copyto(self.vel, 0.0, where=self._done)
-        np.copyto(self.acc, 0.0, where=self._done)
-        np.logical_not(self._done, out=self._m)
-        np.logical_and(mv, self._m, out=mv)
-        if self._queued.any() and self._done.any():
-            self._start_queued()
+        if profile_step(self.F, self.I, self.B, self.dt) & START_QUEUED:
+            self.start_queued()
 
-    def steady_cycles(self) -> int:
-        """How many of the next steps only sample running profiles: some axis moves,
-        every moving axis has taken its first step and none arrives within them (so
-        no move starts, ends or is replanned, and no velocity changes sign). 0 when
-        none (docs/design.md §13.2)."""
-        mv = self._moving
-        if not mv.any():
-            return 0
-        k = self._k[mv]
-        if k.min() < 1:
-            return 0
-        return max(int((self._nc[mv] - k).min()) - 1, 0)
-
-    def sample(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, rev: np.ndarray) -> None:
-        """The next `len(pos)` (≤ `steady_cycles`) steps, into [b, n] rows,
-        without changing the state (`advance` does): pos/vel/acc after step b + 1 and
-        what `reversal_in` then gives (docs/design.md §13.2): `step`'s own
-        `_eval_profile`/`_apply` with the steps as a leading axis (and the operations of
-        `_step_scalar`), so the numbers are bit-identical."""
-        nb = len(pos)
-        mv = self._moving
-        kb = np.multiply.outer(np.arange(1, nb + 1), mv)
-        kb += self._k  # k after each step
-        t = kb * self.dt
-        u, du, ddu, sc, r = (np.empty_like(t) for _ in range(5))
-        m = np.empty(t.shape, dtype=bool)
-        self._eval_profile(t, u, du, ddu, sc, r, m)
-        np.copyto(pos, self.pos)
-        np.copyto(vel, self.vel)
-        np.copyto(acc, self.acc)
-        self._apply(mv, u, du, ddu, sc, pos, vel, acc)
-        # reversal_in after each step: cycles to arrival where the next move reverses
-        coming = self._next_dir * self._dir < 0.0
-        np.subtract(self._nc, kb, out=rev, casting="unsafe")
-        np.copyto(rev, -1, where=~coming)
-
-    def advance(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:
-        """Take the state after the steps `sample` gave (its last row)."""
-        mv = self._moving
-        self._k += len(pos) * mv
-        np.copyto(self.pos, pos[-1])
-        np.copyto(self.vel, vel[-1])
-        np.copyto(self.acc, acc[-1])
-
-    def _step_scalar(self, moving: list[int]) -> None:
-        """`step()` for a few moving axes, one at a time with Python floats.
-
-        Bit-identical to the vectorised path: the same IEEE operations in the same
-        order (`_eval_profile`, `_apply`), only without the numpy call overhead, which
-        dominates when one or two axes move.
-        """
-        dt = self.dt
-        k_arr, pos, vel, acc = self._k, self.pos, self.vel, self.acc
-        done = []
-        for s in moving:
-            k = k_arr.item(s) + 1
-            k_arr[s] = k
-            t = k * dt
-            j = self._j.item(s)
-            u = t * t * 0.5 * j  # phase A
-            du = j * t
-            ddu = j
-            ta = self._ta.item(s)
-            if t >= ta:  # phase B
-                u = (t - ta) * self._w.item(s) + self._ub0.item(s)
-                du = self._w.item(s)
-                ddu = 0.0
-            if t >= self._td.item(s):  # phase C
-                r = self._tt.item(s) - t
-                u = r * r * j * -0.5 + 1.0
-                du = j * r
-                ddu = -j
-            if k >= self._nc.item(s):
-                pos[s] = self.target.item(s)
-                vel[s] = 0.0
-                acc[s] = 0.0
-                self._moving[s] = False
-                done.append(s)
-            else:
-                dist = self._dist.item(s)
-                pos[s] = dist * u + self._p0.item(s)
-                vel[s] = dist * du
-                acc[s] = dist * ddu
-        if done and self._queued.any():
-            self._done.fill(False)
-            self._done[done] = True
-            self._start_queued()
-
-    def _eval_profile(
-        self,
-        t: np.ndarray,
-        u: np.ndarray,
-        du: np.ndarray,
-        ddu: np.ndarray,
-        s: np.ndarray,
-        r: np.ndarray,
-        m: np.ndarray,
-    ) -> None:
-        """u, du/dt, d²u/dt² at the times `t` (phases A, B, C), into `u`, `du`, `ddu`
-        (`s`, `r`, `m`: scratch of t's shape). `t` is [n] for one step or [b, n] for
-        the steps of `sample`: the profile parameters broadcast over the rows."""
-        j = self._j
-        np.multiply(t, t, out=u)  # phase A
-        u *= 0.5
-        u *= j
-        np.multiply(j, t, out=du)
-        np.copyto(ddu, j)
-        np.greater_equal(t, self._ta, out=m)  # phase B
-        np.subtract(t, self._ta, out=s)
-        s *= self._w
-        s += self._ub0
-        np.copyto(u, s, where=m)
-        np.copyto(du, self._w, where=m)
-        np.copyto(ddu, 0.0, where=m)
-        np.greater_equal(t, self._td, out=m)  # phase C
-        np.subtract(self._tt, t, out=r)
-        np.multiply(r, r, out=s)
-        s *= j
-        s *= -0.5
-        s += 1.0
-        np.copyto(u, s, where=m)
-        np.multiply(j, r, out=s)
-        np.copyto(du, s, where=m)
-        np.negative(j, out=s)
-        np.copyto(ddu, s, where=m)
-
-    def _apply(
-        self,
-        mv: np.ndarray,
-        u: np.ndarray,
-        du: np.ndarray,
-        ddu: np.ndarray,
-        s: np.ndarray,
-        pos: np.ndarray,
-        vel: np.ndarray,
-        acc: np.ndarray,
-    ) -> None:
-        """pos/vel/acc of the moving axes `mv` from the normalised profile (`s`:
-        scratch); the other axes keep what `pos`/`vel`/`acc` hold."""
-        np.multiply(self._dist, u, out=s)
-        s += self._p0
-        np.copyto(pos, s, where=mv)
-        np.multiply(self._dist, du, out=s)
-        np.copyto(vel, s, where=mv)
-        np.multiply(self._dist, ddu, out=s)
-        np.copyto(acc, s, where=mv)
+    def start_queued(self) -> None:
+        """Start the queued moves of the axes that arrived in this cycle (after
+        `profile_step` said so: planning is Python)."""
+        for i in np.flatnonzero(self._queued & self._done):
+            s = int(i)
+            self._queued[s] = False
+            self._plan({s: float(self._q_target[s])}, float(self._q_feed[s]))
 
     # ------------------------------------------------------------------ planning
 
@@ -504,13 +351,6 @@ class Motion:
         self.target[s] = self.pos[s]
         self._k[s] = self._nc[s]
 
-    def _start_queued(self) -> None:
-        """Start the queued moves of the axes that arrived in this cycle."""
-        for i in np.flatnonzero(self._queued & self._done):
-            s = int(i)
-            self._queued[s] = False
-            self._plan({s: float(self._q_target[s])}, float(self._q_feed[s]))
-
 
 def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:
     """Symmetric profile over `length` with peak ≤ v and acceleration a.
@@ -522,3 +362,60 @@ def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:
         return v / a, length / v + v / a, v / length
     ta = math.sqrt(length / a)
     return ta, 2.0 * ta, a * ta / length
+
+
+# ---------------------------------------------------------------------- compiled
+
+
+@compiled
+def profile_step(F: np.ndarray, I: np.ndarray, B: np.ndarray, dt: float) -> int:  # noqa: E741
+    """One cycle of every moving axis (see the module docstring): the profile sampled at
+    t = k·dt after k steps, phases A, B, C; in the cycle a move reaches its duration the
+    axis snaps to its target with vel = acc = 0. Returns `ARRIVED` | `START_QUEUED`
+    (an arrived axis has a queued move: `Motion.start_queued`)."""
+    flags = 0
+    for s in range(F.shape[1]):
+        B[DONE, s] = False
+        if not B[MOVING, s]:
+            continue
+        k = I[K, s] + 1
+        I[K, s] = k
+        t = k * dt
+        j = F[J, s]
+        u = t * t * 0.5 * j  # phase A
+        du = j * t
+        ddu = j
+        if t >= F[TA, s]:  # phase B
+            u = (t - F[TA, s]) * F[W, s] + F[UB0, s]
+            du = F[W, s]
+            ddu = 0.0
+        if t >= F[TD, s]:  # phase C
+            r = F[TT, s] - t
+            u = r * r * j * -0.5 + 1.0
+            du = j * r
+            ddu = -j
+        if k >= I[NC, s]:
+            F[POS, s] = F[TARGET, s]
+            F[VEL, s] = 0.0
+            F[ACC, s] = 0.0
+            B[MOVING, s] = False
+            B[DONE, s] = True
+            flags |= ARRIVED | (START_QUEUED if B[QUEUED, s] else 0)
+        else:
+            dist = F[DIST, s]
+            F[POS, s] = dist * u + F[P0, s]
+            F[VEL, s] = dist * du
+            F[ACC, s] = dist * ddu
+    return flags
+
+
+@compiled
+def reversal_in(F: np.ndarray, I: np.ndarray, out: np.ndarray) -> None:  # noqa: E741
+    """Cycles until the planned velocity changes sign, per axis (−1 if none known).
+
+    A reversal is known when the next move (queued with `queue_next` or announced with
+    `announce_next`) goes against the current/last move direction. The value is the
+    number of `step()` calls until the current move arrives at rest, 0 when the axis
+    already rests and the next move will reverse it, else −1."""
+    for s in range(F.shape[1]):
+        out[s] = I[NC, s] - I[K, s] if F[NEXT_DIR, s] * F[DIR, s] < 0.0 else -1

@@ -15,22 +15,29 @@ Every cycle, after the compensation kernel (docs/twin.md):
 5. true position = output + error; residual = true − command (the programmed position).
 
 All positions and errors are increments here (0.1 µm, 0.0001°): the file's mm/° and
-µm/0.001° are converted once, at load. The work per cycle is a fixed number of numpy
-calls whatever the number of axes: all 1-D curves of all axes are served by one merged
-table lookup (the kernel's `MergedTable`).
+µm/0.001° are converted once, at load.
+
+What a cycle changes — the motion heat, the thermal update every `thermal_every` cycles
+(steps 1 and 2) — is one compiled function (`twin_cycle`), the same for a single cycle, a
+pass of moving cycles and a stretch at rest (docs/design.md §13: the three paths are one
+function in a loop). What needs Python — the sensors' seeded noise (step 3) and a new
+scatter draw when an axis starts, stops or reverses — it reports as flags, and the
+engine handles them after the cycle, in the cycle's order. The outputs (steps 4 and 5)
+are only evaluated when someone looks (`evaluate`); all 1-D curves of all axes are then
+served by one merged table lookup.
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from geo_server.faults import OPEN_CIRCUIT_C
-from geo_server.kernel.tables import Lookup, MergedTable
-from geo_server.twin.model import AxisTwin, Curve, Grid, RigidBody, TwinConfig
+from geo_server.jit import compiled
+from geo_server.kernel.tables import Packer, interp
+from geo_server.twin.model import AxisTwin, Curve, RigidBody, TwinConfig
 from geo_server.twin.volumetric import rigid_tables
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.evaluator import Evaluator
@@ -39,12 +46,46 @@ from geo_server.volcomp.model import build_model
 #: Increments per second to m/s (linear) or to 1000 °/s (rotary).
 V_SCALE = 1e-7
 
+# Rows of the compiled cycle's arrays (`TwinEngine.A`, `.N`, `.S`, `.C`; compile-time
+# constants of `twin_cycle`). Per axis: the motion heat summed since the last thermal
+# update, sign(v) of the last cycle, the direction held, the lost motion's parameters,
+# the scatter of the last approach, the error line A·pos + B and its parameters, and
+# (as floats) the thermal node of its expansion.
+(
+    VSUM,
+    SIGN_BEFORE,
+    DIRECTION,
+    REF_DIR,
+    HALF_REVERSAL,
+    SCATTER_NOW,
+    OFFSET,
+    LINE_A,
+    LINE_B,
+    LIN_OFF,
+    LIN_SLOPE,
+    LIN_REF,
+    EXP_COEF,
+    EXP_REF,
+    EXP_NODE,
+) = range(15)
+NA = 15
+# per thermal node: temperature, 1 − e^(−dt/τ), motion gain, spindle gain, motion axis
+NODE_TEMP, NODE_K, MOTION_GAIN, SPINDLE_GAIN, MOTION_SLOT = range(5)
+NN = 5
+# scalars: simulated seconds per cycle, the next sample's time, the ambient
+# temperature, whether it is held (a climate chamber), the reference temperature
+DT, NEXT_SAMPLE, AMBIENT, HELD, T_REF = range(5)
+NS = 5
+CYCLES, EVERY = range(2)  # integer scalars: cycles run, cycles between thermal updates
+NC = 2
+#: `twin_cycle`'s result: a sensor sample is due; a velocity changed sign
+SAMPLE, MOTION = 1, 2
 
-def _curve_rows(c: Curve) -> tuple[np.ndarray, np.ndarray]:
-    return (
-        np.asarray(c.positions) * UNITS_PER_MM,
-        np.asarray(c.errors) * UNITS_PER_UM,
-    )
+
+def _curve(c: Curve, tab: Packer) -> tuple[int, int]:
+    """A 1-D error curve (mm → increments, µm → increments) into `tab`: (offset, points)."""
+    pos = np.asarray(c.positions, dtype=float) * UNITS_PER_MM
+    return tab.table(pos, np.asarray(c.errors, dtype=float) * UNITS_PER_UM), len(pos)
 
 
 class TwinEngine:
@@ -65,30 +106,69 @@ class TwinEngine:
         n = len(self.names)
         slot = {name: i for i, name in enumerate(self.names)}
         self.time_scale = time_scale if time_scale is not None else cfg.time_scale
-        self.dt = cycle_s * self.time_scale  # simulated seconds per cycle
-        self.cycles = 0
-        self.time = 0.0  # cycles · dt (a product, never a running sum that drifts)
+        #: the compiled cycle's arrays (rows above), allocated once; the attributes below
+        #: are views of them
+        self.A = np.zeros((NA, n))
+        self.N = np.zeros((NN, len(cfg.nodes)))
+        self.S = np.zeros(NS)
+        self.C = np.zeros(NC, dtype=np.int64)
+        self.S[DT] = self.dt = cycle_s * self.time_scale  # simulated seconds per cycle
         #: stretches at rest (`advance`) in which a thermal update or a sensor sample ran
         self.rest_events = 0
         axes = [cfg.axes.get(name, AxisTwin(name)) for name in self.names]
         self.period = np.array(list(modulo) or [0.0] * n, dtype=float)
         # state
-        self.direction = np.array([float(a.reference_direction) for a in axes])
-        self._sign_before = np.zeros(n)  # sign(v) of the last cycle
-        self._scatter_now = np.zeros(n)
-        self._offset = np.zeros(n)
+        a = self.A
+        self._vsum, self._sign_before = a[VSUM], a[SIGN_BEFORE]
+        self.direction, self._scatter_now, self._offset = a[DIRECTION], a[SCATTER_NOW], a[OFFSET]
+        self._line_a, self._line_b = a[LINE_A], a[LINE_B]
+        self.direction[:] = [float(ax.reference_direction) for ax in axes]
         self._rng = np.random.default_rng(cfg.seed)
-        self._tmp = np.zeros(n)
         self._sign = np.zeros(n)
         self._still = np.zeros(n)  # the velocities of a machine at rest
         self._setup_geometry(axes, slot)
         self._setup_thermal(axes, slot)
         self._setup_rigid(cfg.rigid_body, slot)
         # outputs (read by the machine's snapshot)
-        self.true_position = np.zeros(n)
-        self.residual = np.zeros(n)
-        self.friction_current = np.zeros(n)
-        self.error = np.zeros(n)
+        self.error, self.true_position, self.residual, self.friction_current = self.O
+
+    # ------------------------------------------------------------------ the scalars
+
+    @property
+    def cycles(self) -> int:
+        """Cycles run."""
+        return int(self.C[CYCLES])
+
+    @cycles.setter
+    def cycles(self, value: int) -> None:
+        self.C[CYCLES] = value
+
+    @property
+    def time(self) -> float:
+        """Simulated seconds: cycles · dt (a product, never a running sum that drifts)."""
+        return float(self.C[CYCLES] * self.S[DT])
+
+    @property
+    def ambient(self) -> float:
+        """The ambient temperature (°C) of the last thermal update."""
+        return float(self.S[AMBIENT])
+
+    @ambient.setter
+    def ambient(self, value: float) -> None:
+        self.S[AMBIENT] = value
+
+    @property
+    def held_ambient(self) -> float | None:
+        """A climate chamber: the ambient held at this temperature instead of the profile."""
+        return float(self.S[AMBIENT]) if self.S[HELD] else None
+
+    @property
+    def _next_sample(self) -> float:
+        return float(self.S[NEXT_SAMPLE])
+
+    @_next_sample.setter
+    def _next_sample(self, value: float) -> None:
+        self.S[NEXT_SAMPLE] = value
 
     # ------------------------------------------------------------------ set-up
 
@@ -117,9 +197,11 @@ class TwinEngine:
 
     def _setup_geometry(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
         n = len(axes)
-        self.lin_off = np.array([a.linear_offset * UNITS_PER_UM for a in axes])
-        self.lin_slope = np.array([a.linear_slope * 1e-6 for a in axes])
-        self.lin_ref = np.array([a.linear_reference * UNITS_PER_MM for a in axes])
+        rows = self.A
+        self.lin_off, self.lin_slope, self.lin_ref = rows[LIN_OFF], rows[LIN_SLOPE], rows[LIN_REF]
+        self.lin_off[:] = [a.linear_offset * UNITS_PER_UM for a in axes]
+        self.lin_slope[:] = [a.linear_slope * 1e-6 for a in axes]
+        self.lin_ref[:] = [a.linear_reference * UNITS_PER_MM for a in axes]
         self.per_amp = np.array([a.periodic_amplitude * UNITS_PER_UM for a in axes])
         self.per_k = np.array(
             [
@@ -128,95 +210,100 @@ class TwinEngine:
             ]
         )
         self.reversal = np.array([a.reversal * UNITS_PER_UM for a in axes])
-        self.ref_dir = np.array([float(a.reference_direction) for a in axes])
+        self.ref_dir = rows[REF_DIR]
+        self.ref_dir[:] = [float(a.reference_direction) for a in axes]
         self.scatter = np.array([a.scatter * UNITS_PER_UM for a in axes])
-        self._any_periodic = bool(self.per_amp.any())
-        self._half_reversal = self.reversal / 2
+        self._half_reversal = rows[HALF_REVERSAL]
+        self._half_reversal[:] = self.reversal / 2
         self.fr_coulomb = np.array([a.friction_coulomb for a in axes])
         self.fr_viscous = np.array([a.friction_viscous for a in axes])
         self._fr_viscous_incr = self.fr_viscous * 1e-4  # per mm/s (°/s) -> per increment/s
-        self._any_friction = bool(self.fr_coulomb.any() or self.fr_viscous.any())
         # every 1-D curve of every axis: (source slot, target slot, direction it holds in)
-        rows: list[tuple[np.ndarray, np.ndarray]] = []
-        links: list[tuple[int, int, int]] = []  # (source slot, target slot, direction)
+        tab = Packer()
+        curves: list[tuple[int, int, int, int, int]] = []  # (table, points, src, tgt, dir)
         for i, a in enumerate(axes):
             if a.pitch is not None:
-                rows.append(_curve_rows(a.pitch))
-                links.append((i, i, 1 if a.pitch_negative else 0))
+                curves.append((*_curve(a.pitch, tab), i, i, 1 if a.pitch_negative else 0))
             if a.pitch_negative is not None:
-                rows.append(_curve_rows(a.pitch_negative))
-                links.append((i, i, -1))
+                curves.append((*_curve(a.pitch_negative, tab), i, i, -1))
             for s in a.straightness:
                 if s.over in slot:  # (an axis the machine lacks contributes nothing)
-                    rows.append(_curve_rows(s.curve))
-                    links.append((slot[s.over], i, 0))
-        src = [link[0] for link in links]
-        tgt = [link[1] for link in links]
-        kind = [link[2] for link in links]
-        self._curves = bool(rows)
-        if rows:
-            self._lookup = Lookup(MergedTable(rows), np.arange(len(rows), dtype=float))
-            self._src = np.array(src)
-            self._tgt = np.array(tgt)
-            self._kind = np.array(kind, dtype=float)
-            self._directional = bool(np.any(self._kind != 0))
-            self._w_a = 1.0 - np.abs(self._kind) / 2
-            self._w_b = self._kind / 2
-            self._w = np.zeros(len(rows))
-            self._vals = np.zeros(len(rows))
-            self._src_period = np.where(self.period[self._src] > 0, self.period[self._src], 1.0)
-            self._wrap = self.period[self._src] > 0
-            self._wrap_any = bool(self._wrap.any())
+                    curves.append((*_curve(s.curve, tab), slot[s.over], i, 0))
+        self._curves = bool(curves)
+        #: per curve: table offset, points, source slot, target slot (`errors`)
+        self.curve_i = np.array([c[:4] for c in curves], dtype=np.int64).reshape(-1, 4).T.copy()
+        kind = np.array([c[4] for c in curves], dtype=float)
+        self._tgt = self.curve_i[3]
+        self._directional = bool(np.any(kind != 0))
+        self._w_a = 1.0 - np.abs(kind) / 2
+        self._w_b = kind / 2
+        #: per curve: the source's modulo period (0: none), the direction's weight
+        self.curve_f = np.zeros((2, len(curves)))
+        self.curve_f[0] = self.period[self.curve_i[2]] if curves else []
+        self._w = self.curve_f[1]
+        self._w[:] = 1.0
         self.square = np.zeros((n, n))
         for i, a in enumerate(axes):
             for other, urad in a.squareness:
                 if other in slot:
                     self.square[i, slot[other]] += urad * 1e-6
-        self._any_square = bool(self.square.any())
-        self.grids: list[tuple[int, int, int, _GridLookup]] = [
-            (i, slot[g.over1], slot[g.over2], _GridLookup(g))
-            for i, a in enumerate(axes)
-            for g in a.grids
-            if g.over1 in slot and g.over2 in slot
-        ]
+        # grids over two axes: (table, rows, columns, target, over1, over2) and (start1,
+        # step1, start2, step2) in increments (`grid_error`)
+        grids = [(i, g) for i, a in enumerate(axes) for g in a.grids]
+        grids = [(i, g) for i, g in grids if g.over1 in slot and g.over2 in slot]
+        self.grid_i = np.zeros((6, len(grids)), dtype=np.int64)
+        self.grid_f = np.zeros((4, len(grids)))
+        for k, (i, g) in enumerate(grids):
+            t = np.asarray(g.errors, dtype=float) * UNITS_PER_UM
+            self.grid_i[:, k] = (tab.add(t), *t.shape, i, slot[g.over1], slot[g.over2])
+            self.grid_f[:, k] = (
+                g.start1 * UNITS_PER_MM,
+                g.step1 * UNITS_PER_MM,
+                g.start2 * UNITS_PER_MM,
+                g.step2 * UNITS_PER_MM,
+            )
+        self.tab = tab.done()
+        #: per axis: periodic amplitude and wave number, friction (coulomb, viscous per
+        #: increment/s) of the drive's current (`errors`)
+        self.E = np.array(
+            [self.per_amp, self.per_k, self.fr_coulomb, self._fr_viscous_incr]
+        ).reshape(4, n)
+        #: outputs: error, true position, residual, friction current
+        self.O = np.zeros((4, n))
 
     def _setup_thermal(self, axes: list[AxisTwin], slot: dict[str, int]) -> None:
         cfg = self.cfg
         nodes = list(cfg.nodes)
         index = {nd.name: k for k, nd in enumerate(nodes)}
         self.node_names = [nd.name for nd in nodes]
-        self.node_temp = np.array([nd.initial for nd in nodes], dtype=float)
+        nd_rows = self.N
+        self.node_temp = nd_rows[NODE_TEMP]
+        self.node_temp[:] = [nd.initial for nd in nodes]
         #: cycles between two updates of the thermal model: 10 ms of simulated time (the
         #: time constants are minutes), at least every cycle
         self.thermal_every = max(1, round(0.01 / self.dt)) if self.dt > 0 else 1
+        self.C[EVERY] = self.thermal_every
         dt_thermal = self.thermal_every * self.dt
-        self._node_k = np.array([1.0 - math.exp(-dt_thermal / nd.tau) for nd in nodes])
-        self._motion_slot = np.array([slot.get(nd.motion_axis, 0) for nd in nodes], dtype=int)
+        nd_rows[NODE_K] = [1.0 - math.exp(-dt_thermal / nd.tau) for nd in nodes]
+        nd_rows[MOTION_SLOT] = [slot.get(nd.motion_axis, 0) for nd in nodes]
         # the mean |v| of an update is the sum over its cycles / thermal_every
-        self._motion_gain = np.array(
-            [
-                nd.motion_gain * V_SCALE / self.thermal_every if nd.motion_axis in slot else 0.0
-                for nd in nodes
-            ]
-        )
-        self._spindle_gain = np.array([nd.spindle_gain for nd in nodes])
-        self._node_target = np.zeros(len(nodes))
-        self._amb_t = np.array([p[0] for p in cfg.ambient])
-        self._amb_v = np.array([p[1] for p in cfg.ambient])
-        self.ambient = float(np.interp(0.0, self._amb_t, self._amb_v))
-        #: a climate chamber: the ambient held at this temperature instead of the profile
-        self.held_ambient: float | None = None
-        self.t_ref = cfg.reference_temperature
+        nd_rows[MOTION_GAIN] = [
+            nd.motion_gain * V_SCALE / self.thermal_every if nd.motion_axis in slot else 0.0
+            for nd in nodes
+        ]
+        nd_rows[SPINDLE_GAIN] = [nd.spindle_gain for nd in nodes]
+        #: the ambient profile: (time s, temperature °C) rows
+        self.amb = np.array([[p[0] for p in cfg.ambient], [p[1] for p in cfg.ambient]])
+        self.ambient = ambient_at(0.0, self.amb)
+        self.S[T_REF] = self.t_ref = cfg.reference_temperature
         # expansion: coefficient (per K, dimensionless) and reference per axis, its node
-        self.exp_coef = np.array(
-            [a.expansion.coefficient * 1e-6 if a.expansion else 0.0 for a in axes]
-        )
-        self.exp_ref = np.array(
-            [a.expansion.reference * UNITS_PER_MM if a.expansion else 0.0 for a in axes]
-        )
-        self.exp_node = np.array(
-            [index[a.expansion.node] if a.expansion else 0 for a in axes], dtype=int
-        )
+        rows = self.A
+        self.exp_coef, self.exp_ref = rows[EXP_COEF], rows[EXP_REF]
+        self.exp_coef[:] = [a.expansion.coefficient * 1e-6 if a.expansion else 0.0 for a in axes]
+        self.exp_ref[:] = [
+            a.expansion.reference * UNITS_PER_MM if a.expansion else 0.0 for a in axes
+        ]
+        rows[EXP_NODE] = [index[a.expansion.node] if a.expansion else 0 for a in axes]
         # sensors: the node each reads, the axis it is shown on, its noise and resolution
         sensors = list(cfg.sensors)
         self.sensor_names = [s.name for s in sensors]
@@ -239,9 +326,6 @@ class TwinEngine:
         #: injected sensor faults (geo_server/faults.py): "", "stuck", "noisy", "open"
         self.sensor_fault = [""] * len(sensors)
         self.sensor_extra_noise = np.zeros(len(sensors))  # σ a "noisy" fault adds
-        self._vsum = np.zeros(n)
-        self._line_a = np.zeros(n)
-        self._line_b = np.zeros(n)
         self._update_lines()
 
     # ------------------------------------------------------------------ the cycle
@@ -254,70 +338,27 @@ class TwinEngine:
         spindle: bool,
         evaluate: bool = True,
     ) -> None:
-        """One GEO cycle (see the module docstring).
-
-        What changes only on events — the temperatures (every `thermal_every` cycles), a
-        reversal, an arrival (a new scatter draw) — is folded into one offset per axis
-        (`_update_offset`) when the event happens, so a cycle without events costs a
-        fixed, small number of numpy calls."""
-        self.cycles += 1
-        self.time = self.cycles * self.dt
-        tmp = self._tmp
-        np.abs(velocity, out=tmp)
-        self._vsum += tmp
-        if self.cycles % self.thermal_every == 0:
-            self._thermal(spindle)
-        if self.time >= self._next_sample:
-            self._sample_sensors()
-        sign = self._sign
-        np.sign(velocity, out=sign)
-        # count_nonzero: a plain C call (ndarray.any() goes through Python wrappers)
-        if np.count_nonzero(np.not_equal(sign, self._sign_before)):
-            self._motion_event(sign)
-        if evaluate:  # (the outputs only: a cycle nobody looks at can leave them)
+        """One GEO cycle (see the module docstring): `twin_cycle`, then what it flags
+        (`events`), then the outputs (`evaluate`) unless nobody looks at this cycle."""
+        flags = twin_cycle(self.A, self.N, self.S, self.C, self.amb, velocity, spindle)
+        if flags:
+            self.events(flags, velocity)
+        if evaluate:
             self.evaluate(output, command, velocity)
 
-    def step_steady(
-        self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray, spindle: bool
-    ) -> None:
-        """`len(velocity)` cycles of `step` ([b, n] rows) in one pass,
-        without evaluating the outputs (`evaluate` does, for the cycle reached), for a
-        stretch in which no velocity changes sign (docs/design.md §13.2). The machine
-        guarantees that (it does not reverse in a steady stretch); the rare axis that
-        starts or stops (a velocity becoming exactly 0) makes it run cycle by cycle.
-
-        Without a sign change `step` only adds |v| to the motion heat and runs the
-        thermal updates and sensor samples in their cycles, so the stretch is cut at
-        those events: |v| is summed up to each of them with `np.add.accumulate` (the
-        same additions in the same order) and the event runs at its own cycle."""
-        sign = np.sign(velocity)
-        if np.count_nonzero(sign != self._sign_before):
-            for b in range(len(velocity)):
-                self.step(output[b], command[b], velocity[b], spindle, evaluate=False)
-            return
-        heat = np.abs(velocity)
-        vsum, every = self._vsum, self.thermal_every
-        end = self.cycles + len(velocity)
-        row = 0
-        while self.cycles < end:
-            upto = int(min((self.cycles // every + 1) * every, self._sample_cycle(), end))
-            j = upto - self.cycles
-            part = np.empty((j + 1, len(vsum)))
-            part[0] = vsum
-            part[1:] = heat[row : row + j]
-            np.add.accumulate(part, axis=0, out=part)
-            vsum[:] = part[j]
-            row += j
-            self.cycles = upto
-            self.time = upto * self.dt
-            if upto % every == 0:
-                self._thermal(spindle)
-            if self.time >= self._next_sample:
-                self._sample_sensors()
+    def events(self, flags: int, velocity: np.ndarray) -> None:
+        """What `twin_cycle` left to Python, in the cycle's order: the sensor samples
+        due, then the scatter draws of a velocity that changed sign."""
+        if flags & SAMPLE:
+            self._sample_sensors()
+        if flags & MOTION:
+            sign = self._sign
+            np.sign(velocity, out=sign)
+            self._motion_event(sign)
 
     def at_rest(self) -> bool:
         """No motion heat waits for the next thermal update (|v| summed since the last
-        one is zero): `advance` may then run the thermal updates without it."""
+        one is zero), so the cycles at rest ahead are the machine's only change."""
         return not np.count_nonzero(self._vsum)
 
     def advance(
@@ -329,94 +370,46 @@ class TwinEngine:
         evaluate: bool = True,
     ) -> None:
         """`n` cycles of a machine at rest (every velocity 0, the same output and command
-        positions throughout) in the numbers `n` calls of `step` give, at the cost of the
-        events only (docs/design.md §13).
-
-        At rest `step` changes state only at a thermal update (every `thermal_every`
-        cycles) and at a sensor sample (its time reached): |v| adds nothing, no sign
-        changes, and the errors are a function of the positions and of the state the
-        events leave. So the events run in their cycle order, each at its own cycle
-        and time, and the errors are evaluated once, at the end. The thermal updates of
-        a machine at rest run on Python floats (`_RestNodes`: the same IEEE operations
-        in the same order as `_thermal`, a microsecond each instead of twenty numpy
-        calls); the axis lines, which only the errors read, are updated once."""
+        positions throughout) — `twin_cycle` in a loop (`rest_cycles`), stopping for the
+        sensor samples — with the outputs evaluated once, at the end (docs/design.md §13).
+        The numbers are those of `n` calls of `step`, by construction."""
         end = self.cycles + n
-        every = self.thermal_every
-        nodes: _RestNodes | None = None  # made at the first thermal update
-        has_nodes = len(self.node_temp) > 0
-        thermal = sampled = False
-        while True:
-            nxt = min((self.cycles // every + 1) * every, self._sample_cycle())
-            if nxt > end:
-                break
-            c = int(nxt)
-            self.cycles = c
-            self.time = c * self.dt
-            if c % every == 0:
-                thermal = True
-                if not has_nodes:
-                    self._vsum[:] = 0.0
-                else:
-                    if nodes is None:
-                        nodes = _RestNodes(self, spindle)
-                    nodes.update(self.time)
-            if self.time >= self._next_sample:
-                if nodes is not None:
-                    nodes.store()  # the sensors read the nodes
-                self._sample_sensors()
-                sampled = True
-        if thermal:  # (the lines follow the temperatures only)
-            if nodes is not None:
-                nodes.store()
-            self._update_lines()
-        if thermal or sampled:
+        events = 0
+        while self.C[CYCLES] < end:
+            thermal, flags = rest_cycles(
+                end, self.A, self.N, self.S, self.C, self.amb, self._still, spindle
+            )
+            events += thermal
+            if flags:
+                events += 1
+                self.events(flags, self._still)
+        if events:
             self.rest_events += 1  # the outputs at rest may differ (`Machine.publish`)
-        self.cycles = end
-        self.time = end * self.dt
         if evaluate:
             self.evaluate(output, command, self._still)
 
-    def _sample_cycle(self) -> float:
-        """The first cycle after this one at which `step` takes a sensor sample."""
-        due = self._next_sample
-        if due == math.inf or self.dt <= 0:
-            return math.inf
-        c = max(self.cycles + 1, math.ceil(due / self.dt))
-        # `step` compares cycles·dt (a product) with the due time: match it exactly
-        while c - 1 > self.cycles and (c - 1) * self.dt >= due:
-            c -= 1
-        while c * self.dt < due:
-            c += 1
-        return c
-
     def evaluate(self, output: np.ndarray, command: np.ndarray, velocity: np.ndarray) -> None:
         """This cycle's error, true position, residual and friction current (outputs
-        only: `step` keeps the state, so a cycle nobody observes may leave them)."""
-        tmp, sign = self._tmp, self._sign
-        e = self.error
-        # linear scale error and thermal expansion (A·pos + B, A and B from the
-        # temperatures), lost motion and scatter: A·pos + offset
-        np.multiply(output, self._line_a, out=e)
-        e += self._offset
-        if self._any_periodic:
-            np.multiply(output, self.per_k, out=tmp)
-            np.sin(tmp, out=tmp)
-            tmp *= self.per_amp
-            e += tmp
-        if self._curves:
-            self._curve_errors(output, e)
-        for target, o1, o2, grid in self.grids:  # Python floats: no numpy scalars
-            e[target] += grid(output.item(o1), output.item(o2))
-        if self._any_square:
-            e += self.square @ output
+        only: `step` keeps the state, so a cycle nobody observes may leave them):
+        `errors`, and the rigid-body errors of a volumetric model when there is one."""
+        errors(
+            self.A,
+            self.E,
+            self.square,
+            self.tab,
+            self.curve_i,
+            self.curve_f,
+            self.grid_i,
+            self.grid_f,
+            output,
+            command,
+            velocity,
+            self.O,
+        )
         if self._rigid is not None:
-            self._rigid_errors(output, e)
-        np.add(output, e, out=self.true_position)
-        np.subtract(self.true_position, command, out=self.residual)
-        if self._any_friction:  # the drive's current: sign(v)·c + k·v = sign(v)·(c + k·|v|)
-            np.multiply(sign, self.fr_coulomb, out=self.friction_current)
-            np.multiply(velocity, self._fr_viscous_incr, out=tmp)
-            self.friction_current += tmp
+            self._rigid_errors(output, self.error)
+            np.add(output, self.error, out=self.true_position)
+            np.subtract(self.true_position, command, out=self.residual)
 
     def _motion_event(self, sign: np.ndarray) -> None:
         """An axis started, stopped or reversed: the direction it holds (kept while it
@@ -433,51 +426,15 @@ class TwinEngine:
         self._update_offset()
 
     def _update_offset(self) -> None:
-        """offset = B + lost motion + scatter, and the bilateral curves' weights (after
-        a temperature update, a reversal or an arrival). Lost motion while moving
-        against the reference direction: direction is ±1, so −direction·reversal·
-        [direction ≠ reference] = −(direction − reference)·reversal/2."""
-        np.subtract(self.direction, self.ref_dir, out=self._offset)
-        self._offset *= -self._half_reversal
-        self._offset += self._line_b
-        self._offset += self._scatter_now
+        """The error lines' offset (`offsets`) and the bilateral curves' weights (after a
+        reversal, an arrival, a soak or a reload). A curve that holds in one direction
+        weighs w = 1 − |k|/2 + k·d/2 (1, or 0/1 for k = ±1)."""
+        offsets(self.A)
         if self._curves and self._directional:
             w = self._w
             self.direction.take(self._tgt, out=w)
             w *= self._w_b
             w += self._w_a
-
-    def _curve_errors(self, output: np.ndarray, e: np.ndarray) -> None:
-        """Every 1-D curve of every axis in one merged lookup; bilateral rows weighted
-        by the direction they hold in: w = 1 − |k|/2 + k·d/2 (1, or 0/1 for k = ±1)."""
-        q = self._lookup.q
-        output.take(self._src, out=q)
-        if self._wrap_any:
-            np.copyto(q, np.mod(q, self._src_period), where=self._wrap)
-        self._lookup(self._vals)
-        if self._directional:  # weights of the direction held (`_update_offset`)
-            self._vals *= self._w
-        e += np.bincount(self._tgt, weights=self._vals, minlength=len(e))
-
-    def _thermal(self, spindle: bool) -> None:
-        """Advance the nodes by `thermal_every` cycles: exact for a first-order system
-        with the mean |v| of those cycles as the motion heat; then the axis lines."""
-        if len(self.node_temp):
-            self.ambient = self._ambient_at(self.time)
-            target = self._node_target
-            self._vsum.take(self._motion_slot, out=target)
-            target *= self._motion_gain
-            target += self.ambient
-            if spindle:
-                target += self._spindle_gain
-            self.node_temp += (target - self.node_temp) * self._node_k
-        self._vsum[:] = 0.0
-        self._update_lines()
-
-    def _ambient_at(self, t: float) -> float:
-        if self.held_ambient is not None:
-            return self.held_ambient
-        return float(np.interp(t, self._amb_t, self._amb_v))
 
     # ------------------------------------------------------------------ the climate
 
@@ -485,8 +442,8 @@ class TwinEngine:
         """`TWIN::ambient_temperature` written: the machine stands in a climate chamber at
         `temperature` from now on (the twin file's profile no longer applies); the nodes
         follow with their time constants."""
-        self.held_ambient = float(temperature)
-        self.ambient = self.held_ambient
+        self.S[HELD] = 1.0
+        self.ambient = float(temperature)
 
     def soak(self) -> None:
         """`TWIN::soak`: every thermal node takes the ambient temperature at once, as after
@@ -498,13 +455,9 @@ class TwinEngine:
         self._update_lines()
 
     def _update_lines(self) -> None:
-        """error = slope·(pos − ref) + offset + coef·ΔT·(pos − exp_ref) = A·pos + B."""
-        dT = self.node_temp[self.exp_node] - self.t_ref if len(self.node_temp) else 0.0
-        c = self.exp_coef * dT
-        np.add(self.lin_slope, c, out=self._line_a)
-        np.subtract(
-            self.lin_off, self.lin_slope * self.lin_ref + c * self.exp_ref, out=self._line_b
-        )
+        """The error lines A·pos + B after the temperatures changed (`lines`) and the
+        offset with them."""
+        lines(self.A, self.N, self.S)
         self._update_offset()
 
     def _sample_sensors(self) -> None:
@@ -563,8 +516,8 @@ class TwinEngine:
     def take_state(self, old: TwinEngine) -> None:
         """Continue where `old` left off (a reload): time, node temperatures by name,
         directions, the random stream."""
-        self.cycles, self.time = old.cycles, old.time
-        self.ambient = self._ambient_at(self.time)
+        self.cycles = old.cycles
+        self.ambient = ambient_at(self.time, self.amb)
         for k, name in enumerate(self.node_names):
             if name in old.node_names:
                 self.node_temp[k] = old.node_temp[old.node_names.index(name)]
@@ -577,8 +530,9 @@ class TwinEngine:
         self._next_sample = float(self.sensor_due.min()) if len(self.sensor_due) else math.inf
         has = self.axis_sensor >= 0
         self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
-        if old.held_ambient is not None:
-            self.hold_ambient(old.held_ambient)
+        held = old.held_ambient
+        if held is not None:
+            self.hold_ambient(held)
         if len(self.direction) == len(old.direction):  # the same axes: the same motion
             self.direction[:] = old.direction
             self._sign_before[:] = old._sign_before
@@ -587,79 +541,196 @@ class TwinEngine:
         self._update_lines()
 
 
-class _RestNodes:
-    """`TwinEngine._thermal` for a machine at rest, on Python floats.
-
-    At rest every |v| sum is 0, so a node's target is `0·gain + ambient (+ spindle
-    gain)` = `ambient (+ spindle gain)` and its update `T + (target − T)·k`: the same
-    IEEE double operations numpy performs element by element, hence the same numbers.
-    The ambient temperature follows `np.interp`'s formula (`_interp`)."""
-
-    def __init__(self, twin: TwinEngine, spindle: bool) -> None:
-        self.twin = twin
-        self.temps = twin.node_temp.tolist()
-        self.ks = twin._node_k.tolist()
-        self.spindle = twin._spindle_gain.tolist() if spindle else None
-        self.xp = twin._amb_t.tolist()
-        self.fp = twin._amb_v.tolist()
-
-    def update(self, t: float) -> None:
-        tw = self.twin
-        held = tw.held_ambient
-        amb = held if held is not None else _interp(t, self.xp, self.fp)
-        tw.ambient = amb
-        temps, ks, sp = self.temps, self.ks, self.spindle
-        for i, k in enumerate(ks):
-            target = amb if sp is None else amb + sp[i]
-            temps[i] = temps[i] + (target - temps[i]) * k
-        tw._vsum[:] = 0.0
-
-    def store(self) -> None:
-        self.twin.node_temp[:] = self.temps
+# ---------------------------------------------------------------------- compiled
 
 
-def _interp(x: float, xp: list[float], fp: list[float]) -> float:
-    """`float(np.interp(x, xp, fp))` for one x (numpy's compiled formula: clamp outside,
-    slope·(x − xp[j]) + fp[j] inside, fp[-1] at the last point)."""
-    if x < xp[0]:
-        return fp[0]
-    if x >= xp[-1]:
-        return fp[-1]
-    j = bisect.bisect_right(xp, x) - 1
+@compiled
+def grid_error(tab: np.ndarray, off: int, rows: int, cols: int, u: float, v: float) -> float:
+    """Bilinear interpolation on a grid of `rows` × `cols` errors at `off`, edges held,
+    at the grid coordinates (u, v) = ((p1 − start1)/step1, (p2 − start2)/step2)."""
+    u = min(max(u, 0.0), cols - 1.0)
+    v = min(max(v, 0.0), rows - 1.0)
+    i = min(int(u), cols - 2) if cols > 1 else 0
+    j = min(int(v), rows - 2) if rows > 1 else 0
+    fu, fv = u - i, v - j
+    i1, j1 = min(i + 1, cols - 1), min(j + 1, rows - 1)
+    r0, r1 = off + j * cols, off + j1 * cols
+    top = tab[r0 + i] + (tab[r0 + i1] - tab[r0 + i]) * fu
+    bottom = tab[r1 + i] + (tab[r1 + i1] - tab[r1 + i]) * fu
+    return float(top + (bottom - top) * fv)
+
+
+@compiled
+def errors(
+    A: np.ndarray,
+    E: np.ndarray,
+    square: np.ndarray,
+    tab: np.ndarray,
+    curve_i: np.ndarray,
+    curve_f: np.ndarray,
+    grid_i: np.ndarray,
+    grid_f: np.ndarray,
+    output: np.ndarray,
+    command: np.ndarray,
+    velocity: np.ndarray,
+    O: np.ndarray,  # noqa: E741
+) -> None:
+    """The errors at the drive positions `output` (the module docstring, step 4) and
+    what follows from them (step 5), into the rows of `O`: error, true position,
+    residual (true − `command`), friction current sign(v)·c + k·v of the drive."""
+    n = len(output)
+    e = O[0]
+    for i in range(n):
+        # linear scale error and thermal expansion (A·pos + B, A and B from the
+        # temperatures), lost motion and scatter: A·pos + offset; the cyclic error
+        x = output[i]
+        e[i] = x * A[LINE_A, i] + A[OFFSET, i]
+        if E[0, i] != 0.0:
+            e[i] += math.sin(x * E[1, i]) * E[0, i]
+    for k in range(curve_i.shape[1]):  # pitch (per direction) and straightness curves
+        q = output[curve_i[2, k]]
+        if curve_f[0, k] > 0.0:
+            q = q % curve_f[0, k]
+        e[curve_i[3, k]] += interp(tab, curve_i[0, k], curve_i[1, k], q) * curve_f[1, k]
+    for k in range(grid_i.shape[1]):  # grids over two axes
+        u = (output[grid_i[4, k]] - grid_f[0, k]) / grid_f[1, k]
+        v = (output[grid_i[5, k]] - grid_f[2, k]) / grid_f[3, k]
+        e[grid_i[3, k]] += grid_error(tab, grid_i[0, k], grid_i[1, k], grid_i[2, k], u, v)
+    for i in range(n):  # squareness
+        sq = 0.0
+        for j in range(n):
+            sq += square[i, j] * output[j]
+        e[i] += sq
+    for i in range(n):
+        O[1, i] = output[i] + e[i]
+        O[2, i] = O[1, i] - command[i]
+        if E[2, i] != 0.0 or E[3, i] != 0.0:  # (else 0, never −0)
+            v = velocity[i]
+            sign = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+            O[3, i] = sign * E[2, i] + v * E[3, i]
+
+
+@compiled
+def ambient_at(t: float, amb: np.ndarray) -> float:
+    """The ambient temperature at simulated time `t` of the profile `amb` ([time s,
+    temperature °C] rows; linear, held outside): numpy's `interp` formula for one x
+    (slope·(x − xp[j]) + fp[j] inside, with its fallbacks for an infinite slope)."""
+    xp, fp = amb[0], amb[1]
+    m = len(xp)
+    if t < xp[0]:
+        return float(fp[0])
+    if t >= xp[m - 1]:
+        return float(fp[m - 1])
+    j = np.searchsorted(xp, t, side="right") - 1
     slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-    y = slope * (x - xp[j]) + fp[j]
+    y = slope * (t - xp[j]) + fp[j]
     if y != y:  # NaN (an infinite slope): numpy's fallbacks
-        y = slope * (x - xp[j + 1]) + fp[j + 1]
+        y = slope * (t - xp[j + 1]) + fp[j + 1]
         if y != y and fp[j] == fp[j + 1]:
             y = fp[j]
-    return y
+    return float(y)
+
+
+@compiled
+def offsets(A: np.ndarray) -> None:
+    """offset = B + lost motion + scatter per axis. Lost motion while moving against the
+    reference direction: direction is ±1, so −direction·reversal·[direction ≠
+    reference] = −(direction − reference)·reversal/2."""
+    for i in range(A.shape[1]):
+        o = (A[DIRECTION, i] - A[REF_DIR, i]) * -A[HALF_REVERSAL, i]
+        A[OFFSET, i] = o + A[LINE_B, i] + A[SCATTER_NOW, i]
+
+
+@compiled
+def lines(A: np.ndarray, N: np.ndarray, S: np.ndarray) -> None:
+    """error = slope·(pos − ref) + offset + coef·ΔT·(pos − exp_ref) = A·pos + B, ΔT the
+    temperature of the axis' expansion node over the reference temperature."""
+    nodes = N.shape[1]
+    for i in range(A.shape[1]):
+        dt = N[NODE_TEMP, int(A[EXP_NODE, i])] - S[T_REF] if nodes else 0.0
+        c = A[EXP_COEF, i] * dt
+        A[LINE_A, i] = A[LIN_SLOPE, i] + c
+        A[LINE_B, i] = A[LIN_OFF, i] - (A[LIN_SLOPE, i] * A[LIN_REF, i] + c * A[EXP_REF, i])
+
+
+@compiled
+def thermal(
+    A: np.ndarray, N: np.ndarray, S: np.ndarray, amb: np.ndarray, t: float, spindle: bool
+) -> None:
+    """Advance the nodes by `thermal_every` cycles, exactly for a first-order system
+    with the mean |v| of those cycles as the motion heat, T += (T_target − T)·(1 −
+    e^(−dt/τ)); then the error lines and their offset."""
+    nodes = N.shape[1]
+    if nodes:
+        if not S[HELD]:
+            S[AMBIENT] = ambient_at(t, amb)
+        ambient = S[AMBIENT]
+        for k in range(nodes):
+            target = A[VSUM, int(N[MOTION_SLOT, k])] * N[MOTION_GAIN, k] + ambient
+            if spindle:
+                target = target + N[SPINDLE_GAIN, k]
+            N[NODE_TEMP, k] = N[NODE_TEMP, k] + (target - N[NODE_TEMP, k]) * N[NODE_K, k]
+    for i in range(A.shape[1]):
+        A[VSUM, i] = 0.0
+    lines(A, N, S)
+    offsets(A)
+
+
+@compiled
+def twin_cycle(
+    A: np.ndarray,
+    N: np.ndarray,
+    S: np.ndarray,
+    C: np.ndarray,
+    amb: np.ndarray,
+    velocity: np.ndarray,
+    spindle: bool,
+) -> int:
+    """One cycle of the twin's state (the module docstring, steps 1–2): the time, the
+    motion heat |v|, the thermal update when due. Returns `SAMPLE` (a sensor sample is
+    due) | `MOTION` (a velocity changed sign): `TwinEngine.events`."""
+    c = C[CYCLES] + 1
+    C[CYCLES] = c
+    flags = 0
+    for i in range(A.shape[1]):
+        v = velocity[i]
+        A[VSUM, i] += abs(v)
+        s = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+        if s != A[SIGN_BEFORE, i]:
+            flags |= MOTION
+    t = c * S[DT]
+    if c % C[EVERY] == 0:
+        thermal(A, N, S, amb, t, spindle)
+    if t >= S[NEXT_SAMPLE]:
+        flags |= SAMPLE
+    return flags
+
+
+@compiled
+def rest_cycles(
+    end: int,
+    A: np.ndarray,
+    N: np.ndarray,
+    S: np.ndarray,
+    C: np.ndarray,
+    amb: np.ndarray,
+    still: np.ndarray,
+    spindle: bool,
+) -> tuple[int, int]:
+    """`twin_cycle` at rest (`still`: every velocity 0) until cycle `end` or a cycle
+    that flags something: (thermal updates run, the flags of the cycle it stopped at)."""
+    thermal_updates = 0
+    while C[CYCLES] < end:
+        flags = twin_cycle(A, N, S, C, amb, still, spindle)
+        if C[CYCLES] % C[EVERY] == 0:
+            thermal_updates += 1
+        if flags:
+            return thermal_updates, flags
+    return thermal_updates, 0
 
 
 def _quantize(value: float, resolution: float) -> float:
     return round(round(value / resolution) * resolution, 12) if resolution > 0 else float(value)
-
-
-class _GridLookup:
-    """Bilinear interpolation on a grid, edges held; positions in increments."""
-
-    def __init__(self, g: Grid) -> None:
-        self.table = np.asarray(g.errors, dtype=float) * UNITS_PER_UM
-        self.rows, self.cols = self.table.shape
-        self.u0, self.du = g.start1 * UNITS_PER_MM, g.step1 * UNITS_PER_MM
-        self.v0, self.dv = g.start2 * UNITS_PER_MM, g.step2 * UNITS_PER_MM
-        self.t = self.table.tolist()  # Python floats: a scalar lookup without numpy calls
-
-    def __call__(self, p1: float, p2: float) -> float:
-        u = min(max((p1 - self.u0) / self.du, 0.0), self.cols - 1.0)
-        v = min(max((p2 - self.v0) / self.dv, 0.0), self.rows - 1.0)
-        i = min(int(u), self.cols - 2) if self.cols > 1 else 0
-        j = min(int(v), self.rows - 2) if self.rows > 1 else 0
-        fu, fv = u - i, v - j
-        i1, j1 = min(i + 1, self.cols - 1), min(j + 1, self.rows - 1)
-        r0, r1 = self.t[j], self.t[j1]
-        top = r0[i] + (r0[i1] - r0[i]) * fu
-        bottom = r1[i] + (r1[i1] - r1[i]) * fu
-        return float(top + (bottom - top) * fv)
 
 
 __all__ = ["TwinEngine"]

@@ -1,0 +1,380 @@
+"""One GEO cycle of the compensation kernel, compiled (docs/design.md §5.1 step 3, §6, §13.3).
+
+Per axis, in the manual's order: the direction, the effective flags and step events, the
+targets of backlash, temperature, cross, plane and crosstalk, their sin² filter, LSEC on
+the filtered cross and plane outputs, friction through its delay line, and the total
+offset. Each law is its compensation module's (`temperature.offset`, `tables.interp`,
+`plane.bilinear`, `crosstalk.value`, `lsec.target`, `friction.base`/`weigh`,
+`sin2.output`); this module only orchestrates them over the kernel's arrays
+(`layout`). `steps` is the same cycle in a loop: a pass of many cycles gives the
+numbers of as many single cycles by construction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geo_server.jit import compiled
+from geo_server.kernel import crosstalk, friction, lsec, plane, sin2, temperature
+from geo_server.kernel.common import BC, CROSS, CROSSTALK, FRICT, LEAD, PLANE, TEMP
+from geo_server.kernel.layout import (
+    ACT,
+    ANY_HELD,
+    CR_M,
+    CR_N,
+    CR_T,
+    DELTA,
+    DIR,
+    DRIVE,
+    EFF,
+    EVENT,
+    FIRST,
+    FR_DELAY,
+    FR_LOOK,
+    FR_N,
+    FR_PD,
+    FR_SCALE,
+    FR_T,
+    HELD,
+    HOME1,
+    HOME2,
+    INIT_DIR,
+    JUMP,
+    KIDX,
+    LOSE,
+    LS_CMD,
+    LS_N,
+    LS_NEG,
+    LS_PER,
+    LS_POS,
+    LS_WRAP,
+    LS_X0,
+    MODULO,
+    NCYC,
+    PATH,
+    PEND,
+    PENDING,
+    PERIOD,
+    PL_INT1,
+    PL_INT2,
+    PL_M1,
+    PL_M2,
+    PL_NI,
+    PL_NJ,
+    PL_START1,
+    PL_START2,
+    PL_T,
+    POSP,
+    PRE,
+    PREV,
+    REV,
+    RING_POS,
+    SEL,
+    TC_COEF,
+    TC_OFF0,
+    TC_POS0,
+    TGT,
+    TOTAL,
+    WOFF,
+    XT_DYN,
+    XT_EDGE,
+    XT_INV_ACC,
+    XT_INV_DEC,
+    XT_KIND,
+    XT_N,
+    XT_NEDGE,
+    XT_NTRI,
+    XT_P1,
+    XT_P2,
+    XT_T,
+    XT_TRI,
+    XT_VELDEP,
+)
+from geo_server.kernel.tables import interp, wrap
+
+_offset = compiled(temperature.offset)
+
+
+@compiled
+def _homed(homed: np.ndarray, idx: int) -> bool:
+    """The extended homing flags of `layout.HOME1`/`HOME2`: an axis' flag, or n (no
+    homing needed: True), or n + 1 (not configured: False)."""
+    n = len(homed)
+    if idx < n:
+        return bool(homed[idx])
+    return idx == n
+
+
+@compiled
+def _effective(
+    i: int, B7: np.ndarray, I7: np.ndarray, B1: np.ndarray, homed: np.ndarray, rev: bool
+) -> None:
+    """Effective = selected ∧ preconditions (docs/design.md §6.8: homing per column, a
+    valid table, and for cross and plane the drive enabled, 000 §5.3 p.97 item 4); a
+    change is a step event (§3.5), as is a pending TEMPC write, reload or release, and a
+    reversal for backlash and bilateral LSEC (P-AXIS-00243; `lsec_bilateral` below)."""
+    drive = B1[DRIVE, i]
+    for c in range(7):
+        pre = _homed(homed, I7[HOME1, i, c]) and _homed(homed, I7[HOME2, i, c])
+        if c in (CROSS, PLANE):
+            pre = pre and drive
+        B7[PRE, i, c] = pre
+        e = pre and B7[SEL, i, c]
+        B7[EVENT, i, c] = (e != B7[EFF, i, c]) or B7[PEND, i, c] or (rev and e and c == BC)
+        B7[EFF, i, c] = e
+        B7[PEND, i, c] = False
+
+
+@compiled
+def _targets(
+    i: int,
+    F7: np.ndarray,
+    F1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    B7: np.ndarray,
+    tab: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    acc: np.ndarray,
+) -> None:
+    """The unfiltered targets of backlash, temperature, cross, plane and crosstalk (0
+    when not effective) into F7[TGT]."""
+    tgt = F7[TGT, i]
+    for c in range(7):
+        tgt[c] = 0.0
+    if B7[EFF, i, BC]:  # 0 in the start-up direction, d·lose after a reversal (000 §2)
+        d = F1[DIR, i]
+        tgt[BC] = 0.0 if d == P[INIT_DIR, i] else d * P[LOSE, i]
+    if B7[EFF, i, TEMP]:  # 000 §3.1 p.15
+        s = wrap(pos[i], 0.0, P[PERIOD, i]) if IP[MODULO, i] else pos[i]
+        tgt[TEMP] = _offset(F1[TC_OFF0, i], F1[TC_COEF, i], F1[TC_POS0, i], s)
+    if B7[EFF, i, CROSS]:  # 000 §4.2; a modulo master wraps the table (000 p.31)
+        m = IP[CR_M, i]
+        q = wrap(pos[m], 0.0, P[PERIOD, m]) if IP[MODULO, m] else pos[m]
+        tgt[CROSS] = interp(tab, IP[CR_T, i], IP[CR_N, i], q)
+    if B7[EFF, i, PLANE]:  # 000 §4.3
+        m1, m2 = IP[PL_M1, i], IP[PL_M2, i]
+        q1 = wrap(pos[m1], 0.0, P[PERIOD, m1]) if IP[MODULO, m1] else pos[m1]
+        q2 = wrap(pos[m2], 0.0, P[PERIOD, m2]) if IP[MODULO, m2] else pos[m2]
+        tgt[PLANE] = plane.bilinear(
+            tab,
+            IP[PL_T, i],
+            IP[PL_NI, i],
+            IP[PL_NJ, i],
+            q1,
+            q2,
+            P[PL_START1, i],
+            P[PL_START2, i],
+            P[PL_INT1, i],
+            P[PL_INT2, i],
+        )
+    if B7[EFF, i, CROSSTALK]:  # 000 §4.6
+        m = IP[XT_DYN, i]
+        tgt[CROSSTALK] = crosstalk.value(
+            IP[XT_KIND, i],
+            tab,
+            IP[XT_T, i],
+            IP[XT_N, i],
+            IP[XT_TRI, i],
+            IP[XT_NTRI, i],
+            IP[XT_EDGE, i],
+            IP[XT_NEDGE, i],
+            IP[XT_VELDEP, i] != 0,
+            P[XT_INV_ACC, i],
+            P[XT_INV_DEC, i],
+            acc[m],
+            vel[m],
+            pos[IP[XT_P1, i]],
+            pos[IP[XT_P2, i]],
+        )
+
+
+@compiled
+def _filter(
+    i: int, c: int, F7: np.ndarray, B7: np.ndarray, I7: np.ndarray, weights: np.ndarray
+) -> None:
+    """The sin² filter of column `c` (`sin2.output`) from F7[TGT] into F7[ACT]; a held
+    column (COMP … NO_MOVE) keeps its previous output."""
+    out, k, jump = sin2.output(
+        F7[TGT, i, c],
+        F7[PREV, i, c],
+        B7[EVENT, i, c],
+        I7[KIDX, i, c],
+        I7[NCYC, i, c],
+        F7[JUMP, i, c],
+        weights,
+        I7[WOFF, i, c],
+    )
+    I7[KIDX, i, c] = k
+    F7[JUMP, i, c] = jump
+    F7[ACT, i, c] = F7[PREV, i, c] if B7[HELD, i, c] else out
+
+
+@compiled
+def _lsec(
+    i: int,
+    F7: np.ndarray,
+    B7: np.ndarray,
+    F1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    tab: np.ndarray,
+    pos: np.ndarray,
+) -> None:
+    """LSEC's target (000 §4.4): at the command position plus this cycle's filtered
+    cross and plane outputs (or the command position alone)."""
+    if not B7[EFF, i, LEAD]:
+        F7[TGT, i, LEAD] = 0.0
+        return
+    q = pos[i] if IP[LS_CMD, i] else pos[i] + F7[ACT, i, CROSS] + F7[ACT, i, PLANE]
+    F7[TGT, i, LEAD] = lsec.target(
+        tab,
+        IP[LS_POS, i],
+        IP[LS_NEG, i],
+        IP[LS_N, i],
+        F1[DIR, i],
+        q,
+        IP[LS_WRAP, i] != 0,
+        P[LS_X0, i],
+        P[LS_PER, i],
+    )
+
+
+@compiled
+def _friction(
+    i: int,
+    F7: np.ndarray,
+    B7: np.ndarray,
+    F1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    ring: np.ndarray,
+    wpos: int,
+    tab: np.ndarray,
+    vel: float,
+    rev_in: int,
+) -> None:
+    """Friction (000 §4.5): this cycle's value into the axis' delay line, the value
+    written `delay_cycles` ago out (0 while not effective)."""
+    cur = 0.0
+    tgt = 0.0
+    eff = B7[EFF, i, FRICT]
+    if eff:
+        tgt = friction.base(tab, IP[FR_T, i], IP[FR_N, i], P[FR_SCALE, i], vel)
+        cur = friction.weigh(tgt, IP[FR_LOOK, i], rev_in, P[FR_PD, i], F1[PATH, i])
+    F7[TGT, i, FRICT] = tgt
+    ring[wpos, i] = cur
+    if eff:
+        F7[ACT, i, FRICT] = ring[(wpos - IP[FR_DELAY, i]) % friction.RING, i]
+    else:
+        F7[ACT, i, FRICT] = 0.0
+
+
+@compiled
+def step(
+    F7: np.ndarray,
+    B7: np.ndarray,
+    I7: np.ndarray,
+    F1: np.ndarray,
+    B1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    G: np.ndarray,
+    ring: np.ndarray,
+    tab: np.ndarray,
+    weights: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    acc: np.ndarray,
+    homed: np.ndarray,
+    rev_in: np.ndarray,
+) -> None:
+    """One GEO cycle for every axis (the module docstring; docs/design.md §5.1 step 3)
+    with the command position, velocity and acceleration, the homing flags and the
+    cycles until a known reversal (< 0: none) of every axis."""
+    n = F7.shape[1]
+    first = G[FIRST] != 0
+    wpos = G[RING_POS]
+    for i in range(n):
+        # direction: the sign of the command velocity, the last one held at standstill
+        # (docs/design.md §3.6)
+        v = vel[i]
+        s = 1.0 if v > 0 else (-1.0 if v < 0 else 0.0)
+        rev = s != 0.0 and s != F1[DIR, i]
+        if s != 0.0:
+            F1[DIR, i] = s
+        B1[REV, i] = rev
+        for c in range(7):
+            F7[PREV, i, c] = F7[ACT, i, c]
+        _effective(i, B7, I7, B1, homed, rev)
+        _targets(i, F7, F1, P, IP, B7, tab, pos, vel, acc)
+        for c in (BC, TEMP, CROSS, PLANE, CROSSTALK):
+            _filter(i, c, F7, B7, I7, weights)
+        _lsec(i, F7, B7, F1, P, IP, tab, pos)
+        if rev and B7[EFF, i, LEAD] and IP[LS_NEG, i] != IP[LS_POS, i]:
+            # a bilateral LSEC (its own table per direction) reverses (P-AXIS-00243)
+            B7[EVENT, i, LEAD] = True
+        _filter(i, LEAD, F7, B7, I7, weights)
+        # friction's path since the last reversal
+        if rev:
+            F1[PATH, i] = 0.0
+        F1[PATH, i] += abs(pos[i] - (pos[i] if first else F1[POSP, i]))
+        _friction(i, F7, B7, F1, P, IP, ring, wpos, tab, v, rev_in[i])
+        total = 0.0
+        for c in (BC, TEMP, CROSS, PLANE, LEAD, CROSSTALK):
+            F7[DELTA, i, c] = F7[ACT, i, c] - F7[PREV, i, c]
+            total += F7[ACT, i, c]
+        F7[DELTA, i, FRICT] = F7[ACT, i, FRICT] - F7[PREV, i, FRICT]
+        F1[TOTAL, i] = total
+        F1[POSP, i] = pos[i]
+    G[RING_POS] = wpos + 1 if wpos < friction.RING - 1 else 0
+    G[FIRST] = 0
+    G[PENDING] = 0
+
+
+@compiled
+def steps(
+    F7: np.ndarray,
+    B7: np.ndarray,
+    I7: np.ndarray,
+    F1: np.ndarray,
+    B1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    G: np.ndarray,
+    ring: np.ndarray,
+    tab: np.ndarray,
+    weights: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    acc: np.ndarray,
+    homed: np.ndarray,
+    rev_in: np.ndarray,
+    total: np.ndarray,
+) -> None:
+    """`step` for each row of the commands ([b, n]: a pass of b cycles), every cycle's
+    total offset into `total` ([b, n])."""
+    for b in range(pos.shape[0]):
+        step(
+            F7,
+            B7,
+            I7,
+            F1,
+            B1,
+            P,
+            IP,
+            G,
+            ring,
+            tab,
+            weights,
+            pos[b],
+            vel[b],
+            acc[b],
+            homed,
+            rev_in[b],
+        )
+        total[b] = F1[TOTAL]
+
+
+__all__ = ["ANY_HELD", "step", "steps"]

@@ -1,0 +1,92 @@
+"""The computed part of a GEO cycle, compiled (docs/design.md §5.1 steps 2–3, §13.3).
+
+`cycles` runs the motion's profiles (`motion.profile_step`), the compensation kernel
+(`kernel.step.step`), the output to the drives and the twin's state (`engine.twin_cycle`)
+for one cycle or a pass of many — the same function in a loop, so a pass gives the
+numbers of as many single cycles by construction. It stops after a cycle that needs
+Python (its flags): an axis arrived (the NC program, the twin's scatter draw), a sensor
+sample is due, a velocity changed sign; and in the middle of a cycle when an arrived
+axis has a queued move to plan (`PLAN`: the caller plans it and resumes the cycle).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geo_server.jit import compiled
+from geo_server.kernel.layout import DRIVE, TOTAL
+from geo_server.kernel.step import step
+from geo_server.machine.motion import (
+    ACC,
+    ARRIVED,
+    HOMED,
+    POS,
+    START_QUEUED,
+    VEL,
+    profile_step,
+    reversal_in,
+)
+from geo_server.twin.engine import MOTION, SAMPLE, twin_cycle
+
+#: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`SAMPLE`, `MOTION`),
+#: which occupy the low bits: the cycle stopped after its motion to plan a queued move
+PLAN = 1 << 8
+assert not (PLAN & (ARRIVED | START_QUEUED)) and SAMPLE | MOTION < PLAN
+#: the twin's flags, shifted above the motion's
+TWIN_SHIFT = 4
+
+
+@compiled
+def cycles(
+    count: int,
+    resume: bool,
+    MF: np.ndarray,
+    MI: np.ndarray,
+    MB: np.ndarray,
+    dt: float,
+    F7: np.ndarray,
+    B7: np.ndarray,
+    I7: np.ndarray,
+    F1: np.ndarray,
+    B1: np.ndarray,
+    P: np.ndarray,
+    IP: np.ndarray,
+    G: np.ndarray,
+    ring: np.ndarray,
+    tab: np.ndarray,
+    weights: np.ndarray,
+    WA: np.ndarray,
+    WN: np.ndarray,
+    WS: np.ndarray,
+    WC: np.ndarray,
+    amb: np.ndarray,
+    spindle: bool,
+    rev: np.ndarray,
+    output: np.ndarray,
+    drive_act: np.ndarray,
+) -> tuple[int, int]:
+    """Up to `count` cycles; (cycles completed, flags of the last one). `resume`: the
+    first cycle's motion has run already (after `PLAN`). Writes the cycles until a known
+    reversal into `rev`, the output to the drives (command + total offset) into `output`
+    and, where the drive is enabled, into `drive_act`."""
+    n = MF.shape[1]
+    for done in range(count):
+        flags = 0
+        if not (resume and done == 0):
+            flags = profile_step(MF, MI, MB, dt)
+            if flags & START_QUEUED:
+                return done, flags | PLAN
+        reversal_in(MF, MI, rev)
+        step(
+            F7, B7, I7, F1, B1, P, IP, G, ring, tab, weights, MF[POS], MF[VEL], MF[ACC],
+            MB[HOMED], rev,
+        )  # fmt: skip
+        for i in range(n):
+            out = MF[POS, i] + F1[TOTAL, i]
+            output[i] = out
+            if B1[DRIVE, i]:
+                drive_act[i] = out
+        flags |= twin_cycle(WA, WN, WS, WC, amb, MF[VEL], spindle) << TWIN_SHIFT
+        if flags:
+            return done + 1, flags
+    return count, 0

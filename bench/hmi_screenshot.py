@@ -15,7 +15,7 @@ import asyncio
 import threading
 import time
 
-from geo_server import access
+from geo_server import access, jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -33,6 +33,7 @@ PROGRAM = (
 
 
 def main() -> None:
+    jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out", default="docs/img/hmi.png")
     p.add_argument("--seconds", type=float, default=20.0)

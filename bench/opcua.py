@@ -53,6 +53,7 @@ def free_port() -> int:
 
 
 async def serve_geo(port: int) -> None:
+    from geo_server import jit
     from geo_server.listfile import load_machine
     from geo_server.machine.machine import Machine
     from geo_server.machine.scheduler import Scheduler
@@ -60,6 +61,7 @@ async def serve_geo(port: int) -> None:
     from geo_server.service import ObjectService
     from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
 
+    jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
     machine = Machine(load_machine(default_startup_list()), cycle_s=0.001, homed=True)
     scheduler = Scheduler(machine, mode="realtime")
     service = ObjectService(machine, scheduler)

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from geo_server import cli
+from geo_server import cli, jit
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import CycleStats, Scheduler
 from geo_server.service import ObjectService
@@ -79,6 +79,7 @@ def build_machine(args: argparse.Namespace, demo_axes: int) -> Machine:
 
 
 def main() -> int:
+    jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--demo-axes", type=int, default=0, help="serve full_machine(N) (0: lists)")
     ap.add_argument("--stats-size", type=int, default=0, help="cycles to keep for --dump")

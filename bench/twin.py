@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geo_server import access
+from geo_server import access, jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.model import MachineConfig
@@ -121,6 +121,7 @@ def measure(cfg: MachineConfig, cycles: int, block: int = 200) -> dict[str, floa
 
 
 def main() -> None:
+    jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=20_000)
     args = ap.parse_args()

@@ -137,6 +137,9 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from geo_server import jit
+
+    jit.hold()  # the interfaces first; the compiled cycle loads once they are up (`_serve`)
     if args.fleet or args.fleet_size:
         from geo_server.fleet import run_fleet
 
@@ -204,6 +207,7 @@ def _remove_orphans(cfg: Any) -> None:
 
 async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
+    from geo_server import jit
     from geo_server.compose import Interfaces
 
     stop = asyncio.Event()
@@ -215,6 +219,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
     interfaces = Interfaces.plan(args)  # the composition root: caps, then each interface
     try:
         await interfaces.start_machine(args, service)
+        jit.release()  # the cycle runs interpreted until its machine code has loaded
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
         # Listen for the program's events before its first cycle can run: an error in

@@ -27,7 +27,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from geo_server import access
+from geo_server import access, jit
 from geo_server.errors import GeoError
 from geo_server.kernel.common import initial_direction
 from geo_server.listfile import ListFileError, load_machine
@@ -191,6 +191,7 @@ def _measure(args: argparse.Namespace) -> int:
     )
     check_plan(plan)  # before anything is loaded or created
     direction = int(initial_direction(cfg.axes[axis].params.anwahl_losekomp))
+    jit.load()  # thousands of stepped cycles: compiled from the first one
     machine = Machine(cfg, homed=True, time_scale=args.time_scale)
     svc = ObjectService(machine)
     bench = StepBench(svc)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import importlib
 import socket
 import sys
 from collections.abc import Awaitable, Callable, Iterator, Sequence
@@ -117,7 +118,6 @@ def connection_caps(args: argparse.Namespace, machines: int | None = None) -> di
     from geo_server.transports.modbus.server import ModbusOptions
     from geo_server.transports.tcp import BACKLOG
     from geo_server.transports.zenoh.server import ZenohOptions
-    from geo_server.web.server import HmiOptions
 
     n = machines or 1
     wanted: dict[str, int] = {}
@@ -131,7 +131,9 @@ def connection_caps(args: argparse.Namespace, machines: int | None = None) -> di
         fleet_cap = AdsOptions.max_connections_fleet
         wanted["ads"] = AdsOptions.max_connections if machines is None else fleet_cap
         fixed += BACKLOG
-    if args.http:
+    if args.http:  # (aiohttp is imported only for a web HMI)
+        from geo_server.web.server import HmiOptions
+
         wanted["http"] = HmiOptions.max_connections
         fixed += BACKLOG
     if not args.no_opcua:  # one OPC UA server, for a fleet too
@@ -215,6 +217,8 @@ class Interfaces:
             ("opcua", args.no_opcua, _opcua),
         ):
             if not off:
+                if name == "opcua":  # asyncua takes most of a second to import: not on
+                    await _import_off_loop(_OPCUA_MODULE)  # the loop the others answer on
                 await self.start(name, *build(args, service, self.caps))
 
     async def start_fleet(
@@ -232,6 +236,7 @@ class Interfaces:
         if not args.no_ads:
             await self._fleet_ads(args, machines)
         if not args.no_opcua:
+            await _import_off_loop(_OPCUA_MODULE)
             services = {m.name: service for m, service in machines}
             where = args.fleet or args.startup  # the certificate beside the fleet file
             said = f"{len(services)} machines: Objects/<name>"
@@ -425,6 +430,14 @@ def _opcua(args: argparse.Namespace, service: ObjectService, caps: dict[str, int
     return _opcua_server(
         args, {args.machine: service}, args.startup, caps, f"Objects/{args.machine}"
     )
+
+
+_OPCUA_MODULE = "geo_server.transports.opcua.server"
+
+
+async def _import_off_loop(module: str) -> None:
+    """Import `module` in a worker thread: the event loop keeps answering meanwhile."""
+    await asyncio.to_thread(importlib.import_module, module)
 
 
 def _opcua_server(

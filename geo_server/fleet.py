@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from geo_server import jit
 from geo_server.compose import EngineOptions, Interfaces, build_machine
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
@@ -166,6 +167,7 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
     machines = [(s.member, s.service) for s in served]
     try:
         session = await interfaces.start_fleet(args, machines)
+        jit.release()  # the cycles run interpreted until their machine code has loaded
         for s in served:
             s.scheduler.start()
         lag = [0.0]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from geo_server import jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir, default_startup_list
@@ -28,6 +29,13 @@ RUN_HTTP_ONLY = (
     "--no-ads",
     "--no-opcua",
 )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The cycle's machine code, loaded (compiled into the cache on a first run) once
+    before any test: the servers the tests start in subprocesses load it from the cache
+    (tests/test_jit.py checks that the interpreted laws give the same numbers)."""
+    jit.load()
 
 
 def free_port() -> int:

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_clients.common import open_client
-from geo_server import access
+from geo_server import access, jit
 from geo_server.client import GeoClient
 from geo_server.compose import EngineOptions, build_machine, loopback_interface
 from geo_server.dictionary import ObjectDef, load_dictionary
@@ -127,6 +127,7 @@ class GeoTestServer:
     ) -> None:
         self.startup = Path(startup) if startup else default_startup_list()
         self.cfg = load_machine(self.startup)
+        jit.load()  # the stepped cycles compiled from the first one (geo_server/jit.py)
         built = build_machine(
             self.cfg, EngineOptions(cycle_ms=cycle_ms, homed=homed, time_scale=time_scale)
         )

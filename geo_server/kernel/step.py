@@ -5,7 +5,8 @@ targets of backlash, temperature, cross, plane and crosstalk, their sin² filter
 the filtered cross and plane outputs, friction through its delay line, and the total
 offset. Each law is its compensation module's (`temperature.offset`, `tables.interp`,
 `plane.bilinear`, `crosstalk.value`, `lsec.target`, `friction.base`/`weigh`,
-`sin2.output`); this module only orchestrates them over the kernel's arrays
+`sin2.output`, called by their plain names: `geo_server.jit`); this module only
+orchestrates them over the kernel's arrays
 (`layout`). `steps` is the same cycle in a loop: a pass of many cycles gives the
 numbers of as many single cycles by construction.
 """
@@ -15,8 +16,12 @@ from __future__ import annotations
 import numpy as np
 
 from geo_server.jit import compiled
-from geo_server.kernel import crosstalk, friction, lsec, plane, sin2, temperature
+from geo_server.kernel import temperature
 from geo_server.kernel.common import BC, CROSS, CROSSTALK, FRICT, LEAD, PLANE, TEMP
+from geo_server.kernel.crosstalk import value as crosstalk_value
+from geo_server.kernel.friction import RING
+from geo_server.kernel.friction import base as friction_base
+from geo_server.kernel.friction import weigh as friction_weigh
 from geo_server.kernel.layout import (
     ACT,
     ANY_HELD,
@@ -90,6 +95,9 @@ from geo_server.kernel.layout import (
     XT_TRI,
     XT_VELDEP,
 )
+from geo_server.kernel.lsec import target as lsec_target
+from geo_server.kernel.plane import bilinear
+from geo_server.kernel.sin2 import output as sin2_output
 from geo_server.kernel.tables import interp, wrap
 
 _offset = compiled(temperature.offset)
@@ -157,7 +165,7 @@ def _targets(
         m1, m2 = IP[PL_M1, i], IP[PL_M2, i]
         q1 = wrap(pos[m1], 0.0, P[PERIOD, m1]) if IP[MODULO, m1] else pos[m1]
         q2 = wrap(pos[m2], 0.0, P[PERIOD, m2]) if IP[MODULO, m2] else pos[m2]
-        tgt[PLANE] = plane.bilinear(
+        tgt[PLANE] = bilinear(
             tab,
             IP[PL_T, i],
             IP[PL_NI, i],
@@ -171,7 +179,7 @@ def _targets(
         )
     if B7[EFF, i, CROSSTALK]:  # 000 §4.6
         m = IP[XT_DYN, i]
-        tgt[CROSSTALK] = crosstalk.value(
+        tgt[CROSSTALK] = crosstalk_value(
             IP[XT_KIND, i],
             tab,
             IP[XT_T, i],
@@ -196,7 +204,7 @@ def _filter(
 ) -> None:
     """The sin² filter of column `c` (`sin2.output`) from F7[TGT] into F7[ACT]; a held
     column (COMP … NO_MOVE) keeps its previous output."""
-    out, k, jump = sin2.output(
+    out, k, jump = sin2_output(
         F7[TGT, i, c],
         F7[PREV, i, c],
         B7[EVENT, i, c],
@@ -228,7 +236,7 @@ def _lsec(
         F7[TGT, i, LEAD] = 0.0
         return
     q = pos[i] if IP[LS_CMD, i] else pos[i] + F7[ACT, i, CROSS] + F7[ACT, i, PLANE]
-    F7[TGT, i, LEAD] = lsec.target(
+    F7[TGT, i, LEAD] = lsec_target(
         tab,
         IP[LS_POS, i],
         IP[LS_NEG, i],
@@ -261,12 +269,12 @@ def _friction(
     tgt = 0.0
     eff = B7[EFF, i, FRICT]
     if eff:
-        tgt = friction.base(tab, IP[FR_T, i], IP[FR_N, i], P[FR_SCALE, i], vel)
-        cur = friction.weigh(tgt, IP[FR_LOOK, i], rev_in, P[FR_PD, i], F1[PATH, i])
+        tgt = friction_base(tab, IP[FR_T, i], IP[FR_N, i], P[FR_SCALE, i], vel)
+        cur = friction_weigh(tgt, IP[FR_LOOK, i], rev_in, P[FR_PD, i], F1[PATH, i])
     F7[TGT, i, FRICT] = tgt
     ring[wpos, i] = cur
     if eff:
-        F7[ACT, i, FRICT] = ring[(wpos - IP[FR_DELAY, i]) % friction.RING, i]
+        F7[ACT, i, FRICT] = ring[(wpos - IP[FR_DELAY, i]) % RING, i]
     else:
         F7[ACT, i, FRICT] = 0.0
 
@@ -328,7 +336,7 @@ def step(
         F7[DELTA, i, FRICT] = F7[ACT, i, FRICT] - F7[PREV, i, FRICT]
         F1[TOTAL, i] = total
         F1[POSP, i] = pos[i]
-    G[RING_POS] = wpos + 1 if wpos < friction.RING - 1 else 0
+    G[RING_POS] = wpos + 1 if wpos < RING - 1 else 0
     G[FIRST] = 0
     G[PENDING] = 0
 

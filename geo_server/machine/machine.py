@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from geo_server import jit
 from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
@@ -142,6 +143,7 @@ class Machine:
         homed: bool = False,
         time_scale: float | None = None,
     ) -> None:
+        jit.start()  # the cycle's machine code loads meanwhile (it runs interpreted till then)
         self.cfg = cfg
         self.cycle_s = float(cycle_s)
         self.time_scale = time_scale
@@ -1169,3 +1171,25 @@ _WRITE_HANDLERS: dict[str, Callable[[Machine, int, Any], None]] = {
     "cnc_vol_comp_enable_index_w": lambda m, s, v: _volc_switch(m, int(v), True),
     "cnc_vol_comp_disable_index_w": lambda m, s, v: _volc_switch(m, int(v), False),
 }
+
+
+def _warm_up() -> None:
+    """`jit.load`'s warm-up (geo_server/jit.py): the default machine moving cycle by cycle
+    and in a pass, then standing until quiescent, skipping at rest and publishing — so the
+    machine code of each path is loaded before a real machine needs it."""
+    from geo_server.listfile.loader import load_machine
+    from geo_server.paths import default_startup_list
+
+    m = Machine(load_machine(default_startup_list()), homed=True)
+    m.start_program("N10 G91 G01 X1 Y-1 F3000\nM30\n")
+    m.step(3)
+    m.run_batch(8)
+    for _ in range(400):
+        if m.quiescent:
+            break
+        m.run_cycle(publish=False)
+    m.skip(300)
+    m.publish()
+
+
+jit.on_load(_warm_up)

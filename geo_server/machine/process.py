@@ -35,6 +35,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from geo_server import jit
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
@@ -242,6 +243,9 @@ def _child_main(
     fd = conn.fileno()
     os.set_blocking(fd, False)
     _raise_priority()
+    # compiled from the first cycle: this process does nothing else, and its server waits
+    # for its first frame (`FIRST_FRAME_TIMEOUT`)
+    jit.load()
     machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
     sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
     sched.idle_wake = IDLE_WAKE_PROCESS  # a frame well within SYNC_DEAD of the last

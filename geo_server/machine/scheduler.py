@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from geo_server import jit
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import CycleDemand, Operation, Pending
@@ -796,6 +797,8 @@ class Scheduler:
             "cycle_time_us": round(m.cycle_s * 1e6),
             "mode": self.mode,
             "engine": self.engine if self.mode == "realtime" else self.mode,
+            # the cycle's machine code is loaded (else it runs interpreted: geo_server/jit.py)
+            "compiled": jit.loaded(),
             "computed_cycles": self.computed,
             "demanded_snapshots": self.demanded,
             "engine_wakes": self.wakes,

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from geo_server import access
+from geo_server import access, jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.recorder.inputs import json_to_op
@@ -33,6 +33,7 @@ def replay(
     name: str = "replay",
 ) -> Trace:
     """Run `cycles` cycles of a fresh machine with `inputs` applied; record `spec`."""
+    jit.load()  # compiled from the first cycle (the numbers are the same either way)
     machine = Machine(
         load_machine(Path(startup)), cycle_s=cycle_ms / 1000, homed=homed, time_scale=time_scale
     )

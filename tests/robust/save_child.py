@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import sys
 
-from geo_server import access
+from geo_server import access, jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
@@ -37,7 +37,7 @@ def worker(startup: str, a: tuple[float, int], b: tuple[float, int]) -> None:
 
 def main() -> None:
     startup = sys.argv[1]
-    Machine(load_machine(startup), homed=True).step(1)  # the compiled cycle, loaded once
+    jit.load()  # the compiled cycle loaded once, here (a fork must not copy a loading thread)
     print("zygote", flush=True)
     for line in sys.stdin:
         _go, ca, oa, cb, ob = line.split()

@@ -14,19 +14,22 @@ from __future__ import annotations
 import numpy as np
 
 from geo_server.jit import compiled
-from geo_server.kernel.layout import DRIVE, TOTAL
+from geo_server.kernel.layout import ACT, DRIVE, PREV, TOTAL
 from geo_server.kernel.step import step
 from geo_server.machine.motion import (
     ACC,
     ARRIVED,
+    FEED,
     HOMED,
     POS,
     START_QUEUED,
     VEL,
+    display,
     profile_step,
     reversal_in,
 )
 from geo_server.twin.engine import MOTION, SAMPLE, twin_cycle
+from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 
 #: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`SAMPLE`, `MOTION`),
 #: which occupy the low bits: the cycle stopped after its motion to plan a queued move
@@ -34,6 +37,11 @@ PLAN = 1 << 8
 assert not (PLAN & (ARRIVED | START_QUEUED)) and SAMPLE | MOTION < PLAN
 #: the twin's flags, shifted above the motion's
 TWIN_SHIFT = 4
+# Rows of the machine's per-cycle buffer (`Machine._mbuf`, its [n, NROWS] view): the
+# published deltas of the seven compensation columns (rows 0–6), then what `derived`
+# computes for a snapshot, the output to the drives (`cycles`) and the configured backlash
+DISPLAY, VELOCITY, ACCELERATION, FEED_UM, OUTPUT, LOSE = range(7, 13)
+NROWS = 13
 
 
 @compiled
@@ -90,3 +98,26 @@ def cycles(
         if flags:
             return done + 1, flags
     return count, 0
+
+
+@compiled
+def _round_half_away(x: float) -> float:
+    """Round half away from zero (docs/design.md §3.2): what an integer object shows."""
+    return float(np.copysign(np.floor(abs(x) + 0.5), x))
+
+
+@compiled
+def derived(F7: np.ndarray, MF: np.ndarray, MB: np.ndarray, rows: np.ndarray) -> None:
+    """The values a snapshot derives from the cycle's state, into the machine's rows
+    (`Machine._mbuf`): the published deltas of the seven columns — differences of the
+    rounded values of this cycle and the one before, so that the deltas of a ramp add up
+    to its value — the displayed positions, and velocity, acceleration and feed in the
+    objects' units (µm/s, mm/s², µm/s)."""
+    n = MF.shape[1]
+    for i in range(n):
+        for c in range(7):
+            rows[c, i] = _round_half_away(F7[ACT, i, c]) - _round_half_away(F7[PREV, i, c])
+        rows[VELOCITY, i] = MF[VEL, i] / UNITS_PER_UM
+        rows[ACCELERATION, i] = MF[ACC, i] / UNITS_PER_MM
+        rows[FEED_UM, i] = MF[FEED, i] / UNITS_PER_UM
+    display(MF, MB, rows[DISPLAY])

@@ -33,7 +33,19 @@ from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.listfile.values import Reporter
-from geo_server.machine.cycle import PLAN, TWIN_SHIFT, cycles
+from geo_server.machine.cycle import (
+    ACCELERATION,
+    DISPLAY,
+    FEED_UM,
+    LOSE,
+    NROWS,
+    OUTPUT,
+    PLAN,
+    TWIN_SHIFT,
+    VELOCITY,
+    cycles,
+    derived,
+)
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
 from geo_server.machine.port import (
@@ -101,15 +113,6 @@ class _MachineColumns:
     @classmethod
     def of(cls, mcol: Callable[[str], int]) -> _MachineColumns:
         return cls(*(mcol(name) for name in cls.OBJECTS))
-
-
-def _round_half_away(x: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Vectorised round half away from zero (docs/design.md §3), into `out`."""
-    np.abs(x, out=out)
-    out += 0.5
-    np.floor(out, out=out)
-    np.copysign(out, x, out=out)
-    return out
 
 
 #: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
@@ -194,30 +197,20 @@ class Machine:
         self._cycle_lock = threading.Lock()
         n = len(self.axes)
         self._reversal = np.full(n, -1, dtype=np.int64)
-        self._rounded = np.zeros((n, 7))  # scratch: rounded actual values
-        self._prev_rounded = np.zeros((n, 7))  # scratch: rounded values of the cycle before
-        # per-cycle derived snapshot values, one buffer (columns: `_MBUF`)
-        # (a row per column, so that each column is a contiguous vector for the
-        # compiled cycle; `_mbuf` is its [n, 13] view)
-        self._mbuf = np.zeros((_MBUF["lose"] + 1, n)).T
-        self._mbuf_cols = (
-            self._mbuf[:, _MBUF["delta"] : _MBUF["delta"] + 7],
-            self._mbuf[:, _MBUF["display"]],
-            self._mbuf[:, _MBUF["velocity"]],
-            self._mbuf[:, _MBUF["acceleration"]],
-            self._mbuf[:, _MBUF["feed"]],
-        )
-        #: what the drives get: command + all compensations (SIM::output_position, a
-        #: column of the snapshot buffer, computed once per cycle before the twin)
-        self._output = self._mbuf[:, _MBUF["output"]]
+        # per-cycle derived snapshot values, one buffer (columns: `_MBUF`): a row per
+        # column, so that each is a contiguous vector for the compiled code (`cycle`)
+        self._mrows = np.zeros((NROWS, n))
+        self._mbuf = self._mrows.T
+        #: what the drives get: command + all compensations (SIM::output_position,
+        #: computed once per cycle before the twin)
+        self._output = self._mrows[OUTPUT]
         #: the drives' actual positions (dig_act_pos, 000 p.19; SIM::drive_actual_position):
         #: an enabled drive follows its command exactly, a disabled one stays where it is
         self._drive_act = np.zeros(n)
-        self._lose = self._mbuf[:, _MBUF["lose"]]
+        self._lose = self._mrows[LOSE]
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
         self._period = np.array([cfg.axes[a].params.modulo_period for a in self.axes])
-        self._any_modulo = bool(self._modulo.any())
         #: SIM::axis_type: kenngr.achs_typ (1 linear, 2 rotary, 4 spindle)
         self._axis_type: np.ndarray = np.array(
             [float(ACHS_TYP[cfg.axes[a].params.kind]) for a in self.axes]
@@ -615,21 +608,7 @@ class Machine:
         k, mo = self.kernel, self.motion
         if self._src_owner != self._owner():
             self._layout_sources()
-        mb = self._mbuf_cols
-        # Deltas are differences of the published (rounded) values of this cycle and
-        # the one before, so that the deltas of a ramp add up to its actual value. The
-        # kernel keeps the one before (`Kernel.previous`), so a snapshot can be built
-        # for any cycle, whether the cycle before was published or not.
-        _round_half_away(k.actual, self._rounded)
-        _round_half_away(k.previous, self._prev_rounded)
-        np.subtract(self._rounded, self._prev_rounded, out=mb[0])
-        if self._any_modulo:
-            mo.display_pos(mb[1])
-        else:  # display_pos() is the identity without modulo axes
-            np.copyto(mb[1], mo.pos)
-        np.divide(mo.vel, UNITS_PER_UM, out=mb[2])
-        np.divide(mo.acc, UNITS_PER_MM, out=mb[3])
-        np.divide(mo.feed, UNITS_PER_UM, out=mb[4])
+        derived(k.F7, mo.F, mo.B, self._mrows)  # deltas, displayed position, units
         np.concatenate(self._pieces, axis=1, out=self._stack)
         return self._snapshot_of(self._stack.take(self._columns, axis=1))
 
@@ -1081,12 +1060,12 @@ _FROM_COMP: dict[str, tuple[str, CompKind]] = {
 #: computed by `Machine._build_snapshot` and the configured backlash.
 _MBUF: dict[str, int] = {
     "delta": 0,
-    "display": 7,  # motion.display_pos()
-    "velocity": 8,  # motion.vel / UNITS_PER_UM
-    "acceleration": 9,  # motion.acc / UNITS_PER_MM
-    "feed": 10,  # motion.feed / UNITS_PER_UM
-    "output": 11,  # motion.pos + kernel.total_offset
-    "lose": 12,
+    "display": DISPLAY,  # motion.display_pos()
+    "velocity": VELOCITY,  # motion.vel / UNITS_PER_UM
+    "acceleration": ACCELERATION,  # motion.acc / UNITS_PER_MM
+    "feed": FEED_UM,  # motion.feed / UNITS_PER_UM
+    "output": OUTPUT,  # motion.pos + kernel.total_offset
+    "lose": LOSE,
 }
 #: Axis objects fed by per-axis state vectors (emulator group, TEMPC parameters): the
 #: live vector (updated in place) a column is read from, or the name of a column of

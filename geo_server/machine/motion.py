@@ -129,7 +129,6 @@ class Motion:
         self.target[:] = self.pos
         self._p0[:] = self.pos
         self.feed[:] = self.v_max
-        self._m = np.zeros(n, dtype=bool)  # scratch of `display_pos`
 
     # ------------------------------------------------------------------ commands
 
@@ -237,18 +236,13 @@ class Motion:
         return int(self._dir[slot])
 
     def display_pos(self, out: np.ndarray | None = None) -> np.ndarray:
-        """Command positions with modulo axes wrapped into [0, period).
+        """Command positions with modulo axes wrapped into [0, period) (`display`).
 
         Use for displayed positions and objects; the kernel reads the unwrapped `pos`.
         """
         if out is None:
             out = np.empty(self.n)
-        np.copyto(out, self.pos)
-        np.mod(self.pos, self.period, out=out, where=self.modulo)
-        # np.mod can return exactly `period` for tiny negative inputs
-        np.greater_equal(out, self.period, out=self._m)
-        np.logical_and(self._m, self.modulo, out=self._m)
-        np.subtract(out, self.period, out=out, where=self._m)
+        display(self.F, self.B, out)
         return out
 
     def reversal_in(self, out: np.ndarray) -> None:
@@ -419,3 +413,16 @@ def reversal_in(F: np.ndarray, I: np.ndarray, out: np.ndarray) -> None:  # noqa:
     already rests and the next move will reverse it, else −1."""
     for s in range(F.shape[1]):
         out[s] = I[NC, s] - I[K, s] if F[NEXT_DIR, s] * F[DIR, s] < 0.0 else -1
+
+
+@compiled
+def display(F: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
+    """The command positions with modulo axes wrapped into [0, period) (docs/design.md
+    §3.8): what objects and HMIs show (the motion and the kernel keep them unwrapped)."""
+    for s in range(F.shape[1]):
+        x = F[POS, s]
+        if B[MODULO, s]:
+            x = x % F[PERIOD, s]
+            if x >= F[PERIOD, s]:  # (a tiny negative position gives the period itself)
+                x -= F[PERIOD, s]
+        out[s] = x

@@ -44,6 +44,7 @@ MODULES = (
     "kernel/lsec.py",
     "kernel/friction.py",
     "kernel/step.py",
+    "volcomp/law.py",
     "machine/motion.py",
     "machine/cycle.py",
     "twin/engine.py",

@@ -45,6 +45,7 @@ MODULES = (
     "kernel/friction.py",
     "kernel/step.py",
     "volcomp/law.py",
+    "volcomp/step.py",
     "machine/motion.py",
     "machine/cycle.py",
     "twin/engine.py",

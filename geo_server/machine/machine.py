@@ -32,7 +32,7 @@ from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.listfile.values import Reporter
-from geo_server.machine.cycle import PLAN, TWIN_SHIFT, cycles
+from geo_server.machine.cycle import PLAN, TWIN_SHIFT, VOLC_ENDED, VOLC_OFF, VOLC_SHIFT, cycles
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
 from geo_server.machine.port import (
@@ -247,10 +247,13 @@ class Machine:
                 applied = self._apply_queue()
                 self._step_program()
                 t0 = perf_counter_ns()
-                self._compute(1)
-                if self.volc.states:
-                    self._volumetric()
-                    np.copyto(self._drive_act, self._output, where=self.kernel.drive_enabled)
+                volc = self.volc
+                ok = not volc.states or self._volc_prepare()
+                _, vflags = self._compute(1)
+                if vflags:
+                    ok = self._volc_settle(vflags) and ok
+                if not ok:
+                    self._volc_stop()
                 self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
                 if publish:
@@ -292,7 +295,7 @@ class Machine:
         (nothing has changed then: run single cycles). The numbers are those of as many
         calls of `run_cycle(publish=False)`, by construction (`cycle.cycles`; tests/
         test_batch.py): the snapshot of the cycle reached is left to `publish`."""
-        if n < 2 or self._queue or self.cycle == 0 or self.volc.busy:
+        if n < 2 or self._queue or self.cycle == 0:
             return 0
         mo = self.motion
         with self._cycle_lock:
@@ -303,25 +306,35 @@ class Machine:
                 waits = player.motion_wait()
                 if not waits or not mo._moving[list(waits)].any():
                     return 0
+            volc = self.volc
+            if volc.states and volc.attention(mo.homed, self.kernel.drive_enabled):
+                return 0  # (an automatic activation or an axis in error state: Python)
             t0 = perf_counter_ns()
-            n = self._compute(n)
+            n, vflags = self._compute(n)
             self.kernel_ns = (perf_counter_ns() - t0) // n
             if player is not None and player.running:
                 player.skip(n)  # (it waits for the motion: nothing else changes for it)
-            self.cycle += n
+            self.cycle += n - 1
+            if vflags and not self._volc_settle(vflags):  # (reported in its own cycle)
+                self._volc_stop()
+            self.cycle += 1
             self._computed += n
             self.heartbeat = monotonic()
             self._rest_streak = 0  # an axis moved in every cycle
             self._rest_after = False
         return n
 
-    def _compute(self, count: int) -> int:
+    def _compute(self, count: int) -> tuple[int, int]:
         """Up to `count` cycles of the compiled part (`cycle.cycles`: motion, kernel,
-        output, the twin's state), with what it leaves to Python in between: a queued
-        move to plan (in the middle of its cycle), the twin's events after a cycle.
-        Stops after a cycle with events; returns the cycles computed (at least 1)."""
+        volumetric compensations, output, the twin's state), with what it leaves to
+        Python in between: a queued move to plan (in the middle of its cycle), the twin's
+        events after a cycle. Stops after a cycle with events; returns the cycles
+        computed (at least 1) and the volumetric flags (`VOLC_OFF` of the last cycle,
+        `VOLC_ENDED` of any) for `_volc_settle`."""
         mo, tw, k = self.motion, self.twin, self.kernel
+        vol = self.volc.arrays()
         done = 0
+        vflags = 0
         resume = False
         while True:
             ran, flags = cycles(
@@ -339,17 +352,38 @@ class Machine:
                 tw.amb,
                 self.spindle_on,
                 self._reversal,
+                *vol,
                 self._output,
                 self._drive_act,
             )
             done += ran
+            vflags |= flags & (VOLC_OFF | VOLC_ENDED)
             if flags & PLAN:  # the arrived axes' queued moves start (first step next cycle)
                 mo.start_queued()
                 resume = True
                 continue
-            if flags >> TWIN_SHIFT:
-                tw.events(flags >> TWIN_SHIFT, mo.vel)
-            return done
+            twin = (flags & ~(VOLC_OFF | VOLC_ENDED)) >> TWIN_SHIFT
+            if twin:
+                tw.events(twin, mo.vel)
+            return done, vflags >> VOLC_SHIFT
+
+    def _volc_prepare(self) -> bool:
+        """Before a cycle's volumetric step, what needs Python (`VolKernel.prepare`:
+        automatic activation, an axis in error state), only when the compiled check says
+        so. False: a compensation was switched off (the program stops after the cycle)."""
+        volc, homed, drive = self.volc, self.motion.homed, self.kernel.drive_enabled
+        return not volc.attention(homed, drive) or volc.prepare(homed, drive)
+
+    def _volc_settle(self, flags: int) -> bool:
+        """After the compiled cycles: the s_limit reports (`VolKernel.settle`)."""
+        return self.volc.settle(flags)
+
+    def _volc_stop(self) -> None:
+        """A volumetric compensation was switched off in error: the program stops and
+        the axes with it (004 p.14: "the axis is stopped in a controlled manner")."""
+        if self.player is not None and self.player.running:
+            self.player.abort()
+        self.motion.stop()
 
     # ------------------------------------------------------------------ virtual time
 
@@ -435,17 +469,6 @@ class Machine:
             except Exception:  # one broken subscriber must not stop the engine
                 log.exception("snapshot listener failed")
         return snap
-
-    def _volumetric(self) -> None:
-        """The volumetric corrections of this cycle (docs/volumetric.md §1): from the
-        command positions, added to the output; a correction beyond its s_limit stops
-        the program (004 p.14: "the axis is stopped in a controlled manner")."""
-        mo = self.motion
-        if not self.volc.step(mo.pos, mo.homed, self.kernel.drive_enabled):
-            if self.player is not None and self.player.running:
-                self.player.abort()
-            mo.stop()
-        self._output += self.volc.offset
 
     def _step_program(self) -> None:
         """Advance the NC program; a command the machine cannot carry out ends the program

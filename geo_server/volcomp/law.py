@@ -190,8 +190,8 @@ def pack(model: VolModel) -> tuple[np.ndarray, np.ndarray]:
         f[F_C : F_C + 3] = ax.centre
         f[F_SH : F_SH + 3] = ax.position_shift
         f[F_TL : F_TL + 3] = ax.position_tilt
-        k, kt = _cross_matrix(u), _cross_matrix(ut)
-        f[F_K : F_K + 9], f[F_K2 : F_K2 + 9] = k.ravel(), (k @ k).ravel()
+        km, kt = _cross_matrix(u), _cross_matrix(ut)
+        f[F_K : F_K + 9], f[F_K2 : F_K2 + 9] = km.ravel(), (km @ km).ravel()
         f[F_KT : F_KT + 9], f[F_KT2 : F_KT2 + 9] = kt.ravel(), (kt @ kt).ravel()
         tables = [model.tables.get(f"{c}{a}") for c in _COMPONENTS]
         # the merged table takes the axis' own GRID tables when they agree on splicing

@@ -7,9 +7,11 @@ the same function in a loop, so a pass gives the numbers of as many single cycle
 construction. It stops after a cycle that needs Python (its flags): an axis arrived (the
 NC program, the twin's scatter draw), a sensor sample is due, a velocity changed sign, a
 volumetric compensation was switched off for its s_limit (`VOLC_OFF`: the report and the
-program stop); and in the middle of a cycle when an arrived axis has a queued move to
-plan (`PLAN`: the caller plans it and resumes the cycle). A volumetric ramp that ended
-on the way is said by `VOLC_ENDED` in the flags returned.
+program stop); before the first cycle when the volumetric compensations need Python
+(`VOLC_PREPARE`: automatic activation, an axis fault); and in the middle of a cycle
+when an arrived axis has a queued move to plan (`PLAN`: the caller plans it and resumes
+the cycle). A volumetric ramp that ended on the way is said by `VOLC_ENDED` in the
+flags returned.
 """
 
 from __future__ import annotations
@@ -42,13 +44,18 @@ TWIN_SHIFT = 4
 VOLC_SHIFT = 9
 VOLC_OFF = volc.OFF << VOLC_SHIFT
 VOLC_ENDED = volc.ENDED << VOLC_SHIFT
-assert PLAN < VOLC_OFF
+#: (Python's: `VolKernel.prepare` switched a compensation off for an axis fault)
+VOLC_FAULT = volc.FAULT << VOLC_SHIFT
+#: `cycles` computed nothing: the volumetric compensations need `VolKernel.prepare`
+VOLC_PREPARE = 1 << 12
+assert PLAN < VOLC_OFF and VOLC_FAULT < VOLC_PREPARE
 
 
 @compiled
 def cycles(
     count: int,
     resume: bool,
+    check: bool,
     MF: np.ndarray,
     MI: np.ndarray,
     MB: np.ndarray,
@@ -81,12 +88,17 @@ def cycles(
     drive_act: np.ndarray,
 ) -> tuple[int, int]:
     """Up to `count` cycles; (cycles completed, flags of the last one). `resume`: the
-    first cycle's motion has run already (after `PLAN`). Writes the cycles until a known
+    first cycle's motion has run already (after `PLAN`). `check`: first ask whether the
+    volumetric compensations need Python (`volcomp.step.attention`; then nothing is
+    computed and the flags say `VOLC_PREPARE`) — only operations change what it looks
+    at, so once before a pass is enough. Writes the cycles until a known
     reversal into `rev`, the output to the drives (command + total offset + the
     volumetric offset `voff`, where the machine has volumetric compensations) into
     `output` and, where the drive is enabled, into `drive_act`."""
     n = MF.shape[1]
     vol = VH.shape[0] > 0
+    if vol and check and not resume and volc.attention(VH, VS, MB[HOMED], B1[DRIVE]):
+        return 0, VOLC_PREPARE
     ended = 0
     for done in range(count):
         flags = 0

@@ -32,7 +32,16 @@ from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
 from geo_server.kernel.common import ALL_KINDS, COLUMN
 from geo_server.listfile.values import Reporter
-from geo_server.machine.cycle import PLAN, TWIN_SHIFT, VOLC_ENDED, VOLC_OFF, VOLC_SHIFT, cycles
+from geo_server.machine.cycle import (
+    PLAN,
+    TWIN_SHIFT,
+    VOLC_ENDED,
+    VOLC_FAULT,
+    VOLC_OFF,
+    VOLC_PREPARE,
+    VOLC_SHIFT,
+    cycles,
+)
 from geo_server.machine.motion import Motion, MotionError
 from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
 from geo_server.machine.port import (
@@ -247,12 +256,8 @@ class Machine:
                 applied = self._apply_queue()
                 self._step_program()
                 t0 = perf_counter_ns()
-                volc = self.volc
-                ok = not volc.states or self._volc_prepare()
-                _, vflags = self._compute(1)
-                if vflags:
-                    ok = self._volc_settle(vflags) and ok
-                if not ok:
+                _, vflags = self._compute(1, prepare=True)
+                if vflags and not self.volc.settle(vflags):
                     self._volc_stop()
                 self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
@@ -306,16 +311,15 @@ class Machine:
                 waits = player.motion_wait()
                 if not waits or not mo._moving[list(waits)].any():
                     return 0
-            volc = self.volc
-            if volc.states and volc.attention(mo.homed, self.kernel.drive_enabled):
-                return 0  # (an automatic activation or an axis in error state: Python)
             t0 = perf_counter_ns()
-            n, vflags = self._compute(n)
+            n, vflags = self._compute(n, prepare=False)
+            if not n:
+                return 0  # (an automatic activation or an axis in error state: Python)
             self.kernel_ns = (perf_counter_ns() - t0) // n
             if player is not None and player.running:
                 player.skip(n)  # (it waits for the motion: nothing else changes for it)
             self.cycle += n - 1
-            if vflags and not self._volc_settle(vflags):  # (reported in its own cycle)
+            if vflags and not self.volc.settle(vflags):  # (reported in its own cycle)
                 self._volc_stop()
             self.cycle += 1
             self._computed += n
@@ -324,15 +328,18 @@ class Machine:
             self._rest_after = False
         return n
 
-    def _compute(self, count: int) -> tuple[int, int]:
+    def _compute(self, count: int, prepare: bool) -> tuple[int, int]:
         """Up to `count` cycles of the compiled part (`cycle.cycles`: motion, kernel,
         volumetric compensations, output, the twin's state), with what it leaves to
-        Python in between: a queued move to plan (in the middle of its cycle), the twin's
-        events after a cycle. Stops after a cycle with events; returns the cycles
-        computed (at least 1) and the volumetric flags (`VOLC_OFF` of the last cycle,
-        `VOLC_ENDED` of any) for `_volc_settle`."""
-        mo, tw, k = self.motion, self.twin, self.kernel
-        vol = self.volc.arrays()
+        Python in between: before the first cycle, the volumetric compensations'
+        automatic activation and faults (`VolKernel.prepare`, when the compiled check
+        asks for it — only with `prepare`, else nothing is computed), a queued move to
+        plan (in the middle of its cycle), the twin's events after a cycle. Stops after
+        a cycle with events; returns the cycles computed and the volumetric flags for
+        `VolKernel.settle` (`volcomp.step.OFF` of the last cycle, `ENDED` of any,
+        `FAULT` from `prepare`)."""
+        mo, tw, k, volc = self.motion, self.twin, self.kernel, self.volc
+        vol = volc.arrays()
         done = 0
         vflags = 0
         resume = False
@@ -340,6 +347,7 @@ class Machine:
             ran, flags = cycles(
                 count - done,
                 resume,
+                prepare,
                 mo.F,
                 mo.I,
                 mo.B,
@@ -358,6 +366,13 @@ class Machine:
             )
             done += ran
             vflags |= flags & (VOLC_OFF | VOLC_ENDED)
+            if flags & VOLC_PREPARE:  # (before the first cycle's motion: nothing ran)
+                if not prepare:
+                    return 0, 0
+                prepare = False
+                if not volc.prepare(mo.homed, k.drive_enabled):
+                    vflags |= VOLC_FAULT
+                continue
             if flags & PLAN:  # the arrived axes' queued moves start (first step next cycle)
                 mo.start_queued()
                 resume = True
@@ -366,17 +381,6 @@ class Machine:
             if twin:
                 tw.events(twin, mo.vel)
             return done, vflags >> VOLC_SHIFT
-
-    def _volc_prepare(self) -> bool:
-        """Before a cycle's volumetric step, what needs Python (`VolKernel.prepare`:
-        automatic activation, an axis in error state), only when the compiled check says
-        so. False: a compensation was switched off (the program stops after the cycle)."""
-        volc, homed, drive = self.volc, self.motion.homed, self.kernel.drive_enabled
-        return not volc.attention(homed, drive) or volc.prepare(homed, drive)
-
-    def _volc_settle(self, flags: int) -> bool:
-        """After the compiled cycles: the s_limit reports (`VolKernel.settle`)."""
-        return self.volc.settle(flags)
 
     def _volc_stop(self) -> None:
         """A volumetric compensation was switched off in error: the program stops and

@@ -386,10 +386,10 @@ class VolKernel:
 
     def settle(self, flags: int) -> bool:
         """After compiled cycles whose last step returned `flags` (`step.OFF`,
-        `step.ENDED`): report the compensations the s_limit watch switched off in it (004
-        p.14) and refresh the list of active ones. False if one was switched off (the
-        caller stops the program)."""
-        ok = True
+        `step.ENDED`; `step.FAULT` from `prepare`): report the compensations the s_limit
+        watch switched off in it (004 p.14) and refresh the list of active ones. False if
+        one was switched off, here or by `prepare` (the caller stops the program)."""
+        ok = not flags & vs.FAULT
         if flags & vs.OFF:
             for st in self.states.values():
                 k = int(st.row[vs.OVER])

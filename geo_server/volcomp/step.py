@@ -55,8 +55,9 @@ RAW = VAL + 3  # the correction (mm, 3)
 NS = RAW + 3
 
 #: `step`'s flags: a compensation was switched off for its s_limit (its `OVER` says
-#: why); a compensation's ramp ended at 0 (it is no longer active)
-OFF, ENDED = 1, 2
+#: why); a compensation's ramp ended at 0 (it is no longer active); and `VolKernel.
+#: prepare`'s: one was switched off for an axis fault
+OFF, ENDED, FAULT = 1, 2, 4
 
 
 @compiled
@@ -170,4 +171,4 @@ def attention(H: np.ndarray, S: np.ndarray, homed: np.ndarray, drive: np.ndarray
     return False
 
 
-__all__ = ["ENDED", "NH", "NS", "OFF", "attention", "step"]
+__all__ = ["ENDED", "FAULT", "NH", "NS", "OFF", "attention", "step"]

@@ -58,6 +58,8 @@ MODULES = (
     "kernel/lsec.py",
     "kernel/friction.py",
     "kernel/step.py",
+    "volcomp/law.py",
+    "volcomp/step.py",
     "machine/motion.py",
     "machine/cycle.py",
     "twin/engine.py",

@@ -6,19 +6,25 @@ accepts the stretch (`run_batch`), single cycles elsewhere. After every batch th
 state that a later cycle or a snapshot reads is compared with `np.array_equal`: the
 kernel's outputs, filter, source vector and friction delay line, the motion, the twin,
 and the published snapshot. Machines: the default machine (every compensation, crosstalk
-mode 3 among them) and random machines (modulo axes, friction delays, manual activation,
-missing compensations).
+mode 3 among them), random machines (modulo axes, friction delays, manual activation,
+missing compensations) and the default machine with two volumetric compensations acting
+(docs/volumetric.md: ramps, CFACT, negate, a rotary chain, the tool length, the s_limit
+stop and an axis fault while the axes move), where the drives' actual positions, the
+compensations' state rows and the error list are compared too.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+
 import numpy as np
 import pytest
-from support.machines import random_machine
+from support.machines import random_machine, volumetric_machine
 
 from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
-from geo_server.machine.port import WriteObjects
+from geo_server.machine.port import Reset, WriteObjects
 from geo_server.model import MachineConfig
 from geo_server.paths import default_startup_list
 
@@ -47,10 +53,19 @@ def state(m: Machine) -> list[np.ndarray]:
         mo._k,
         m._reversal,
         m._output,
+        m._drive_act,
+        m.volc.S,  # every volumetric compensation's ramp, weights, values
+        m.volc.offset,
         tw._vsum,
         tw.sensor_temperature,
         np.array([m.cycle, tw.cycles, m.player.cycle if m.player else 0]),
+        np.array([m.player.running if m.player else False, m.volc.active_mask]),
+        np.array([m.volc.incorrect_mask, m.volc.tool_length]),
     ]
+
+
+#: what `run_pair` does to both machines before a cycle: an object write, or anything
+Action = tuple | Callable[[Machine], object]
 
 
 def program(names: list[str]) -> str:
@@ -68,7 +83,18 @@ def program(names: list[str]) -> str:
     )
 
 
-def run_pair(cfg: MachineConfig, seed: int, cycles: int, writes: dict[int, tuple]) -> int:
+def run_pair(
+    cfg: MachineConfig,
+    seed: int,
+    cycles: int,
+    writes: dict[int, Action],
+    seen: Callable[[Machine, tuple[bool, bool, int]], None] | None = None,
+) -> int:
+    """Run `cfg` cycle by cycle and in passes side by side, comparing after every pass;
+    `writes` acts on both before the cycle it is keyed by (or the first one after a
+    pass that ran past it); `seen(machine, before)` is
+    told of every pass the batched machine ran, with what was before it: (a volumetric
+    compensation active, ramps at rest, the number of events)."""
     ref, bat = Machine(cfg, homed=True), Machine(cfg, homed=True)
     names = sorted(ref.names, key=ref.names.__getitem__)
     for m in (ref, bat):
@@ -77,15 +103,22 @@ def run_pair(cfg: MachineConfig, seed: int, cycles: int, writes: dict[int, tuple
         m.start_program(program(names))
     rng = np.random.default_rng(seed)
     batched = 0
+    due = sorted(writes.items(), key=lambda kv: kv[0])
     while ref.cycle < cycles:
-        w = writes.get(ref.cycle)
-        if w is not None:
+        while due and due[0][0] <= ref.cycle:  # (a pass may have run past its cycle)
+            w = due.pop(0)[1]
             for m in (ref, bat):
-                m.submit(WriteObjects((w,)))
+                if callable(w):
+                    w(m)
+                else:
+                    m.submit(WriteObjects((w,)))
         size = int(rng.choice([2, 3, 4, 8, 16]))
         publish = bool(rng.integers(2))
+        before = (bat.volc.busy, bat.volc.at_rest, len(bat.events))
         got = bat.run_batch(size)
         if got:
+            if seen is not None:
+                seen(bat, before)
             batched += got
             if publish:
                 bat.publish()
@@ -97,11 +130,16 @@ def run_pair(cfg: MachineConfig, seed: int, cycles: int, writes: dict[int, tuple
             bat.run_cycle()
         for i, (x, y) in enumerate(zip(state(ref), state(bat), strict=True)):
             assert np.array_equal(x, y), f"state {i} differs after cycle {ref.cycle}"
+        assert events(ref) == events(bat)
         if got and publish:
             assert np.array_equal(ref.snapshot.values, bat.snapshot.values)
             assert ref.snapshot.stamp == bat.snapshot.stamp
     assert np.array_equal(ref.publish().values, bat.publish().values)
     return batched
+
+
+def events(m: Machine) -> list[tuple[int, str]]:
+    return [(e.cycle, e.diagnostic.describe()) for e in m.events]
 
 
 def test_default_machine_batches_equal_single_cycles() -> None:
@@ -167,3 +205,60 @@ def test_a_long_friction_delay_keeps_the_pass_whole() -> None:
     m.step(5)
     assert m.run_batch(16) == 16
     run_pair(cfg, seed=4, cycles=800, writes={})
+
+
+# ---------------------------------------------------------------------- volumetric
+
+
+#: grid of the correction files (mm)
+def test_volumetric_compensations_batch_equal_single_cycles(tmp_path: Path) -> None:
+    """Passes while volumetric compensations act give the numbers of single cycles, bit
+    for bit: ID1 ramping in with the first cycles of the program; the tool length
+    written while the axes move; ID0 switched on by object while they move (its ramp
+    runs in passes), then its X beyond s_limit (switched off with an error, the program
+    stopped — in a pass) and the program started again, several times; ID1 ramped out
+    and in again by object; an #VOLCOMP ON with CFACT in an MDI block; at last a drive
+    switched off (the error case of 004 p.24)."""
+    cfg = volumetric_machine(tmp_path)
+    names = ["X", "Y", "Z", "C"]
+    restart = program(names)
+
+    def start(m: Machine) -> None:
+        m.start_program(restart)
+
+    def reset_and_weigh(m: Machine) -> None:
+        m.submit(Reset())  # every compensation off (004 p.24), the program ended
+        m.start_program("N1 #VOLCOMP ON [ID0 CFACT_X=0.5 CFACT_Z=0]\n" + restart)
+
+    writes: dict[int, Action] = {
+        40: ("VOLC::tool_length", 0, 80.0),
+        300: ("cnc_vol_comp_enable_index_w", 0, 0),
+        900: start,
+        920: ("cnc_vol_comp_enable_index_w", 0, 0),
+        1300: ("cnc_vol_comp_disable_index_w", 0, 1),
+        1500: ("cnc_vol_comp_enable_index_w", 0, 1),
+        1700: start,
+        1720: ("cnc_vol_comp_enable_index_w", 0, 0),
+        2300: reset_and_weigh,
+        2850: ("cnc_vol_comp_enable_index_w", 0, 1),
+        2900: ("SIM::drive_enable", 2, False),
+    }
+    passes = {"acting": 0, "ramping": 0, "stopped": 0}
+    machines: list[Machine] = []
+
+    def seen(m: Machine, before: tuple[bool, bool, int]) -> None:
+        busy, at_rest, count = before
+        machines[:] = [m]
+        passes["acting"] += busy
+        passes["ramping"] += busy and not at_rest
+        new = list(m.events)[count:]
+        passes["stopped"] += any(
+            "exceeds lr_param.vol_comp.s_limit" in e.diagnostic.message for e in new
+        )
+
+    batched = run_pair(cfg, seed=3, cycles=3300, writes=writes, seen=seen)
+    assert batched > 1500
+    assert passes["acting"] > 100 and passes["ramping"] > 0 and passes["stopped"] > 0, passes
+    said = [e.diagnostic.message for e in machines[0].events]
+    assert sum("exceeds lr_param.vol_comp.s_limit" in t for t in said) >= 2, said
+    assert sum("the drive of axis Y is not enabled: marked incorrect" in t for t in said) == 2

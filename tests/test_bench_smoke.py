@@ -81,7 +81,7 @@ def test_bench_volcomp_prints_its_table():
         timeout=300,
     )
     assert r.returncode == 0, r.stderr
-    assert "| added per cycle (target ≤ 30 µs) |" in r.stdout, r.stdout
+    assert "| added per cycle |" in r.stdout, r.stdout
 
 
 def test_bench_recorder_prints_its_table():

@@ -25,7 +25,7 @@ SCRIPT = Path(jit_run.__file__)
 
 def test_interpreted_laws_give_the_compiled_numbers(tmp_path: Path) -> None:
     assert jit.loaded()  # (conftest)
-    compiled = jit_run.run()
+    compiled = jit_run.run(tmp_path / "compiled")
     out = tmp_path / "interpreted.npz"
     env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
     subprocess.run([sys.executable, str(SCRIPT), str(out)], env=env, check=True, timeout=300)

@@ -1,12 +1,17 @@
 """The computed part of a GEO cycle, compiled (docs/design.md §5.1 steps 2–3, §13.3).
 
 `cycles` runs the motion's profiles (`motion.profile_step`), the compensation kernel
-(`kernel.step.step`), the output to the drives and the twin's state (`engine.twin_cycle`)
-for one cycle or a pass of many — the same function in a loop, so a pass gives the
-numbers of as many single cycles by construction. It stops after a cycle that needs
-Python (its flags): an axis arrived (the NC program, the twin's scatter draw), a sensor
-sample is due, a velocity changed sign; and in the middle of a cycle when an arrived
-axis has a queued move to plan (`PLAN`: the caller plans it and resumes the cycle).
+(`kernel.step.step`), the volumetric compensations (`volcomp.step.step`), the output to
+the drives and the twin's state (`engine.twin_cycle`) for one cycle or a pass of many —
+the same function in a loop, so a pass gives the numbers of as many single cycles by
+construction. It stops after a cycle that needs Python (its flags): an axis arrived (the
+NC program, the twin's scatter draw), a sensor sample is due, a velocity changed sign, a
+volumetric compensation was switched off for its s_limit (`VOLC_OFF`: the report and the
+program stop); before the first cycle when the volumetric compensations need Python
+(`VOLC_PREPARE`: automatic activation, an axis fault); and in the middle of a cycle
+when an arrived axis has a queued move to plan (`PLAN`: the caller plans it and resumes
+the cycle). A volumetric ramp that ended on the way is said by `VOLC_ENDED` in the
+flags returned.
 """
 
 from __future__ import annotations
@@ -30,6 +35,9 @@ from geo_server.machine.motion import (
 )
 from geo_server.twin.engine import MOTION, SAMPLE, twin_cycle
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
+from geo_server.volcomp.step import ENDED, FAULT, OFF
+from geo_server.volcomp.step import attention as volc_attention
+from geo_server.volcomp.step import step as volc_step
 
 #: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`SAMPLE`, `MOTION`),
 #: which occupy the low bits: the cycle stopped after its motion to plan a queued move
@@ -37,6 +45,15 @@ PLAN = 1 << 8
 assert not (PLAN & (ARRIVED | START_QUEUED)) and SAMPLE | MOTION < PLAN
 #: the twin's flags, shifted above the motion's
 TWIN_SHIFT = 4
+#: the volumetric step's flags (`volcomp.step.OFF`, `ENDED`), shifted above `PLAN`
+VOLC_SHIFT = 9
+VOLC_OFF = OFF << VOLC_SHIFT
+VOLC_ENDED = ENDED << VOLC_SHIFT
+#: (Python's: `VolKernel.prepare` switched a compensation off for an axis fault)
+VOLC_FAULT = FAULT << VOLC_SHIFT
+#: `cycles` computed nothing: the volumetric compensations need `VolKernel.prepare`
+VOLC_PREPARE = 1 << 12
+assert PLAN < VOLC_OFF and VOLC_FAULT < VOLC_PREPARE
 # Rows of the machine's per-cycle buffer (`Machine._mbuf`, its [n, NROWS] view): the
 # published deltas of the seven compensation columns (rows 0–6), then what `derived`
 # computes for a snapshot, the output to the drives (`cycles`) and the configured backlash
@@ -48,6 +65,7 @@ NROWS = 13
 def cycles(
     count: int,
     resume: bool,
+    check: bool,
     MF: np.ndarray,
     MI: np.ndarray,
     MB: np.ndarray,
@@ -70,14 +88,28 @@ def cycles(
     amb: np.ndarray,
     spindle: bool,
     rev: np.ndarray,
+    vtf: np.ndarray,
+    vti: np.ndarray,
+    VH: np.ndarray,
+    VS: np.ndarray,
+    voff: np.ndarray,
+    tool_length: float,
     output: np.ndarray,
     drive_act: np.ndarray,
 ) -> tuple[int, int]:
     """Up to `count` cycles; (cycles completed, flags of the last one). `resume`: the
-    first cycle's motion has run already (after `PLAN`). Writes the cycles until a known
-    reversal into `rev`, the output to the drives (command + total offset) into `output`
-    and, where the drive is enabled, into `drive_act`."""
+    first cycle's motion has run already (after `PLAN`). `check`: first ask whether the
+    volumetric compensations need Python (`volcomp.step.attention`; then nothing is
+    computed and the flags say `VOLC_PREPARE`) — only operations change what it looks
+    at, so once before a pass is enough. Writes the cycles until a known
+    reversal into `rev`, the output to the drives (command + total offset + the
+    volumetric offset `voff`, where the machine has volumetric compensations) into
+    `output` and, where the drive is enabled, into `drive_act`."""
     n = MF.shape[1]
+    vol = VH.shape[0] > 0
+    if vol and check and not resume and volc_attention(VH, VS, MB[HOMED], B1[DRIVE]):
+        return 0, VOLC_PREPARE
+    ended = 0
     for done in range(count):
         flags = 0
         if not (resume and done == 0):
@@ -89,15 +121,21 @@ def cycles(
             F7, B7, I7, F1, B1, P, IP, G, ring, tab, weights, MF[POS], MF[VEL], MF[ACC],
             MB[HOMED], rev,
         )  # fmt: skip
+        if vol:
+            vflags = volc_step(vtf, vti, VH, VS, voff, tool_length, MF[POS]) << VOLC_SHIFT
+            flags |= vflags & VOLC_OFF
+            ended |= vflags & VOLC_ENDED
         for i in range(n):
             out = MF[POS, i] + F1[TOTAL, i]
+            if vol:
+                out = out + voff[i]
             output[i] = out
             if B1[DRIVE, i]:
                 drive_act[i] = out
         flags |= twin_cycle(WA, WN, WS, WC, amb, MF[VEL], spindle) << TWIN_SHIFT
         if flags:
-            return done + 1, flags
-    return count, 0
+            return done + 1, flags | ended
+    return count, ended
 
 
 @compiled

@@ -43,6 +43,11 @@ from geo_server.machine.cycle import (
     PLAN,
     TWIN_SHIFT,
     VELOCITY,
+    VOLC_ENDED,
+    VOLC_FAULT,
+    VOLC_OFF,
+    VOLC_PREPARE,
+    VOLC_SHIFT,
     cycles,
     derived,
 )
@@ -242,10 +247,9 @@ class Machine:
                 applied = self._apply_queue()
                 self._step_program()
                 t0 = perf_counter_ns()
-                self._compute(1)
-                if self.volc.states:
-                    self._volumetric()
-                    np.copyto(self._drive_act, self._output, where=self.kernel.drive_enabled)
+                _, vflags = self._compute(1, prepare=True)
+                if vflags and not self.volc.settle(vflags):
+                    self._volc_stop()
                 self.kernel_ns = perf_counter_ns() - t0
                 publish = publish or bool(applied)
                 if publish:
@@ -287,7 +291,7 @@ class Machine:
         (nothing has changed then: run single cycles). The numbers are those of as many
         calls of `run_cycle(publish=False)`, by construction (`cycle.cycles`; tests/
         test_batch.py): the snapshot of the cycle reached is left to `publish`."""
-        if n < 2 or self._queue or self.cycle == 0 or self.volc.busy:
+        if n < 2 or self._queue or self.cycle == 0:
             return 0
         mo = self.motion
         with self._cycle_lock:
@@ -299,29 +303,42 @@ class Machine:
                 if not waits or not mo._moving[list(waits)].any():
                     return 0
             t0 = perf_counter_ns()
-            n = self._compute(n)
+            n, vflags = self._compute(n, prepare=False)
+            if not n:
+                return 0  # (an automatic activation or an axis in error state: Python)
             self.kernel_ns = (perf_counter_ns() - t0) // n
             if player is not None and player.running:
                 player.skip(n)  # (it waits for the motion: nothing else changes for it)
-            self.cycle += n
+            self.cycle += n - 1
+            if vflags and not self.volc.settle(vflags):  # (reported in its own cycle)
+                self._volc_stop()
+            self.cycle += 1
             self._computed += n
             self.heartbeat = monotonic()
             self._rest_streak = 0  # an axis moved in every cycle
             self._rest_after = False
         return n
 
-    def _compute(self, count: int) -> int:
+    def _compute(self, count: int, prepare: bool) -> tuple[int, int]:
         """Up to `count` cycles of the compiled part (`cycle.cycles`: motion, kernel,
-        output, the twin's state), with what it leaves to Python in between: a queued
-        move to plan (in the middle of its cycle), the twin's events after a cycle.
-        Stops after a cycle with events; returns the cycles computed (at least 1)."""
-        mo, tw, k = self.motion, self.twin, self.kernel
+        volumetric compensations, output, the twin's state), with what it leaves to
+        Python in between: before the first cycle, the volumetric compensations'
+        automatic activation and faults (`VolKernel.prepare`, when the compiled check
+        asks for it — only with `prepare`, else nothing is computed), a queued move to
+        plan (in the middle of its cycle), the twin's events after a cycle. Stops after
+        a cycle with events; returns the cycles computed and the volumetric flags for
+        `VolKernel.settle` (`volcomp.step.OFF` of the last cycle, `ENDED` of any,
+        `FAULT` from `prepare`)."""
+        mo, tw, k, volc = self.motion, self.twin, self.kernel, self.volc
+        vol = volc.arrays()
         done = 0
+        vflags = 0
         resume = False
         while True:
             ran, flags = cycles(
                 count - done,
                 resume,
+                prepare,
                 mo.F,
                 mo.I,
                 mo.B,
@@ -334,17 +351,34 @@ class Machine:
                 tw.amb,
                 self.spindle_on,
                 self._reversal,
+                *vol,
                 self._output,
                 self._drive_act,
             )
             done += ran
+            vflags |= flags & (VOLC_OFF | VOLC_ENDED)
+            if flags & VOLC_PREPARE:  # (before the first cycle's motion: nothing ran)
+                if not prepare:
+                    return 0, 0
+                prepare = False
+                if not volc.prepare(mo.homed, k.drive_enabled):
+                    vflags |= VOLC_FAULT
+                continue
             if flags & PLAN:  # the arrived axes' queued moves start (first step next cycle)
                 mo.start_queued()
                 resume = True
                 continue
-            if flags >> TWIN_SHIFT:
-                tw.events(flags >> TWIN_SHIFT, mo.vel)
-            return done
+            twin = (flags & ~(VOLC_OFF | VOLC_ENDED)) >> TWIN_SHIFT
+            if twin:
+                tw.events(twin, mo.vel)
+            return done, vflags >> VOLC_SHIFT
+
+    def _volc_stop(self) -> None:
+        """A volumetric compensation was switched off in error: the program stops and
+        the axes with it (004 p.14: "the axis is stopped in a controlled manner")."""
+        if self.player is not None and self.player.running:
+            self.player.abort()
+        self.motion.stop()
 
     # ------------------------------------------------------------------ virtual time
 
@@ -430,17 +464,6 @@ class Machine:
             except Exception:  # one broken subscriber must not stop the engine
                 log.exception("snapshot listener failed")
         return snap
-
-    def _volumetric(self) -> None:
-        """The volumetric corrections of this cycle (docs/volumetric.md §1): from the
-        command positions, added to the output; a correction beyond its s_limit stops
-        the program (004 p.14: "the axis is stopped in a controlled manner")."""
-        mo = self.motion
-        if not self.volc.step(mo.pos, mo.homed, self.kernel.drive_enabled):
-            if self.player is not None and self.player.running:
-                self.player.abort()
-            mo.stop()
-        self._output += self.volc.offset
 
     def _step_program(self) -> None:
         """Advance the NC program; a command the machine cannot carry out ends the program

@@ -12,15 +12,13 @@ docs/volumetric.md §5.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from geo_server.listfile.checks import EMU_VOLC_ERROR
 from geo_server.model import AxisParams
-from geo_server.units import UNITS_PER_MM
+from geo_server.volcomp import step as vs
 from geo_server.volcomp.config import VolComp
 from geo_server.volcomp.evaluator import Evaluator
 
@@ -28,29 +26,71 @@ from geo_server.volcomp.evaluator import Evaluator
 VOLC_ERROR = EMU_VOLC_ERROR
 
 
-@dataclass
-class CompState:
-    """The run-time state of one compensation."""
+def _float_row(index: int) -> property:
+    def get(self: CompState) -> float:
+        return float(self.row[index])
 
-    comp: VolComp
-    evaluator: Evaluator | None
-    slots: np.ndarray  # machine slots of the chain axes, chain order
-    limits: np.ndarray  # s_limit of X, Y, Z (increments, 0 = not defined)
-    modify: np.ndarray  # +1, −1 (negate), 0 (set_to_zero) per X, Y, Z
-    wanted: bool = False
-    factor: float = 0.0  # the ramp: 0 off … 1 fully on
-    step: float = 1.0  # ramp change per cycle
-    target: float = 0.0
-    cfact: np.ndarray = field(default_factory=lambda: np.ones(3))
-    value: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # increments, X Y Z
-    raw: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # mm before weights
-    slot_list: list[int] = field(default_factory=list)
-    tip: tuple[float, float, float] = (0.0, 0.0, 0.0)  # tool point at `tip_length`
-    tip_length: float = float("nan")
-    linear_list: list[int] = field(default_factory=list)
-    #: marked incorrect (004 p.24): an axis of its chain went into error state while it
-    #: was active; cleared by the CNC reset and by the next ON (VOLC::incorrect)
-    incorrect: bool = False
+    def put(self: CompState, value: float) -> None:
+        self.row[index] = value
+
+    return property(get, put)
+
+
+def _vector_row(index: int) -> property:
+    def get(self: CompState) -> np.ndarray:
+        return self.row[index : index + 3]
+
+    def put(self: CompState, value: Sequence[float] | np.ndarray) -> None:
+        self.row[index : index + 3] = value
+
+    return property(get, put)
+
+
+class CompState:
+    """One compensation: its configuration and packed model (`evaluator`), and its
+    run-time state — a row of the compiled cycle's state array (`step.S`), which
+    `VolKernel` binds it to (`row`)."""
+
+    factor = _float_row(vs.FACTOR)  # the ramp: 0 off … 1 fully on
+    step = _float_row(vs.STEP)  # ramp change per cycle
+    target = _float_row(vs.TARGET)
+    cfact = _vector_row(vs.CF)
+    modify = _vector_row(vs.MOD)  # +1, −1 (negate), 0 (set_to_zero) per X, Y, Z
+    limits = _vector_row(vs.LIM)  # s_limit of X, Y, Z (increments, 0 = not defined)
+    value = _vector_row(vs.VAL)  # increments, X Y Z
+    raw = _vector_row(vs.RAW)  # mm before weights
+
+    def __init__(
+        self,
+        comp: VolComp,
+        evaluator: Evaluator | None,
+        slots: np.ndarray,
+        limits: np.ndarray,
+        modify: np.ndarray,
+    ) -> None:
+        self.comp = comp
+        self.evaluator = evaluator
+        self.slots = slots  # machine slots of the chain axes, chain order
+        self.slot_list: list[int] = slots.tolist()
+        self.linear_list: list[int] = []  # machine slots of X, Y, Z
+        self.row = np.zeros(vs.NS)
+        self.row[vs.STEP] = 1.0
+        self.row[vs.OVER] = -1.0
+        self.cfact = (1.0, 1.0, 1.0)
+        self.limits = limits
+        self.modify = modify
+        #: marked incorrect (004 p.24): an axis of its chain went into error state while
+        #: it was active; cleared by the CNC reset and by the next ON (VOLC::incorrect)
+        self.incorrect = False
+
+    @property
+    def wanted(self) -> bool:
+        """Switched on, or waiting for its automatic activation."""
+        return bool(self.row[vs.WANT])
+
+    @wanted.setter
+    def wanted(self, on: bool) -> None:
+        self.row[vs.WANT] = 1.0 if on else 0.0
 
     @property
     def active(self) -> bool:
@@ -77,7 +117,48 @@ class VolKernel:
         self.states: dict[int, CompState] = {}
         for c in comps:
             self.states[c.id] = self._state(c)
+        #: the compiled cycle's state: a row per compensation (`step.S`)
+        self.S = np.zeros((len(self.states), vs.NS))
+        self._row = {ident: r for r, ident in enumerate(self.states)}
+        for ident, st in self.states.items():
+            self._bind(ident, st)
         self._active: list[CompState] = []
+        self._pack()
+
+    def _bind(self, ident: int, st: CompState) -> None:
+        """Move `st`'s state into its row of `S`."""
+        row = self.S[self._row[ident]]
+        row[:] = st.row
+        st.row = row
+
+    def _pack(self) -> None:
+        """The packed models of every available compensation in one pair of arrays
+        (`tf`, `ti`) and where each starts (`H`): what the compiled cycle reads."""
+        fs: list[np.ndarray] = []
+        its: list[np.ndarray] = []
+        nf = ni = 0
+        H = np.zeros((len(self.states), vs.NH), dtype=np.int64)
+        for r, st in enumerate(self.states.values()):
+            ev = st.evaluator
+            if ev is None:
+                continue
+            H[r, vs.FB], H[r, vs.IB], H[r, vs.NCH] = nf, ni, len(st.slot_list)
+            H[r, vs.SLOT : vs.SLOT + len(st.slot_list)] = st.slot_list
+            H[r, vs.LS : vs.LS + 3] = st.linear_list
+            fs.append(ev.tf)
+            its.append(ev.ti)
+            nf += len(ev.tf)
+            ni += len(ev.ti)
+        self.tf = np.concatenate(fs) if fs else np.zeros(1)
+        self.ti = np.concatenate(its) if its else np.zeros(1, dtype=np.int64)
+        self.H = H
+
+    def arrays(
+        self,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """What the compiled cycle takes (`step.step`'s order; the models change on an
+        update: ask again after one)."""
+        return self.tf, self.ti, self.H, self.S, self.offset, self.tool_length
 
     def _state(self, c: VolComp) -> CompState:
         if c.model is None or c.config is None:
@@ -91,7 +172,7 @@ class VolKernel:
             [0.0 if a in cfg.set_to_zero else -1.0 if a in cfg.negate else 1.0 for a in "XYZ"]
         )
         st = CompState(c, Evaluator(c.model), slots, limits, modify)
-        st.slot_list, st.linear_list = slots.tolist(), lin.tolist()
+        st.linear_list = lin.tolist()
         st.wanted = not cfg.manual_activation  # automatic activation (004 p.20)
         return st
 
@@ -137,7 +218,7 @@ class VolKernel:
                     f"volumetric compensation {ident}: lr_param.vol_comp.s_limit (P-AXIS-00525) "
                     f"not defined for {', '.join(missing)} (004 p.14)"
                 )
-            st.cfact = np.array(cfact if cfact is not None else (1.0, 1.0, 1.0))
+            st.cfact = cfact if cfact is not None else (1.0, 1.0, 1.0)
             st.incorrect = False
         st.wanted = on
         steps = st.comp.config.filter_steps if st.comp.config else 0
@@ -185,7 +266,9 @@ class VolKernel:
         if not comp.available:
             return
         old.target = old.factor = 0.0
-        self.states[ident] = self._state(comp)
+        new = self.states[ident] = self._state(comp)
+        self._bind(ident, new)
+        self._pack()
         self._refresh()
 
     def carry_over(self, old: VolKernel) -> None:
@@ -273,57 +356,20 @@ class VolKernel:
         st.target = st.factor = 0.0
         st.value = [0.0, 0.0, 0.0]
 
-    def _correct(self, st: CompState, pos: np.ndarray) -> None:
-        """`st.value`: the correction of the active compensation `st` at the command
-        positions `pos` (increments), its ramp advanced by one cycle (`filter_steps`,
-        004 p.22), weighed by `CFACT_*` (p.21) and `negate`/`set_to_zero` (p.16), at the
-        tool point of the current tool length (its own P0, N0, p.15)."""
-        if st.factor != st.target:
-            d = st.target - st.factor
-            st.factor = st.target if abs(d) <= st.step else st.factor + math.copysign(st.step, d)
-        ev = st.evaluator
-        assert ev is not None
-        if st.tip_length != self.tool_length:  # its own P0, N0 (004 p.15)
-            t = ev.model.tool_point(self.tool_length)
-            st.tip, st.tip_length = (float(t[0]), float(t[1]), float(t[2])), self.tool_length
-        q = [pos.item(s) / UNITS_PER_MM for s in st.slot_list]
-        st.raw = ev.correction_one(q, st.tip)
-        w = st.factor * UNITS_PER_MM
-        cf, mo = st.cfact, st.modify
-        st.value = [st.raw[k] * cf.item(k) * mo.item(k) * w for k in range(3)]
+    def attention(self, homed: np.ndarray, drive: np.ndarray) -> bool:
+        """Whether the next cycle needs `prepare` (compiled: `step.attention`): a
+        compensation to switch on automatically or to switch off for an axis in error
+        state. Only operations change the homing and the drives, so a pass of many
+        cycles needs it at most before its first."""
+        return bool(vs.attention(self.H, self.S, homed, drive))
 
-    def _within_limits(self, off: np.ndarray) -> bool:
-        """s_limit bounds what the axis gets, the sum `off` of every compensation (004
-        p.14): a compensation with an axis beyond its limit is switched off (reported).
-        False if one was."""
-        ok = True
-        for st in self._active:
-            if not st.active:
-                continue
-            for k, s in enumerate(st.linear_list):
-                lim = st.limits.item(k)
-                if abs(off.item(s)) > lim:
-                    self._off(
-                        st,
-                        f"correction of {'XYZ'[k]} {off.item(s):.0f} exceeds "
-                        f"lr_param.vol_comp.s_limit {lim:.0f} (P-AXIS-00525, 004 p.14): "
-                        "switched off",
-                    )
-                    ok = False
-                    break
-        return ok
-
-    def step(self, pos: np.ndarray, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
-        """Compute `offset` for command positions `pos` (increments). False when a
-        compensation had to be switched off in this cycle (the sum on an axis beyond its
-        s_limit, 004 p.14, or an axis of its chain in error state — no longer referenced
-        or its `drive` no longer enabled — p.20/p.24, which also marks it incorrect): the
-        error is reported, the caller stops the program."""
+    def prepare(self, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
+        """What a cycle needs Python for before its volumetric step: the automatic
+        activation, and switching off an active compensation one of whose chain axes is
+        in error state — no longer referenced or its `drive` no longer enabled (004
+        p.20/p.24): marked incorrect, reported. False if one was (the caller stops the
+        program after the cycle)."""
         self.auto_activate(homed, drive)
-        off = self.offset
-        off[:] = 0.0
-        if not self._active:
-            return True
         ok = True
         for st in self._active:
             fault = self._fault(st, homed, drive)
@@ -334,21 +380,41 @@ class VolKernel:
                 )
                 st.incorrect = True
                 ok = False
-                continue
-            self._correct(st, pos)
-            for k, s in enumerate(st.linear_list):
-                off[s] += st.value[k]
-        if not self._within_limits(off):
-            ok = False
         if not ok:
-            off[:] = 0.0
-            for st in self._active:
-                if st.active:
-                    for k, s in enumerate(st.linear_list):
-                        off[s] += st.value[k]
-        if not ok or any(not s.active for s in self._active):
             self._refresh()
         return ok
+
+    def settle(self, flags: int) -> bool:
+        """After compiled cycles whose last step returned `flags` (`step.OFF`,
+        `step.ENDED`; `step.FAULT` from `prepare`): report the compensations the s_limit
+        watch switched off in it (004 p.14) and refresh the list of active ones. False if
+        one was switched off, here or by `prepare` (the caller stops the program)."""
+        ok = not flags & vs.FAULT
+        if flags & vs.OFF:
+            for st in self.states.values():
+                k = int(st.row[vs.OVER])
+                if k < 0:
+                    continue
+                st.row[vs.OVER] = -1.0
+                ok = False
+                self.report(
+                    VOLC_ERROR,
+                    f"volumetric compensation {st.comp.id}: correction of {'XYZ'[k]} "
+                    f"{st.row[vs.OVERSUM]:.0f} exceeds lr_param.vol_comp.s_limit "
+                    f"{st.limits[k]:.0f} (P-AXIS-00525, 004 p.14): switched off",
+                )
+        self._refresh()
+        return ok
+
+    def step(self, pos: np.ndarray, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
+        """One cycle of the volumetric compensations alone: `prepare`, the compiled step
+        (`step.step`: `offset` for command positions `pos`, increments), `settle`. False
+        when a compensation had to be switched off in this cycle (reported; the caller
+        stops the program). The machine runs the compiled step inside its cycle instead
+        (`geo_server.machine.cycle.cycles`)."""
+        ok = self.prepare(homed, drive)
+        flags = vs.step(self.tf, self.ti, self.H, self.S, self.offset, self.tool_length, pos)
+        return self.settle(flags) and ok
 
 
 __all__ = ["VOLC_ERROR", "CompState", "VolKernel"]

@@ -2,8 +2,8 @@
 
 What the correction files and the VOLC list say about the machine, gathered per axis of
 the chain: direction, rotation centre, position errors (constants) and the tables of its
-component errors. `geo_server.volcomp.reference` evaluates it plainly, the kernel
-(`geo_server.volcomp.kernel`) vectorised; both read this one description.
+component errors. `geo_server.volcomp.reference` evaluates it plainly, the compiled law
+(`geo_server.volcomp.law`) from its packed arrays; both read this one description.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ of one compensation into one `ParamTable` per parameter:
   over the modulo passage; its argument is then taken modulo 360°.
 
 The other modes (SCATTER, AUTO, PATH, PATH_XY) keep the records as they are; their laws
-are in docs/volumetric.md §6 (`evaluate` here, `evaluator._points` vectorised).
+are in docs/volumetric.md §6 (`evaluate` here, plainly; compiled in `geo_server.volcomp.law`).
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def build_tables(
 
 def evaluate(table: ParamTable, point: dict[str, float]) -> float:
     """The parameter at `point` (argument -> value), multi-linear, edges held: the plain
-    reference (`geo_server.volcomp.reference`); the kernel has its own vectorised form."""
+    reference (`geo_server.volcomp.reference`); the cycle's is compiled (`volcomp.law`)."""
     if not table.arguments:
         return float(table.values)
     if table.mode == "SCATTER":

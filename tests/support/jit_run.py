@@ -2,8 +2,10 @@
 subprocess with `NUMBA_DISABLE_JIT=1`, with the laws interpreted (`python jit_run.py OUT`
 writes the states to OUT, an .npz file).
 
-The default machine and two random machines (modulo axes, friction delays, crosstalk
-modes, LSEC, manual activation) run an NC program with moves, reversals and a dwell, a
+The default machine, the volumetric machine of tests/support/machines.py (two
+compensations, one with a rotary workpiece axis and the alternative model, ramps, an
+s_limit stop) and two random machines (modulo axes, friction delays, crosstalk modes,
+LSEC, manual activation) run an NC program with moves, reversals and a dwell, a
 TEMPC write during the motion (a sin² ramp), a reload, and the twin's thermal updates
 and sensor samples: every array the cycle writes is kept after every 50th cycle.
 """
@@ -11,6 +13,7 @@ and sensor samples: every array the cycle writes is kept after every 50th cycle.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -20,8 +23,8 @@ from geo_server.machine.port import Reload, WriteObjects
 from geo_server.model import MachineConfig
 from geo_server.paths import default_startup_list
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent.parent))
-from support.machines import random_machine
+sys.path.insert(0, str(Path(__file__).parent.parent))
+from support.machines import random_machine, volumetric_machine
 
 CYCLES = 900
 
@@ -35,11 +38,12 @@ def _program(names: list[str]) -> str:
 def _state(m: Machine) -> list[np.ndarray]:
     k, mo, tw = m.kernel, m.motion, m.twin
     return [k.F7, k.B7, k.I7, k.F1, k.B1, k.G, k.ring, mo.F, mo.I, mo.B, tw.A, tw.N, tw.S,
-            tw.C, tw.O, m._output, m._drive_act, m.snapshot.values]  # fmt: skip
+            tw.C, tw.O, m._output, m._drive_act, m.volc.S, m.volc.offset,
+            m.snapshot.values]  # fmt: skip
 
 
-def _machines() -> list[MachineConfig]:
-    cfgs = [load_machine(default_startup_list())]
+def _machines(folder: Path) -> list[MachineConfig]:
+    cfgs = [load_machine(default_startup_list()), volumetric_machine(folder)]
     for n, seed in ((3, 4), (5, 2)):
         cfg = random_machine(n, seed)
         for a, letter in zip(sorted(cfg.axes), "XYZUV", strict=False):
@@ -48,9 +52,10 @@ def _machines() -> list[MachineConfig]:
     return cfgs
 
 
-def run() -> dict[str, np.ndarray]:
+def run(folder: Path) -> dict[str, np.ndarray]:
+    """The states; `folder` for the volumetric machine's lists."""
     out: dict[str, np.ndarray] = {}
-    for j, cfg in enumerate(_machines()):
+    for j, cfg in enumerate(_machines(folder)):
         m = Machine(cfg, homed=True)
         m.twin._rng = np.random.default_rng(j)
         m.set_epoch(0)
@@ -68,4 +73,5 @@ def run() -> dict[str, np.ndarray]:
 
 
 if __name__ == "__main__":
-    np.savez(sys.argv[1], **run())
+    out = Path(sys.argv[1])
+    np.savez(out, **run(out.parent / "interpreted"))

@@ -8,10 +8,12 @@ points, friction 20 points); `random_machine` varies sizes, modes and flags;
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 
+from geo_server.listfile.loader import load_machine
 from geo_server.model import (
     AxisConfig,
     AxisParams,
@@ -23,6 +25,8 @@ from geo_server.model import (
     MachineConfig,
     PlaneComp,
 )
+from geo_server.paths import data_dir
+from geo_server.volcomp.paramfile import Block, write_isg_csv
 
 
 def _axis(i: int, n: int, rng: np.random.Generator, full: bool) -> AxisConfig:
@@ -184,3 +188,68 @@ class Motion:
             np.int64
         )
         self.reversal = rev
+
+
+_GRID = np.arange(-600.0, 601.0, 50.0)
+
+
+def _smooth(rng: np.random.Generator, scale: float) -> np.ndarray:
+    return scale * np.sin(_GRID / 250.0 + rng.uniform(0, 6))
+
+
+def volumetric_machine(folder: Path) -> MachineConfig:
+    """The default machine with two compensations (docs/volumetric.md §4):
+
+    - ID0, chain YXZ, switched on by object (`manual_activation 1`), ramp of 12 cycles,
+      `negate Y`: the 18 component errors of X, Y, Z (a few µm and µrad) and the three
+      squareness errors, plus a positioning error of X of 1 µm/mm, so that its X
+      correction (about −10 increments per mm of X) passes X's `s_limit` of 150
+      increments beyond X ≈ 15 mm, which the program reaches (X20);
+    - ID1, chain CYXZ (C on the workpiece side, `alternative_model 1`), on as soon as
+      the axes are referenced, ramp of 5 cycles: errors of C over its travel (spliced)
+      and a 2-D table of EZZ over X and Y."""
+    lists = folder / "lists"
+    shutil.copytree(data_dir("lists"), lists, ignore=shutil.ignore_patterns("examples", "tools"))
+    rng = np.random.default_rng(11)
+    blocks = []
+    for axis in "XYZ":
+        cols = [_smooth(rng, 3e-3 if d in "XYZ" else 2e-5) for d in "XYZABC"]
+        if axis == "X":
+            cols[0] = cols[0] + 1e-3 * _GRID
+        rows = tuple((float(g), *(float(c[i]) for c in cols)) for i, g in enumerate(_GRID))
+        blocks.append(Block((axis,), tuple(f"E{d}{axis}" for d in "XYZABC"), rows))
+    blocks.append(Block((), ("C0Y", "B0Z", "A0Z", "N0Z"), ((2e-5, -1e-5, 3e-5, -1.0),)))
+    (lists / "vc0.csv").write_text(write_isg_csv(blocks), encoding="utf-8")
+    gc = np.arange(0.0, 360.0, 30.0)
+    c_rows = tuple(
+        (float(c), 2e-3 * np.cos(np.radians(c)), 1e-5 * np.sin(np.radians(c))) for c in gc
+    )
+    xy = [(float(x), float(y)) for x in (-100.0, 0.0, 100.0) for y in (-100.0, 100.0)]
+    z_rows = tuple((x, y, 1e-3 * np.sin(x / 70.0) * np.cos(y / 90.0)) for x, y in xy)
+    c_blocks = [
+        Block(("C",), ("EXC", "ECC"), c_rows),
+        Block(("X", "Y"), ("EZZ",), z_rows),
+        Block((), ("PZC", "X0C", "C0C", "N0Z"), ((-50.0, 2e-3, 1e-5, -1.0),)),
+    ]
+    (lists / "vc1.csv").write_text(write_isg_csv(c_blocks), encoding="utf-8")
+    (lists / "vc0.lis").write_text(
+        "X 1\nY 2\nZ 3\nchain YXZ\nfilter_steps 12\nmanual_activation 1\nnegate Y\n"
+        "file[0] vc0.csv\nfile_format[0] ISG_CSV\n",
+        encoding="utf-8",
+    )
+    (lists / "vc1.lis").write_text(
+        "X 1\nY 2\nZ 3\nC 4\nchain CYXZ\nworkpiece_axes 1\nalternative_model 1\n"
+        "enable_splicing 1\nfilter_steps 5\nfile[0] vc1.csv\nfile_format[0] ISG_CSV\n",
+        encoding="utf-8",
+    )
+    with (lists / "hochlauf.lis").open("a", encoding="utf-8") as fh:
+        for i in (0, 1):
+            fh.write(f"vol_comp[{i}].max_records 2000\nvol_comp[{i}].file_name vc{i}.lis\n")
+    for i, limit in ((1, 150), (2, 10_000), (3, 10_000)):
+        with (lists / f"achsmd{i}.lis").open("a", encoding="utf-8") as fh:
+            fh.write(f"lr_param.vol_comp.s_limit {limit}\n")
+    cfg = load_machine(lists / "hochlauf.lis")
+    assert [c.available for c in cfg.volumetric] == [True, True], [
+        c.problem for c in cfg.volumetric
+    ]
+    return cfg

@@ -9,10 +9,12 @@ the thermal model are exercised):
   motion, straightness over the next axis (101 points), expansion on one of 8 thermal
   nodes with a sensor each, scatter and friction.
 
-For each: the median and p99 of `Machine.run_cycle` (kernel, motion, twin, snapshot)
-with the twin and with its step replaced by a no-op, interleaved in blocks so both see
-the same host; the median of `TwinEngine.step` alone; and the twin's share
-(with − without) / without, the figure the SPEC bounds at 30 %.
+For each: the median and p99 of `Machine.run_cycle` (kernel, motion, twin, snapshot) of
+the machine with its twin and of the same machine with a perfect one (no twin file: no
+curves, no thermal nodes, no sensors), interleaved in blocks so both see the same host;
+the median of the twin's outputs alone (`TwinEngine.evaluate`, what a published cycle
+adds; its state advances inside the compiled cycle, docs/design.md §13.3); and the
+twin's share (with − without) / without, the figure the SPEC bounds at 30 %.
 
     python bench/twin.py [--cycles N]
 """
@@ -20,6 +22,7 @@ the same host; the median of `TwinEngine.step` alone; and the twin's share
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -73,47 +76,40 @@ def twin_for(n: int) -> TwinConfig:
 
 
 def measure(cfg: MachineConfig, cycles: int, block: int = 200) -> dict[str, float]:
-    m = Machine(cfg, homed=True)
-    svc = ObjectService(m)
-    step = m.twin.step
-    axes = list(m.axes)
-    with_twin: list[float] = []
-    without: list[float] = []
+    perfect = dataclasses.replace(cfg, twin=TwinConfig())
+    machines = [Machine(c, homed=True) for c in (cfg, perfect)]
+    services = [ObjectService(m) for m in machines]
+    axes = list(machines[0].axes)
+    times: list[list[float]] = [[], []]  # with the twin, with the perfect one
     twin_only: list[float] = []
     flip = 1
 
     def stroke() -> None:
         nonlocal flip
         flip = -flip
-        for slot, nr in enumerate(axes):
-            span = 200_000 if cfg.axes[nr].params.kind == "T" else 100_000
-            access.write_name(svc, "SIM::target_position", nr, flip * span * (1 + slot % 3))
-
-    def timed_step(*args: object) -> None:
-        t0 = time.perf_counter_ns()
-        step(*args)  # type: ignore[arg-type]
-        twin_only.append((time.perf_counter_ns() - t0) / 1000.0)
-
-    def noop(*args: object) -> None:
-        return None
+        for svc in services:
+            for slot, nr in enumerate(axes):
+                span = 200_000 if cfg.axes[nr].params.kind == "T" else 100_000
+                access.write_name(svc, "SIM::target_position", nr, flip * span * (1 + slot % 3))
 
     done = 0
     while done < cycles:
         stroke()  # every block pair: the axes reverse, accelerate, arrive
-        for target, fn in ((with_twin, step), (without, noop)):
-            m.twin.step = fn  # type: ignore[method-assign]
+        for m, target in zip(machines, times, strict=True):
             for _ in range(block):
                 t0 = time.perf_counter_ns()
                 m.run_cycle()
                 target.append((time.perf_counter_ns() - t0) / 1000.0)
-        m.twin.step = timed_step  # type: ignore[method-assign]
+        m = machines[0]
         for _ in range(20):
-            m.run_cycle()
-        done += 2 * block + 20
-    w, wo = np.median(with_twin), np.median(without)
+            t0 = time.perf_counter_ns()
+            m.twin.evaluate(m._output, m.motion.pos, m.motion.vel)
+            twin_only.append((time.perf_counter_ns() - t0) / 1000.0)
+        done += 2 * block
+    w, wo = np.median(times[0]), np.median(times[1])
     return {
         "with": float(w),
-        "with_p99": float(np.percentile(with_twin, 99)),
+        "with_p99": float(np.percentile(times[0], 99)),
         "without": float(wo),
         "twin": float(np.median(twin_only)),
         "share": float((w - wo) / wo * 100.0),
@@ -129,7 +125,7 @@ def main() -> None:
     big = full_machine(32)
     big.twin = twin_for(32)
     print("| machine | cycle with twin, median µs | p99 µs | without twin, median µs |", end="")
-    print(" twin step alone, median µs | twin's share |")
+    print(" twin outputs alone, median µs | twin's share |")
     print("|---|---:|---:|---:|---:|---:|")
     for label, cfg in (("default (4 axes)", default), ("32 axes, full twin", big)):
         r = measure(cfg, args.cycles)

@@ -43,6 +43,8 @@ def engine_figures(st: dict[str, Any]) -> str:
         f"overruns {st.get('overruns', 0)}  cycle p50 {us('cycle_p50_us')} "
         f"(kernel {us('kernel_p50_us')})"
     )
+    if st.get("compiled") is False:  # its machine code still loading (geo_server/jit.py)
+        tail += "  interpreted"
     if st.get("engine") == "exact":
         return (
             f"computed {st.get('computed_cycles', 0)} ({st.get('engine_wakes', 0)} wake-ups)  "

@@ -22,8 +22,6 @@ COMP_ORDER: tuple[CompKind, ...] = (
     CompKind.CROSSTALK,
 )
 BC, TEMP, CROSS, PLANE, LEAD, FRICT, CROSSTALK = range(7)
-#: Blocks of the kernel's source vector S (`kernel.SourceVector`): S[block·n + slot].
-POS, VEL, ACC, REV = range(4)
 #: Every compensation (`COMP OFF_ALL`, 000 §5.1 p.94).
 ALL_KINDS = CompKind(sum(COMP_ORDER))
 COLUMN: dict[CompKind, int] = {kind: i for i, kind in enumerate(COMP_ORDER)}

@@ -100,5 +100,5 @@ NP = 13
 NIP = 29
 
 # ---- G: scalars
-RING_POS, FIRST, PENDING, ANY_HELD, DRIVES_OFF = range(5)
-NG = 5
+RING_POS, FIRST, PENDING = range(3)  # delay line's write row, no step yet, an event pending
+NG = 3

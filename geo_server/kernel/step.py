@@ -24,7 +24,6 @@ from geo_server.kernel.friction import base as friction_base
 from geo_server.kernel.friction import weigh as friction_weigh
 from geo_server.kernel.layout import (
     ACT,
-    ANY_HELD,
     CR_M,
     CR_N,
     CR_T,
@@ -385,4 +384,4 @@ def steps(
         total[b] = F1[TOTAL]
 
 
-__all__ = ["ANY_HELD", "step", "steps"]
+__all__ = ["step", "steps"]

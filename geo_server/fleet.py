@@ -167,7 +167,10 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
     machines = [(s.member, s.service) for s in served]
     try:
         session = await interfaces.start_fleet(args, machines)
-        jit.release()  # the cycles run interpreted until their machine code has loaded
+        # A fleet's cycles start compiled: a hundred machines interpreted would take the
+        # cores the compiler needs (one machine starts interpreted: cli._serve). The
+        # interfaces answer meanwhile, with each machine at its cycle 0.
+        await _load_compiled()
         for s in served:
             s.scheduler.start()
         lag = [0.0]
@@ -220,6 +223,21 @@ def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) 
     if dead and not args.cycles:
         raise CycleStoppedError(f"the GEO cycle of {', '.join(dead)} ended unexpectedly")
     return False
+
+
+async def _load_compiled() -> None:
+    """`jit.load` off the loop; says so when it takes long (a cold cache compiles)."""
+    jit.release()  # (`_run` held it while the interfaces started)
+    loading = asyncio.ensure_future(asyncio.to_thread(jit.load))
+    try:
+        await asyncio.wait_for(asyncio.shield(loading), 2.0)
+    except TimeoutError:
+        print(
+            "compiling the GEO cycle (the first start after an installation or an update: "
+            "about half a minute; the machines' cycles start after it)",
+            flush=True,
+        )
+        await loading
 
 
 async def _cancel(task: asyncio.Future[None]) -> None:

@@ -62,6 +62,7 @@ MODULES = (
     "volcomp/step.py",
     "machine/motion.py",
     "machine/cycle.py",
+    "twin/noise.py",
     "twin/engine.py",
 )
 

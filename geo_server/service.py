@@ -204,8 +204,6 @@ class ObjectService:
         # this process (the twin's sensors, input taps); the cycle process has neither.
         self._engine = scheduler if isinstance(scheduler, Scheduler) else None
         local = machine if isinstance(machine, Machine) else None
-        if self._engine is not None:  # an engine that sleeps at rest: a heartbeat
-            self._engine.idle_wake = min(self._engine.idle_wake, self.limits.stall_after / 2)
         self._dictionary = machine.dictionary
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}

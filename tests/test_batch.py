@@ -98,7 +98,6 @@ def run_pair(
     ref, bat = Machine(cfg, homed=True), Machine(cfg, homed=True)
     names = sorted(ref.names, key=ref.names.__getitem__)
     for m in (ref, bat):
-        m.twin._rng = np.random.default_rng(seed)  # the twin's scatter draws
         m.set_epoch(0)
         m.start_program(program(names))
     rng = np.random.default_rng(seed)

@@ -282,13 +282,15 @@ def test_stepped_and_free_running_give_identical_values(default_cfg):
 def test_realtime_scheduler_runs_and_reports(default_cfg):
     machine = Machine(default_cfg, cycle_s=0.001)
     sched = Scheduler(machine, mode="realtime")
+    service = ObjectService(machine, sched)
     sched.start()
     try:
         deadline = threading.Event()
         deadline.wait(0.3)
+        # a status is an observation: the engine (asleep at rest) catches up to it first
+        st = service.status()
     finally:
         sched.stop()
-    st = sched.status()
     assert st["cycle"] > 50  # ~300 cycles at 1 ms; generous for a loaded CI machine
     assert st["cycle"] == machine.cycle
     assert st["lateness_p50_us"] >= 0 and st["lateness_max_us"] >= st["lateness_p99_us"]

@@ -5,7 +5,7 @@
 the drives and the twin's state (`engine.twin_cycle`) for one cycle or a pass of many —
 the same function in a loop, so a pass gives the numbers of as many single cycles by
 construction. It stops after a cycle that needs Python (its flags): an axis arrived (the
-NC program, the twin's scatter draw), a sensor sample is due, a velocity changed sign, a
+NC program, the twin's scatter draw), a velocity changed sign, a
 volumetric compensation was switched off for its s_limit (`VOLC_OFF`: the report and the
 program stop); before the first cycle when the volumetric compensations need Python
 (`VOLC_PREPARE`: automatic activation, an axis fault); and in the middle of a cycle
@@ -33,18 +33,18 @@ from geo_server.machine.motion import (
     profile_step,
     reversal_in,
 )
-from geo_server.twin.engine import MOTION, SAMPLE, twin_cycle
+from geo_server.twin.engine import MOTION, twin_cycle
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.step import ENDED, FAULT, OFF
 from geo_server.volcomp.step import attention as volc_attention
 from geo_server.volcomp.step import step as volc_step
 
-#: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`SAMPLE`, `MOTION`),
+#: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`MOTION`),
 #: which occupy the low bits: the cycle stopped after its motion to plan a queued move
 PLAN = 1 << 8
-assert not (PLAN & (ARRIVED | START_QUEUED)) and SAMPLE | MOTION < PLAN
 #: the twin's flags, shifted above the motion's
 TWIN_SHIFT = 4
+assert not (PLAN & (ARRIVED | START_QUEUED)) and MOTION << TWIN_SHIFT < PLAN
 #: the volumetric step's flags (`volcomp.step.OFF`, `ENDED`), shifted above `PLAN`
 VOLC_SHIFT = 9
 VOLC_OFF = OFF << VOLC_SHIFT
@@ -83,6 +83,7 @@ def cycles(
     weights: np.ndarray,
     WA: np.ndarray,
     WN: np.ndarray,
+    WSN: np.ndarray,
     WS: np.ndarray,
     WC: np.ndarray,
     amb: np.ndarray,
@@ -132,7 +133,8 @@ def cycles(
             output[i] = out
             if B1[DRIVE, i]:
                 drive_act[i] = out
-        flags |= twin_cycle(WA, WN, WS, WC, amb, MF[VEL], spindle) << TWIN_SHIFT
+        twin = twin_cycle(WA, WN, WSN, WS, WC, amb, MF[VEL], spindle)
+        flags |= (twin & MOTION) << TWIN_SHIFT
         if flags:
             return done + 1, flags | ended
     return count, ended

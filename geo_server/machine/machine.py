@@ -346,6 +346,7 @@ class Machine:
                 *k.arrays(),
                 tw.A,
                 tw.N,
+                tw.SN,
                 tw.S,
                 tw.C,
                 tw.amb,

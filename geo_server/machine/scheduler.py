@@ -66,15 +66,15 @@ OBSERVED_S = 0.02
 #: exact engine: the most cycles of a steady stretch computed in one pass
 #: (`Machine.run_batch`)
 BATCH_MAX = 64
-#: exact engine: how long it sleeps at rest (seconds). Catching up at rest costs a few
-#: microseconds per skipped thermal event of the twin (one per 10 ms), so waking more
-#: often would buy a request no latency, while each wake costs about 0.4 ms of cold
-#: caches whatever it skips (the engine alone: 0.68 % of a core at 0.1 s, 0.38 % at
-#: 0.25 s). The wake keeps the machine's heartbeat fresh for the stall watch
-#: (`ServiceLimits.stall_after`, 0.5 s; the service wakes it at least every half of
-#: that, and tries a catch-up before it calls a cycle stalled). The cycle process wakes
-#: every `IDLE_WAKE_PROCESS`: its server counts it dead after `SYNC_DEAD`.
-IDLE_WAKE = 0.25
+#: exact engine: how long it sleeps at rest (seconds). Catching up at rest is the
+#: twin's events of the stretch (a thermal update every 10 ms, the sensor samples) in
+#: one compiled call — tens of microseconds for a second — so waking more often would
+#: buy a request no latency, while each wake costs the thread's wake-up and the Python
+#: around the call (the engine alone at rest: 0.15 % of a core at 0.25 s, 2026-11-28).
+#: An older heartbeat is no stall: the stall watch (`ServiceLimits.stall_after`) first
+#: catches up without waiting. The cycle process wakes every `IDLE_WAKE_PROCESS`: its
+#: server counts it dead after `SYNC_DEAD`.
+IDLE_WAKE = 1.0
 IDLE_WAKE_PROCESS = 0.1
 #: exact engine: the most cycles computed to let a standing machine become quiescent
 #: (a ramp runs out) before a long catch-up would give its cycles up (`_reachable`)

@@ -38,6 +38,7 @@ from geo_server.faults import OPEN_CIRCUIT_C
 from geo_server.jit import compiled
 from geo_server.kernel.tables import Packer, interp
 from geo_server.twin.model import AxisTwin, Curve, RigidBody, TwinConfig
+from geo_server.twin.noise import STATE, normal, seed
 from geo_server.twin.volumetric import rigid_tables
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.evaluator import Evaluator
@@ -67,19 +68,31 @@ V_SCALE = 1e-7
     EXP_COEF,
     EXP_REF,
     EXP_NODE,
-) = range(15)
-NA = 15
+    AXIS_SENSOR,  # the sensor shown on the axis (−1: none)
+    SENSOR_TEMP,  # TWIN::sensor_temperature: its sensor's value, else the reference
+) = range(17)
+NA = 17
 # per thermal node: temperature, 1 − e^(−dt/τ), motion gain, spindle gain, motion axis
 NODE_TEMP, NODE_K, MOTION_GAIN, SPINDLE_GAIN, MOTION_SLOT = range(5)
 NN = 5
+# per sensor: its node, its noise σ and the σ a "noisy" fault adds, its resolution (and
+# 1/resolution when that is a whole number: the decimal it shows), its period, the time
+# of its next sample, its value, its fault (`FAULTS`)
+S_NODE, S_NOISE, S_EXTRA, S_RES, S_INV_RES, S_PERIOD, S_DUE, S_VALUE, S_FAULT = range(9)
+NSN = 9
+#: the sensor faults (docs/faults.md), by their code in the row S_FAULT
+FAULTS = ("", "stuck", "noisy", "open")
+STUCK, OPEN = 1, 3
 # scalars: simulated seconds per cycle, the next sample's time, the ambient
-# temperature, whether it is held (a climate chamber), the reference temperature
-DT, NEXT_SAMPLE, AMBIENT, HELD, T_REF = range(5)
-NS = 5
+# temperature, whether it is held (a climate chamber), the reference temperature, the
+# seeded noise's stream (`noise`, its six values from RNG)
+DT, NEXT_SAMPLE, AMBIENT, HELD, T_REF, RNG = range(6)
+NS = RNG + STATE
 CYCLES, EVERY = range(2)  # integer scalars: cycles run, cycles between thermal updates
 NC = 2
-#: `twin_cycle`'s result: a sensor sample is due; a velocity changed sign
-SAMPLE, MOTION = 1, 2
+#: `twin_cycle`'s result: it took a sensor sample; a velocity changed sign (the scatter
+#: of an arrival: `TwinEngine.events`, Python's)
+SAMPLED, MOTION = 1, 2
 
 
 def _curve(c: Curve, tab: Packer) -> tuple[int, int]:
@@ -110,7 +123,9 @@ class TwinEngine:
         #: are views of them
         self.A = np.zeros((NA, n))
         self.N = np.zeros((NN, len(cfg.nodes)))
+        self.SN = np.zeros((NSN, len(cfg.sensors)))
         self.S = np.zeros(NS)
+        self.S[RNG:] = seed(cfg.seed)
         self.C = np.zeros(NC, dtype=np.int64)
         self.S[DT] = self.dt = cycle_s * self.time_scale  # simulated seconds per cycle
         #: stretches at rest (`advance`) in which a thermal update or a sensor sample ran
@@ -123,7 +138,6 @@ class TwinEngine:
         self.direction, self._scatter_now, self._offset = a[DIRECTION], a[SCATTER_NOW], a[OFFSET]
         self._line_a, self._line_b = a[LINE_A], a[LINE_B]
         self.direction[:] = [float(ax.reference_direction) for ax in axes]
-        self._rng = np.random.default_rng(cfg.seed)
         self._sign = np.zeros(n)
         self._still = np.zeros(n)  # the velocities of a machine at rest
         self._setup_geometry(axes, slot)
@@ -307,25 +321,35 @@ class TwinEngine:
         # sensors: the node each reads, the axis it is shown on, its noise and resolution
         sensors = list(cfg.sensors)
         self.sensor_names = [s.name for s in sensors]
-        self.sensor_node = np.array([index[s.node] for s in sensors], dtype=int)
-        self.sensor_noise = np.array([s.noise for s in sensors])
-        self.sensor_res = np.array([s.resolution for s in sensors])
-        self.sensor_period = np.array([s.period for s in sensors])
-        self.sensor_due = np.zeros(len(sensors))  # next sample time
-        self.sensor_value = np.array(
-            [_quantize(self.node_temp[index[s.node]], s.resolution) for s in sensors]
+        sn = self.SN
+        sn[S_NODE] = [index[s.node] for s in sensors]
+        self.sensor_noise, self.sensor_res = sn[S_NOISE], sn[S_RES]
+        self.sensor_period, self.sensor_due, self.sensor_value = (
+            sn[S_PERIOD],
+            sn[S_DUE],
+            sn[S_VALUE],
         )
+        self.sensor_extra_noise = sn[S_EXTRA]  # σ a "noisy" fault adds
+        self.sensor_noise[:] = [s.noise for s in sensors]
+        self.sensor_res[:] = [s.resolution for s in sensors]
+        sn[S_INV_RES] = [_whole_inverse(s.resolution) for s in sensors]
+        self.sensor_period[:] = [s.period for s in sensors]
+        for k, s in enumerate(sensors):
+            self.sensor_value[k] = quantize(
+                self.node_temp[index[s.node]], s.resolution, sn[S_INV_RES, k]
+            )
         n = len(axes)
         #: TWIN::sensor_temperature of each axis: its sensor, else the reference temperature
         self.axis_sensor = np.full(n, -1, dtype=int)
         for k, s in enumerate(sensors):
             if s.axis in slot and self.axis_sensor[slot[s.axis]] < 0:
                 self.axis_sensor[slot[s.axis]] = k
-        self.sensor_temperature = np.full(n, self.t_ref)
+        self.A[AXIS_SENSOR] = self.axis_sensor
+        self.sensor_temperature = self.A[SENSOR_TEMP]
+        self.sensor_temperature[:] = self.t_ref
         self._next_sample = 0.0 if sensors else math.inf
         #: injected sensor faults (geo_server/faults.py): "", "stuck", "noisy", "open"
         self.sensor_fault = [""] * len(sensors)
-        self.sensor_extra_noise = np.zeros(len(sensors))  # σ a "noisy" fault adds
         self._update_lines()
 
     # ------------------------------------------------------------------ the cycle
@@ -340,17 +364,15 @@ class TwinEngine:
     ) -> None:
         """One GEO cycle (see the module docstring): `twin_cycle`, then what it flags
         (`events`), then the outputs (`evaluate`) unless nobody looks at this cycle."""
-        flags = twin_cycle(self.A, self.N, self.S, self.C, self.amb, velocity, spindle)
-        if flags:
+        flags = twin_cycle(self.A, self.N, self.SN, self.S, self.C, self.amb, velocity, spindle)
+        if flags & MOTION:
             self.events(flags, velocity)
         if evaluate:
             self.evaluate(output, command, velocity)
 
     def events(self, flags: int, velocity: np.ndarray) -> None:
-        """What `twin_cycle` left to Python, in the cycle's order: the sensor samples
-        due, then the scatter draws of a velocity that changed sign."""
-        if flags & SAMPLE:
-            self._sample_sensors()
+        """What `twin_cycle` left to Python, after its cycle: the scatter draws of a
+        velocity that changed sign (`MOTION`)."""
         if flags & MOTION:
             sign = self._sign
             np.sign(velocity, out=sign)
@@ -376,12 +398,11 @@ class TwinEngine:
         end = self.cycles + n
         events = 0
         while self.C[CYCLES] < end:
-            thermal, flags = rest_cycles(
-                end, self.A, self.N, self.S, self.C, self.amb, self._still, spindle
+            changed, flags = rest_cycles(
+                end, self.A, self.N, self.SN, self.S, self.C, self.amb, self._still, spindle
             )
-            events += thermal
-            if flags:
-                events += 1
+            events += changed
+            if flags & MOTION:
                 self.events(flags, self._still)
         if events:
             self.rest_events += 1  # the outputs at rest may differ (`Machine.publish`)
@@ -418,10 +439,8 @@ class TwinEngine:
         moving = np.not_equal(sign, 0.0)
         arrived &= ~moving  # was moving, stands now
         np.copyto(self.direction, sign, where=moving)
-        if np.count_nonzero(arrived):  # scatter: a new random error for every approach
-            self._scatter_now[arrived] = (
-                self._rng.normal(size=int(arrived.sum())) * self.scatter[arrived]
-            )
+        for i in np.flatnonzero(arrived):  # scatter: a new random error for every approach
+            self._scatter_now[i] = normal(self.S, RNG) * self.scatter[i]
         np.copyto(self._sign_before, sign)
         self._update_offset()
 
@@ -460,29 +479,6 @@ class TwinEngine:
         lines(self.A, self.N, self.S)
         self._update_offset()
 
-    def _sample_sensors(self) -> None:
-        due = self.sensor_due <= self.time
-        k = np.nonzero(due)[0]
-        # a noisy fault widens the sensor's own noise (the same draws: the random stream
-        # stays the one of a sound sensor)
-        sigma = np.hypot(self.sensor_noise[k], self.sensor_extra_noise[k])
-        raw = self.node_temp[self.sensor_node[k]] + self._rng.normal(size=len(k)) * sigma
-        values = [_quantize(v, r) for v, r in zip(raw, self.sensor_res[k], strict=True)]
-        for j, s in enumerate(k):
-            fault = self.sensor_fault[s]
-            if fault == "stuck":
-                values[j] = self.sensor_value[s]  # the reading it had when it stuck
-            elif fault == "open":
-                values[j] = OPEN_CIRCUIT_C
-        self.sensor_value[k] = values
-        # the next sample one period after the one due (never drifting with dt)
-        self.sensor_due[k] += self.sensor_period[k] * np.ceil(
-            (self.time - self.sensor_due[k]) / self.sensor_period[k] + 1e-12
-        )
-        self._next_sample = float(self.sensor_due.min())
-        has = self.axis_sensor >= 0
-        self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
-
     # ------------------------------------------------------------------ faults
 
     def sensor_index(self, label: str) -> int:
@@ -505,11 +501,16 @@ class TwinEngine:
         on ("" clears it: the next sample reads the node again). An open circuit shows
         at once, as an input terminal reports a broken wire."""
         self.sensor_fault[k] = kind
+        self.SN[S_FAULT, k] = FAULTS.index(kind)
         self.sensor_extra_noise[k] = sigma if kind == "noisy" else 0.0
         if kind == "open":
             self.sensor_value[k] = OPEN_CIRCUIT_C
-            has = self.axis_sensor >= 0
-            self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+            self._show_sensors()
+
+    def _show_sensors(self) -> None:
+        """TWIN::sensor_temperature of the axes with a sensor: its value."""
+        has = self.axis_sensor >= 0
+        self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
 
     # ------------------------------------------------------------------ reload
 
@@ -525,11 +526,10 @@ class TwinEngine:
             if name in old.sensor_names:
                 j = old.sensor_names.index(name)
                 self.sensor_value[k], self.sensor_due[k] = old.sensor_value[j], old.sensor_due[j]
-                self.sensor_fault[k] = old.sensor_fault[j]  # a reload does not mend a wire
-                self.sensor_extra_noise[k] = old.sensor_extra_noise[j]
+                # a reload does not mend a wire
+                self.set_sensor_fault(k, old.sensor_fault[j], old.sensor_extra_noise[j])
         self._next_sample = float(self.sensor_due.min()) if len(self.sensor_due) else math.inf
-        has = self.axis_sensor >= 0
-        self.sensor_temperature[has] = self.sensor_value[self.axis_sensor[has]]
+        self._show_sensors()
         held = old.held_ambient
         if held is not None:
             self.hold_ambient(held)
@@ -537,7 +537,7 @@ class TwinEngine:
             self.direction[:] = old.direction
             self._sign_before[:] = old._sign_before
             self._scatter_now[:] = old._scatter_now
-        self._rng = old._rng
+        self.S[RNG:] = old.S[RNG:]  # the seeded stream goes on
         self._update_lines()
 
 
@@ -677,18 +677,60 @@ def thermal(
 
 
 @compiled
+def quantize(value: float, resolution: float, inverse: float) -> float:
+    """A sensor's reading of `value`: rounded to its resolution (half to even), shown as
+    the decimal k/inverse when 1/resolution is a whole number `inverse` (20.02, not
+    20.020000000000003); a resolution ≤ 0 keeps the value."""
+    if resolution <= 0.0:
+        return value
+    k = np.rint(value / resolution)
+    return float(k / inverse if inverse > 0.0 else k * resolution)
+
+
+@compiled
+def sample(A: np.ndarray, N: np.ndarray, SN: np.ndarray, S: np.ndarray, t: float) -> None:
+    """The sensors due at simulated time `t` take a sample (the module docstring, step 3):
+    the node's temperature plus the seeded noise (`noise.normal`; a "noisy" fault widens
+    σ, with the same draws), rounded to the resolution; a stuck sensor keeps its reading
+    (its draw is taken all the same), an open one reads `OPEN_CIRCUIT_C`. The next sample
+    is one period after the one due (never drifting with dt); the axes show their
+    sensors' readings."""
+    nxt = np.inf
+    for k in range(SN.shape[1]):
+        due = SN[S_DUE, k]
+        if due <= t:
+            sigma = math.hypot(SN[S_NOISE, k], SN[S_EXTRA, k])
+            raw = N[NODE_TEMP, int(SN[S_NODE, k])] + normal(S, RNG) * sigma
+            fault = SN[S_FAULT, k]
+            if fault == OPEN:
+                SN[S_VALUE, k] = OPEN_CIRCUIT_C
+            elif fault != STUCK:
+                SN[S_VALUE, k] = quantize(raw, SN[S_RES, k], SN[S_INV_RES, k])
+            period = SN[S_PERIOD, k]
+            due += period * math.ceil((t - due) / period + 1e-12)
+            SN[S_DUE, k] = due
+        nxt = min(nxt, due)
+    S[NEXT_SAMPLE] = nxt
+    for i in range(A.shape[1]):
+        k = int(A[AXIS_SENSOR, i])
+        if k >= 0:
+            A[SENSOR_TEMP, i] = SN[S_VALUE, k]
+
+
+@compiled
 def twin_cycle(
     A: np.ndarray,
     N: np.ndarray,
+    SN: np.ndarray,
     S: np.ndarray,
     C: np.ndarray,
     amb: np.ndarray,
     velocity: np.ndarray,
     spindle: bool,
 ) -> int:
-    """One cycle of the twin's state (the module docstring, steps 1–2): the time, the
-    motion heat |v|, the thermal update when due. Returns `SAMPLE` (a sensor sample is
-    due) | `MOTION` (a velocity changed sign): `TwinEngine.events`."""
+    """One cycle of the twin's state (the module docstring, steps 1–3): the time, the
+    motion heat |v|, the thermal update when due, the sensor samples due. Returns
+    `SAMPLED` | `MOTION` (a velocity changed sign: `TwinEngine.events`)."""
     c = C[CYCLES] + 1
     C[CYCLES] = c
     flags = 0
@@ -702,8 +744,28 @@ def twin_cycle(
     if c % C[EVERY] == 0:
         thermal(A, N, S, amb, t, spindle)
     if t >= S[NEXT_SAMPLE]:
-        flags |= SAMPLE
+        sample(A, N, SN, S, t)
+        flags |= SAMPLED
     return flags
+
+
+#: `first_sample` when no sample is due (no sensors)
+NEVER = 1 << 62
+
+
+@compiled
+def first_sample(cycles: int, dt: float, due: float) -> int:
+    """The first cycle after `cycles` at which `twin_cycle` flags a sample due at `due`
+    (s): the first c with c·dt ≥ due — the product `twin_cycle` compares, so the same
+    cycle exactly."""
+    if not due < np.inf or dt <= 0.0:
+        return NEVER
+    c = max(cycles + 1, math.ceil(due / dt))
+    while c - 1 > cycles and (c - 1) * dt >= due:
+        c -= 1
+    while c * dt < due:
+        c += 1
+    return c
 
 
 @compiled
@@ -711,6 +773,7 @@ def rest_cycles(
     end: int,
     A: np.ndarray,
     N: np.ndarray,
+    SN: np.ndarray,
     S: np.ndarray,
     C: np.ndarray,
     amb: np.ndarray,
@@ -718,19 +781,36 @@ def rest_cycles(
     spindle: bool,
 ) -> tuple[int, int]:
     """`twin_cycle` at rest (`still`: every velocity 0) until cycle `end` or a cycle
-    that flags something: (thermal updates run, the flags of the cycle it stopped at)."""
-    thermal_updates = 0
+    that needs Python (`MOTION`): (thermal updates and samples run, the flags of the
+    cycle it stopped at).
+    At rest a cycle changes nothing but the counter (|v| adds 0, no sign changes) unless
+    a thermal update or a sample falls in it, so the loop goes from one such cycle to
+    the next — the numbers of every cycle run, at the cost of the events."""
+    events = 0
+    every = C[EVERY]
+    resting = True
+    for i in range(A.shape[1]):
+        resting = resting and A[SIGN_BEFORE, i] == 0.0
     while C[CYCLES] < end:
-        flags = twin_cycle(A, N, S, C, amb, still, spindle)
-        if C[CYCLES] % C[EVERY] == 0:
-            thermal_updates += 1
-        if flags:
-            return thermal_updates, flags
-    return thermal_updates, 0
+        c = C[CYCLES]
+        if resting:
+            nxt = min((c // every + 1) * every, first_sample(c, S[DT], S[NEXT_SAMPLE]), end)
+            C[CYCLES] = nxt - 1
+        flags = twin_cycle(A, N, SN, S, C, amb, still, spindle)
+        if C[CYCLES] % every == 0 or flags & SAMPLED:
+            events += 1
+        if flags & MOTION:
+            return events, flags
+    return events, 0
 
 
-def _quantize(value: float, resolution: float) -> float:
-    return round(round(value / resolution) * resolution, 12) if resolution > 0 else float(value)
+def _whole_inverse(resolution: float) -> float:
+    """1/resolution when it is a whole number (0.1, 0.01 …: the value is shown as that
+    decimal, `quantize`), else 0."""
+    if resolution <= 0:
+        return 0.0
+    inv = round(1.0 / resolution)
+    return float(inv) if abs(inv * resolution - 1.0) < 1e-12 else 0.0
 
 
 __all__ = ["TwinEngine"]

@@ -57,7 +57,6 @@ def run(folder: Path) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     for j, cfg in enumerate(_machines(folder)):
         m = Machine(cfg, homed=True)
-        m.twin._rng = np.random.default_rng(j)
         m.set_epoch(0)
         m.start_program(_program(sorted(m.names, key=m.names.__getitem__)))
         for c in range(CYCLES):

@@ -732,8 +732,12 @@ class ZenohInterface:
             await asyncio.sleep(self.options.publish_period)
 
     async def _status_loop(self) -> None:
+        """Put the status every `status_period` while someone subscribes to this
+        machine's keys (as `_publish_loop`: a status is an observation, which makes the
+        exact engine catch up; a get of `cnc/<m>/status` is answered whether or not)."""
+        watch = self._watch
         while True:
-            if self._session is not None:
+            if self._session is not None and (watch is None or _matching(watch)):
                 self._session.put(
                     self._status_ke, json.dumps(self.service.status()).encode(), encoding=JSON
                 )

@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 from common import BENCH, ROOT, emit, table
 
-from geo_server import jit
 from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
@@ -89,6 +88,16 @@ def medians(passes: int, volumetric: bool) -> dict[str, list[float]]:
     return out
 
 
+def load_compiled() -> None:
+    """The cycle's machine code before anything is timed (geo_server/jit.py); a tree
+    from before the compiler (`--against`) has nothing to load."""
+    try:
+        from geo_server import jit
+    except ImportError:
+        return
+    jit.load()
+
+
 def _run(tree: str, passes: int, volumetric: bool) -> dict[str, list[float]]:
     """`medians` in a process of its own with the geo_server of `tree`."""
     env = dict(os.environ, PYTHONPATH=tree)
@@ -133,7 +142,7 @@ def against(tree: str, rounds: int, passes: int, volumetric: bool) -> str:
 
 
 def main() -> None:
-    jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
+    load_compiled()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--passes", type=int, default=300)
     ap.add_argument("--volumetric", action="store_true", help="a volumetric compensation acts")

@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 from common import emit, table
 
-from geo_server import jit
 from geo_server.listfile.loader import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir
@@ -95,6 +94,8 @@ def timed(fn, n: int) -> float:
 
 
 def main() -> None:
+    from geo_server import jit
+
     jit.load()  # the cycle's machine code before anything is timed (geo_server/jit.py)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=5000)

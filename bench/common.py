@@ -280,7 +280,8 @@ def get_status(session: Any, machine: str = "local", timeout: float = 2.0) -> di
 def wait_cycles(
     session: Any, n: int, timeout: float, proc: subprocess.Popen | None = None
 ) -> dict[str, Any]:
-    """Poll the status until the server has run `n` cycles; returns the status."""
+    """Poll the status until the server has run `n` cycles, compiled; returns the
+    status."""
     end = time.monotonic() + timeout
     last: Exception | None = None
     while time.monotonic() < end:
@@ -288,7 +289,9 @@ def wait_cycles(
             raise RuntimeError(f"server exited with {proc.returncode}")
         try:
             st = get_status(session, timeout=1.0)
-            if st["cycle"] >= n:
+            # (and its cycle compiled: a server answers while its machine code loads,
+            # geo_server/jit.py; a status without the field is from before the compiler)
+            if st["cycle"] >= n and st.get("compiled", True):
                 return st
         except TimeoutError as exc:
             last = exc

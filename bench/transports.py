@@ -163,12 +163,12 @@ def bare_round(samples: dict, n: int, seconds: float) -> None:
 
 
 def geo_round(
-    samples: dict, n: int, seconds: float, cycle_ms: float, cycle_in: str
+    samples: dict, n: int, seconds: float, cycle_ms: float, cycle_in: str, engine: str
 ) -> dict[str, Any]:
     """One round against one geo-server (real-time cycle) for every case."""
     zp, mp, ap = free_ports(3)
     ports = {"zenoh": zp, "modbus": mp, "ads": ap}
-    argv = geo_server_argv(cycle_ms, ports, extra=["--cycle-in", cycle_in])
+    argv = geo_server_argv(cycle_ms, ports, extra=["--cycle-in", cycle_in], engine=engine)
     with ServerProcess(argv, f"geo-server-{cycle_in}") as srv:
         session = start_geo(srv, ports)
         try:
@@ -195,7 +195,9 @@ def run(args: argparse.Namespace) -> str:
 
     def geo_rounds() -> None:
         for m in modes:
-            status[m] = geo_round(samples, args.requests, args.seconds, args.cycle_ms, m)
+            status[m] = geo_round(
+                samples, args.requests, args.seconds, args.cycle_ms, m, args.engine
+            )
 
     for r in range(args.rounds):
         print(f"round {r + 1}/{args.rounds}", flush=True)
@@ -230,13 +232,13 @@ def run(args: argparse.Namespace) -> str:
         )
     md = (
         f"### Transports: single-object read vs the bare transport "
-        f"(geo-server cycle {args.cycle_ms} ms real time)\n\n"
+        f"(geo-server cycle {args.cycle_ms} ms real time, {args.engine} engine)\n\n"
         f"{args.rounds} rounds × up to {args.requests} sequential reads or {args.seconds} s "
         "per case and server, pooled; round trip in µs; ratio > 1 = geo-server slower "
         "(target ≤ 1.15×; ADS: no slower than pyads' AdsTestServer). *cycle thread*: the "
-        "GEO cycle on a thread of the server (`--cycle-in thread`); *cycle process* "
-        "(the default): "
-        "`--cycle-in process`.\n\n"
+        "GEO cycle on a thread of the server (`--cycle-in thread`, the exact engine's "
+        "default); *cycle process*: `--cycle-in process` (the punctual engine's default)."
+        "\n\n"
     )
     md += table(
         [
@@ -272,6 +274,9 @@ def main() -> None:
     ap.add_argument("--requests", type=int, default=20_000, help="max reads per case")
     ap.add_argument("--cycle-ms", type=float, default=1.0)
     ap.add_argument("--cycle-in", default="thread,process", help="thread, process or both")
+    ap.add_argument(
+        "--engine", choices=("exact", "punctual"), default="exact", help="default: exact"
+    )
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args()
     args.rounds = args.rounds or (1 if args.quick else 2)

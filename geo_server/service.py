@@ -205,6 +205,7 @@ class ObjectService:
         self._engine = scheduler if isinstance(scheduler, Scheduler) else None
         local = machine if isinstance(machine, Machine) else None
         self._dictionary = machine.dictionary
+        self._resolved: dict[tuple[int, int, int | None], tuple[ObjectDef, int, str | None]] = {}
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
@@ -266,12 +267,13 @@ class ObjectService:
         """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
         heartbeat is checked by a catch-up that does not wait (the exact engine sleeps
         at rest: a late wake is no stall; a hung engine holds its lock)."""
-        if not self.scheduler.running:
-            return 0.0
+        now = time.monotonic()
         if not self._started_at:
-            self._started_at = time.monotonic()
-        age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
-        if age > self.limits.stall_after and self.scheduler.sync(wait=0, record=False):
+            self._started_at = now
+        age = now - max(self.machine.heartbeat, self._started_at)
+        if age <= self.limits.stall_after or not self.scheduler.running:
+            return 0.0  # (the cheap test first: a thread's liveness costs more)
+        if self.scheduler.sync(wait=0, record=False):
             age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
         return age if age > self.limits.stall_after else 0.0
 
@@ -281,8 +283,15 @@ class ObjectService:
         self, index_group: int, index_offset: int, *, port: int | None = None
     ) -> tuple[ObjectDef, int, str | None]:
         """The object, axis and attribute at an address; `port`: the AMS port the request
-        was sent to (a task serves only its own groups: 0x702), None: any."""
-        return self._dictionary.resolve(index_group, index_offset, self.machine.axes, port)
+        was sent to (a task serves only its own groups: 0x702), None: any. Addresses that
+        resolve are remembered (there are only as many as objects × axes × ports; one
+        that does not raises each time)."""
+        key = (index_group, index_offset, port)
+        got = self._resolved.get(key)
+        if got is None:
+            got = self._dictionary.resolve(index_group, index_offset, self.machine.axes, port)
+            self._resolved[key] = got
+        return got
 
     def lookup(self, name: str, axis: int) -> ObjectDef:
         """Object by name for `axis`; 0x703 when the axis does not exist."""

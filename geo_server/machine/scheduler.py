@@ -403,7 +403,9 @@ class Scheduler:
         one due. `record`: time it as what catching up added to a request (status
         `sync_p50_us`/`sync_p99_us`; a status's own catch-up is not one). Other modes:
         nothing to do (True)."""
-        if not self.exact or not self.running_exact:
+        # (started, not `running`: a thread's liveness costs more than the rest of the
+        # fast path; an engine thread that died is caught up by its observers instead)
+        if not self.exact or not (self._thread is not None or self._here):
             return True
         t0 = time.perf_counter_ns()
         now = self._observed_at = self._clock()

@@ -169,6 +169,8 @@ class Interfaces:
         #: connection caps by interface (`connection_caps`)
         self.caps = caps
         self._closers: list[tuple[str, Callable[[], Awaitable[Any]]]] = []
+        #: a fleet's machines by name -> publish its status on Zenoh (from any thread)
+        self.status_publishers: dict[str, Callable[[dict[str, Any]], None]] = {}
 
     @classmethod
     def plan(cls, args: argparse.Namespace, machines: int | None = None) -> Interfaces:
@@ -276,10 +278,23 @@ class Interfaces:
 
         self.closes("the Zenoh session", close_session)
         ifaces = []
-        for m, service in machines:
-            iface = ZenohInterface(service, replace(base, machine=m.name), session=session)
+        for i, (m, service) in enumerate(machines):
+            # No status loop per machine (the fleet publishes every machine's status,
+            # computed off the loop); the rival probes and the looks for subscribers
+            # spread over their periods, the looks ten a second for the whole fleet: a
+            # hundred catch-ups, probes or looks at once kept the loop every machine
+            # shares busy for milliseconds to tens of milliseconds (docs/design.md §13.1).
+            options = replace(
+                base,
+                machine=m.name,
+                status_period=0.0,
+                watch_recheck=max(base.watch_recheck, len(machines) / 10),
+                spread=i / len(machines),
+            )
+            iface = ZenohInterface(service, options, session=session)
             self.closes(type(iface).__name__, iface.close)
             ifaces.append(iface)
+            self.status_publishers[m.name] = iface.publish_status
         with _starting("zenoh"):  # together: each looks for a rival's token (up to 1 s)
             await asyncio.gather(*(iface.start() for iface in ifaces))
         print(

@@ -27,6 +27,7 @@ import contextlib
 import json
 import signal
 import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -96,8 +97,14 @@ def run_fleet(args: argparse.Namespace) -> int:
     return code
 
 
-def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, Any]:
+def fleet_status(
+    served: list[Served],
+    loop_lag_ms: float = 0.0,
+    publish: Mapping[str, Callable[[dict[str, Any]], None]] | None = None,
+) -> dict[str, Any]:
     """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals.
+    Each machine's own status is handed to `publish[name]` on the way (its Zenoh
+    status: a fleet computes them here, off the event loop, not each machine on it).
 
     Starvation shows too (docs/design.md §13.1): `loop_lag_ms`, how late the event loop
     that serves every machine ran a timer in the last status period, and per machine
@@ -107,22 +114,9 @@ def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, An
     machines = []
     for s in served:
         st = s.service.status()
-        notes = st.get("ads_notifications") or {}
-        late = int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0))
-        machines.append(
-            {
-                "name": s.member.name,
-                "cycle": st["cycle"],
-                "engine": st["engine"],
-                "overruns": st["overruns"],
-                "stalled": st["stalled"],
-                "computed_cycles": st["computed_cycles"],
-                "notifications": int(notes.get("registrations", 0)),
-                "samples_late": late,
-                "netid": s.member.netid,
-                "modbus_port": s.member.modbus_port,
-            }
-        )
+        if publish is not None and s.member.name in publish:
+            publish[s.member.name](st)
+        machines.append(_machine_status(s.member, st))
     starved = [
         m["name"] for m, s in zip(machines, served, strict=True) if m["samples_late"] > s.late
     ]
@@ -136,6 +130,23 @@ def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, An
         "loop_lag_ms": round(loop_lag_ms, 1),
         "samples_late": sum(m["samples_late"] for m in machines),
         "starved": starved,
+    }
+
+
+def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
+    """A machine's entry in the fleet's status, from its own status `st`."""
+    notes = st.get("ads_notifications") or {}
+    return {
+        "name": member.name,
+        "cycle": st["cycle"],
+        "engine": st["engine"],
+        "overruns": st["overruns"],
+        "stalled": st["stalled"],
+        "computed_cycles": st["computed_cycles"],
+        "notifications": int(notes.get("registrations", 0)),
+        "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
+        "netid": member.netid,
+        "modbus_port": member.modbus_port,
     }
 
 
@@ -173,7 +184,8 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         interfaces.closes("the loop lag watch", lambda: _cancel(watch))
         # the fleet's status, computed off the loop once per status period (each machine
         # catches up first: a few hundred machines take tens of milliseconds)
-        current = [await asyncio.to_thread(fleet_status, served)]
+        publish = interfaces.status_publishers
+        current = [await asyncio.to_thread(fleet_status, served, 0.0, publish)]
         latest = [json.dumps(current[0]).encode()]
         if args.http:  # its page shows the fleet's status: once the cycles run
             await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
@@ -191,7 +203,7 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), args.status_period)
             worst, lag[0] = lag[0], 0.0
-            st = current[0] = await asyncio.to_thread(fleet_status, served, worst)
+            st = current[0] = await asyncio.to_thread(fleet_status, served, worst, publish)
             latest[0] = json.dumps(st).encode()
             if session is not None:
                 session.put(FLEET_STATUS_KEY, latest[0])

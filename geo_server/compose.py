@@ -20,7 +20,7 @@ import sys
 from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from geo_server.descriptors import MIN_CAP, AcceptLog, DescriptorError, plan
 from geo_server.dictionary import GEO_AMS_PORT
@@ -31,6 +31,9 @@ from geo_server.machine.port import CycleRunner, MachinePort
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import MachineConfig
 from geo_server.service import ObjectService, ServiceLimits
+
+if TYPE_CHECKING:
+    from geo_server.transports.share import LoopShare
 
 
 @dataclass(frozen=True)
@@ -225,14 +228,18 @@ class Interfaces:
         """A fleet's interfaces (fleet.py), those not turned off: one Zenoh session with a
         machine's keys per machine, a Modbus port per machine, one ADS port routing by
         AMS NetId, one OPC UA server. The Zenoh session (None without Zenoh), for the
-        fleet's status."""
+        fleet's status. Each machine's Modbus and ADS requests draw on one share of the
+        event loop (`transports.share`, docs/design.md §13.1)."""
+        from geo_server.transports.share import LoopShare
+
+        shares = [LoopShare() if len(machines) > 1 else None for _ in machines]
         session = None
         if not args.no_zenoh:
             session = await self._fleet_zenoh(args, machines)
         if not args.no_modbus:
-            await self._fleet_modbus(args, machines)
+            await self._fleet_modbus(args, machines, shares)
         if not args.no_ads:
-            await self._fleet_ads(args, machines)
+            await self._fleet_ads(args, machines, shares)
         if not args.no_opcua:
             services = {m.name: service for m, service in machines}
             where = args.fleet or args.startup  # the certificate beside the fleet file
@@ -305,20 +312,26 @@ class Interfaces:
         return session
 
     async def _fleet_modbus(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
+        self,
+        args: argparse.Namespace,
+        machines: Sequence[tuple[Member, ObjectService]],
+        shares: Sequence[LoopShare | None],
     ) -> None:
         from geo_server.transports.modbus.server import ModbusInterface
 
-        for m, service in machines:
+        for (m, service), share in zip(machines, shares, strict=True):
             options = _modbus_options(
                 args, m.modbus_port, max_connections=self.caps["modbus"], backlog=FLEET_BACKLOG
             )
-            await self.start("modbus", ModbusInterface(service, options))
+            await self.start("modbus", ModbusInterface(service, options, share))
         first, last = machines[0][0].modbus_port, machines[-1][0].modbus_port
         print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
 
     async def _fleet_ads(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
+        self,
+        args: argparse.Namespace,
+        machines: Sequence[tuple[Member, ObjectService]],
+        shares: Sequence[LoopShare | None],
     ) -> None:
         from geo_server.transports.ads.server import AdsServer
 
@@ -326,9 +339,10 @@ class Interfaces:
         ads = AdsServer(
             service,
             _ads_options(args, head.netid, listener=True, max_connections_fleet=self.caps["ads"]),
+            share=shares[0],
         )
-        for m, other in machines[1:]:
-            ads.add_device(other, _ads_options(args, m.netid))
+        for (m, other), share in zip(machines[1:], shares[1:], strict=True):
+            ads.add_device(other, _ads_options(args, m.netid), share)
         await self.start(
             "ads",
             ads,

@@ -55,6 +55,7 @@ class Served:
     service: Any
     scheduler: Any
     late: int = 0  # samples late at the last fleet status (`starved`)
+    holds: int = 0  # loop-share holds at the last fleet status (`throttled`)
 
 
 def run_fleet(args: argparse.Namespace) -> int:
@@ -110,7 +111,10 @@ def fleet_status(
     that serves every machine ran a timer in the last status period, and per machine
     `samples_late`, its notification samples taken later than their cycle (the loop or
     the engine could not keep up, `ads_notifications` of its status); `starved` lists
-    the machines whose count grew since the last status."""
+    the machines whose count grew since the last status. Per machine `loop_share_holds`
+    counts how often its ADS and Modbus requests waited for its share of the loop
+    (`loop_share` of its status); `throttled` lists the machines held back since the
+    last status: their clients ask more than their share."""
     machines = []
     for s in served:
         st = s.service.status()
@@ -120,8 +124,12 @@ def fleet_status(
     starved = [
         m["name"] for m, s in zip(machines, served, strict=True) if m["samples_late"] > s.late
     ]
+    throttled = [
+        m["name"] for m, s in zip(machines, served, strict=True) if m["loop_share_holds"] > s.holds
+    ]
     for m, s in zip(machines, served, strict=True):
         s.late = m["samples_late"]
+        s.holds = m["loop_share_holds"]
     return {
         "machines": machines,
         "count": len(machines),
@@ -130,12 +138,14 @@ def fleet_status(
         "loop_lag_ms": round(loop_lag_ms, 1),
         "samples_late": sum(m["samples_late"] for m in machines),
         "starved": starved,
+        "throttled": throttled,
     }
 
 
 def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
     """A machine's entry in the fleet's status, from its own status `st`."""
     notes = st.get("ads_notifications") or {}
+    share = st.get("loop_share") or {}
     return {
         "name": member.name,
         "cycle": st["cycle"],
@@ -145,6 +155,7 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
         "computed_cycles": st["computed_cycles"],
         "notifications": int(notes.get("registrations", 0)),
         "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
+        "loop_share_holds": int(share.get("holds", 0)),
         "netid": member.netid,
         "modbus_port": member.modbus_port,
     }
@@ -221,7 +232,8 @@ def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) 
     print(
         f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
         f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
-        f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}",
+        f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}, "
+        f"throttled {len(st['throttled'])}",
         flush=True,
     )
     if args.cycles and all(not s.scheduler.running for s in served):

@@ -230,9 +230,10 @@ class Interfaces:
         AMS NetId, one OPC UA server. The Zenoh session (None without Zenoh), for the
         fleet's status. Each machine's Modbus and ADS requests draw on one share of the
         event loop (`transports.share`, docs/design.md §13.1)."""
-        from geo_server.transports.share import LoopShare
+        from geo_server.transports.share import LoopShare, fleet_rate
 
-        shares = [LoopShare() if len(machines) > 1 else None for _ in machines]
+        rate = fleet_rate(len(machines))
+        shares = [LoopShare(rate) if len(machines) > 1 else None for _ in machines]
         session = None
         if not args.no_zenoh:
             session = await self._fleet_zenoh(args, machines)

@@ -1,15 +1,21 @@
 """A machine's share of the event loop in a fleet (docs/design.md §13.1 *Isolation*).
 
 One event loop answers every machine of a fleet. The loop time a machine's clients take
-— an ADS or Modbus request from the moment it is handled until its answer is written,
-the catch-up of the machine's cycles it causes included — is charged to the machine's
-`LoopShare`: a bucket of loop time that fills at `rate` seconds per second, up to
-`burst` seconds. While a machine's bucket is empty its requests wait (the connection's
-reading paused, or the answering task asleep) until it has filled again, so a client
-that floods one machine is answered at that machine's pace and otherwise sits idle:
-the loop stays free to answer the other machines at once, and the CPU the flood no
-longer takes is theirs too. The machine's other requests are answered in order, only
+— the loop thread's CPU time for an ADS or Modbus request, from its framing until its
+answer is written, the catch-up of the machine's cycles it causes included — is charged
+to the machine's `LoopShare`: a bucket of loop time that fills at `rate` seconds per
+second, up to `burst` seconds. While a machine's bucket is empty its requests wait (the
+connection's reading paused, or the answering task asleep) until it has filled again,
+so a client that floods one machine is answered at that machine's pace and otherwise
+sits idle: the loop stays free to answer the other machines at once, and the CPU the
+flood no longer takes is theirs too. The machine's requests are answered in order, only
 later; nothing is refused or lost.
+
+CPU time, not wall time: wall time includes the waits for the interpreter lock that the
+engine threads cause, and would charge them to whichever machine is being served. On a
+busy host a request costs more CPU time (a Modbus read of a machine at rest: 0.25 ms on
+a quiet 2-core VM, 0.75 ms at a load average of 15), so its clients are held back
+sooner there.
 
 A single machine has no share (None): nobody else is on its loop to protect.
 """
@@ -20,15 +26,21 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-#: The loop time (seconds per second) one machine's requests may take in a fleet: a
-#: tenth, ten times a machine's even share in a fleet of 100, about a thousand ADS
-#: Reads a second. A flood on one machine of a fleet of 100 (bench/fleet_isolation.py)
-#: raised the other machines' p99 by 1.4-1.5x at a tenth, by 2x at 0.15 and 0.25
-#: (docs/benchmarks.md, *Fleet isolation: a share of the loop per machine*).
+#: The loop time (seconds per second) one machine's requests may take in a fleet of ten
+#: machines or more (`fleet_rate`): a tenth, ten times a machine's even share in a fleet
+#: of 100, several hundred ADS Reads a second. A flood on one machine of a fleet of 100
+#: (bench/fleet_isolation.py) raised the other machines' p99 by 1.4-1.5x at a tenth, by
+#: 2x at 0.15 and 0.25 (docs/benchmarks.md, *Fleet isolation: a share of the loop*).
 FLEET_RATE = 0.1
 #: The most loop time a machine that was quiet may take at once (seconds): a burst of
 #: requests (an HMI's screenful of sum reads) is not held back.
 FLEET_BURST = 0.002
+
+
+def fleet_rate(machines: int) -> float:
+    """A machine's share of the loop in a fleet of `machines`: its even share, and at
+    least `FLEET_RATE` (a small fleet has few other machines, and engines, to delay)."""
+    return max(FLEET_RATE, 1.0 / max(1, machines))
 
 
 class LoopShare:
@@ -76,4 +88,4 @@ class LoopShare:
         return seconds
 
 
-__all__ = ["FLEET_BURST", "FLEET_RATE", "LoopShare"]
+__all__ = ["FLEET_BURST", "FLEET_RATE", "LoopShare", "fleet_rate"]

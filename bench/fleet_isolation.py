@@ -16,7 +16,11 @@ it counts as timed out and the connection is opened again):
    and what the server reports about late sampling, when it does);
 3. **flood on machine 1** (notifications gone): `--flood-connections` connections keep
    `--flood-depth` ADS Reads each in flight to machine 1; the probes run against the
-   other machines meanwhile.
+   other machines meanwhile;
+4. `--rounds` more pairs of a quiet phase and a flood, alternated (slow drifts of a
+   shared host then touch both alike): the other machines' round trips pooled over the
+   rounds, both interfaces and machines, and the ratio of their p99 under the flood to
+   the quiet one (the issue's target: at most 2).
 
     python bench/fleet_isolation.py [--quick] [--machines N] [--out FILE] [--pythonpath DIR]
 
@@ -160,10 +164,16 @@ class RawModbus:
 
 
 def probe(
-    targets: list[int], ads_port: int, mb_base: int, seconds: float, timeout: float
+    targets: list[int],
+    ads_port: int,
+    mb_base: int,
+    seconds: float,
+    timeout: float,
+    pooled: dict[int, list[float]] | None = None,
 ) -> dict[str, Any]:
     """Round trips to each target machine (1-based) on ADS and Modbus, interleaved, for
-    `seconds`: per (interface, machine) the summary and the timeouts."""
+    `seconds`: per (interface, machine) the summary and the timeouts; every round trip
+    (s) also appended to `pooled[machine]`."""
     out: dict[str, Any] = {}
     clients: list[tuple[str, int, Any, Any]] = []
     for m in targets:
@@ -190,6 +200,8 @@ def probe(
     for _k, _m, conn, _f in clients:
         conn.close()
     for key, values in rtts.items():
+        if pooled is not None:
+            pooled.setdefault(key[1], []).extend(values)
         us = [v * 1e6 for v in values]
         out[f"{key[0]} m{key[1]}"] = {**summary_us(us), "timeouts": fails[key]}
     return out
@@ -307,6 +319,72 @@ def flood(
     done.value = count[0]
 
 
+def start_flood(args: argparse.Namespace, port: int) -> tuple[Any, Any, Any]:
+    """The flooding client's process, started; (process, stop event, answers)."""
+    ctx = multiprocessing.get_context("spawn")
+    stop, answered = ctx.Event(), ctx.Value("q", 0)
+    flooder = ctx.Process(
+        target=flood,
+        args=(
+            port,
+            BASE_NETID,
+            args.flood_connections,
+            args.flood_depth,
+            stop,
+            answered,
+            args.flood_nice,
+        ),
+        daemon=True,
+    )
+    flooder.start()
+    return flooder, stop, answered
+
+
+def alternate(
+    args: argparse.Namespace, others: list[int], aport: int, mbase: int
+) -> tuple[list[list[Any]], list[str]]:
+    """`--rounds` pairs of a quiet phase and a flood on machine 1, each other machine's
+    round trips (ADS and Modbus) pooled over the rounds: the summary rows and a line with
+    each machine's p99 ratio, flood to quiet."""
+    quiet: dict[int, list[float]] = {}
+    flooded: dict[int, list[float]] = {}
+    answers = []
+    for _ in range(args.rounds):
+        probe(others, aport, mbase, args.seconds, args.timeout, quiet)
+        flooder, stop, answered = start_flood(args, aport)
+        time.sleep(1.0)
+        probe(others, aport, mbase, args.seconds, args.timeout, flooded)
+        stop.set()
+        flooder.join(10)
+        answers.append(answered.value)
+        time.sleep(1.0)
+    out = []
+    ratios = []
+    for m in others:
+        p99 = []
+        for phase, values in (("quiet", quiet[m]), ("flood on m1", flooded[m])):
+            v = summary_us([x * 1e6 for x in values])
+            p99.append(v["p99"] / 1000)
+            out.append(
+                [
+                    f"{args.rounds} rounds: {phase}",
+                    f"m{m}, ADS and Modbus",
+                    v["n"],
+                    v["p50"] / 1000,
+                    v["p99"] / 1000,
+                    v["max"] / 1000,
+                    "",
+                ]
+            )
+        ratios.append(f"m{m} {p99[0]:.1f} -> {p99[1]:.1f} ms ({p99[1] / p99[0]:.2f}x)")
+    line = (
+        f"alternating quiet and flood, {args.rounds} rounds, p99 of the other machines: "
+        f"{', '.join(ratios)}; reads answered on machine 1 per flood: {answers}; "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    return out, [line]
+
+
 def rows(phase: str, result: dict[str, Any]) -> list[list[Any]]:
     return [
         [phase, key, v["n"], v["p50"] / 1000, v["p99"] / 1000, v["max"] / 1000, v["timeouts"]]
@@ -331,11 +409,17 @@ def main() -> None:
         "CPU otherwise competes with the probes: an attacker on another host does not)",
     )
     ap.add_argument("--register-seconds", type=float, default=120.0)
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=2,
+        help="pairs of a quiet phase and a flood after the phases above (0: none)",
+    )
     ap.add_argument("--pythonpath", help="run the server from this source tree")
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
     if args.quick:
-        args.machines, args.seconds = 3, 1.0
+        args.machines, args.seconds, args.rounds = 3, 1.0, min(args.rounds, 1)
     n = args.machines
     zport, aport = free_ports(2)
     mbase = free_range(n, {zport, aport})
@@ -402,29 +486,23 @@ def main() -> None:
             after = probe(targets, aport, mbase, args.seconds, args.timeout)
             out_rows += rows("client gone", after)
             print("after done", flush=True)
-            ctx = multiprocessing.get_context("spawn")
-            stop, answered = ctx.Event(), ctx.Value("q", 0)
-            flooder = ctx.Process(
-                target=flood,
-                args=(
-                    aport,
-                    BASE_NETID,
-                    args.flood_connections,
-                    args.flood_depth,
-                    stop,
-                    answered,
-                    args.flood_nice,
-                ),
-                daemon=True,
-            )
-            flooder.start()
+            flooder, stop, answered = start_flood(args, aport)
             time.sleep(1.0)
             others = [m for m in targets if m != 1] or [1]
             flooded = probe(others, aport, mbase, args.seconds, args.timeout)
+            st = fleet_status(session)
             stop.set()
             flooder.join(10)
             out_rows += rows("flood on m1", flooded)
             notes.append(f"flood: {answered.value} reads answered on machine 1")
+            extra = {k: st.get(k) for k in ("loop_lag_ms", "throttled", "starved")}
+            notes.append(f"fleet status during the flood: {json.dumps(extra)}")
+            time.sleep(1.0)
+            if args.rounds:
+                more, lines = alternate(args, others, aport, mbase)
+                out_rows += more
+                notes += lines
+                print(lines[-1], flush=True)
         finally:
             session.close()
     md = (

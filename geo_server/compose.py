@@ -21,7 +21,7 @@ import sys
 from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from geo_server.descriptors import MIN_CAP, AcceptLog, DescriptorError, plan
 from geo_server.dictionary import GEO_AMS_PORT
@@ -32,6 +32,9 @@ from geo_server.machine.port import CycleRunner, MachinePort
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import MachineConfig
 from geo_server.service import ObjectService, ServiceLimits
+
+if TYPE_CHECKING:
+    from geo_server.transports.share import LoopShare
 
 
 @dataclass(frozen=True)
@@ -171,6 +174,8 @@ class Interfaces:
         #: connection caps by interface (`connection_caps`)
         self.caps = caps
         self._closers: list[tuple[str, Callable[[], Awaitable[Any]]]] = []
+        #: a fleet's machines by name -> publish its status on Zenoh (from any thread)
+        self.status_publishers: dict[str, Callable[[dict[str, Any]], None]] = {}
 
     @classmethod
     def plan(cls, args: argparse.Namespace, machines: int | None = None) -> Interfaces:
@@ -227,14 +232,19 @@ class Interfaces:
         """A fleet's interfaces (fleet.py), those not turned off: one Zenoh session with a
         machine's keys per machine, a Modbus port per machine, one ADS port routing by
         AMS NetId, one OPC UA server. The Zenoh session (None without Zenoh), for the
-        fleet's status."""
+        fleet's status. Each machine's Modbus and ADS requests draw on one share of the
+        event loop (`transports.share`, docs/design.md §13.1)."""
+        from geo_server.transports.share import LoopShare, fleet_rate
+
+        rate = fleet_rate(len(machines))
+        shares = [LoopShare(rate) if len(machines) > 1 else None for _ in machines]
         session = None
         if not args.no_zenoh:
             session = await self._fleet_zenoh(args, machines)
         if not args.no_modbus:
-            await self._fleet_modbus(args, machines)
+            await self._fleet_modbus(args, machines, shares)
         if not args.no_ads:
-            await self._fleet_ads(args, machines)
+            await self._fleet_ads(args, machines, shares)
         if not args.no_opcua:
             await _import_off_loop(_OPCUA_MODULE)
             services = {m.name: service for m, service in machines}
@@ -281,10 +291,23 @@ class Interfaces:
 
         self.closes("the Zenoh session", close_session)
         ifaces = []
-        for m, service in machines:
-            iface = ZenohInterface(service, replace(base, machine=m.name), session=session)
+        for i, (m, service) in enumerate(machines):
+            # No status loop per machine (the fleet publishes every machine's status,
+            # computed off the loop); the rival probes and the looks for subscribers
+            # spread over their periods, the looks ten a second for the whole fleet: a
+            # hundred catch-ups, probes or looks at once kept the loop every machine
+            # shares busy for milliseconds to tens of milliseconds (docs/design.md §13.1).
+            options = replace(
+                base,
+                machine=m.name,
+                status_period=0.0,
+                watch_recheck=max(base.watch_recheck, len(machines) / 10),
+                spread=i / len(machines),
+            )
+            iface = ZenohInterface(service, options, session=session)
             self.closes(type(iface).__name__, iface.close)
             ifaces.append(iface)
+            self.status_publishers[m.name] = iface.publish_status
         with _starting("zenoh"):  # together: each looks for a rival's token (up to 1 s)
             await asyncio.gather(*(iface.start() for iface in ifaces))
         print(
@@ -295,20 +318,26 @@ class Interfaces:
         return session
 
     async def _fleet_modbus(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
+        self,
+        args: argparse.Namespace,
+        machines: Sequence[tuple[Member, ObjectService]],
+        shares: Sequence[LoopShare | None],
     ) -> None:
         from geo_server.transports.modbus.server import ModbusInterface
 
-        for m, service in machines:
+        for (m, service), share in zip(machines, shares, strict=True):
             options = _modbus_options(
                 args, m.modbus_port, max_connections=self.caps["modbus"], backlog=FLEET_BACKLOG
             )
-            await self.start("modbus", ModbusInterface(service, options))
+            await self.start("modbus", ModbusInterface(service, options, share))
         first, last = machines[0][0].modbus_port, machines[-1][0].modbus_port
         print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
 
     async def _fleet_ads(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
+        self,
+        args: argparse.Namespace,
+        machines: Sequence[tuple[Member, ObjectService]],
+        shares: Sequence[LoopShare | None],
     ) -> None:
         from geo_server.transports.ads.server import AdsServer
 
@@ -316,9 +345,10 @@ class Interfaces:
         ads = AdsServer(
             service,
             _ads_options(args, head.netid, listener=True, max_connections_fleet=self.caps["ads"]),
+            share=shares[0],
         )
-        for m, other in machines[1:]:
-            ads.add_device(other, _ads_options(args, m.netid))
+        for (m, other), share in zip(machines[1:], shares[1:], strict=True):
+            ads.add_device(other, _ads_options(args, m.netid), share)
         await self.start(
             "ads",
             ads,

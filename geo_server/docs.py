@@ -408,6 +408,16 @@ def limits_table() -> str:
         f"| Modbus | one frame (MBAP + PDU) | {MAX_ADU} bytes | protocol | "
         "a header announcing more closes the connection |"
     )
+    from geo_server.transports.share import FLEET_BURST, FLEET_RATE
+
+    lines.append(
+        "| ADS, Modbus | event-loop time one fleet machine's requests take (its share: "
+        f"its even share, at least {FLEET_RATE:g}; at most {FLEET_BURST * 1000:g} ms at "
+        f"once) | {FLEET_RATE:g} s per s (10 machines or more) | "
+        "`transports.share.FLEET_RATE`, `FLEET_BURST` | its requests wait, their "
+        "connections' reading paused, until the share is back (`throttled` in the "
+        "fleet's status) |"
+    )
     lines.append(
         f"| lists | one list file | {MAX_LIST_BYTES} bytes | `MAX_LIST_BYTES` | "
         "refused (reload rejected, machine unchanged) |"

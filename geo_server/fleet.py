@@ -27,6 +27,7 @@ import contextlib
 import json
 import signal
 import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,7 @@ class Served:
     service: Any
     scheduler: Any
     late: int = 0  # samples late at the last fleet status (`starved`)
+    holds: int = 0  # loop-share holds at the last fleet status (`throttled`)
 
 
 def run_fleet(args: argparse.Namespace) -> int:
@@ -97,38 +99,38 @@ def run_fleet(args: argparse.Namespace) -> int:
     return code
 
 
-def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, Any]:
+def fleet_status(
+    served: list[Served],
+    loop_lag_ms: float = 0.0,
+    publish: Mapping[str, Callable[[dict[str, Any]], None]] | None = None,
+) -> dict[str, Any]:
     """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals.
+    Each machine's own status is handed to `publish[name]` on the way (its Zenoh
+    status: a fleet computes them here, off the event loop, not each machine on it).
 
     Starvation shows too (docs/design.md §13.1): `loop_lag_ms`, how late the event loop
     that serves every machine ran a timer in the last status period, and per machine
     `samples_late`, its notification samples taken later than their cycle (the loop or
     the engine could not keep up, `ads_notifications` of its status); `starved` lists
-    the machines whose count grew since the last status."""
+    the machines whose count grew since the last status. Per machine `loop_share_holds`
+    counts how often its ADS and Modbus requests waited for its share of the loop
+    (`loop_share` of its status); `throttled` lists the machines held back since the
+    last status: their clients ask more than their share."""
     machines = []
     for s in served:
         st = s.service.status()
-        notes = st.get("ads_notifications") or {}
-        late = int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0))
-        machines.append(
-            {
-                "name": s.member.name,
-                "cycle": st["cycle"],
-                "engine": st["engine"],
-                "overruns": st["overruns"],
-                "stalled": st["stalled"],
-                "computed_cycles": st["computed_cycles"],
-                "notifications": int(notes.get("registrations", 0)),
-                "samples_late": late,
-                "netid": s.member.netid,
-                "modbus_port": s.member.modbus_port,
-            }
-        )
+        if publish is not None and s.member.name in publish:
+            publish[s.member.name](st)
+        machines.append(_machine_status(s.member, st))
     starved = [
         m["name"] for m, s in zip(machines, served, strict=True) if m["samples_late"] > s.late
     ]
+    throttled = [
+        m["name"] for m, s in zip(machines, served, strict=True) if m["loop_share_holds"] > s.holds
+    ]
     for m, s in zip(machines, served, strict=True):
         s.late = m["samples_late"]
+        s.holds = m["loop_share_holds"]
     return {
         "machines": machines,
         "count": len(machines),
@@ -137,6 +139,26 @@ def fleet_status(served: list[Served], loop_lag_ms: float = 0.0) -> dict[str, An
         "loop_lag_ms": round(loop_lag_ms, 1),
         "samples_late": sum(m["samples_late"] for m in machines),
         "starved": starved,
+        "throttled": throttled,
+    }
+
+
+def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
+    """A machine's entry in the fleet's status, from its own status `st`."""
+    notes = st.get("ads_notifications") or {}
+    share = st.get("loop_share") or {}
+    return {
+        "name": member.name,
+        "cycle": st["cycle"],
+        "engine": st["engine"],
+        "overruns": st["overruns"],
+        "stalled": st["stalled"],
+        "computed_cycles": st["computed_cycles"],
+        "notifications": int(notes.get("registrations", 0)),
+        "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
+        "loop_share_holds": int(share.get("holds", 0)),
+        "netid": member.netid,
+        "modbus_port": member.modbus_port,
     }
 
 
@@ -178,7 +200,8 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         interfaces.closes("the loop lag watch", lambda: _cancel(watch))
         # the fleet's status, computed off the loop once per status period (each machine
         # catches up first: a few hundred machines take tens of milliseconds)
-        current = [await asyncio.to_thread(fleet_status, served)]
+        publish = interfaces.status_publishers
+        current = [await asyncio.to_thread(fleet_status, served, 0.0, publish)]
         latest = [json.dumps(current[0]).encode()]
         if args.http:  # its page shows the fleet's status: once the cycles run
             await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
@@ -196,7 +219,7 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), args.status_period)
             worst, lag[0] = lag[0], 0.0
-            st = current[0] = await asyncio.to_thread(fleet_status, served, worst)
+            st = current[0] = await asyncio.to_thread(fleet_status, served, worst, publish)
             latest[0] = json.dumps(st).encode()
             if session is not None:
                 session.put(FLEET_STATUS_KEY, latest[0])
@@ -214,7 +237,8 @@ def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) 
     print(
         f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
         f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
-        f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}",
+        f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}, "
+        f"throttled {len(st['throttled'])}",
         flush=True,
     )
     if args.cycles and all(not s.scheduler.running for s in served):

@@ -69,6 +69,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.access",  # reads and writes by name, over the service's public methods
     "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
+    "geo_server.transports.share",  # a fleet machine's share of the loop, both draw on
 )
 
 

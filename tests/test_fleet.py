@@ -6,11 +6,13 @@ speaks Modbus through pymodbus)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pyads
@@ -101,12 +103,24 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
 
 @pytest.fixture
 def fleet(tmp_path: Path):
-    zport, aport, mport = free_port(), free_port(), free_port()
-    mport2, oport = free_port(), free_port()
+    with served_fleet(tmp_path, [("mill-a", None), ("lathe-b", "127.0.0.1.9.1")]) as f:
+        yield f
+
+
+@contextlib.contextmanager
+def served_fleet(tmp_path: Path, machines: list[tuple[str, str | None]]) -> Iterator[dict]:
+    """`geo-server run --fleet` of `machines` (name, NetId or None for the default),
+    each with a Modbus port of its own; what a test needs to reach it."""
+    zport, aport, oport = free_port(), free_port(), free_port()
+    mports = tuple(free_port() for _ in machines)
     f = tmp_path / "fleet.toml"
     f.write_text(
-        f'[[machine]]\nname = "mill-a"\nmodbus_port = {mport}\n\n'
-        f'[[machine]]\nname = "lathe-b"\nnetid = "127.0.0.1.9.1"\nmodbus_port = {mport2}\n',
+        "\n".join(
+            f'[[machine]]\nname = "{name}"\n'
+            + (f'netid = "{netid}"\n' if netid else "")
+            + f"modbus_port = {port}\n"
+            for (name, netid), port in zip(machines, mports, strict=True)
+        ),
         encoding="utf-8",
     )
     args = [
@@ -131,7 +145,7 @@ def fleet(tmp_path: Path):
     with open(out, "wb") as o, open(tmp_path / "err.txt", "wb") as e:
         proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=o, stderr=e)
     deadline = time.monotonic() + 30
-    while "fleet: 2 machines" not in out.read_text(errors="replace"):
+    while f"fleet: {len(machines)} machines" not in out.read_text(errors="replace"):
         assert proc.poll() is None, (tmp_path / "err.txt").read_text()
         assert time.monotonic() < deadline, out.read_text()
         time.sleep(0.1)
@@ -148,7 +162,7 @@ def fleet(tmp_path: Path):
             "zport": zport,
             "ads": f"127.0.0.1:{aport}",
             "aport": aport,
-            "modbus": (mport, mport2),
+            "modbus": mports,
             "opcua": f"opc.tcp://127.0.0.1:{oport}",
             "out": out,
         }
@@ -157,7 +171,7 @@ def fleet(tmp_path: Path):
         proc.terminate()
         proc.wait(10)
     assert proc.returncode == 0, (tmp_path / "err.txt").read_text()
-    assert "stopped: 2 machines" in out.read_text()
+    assert f"stopped: {len(machines)} machines" in out.read_text()
 
 
 def zget(session: zenoh.Session, key: str) -> list[tuple[str, object]]:

@@ -19,14 +19,17 @@ from __future__ import annotations
 import asyncio
 import socket
 import struct
+import threading
 import time
 
 import pytest
 from conftest import run_in
-from test_fleet import TIMEOUT, fleet, zget  # noqa: F401  (the fixture)
+from test_fleet import TIMEOUT, fleet, served_fleet, zget  # noqa: F401  (the fixture)
 from test_virtual_time import VirtualClock
 
 from geo_server.dictionary import GEO_AMS_PORT, load_dictionary
+from geo_server.fleet import Served, fleet_status
+from geo_server.fleetfile import Member
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -36,6 +39,8 @@ from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsAddr, AmsPacket, Command, TransMode
 from geo_server.transports.ads.server import AdsOptions, AdsServer
 from geo_server.transports.modbus.regmap import register_address
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
+from geo_server.transports.share import LoopShare
 
 D = load_dictionary()
 OFFSET_0 = D.by_name("TEMPC::offset_0")  # constant unless written
@@ -289,3 +294,216 @@ def test_an_on_change_notification_of_a_constant_does_not_make_a_resting_machine
     finally:
         conn.close()
         run_in(loop_thread, ads.close())
+
+
+# ---------------------------------------------------------------------- a flood on one machine
+
+
+class Clock:
+    """A loop-share clock the test holds still, then lets run a thousand times as fast
+    as wall time: a machine's share of the loop fills only when the test says, so
+    whether its requests wait is not a matter of timing."""
+
+    def __init__(self) -> None:
+        self.since: float | None = None
+
+    def __call__(self) -> float:
+        return 0.0 if self.since is None else (time.monotonic() - self.since) * 1000
+
+    def run(self) -> None:
+        self.since = time.monotonic()
+
+
+@pytest.fixture
+def shared(loop_thread):
+    """Three stepped machines behind one ADS port, each with a Modbus port of its own,
+    and a share of the loop per machine (drawn on by both): machine 1's on a clock of
+    the test and small, the others' on the real clock with room for what they are
+    asked."""
+    cfg = load_machine(default_startup_list())
+    clock = Clock()
+    services = [ObjectService(Machine(cfg, homed=True)) for _ in range(3)]
+    shares = [LoopShare(rate=0.05, burst=0.0005, clock=clock)]
+    shares += [LoopShare(rate=0.05, burst=0.1) for _ in range(2)]
+    head = AdsServer(services[0], AdsOptions(port=0, netid="127.0.0.1.1.1"), share=shares[0])
+    for i in (1, 2):
+        head.add_device(services[i], AdsOptions(netid=f"127.0.0.1.{i + 1}.1"), shares[i])
+    modbus = [
+        ModbusInterface(s, ModbusOptions(port=0), share)
+        for s, share in zip(services, shares, strict=True)
+    ]
+    run_in(loop_thread, head.start())
+    for mb in modbus:
+        run_in(loop_thread, mb.start())
+    yield clock, head, modbus, services, shares
+    for mb in modbus:
+        run_in(loop_thread, mb.close())
+    run_in(loop_thread, head.close())
+
+
+def ads_flood(port: int, netid: str, n: int) -> socket.socket:
+    """`n` Reads of TEMPC::offset_0 pipelined to `netid` in one send (invoke ids 1…n)."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT)
+    src, dst = AmsAddr("10.8.0.1.1.1", 30000), AmsAddr(netid, GEO_AMS_PORT)
+    s.sendall(
+        b"".join(
+            codec.request_frame(dst, src, Command.READ, codec.read_request(IG, IO, 4), i)
+            for i in range(1, n + 1)
+        )
+    )
+    return s
+
+
+def ads_answers(s: socket.socket, framer: codec.Framer, want: int, block: bool) -> list[int]:
+    """The invoke ids answered on `s` (each answer's ADS code must be 0): until `want`
+    of them (`block`), or those already there."""
+    got: list[int] = []
+    s.settimeout(TIMEOUT if block else 0.05)
+    while len(got) < want:
+        try:
+            chunk = s.recv(1 << 16)
+        except TimeoutError:
+            if block:
+                raise
+            break
+        assert chunk, "the server closed the flooding connection"
+        for ev in framer.feed(chunk):
+            assert isinstance(ev, AmsPacket) and struct.unpack_from("<I", ev.data)[0] == 0
+            got.append(ev.header.invoke_id)
+    return got
+
+
+def wait_for(what: str, cond) -> None:
+    deadline = time.monotonic() + TIMEOUT
+    while not cond():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.01)
+
+
+def test_a_flood_on_one_machine_waits_for_its_share_while_the_others_are_answered(shared) -> None:
+    """Issue 30 item 5: 400 ADS Reads pipelined to machine 1 take more of the loop than
+    its share: machine 1 is held (its connection's reading paused, the requests read
+    waiting) while machines 2 and 3 are answered at once on ADS and Modbus; once its
+    share fills again every flooding Read is answered, once each, in order; machine 1's
+    status and the fleet's say it was throttled, and nobody else was."""
+    clock, head, modbus, services, shares = shared
+    flood = ads_flood(head.port, "127.0.0.1.1.1", 400)
+    framer = codec.Framer()
+    try:
+        wait_for("machine 1 held", lambda: shares[0].holds > 0)
+        # machine 1's share does not fill while the clock stands: the flood waits...
+        other = Ads(head.port, "10.8.0.2.1.1")
+        try:
+            for _ in range(3):
+                for netid in ("127.0.0.1.2.1", "127.0.0.1.3.1"):
+                    assert other.read(netid)[0] == 0
+                for mb in modbus[1:]:
+                    assert modbus_read(mb.port) == 0
+        finally:
+            other.close()
+        early = ads_answers(flood, framer, 400, block=False)
+        assert len(early) < 400  # ...while the other machines were answered
+        assert head.stats.held_requests > 0
+        # ...and is served once the share fills again
+        clock.run()
+        got = early + ads_answers(flood, framer, 400 - len(early), block=True)
+        assert got == list(range(1, 401))
+    finally:
+        flood.close()
+    assert shares[1].holds == shares[2].holds == 0
+    assert services[0].status()["loop_share"]["holds"] == shares[0].holds > 0
+    assert services[1].status()["loop_share"]["holds"] == 0
+    # the fleet's status names the machine held back since its last status
+    served = [
+        Served(Member(f"m{i + 1}", default_startup_list(), f"127.0.0.1.{i + 1}.1", 0), s, None)
+        for i, s in enumerate(services)
+    ]
+    status = fleet_status(served)
+    assert status["throttled"] == ["m1"]
+    assert [m["loop_share_holds"] > 0 for m in status["machines"]] == [True, False, False]
+    assert fleet_status(served)["throttled"] == []  # nothing held since
+
+
+def test_a_modbus_flood_on_one_machine_waits_for_its_share(shared) -> None:
+    """The same share holds a machine's Modbus requests: 200 pipelined reads to machine
+    1's port wait (the connection stops reading at `max_pipeline` queued), machine 2's
+    port answers meanwhile, and every read is answered in order once the share is back."""
+    clock, _head, modbus, _services, shares = shared
+    req = struct.pack(">HHBBHH", 0, 6, 1, 3, register_address(OFFSET_0), 2)
+    with socket.create_connection(("127.0.0.1", modbus[0].port), timeout=TIMEOUT) as s:
+        s.sendall(b"".join(struct.pack(">H", tid) + req for tid in range(1, 201)))
+        wait_for("machine 1 held", lambda: modbus[0].held_requests > 0)
+        assert modbus_read(modbus[1].port) == 0
+        clock.run()
+        buf = b""
+        while len(buf) < 200 * 13:
+            chunk = s.recv(1 << 16)
+            assert chunk
+            buf += chunk
+    tids = [struct.unpack_from(">H", buf, i * 13)[0] for i in range(200)]
+    assert tids == list(range(1, 201))
+    assert all(buf[i * 13 + 7] == 3 for i in range(200))  # FC 3 answers, no exception
+    assert shares[0].holds > 0 and shares[1].holds == 0
+
+
+def test_a_flooded_machine_of_a_running_fleet_is_throttled_and_says_so(tmp_path) -> None:
+    """`geo-server run --fleet` of three machines, a client keeping 64 ADS Reads in
+    flight to the first: the others answer ADS, Modbus and Zenoh meanwhile, the flood is
+    answered too (at its machine's share of the loop), and `cnc/fleet/status` lists the
+    flooded machine as throttled, with its holds, and no other; once the flood stops
+    nobody is."""
+    names = [("m-a", None), ("m-b", "127.0.0.1.2.1"), ("m-c", "127.0.0.1.3.1")]
+    with served_fleet(tmp_path, names) as served:
+        stop = threading.Event()
+        answered = [0]
+
+        def flood() -> None:
+            s = ads_flood(served["aport"], MILL, 64)
+            framer = codec.Framer()
+            with s:
+                while not stop.is_set():
+                    got = ads_answers(s, framer, 64, block=False)
+                    answered[0] += len(got)
+                    if got:  # as many again: 64 in flight
+                        src, dst = AmsAddr("10.8.0.1.1.1", 30000), AmsAddr(MILL, GEO_AMS_PORT)
+                        frame = codec.request_frame(
+                            dst, src, Command.READ, codec.read_request(IG, IO, 4), 1
+                        )
+                        s.sendall(frame * len(got))
+
+        flooding = threading.Thread(target=flood, daemon=True)
+        flooding.start()
+        try:
+            status: dict = {}
+
+            def throttled() -> bool:
+                nonlocal status
+                got = zget(served["zenoh"], "cnc/fleet/status")
+                status = got[0][1] if got else {}  # type: ignore[assignment]
+                return status.get("throttled") == ["m-a"]
+
+            other = Ads(served["aport"], "10.8.0.3.1.1")
+            try:
+                deadline = time.monotonic() + 4 * TIMEOUT
+                while not throttled():
+                    assert time.monotonic() < deadline, status
+                    for netid in ("127.0.0.1.2.1", "127.0.0.1.3.1"):
+                        assert other.read(netid)[0] == 0
+                    for port in served["modbus"][1:]:
+                        assert modbus_read(port) == 0
+                    for name in ("m-b", "m-c"):
+                        assert len(zget(served["zenoh"], f"cnc/{name}/axis/1/tempc/offset_0")) == 1
+            finally:
+                other.close()
+            holds = [m["loop_share_holds"] for m in status["machines"]]
+            assert holds[0] > 0 and holds[1:] == [0, 0]
+            assert "throttled 1" in served["out"].read_text()  # the status line says so too
+        finally:
+            stop.set()
+            flooding.join(TIMEOUT)
+        assert answered[0] > 64
+        deadline = time.monotonic() + 4 * TIMEOUT
+        while throttled():
+            assert time.monotonic() < deadline, "still throttled after the flood"
+            time.sleep(0.2)
+        assert status["throttled"] == []

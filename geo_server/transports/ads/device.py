@@ -15,6 +15,7 @@ from geo_server.transports.ads.codec import AmsHeader, AmsPacket, RouterCommand
 from geo_server.transports.ads.notifications import NotificationTable
 from geo_server.transports.ads.options import AdsOptions, AdsStats
 from geo_server.transports.ads.symbols import SymbolTable
+from geo_server.transports.share import LoopShare
 
 
 class Device(Protocol):
@@ -54,6 +55,8 @@ class Port(Protocol):
     options: AdsOptions
     stats: AdsStats
     loop: asyncio.AbstractEventLoop | None
+    #: some machine behind the port has a share of the loop (a fleet)
+    shared: bool
 
     @property
     def connection_count(self) -> int: ...
@@ -62,7 +65,7 @@ class Port(Protocol):
 
     def disconnected(self, conn: Any) -> None: ...
 
-    def take_turn(self, packet: AmsPacket) -> bool: ...
+    def take_turn(self, packet: AmsPacket, shares: list[LoopShare]) -> float | None: ...
 
     def handle_packet(self, conn: Any, packet: AmsPacket) -> None: ...
 

@@ -147,6 +147,7 @@ class AdsStats:
     samples_refused: int = 0
     refused_requests: int = 0  # answered 0x716: `max_connections` at this machine
     deferred_requests: int = 0  # waited for a later loop step (`requests_per_step`)
+    held_requests: int = 0  # waited for the machine's share of the loop (a fleet)
 
 
 def server_version() -> tuple[int, int, int]:

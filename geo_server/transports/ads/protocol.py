@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections import deque
 from collections.abc import Coroutine, Sequence
 from typing import Any, cast
@@ -16,6 +17,7 @@ from geo_server.transports.ads import codec
 from geo_server.transports.ads.codec import AmsPacket, BadPacket, Command, Dropped, StreamError
 from geo_server.transports.ads.connection import Connection
 from geo_server.transports.ads.device import Port
+from geo_server.transports.share import LoopShare
 
 log = logging.getLogger("geo_server.transports.ads.server")
 
@@ -87,41 +89,59 @@ class AdsConnection(Connection, asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         loop = self.server.loop
         now = loop.time() if loop is not None else 0.0
+        start = time.thread_time() if self.server.shared else None
         events = self.receive(data, now)
         if self._queued:  # (reading is paused; what was read already waits its turn)
             self._queued.extend(events)
         else:
-            self._handle(events)
+            self._handle(events, start)
         self._arm_frame_timer()
 
-    def _handle(self, events: Sequence[codec.FrameEvent]) -> None:
+    def _handle(self, events: Sequence[codec.FrameEvent], start: float | None = None) -> None:
         """Serve `events` in order, their answers written in one go (one system call for
         a client that pipelines, not one per answer: the send was a third of a flooded
         machine's cost, docs/benchmarks.md). A request for a machine that has served
         its `requests_per_step` in this loop step waits, with the rest, for the next
         step (reading paused meanwhile): a client pipelining requests to one machine
-        takes that machine's turn, not the other machines' (docs/design.md §13.1)."""
+        takes that machine's turn, not the other machines'. In a fleet, the loop
+        thread's CPU time from `start` (before the bytes were framed, else now) until
+        the answers are written is charged to the loop shares of the machines served,
+        and a request for a machine whose share is used up waits, with the rest, until
+        it is back (docs/design.md §13.1)."""
         self._corked = []
+        shares: list[LoopShare] = []
+        if start is None and self.server.shared:
+            start = time.thread_time()
         try:
-            self._serve_events(events)
+            self._serve_events(events, shares)
         finally:
             self._uncork()
+            if shares and start is not None:
+                self._charge(shares, time.thread_time() - start)
+
+    @staticmethod
+    def _charge(shares: list[LoopShare], seconds: float) -> None:
+        """Split the loop time a batch took among the shares of the requests served
+        (one machine's, as a rule)."""
+        each = seconds / len(shares)
+        first = shares[0]
+        if all(s is first for s in shares):
+            first.charge(each * len(shares))
+            return
+        for s in shares:
+            s.charge(each)
 
     def _uncork(self) -> None:
         corked, self._corked = self._corked, None
         if corked:
             self.send(corked[0] if len(corked) == 1 else b"".join(corked))
 
-    def _serve_events(self, events: Sequence[codec.FrameEvent]) -> None:
+    def _serve_events(self, events: Sequence[codec.FrameEvent], shares: list[LoopShare]) -> None:
         for i, ev in enumerate(events):
             if isinstance(ev, AmsPacket):
-                if not self.server.take_turn(ev):
-                    self._queued.extend(events[i:])
-                    if self.transport is not None and not self.transport.is_closing():
-                        self.transport.pause_reading()
-                    loop = self.server.loop
-                    if loop is not None:
-                        loop.call_soon(self._drain)
+                wait = self.server.take_turn(ev, shares)
+                if wait is not None:
+                    self._wait_turn(events[i:], wait)
                     return
                 self.server.handle_packet(self, ev)
             elif isinstance(ev, codec.RouterCommand):
@@ -142,6 +162,20 @@ class AdsConnection(Connection, asyncio.Protocol):
                 if self.transport is not None:
                     self.transport.close()  # flushes the answers already queued
                 return
+
+    def _wait_turn(self, events: Sequence[codec.FrameEvent], wait: float) -> None:
+        """`events` wait, reading paused, for the next loop step (`wait` 0) or `wait`
+        seconds (`_serve_events`)."""
+        self._queued.extend(events)
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.pause_reading()
+        loop = self.server.loop
+        if loop is None:
+            return
+        if wait > 0.0:
+            loop.call_later(wait, self._drain)
+        else:
+            loop.call_soon(self._drain)
 
     def _drain(self) -> None:
         """A later loop step: serve the requests that waited for their machine's turn."""

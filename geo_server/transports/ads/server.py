@@ -62,6 +62,7 @@ from geo_server.transports.ads.router import CLOSE, Router
 from geo_server.transports.ads.sampling import Sampler
 from geo_server.transports.ads.system import serve_system
 from geo_server.transports.ads.tasks import serve_task
+from geo_server.transports.share import LoopShare
 from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
@@ -75,11 +76,19 @@ class AdsServer:
         service: ObjectService,
         options: AdsOptions | None = None,
         router: AdsServer | None = None,
+        share: LoopShare | None = None,
     ) -> None:
         """`router`: the server that owns the TCP port and routes requests for this
         server's NetId to it (a fleet: one machine per NetId, `add_device`); None: this
-        server listens itself."""
+        server listens itself. `share`: the machine's share of the event loop in a fleet
+        (`transports.share`; its Modbus interface charges the same one), None: no
+        limit."""
         self.service = service
+        self.share = share
+        #: some machine behind the port has a loop share (at the head: time the batches)
+        self.shared = share is not None
+        if share is not None:
+            service.status_extra["loop_share"] = share.status
         self.options = options or AdsOptions()
         self.router = router
         #: the devices this server routes to, by AMS NetId (itself included)
@@ -121,15 +130,19 @@ class AdsServer:
 
     # ------------------------------------------------------------------ lifecycle
 
-    def add_device(self, service: ObjectService, options: AdsOptions) -> AdsServer:
+    def add_device(
+        self, service: ObjectService, options: AdsOptions, share: LoopShare | None = None
+    ) -> AdsServer:
         """Serve another machine on this server's TCP port under its own AMS NetId, as a
-        TwinCAT router routes by target NetId (SPEC §13: a fleet). Start and close it
-        with this one (add devices before `start`)."""
+        TwinCAT router routes by target NetId (SPEC §13: a fleet), with its own share of
+        the loop (`share`, None: no limit). Start and close it with this one (add
+        devices before `start`)."""
         if self.loop is not None:
             raise RuntimeError("add_device() before start()")
         if options.netid in self.devices:
             raise ValueError(f"AMS NetId {options.netid} is served already")
-        device = AdsServer(service, options, router=self)
+        device = AdsServer(service, options, router=self, share=share)
+        self.shared = self.shared or share is not None
         self.devices[options.netid] = device
         # several NetIds behind one port: requests for any other get 0x7, and the port
         # admits the fleet's connections (each machine still at most `max_connections`)
@@ -336,19 +349,31 @@ class AdsServer:
         self.stats.connections += 1
         return True
 
-    def take_turn(self, packet: AmsPacket) -> bool:
-        """Head: may `packet` be served in this loop step? Each machine serves at most
-        `requests_per_step` requests per step (counted at the machine the request
-        targets); the counts start again in the next step."""
+    def take_turn(self, packet: AmsPacket, shares: list[LoopShare]) -> float | None:
+        """Head: may `packet` be served now (None; its machine's loop share, if it has
+        one, is appended to `shares`: the batch's loop time is charged to it)? Or must it
+        wait, with the rest of its connection's requests: for the next loop step (0.0),
+        when its machine has served `requests_per_step` in this one (counted at the
+        machine the request targets; the counts start again in the next step), or that
+        many seconds, when its machine's loop share is used up (a fleet; docs/design.md
+        §13.1)."""
         device = self.devices.get(packet.header.target.netid, self)
+        share = device.share
+        if share is not None:
+            wait = share.wait()
+            if wait:
+                device.stats.held_requests += 1
+                return wait
         if device._served >= self.options.requests_per_step:
             device.stats.deferred_requests += 1
-            return False
+            return 0.0
         device._served += 1
         if not device._step_reset and self.loop is not None:
             device._step_reset = True
             self.loop.call_soon(device._new_step)
-        return True
+        if share is not None:
+            shares.append(share)
+        return None
 
     def _new_step(self) -> None:
         self._served = 0

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass
@@ -66,6 +67,7 @@ from geo_server.transports.modbus.regmap import (
     UnitMap,
     exception_for,
 )
+from geo_server.transports.share import LoopShare
 from geo_server.transports.tcp import BACKLOG, Listener
 
 log = logging.getLogger(__name__)
@@ -117,9 +119,19 @@ _REGULAR = range(0, 0x80)
 class ModbusInterface:
     """Serve one machine's objects over Modbus TCP."""
 
-    def __init__(self, service: ObjectService, options: ModbusOptions | None = None) -> None:
+    def __init__(
+        self,
+        service: ObjectService,
+        options: ModbusOptions | None = None,
+        share: LoopShare | None = None,
+    ) -> None:
+        """`share`: the machine's share of the event loop in a fleet (`transports.share`,
+        the one its ADS device draws on too); None: no limit."""
         self.service = service
         self.options = options or ModbusOptions()
+        self.share = share
+        if share is not None:
+            service.status_extra["loop_share"] = share.status
         self.map = ModbusMap.build(service.info.dictionary)
         #: unit id -> the axis of its objects' index offsets (0: machine-wide)
         self.unit_axis = {MACHINE_UNIT: 0, DIRECT_UNIT: 0}
@@ -137,6 +149,7 @@ class ModbusInterface:
         self.requests = 0
         self.faulted = 0  # requests an injected fault dropped, answered, delayed or cut off
         self.closed_for_framing = 0
+        self.held_requests = 0  # waited for the machine's share of the loop (a fleet)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -318,6 +331,9 @@ class ModbusConnection(asyncio.Protocol):
         self._closing = False  # framing failed: answer what is due, then close
         self._paused = False
         self._stale: asyncio.TimerHandle | None = None
+        #: serving frames as they are read in a fleet: the loop thread's CPU time when
+        #: the machine's share was last charged (`_charge`)
+        self._mark: float | None = None
 
     # asyncio callbacks
 
@@ -338,6 +354,20 @@ class ModbusConnection(asyncio.Protocol):
         self.transport = None
 
     def data_received(self, data: bytes) -> None:
+        if self.iface.share is None:
+            self._receive(data)
+            return
+        # a fleet: the loop thread's CPU time is charged to the machine's share as the
+        # frames are served (`_charge`), so the share is looked at between them
+        self._mark = time.thread_time()
+        try:
+            self._receive(data)
+        finally:
+            self._charge()
+            self._mark = None
+
+    def _receive(self, data: bytes) -> None:
+        """The frames in `data`, answered (`data_received`)."""
         frames = self.framer.feed(data)
         if self.framer.error is not None and not self._closing:
             self.iface.closed_for_framing += 1
@@ -353,11 +383,17 @@ class ModbusConnection(asyncio.Protocol):
 
     def _accept(self, frame: Frame) -> None:
         if self._worker is None and not self._queue:
-            reply = self.iface.handle(frame)
-            if isinstance(reply, bytes):
-                self._send(reply)
+            self._charge()
+            wait = self._share_wait()
+            if not wait:
+                reply = self.iface.handle(frame)
+                if isinstance(reply, bytes):
+                    self._send(reply)
+                else:
+                    self._worker = asyncio.ensure_future(self._run(reply))
                 return
-            self._worker = asyncio.ensure_future(self._run(reply))
+            self._queue.append(frame)
+            self._worker = asyncio.ensure_future(self._run(None, wait))
             return
         self._queue.append(frame)
         if len(self._queue) >= self.iface.options.max_pipeline and not self._paused:
@@ -365,19 +401,62 @@ class ModbusConnection(asyncio.Protocol):
             if self.transport is not None:
                 self.transport.pause_reading()
 
-    async def _run(self, first: Awaitable[bytes]) -> None:
-        """Answer the waiting requests one by one, in order."""
-        reply: bytes | Awaitable[bytes] = first
+    def _serve(self, frame: Frame) -> Awaitable[bytes] | None:
+        """Answer `frame` (`_run`): a reply that is ready is sent now (None), a later one
+        is returned. In a fleet the loop thread's CPU time it took is charged to the
+        machine's share."""
+        share = self.iface.share
+        start = time.thread_time() if share is not None else 0.0
+        reply = self.iface.handle(frame)
+        later = None
+        if isinstance(reply, bytes):
+            self._send(reply)
+        else:
+            later = reply
+        if share is not None:
+            share.charge(time.thread_time() - start)
+        return later
+
+    def _charge(self) -> None:
+        """In `data_received` (a fleet): charge the loop time since the last charge."""
+        share = self.iface.share
+        if share is not None and self._mark is not None:
+            now = time.thread_time()
+            share.charge(now - self._mark)
+            self._mark = now
+
+    def _share_wait(self) -> float:
+        """0.0, or how long (seconds) the next request must wait for the machine's share
+        of the loop (a fleet, docs/design.md §13.1): its connection meanwhile queues up
+        to `max_pipeline` requests, then stops reading."""
+        share = self.iface.share
+        if share is None:
+            return 0.0
+        wait = share.wait()
+        if wait:
+            self.iface.held_requests += 1
+        return wait
+
+    async def _run(self, first: Awaitable[bytes] | None, wait: float = 0.0) -> None:
+        """Answer the waiting requests one by one, in order: `first`'s reply, then the
+        queue's (after `wait` seconds, and whenever the machine's share is used up)."""
         try:
-            while True:
-                self._send(reply if isinstance(reply, bytes) else await reply)
-                if not self._queue:
-                    break
-                reply = self.iface.handle(self._queue.popleft())
+            if wait:
+                await asyncio.sleep(wait)
+            if first is not None:
+                self._send(await first)
+            while self._queue:
+                wait = self._share_wait()
+                if wait:
+                    await asyncio.sleep(wait)
+                    continue
+                later = self._serve(self._queue.popleft())
                 if self._paused and len(self._queue) < self.iface.options.max_pipeline // 2:
                     self._paused = False
                     if self.transport is not None and not self.transport.is_closing():
                         self.transport.resume_reading()
+                if later is not None:
+                    self._send(await later)
         except DropConnection:  # an injected fault: cut the connection, answer nothing
             self._queue.clear()
             self.abort()

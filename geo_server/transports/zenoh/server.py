@@ -70,6 +70,8 @@ class ZenohOptions:
     multicast_scouting: bool = False
     config_file: str | None = None  # a Zenoh JSON5 config for anything else (TLS, ACL)
     publish_period: float = 0.05
+    #: seconds between two publications of `cnc/<m>/status`; 0: none (a fleet's
+    #: machines: the fleet publishes them, `ZenohInterface.publish_status`)
     status_period: float = 1.0
     read_only: bool = False
     #: Milliseconds a new connection has to complete the Zenoh handshake before it is
@@ -95,6 +97,17 @@ class ZenohOptions:
     #: Seconds between two looks for another session answering for this machine (also
     #: done at once when Zenoh reports a matching queryable or a liveliness change).
     rival_check_period: float = 5.0
+    #: Seconds between two looks whether anybody subscribes to this machine, while
+    #: nobody does (Zenoh's matching listener reports it at once; this is in case it
+    #: did not). A look asks Zenoh and takes milliseconds one time in ten when the
+    #: interpreter lock is busy: a fleet looks less often per machine (`compose`).
+    watch_recheck: float = 1.0
+    #: How far (a fraction of their periods, 0 to 1) this machine's periodic looks —
+    #: rival probes, the publish loop's check for subscribers — are shifted after the
+    #: first: the machines of a fleet start together, and a hundred probes or checks at
+    #: once kept the event loop that answers every machine busy for milliseconds to tens
+    #: of milliseconds (docs/design.md §13.1). `compose` spreads a fleet evenly.
+    spread: float = 0.0
 
     def shrink_to(self, connections: int) -> None:
         """Fit sessions and handshakes under way into `connections` descriptors, in
@@ -189,6 +202,8 @@ class ZenohInterface:
         self._session: zenoh.Session | None = None
         self._watch: zenoh.Publisher | None = None
         self._watched: asyncio.Event | None = None  # set while a subscriber matches
+        #: whether a subscriber matches `cnc/<m>/**` (no watch publisher: always)
+        self._watching = True
         self._entities: list[Any] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -259,8 +274,10 @@ class ZenohInterface:
         # the publish loop sleeps while nobody listens; a new subscriber wakes it
         self._watched = asyncio.Event()
         self._entities.append(self._watch.declare_matching_listener(self._on_watch))
+        self._watching = _matching(self._watch)
         self._spawn(self._publish_loop())
-        self._spawn(self._status_loop())
+        if self.options.status_period > 0:
+            self._spawn(self._status_loop())
         self._spawn(self._rival_loop())
 
     async def close(self) -> None:
@@ -572,6 +589,7 @@ class ZenohInterface:
         self._to_loop(self._matching_changed, bool(status.matching))
 
     def _on_watch(self, status: zenoh.MatchingStatus) -> None:
+        self._watching = bool(status.matching)  # (a flag: read from any thread)
         self._to_loop(self._watch_changed, bool(status.matching))
 
     def _watch_changed(self, matching: bool) -> None:
@@ -596,17 +614,27 @@ class ZenohInterface:
             self._probe_wanted.set()
 
     async def _rival_loop(self) -> None:
-        """Look for rivals now, on every hint from Zenoh, and every `rival_check_period`."""
+        """Look for rivals now, on every hint from Zenoh, and every `rival_check_period`
+        (the first period longer by `spread` of it)."""
         assert self._probe_wanted is not None
+        loop = asyncio.get_running_loop()
+        shift = self.options.spread * self.options.rival_check_period
         while True:
             self._probe_wanted.clear()
-            self._start_probe()
+            if self._session is not None:
+                self._probes_started += 1
+                # a worker thread: Zenoh starts a thread for the replies' callbacks, and
+                # starting one waits for the interpreter lock (milliseconds in a fleet)
+                await loop.run_in_executor(None, self._start_probe, self._probes_started)
             await asyncio.sleep(PROBE_MIN_GAP_S)
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._probe_wanted.wait(), self.options.rival_check_period)
+                period = self.options.rival_check_period + shift
+                await asyncio.wait_for(self._probe_wanted.wait(), period)
+            shift = 0.0
 
-    def _start_probe(self) -> None:
-        """Ask every *other* session's queryables for `cnc/<m>/status` (no waiting).
+    def _start_probe(self, number: int) -> None:
+        """Ask every *other* session's queryables for `cnc/<m>/status` (no waiting);
+        `number`: the probe's, counted on the loop.
 
         The replies name their sender (`Reply.replier_id`); the answer is evaluated
         when Zenoh ends the query (all answered, or `PROBE_TIMEOUT_S`).
@@ -614,8 +642,6 @@ class ZenohInterface:
         session = self._session
         if session is None:
             return
-        self._probes_started += 1
-        number = self._probes_started
         found: set[str] = set()
 
         def on_reply(reply: zenoh.Reply) -> None:
@@ -713,14 +739,19 @@ class ZenohInterface:
         }
         watch, watched = self._watch, self._watched
         last: Snapshot | None = None
+        recheck = self.options.watch_recheck
+        shift = self.options.spread * recheck
         while True:
             if watch is not None and watched is not None and not _matching(watch):
+                self._watching = False
                 # nobody listens: wait for the matching listener (no polling at rest),
                 # and look again now and then in case a status change went unreported
                 watched.clear()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(watched.wait(), WATCH_RECHECK_S)
+                    await asyncio.wait_for(watched.wait(), recheck + shift)
+                shift = 0.0
                 continue
+            self._watching = True
             snap = self.service.current(stale_ok=True)  # the cycle due now (docs/design.md §13)
             if self._session is not None and (last is None or snap.cycle != last.cycle):
                 for obj, axis in snap.changed(last):
@@ -735,13 +766,19 @@ class ZenohInterface:
         """Put the status every `status_period` while someone subscribes to this
         machine's keys (as `_publish_loop`: a status is an observation, which makes the
         exact engine catch up; a get of `cnc/<m>/status` is answered whether or not)."""
-        watch = self._watch
         while True:
-            if self._session is not None and (watch is None or _matching(watch)):
-                self._session.put(
-                    self._status_ke, json.dumps(self.service.status()).encode(), encoding=JSON
-                )
+            if self._watching:
+                self.publish_status(self.service.status())
             await asyncio.sleep(self.options.status_period)
+
+    def publish_status(self, status: dict[str, Any]) -> None:
+        """Put the machine's `status` on `cnc/<m>/status`; from any thread. A fleet's
+        machines have no status loop (`status_period` 0): the fleet computes every
+        machine's status off the event loop once per period and publishes it here
+        (docs/design.md §13.1)."""
+        session = self._session
+        if session is not None and self._watching:
+            session.put(self._status_ke, json.dumps(status).encode(), encoding=JSON)
 
     def _on_event(self, event: Event) -> None:
         """Cycle thread: hand a new warning/error to the loop for publication. Once the
@@ -752,11 +789,6 @@ class ZenohInterface:
     def _put_event(self, event: Event) -> None:
         if self._session is not None:
             self._session.put(self._errors_ke, json.dumps(event.as_dict()).encode(), encoding=JSON)
-
-
-#: the publish loop looks at the matching status at least this often (seconds) while
-#: nobody listens; the matching listener wakes it at once in the normal case
-WATCH_RECHECK_S = 1.0
 
 
 def fault_command(service: ObjectService, payload: bytes) -> dict[str, Any]:

@@ -375,9 +375,15 @@ class Reservoir:
 
 
 def timed_loop(
-    call: Callable[[], Any], max_requests: int, max_seconds: float, warmup: int = 200
+    call: Callable[[], Any],
+    max_requests: int,
+    max_seconds: float,
+    warmup: int = 200,
+    gap_ms: float = 0.0,
 ) -> tuple[np.ndarray, float]:
-    """Run `call` back to back (closed loop), bounded in count and time.
+    """Run `call` back to back (closed loop), bounded in count and time; with `gap_ms`,
+    a pause drawn uniformly from 0 to `gap_ms` before each call (not timed: open loop at
+    random moments, so a server's cycles run on between requests).
 
     Returns the round-trip times in µs (after `warmup` untimed calls) and requests/s.
     """
@@ -385,9 +391,12 @@ def timed_loop(
         call()
     res = Reservoir(max_requests)
     clock = time.perf_counter_ns
+    gaps = np.random.default_rng(7).uniform(0.0, gap_ms / 1000, 1 << 16)
     start = clock()
     end = start + int(max_seconds * 1e9)
     while res.n < max_requests:
+        if gap_ms:
+            time.sleep(gaps[res.n & 0xFFFF])
         t0 = clock()
         call()
         t1 = clock()

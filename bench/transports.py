@@ -7,7 +7,11 @@ server alone in its own process. Rounds alternate bare and geo-server; the sampl
 rounds are pooled. Reported: p50/p99 round trip, requests/s and the ratios geo/bare
 (latency) and bare/geo (throughput) — both > 1 mean geo-server is slower.
 
-    python bench/transports.py [--quick] [--rounds N] [--seconds S] [--out FILE]
+    python bench/transports.py [--quick] [--rounds N] [--seconds S] [--gap-ms G] [--out FILE]
+
+`--gap-ms 10`: each read after a pause of 0 to 10 ms drawn at random (not timed), so the
+exact engine has cycles to catch up on before it answers; requests/s then counts the
+pauses too and is not compared.
 
 The object is TEMPC::coefficient of axis 1 (REAL64): Zenoh key
 `cnc/local/ads/551/0x120300/0x10043` (raw bytes; also the JSON key
@@ -141,11 +145,15 @@ CASES: list[tuple[str, str, str, Any, Any]] = [
 ]
 
 
+#: pause before each timed read, drawn from 0 to this (ms; `--gap-ms`)
+GAP_MS = [0.0]
+
+
 def measure(factory: Any, arg: Any, n: int, seconds: float) -> tuple[np.ndarray, float]:
     read, close = factory(arg)
     try:
         read()  # first answer proves the server is there
-        return timed_loop(read, n, seconds)
+        return timed_loop(read, n, seconds, gap_ms=GAP_MS[0])
     finally:
         close()
 
@@ -234,7 +242,14 @@ def run(args: argparse.Namespace) -> str:
         f"### Transports: single-object read vs the bare transport "
         f"(geo-server cycle {args.cycle_ms} ms real time, {args.engine} engine)\n\n"
         f"{args.rounds} rounds × up to {args.requests} sequential reads or {args.seconds} s "
-        "per case and server, pooled; round trip in µs; ratio > 1 = geo-server slower "
+        "per case and server, pooled"
+        + (
+            f", each read after a pause of 0–{args.gap_ms:g} ms drawn at random (req/s "
+            "counts the pauses)"
+            if args.gap_ms
+            else ""
+        )
+        + "; round trip in µs; ratio > 1 = geo-server slower "
         "(target ≤ 1.15×; ADS: no slower than pyads' AdsTestServer). *cycle thread*: the "
         "GEO cycle on a thread of the server (`--cycle-in thread`, the exact engine's "
         "default); *cycle process*: `--cycle-in process` (the punctual engine's default)."
@@ -277,8 +292,12 @@ def main() -> None:
     ap.add_argument(
         "--engine", choices=("exact", "punctual"), default="exact", help="default: exact"
     )
+    ap.add_argument(
+        "--gap-ms", type=float, default=0.0, help="pause 0..G ms at random before each read"
+    )
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args()
+    GAP_MS[0] = args.gap_ms
     args.rounds = args.rounds or (1 if args.quick else 2)
     args.cycle_in = [x for x in args.cycle_in.split(",") if x]
     args.seconds = args.seconds or (1.0 if args.quick else 4.0)

@@ -46,6 +46,11 @@ class Member:
     modbus_port: int
 
 
+#: the most machines `--fleet-size` makes (README *Limits*; bench/engine.py measures how
+#: many a 2-core machine serves)
+MAX_FLEET_SIZE = 1000
+
+
 def parse_netid(text: object) -> list[int]:
     """The six bytes of an AMS NetId written `a.b.c.d.e.f` (FleetError otherwise)."""
     parts = str(text).strip().split(".") if isinstance(text, str) else []
@@ -55,19 +60,21 @@ def parse_netid(text: object) -> list[int]:
 
 
 def netid_at(base: str, i: int) -> str:
-    """The i-th machine's AMS NetId: `base` with its fifth byte raised by i (canonical
-    spelling, as routing compares it)."""
+    """The i-th machine's AMS NetId: `base` with its fifth byte raised by i, carrying
+    into the fourth (127.0.0.1.255.1 is followed by 127.0.1.0.0.1; canonical spelling, as
+    routing compares it)."""
     parts = parse_netid(base)
-    if parts[4] + i > 255:
+    number = parts[3] * 256 + parts[4] + i
+    if number > 0xFFFF:
         raise FleetError(f"cannot number {i + 1} machines from AMS NetId {base}")
-    parts[4] += i
+    parts[3], parts[4] = divmod(number, 256)
     return ".".join(str(x) for x in parts)
 
 
 def copies(n: int, name: str, startup: Path, base_netid: str, base_port: int) -> list[Member]:
     """`--fleet-size n`: n machines from one start-up list, named `<name>-1` … `<name>-n`."""
-    if not 1 <= n <= 250:
-        raise FleetError(f"--fleet-size must be between 1 and 250, not {n}")
+    if not 1 <= n <= MAX_FLEET_SIZE:
+        raise FleetError(f"--fleet-size must be between 1 and {MAX_FLEET_SIZE}, not {n}")
     if not NAME.fullmatch(name) or name == "fleet":
         raise FleetError(
             f"--machine {name!r} is not a machine name (letters, digits, _.-): "

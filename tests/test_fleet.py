@@ -60,8 +60,14 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
         "127.0.0.1.3.1",
     ]
     assert [m.name for m in copies(2, "m", a.startup, "127.0.0.1.1.1", 7000)] == ["m-1", "m-2"]
+    # past the fifth byte's 255 the count carries into the fourth, as a number would
+    assert netid_at("127.0.0.1.255.1", 1) == "127.0.0.2.0.1"
+    assert netid_at("127.0.0.1.1.1", 499) == "127.0.0.2.244.1"  # 1*256 + 1 + 499 = 756
     with pytest.raises(FleetError, match="cannot number 2 machines"):
-        netid_at("127.0.0.1.255.1", 1)
+        netid_at("127.0.0.255.255.1", 1)
+    assert len(copies(1000, "m", a.startup, "127.0.0.1.1.1", 7000)) == 1000
+    with pytest.raises(FleetError, match="between 1 and 1000, not 1001"):
+        copies(1001, "m", a.startup, "127.0.0.1.1.1", 7000)
     with pytest.raises(FleetError, match="not an AMS NetId"):
         copies(2, "m", a.startup, "127.0.0.1", 7000)  # a malformed --ads-netid
     for bad in ("a/b", "fleet", "%41", ""):  # --fleet-size N --machine BAD

@@ -343,3 +343,28 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     vc.t += 3000 * P
     sched.sync()
     assert m.overruns == 1 and sched.skipped > 0
+
+
+def test_a_machine_at_rest_wakes_every_second_compiled_every_tenth_interpreted(
+    cfg, monkeypatch
+) -> None:
+    """At rest the engine sleeps `IDLE_WAKE` (1 s) between catch-ups; while the laws
+    still run interpreted a second of rest is slow to catch up, so it wakes every 0.1 s
+    (what a request or the stall watch would otherwise wait for)."""
+    from geo_server import jit
+
+    vc = VirtualClock()
+    sched = Scheduler(
+        Machine(cfg, homed=True), mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep
+    )
+    sched.drive()
+    for _ in range(100):  # a homed machine comes to rest within a few cycles
+        vc.t += 10 * P
+        sched.sync()
+        if sched.machine.quiescent:
+            break
+    assert sched.machine.quiescent
+    now = vc.t
+    assert sched._next_wake(now) == now + 1_000_000_000
+    monkeypatch.setattr(jit, "loaded", lambda: False)
+    assert sched._next_wake(now) == now + 100_000_000

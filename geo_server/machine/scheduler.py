@@ -76,6 +76,11 @@ BATCH_MAX = 64
 #: server counts it dead after `SYNC_DEAD`.
 IDLE_WAKE = 1.0
 IDLE_WAKE_PROCESS = 0.1
+#: at rest while the laws still run interpreted (the machine code loading, docs/design.md
+#: §13.3): a second of rest then takes tens of milliseconds to catch up, more while the
+#: compiler holds the interpreter lock, and a request (or the stall watch) arriving
+#: meanwhile would wait for it, up to `SYNC_WAIT`
+IDLE_WAKE_INTERPRETED = 0.1
 #: exact engine: the most cycles computed to let a standing machine become quiescent
 #: (a ramp runs out) before a long catch-up would give its cycles up (`_reachable`)
 SETTLE_CYCLES = 64
@@ -646,7 +651,8 @@ class Scheduler:
             return self.t0 + (m.cycle + (self.batch_observed if observed else self.batch)) * (
                 self.period_ns
             )
-        idle = now + int(self.idle_wake * 1e9)
+        wake = self.idle_wake if jit.loaded() else min(self.idle_wake, IDLE_WAKE_INTERPRETED)
+        idle = now + int(wake * 1e9)
         if self._demands:
             # at rest, an observer of chosen cycles: wake for the next one it wants, at
             # most every batch (the cycles of a batch are published together, in order)

@@ -202,10 +202,18 @@ def fleet(engine: str, size: int, seconds: float) -> dict[str, Any]:
     lat: list[float] = []
     failures = 0
     with ServerProcess(argv, f"fleet-{engine}-{size}") as server:
-        wait_port(zport, 60.0, server.proc)
-        wait_port(aport, 60.0, server.proc)
-        wait_port(mbase + size - 1, 60.0, server.proc)
+        started = time.monotonic()
+        wait_port(zport, 120.0, server.proc)
+        wait_port(aport, 120.0, server.proc)
+        wait_port(mbase + size - 1, 120.0, server.proc)
+        ports_open = time.monotonic() - started
+        opcua_ready = wait_log(server, "opcua: ready", 900.0) - started
         settle(server.pid)
+        # at rest, nobody asking: the CPU, the memory and the threads of the whole fleet
+        c0, t0 = _children_cpu(server.pid), time.monotonic()
+        time.sleep(10.0)
+        rest_cpu = 100 * (_children_cpu(server.pid) - c0) / (time.monotonic() - t0)
+        rss_mib, threads = rss_threads(server.pid)
         clients = Clients(ports, machines)
         try:
             c0, t0 = _children_cpu(server.pid), time.monotonic()
@@ -231,7 +239,32 @@ def fleet(engine: str, size: int, seconds: float) -> dict[str, Any]:
         "p99_ms": s["p99"] / 1000,
         "cpu": cpu,
         "serves": failures == 0 and s["p99"] <= 10_000,
+        "ports_open_s": ports_open,
+        "opcua_ready_s": opcua_ready,
+        "rest_cpu": rest_cpu,
+        "rss_mib": rss_mib,
+        "threads": threads,
     }
+
+
+def wait_log(server: ServerProcess, text: str, limit: float) -> float:
+    """When `text` appeared in the server's output (monotonic seconds; the server says
+    when its OPC UA address space is built, which takes minutes for hundreds of
+    machines); now when it does not within `limit` or the server has no OPC UA."""
+    end = time.monotonic() + limit
+    while time.monotonic() < end:
+        log = server.log_text()
+        if text in log or "opcua:" not in log:
+            break
+        time.sleep(0.5)
+    return time.monotonic()
+
+
+def rss_threads(pid: int) -> tuple[float, int]:
+    """The server's resident memory (MiB) and its threads."""
+    status = Path(f"/proc/{pid}/status").read_text().splitlines()
+    fields = dict(line.split(":", 1) for line in status if ":" in line)
+    return int(fields["VmRSS"].split()[0]) / 1024, int(fields["Threads"])
 
 
 def netid(i: int) -> str:
@@ -350,6 +383,10 @@ def main() -> None:
             f"{r['p99_ms']:.2f}",
             f"{r['cpu']:.0f}",
             "yes" if r["serves"] else "no",
+            f"{r['rest_cpu']:.1f}",
+            f"{r['rss_mib']:.0f}",
+            r["threads"],
+            f"{r['ports_open_s']:.0f} / {r['opcua_ready_s']:.0f}",
         ]
         for engine, rs in fleets.items()
         for r in rs
@@ -364,6 +401,10 @@ def main() -> None:
             "p99 ms",
             "server CPU %",
             "every machine, every transport, p99 ≤ 10 ms",
+            "at rest, nobody asking: CPU %",
+            "RSS MiB",
+            "threads",
+            "ports open / OPC UA ready, s",
         ],
         frows,
     )

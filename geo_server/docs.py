@@ -359,6 +359,7 @@ def _fault_and_descriptor_rows() -> list[str]:
     from geo_server.compose import FLEET_BACKLOG
     from geo_server.descriptors import RESERVE
     from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
+    from geo_server.fleetfile import MAX_FLEET_SIZE
     from geo_server.transports.tcp import BACKLOG
 
     return [
@@ -373,6 +374,8 @@ def _fault_and_descriptor_rows() -> list[str]:
         f"| Modbus | accept queue of each machine's port in a fleet | {FLEET_BACKLOG} | "
         "`compose.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
         "4 connections, or the fleet does not start |",
+        f"| fleet | machines of one fleet (`--fleet-size`, a fleet file) | {MAX_FLEET_SIZE} | "
+        "`fleetfile.MAX_FLEET_SIZE` | refused at start |",
         f"| all | descriptors kept for files and the runtime | {RESERVE} | "
         "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",
     ]

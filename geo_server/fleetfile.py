@@ -94,6 +94,8 @@ def load_fleet(path: Path, base_netid: str, base_port: int) -> list[Member]:
     entries = data.get("machine")
     if not isinstance(entries, list) or not entries:
         raise FleetError(f"{path}: no [[machine]] tables")
+    if len(entries) > MAX_FLEET_SIZE:
+        raise FleetError(f"{path}: {len(entries)} machines, at most {MAX_FLEET_SIZE}")
     members: list[Member] = []
     for i, entry in enumerate(entries):
         where = f"{path}: machine {i + 1}"

@@ -239,12 +239,15 @@ class ObjectService:
 
     # ------------------------------------------------------------------ snapshots
 
-    def current(self, *, stale_ok: bool = False) -> Snapshot:
+    def current(self, *, stale_ok: bool = False, wait: float | None = None) -> Snapshot:
         """The snapshot of the cycle due now (docs/design.md §13: the exact engine
         catches up first; other engines publish on their own), or 0x707 while the GEO
         cycle is stalled or cannot catch up in time. `stale_ok`: the last snapshot there
-        is instead of 0x707 (a cycle number to report, an observer's own sample)."""
-        if not self.scheduler.sync() and not stale_ok:
+        is instead of 0x707 (a cycle number to report, an observer's own sample). `wait`:
+        the longest to wait for a catch-up another thread runs (default `SYNC_WAIT`; 0:
+        not at all, 0x707 when the engine is busy)."""
+        synced = self.scheduler.sync() if wait is None else self.scheduler.sync(wait)
+        if not synced and not stale_ok:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,
                 "the GEO cycle is busy catching up (the host stalled): no current values",

@@ -78,6 +78,7 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
     y = member(f, "y", "10.0.0.9.1.1", 6000)
     assert (y.netid, y.modbus_port) == ("10.0.0.9.2.1", 6001)
     for text, message in (
+        ('[[machine]]\nname = "m"\n' * 1001, "1001 machines, at most 1000"),
         ('[[machine]]\nname = "a"\n[[machine]]\nname = "a"\n', "same name a"),
         ('[[machine]]\nname = "a/b"\n', "not a machine name"),
         ('[[machine]]\nname = "fleet"\n', "not a machine name"),

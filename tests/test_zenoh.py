@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import queue
 import struct
+import threading
 import time
 from pathlib import Path
 
@@ -116,6 +117,30 @@ def test_raw_read_of_every_geo_object(server, zs):
             data = get_one(zs, f"cnc/t/ads/551/0x120300/0x{io:x}")
             assert len(data) == obj.length, obj.name
             assert obj.decode(data) == access.read_name(service, obj.name, axis), (obj.name, axis)
+
+
+def test_a_plain_read_is_answered_while_the_event_loop_is_busy(server, zs):
+    """A get of one object's key is answered on Zenoh's own thread when the cycle due is
+    there (docs/design.md §7); what needs the loop — a write, a wildcard — waits for it."""
+    held, release = threading.Event(), threading.Event()
+
+    def busy() -> None:  # a loop busy with something long (another interface's work)
+        held.set()
+        release.wait(2 * TIMEOUT)
+
+    server.loop.call_soon_threadsafe(busy)
+    assert held.wait(TIMEOUT)
+    try:
+        # the manual's example (000 p.17): offset 40 and coefficient 4000 of axis X
+        assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/offset_0")) == 40
+        assert struct.unpack("<d", get_one(zs, "cnc/t/ads/551/0x120300/0x10043")) == (4000.0,)
+        pending = zs.get("cnc/t/axis/1/tempc/*", timeout=TIMEOUT)  # a wildcard: the loop's
+    finally:
+        release.set()
+    replies = [r for r in pending if r.ok is not None]
+    assert len(replies) > 3 and "cnc/t/axis/1/tempc/offset_0" in {
+        str(r.ok.key_expr) for r in replies
+    }
 
 
 def test_named_read_of_the_manual_temperature_parameters(server, zs):

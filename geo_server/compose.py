@@ -297,11 +297,15 @@ class Interfaces:
             # spread over their periods, the looks ten a second for the whole fleet: a
             # hundred catch-ups, probes or looks at once kept the loop every machine
             # shares busy for milliseconds to tens of milliseconds (docs/design.md §13.1).
+            # The periodic probes are twenty a second for the whole fleet at most (each
+            # starts a thread for its replies; Zenoh's reports of a new queryable or
+            # token still start one at once).
             options = replace(
                 base,
                 machine=m.name,
                 status_period=0.0,
                 watch_recheck=max(base.watch_recheck, len(machines) / 10),
+                rival_check_period=max(base.rival_check_period, len(machines) / 20),
                 spread=i / len(machines),
             )
             iface = ZenohInterface(service, options, session=session)

@@ -258,7 +258,7 @@ async def _load_compiled() -> None:
     except TimeoutError:
         print(
             "compiling the GEO cycle (the first start after an installation or an update: "
-            "about half a minute; the machines' cycles start after it)",
+            "up to a minute; the machines' cycles start after it)",
             flush=True,
         )
         await loading

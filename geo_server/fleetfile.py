@@ -46,8 +46,8 @@ class Member:
     modbus_port: int
 
 
-#: the most machines `--fleet-size` makes (README *Limits*; bench/engine.py measures how
-#: many a 2-core machine serves)
+#: the most machines of one fleet, `--fleet-size` or a fleet file (README *Limits*;
+#: bench/engine.py measures how many a 2-core machine serves)
 MAX_FLEET_SIZE = 1000
 
 
@@ -61,7 +61,7 @@ def parse_netid(text: object) -> list[int]:
 
 def netid_at(base: str, i: int) -> str:
     """The i-th machine's AMS NetId: `base` with its fifth byte raised by i, carrying
-    into the fourth (127.0.0.1.255.1 is followed by 127.0.1.0.0.1; canonical spelling, as
+    into the fourth (127.0.0.1.255.1 is followed by 127.0.0.2.0.1; canonical spelling, as
     routing compares it)."""
     parts = parse_netid(base)
     number = parts[3] * 256 + parts[4] + i

@@ -143,6 +143,17 @@ def test_a_plain_read_is_answered_while_the_event_loop_is_busy(server, zs):
     }
 
 
+def test_other_spellings_of_a_key_are_answered_on_the_loop_and_remembered_nowhere(server, zs):
+    """A hostile peer spelling one address in endless ways (leading zeros, upper case)
+    gets its answer from the loop's parser; the table of keys read on Zenoh's thread is
+    the one made at start and does not grow."""
+    table = dict(server.iface._plain)
+    for zeros in (1, 100, 10_000):
+        key = "cnc/t/ads/551/0x120300/0X" + "0" * zeros + "10043"
+        assert struct.unpack("<d", get_one(zs, key)) == (4000.0,)  # the manual's 4000
+    assert server.iface._plain == table
+
+
 def test_named_read_of_the_manual_temperature_parameters(server, zs):
     # Default machine, axis X (1): the manual's example (000 p.17): 100 / 40 / 4000.
     assert json.loads(get_one(zs, "cnc/t/axis/1/tempc/coefficient")) == 4000.0

@@ -29,8 +29,9 @@ from typing import Any
 #: The loop time (seconds per second) one machine's requests may take in a fleet of ten
 #: machines or more (`fleet_rate`): a tenth, ten times a machine's even share in a fleet
 #: of 100, several hundred ADS Reads a second. A flood on one machine of a fleet of 100
-#: (bench/fleet_isolation.py) raised the other machines' p99 by 1.4-1.5x at a tenth, by
-#: 2x at 0.15 and 0.25 (docs/benchmarks.md, *Fleet isolation: a share of the loop*).
+#: (bench/fleet_isolation.py) raised the other machines' p99 by 1.4-1.7x at a tenth, by
+#: 2x at 0.15 and 0.25 (docs/benchmarks.md, *Fleet isolation with a share of the loop per
+#: machine*; docs/design.md §13.1).
 FLEET_RATE = 0.1
 #: The most loop time a machine that was quiet may take at once (seconds): a burst of
 #: requests (an HMI's screenful of sum reads) is not held back.
@@ -51,7 +52,7 @@ class LoopShare:
     its requests had to wait for their share) and `held_s` (for how long, together).
     """
 
-    __slots__ = ("_at", "_credit", "burst", "clock", "holds", "rate", "status")
+    __slots__ = ("_at", "_credit", "burst", "clock", "rate", "status")
 
     def __init__(
         self,
@@ -64,7 +65,6 @@ class LoopShare:
         self.rate, self.burst, self.clock = rate, burst, clock
         self._credit = burst
         self._at = clock()
-        self.holds = 0
         self.status: dict[str, Any] = {"rate": rate, "loop_s": 0.0, "holds": 0, "held_s": 0.0}
 
     def charge(self, seconds: float) -> None:
@@ -81,11 +81,15 @@ class LoopShare:
         if credit > 0.0:
             return 0.0
         seconds = -credit / self.rate + 1e-4  # (just past: the next look finds it back)
-        self.holds += 1
         st = self.status
-        st["holds"] = self.holds
+        st["holds"] += 1
         st["held_s"] += seconds
         return seconds
+
+    @property
+    def holds(self) -> int:
+        """How often the machine's requests had to wait for their share."""
+        return int(self.status["holds"])
 
 
 __all__ = ["FLEET_BURST", "FLEET_RATE", "LoopShare", "fleet_rate"]

@@ -45,9 +45,6 @@ log = logging.getLogger(__name__)
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
 JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
-#: keys remembered for reads on the Zenoh thread (a machine has a few thousand; the same
-#: object spelt in more ways than this is read through the loop)
-MAX_PLAIN_ROUTES = 8192
 #: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
 PROBE_TIMEOUT_S = 1.0
 #: Least seconds between two rival probes, however often Zenoh reports changes.
@@ -205,8 +202,12 @@ class ZenohInterface:
         self._session: zenoh.Session | None = None
         self._watch: zenoh.Publisher | None = None
         self._watched: asyncio.Event | None = None  # set while a subscriber matches
-        #: object keys read on the Zenoh thread (`_read_now`), parsed once
-        self._plain: dict[str, Route] = {}
+        #: the keys a get is answered for on the Zenoh thread (`_read_now`): each readable
+        #: object's own named and raw key, as the server spells them (any other
+        #: spelling of an address is parsed and answered on the loop)
+        self._plain = {
+            key: route for _, key, route in self._readable if route.kind in ("raw", "named")
+        }
         #: whether a subscriber matches `cnc/<m>/**` (no watch publisher: always)
         self._watching = True
         self._entities: list[Any] = []
@@ -332,24 +333,16 @@ class ZenohInterface:
         """Zenoh thread: answer a get without payload of one object's key, with no fault
         injected, when the cycle due is there without waiting (published already, or a
         catch-up no other thread is running: `current(wait=0)`); True when answered.
-        What the loop would do, without the hop to it and back (docs/design.md §7: the
-        hop was half of a read's time in the server). Anything else — a wildcard, a
-        write, a command, status and errors, a refusal, an engine busy — goes to the
-        loop, which answers it as always."""
+        What the loop would do, without the hop to it and back (docs/design.md §7).
+        Anything else — another spelling of the key, a wildcard, a write, a command,
+        status and errors, a refusal, an engine busy — goes to the loop, which answers
+        it as always."""
         if self._session is None or query.payload is not None or self.service.faults.active:
             return False
         key = str(query.key_expr)
         route = self._plain.get(key)
         if route is None:
-            if "*" in key or len(self._plain) >= MAX_PLAIN_ROUTES:
-                return False
-            try:
-                route = self.keys.parse(key)
-            except AdsError:
-                return False
-            if route.kind not in ("raw", "named"):
-                return False
-            self._plain[key] = route
+            return False
         try:
             data, enc = self._read(route, self.service.current(wait=0))
         except AdsError:

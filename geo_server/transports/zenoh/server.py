@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import threading
 from collections.abc import Awaitable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
@@ -226,6 +227,9 @@ class ZenohInterface:
         self._matching = False  # a remote queryable covers all of cnc/<m>/**
         self._probe_wanted: asyncio.Event | None = None
         self._probes_started = 0
+        #: held while a probe's get is sent (a worker thread) and while the interface
+        #: undeclares and closes (`close`): no get is sent on a session being closed
+        self._closing = threading.Lock()
         self._probes_applied = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -301,11 +305,14 @@ class ZenohInterface:
 
         def shut() -> None:
             # Undeclaring waits for Zenoh callbacks in flight, which hand work to this
-            # loop: never block the loop on it (nor on closing the session).
-            for ent in entities:
-                ent.undeclare()
-            if session is not None and session is not self._shared:
-                session.close()
+            # loop: never block the loop on it (nor on closing the session). A probe's
+            # get sent from a worker thread (its task cancelled above, its thread not)
+            # finishes first.
+            with self._closing:
+                for ent in entities:
+                    ent.undeclare()
+                if session is not None and session is not self._shared:
+                    session.close()
 
         await asyncio.get_running_loop().run_in_executor(None, shut)
 
@@ -672,9 +679,13 @@ class ZenohInterface:
         The replies name their sender (`Reply.replier_id`); the answer is evaluated
         when Zenoh ends the query (all answered, or `PROBE_TIMEOUT_S`).
         """
-        session = self._session
-        if session is None:
-            return
+        with self._closing:
+            session = self._session
+            if session is not None:
+                self._send_probe(session, number)
+
+    def _send_probe(self, session: zenoh.Session, number: int) -> None:
+        """`_start_probe`'s get (under its lock)."""
         found: set[str] = set()
 
         def on_reply(reply: zenoh.Reply) -> None:

@@ -227,8 +227,9 @@ class ZenohInterface:
         self._matching = False  # a remote queryable covers all of cnc/<m>/**
         self._probe_wanted: asyncio.Event | None = None
         self._probes_started = 0
-        #: held while a probe's get is sent (a worker thread) and while the interface
-        #: undeclares and closes (`close`): no get is sent on a session being closed
+        #: held while a probe's get is sent (a worker thread), while a read is answered
+        #: on Zenoh's thread (`_read_now`) and while the interface undeclares and closes
+        #: (`close`): nothing is sent on a session being closed
         self._closing = threading.Lock()
         self._probes_applied = 0
 
@@ -346,20 +347,28 @@ class ZenohInterface:
         it as always."""
         if self._session is None or query.payload is not None or self.service.faults.active:
             return False
-        key = str(query.key_expr)
-        route = self._plain.get(key)
+        route = self._plain.get(str(query.key_expr))
         if route is None:
             return False
-        try:
-            data, enc = self._read(route, self.service.current(wait=0))
-        except AdsError:
+        # never a reply while the interface undeclares and closes (`close` holds the
+        # lock; a read that finds it taken goes to the loop, as every read once did)
+        if not self._closing.acquire(blocking=False):
             return False
-        self.queries += 1
         try:
-            query.reply(key, data, encoding=enc)
+            if self._session is None:
+                return False
+            try:
+                data, enc = self._read(route, self.service.current(wait=0))
+            except AdsError:
+                return False
+            self.queries += 1
+            try:
+                query.reply(str(query.key_expr), data, encoding=enc)
+            finally:
+                query.drop()
+            return True
         finally:
-            query.drop()
-        return True
+            self._closing.release()
 
     def _accept(self, query: zenoh.Query) -> None:
         self._spawn(self._handle(query))

@@ -360,6 +360,7 @@ def _fault_and_descriptor_rows() -> list[str]:
     from geo_server.descriptors import RESERVE
     from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
     from geo_server.fleetfile import MAX_FLEET_SIZE
+    from geo_server.transports.ads.codec import MAX_ADDRESSES
     from geo_server.transports.tcp import BACKLOG
 
     return [
@@ -376,6 +377,8 @@ def _fault_and_descriptor_rows() -> list[str]:
         "4 connections, or the fleet does not start |",
         f"| fleet | machines of one fleet (`--fleet-size`, a fleet file) | {MAX_FLEET_SIZE} | "
         "`fleetfile.MAX_FLEET_SIZE` | refused at start |",
+        f"| ADS | AMS addresses remembered from request headers (each decoded once) | "
+        f"{MAX_ADDRESSES} | `codec.MAX_ADDRESSES` | forgotten all at once, decoded again |",
         f"| all | descriptors kept for files and the runtime | {RESERVE} | "
         "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",
     ]

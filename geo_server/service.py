@@ -239,14 +239,23 @@ class ObjectService:
 
     # ------------------------------------------------------------------ snapshots
 
-    def current(self, *, stale_ok: bool = False, wait: float | None = None) -> Snapshot:
+    def current(
+        self, *, stale_ok: bool = False, wait: float | None = None, at_rest_ok: bool = False
+    ) -> Snapshot:
         """The snapshot of the cycle due now (docs/design.md §13: the exact engine
         catches up first; other engines publish on their own), or 0x707 while the GEO
         cycle is stalled or cannot catch up in time. `stale_ok`: the last snapshot there
         is instead of 0x707 (a cycle number to report, an observer's own sample). `wait`:
         the longest to wait for a catch-up another thread runs (default `SYNC_WAIT`; 0:
-        not at all, 0x707 when the engine is busy)."""
-        synced = self.scheduler.sync() if wait is None else self.scheduler.sync(wait)
+        not at all, 0x707 when the engine is busy). `at_rest_ok`: the caller reads only
+        objects that cannot vary at rest (`varies_at_rest`), so while the machine shows
+        its rest (`CycleRunner.shows_rest`) the published snapshot already holds their
+        values of the cycle due, and nothing is caught up (§13, *Reads at rest*)."""
+        sched = self.scheduler
+        if at_rest_ok and sched.shows_rest() and self._beating():
+            synced = True
+        else:
+            synced = sched.sync() if wait is None else sched.sync(wait)
         if not synced and not stale_ok:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,
@@ -265,6 +274,13 @@ class ObjectService:
 
     def _fresh(self) -> Snapshot:
         return self.current(stale_ok=True)
+
+    def _beating(self) -> bool:
+        """The heartbeat is younger than half of `stall_after`. A read at rest catches up
+        anyway when it is older (the engine wakes only every second at rest): then the
+        stall watch finds it fresh, instead of checking it with a catch-up that does not
+        wait and would call a wake of the engine under way a stall (0x707)."""
+        return time.monotonic() - self.machine.heartbeat <= self.limits.stall_after / 2
 
     def _stalled_for(self) -> float:
         """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
@@ -315,8 +331,11 @@ class ObjectService:
         snapshot: Snapshot | None = None,
         *,
         port: int | None = None,
+        wait: float | None = None,
     ) -> bytes:
-        """ADS bytes of one object (or attribute) from one snapshot.
+        """ADS bytes of one object (or attribute) from one snapshot (None: the one due
+        now, `current` with `wait`, none caught up at rest when the object cannot vary
+        at rest).
 
         `length` smaller than the object -> 0x705; larger -> the object's bytes only
         (ADS returns the bytes actually read, never more than requested). `port` as
@@ -327,7 +346,8 @@ class ObjectService:
             data = obj.attribute(attr)
         else:
             check_readable(obj)
-            data = (snapshot or self.current()).encode(obj, axis)
+            snap = snapshot or self.current(wait=wait, at_rest_ok=not varies_at_rest(obj))
+            data = snap.encode(obj, axis)
         if length is not None and length < len(data):
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDSIZE,

@@ -11,7 +11,7 @@ type only when encoded: SGN32 rounds half away from zero (docs/design.md §3).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -78,6 +78,11 @@ class Snapshot:
     #: the cycle's place on the time line: Windows FILETIME (100 ns since 1601) of the
     #: end of this cycle, `Machine.epoch + cycle · T` (what ADS notifications carry)
     stamp: int = 0
+    #: ADS bytes already encoded from this snapshot, by (object name, axis): a machine
+    #: at rest answers its reads from one snapshot (docs/design.md §13, *Reads at rest*)
+    _encoded: dict[tuple[str, int], bytes] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def slot(self, axis: int) -> int:
         return self.axes.index(axis)
@@ -116,4 +121,8 @@ class Snapshot:
 
     def encode(self, obj: ObjectDef, axis: int) -> bytes:
         """ADS bytes of `obj` for `axis`, as they were at the end of this cycle."""
-        return obj.encode(self.value(obj, axis))
+        key = (obj.name, axis)
+        data = self._encoded.get(key)
+        if data is None:
+            data = self._encoded[key] = obj.encode(self.value(obj, axis))
+        return data

@@ -83,6 +83,39 @@ def test_response_frame_swaps_addresses_and_echoes_invoke_id() -> None:
     assert codec.parse_read_response(resp.data) == (0, b"12345678")
 
 
+def test_response_frame_bytes() -> None:
+    """Byte for byte: AMS/TCP header (0, 32 + 12), the request's source as target and its
+    target as source, command 2, state flags 0x0005, 12 data bytes, error 0, invoke id."""
+    (req,) = packets(Framer().feed(read_frame(invoke=0x01020304)))
+    raw = codec.response_frame(req.header, codec.read_response(0, b"\x01\x02\x03\x04"))
+    assert raw == bytes.fromhex(
+        "0000"
+        "2c000000"  # AMS/TCP: reserved, length 44
+        "0a0000070101"
+        "3175"  # target: the client 10.0.0.7.1.1:30001
+        "7f0000010101"
+        "2702"  # source: the server 127.0.0.1.1.1:551
+        "0200"
+        "0500"
+        "0c000000"
+        "00000000"
+        "04030201"  # Read, response, 12 bytes, invoke
+        "00000000"
+        "04000000"
+        "01020304"  # result 0, length 4, data
+    )
+
+
+def test_a_peer_inventing_addresses_grows_no_table() -> None:
+    """A header's addresses are decoded once per address and remembered, at most 1024 of
+    them: a client sending from 5000 made-up NetIds leaves no more."""
+    for i in range(5000):
+        src = AmsAddr(f"10.{i >> 8 & 255}.{i & 255}.7.1.1", 30000 + i % 7)
+        (p,) = packets(Framer().feed(codec.request_frame(SERVER, src, Command.READ, b"")))
+        assert p.header.source == src
+    assert len(codec._ADDRS) <= 1024
+
+
 def test_ams_error_response_has_empty_payload() -> None:
     (req,) = packets(Framer().feed(read_frame()))
     (resp,) = packets(Framer().feed(codec.response_frame(req.header, b"", 0x6)))

@@ -21,9 +21,12 @@ from geo_server import access
 from geo_server.client.modbus_client import ModbusClient
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
+from geo_server.machine.port import WriteObjects
 from geo_server.machine.scheduler import Scheduler
-from geo_server.service import ObjectService
+from geo_server.paths import default_startup_list
+from geo_server.service import ObjectService, ServiceLimits
 from geo_server.transports.modbus.regmap import (
     ModbusMap,
     bit_address,
@@ -467,3 +470,41 @@ def test_geo_client_via_modbus(server, capsys):
     assert "ADS 0x704" in capsys.readouterr().err
     assert client_main([*base, "status"]) == 0  # from the emulator objects
     assert "axes 1 X, 2 Y, 3 Z, 4 C" in capsys.readouterr().out
+
+
+def test_a_read_at_rest_catches_up_only_for_what_can_vary_at_rest(loop_thread) -> None:
+    """docs/design.md §13, *Reads at rest*: the exact engine under a virtual clock, a
+    machine at rest. Registers of TEMPC::offset_0 (SGN32 -250: 0xFFFF 0xFF06, the rest of
+    its slot 0) and of SIM::cycle_time_us (1000 µs) are answered without catching up 5000
+    cycles; a read whose range covers SIM::cycle_count catches up to the cycle due and
+    shows it."""
+    from test_virtual_time import P, driven
+
+    vc, m, sched = driven(load_machine(default_startup_list()))
+    service = ObjectService(m, sched, ServiceLimits(stall_after=60.0))  # (a slow host)
+    m.submit(WriteObjects((("TEMPC::offset_0", 1, -250),)))
+    vc.t += 100 * P
+    cycle = service.current().cycle
+    iface = start(loop_thread, service)
+    c = ModbusTcpClient("127.0.0.1", port=iface.port, timeout=TIMEOUT, retries=0)
+    try:
+        assert c.connect()
+        vc.t += 5000 * P
+        offset = register_address(obj("TEMPC::offset_0"))
+        assert c.read_holding_registers(offset, count=4, device_id=1).registers == [
+            0xFFFF,
+            0xFF06,
+            0,
+            0,
+        ]
+        period = register_address(obj("SIM::cycle_time_us"))
+        assert c.read_input_registers(period, count=2, device_id=0).registers == [0, 1000]
+        assert m.cycle == cycle  # nothing caught up
+        count = register_address(obj("SIM::cycle_count"))
+        regs = c.read_input_registers(count, count=6, device_id=0).registers
+        due = cycle + 5000
+        assert regs == [due >> 16, due & 0xFFFF, 0, 0, 0, 1000]
+        assert m.cycle == due
+    finally:
+        c.close()
+        run_in(loop_thread, iface.close())

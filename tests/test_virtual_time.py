@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import math
 import random
+import struct
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -25,6 +28,7 @@ from geo_server.machine.nc import parse_program
 from geo_server.machine.port import StartProgram, WriteObjects
 from geo_server.machine.scheduler import Scheduler
 from geo_server.paths import default_startup_list
+from geo_server.service import ObjectService, ServiceLimits
 from geo_server.twin.engine import ambient_at
 
 P = 1_000_000  # 1 ms in ns
@@ -368,3 +372,71 @@ def test_a_machine_at_rest_wakes_every_second_compiled_every_tenth_interpreted(
     assert sched._next_wake(now) == now + 1_000_000_000
     monkeypatch.setattr(jit, "loaded", lambda: False)
     assert sched._next_wake(now) == now + 100_000_000
+
+
+def test_a_read_of_a_value_that_cannot_change_at_rest_catches_nothing_up(cfg) -> None:
+    """docs/design.md §13, *Reads at rest*: on a quiescent machine whose snapshot was
+    published at rest, a read of an object that cannot vary at rest (TEMPC::offset_0) is
+    answered from that snapshot without catching up — no cycle skipped, none computed —
+    with the value of the cycle due; a read of the cycle counter catches up to that
+    cycle; a write queued at rest is seen in the very cycle it is applied in."""
+    vc, m, sched = driven(cfg)
+    # (a heartbeat counts as fresh for 30 s: a slow host cannot make the read catch up)
+    svc = ObjectService(m, sched, ServiceLimits(stall_after=60.0))
+    offset = m.dictionary.by_name("TEMPC::offset_0")
+    count = m.dictionary.by_name("SIM::cycle_count")
+    addr = (offset.index_group, offset.index_offset(1))
+    m.submit(WriteObjects((("TEMPC::offset_0", 1, -250),)))
+    vc.t += 100 * P  # the write applied, the ramps run out: quiescent
+    assert svc.current().cycle == m.cycle
+    assert m.quiescent and sched.shows_rest()
+
+    cycle, computed = m.cycle, sched.computed
+    vc.t += 5000 * P
+    assert svc.read(*addr) == struct.pack("<i", -250)
+    assert (m.cycle, sched.computed) == (cycle, computed)  # nothing caught up
+    assert svc.read(count.index_group, count.index_offset(0)) == struct.pack("<I", cycle + 5000)
+    assert m.cycle == cycle + 5000 and sched.computed == computed  # skipped, not computed
+
+    sched.submit(WriteObjects((("TEMPC::offset_0", 1, 125),)))  # lands in the next cycle
+    assert not sched.shows_rest()
+    assert svc.read(*addr) == struct.pack("<i", -250)  # the cycle due now: not yet
+    vc.t += P
+    assert svc.read(*addr) == struct.pack("<i", 125)  # the cycle that applied it
+    assert m.cycle == cycle + 5001 and sched.computed == computed + 1
+
+
+def test_a_read_at_rest_with_an_old_heartbeat_waits_for_the_wake_under_way(cfg) -> None:
+    """The engine on its thread, at rest, wakes once a second (docs/design.md §13, *Reads
+    at rest*). A read of a constant that arrives while the heartbeat is older than half
+    of `stall_after` and the engine holds its lock (a wake under way; here the test holds
+    it for 50 ms) catches up, waiting for it, and answers — it is no stall (0x707)."""
+    m = Machine(cfg, homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact")
+    svc = ObjectService(m, sched)
+    sched.start()
+    try:
+        sched.submit(WriteObjects((("TEMPC::offset_0", 1, -250),))).result(timeout=5)
+        deadline = time.monotonic() + 10
+        while not sched.shows_rest():
+            assert time.monotonic() < deadline, "the machine never came to rest"
+            time.sleep(0.01)
+            svc.current()
+        time.sleep(0.6)  # longer than stall_after since the service's first look
+        offset = m.dictionary.by_name("TEMPC::offset_0")
+        held = threading.Event()
+
+        def wake_under_way() -> None:
+            with sched._engine_lock:
+                m.heartbeat -= 10.0  # (under the lock: the engine cannot refresh it)
+                held.set()
+                time.sleep(0.05)
+
+        waker = threading.Thread(target=wake_under_way)
+        waker.start()
+        assert held.wait(5)
+        assert svc.read(offset.index_group, offset.index_offset(1)) == struct.pack("<i", -250)
+        assert time.monotonic() - m.heartbeat < 1.0  # caught up
+        waker.join()
+    finally:
+        sched.stop()

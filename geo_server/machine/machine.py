@@ -428,6 +428,17 @@ class Machine:
         the last cycle is remembered (`_rest_after`) instead of looked at again."""
         return self._rest_streak >= 2 and self._rest_after and not self._queue
 
+    def shows_rest(self) -> bool:
+        """True when the published snapshot shows every object that cannot vary at rest
+        (`port.varies_at_rest`) as it is in every cycle from now on until something is
+        queued: the machine is `quiescent`, and no cycle has been computed since a
+        snapshot was built at rest (docs/design.md §13, *Reads at rest*). Lock-free, for
+        any thread: each attribute is one read, and whichever state a racing cycle
+        leaves, a True here means the values are those of a cycle at rest with nothing
+        queued (an operation makes it False from the moment it is queued)."""
+        key = self._rest_key
+        return key is not None and key[0] == self._computed and self.quiescent
+
     def skip(self, n: int) -> None:
         """`n` cycles of a `quiescent` machine without computing them: the counter, the
         kernel's delay line position and the twin (its thermal and sensor events, in

@@ -270,6 +270,11 @@ class CycleRunner(Protocol):
         seconds (0: only if nobody else is computing). `record`: time it as what
         catching up added to a request."""
 
+    def shows_rest(self) -> bool:
+        """True when the published snapshot holds every object that cannot vary at rest
+        (`varies_at_rest`) as it is in the cycle due now: a read of only such objects
+        needs no `sync` (docs/design.md §13, *Reads at rest*)."""
+
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the
         machine has caught up)."""

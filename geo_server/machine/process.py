@@ -605,6 +605,11 @@ class ProcessScheduler:
         m = self.machine
         return (time.monotonic_ns() - m.t0) // round(m.cycle_s * 1e9)
 
+    def shows_rest(self) -> bool:
+        """Never: the machine's state is in the cycle process, and only a frame of the
+        cycle due tells what it is (`sync`)."""
+        return False
+
     def sync(self, wait: float = SYNC_WAIT, record: bool = True) -> bool:
         """Exact engine: wake the cycle process and wait (at most `wait` seconds) for the
         snapshot of the cycle due now. A cycle process that has sent nothing for

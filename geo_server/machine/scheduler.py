@@ -431,6 +431,13 @@ class Scheduler:
             self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
         return True
 
+    def shows_rest(self) -> bool:
+        """Exact engine: the published snapshot holds every object that cannot vary at
+        rest as it is in the cycle due now (`Machine.shows_rest`), so a read of only such
+        objects needs no catch-up (docs/design.md §13, *Reads at rest*). Other engines
+        publish every cycle themselves: False (their `sync` costs nothing)."""
+        return self.exact and self.machine.shows_rest()
+
     @property
     def running_exact(self) -> bool:
         return self.exact and (self.running or self._here)

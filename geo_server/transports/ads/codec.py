@@ -194,6 +194,25 @@ class AmsAddr:
         return f"{self.netid}:{self.port}"
 
 
+#: the shortest AMS/TCP frame with an AMS header
+_ONE_FRAME_MIN = AMS_TCP_HEADER_SIZE + AMS_HEADER_SIZE
+
+#: the AMS addresses of the frames seen, by their 8 bytes (a few clients per server):
+#: a request's header is decoded without formatting its NetIds again
+_ADDRS: dict[bytes, AmsAddr] = {}
+MAX_ADDRESSES = 1024
+_AMS_HEADER_RAW = struct.Struct("<8s8sHHIII")
+
+
+def _addr(raw: bytes) -> AmsAddr:
+    addr = _ADDRS.get(raw)
+    if addr is None:
+        if len(_ADDRS) >= MAX_ADDRESSES:  # (a peer inventing addresses: start afresh)
+            _ADDRS.clear()
+        addr = _ADDRS[raw] = AmsAddr(netid_from_bytes(raw[:6]), _U16.unpack_from(raw, 6)[0])
+    return addr
+
+
 @dataclass(frozen=True, slots=True)
 class AmsHeader:
     """The 32-byte AMS header."""
@@ -224,17 +243,10 @@ class AmsHeader:
         )
 
     @classmethod
-    def unpack(cls, raw: bytes | memoryview) -> AmsHeader:
-        tn, tp, sn, sp, cmd, flags, length, err, invoke = AMS_HEADER.unpack(raw)
-        return cls(
-            AmsAddr(netid_from_bytes(tn), tp),
-            AmsAddr(netid_from_bytes(sn), sp),
-            cmd,
-            flags,
-            length,
-            err,
-            invoke,
-        )
+    def unpack(cls, raw: bytes | memoryview, offset: int = 0) -> AmsHeader:
+        """The header at `offset` of `raw` (32 bytes from there)."""
+        target, source, cmd, flags, length, err, invoke = _AMS_HEADER_RAW.unpack_from(raw, offset)
+        return cls(_addr(target), _addr(source), cmd, flags, length, err, invoke)
 
 
 @dataclass(frozen=True, slots=True)
@@ -271,18 +283,28 @@ def request_frame(
 def response_frame(request: AmsHeader, data: bytes = b"", error_code: int = 0) -> bytes:
     """The answer to `request`: source and target swapped, command id and invoke id echoed,
     state flags 0x0005 (as pyads' test server `construct_response` and TwinCAT do)."""
-    return encode_frame(
-        AmsHeader(
-            request.source,
-            request.target,
+    src, tgt = request.source, request.target
+    return (
+        _RESPONSE_HEAD.pack(
+            0,
+            AMS_HEADER_SIZE + len(data),
+            netid_to_bytes(src.netid),
+            src.port,
+            netid_to_bytes(tgt.netid),
+            tgt.port,
             request.command,
-            StateFlags.RESPONSE,
+            _RESPONSE_FLAGS,
             len(data),
             error_code,
             request.invoke_id,
-        ),
-        data,
+        )
+        + data
     )
+
+
+#: AMS/TCP header and AMS header of a frame in one (`response_frame`)
+_RESPONSE_HEAD = struct.Struct("<HI6sH6sHHHIII")
+_RESPONSE_FLAGS = int(StateFlags.RESPONSE)
 
 
 def notification_frame(server: AmsAddr, client: AmsAddr, data: bytes, invoke_id: int = 0) -> bytes:
@@ -390,6 +412,10 @@ class Framer:
         if self.failed is not None:
             return []
         buf = self._buf
+        if not buf:
+            one = self._one_frame(data)
+            if one is not None:
+                return one
         started_here = not buf  # the unfinished frame (if any) begins in `data`
         buf += data
         events: list[FrameEvent] = []
@@ -441,6 +467,24 @@ class Framer:
             if started_here or self.incomplete_since is None:
                 self.incomplete_since = now
         return events
+
+    def _one_frame(self, data: bytes) -> list[FrameEvent] | None:
+        """The common case, `data` is one whole AMS packet and nothing is buffered: its
+        event without a copy into the buffer; None for every other case (the loop of
+        `feed` takes it, with the same checks)."""
+        if len(data) < _ONE_FRAME_MIN:
+            return None
+        reserved, length = AMS_TCP_HEADER.unpack_from(data)
+        if (
+            reserved != AMS_TCP_PORT_AMS_CMD
+            or len(data) != AMS_TCP_HEADER_SIZE + length
+            or length > self.max_frame
+        ):
+            return None
+        header = AmsHeader.unpack(data, AMS_TCP_HEADER_SIZE)
+        if header.data_length != length - AMS_HEADER_SIZE:
+            return None
+        return [AmsPacket(header, bytes(data[_ONE_FRAME_MIN:]))]
 
     def _fail(self, events: list[FrameEvent], reason: str) -> list[FrameEvent]:
         self.failed = reason

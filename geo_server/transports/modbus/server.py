@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass
@@ -41,7 +42,7 @@ import geo_server
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError
 from geo_server.faults import Fault, carry_out
-from geo_server.service import ObjectService
+from geo_server.service import ObjectService, varies_at_rest
 from geo_server.transports.modbus.codec import (
     DeviceIdRequest,
     Frame,
@@ -116,6 +117,21 @@ _BASIC = range(0, 3)
 _REGULAR = range(0, 0x80)
 
 
+def _varying_addresses(um: UnitMap) -> dict[Table, list[int]]:
+    """The sorted addresses of `um` whose object can vary while the machine is at rest
+    (`varies_at_rest`): of the registers (both register tables: `HOLDING_REGISTERS`),
+    the discrete inputs and the coils."""
+    registers = {a: o for a, (o, _) in um.registers.items()}
+    return {
+        table: sorted(a for a, o in where.items() if varies_at_rest(o))
+        for table, where in (
+            (Table.HOLDING_REGISTERS, registers),
+            (Table.DISCRETE_INPUTS, um.discrete),
+            (Table.COILS, um.coils),
+        )
+    }
+
+
 class ModbusInterface:
     """Serve one machine's objects over Modbus TCP."""
 
@@ -144,6 +160,9 @@ class ModbusInterface:
             u: self.map.machine if a == 0 else self.map.axis for u, a in self.unit_axis.items()
         }
         self._device = device_objects()
+        #: per unit map and table kind, the sorted addresses whose object can vary at
+        #: rest (`_may_vary`)
+        self._varying = {id(um): _varying_addresses(um) for um in (self.map.machine, self.map.axis)}
         o = self.options
         self.listener = Listener(o.host, o.port, o.max_connections, o.backlog)
         self.requests = 0
@@ -262,7 +281,13 @@ class ModbusInterface:
 
     def _read(self, axis: int, um: UnitMap, req: ReadRequest) -> bytes:
         table = um.check_read(req.function, req.address, req.count)
-        snap = self.service.current()  # ONE snapshot for the whole request
+        varying = self._varying[id(um)][min(table, Table.HOLDING_REGISTERS)]
+        i = bisect_left(varying, req.address)
+        # ONE snapshot for the whole request; none caught up at rest unless the request
+        # covers an object that can vary at rest (docs/design.md §13, *Reads at rest*)
+        snap = self.service.current(
+            at_rest_ok=i == len(varying) or varying[i] >= req.address + req.count
+        )
 
         def value_of(obj: ObjectDef) -> Any:
             return snap.value(obj, axis)

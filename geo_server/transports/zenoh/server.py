@@ -37,7 +37,7 @@ from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError, carry_out
-from geo_server.service import ObjectService, check_readable
+from geo_server.service import ObjectService, check_readable, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
 
@@ -358,7 +358,7 @@ class ZenohInterface:
             if self._session is None:
                 return False
             try:
-                data, enc = self._read(route, self.service.current(wait=0))
+                data, enc = self._read(route, None, wait=0)
             except AdsError:
                 return False
             self.queries += 1
@@ -528,20 +528,25 @@ class ZenohInterface:
         if stalled is not None:
             query.reply_err(_error_payload(stalled), encoding=JSON)
 
-    def _read(self, route: Route, snap: Snapshot | None) -> tuple[bytes, zenoh.Encoding]:
-        """A read-only route's reply; `snap` (object values) is None only for the
-        status and errors routes, which are answered even while the cycle is stalled."""
+    def _read(
+        self, route: Route, snap: Snapshot | None, wait: float | None = None
+    ) -> tuple[bytes, zenoh.Encoding]:
+        """A read-only route's reply from `snap` (None: the snapshot due now for this
+        one object, waiting at most `wait` for a catch-up; status and errors are
+        answered even while the cycle is stalled)."""
         if route.kind == "status":
             return json.dumps(self.service.status()).encode(), JSON
         if route.kind == "errors":
             return json.dumps(self.service.errors()).encode(), JSON
-        snap = snap or self.service.current()
         if route.kind == "raw":
-            data = self.service.read(route.index_group, route.index_offset, None, snap)
+            svc = self.service
+            data = svc.read(route.index_group, route.index_offset, None, snap, wait=wait)
             return data, OCTET
         if route.kind == "named":
             assert route.obj is not None
             check_readable(route.obj)
+            rests = not varies_at_rest(route.obj)  # (docs/design.md §13, *Reads at rest*)
+            snap = snap or self.service.current(wait=wait, at_rest_ok=rests)
             return json.dumps(snap.value(route.obj, route.axis)).encode(), JSON
         raise AdsError(
             AdsErrorCode.DEVICE_INVALIDACCESS,

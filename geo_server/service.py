@@ -253,9 +253,8 @@ class ObjectService:
         values of the cycle due, and nothing is caught up (§13, *Reads at rest*)."""
         sched = self.scheduler
         if at_rest_ok and sched.shows_rest() and self._beating():
-            synced = True
-        else:
-            synced = sched.sync() if wait is None else sched.sync(wait)
+            return self.machine.snapshot  # (a heartbeat this young is no stall)
+        synced = sched.sync() if wait is None else sched.sync(wait)
         if not synced and not stale_ok:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,

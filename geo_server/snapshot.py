@@ -11,6 +11,7 @@ type only when encoded: SGN32 rounds half away from zero (docs/design.md §3).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -78,9 +79,9 @@ class Snapshot:
     #: the cycle's place on the time line: Windows FILETIME (100 ns since 1601) of the
     #: end of this cycle, `Machine.epoch + cycle · T` (what ADS notifications carry)
     stamp: int = 0
-    #: ADS bytes already encoded from this snapshot, by (object name, axis): a machine
-    #: at rest answers its reads from one snapshot (docs/design.md §13, *Reads at rest*)
-    _encoded: dict[tuple[str, int], bytes] = field(
+    #: answers already encoded from this snapshot (`kept`): a machine at rest answers
+    #: its reads from one snapshot (docs/design.md §13, *Reads at rest*)
+    _kept: dict[tuple[str, str, int], bytes] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
@@ -121,8 +122,14 @@ class Snapshot:
 
     def encode(self, obj: ObjectDef, axis: int) -> bytes:
         """ADS bytes of `obj` for `axis`, as they were at the end of this cycle."""
-        key = (obj.name, axis)
-        data = self._encoded.get(key)
+        return self.kept("ads", obj, axis, lambda: obj.encode(self.value(obj, axis)))
+
+    def kept(self, form: str, obj: ObjectDef, axis: int, make: Callable[[], bytes]) -> bytes:
+        """`make()`: the value of `obj` for `axis` in the form `form` ("ads" bytes, an
+        interface's own), made once per snapshot (a snapshot never changes); at most one
+        entry per form, object and axis."""
+        key = (form, obj.name, axis)
+        data = self._kept.get(key)
         if data is None:
-            data = self._encoded[key] = obj.encode(self.value(obj, axis))
+            data = self._kept[key] = make()
         return data

@@ -37,6 +37,7 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import NamedTuple
 
 from geo_server.dictionary import TYPES as _dictionary_types
 from geo_server.errors import AdsErrorCode, GeoError
@@ -194,6 +195,9 @@ class AmsAddr:
         return f"{self.netid}:{self.port}"
 
 
+#: (an IntEnum member costs a class attribute lookup each time: ten times an int's)
+_RESPONSE_BIT = int(StateFlags.RESPONSE_BIT)
+_READ = int(Command.READ)
 #: the shortest AMS/TCP frame with an AMS header
 _ONE_FRAME_MIN = AMS_TCP_HEADER_SIZE + AMS_HEADER_SIZE
 
@@ -213,8 +217,12 @@ def _addr(raw: bytes) -> AmsAddr:
     return addr
 
 
-@dataclass(frozen=True, slots=True)
-class AmsHeader:
+# The header, the packet and a Read request are made for every request: named tuples,
+# as immutable as a frozen dataclass and made in a seventh of its time (2.2 µs for the
+# header's seven fields here, docs/benchmarks.md *Reads at rest*).
+
+
+class AmsHeader(NamedTuple):
     """The 32-byte AMS header."""
 
     target: AmsAddr
@@ -227,7 +235,7 @@ class AmsHeader:
 
     @property
     def is_response(self) -> bool:
-        return bool(self.state_flags & StateFlags.RESPONSE_BIT)
+        return bool(self.state_flags & _RESPONSE_BIT)
 
     def pack(self) -> bytes:
         return AMS_HEADER.pack(
@@ -249,8 +257,7 @@ class AmsHeader:
         return cls(_addr(target), _addr(source), cmd, flags, length, err, invoke)
 
 
-@dataclass(frozen=True, slots=True)
-class AmsPacket:
+class AmsPacket(NamedTuple):
     """One complete AMS packet: header plus its ADS data."""
 
     header: AmsHeader
@@ -543,8 +550,7 @@ class ReadDeviceInfoRequest:
     pass
 
 
-@dataclass(frozen=True, slots=True)
-class ReadRequest:
+class ReadRequest(NamedTuple):
     index_group: int
     index_offset: int
     length: int
@@ -644,7 +650,7 @@ def parse_request(packet: AmsPacket) -> Request:
     IG,IO,readLen,writeLen,data.
     """
     cmd, data = packet.header.command, packet.data
-    if cmd == Command.READ:
+    if cmd == _READ:
         _need(data, 12, "Read")
         return ReadRequest(*_IG_IO_LEN.unpack(data))
     if cmd == Command.WRITE:

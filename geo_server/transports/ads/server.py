@@ -66,6 +66,8 @@ from geo_server.transports.share import LoopShare
 from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
+#: (a module int: an IntEnum member costs a class attribute lookup per request)
+_NOTIFICATION = int(Command.DEVICE_NOTIFICATION)
 
 
 class AdsServer:
@@ -257,7 +259,7 @@ class AdsServer:
     def handle_packet(self, conn: AdsConnection, packet: AmsPacket) -> None:
         """Answer one request on `conn` (never raises)."""
         h = packet.header
-        if h.is_response or h.command == Command.DEVICE_NOTIFICATION:
+        if h.is_response or h.command == _NOTIFICATION:
             # A response or a notification sent to us: there is nothing to answer.
             self.stats.dropped_frames += 1
             return

@@ -161,7 +161,7 @@ class ModbusInterface:
         }
         self._device = device_objects()
         #: per unit map and table kind, the sorted addresses whose object can vary at
-        #: rest (`_may_vary`)
+        #: rest (`_read` bisects them)
         self._varying = {id(um): _varying_addresses(um) for um in (self.map.machine, self.map.axis)}
         o = self.options
         self.listener = Listener(o.host, o.port, o.max_connections, o.backlog)

@@ -145,6 +145,11 @@ class ZenohOptions:
         return cfg
 
 
+def _json_reply(snap: Snapshot, obj: ObjectDef, axis: int) -> bytes:
+    """A named key's reply: the decoded value as JSON."""
+    return json.dumps(snap.value(obj, axis)).encode()
+
+
 def _error_payload(exc: AdsError) -> bytes:
     return json.dumps(exc.as_dict()).encode()
 
@@ -547,7 +552,8 @@ class ZenohInterface:
             check_readable(route.obj)
             rests = not varies_at_rest(route.obj)  # (docs/design.md §13, *Reads at rest*)
             snap = snap or self.service.current(wait=wait, at_rest_ok=rests)
-            return json.dumps(snap.value(route.obj, route.axis)).encode(), JSON
+            obj, axis = route.obj, route.axis
+            return snap.kept("json", obj, axis, lambda: _json_reply(snap, obj, axis)), JSON
         raise AdsError(
             AdsErrorCode.DEVICE_INVALIDACCESS,
             f"{route.kind} needs a payload (get with payload runs it)",

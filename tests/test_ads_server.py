@@ -800,3 +800,93 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::offset_0 length = 4"
     assert client_main([*base, "write", "0x120800", "0x10043", "1"]) == 1
     assert "ADS 0x704" in capsys.readouterr().err
+
+
+class _Wire(asyncio.Transport):
+    """What an ADS connection writes, kept (asyncio's side of a socket, no socket)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.out: list[bytes] = []
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        self.out.append(bytes(data))
+
+    def is_closing(self) -> bool:
+        return False
+
+    def get_extra_info(self, name: str, default: object = None) -> object:
+        return ("127.0.0.1", 1) if name == "peername" else default
+
+    def pause_reading(self) -> None:
+        pass
+
+    def resume_reading(self) -> None:
+        pass
+
+    def get_write_buffer_size(self) -> int:
+        return 0
+
+    def abort(self) -> None:
+        pass
+
+
+def test_a_machine_serves_at_most_requests_per_step_in_one_loop_step(service) -> None:
+    """`requests_per_step` = 4: ten Reads pipelined in one segment are answered 4, 4 and
+    2 in three loop steps, in order. A count carried over from earlier steps (a machine's
+    count starts again only in the step after it reached half the limit) lowers what a
+    step serves: after one single Read, the next ten go 3, 4, 3."""
+    from geo_server.transports.ads.protocol import AdsConnection
+
+    def reads(first: int, n: int) -> bytes:
+        return b"".join(
+            codec.request_frame(
+                AmsAddr("127.0.0.1.1.1", 551),
+                AmsAddr("10.9.9.9.1.1", 30000),
+                Command.READ,
+                codec.read_request(0x120300, 0x10043, 8),
+                invoke,
+            )
+            for invoke in range(first, first + n)
+        )
+
+    async def steps(wire: _Wire, expected: int) -> list[list[int]]:
+        """The invoke ids answered in each loop step until `expected` have been."""
+        out: list[list[int]] = []
+        seen = 0
+        while seen < expected:
+            framer = codec.Framer()
+            got = [
+                ev.header.invoke_id
+                for w in wire.out
+                for ev in framer.feed(w)
+                if isinstance(ev, codec.AmsPacket)
+            ]
+            wire.out.clear()
+            out.append(got)
+            seen += len(got)
+            assert len(out) < 20, "the answers never came"
+            await asyncio.sleep(0)
+        return out
+
+    async def run() -> tuple[list[list[int]], list[list[int]]]:
+        ads = AdsServer(service, AdsOptions(port=0, requests_per_step=4))
+        await ads.start()
+        try:
+            wire = _Wire()
+            conn = AdsConnection(ads)
+            conn.connection_made(wire)
+            conn.data_received(reads(1, 10))
+            first = await steps(wire, 10)
+            for _ in range(3):
+                await asyncio.sleep(0)  # (the count's reset, whenever it was scheduled)
+            conn.data_received(reads(11, 1))
+            await steps(wire, 1)
+            conn.data_received(reads(12, 10))
+            return first, await steps(wire, 10)
+        finally:
+            await ads.close()
+
+    first, second = asyncio.run(run())
+    assert first == [[1, 2, 3, 4], [5, 6, 7, 8], [9, 10]]
+    assert second == [[12, 13, 14], [15, 16, 17, 18], [19, 20, 21]]

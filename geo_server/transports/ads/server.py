@@ -356,9 +356,11 @@ class AdsServer:
         one, is appended to `shares`: the batch's loop time is charged to it)? Or must it
         wait, with the rest of its connection's requests: for the next loop step (0.0),
         when its machine has served `requests_per_step` in this one (counted at the
-        machine the request targets; the counts start again in the next step), or that
-        many seconds, when its machine's loop share is used up (a fleet; docs/design.md
-        §13.1)."""
+        machine the request targets), or that many seconds, when its machine's loop
+        share is used up (a fleet; docs/design.md §13.1). A machine's count starts again
+        in the step after it reached half the limit, not after every step: a reset
+        scheduled for every request was a tenth of a read's cost in the server, and a
+        count carried over from earlier steps only lowers what this one may serve."""
         device = self.devices.get(packet.header.target.netid, self)
         share = device.share
         if share is not None:
@@ -370,7 +372,11 @@ class AdsServer:
             device.stats.deferred_requests += 1
             return 0.0
         device._served += 1
-        if not device._step_reset and self.loop is not None:
+        if (
+            device._served * 2 >= self.options.requests_per_step
+            and not device._step_reset
+            and self.loop is not None
+        ):
             device._step_reset = True
             self.loop.call_soon(device._new_step)
         if share is not None:

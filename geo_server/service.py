@@ -279,20 +279,24 @@ class ObjectService:
         anyway when it is older (the engine wakes only every second at rest): then the
         stall watch finds it fresh, instead of checking it with a catch-up that does not
         wait and would call a wake of the engine under way a stall (0x707)."""
-        return time.monotonic() - self.machine.heartbeat <= self.limits.stall_after / 2
+        return self._heartbeat_age() <= self.limits.stall_after / 2
+
+    def _heartbeat_age(self) -> float:
+        """Seconds since the cycle last advanced (or since the service first looked)."""
+        now = time.monotonic()
+        if not self._started_at:
+            self._started_at = now
+        return now - max(self.machine.heartbeat, self._started_at)
 
     def _stalled_for(self) -> float:
         """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
         heartbeat is checked by a catch-up that does not wait (the exact engine sleeps
         at rest: a late wake is no stall; a hung engine holds its lock)."""
-        now = time.monotonic()
-        if not self._started_at:
-            self._started_at = now
-        age = now - max(self.machine.heartbeat, self._started_at)
+        age = self._heartbeat_age()
         if age <= self.limits.stall_after or not self.scheduler.running:
             return 0.0  # (the cheap test first: a thread's liveness costs more)
         if self.scheduler.sync(wait=0, record=False):
-            age = time.monotonic() - max(self.machine.heartbeat, self._started_at)
+            age = self._heartbeat_age()
         return age if age > self.limits.stall_after else 0.0
 
     # ------------------------------------------------------------------ addressing

@@ -310,7 +310,7 @@ def response_frame(request: AmsHeader, data: bytes = b"", error_code: int = 0) -
 
 
 #: AMS/TCP header and AMS header of a frame in one (`response_frame`)
-_RESPONSE_HEAD = struct.Struct("<HI6sH6sHHHIII")
+_RESPONSE_HEAD = struct.Struct(AMS_TCP_HEADER.format + AMS_HEADER.format.lstrip("<"))
 _RESPONSE_FLAGS = int(StateFlags.RESPONSE)
 
 

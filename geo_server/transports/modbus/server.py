@@ -160,9 +160,11 @@ class ModbusInterface:
             u: self.map.machine if a == 0 else self.map.axis for u, a in self.unit_axis.items()
         }
         self._device = device_objects()
-        #: per unit map and table kind, the sorted addresses whose object can vary at
-        #: rest (`_read` bisects them)
-        self._varying = {id(um): _varying_addresses(um) for um in (self.map.machine, self.map.axis)}
+        #: per unit map (by scope) and table kind, the sorted addresses whose object can
+        #: vary at rest (`_read` bisects them)
+        self._varying = {
+            um.scope: _varying_addresses(um) for um in (self.map.machine, self.map.axis)
+        }
         o = self.options
         self.listener = Listener(o.host, o.port, o.max_connections, o.backlog)
         self.requests = 0
@@ -281,7 +283,7 @@ class ModbusInterface:
 
     def _read(self, axis: int, um: UnitMap, req: ReadRequest) -> bytes:
         table = um.check_read(req.function, req.address, req.count)
-        varying = self._varying[id(um)][min(table, Table.HOLDING_REGISTERS)]
+        varying = self._varying[um.scope][min(table, Table.HOLDING_REGISTERS)]
         i = bisect_left(varying, req.address)
         # ONE snapshot for the whole request; none caught up at rest unless the request
         # covers an object that can vary at rest (docs/design.md §13, *Reads at rest*)

@@ -361,6 +361,7 @@ def _fault_and_descriptor_rows() -> list[str]:
     from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
     from geo_server.fleetfile import MAX_FLEET_SIZE
     from geo_server.transports.ads.codec import MAX_ADDRESSES
+    from geo_server.transports.ads.repeats import MAX_REPEAT_SIZE, MAX_REPEATS
     from geo_server.transports.tcp import BACKLOG
 
     return [
@@ -379,6 +380,10 @@ def _fault_and_descriptor_rows() -> list[str]:
         "`fleetfile.MAX_FLEET_SIZE` | refused at start |",
         f"| ADS | AMS addresses remembered from request headers (each decoded once) | "
         f"{MAX_ADDRESSES} | `codec.MAX_ADDRESSES` | forgotten all at once, decoded again |",
+        f"| ADS | answers one connection keeps for Reads sent again | {MAX_REPEATS} | "
+        "`repeats.MAX_REPEATS` | forgotten all at once, read again |",
+        f"| ADS | one answer kept for a Read sent again | {MAX_REPEAT_SIZE} bytes | "
+        "`repeats.MAX_REPEAT_SIZE` | not kept: read again each time |",
         f"| all | descriptors kept for files and the runtime | {RESERVE} | "
         "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",
     ]

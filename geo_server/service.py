@@ -240,7 +240,12 @@ class ObjectService:
     # ------------------------------------------------------------------ snapshots
 
     def current(
-        self, *, stale_ok: bool = False, wait: float | None = None, at_rest_ok: bool = False
+        self,
+        *,
+        stale_ok: bool = False,
+        wait: float | None = None,
+        at_rest_ok: bool = False,
+        rest_only: bool = False,
     ) -> Snapshot:
         """The snapshot of the cycle due now (docs/design.md §13: the exact engine
         catches up first; other engines publish on their own), or 0x707 while the GEO
@@ -250,10 +255,15 @@ class ObjectService:
         not at all, 0x707 when the engine is busy). `at_rest_ok`: the caller reads only
         objects that cannot vary at rest (`varies_at_rest`), so while the machine shows
         its rest (`CycleRunner.shows_rest`) the published snapshot already holds their
-        values of the cycle due, and nothing is caught up (§13, *Reads at rest*)."""
+        values of the cycle due, and nothing is caught up (§13, *Reads at rest*).
+        `rest_only`: that snapshot only, 0x707 at once instead of a catch-up (a caller
+        that holds its answer from a snapshot asks whether it is still the one; §13,
+        *Repeated reads*)."""
         sched = self.scheduler
-        if at_rest_ok and sched.shows_rest() and self._beating():
+        if (at_rest_ok or rest_only) and sched.shows_rest() and self._beating():
             return self.machine.snapshot  # (a heartbeat this young is no stall)
+        if rest_only:
+            raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the machine does not show its rest")
         synced = sched.sync() if wait is None else sched.sync(wait)
         if not synced and not stale_ok:
             raise AdsError(
@@ -349,7 +359,7 @@ class ObjectService:
             data = obj.attribute(attr)
         else:
             check_readable(obj)
-            snap = snapshot or self.current(wait=wait, at_rest_ok=not varies_at_rest(obj))
+            snap = snapshot or snapshot_for(self, obj, wait)
             data = snap.encode(obj, axis)
         if length is not None and length < len(data):
             raise AdsError(
@@ -624,6 +634,23 @@ def varies_at_rest(obj: ObjectDef) -> bool:
     return _varies_at_rest(obj.name)
 
 
+def snapshot_for(service: ObjectService, obj: ObjectDef, wait: float | None = None) -> Snapshot:
+    """The snapshot a read of `obj` alone is answered from: the one due now, none caught
+    up at rest when `obj` cannot vary at rest (`ObjectService.current`; docs/design.md
+    §13, *Reads at rest*)."""
+    return service.current(wait=wait, at_rest_ok=not varies_at_rest(obj))
+
+
+def rests_on(service: ObjectService, snap: Snapshot | None) -> bool:
+    """Whether `snap` is the snapshot a read at rest is answered from now
+    (`ObjectService.current(rest_only=True)`): an answer kept from it is still the
+    answer (docs/design.md §13, *Repeated reads*)."""
+    try:
+        return service.current(rest_only=True) is snap
+    except AdsError:  # (not at rest)
+        return False
+
+
 def check_readable(obj: ObjectDef) -> None:
     """0x704 for a write-only object (a read by address or by Zenoh key)."""
     if not obj.readable:
@@ -659,5 +686,7 @@ __all__ = [
     "check_readable",
     "format_value",
     "is_command",
+    "rests_on",
+    "snapshot_for",
     "varies_at_rest",
 ]

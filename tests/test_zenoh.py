@@ -586,3 +586,63 @@ def test_the_servers_own_publications_are_not_puts(server, zs):
     finally:
         sub.undeclare()
     assert server.iface.puts == 0
+
+
+class _VirtualClock:
+    def __init__(self) -> None:
+        self.t = 1_000_000_000
+
+    def clock(self) -> int:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += round(seconds * 1e9)
+
+
+def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_thread):
+    """docs/design.md §13, *Repeated reads*: the exact engine on a virtual clock, the
+    machine at rest with TEMPC::offset_0 of axis 1 written to -250. A get of its raw or
+    named key keeps its reply with the snapshot it came from; the next get is answered
+    from it while the machine still shows that rest, 5 s later too. A write applied in
+    a later cycle is seen in that cycle, not hidden by what was kept. The cycle counter
+    varies at rest: it is never kept, each get catches up (5000 cycles in 5 s)."""
+    from geo_server.machine.port import WriteObjects
+    from geo_server.paths import default_startup_list
+    from geo_server.service import ServiceLimits
+
+    P = 1_000_000
+    vc = _VirtualClock()
+    m = Machine(load_machine(default_startup_list()), homed=True)
+    sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
+    service = ObjectService(m, sched, ServiceLimits(stall_after=60.0))
+    sched.drive()
+    m.submit(WriteObjects((("TEMPC::offset_0", 1, -250),)))
+    vc.t += 100 * P
+    assert service.current().cycle == m.cycle and sched.shows_rest()
+    srv = Server(loop_thread, service)
+    zs = zenoh.open(session_config([srv.endpoint]))
+    try:
+        keys = srv.iface.keys
+        offset = D.by_name("TEMPC::offset_0")
+        raw = keys.raw_key(offset.index_group, offset.index_offset(1))
+        named = keys.named_key(offset, 1)
+        count = keys.named_key(D.by_name("SIM::cycle_count"), 0)
+        for _ in range(2):
+            assert get_one(zs, raw) == struct.pack("<i", -250)
+            assert json.loads(get_one(zs, named)) == -250
+        assert {raw, named} <= set(srv.iface._kept)
+        cycle, computed = m.cycle, sched.computed
+        vc.t += 5000 * P
+        assert get_one(zs, raw) == struct.pack("<i", -250)
+        assert (m.cycle, sched.computed) == (cycle, computed)  # nothing caught up
+        first = json.loads(get_one(zs, count))
+        vc.t += 5000 * P
+        assert json.loads(get_one(zs, count)) == first + 5000
+        assert count not in srv.iface._kept
+        sched.submit(WriteObjects((("TEMPC::offset_0", 1, 125),)))
+        vc.t += P
+        assert get_one(zs, raw) == struct.pack("<i", 125)
+        assert json.loads(get_one(zs, named)) == 125
+    finally:
+        zs.close()
+        srv.close()

@@ -309,6 +309,18 @@ def response_frame(request: AmsHeader, data: bytes = b"", error_code: int = 0) -
     )
 
 
+#: where a frame's invoke id lies: the last field of its AMS header
+INVOKE_ID_AT = AMS_TCP_HEADER_SIZE + AMS_HEADER_SIZE - 4
+#: the size of a whole Read request's frame (index group, offset and length)
+READ_FRAME_SIZE = AMS_TCP_HEADER_SIZE + AMS_HEADER_SIZE + 12
+
+
+def without_invoke_id(frame: bytes) -> bytes:
+    """`frame` less its invoke id: what a request sent again has in common with the
+    first (`repeats`)."""
+    return frame[:INVOKE_ID_AT] + frame[INVOKE_ID_AT + 4 :]
+
+
 #: AMS/TCP header and AMS header of a frame in one (`response_frame`)
 _RESPONSE_HEAD = struct.Struct(AMS_TCP_HEADER.format + AMS_HEADER.format.lstrip("<"))
 _RESPONSE_FLAGS = int(StateFlags.RESPONSE)
@@ -402,6 +414,11 @@ class Framer:
         self._buf = bytearray()
         self.failed: str | None = None
         self.incomplete_since: float | None = None
+
+    @property
+    def idle(self) -> bool:
+        """Nothing buffered and not failed: the next byte begins a frame."""
+        return self.incomplete_since is None and self.failed is None
 
     @property
     def buffered(self) -> int:

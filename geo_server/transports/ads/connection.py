@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.transports.ads import codec, symbols
 from geo_server.transports.ads.codec import AmsHeader, Command
+from geo_server.transports.ads.repeats import Repeats
 
 #: What a service handler returns: the response payload now or later.
 Reply = bytes | Awaitable[bytes]
@@ -70,6 +71,9 @@ class Connection:
         #: symbol handles of this connection (0xF003), per device it talks to: one TCP
         #: connection may address every machine of a fleet
         self.tables: dict[int, HandleTable] = {}
+        #: answers kept for Reads sent again, by the request less its invoke id
+        #: (`repeats`)
+        self.repeats: Repeats = {}
 
     def receive(self, data: bytes, now: float) -> Sequence[codec.FrameEvent]:
         """The complete frames (and framing events) `data` finishes."""

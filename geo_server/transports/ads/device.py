@@ -32,6 +32,8 @@ class Device(Protocol):
     loop: asyncio.AbstractEventLoop | None
     #: notification sampling (`sampling.Sampler`)
     sampler: Any
+    #: the machine's share of the loop in a fleet (None: no limit)
+    share: LoopShare | None
 
     @property
     def head(self) -> Device:
@@ -66,6 +68,7 @@ class Port(Protocol):
     def disconnected(self, conn: Any) -> None: ...
 
     def take_turn(self, packet: AmsPacket, shares: list[LoopShare]) -> float | None: ...
+    def repeat(self, conn: Any, frame: bytes) -> bool: ...
 
     def handle_packet(self, conn: Any, packet: AmsPacket) -> None: ...
 

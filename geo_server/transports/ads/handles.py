@@ -157,6 +157,7 @@ def release_handle(dev: Device, conn: Connection, data: bytes) -> bytes:
     handle = struct.unpack("<I", data)[0]
     if conn.table(dev).handles.pop(handle, None) is None:
         raise AdsError(AdsErrorCode.DEVICE_SYMBOLNOTFOUND, f"no symbol handle 0x{handle:X}")
+    conn.repeats.clear()  # (one may be a read by this handle: `repeats`)
     dev.handles_held -= 1
     dev.head.fleet_handles -= 1
     return codec.result_response(0)

@@ -148,6 +148,7 @@ class AdsStats:
     refused_requests: int = 0  # answered 0x716: `max_connections` at this machine
     deferred_requests: int = 0  # waited for a later loop step (`requests_per_step`)
     held_requests: int = 0  # waited for the machine's share of the loop (a fleet)
+    repeated_reads: int = 0  # Reads answered from what their connection kept (`repeats`)
 
 
 def server_version() -> tuple[int, int, int]:

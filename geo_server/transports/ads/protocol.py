@@ -84,9 +84,17 @@ class AdsConnection(Connection, asyncio.Protocol):
             t.cancel()
         self._cancel_frame_timer()
         self.framer.close()  # release an unfinished frame's buffer now
+        self.repeats.clear()
         self.transport = None
 
     def data_received(self, data: bytes) -> None:
+        if (
+            self.repeats
+            and not self._queued
+            and self.framer.idle
+            and self.server.repeat(self, data)
+        ):
+            return  # a Read sent before, answered from what was kept (`repeats`)
         loop = self.server.loop
         now = loop.time() if loop is not None else 0.0
         start = time.thread_time() if self.server.shared else None

@@ -44,7 +44,7 @@ from typing import cast
 from geo_server.dictionary import GEO_AMS_PORT
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.service import ObjectService
-from geo_server.transports.ads import discovery, symbols
+from geo_server.transports.ads import discovery, repeats, symbols
 from geo_server.transports.ads.codec import (
     SYSTEM_SERVICE_PORT,
     AmsHeader,
@@ -371,6 +371,13 @@ class AdsServer:
         if device._served >= self.options.requests_per_step:
             device.stats.deferred_requests += 1
             return 0.0
+        self._count_turn(device)
+        if share is not None:
+            shares.append(share)
+        return None
+
+    def _count_turn(self, device: AdsServer) -> None:
+        """One more request served by `device` in this loop step (`take_turn`)."""
         device._served += 1
         if (
             device._served * 2 >= self.options.requests_per_step
@@ -379,9 +386,23 @@ class AdsServer:
         ):
             device._step_reset = True
             self.loop.call_soon(device._new_step)
-        if share is not None:
-            shares.append(share)
-        return None
+
+    def repeat(self, conn: AdsConnection, frame: bytes) -> bool:
+        """Answer `frame`, one whole frame, from what `conn` kept for it if it is a Read
+        sent before that this still answers (`repeats`; docs/design.md §13, *Repeated
+        reads*); False: it is served the whole way. It counts as a request of its
+        machine in this loop step (`take_turn`: none when the turn is used up)."""
+        kept = repeats.still(conn.repeats, frame)
+        if kept is None:
+            return False
+        device = cast(AdsServer, kept.device)
+        if device._served >= self.options.requests_per_step:
+            return False
+        self._count_turn(device)
+        device.stats.requests += 1
+        device.stats.repeated_reads += 1
+        conn.send(repeats.answer(kept, frame))
+        return True
 
     def _new_step(self) -> None:
         self._served = 0

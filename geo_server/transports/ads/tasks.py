@@ -10,7 +10,7 @@ groups resolve. Read, Write and ReadWrite as the CNC object interface offers the
 from __future__ import annotations
 
 from geo_server.errors import AdsErrorCode
-from geo_server.transports.ads import codec, handles, sampling, symbols
+from geo_server.transports.ads import codec, handles, repeats, sampling, symbols
 from geo_server.transports.ads.codec import (
     AddNotificationRequest,
     AdsState,
@@ -36,7 +36,7 @@ def serve_task(dev: Device, conn: Connection, packet: AmsPacket, port: int) -> R
         if constant is not None:
             return codec.read_response(0, constant)
         ig, io = handles.address(dev, conn, port, req.index_group, req.index_offset)
-        return codec.read_response(0, dev.service.read(ig, io, req.length, port=port))
+        return repeats.read(dev, conn.repeats, packet, port, ig, io, req.length)
     if isinstance(req, ReadWriteRequest):
         if req.index_group in handles.NAME_SERVICES:
             return codec.read_response(

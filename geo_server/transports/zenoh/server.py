@@ -26,6 +26,7 @@ import contextlib
 import json
 import logging
 import threading
+import weakref
 from collections.abc import Awaitable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
@@ -37,7 +38,13 @@ from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError, carry_out
-from geo_server.service import ObjectService, check_readable, varies_at_rest
+from geo_server.service import (
+    ObjectService,
+    check_readable,
+    rests_on,
+    snapshot_for,
+    varies_at_rest,
+)
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
 
@@ -214,6 +221,9 @@ class ZenohInterface:
         self._plain = {
             key: route for _, key, route in self._readable if route.kind in ("raw", "named")
         }
+        #: the reply to the last get of each plain key and the snapshot it came from
+        #: (`_plain_reply`)
+        self._kept: dict[str, tuple[weakref.ref[Snapshot], bytes, zenoh.Encoding]] = {}
         #: whether a subscriber matches `cnc/<m>/**` (no watch publisher: always)
         self._watching = True
         self._entities: list[Any] = []
@@ -352,7 +362,8 @@ class ZenohInterface:
         it as always."""
         if self._session is None or query.payload is not None or self.service.faults.active:
             return False
-        route = self._plain.get(str(query.key_expr))
+        key = str(query.key_expr)
+        route = self._plain.get(key)
         if route is None:
             return False
         # never a reply while the interface undeclares and closes (`close` holds the
@@ -363,17 +374,37 @@ class ZenohInterface:
             if self._session is None:
                 return False
             try:
-                data, enc = self._read(route, None, wait=0)
+                data, enc = self._plain_reply(key, route)
             except AdsError:
                 return False
             self.queries += 1
             try:
-                query.reply(str(query.key_expr), data, encoding=enc)
+                query.reply(key, data, encoding=enc)
             finally:
                 query.drop()
             return True
         finally:
             self._closing.release()
+
+    def _plain_reply(self, key: str, route: Route) -> tuple[bytes, zenoh.Encoding]:
+        """Zenoh thread: the reply to a get of a plain key (`_read_now`), never waiting
+        for a catch-up. The reply an earlier get of `key` kept answers while the snapshot
+        it came from is still the one a read at rest takes (docs/design.md §13,
+        *Repeated reads*). A reply is kept when its object cannot vary at rest and the
+        machine shows its rest: one per plain key, with a weak reference to the snapshot
+        (nothing kept keeps a snapshot alive)."""
+        svc = self.service
+        kept = self._kept.get(key)
+        if kept is not None and rests_on(svc, kept[0]()):
+            return kept[1], kept[2]
+        assert route.obj is not None  # (a plain key is an object's own)
+        if varies_at_rest(route.obj):
+            return self._read(route, None, wait=0)
+        snap = snapshot_for(svc, route.obj, wait=0)
+        data, enc = self._read(route, snap)
+        if rests_on(svc, snap):
+            self._kept[key] = (weakref.ref(snap), data, enc)
+        return data, enc
 
     def _accept(self, query: zenoh.Query) -> None:
         self._spawn(self._handle(query))
@@ -550,8 +581,7 @@ class ZenohInterface:
         if route.kind == "named":
             assert route.obj is not None
             check_readable(route.obj)
-            rests = not varies_at_rest(route.obj)  # (docs/design.md §13, *Reads at rest*)
-            snap = snap or self.service.current(wait=wait, at_rest_ok=rests)
+            snap = snap or snapshot_for(self.service, route.obj, wait)
             obj, axis = route.obj, route.axis
             return snap.kept("json", obj, axis, lambda: _json_reply(snap, obj, axis)), JSON
         raise AdsError(

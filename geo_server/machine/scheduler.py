@@ -190,6 +190,9 @@ class Scheduler:
         self.machine = machine
         self.mode = mode
         self.engine = engine
+        # (`exact`, fixed with mode and engine: an attribute, for the paths every request
+        # takes — a property's call costs more than the rest of them after a pause)
+        self._exact = mode == "realtime" and engine == "exact"
         #: exact engine: the monotonic ns at which cycle 0 ended (cycle c at t0 + c·T)
         self.t0 = 0
         self.batch = BATCH
@@ -344,7 +347,7 @@ class Scheduler:
     @property
     def exact(self) -> bool:
         """Real time kept by the observation-exact engine."""
-        return self.mode == "realtime" and self.engine == "exact"
+        return self._exact
 
     def request_stop(self) -> None:
         """Ask the loop to end after its current cycle (from any thread; no waiting)."""
@@ -410,7 +413,7 @@ class Scheduler:
         nothing to do (True)."""
         # (started, not `running`: a thread's liveness costs more than the rest of the
         # fast path; an engine thread that died is caught up by its observers instead)
-        if not self.exact or not (self._thread is not None or self._here):
+        if not self._exact or not (self._thread is not None or self._here):
             return True
         t0 = time.perf_counter_ns()
         now = self._observed_at = self._clock()
@@ -436,7 +439,7 @@ class Scheduler:
         rest as it is in the cycle due now (`Machine.shows_rest`), so a read of only such
         objects needs no catch-up (docs/design.md §13, *Reads at rest*). Other engines
         publish every cycle themselves: False (their `sync` costs nothing)."""
-        return self.exact and self.machine.shows_rest()
+        return self._exact and self.machine.shows_rest()
 
     @property
     def running_exact(self) -> bool:

@@ -16,6 +16,8 @@ import struct
 from collections.abc import Callable, Coroutine
 from typing import Any
 
+from support.fakes import VirtualClock, Wire
+
 from geo_server.dictionary import load_dictionary
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -32,49 +34,6 @@ P = 1_000_000  # 1 ms in ns
 TARGET = AmsAddr("127.0.0.1.1.1", 551)
 SOURCE = AmsAddr("10.9.9.9.1.1", 30000)
 VALBYHND, HNDBYNAME, RELEASEHND = 0xF005, 0xF003, 0xF006
-
-
-class VirtualClock:
-    def __init__(self) -> None:
-        self.t = 1_000 * P
-
-    def clock(self) -> int:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += round(seconds * 1e9)
-
-
-class Wire(asyncio.Transport):
-    """What the connection writes, kept (asyncio's side of a socket, no socket)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.out: list[bytes] = []
-
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        self.out.append(bytes(data))
-
-    def is_closing(self) -> bool:
-        return False
-
-    def get_extra_info(self, name: str, default: object = None) -> object:
-        return ("127.0.0.1", 1) if name == "peername" else default
-
-    def pause_reading(self) -> None:
-        pass
-
-    def resume_reading(self) -> None:
-        pass
-
-    def get_write_buffer_size(self) -> int:
-        return 0
-
-    def abort(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 class Rig:

@@ -23,6 +23,7 @@ import pyads
 import pytest
 from conftest import run_in
 from pyads.errorcodes import ERROR_CODES
+from support.fakes import Wire
 
 from geo_server import access
 from geo_server.client.ads_client import AdsClient, close_port_first
@@ -802,35 +803,6 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     assert "ADS 0x704" in capsys.readouterr().err
 
 
-class _Wire(asyncio.Transport):
-    """What an ADS connection writes, kept (asyncio's side of a socket, no socket)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.out: list[bytes] = []
-
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        self.out.append(bytes(data))
-
-    def is_closing(self) -> bool:
-        return False
-
-    def get_extra_info(self, name: str, default: object = None) -> object:
-        return ("127.0.0.1", 1) if name == "peername" else default
-
-    def pause_reading(self) -> None:
-        pass
-
-    def resume_reading(self) -> None:
-        pass
-
-    def get_write_buffer_size(self) -> int:
-        return 0
-
-    def abort(self) -> None:
-        pass
-
-
 def test_a_machine_serves_at_most_requests_per_step_in_one_loop_step(service) -> None:
     """`requests_per_step` = 4: ten Reads pipelined in one segment are answered 4, 4 and
     2 in three loop steps, in order. A count carried over from earlier steps (a machine's
@@ -850,7 +822,7 @@ def test_a_machine_serves_at_most_requests_per_step_in_one_loop_step(service) ->
             for invoke in range(first, first + n)
         )
 
-    async def steps(wire: _Wire, expected: int) -> list[list[int]]:
+    async def steps(wire: Wire, expected: int) -> list[list[int]]:
         """The invoke ids answered in each loop step until `expected` have been."""
         out: list[list[int]] = []
         seen = 0
@@ -873,7 +845,7 @@ def test_a_machine_serves_at_most_requests_per_step_in_one_loop_step(service) ->
         ads = AdsServer(service, AdsOptions(port=0, requests_per_step=4))
         await ads.start()
         try:
-            wire = _Wire()
+            wire = Wire()
             conn = AdsConnection(ads)
             conn.connection_made(wire)
             conn.data_received(reads(1, 10))

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 import pytest
+from support.fakes import VirtualClock
 
 from geo_server import access
 from geo_server.listfile import load_machine
@@ -135,17 +136,6 @@ def test_unpublished_cycles_then_published_are_the_same_snapshots(cfg) -> None:
         same(a.snapshot, b.snapshot)
         published += 1
     assert np.any(a.snapshot.values != 0)
-
-
-class VirtualClock:
-    def __init__(self) -> None:
-        self.t = 1_000 * P
-
-    def clock(self) -> int:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += round(seconds * 1e9)
 
 
 def driven(cfg) -> tuple[VirtualClock, Machine, Scheduler]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import free_port, run_in, wait_until_routed
+from support.fakes import VirtualClock
 
 from geo_server import access
 from geo_server.client.cli import main as client_main
@@ -588,17 +589,6 @@ def test_the_servers_own_publications_are_not_puts(server, zs):
     assert server.iface.puts == 0
 
 
-class _VirtualClock:
-    def __init__(self) -> None:
-        self.t = 1_000_000_000
-
-    def clock(self) -> int:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += round(seconds * 1e9)
-
-
 def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_thread):
     """docs/design.md §13, *Repeated reads*: the exact engine on a virtual clock, the
     machine at rest with TEMPC::offset_0 of axis 1 written to -250. A get of its raw or
@@ -611,7 +601,7 @@ def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_t
     from geo_server.service import ServiceLimits
 
     P = 1_000_000
-    vc = _VirtualClock()
+    vc = VirtualClock()
     m = Machine(load_machine(default_startup_list()), homed=True)
     sched = Scheduler(m, mode="realtime", engine="exact", clock=vc.clock, sleep=vc.sleep)
     service = ObjectService(m, sched, ServiceLimits(stall_after=60.0))

@@ -245,7 +245,6 @@ class ObjectService:
         stale_ok: bool = False,
         wait: float | None = None,
         at_rest_ok: bool = False,
-        rest_only: bool = False,
     ) -> Snapshot:
         """The snapshot of the cycle due now (docs/design.md §13: the exact engine
         catches up first; other engines publish on their own), or 0x707 while the GEO
@@ -254,16 +253,13 @@ class ObjectService:
         the longest to wait for a catch-up another thread runs (default `SYNC_WAIT`; 0:
         not at all, 0x707 when the engine is busy). `at_rest_ok`: the caller reads only
         objects that cannot vary at rest (`varies_at_rest`), so while the machine shows
-        its rest (`CycleRunner.shows_rest`) the published snapshot already holds their
-        values of the cycle due, and nothing is caught up (§13, *Reads at rest*).
-        `rest_only`: that snapshot only, 0x707 at once instead of a catch-up (a caller
-        that holds its answer from a snapshot asks whether it is still the one; §13,
-        *Repeated reads*)."""
+        its rest (`_resting`) the published snapshot already holds their values of the
+        cycle due, and nothing is caught up (§13, *Reads at rest*)."""
+        if at_rest_ok:
+            rest = self._resting()
+            if rest is not None:
+                return rest
         sched = self.scheduler
-        if (at_rest_ok or rest_only) and sched.shows_rest() and self._beating():
-            return self.machine.snapshot  # (a heartbeat this young is no stall)
-        if rest_only:
-            raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the machine does not show its rest")
         synced = sched.sync() if wait is None else sched.sync(wait)
         if not synced and not stale_ok:
             raise AdsError(
@@ -284,12 +280,19 @@ class ObjectService:
     def _fresh(self) -> Snapshot:
         return self.current(stale_ok=True)
 
-    def _beating(self) -> bool:
-        """The heartbeat is younger than half of `stall_after`. A read at rest catches up
-        anyway when it is older (the engine wakes only every second at rest): then the
-        stall watch finds it fresh, instead of checking it with a catch-up that does not
-        wait and would call a wake of the engine under way a stall (0x707)."""
-        return self._heartbeat_age() <= self.limits.stall_after / 2
+    def _resting(self) -> Snapshot | None:
+        """The snapshot a read of objects that cannot vary at rest is answered from now
+        without a catch-up, or None (docs/design.md §13, *Reads at rest*): the machine's
+        `rest_snapshot` (the published one while it shows its rest; kept by the cycle, so
+        this is one look on every request), while the heartbeat is younger than half of
+        `stall_after`. A read at rest catches up anyway when it is older (the engine
+        wakes only every second at rest): then the stall watch finds it fresh, instead of
+        checking it with a catch-up that does not wait and would call a wake of the
+        engine under way a stall (0x707). (A heartbeat this young is no stall.)"""
+        snap = self.machine.rest_snapshot
+        if snap is None or self._heartbeat_age() > self.limits.stall_after / 2:
+            return None
+        return snap
 
     def _heartbeat_age(self) -> float:
         """Seconds since the cycle last advanced (or since the service first looked)."""
@@ -643,12 +646,9 @@ def snapshot_for(service: ObjectService, obj: ObjectDef, wait: float | None = No
 
 def rests_on(service: ObjectService, snap: Snapshot | None) -> bool:
     """Whether `snap` is the snapshot a read at rest is answered from now
-    (`ObjectService.current(rest_only=True)`): an answer kept from it is still the
-    answer (docs/design.md §13, *Repeated reads*)."""
-    try:
-        return service.current(rest_only=True) is snap
-    except AdsError:  # (not at rest)
-        return False
+    (`ObjectService._resting`): an answer kept from it is still the answer (docs/
+    design.md §13, *Repeated reads*)."""
+    return snap is not None and snap is service._resting()
 
 
 def check_readable(obj: ObjectDef) -> None:

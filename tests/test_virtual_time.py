@@ -28,6 +28,7 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
 from geo_server.machine.port import StartProgram, WriteObjects
 from geo_server.machine.scheduler import Scheduler
+from geo_server.model import Diagnostic
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService, ServiceLimits
 from geo_server.twin.engine import ambient_at
@@ -394,6 +395,65 @@ def test_a_read_of_a_value_that_cannot_change_at_rest_catches_nothing_up(cfg) ->
     vc.t += P
     assert svc.read(*addr) == struct.pack("<i", 125)  # the cycle that applied it
     assert m.cycle == cycle + 5001 and sched.computed == computed + 1
+
+
+def test_the_rest_snapshot_is_the_published_one_only_while_the_machine_shows_its_rest(
+    cfg,
+) -> None:
+    """docs/design.md §13, *Repeated reads*: `Machine.rest_snapshot` is what a read at
+    rest is answered from, kept by the cycle instead of looked up on every request. It
+    is the published snapshot while the machine shows its rest and None from the moment
+    anything could change that: an operation queued (before any cycle), a cycle
+    computed. A snapshot re-issued at rest (an error recorded) is the rest snapshot at
+    once, and a read of its error id takes it without catching up."""
+    vc, m, sched = driven(cfg)
+    svc = ObjectService(m, sched, ServiceLimits(stall_after=60.0))
+    error_id = m.dictionary.by_name("SIM::last_error_id")
+    vc.t += 100 * P
+    assert svc.current().cycle == m.cycle
+    first = m.snapshot
+    assert m.rest_snapshot is first
+
+    m.record(Diagnostic("warning", "a warning", error_id=70435)).result(timeout=1)
+    assert m.snapshot is not first and m.rest_snapshot is m.snapshot
+    cycle, computed = m.cycle, sched.computed
+    vc.t += 5000 * P
+    assert svc.read(error_id.index_group, error_id.index_offset(0)) == struct.pack("<I", 70435)
+    assert (m.cycle, sched.computed) == (cycle, computed)  # from the rest snapshot
+
+    pending = sched.submit(WriteObjects((("TEMPC::offset_0", 1, 125),)))
+    assert m.rest_snapshot is None and not sched.shows_rest()  # queued, not yet applied
+    vc.t += P
+    svc.current()
+    assert pending.done() and m.rest_snapshot is None  # computed: not at rest yet
+    vc.t += 100 * P
+    assert svc.current() is m.snapshot is m.rest_snapshot  # at rest again
+    m.run_cycle(publish=False)  # a cycle computed (of a batch: nothing published)
+    assert not m.shows_rest() and m.rest_snapshot is None
+
+
+def test_an_operation_queued_while_a_snapshot_is_published_is_never_missed(cfg) -> None:
+    """`Machine._show` sets the rest snapshot after it found the machine at rest; an
+    operation queued in between (another thread's `submit`, which clears the rest
+    snapshot after queueing) leaves it None all the same: a read after `submit` returned
+    never takes the snapshot of a machine with something queued."""
+    vc, m, sched = driven(cfg)
+    vc.t += 100 * P
+    sched.sync()
+    assert m.quiescent
+    shows_rest = m.shows_rest
+    queued = []
+
+    def racing() -> bool:
+        at_rest = shows_rest()
+        if at_rest and not queued:  # a submit lands after the look, before the setting
+            queued.append(m.submit(WriteObjects((("TEMPC::offset_0", 1, 125),))))
+        return at_rest
+
+    m.shows_rest = racing  # type: ignore[method-assign]
+    vc.t += 1000 * P
+    sched.sync()  # (skips to the cycle due and publishes its snapshot: `_show`)
+    assert queued and m.rest_snapshot is None
 
 
 def test_a_read_at_rest_with_an_old_heartbeat_waits_for_the_wake_under_way(cfg) -> None:

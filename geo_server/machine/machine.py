@@ -225,6 +225,9 @@ class Machine:
         self._layout_sources()
         np.add(self.motion.pos, self.kernel.total_offset, out=self._output)
         np.copyto(self._drive_act, self._output)
+        #: the published snapshot while the machine shows its rest (`shows_rest`), else
+        #: None: what a read at rest is answered from, checked with one look (`_show`)
+        self.rest_snapshot: Snapshot | None = None
         self.snapshot: Snapshot = self._build_snapshot()
         self.snapshot_time = monotonic()
         #: when the cycle last advanced (computed, skipped or published: the stall watch)
@@ -241,6 +244,7 @@ class Machine:
         applied: list[tuple[Pending, Any, BaseException | None]] = []
         try:
             with self._cycle_lock:
+                self.rest_snapshot = None  # (a cycle computed: `shows_rest` is False)
                 rest = self._at_rest()
                 self._rest_streak = self._rest_streak + 1 if rest else 0
                 self._rest_after = False
@@ -263,7 +267,7 @@ class Machine:
                 if not publish:
                     return self.snapshot
                 snap = self._build_snapshot()
-                self.snapshot = snap
+                self._show(snap)
                 self.snapshot_time = monotonic()
         finally:
             # Acknowledge the operations only now: a read right after an acknowledged
@@ -297,6 +301,7 @@ class Machine:
         with self._cycle_lock:
             if self._queue or not mo._moving.any():
                 return 0
+            self.rest_snapshot = None  # (cycles computed: `shows_rest` is False)
             player = self.player
             if player is not None and player.running:
                 waits = player.motion_wait()
@@ -397,7 +402,7 @@ class Machine:
         with self._cycle_lock:
             self.epoch = epoch
             snap = self.snapshot
-            self.snapshot = replace(snap, stamp=epoch + snap.cycle * self.period_ticks)
+            self._show(replace(snap, stamp=epoch + snap.cycle * self.period_ticks))
 
     def _at_rest(self) -> bool:
         """Nothing queued, no program, no axis moving, the kernel at rest, no motion heat
@@ -439,6 +444,20 @@ class Machine:
         key = self._rest_key
         return key is not None and key[0] == self._computed and self.quiescent
 
+    def _show(self, snap: Snapshot) -> None:
+        """Publish `snap` (under the cycle lock), and as `rest_snapshot` while the machine
+        `shows_rest` (docs/design.md §13, *Repeated reads*). Whatever can make
+        `shows_rest` False clears `rest_snapshot`: a cycle computed, an operation applied
+        or queued. `submit` clears it after queueing, so the queue is looked at again
+        here after setting it: a racing `submit` leaves it None either way. No reader
+        ever finds the old snapshot as `rest_snapshot` next to the new one."""
+        self.rest_snapshot = None
+        self.snapshot = snap
+        if self.shows_rest():
+            self.rest_snapshot = snap
+            if self._queue:
+                self.rest_snapshot = None
+
     def skip(self, n: int) -> None:
         """`n` cycles of a `quiescent` machine without computing them: the counter, the
         kernel's delay line position and the twin (its thermal and sensor events, in
@@ -463,12 +482,13 @@ class Machine:
                 # at rest since a snapshot published at rest, and no event of the twin
                 # since: every axis value is what it was (docs/design.md §13); only the
                 # machine objects (cycle, twin time, ambient…) and the stamp move on
-                snap = self.snapshot = self._snapshot_of(self.snapshot.values)
+                snap = self._snapshot_of(self.snapshot.values)
             else:
                 mo = self.motion
                 self.twin.evaluate(self._output, mo.pos, mo.vel)
-                snap = self.snapshot = self._build_snapshot()
+                snap = self._build_snapshot()
                 self._rest_key = key if self.quiescent else None
+            self._show(snap)
             self.snapshot_time = monotonic()
         for listener in self.listeners:
             try:
@@ -508,6 +528,7 @@ class Machine:
         pending = Pending(self._withdraw)
         with self._queue_lock:
             self._queue.append((op, pending))
+        self.rest_snapshot = None  # (after queueing: `_show`)
         return pending
 
     def has_queued(self) -> bool:
@@ -538,6 +559,7 @@ class Machine:
 
     def apply(self, op: Operation) -> Any:
         """Carry out one operation now (at a cycle boundary)."""
+        self.rest_snapshot = None
         self._rest_after = False
         for tap in self.input_taps:  # a recorder's (geo_server/recorder): usually none
             try:
@@ -707,7 +729,7 @@ class Machine:
             machine[self._mc.last_error_id] = self.last_error_id
             texts = list(snap.texts)
             texts[self._text_slot] = self.last_error
-            self.snapshot = replace(snap, machine=machine, texts=tuple(texts))
+            self._show(replace(snap, machine=machine, texts=tuple(texts)))
         return resolved()
 
     def report(self, error_id: int, message: str, line: int = 0, axis: int = 0) -> None:

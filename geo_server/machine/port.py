@@ -219,6 +219,12 @@ class MachinePort(Protocol):
         """The snapshot of the latest cycle (published by swapping a reference)."""
 
     @property
+    def rest_snapshot(self) -> Snapshot | None:
+        """The published snapshot while the machine shows its rest (`Machine.shows_rest`:
+        every object that cannot vary at rest holds its value of every cycle from now
+        until something is queued), else None (docs/design.md §13, *Repeated reads*)."""
+
+    @property
     def heartbeat(self) -> float:
         """`time.monotonic()` when the cycle last showed it is alive: a cycle computed or
         skipped, or a snapshot published (the stall watch)."""
@@ -269,11 +275,6 @@ class CycleRunner(Protocol):
         computes late; others: nothing to do); False when it could not within `wait`
         seconds (0: only if nobody else is computing). `record`: time it as what
         catching up added to a request."""
-
-    def shows_rest(self) -> bool:
-        """True when the published snapshot holds every object that cannot vary at rest
-        (`varies_at_rest`) as it is in the cycle due now: a read of only such objects
-        needs no `sync` (docs/design.md §13, *Reads at rest*)."""
 
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the

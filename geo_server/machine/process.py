@@ -325,6 +325,8 @@ class RemoteMachine:
         self.snapshot: Snapshot = local.snapshot
         self.snapshot_time = time.monotonic()
         self.heartbeat = self.snapshot_time  # a frame is the cycle process's sign of life
+        #: never: only a frame of the cycle due tells the machine's state (`shows_rest`)
+        self.rest_snapshot: Snapshot | None = None
         self._shape = local.snapshot.values.shape
         self.events: deque[Event] = deque(local.events, maxlen=100)
         self._listeners: list[Callable[[Snapshot], None]] = []
@@ -604,11 +606,6 @@ class ProcessScheduler:
         """The cycle an observer must see now (the cycle process's time line)."""
         m = self.machine
         return (time.monotonic_ns() - m.t0) // round(m.cycle_s * 1e9)
-
-    def shows_rest(self) -> bool:
-        """Never: the machine's state is in the cycle process, and only a frame of the
-        cycle due tells what it is (`sync`)."""
-        return False
 
     def sync(self, wait: float = SYNC_WAIT, record: bool = True) -> bool:
         """Exact engine: wake the cycle process and wait (at most `wait` seconds) for the

@@ -435,11 +435,10 @@ class Scheduler:
         return True
 
     def shows_rest(self) -> bool:
-        """Exact engine: the published snapshot holds every object that cannot vary at
-        rest as it is in the cycle due now (`Machine.shows_rest`), so a read of only such
-        objects needs no catch-up (docs/design.md §13, *Reads at rest*). Other engines
-        publish every cycle themselves: False (their `sync` costs nothing)."""
-        return self._exact and self.machine.shows_rest()
+        """The published snapshot holds every object that cannot vary at rest as it is
+        in the cycle due now (`Machine.rest_snapshot`), so a read of only such objects
+        needs no catch-up (docs/design.md §13, *Reads at rest*)."""
+        return self.machine.rest_snapshot is not None
 
     @property
     def running_exact(self) -> bool:

@@ -362,24 +362,29 @@ class ZenohInterface:
         it as always."""
         if self._session is None or query.payload is not None or self.service.faults.active:
             return False
-        key = str(query.key_expr)
-        route = self._plain.get(key)
-        if route is None:
+        ke = query.key_expr
+        key = str(ke)
+        kept = self._kept.get(key)  # (only ever a plain key's: `_plain_reply`)
+        route = None if kept is not None else self._plain.get(key)
+        if kept is None and route is None:
             return False
         # never a reply while the interface undeclares and closes (`close` holds the
         # lock; a read that finds it taken goes to the loop, as every read once did)
-        if not self._closing.acquire(blocking=False):
+        if not self._closing.acquire(False):
             return False
         try:
             if self._session is None:
                 return False
-            try:
-                data, enc = self._plain_reply(key, route)
-            except AdsError:
-                return False
+            if kept is not None and rests_on(self.service, kept[0]()):
+                data, enc = kept[1], kept[2]  # (docs/design.md §13, *Repeated reads*)
+            else:
+                try:
+                    data, enc = self._plain_reply(key, route or self._plain[key])
+                except AdsError:
+                    return False
             self.queries += 1
             try:
-                query.reply(key, data, encoding=enc)
+                query.reply(ke, data, encoding=enc)  # (as it came: not parsed again)
             finally:
                 query.drop()
             return True
@@ -387,16 +392,13 @@ class ZenohInterface:
             self._closing.release()
 
     def _plain_reply(self, key: str, route: Route) -> tuple[bytes, zenoh.Encoding]:
-        """Zenoh thread: the reply to a get of a plain key (`_read_now`), never waiting
-        for a catch-up. The reply an earlier get of `key` kept answers while the snapshot
-        it came from is still the one a read at rest takes (docs/design.md §13,
-        *Repeated reads*). A reply is kept when its object cannot vary at rest and the
-        machine shows its rest: one per plain key, with a weak reference to the snapshot
-        (nothing kept keeps a snapshot alive)."""
+        """Zenoh thread: the reply to a get of a plain key (`_read_now`) that no reply
+        kept from an earlier get answers, never waiting for a catch-up. A reply is kept
+        when its object cannot vary at rest and it came from the snapshot a read at rest
+        takes; it answers the next gets of `key` while that snapshot is still the one
+        (docs/design.md §13, *Repeated reads*): one per plain key, with a weak reference
+        to the snapshot (nothing kept keeps a snapshot alive)."""
         svc = self.service
-        kept = self._kept.get(key)
-        if kept is not None and rests_on(svc, kept[0]()):
-            return kept[1], kept[2]
         assert route.obj is not None  # (a plain key is an object's own)
         if varies_at_rest(route.obj):
             return self._read(route, None, wait=0)

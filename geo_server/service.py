@@ -209,6 +209,9 @@ class ObjectService:
         #: Items merged into `status()` (interfaces add what they observe).
         self.status_extra: dict[str, Any] = {}
         self._started_at = 0.0
+        #: a heartbeat younger than this is no stall, and reads at rest need no catch-up
+        #: (`rests_on`; the limits are frozen)
+        self._rest_fresh = self.limits.stall_after / 2
         # The commands, each a service of its own over the same ports and rules
         # (geo_server/commands, docs/design.md §5.7), built once here.
         self._ports = Ports(
@@ -253,11 +256,11 @@ class ObjectService:
         the longest to wait for a catch-up another thread runs (default `SYNC_WAIT`; 0:
         not at all, 0x707 when the engine is busy). `at_rest_ok`: the caller reads only
         objects that cannot vary at rest (`varies_at_rest`), so while the machine shows
-        its rest (`_resting`) the published snapshot already holds their values of the
+        its rest (`rests_on`) the published snapshot already holds their values of the
         cycle due, and nothing is caught up (§13, *Reads at rest*)."""
         if at_rest_ok:
-            rest = self._resting()
-            if rest is not None:
+            rest = self.machine.rest_snapshot
+            if rest is not None and rests_on(self, rest):
                 return rest
         sched = self.scheduler
         synced = sched.sync() if wait is None else sched.sync(wait)
@@ -279,20 +282,6 @@ class ObjectService:
 
     def _fresh(self) -> Snapshot:
         return self.current(stale_ok=True)
-
-    def _resting(self) -> Snapshot | None:
-        """The snapshot a read of objects that cannot vary at rest is answered from now
-        without a catch-up, or None (docs/design.md §13, *Reads at rest*): the machine's
-        `rest_snapshot` (the published one while it shows its rest; kept by the cycle, so
-        this is one look on every request), while the heartbeat is younger than half of
-        `stall_after`. A read at rest catches up anyway when it is older (the engine
-        wakes only every second at rest): then the stall watch finds it fresh, instead of
-        checking it with a catch-up that does not wait and would call a wake of the
-        engine under way a stall (0x707). (A heartbeat this young is no stall.)"""
-        snap = self.machine.rest_snapshot
-        if snap is None or self._heartbeat_age() > self.limits.stall_after / 2:
-            return None
-        return snap
 
     def _heartbeat_age(self) -> float:
         """Seconds since the cycle last advanced (or since the service first looked)."""
@@ -645,10 +634,22 @@ def snapshot_for(service: ObjectService, obj: ObjectDef, wait: float | None = No
 
 
 def rests_on(service: ObjectService, snap: Snapshot | None) -> bool:
-    """Whether `snap` is the snapshot a read at rest is answered from now
-    (`ObjectService._resting`): an answer kept from it is still the answer (docs/
-    design.md §13, *Repeated reads*)."""
-    return snap is not None and snap is service._resting()
+    """Whether `snap` is the snapshot a read of objects that cannot vary at rest is
+    answered from now, without a catch-up (docs/design.md §13, *Reads at rest*), so an
+    answer kept from it is still the answer (*Repeated reads*): the machine's
+    `rest_snapshot` (the published one while it shows its rest; kept by the cycle, so
+    this is one look on every request), while the heartbeat is younger than half of
+    `stall_after`. A read at rest catches up anyway when it is older (the engine wakes
+    only every second at rest): then the stall watch finds it fresh, instead of checking
+    it with a catch-up that does not wait and would call a wake of the engine under way
+    a stall (0x707). (A heartbeat this young is no stall.) One function, no calls: a
+    request runs it with cold caches after a pause."""
+    m = service.machine
+    return (
+        snap is not None
+        and snap is m.rest_snapshot
+        and time.monotonic() - m.heartbeat <= service._rest_fresh
+    )
 
 
 def check_readable(obj: ObjectDef) -> None:

@@ -5,7 +5,7 @@ values stay what they were. So a connection keeps the answer to each Read it sen
 object that cannot vary at rest (`varies_at_rest`), with the snapshot that answered it.
 The same request again (the same bytes but the invoke id) is answered from what was kept
 while that snapshot is still the one a read at rest is answered from
-(`ObjectService._resting`). These are the very bytes the whole path would
+(`service.rests_on`). These are the very bytes the whole path would
 answer, without framing, dispatching and resolving the request again.
 
 What is kept, and when it answers, is decided here:

@@ -543,9 +543,8 @@ def test_a_close_that_zenoh_does_not_finish_is_left_to_it_after_the_wait(
             undeclared.append(True)
 
     a.iface._entities.insert(0, Stuck())  # (undeclared last: after the real ones)
-    t0 = time.monotonic()
     a.close()
-    assert time.monotonic() - t0 < 5 and not undeclared
+    assert not undeclared  # (close returned while the undeclare still hangs)
     assert "not undeclared and closed within 0.2 s" in caplog.text
     release.set()
     wait_for(lambda: undeclared == [True], TIMEOUT, "the stuck undeclare finishes")

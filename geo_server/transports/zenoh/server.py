@@ -328,8 +328,7 @@ class ZenohInterface:
             # Undeclaring waits for Zenoh callbacks in flight, which hand work to this
             # loop: never block the loop on it (nor on closing the session). A probe's
             # get sent from a worker thread (its task cancelled above, its thread not)
-            # finishes first.
-            done.set_running_or_notify_cancel()
+            # finishes first. (`done` is never cancelled: the wait below is shielded.)
             try:
                 with self._closing:
                     for ent in entities:

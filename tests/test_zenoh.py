@@ -571,6 +571,36 @@ def test_a_put_is_a_write_and_a_refused_one_is_reported(server, zs):
     )
 
 
+def test_refused_puts_are_reported_in_the_order_they_arrived(server, zs):
+    """One session's puts arrive in order (Zenoh keeps a publisher's order on a reliable
+    link); their refusals are listed in that order too, each one in the list by the time
+    `refused_puts` counts it — a burst must not come out shuffled by the threads that
+    record it."""
+    svc = server.service
+    keys = [
+        f"cnc/t/axis/{axis}/{obj}"
+        for _ in range(4)
+        for obj in ("bc/actual_backlash", "tempc/actual_offset", "tempc/coefficient")
+        for axis in (1, 2, 3)
+    ]
+    for n, key in enumerate(keys):
+        if key.endswith("coefficient"):
+            zs.delete(key)
+        else:
+            zs.put(key, str(n).encode())
+    _until(lambda: server.iface.refused_puts == len(keys))
+    listed = [e["message"].split(":")[0] for e in svc.errors()[-len(keys) :]]
+    assert listed == [
+        f"zenoh {'delete' if key.endswith('coefficient') else 'put'} {key}" for key in keys
+    ]
+    # writes are queued in that order too: the last put of a key is the value that stays
+    for value in range(100, 3100, 100):
+        zs.put("cnc/t/axis/2/tempc/coefficient", str(value).encode())
+    _until(lambda: server.iface.puts == len(keys) + 30)
+    access.step(svc, 1)
+    assert access.read_name(svc, "TEMPC::coefficient", 2) == 3000.0
+
+
 def test_the_servers_own_publications_are_not_puts(server, zs):
     """The server publishes values on the object keys; they never come back as writes
     (its put subscriber takes remote samples only), and that subscriber of its own does

@@ -235,8 +235,14 @@ class ZenohInterface:
         self._unsubscribe: list[Any] = []
         self.queries = 0
         self.faulted = 0  # queries an injected fault dropped, answered or delayed
-        self.puts = 0  # puts and deletes of other sessions on this machine's keys
-        self.refused_puts = 0  # of them, refused (reported in the errors list)
+        #: puts and deletes of other sessions on this machine's keys, counted once
+        #: handled (queued for the cycle, applied if cycles run, or refused and listed)
+        self.puts = 0
+        self.refused_puts = 0  # of them, refused and listed in the errors list
+        #: taken by each refused put around its report, in the order the puts arrived
+        #: (an asyncio lock wakes its waiters first come, first served): the errors list
+        #: keeps a session's order, which Zenoh kept on the way (`_put`)
+        self._reporting = asyncio.Lock()
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
         #: Other sessions found answering for this machine: key (their Zenoh id, or
@@ -448,7 +454,6 @@ class ZenohInterface:
         applied by the cycle after it arrives); with no one to answer, a refusal goes to
         the errors list (`cnc/<m>/errors`, `SIM::last_error`) naming the key. A delete
         removes nothing (an object cannot be deleted): it is reported the same way."""
-        self.puts += 1
         try:
             if payload is None:
                 raise AdsError(
@@ -469,12 +474,17 @@ class ZenohInterface:
                 )
             await self._write(route, payload)
         except AdsError as exc:
-            self.refused_puts += 1
             what = "delete" if payload is None else "put"
             text = f"zenoh {what} {key[:200]}: {exc.message} (ADS 0x{exc.code:X})"
-            await asyncio.to_thread(self.service.report, text)
+            # recorded in a worker thread (a report catches the cycle up); one at a
+            # time, or two threads could list a burst of refusals out of order
+            async with self._reporting:
+                await asyncio.to_thread(self.service.report, text)
+                self.refused_puts += 1
         except Exception:  # never let one bad put take the interface down
             log.exception("zenoh put on %s failed", key[:200])
+        finally:
+            self.puts += 1
 
     async def _write(self, route: Route, payload: bytes) -> tuple[bytes, zenoh.Encoding]:
         """Write the object of a raw or named key: what is stored, as a reply payload."""

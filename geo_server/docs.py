@@ -188,6 +188,14 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
     ),
     (
         "ads",
+        "sample_lag",
+        "s",
+        "sampling behind the cycles, with running cycles",
+        "older snapshots are skipped; those samples come from a later cycle (counted: "
+        "`cycles_shed`)",
+    ),
+    (
+        "ads",
         "notification_backlog",
         "bytes",
         "unsent data of a client that does not read",

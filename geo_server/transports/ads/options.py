@@ -67,6 +67,13 @@ class AdsOptions:
     #: from a later cycle, and are counted (`status()["ads_notifications"]`) — so a loop
     #: that cannot keep up sheds sampling work instead of piling it up.
     sample_backlog: int = HANDOFF_MAX
+    #: With running cycles, sampling is at most this far behind (seconds): a pass never
+    #: begins at a snapshot handed over longer ago than this while a newer one waits —
+    #: the older ones are skipped (counted, `cycles_shed`) and what was due in them is
+    #: sampled from the next one, late. A loop that cannot sample every cycle (a busy
+    #: host) then answers a new registration within this time, not after working through
+    #: `sample_backlog` cycles of the past one by one.
+    sample_lag: float = 0.05
     #: Longest stretch of notification sampling in one event-loop callback (seconds);
     #: a longer pass continues in a later loop iteration, so requests of every transport
     #: are answered in between. A late slice still sends the values and timestamp of the
@@ -145,6 +152,9 @@ class AdsStats:
     #: cycles the engine would have published for sampling but the loop was behind
     #: (`sample_backlog` snapshots waiting): their samples come from a later cycle
     samples_refused: int = 0
+    #: cycles handed over for sampling but skipped, older than `sample_lag` when the
+    #: loop got to them: their samples come from a later cycle
+    cycles_shed: int = 0
     refused_requests: int = 0  # answered 0x716: `max_connections` at this machine
     deferred_requests: int = 0  # waited for a later loop step (`requests_per_step`)
     held_requests: int = 0  # waited for the machine's share of the loop (a fleet)

@@ -119,8 +119,9 @@ class Sampler:
         self._ready: deque[Sampler] = deque()
         self._round_pending = False
         self._notify_invoke = 0
-        # Cycle thread -> loop hand-off of the cycles' snapshots (see `on_cycle_thread`).
-        self._handed: deque[Snapshot] = deque(maxlen=HANDOFF_MAX)
+        # Cycle thread -> loop hand-off of the cycles' snapshots, each with the monotonic
+        # time it was handed over (see `on_cycle_thread`, `_oldest_fresh`).
+        self._handed: deque[tuple[Snapshot, float]] = deque(maxlen=HANDOFF_MAX)
         self._handoff_pending = False
         # The sampling pass under way (with its FILETIME).
         self._pass: tuple[SamplingPass, int] | None = None
@@ -170,6 +171,7 @@ class Sampler:
         st["registrations"] = len(self.dev.notifications)
         st["samples_late"] = self.dev.notifications.late
         st["samples_refused"] = self.dev.stats.samples_refused
+        st["cycles_shed"] = self.dev.stats.cycles_shed
         st["waiting_snapshots"] = len(self._handed)
         self.dev.service.status_extra["ads_notifications"] = st
 
@@ -183,7 +185,8 @@ class Sampler:
         self-pipe) piles up callbacks whenever the loop is busy. `_on_cycle` works
         through all snapshots handed over, in the head's rounds (`_sample_round`:
         machines in turn). When the loop falls `HANDOFF_MAX` cycles
-        behind the oldest ones go: sampling counts intervals in cycles
+        behind the oldest ones go, and with running cycles those older than
+        `sample_lag` are skipped (`_oldest_fresh`): sampling counts intervals in cycles
         (`NotificationTable.begin`), so a snapshot the loop never saw delays a sample,
         it does not lose one.
         """
@@ -196,7 +199,7 @@ class Sampler:
         # snapshot appended after `_on_cycle` looked finds the flag cleared and queues a
         # new hand-off, so no snapshot is left unsampled. deque.append and popleft are
         # atomic; no lock on the cycle thread.
-        self._handed.append(snap)
+        self._handed.append((snap, time.monotonic()))
         if self._handoff_pending:
             return
         self._handoff_pending = True
@@ -251,9 +254,8 @@ class Sampler:
         stats = self.dev.stats
         while True:
             if self._pass is None:
-                try:
-                    snap = self._handed.popleft()
-                except IndexError:
+                snap = self._oldest_fresh()
+                if snap is None:
                     break  # every snapshot handed over is sampled
                 self._pass = (self.dev.notifications.begin(snap, time.monotonic()), snap.stamp)
                 stats.sampling_passes += 1
@@ -272,6 +274,26 @@ class Sampler:
                 break
         self.update_status()
         return self._pass is not None or bool(self._handed)
+
+    def _oldest_fresh(self) -> Snapshot | None:
+        """The next snapshot to begin a pass at: the oldest one handed over — but with
+        running cycles none handed over longer than `sample_lag` ago while a newer one
+        waits. A loop that cannot sample every cycle (a busy host, thousands of
+        registrations) would otherwise fall further behind with every pass, up to
+        `sample_backlog` cycles: a registration made meanwhile would get its first
+        sample seconds late. Skipped cycles are counted (`cycles_shed`); what was due in
+        them is sampled from the next pass (late, `NotificationTable.late`)."""
+        handed = self._handed
+        if not handed:
+            return None
+        if self.dev.service.info.running and len(handed) > 1:
+            oldest = time.monotonic() - self.dev.options.sample_lag
+            shed = 0
+            while len(handed) > 1 and handed[0][1] < oldest:
+                handed.popleft()
+                shed += 1
+            self.dev.stats.cycles_shed += shed
+        return handed.popleft()[0]
 
     def _again(self) -> None:
         """Head: another sampling round in a later loop iteration (other requests

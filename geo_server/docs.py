@@ -228,6 +228,13 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
     ("zenoh", "accept_pending", "", "connections opening a session at once", "further ones wait"),
     ("zenoh", "max_nc_bytes", "bytes", "NC text on `cnc/<m>/nc`", "reply_err 0x705"),
     (
+        "zenoh",
+        "max_pending",
+        "",
+        "gets and puts waiting on the event loop, all sessions together",
+        "a get: reply_err 0x716 at once; a put: dropped (counted, logged)",
+    ),
+    (
         "files",
         "volc_list_bytes",
         "bytes",

@@ -22,6 +22,7 @@ from support.fakes import VirtualClock
 from geo_server import access
 from geo_server.client.cli import main as client_main
 from geo_server.dictionary import load_dictionary
+from geo_server.faults import parse_fault
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
@@ -45,7 +46,12 @@ class Server:
     """A stepped geo-server with its Zenoh interface on an ephemeral port."""
 
     def __init__(
-        self, loop, service: ObjectService, machine: str = "t", connect: list[str] | None = None
+        self,
+        loop,
+        service: ObjectService,
+        machine: str = "t",
+        connect: list[str] | None = None,
+        **options,
     ) -> None:
         self.loop = loop
         self.service = service
@@ -56,6 +62,7 @@ class Server:
             connect=connect or [],
             publish_period=0.01,
             status_period=0.05,
+            **options,
         )
         self.iface = ZenohInterface(service, opts)
         run_in(loop, self.iface.start())
@@ -599,6 +606,42 @@ def test_refused_puts_are_reported_in_the_order_they_arrived(server, zs):
     _until(lambda: server.iface.puts == len(keys) + 30)
     access.step(svc, 1)
     assert access.read_name(svc, "TEMPC::coefficient", 2) == 3000.0
+
+
+def test_work_in_flight_is_capped_however_fast_a_session_sends(loop_thread, service):
+    """At most `max_pending` gets and puts wait on the loop at once; beyond, a get is
+    answered 0x716 at once and a put is dropped (counted): a session that sends faster
+    than the machine answers cannot make the server hold unbounded work. An injected
+    delay holds the first gets until it is cleared."""
+    srv = Server(loop_thread, service, max_pending=8)
+    zs = zenoh.open(session_config([srv.endpoint]))
+    key = "cnc/t/axis/1/tempc/coefficient"
+    try:
+        service.faults.add(parse_fault("zenoh:delay=60000"))
+        held = [zs.get(key, timeout=30.0) for _ in range(8)]
+        _until(lambda: srv.iface.queries == 8)
+        err = get_err(zs, key)
+        assert err["ads_error"] == 0x716
+        assert "more than 8 requests in flight" in err["message"]
+        for value in (1000, 2000, 3000):
+            zs.put(key, str(value).encode())
+        _until(lambda: srv.iface.puts_shed == 3)
+        assert (srv.iface.refused_busy, srv.iface.puts) == (1, 0)
+        service.faults.remove()  # the held gets go on, each answered with the value
+        for replies in held:
+            (reply,) = list(replies)
+            # the default machine's X: 4000 µm/m (000 p.17), none of the puts taken
+            assert reply.ok is not None and reply.ok.payload.to_bytes() == b"4000.0"
+        # nothing is in flight any more: gets and puts are taken again
+        assert get_one(zs, key) == b"4000.0"
+        zs.put(key, b"3500")
+        _until(lambda: srv.iface.puts == 1)
+        access.step(service, 1)
+        assert access.read_name(service, "TEMPC::coefficient", 1) == 3500.0
+        assert srv.iface.puts_shed == 3
+    finally:
+        zs.close()
+        srv.close()
 
 
 def test_the_servers_own_publications_are_not_puts(server, zs):

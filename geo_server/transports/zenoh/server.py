@@ -27,6 +27,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 import weakref
 from collections.abc import Awaitable, Coroutine
 from dataclasses import dataclass, field
@@ -105,6 +106,12 @@ class ZenohOptions:
     #: belongs in a file (`geo-server run --program`), not in one request that parses
     #: while the GEO cycle waits for the interpreter.
     max_nc_bytes: int = 16 * 1024
+    #: Gets and puts handed to the event loop and not finished yet, for all sessions
+    #: together (a get answered on Zenoh's thread at once is not counted). Beyond, a
+    #: get is answered at once with 0x716 and a put is dropped (counted in
+    #: `puts_shed`, logged at most every 10 s): a session sending faster than the
+    #: machine answers cannot make the server hold unbounded work.
+    max_pending: int = 1024
     #: Seconds between two looks for another session answering for this machine (also
     #: done at once when Zenoh reports a matching queryable or a liveliness change).
     rival_check_period: float = 5.0
@@ -234,6 +241,15 @@ class ZenohInterface:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: list[Any] = []
         self.queries = 0
+        #: gets and puts handed to the loop (each counter has one writer: Zenoh's
+        #: queryable thread, its subscriber thread, the loop) — their difference is the
+        #: work in flight that `max_pending` caps
+        self._queries_taken = 0
+        self._puts_taken = 0
+        self._finished = 0
+        self.refused_busy = 0  # gets answered 0x716: `max_pending` in flight
+        self.puts_shed = 0  # puts dropped: `max_pending` in flight
+        self._shed_logged = 0.0
         self.faulted = 0  # queries an injected fault dropped, answered or delayed
         #: puts and deletes of other sessions on this machine's keys, counted once
         #: handled (queued for the cycle, applied if cycles run, or refused and listed)
@@ -377,8 +393,35 @@ class ZenohInterface:
         Once the loop is gone nobody is left to answer; the query ends when Zenoh drops
         it. The coroutine is created on the loop (`_accept`), so a failed hand-off
         leaves no never-awaited coroutine behind."""
-        if not self._read_now(query):
-            self._to_loop(self._accept, query)
+        if self._read_now(query):
+            return
+        if self._in_flight() >= self.options.max_pending:
+            self._refuse_busy(query)
+            return
+        self._queries_taken += 1
+        self._to_loop(self._accept, query)
+
+    def _in_flight(self) -> int:
+        return self._queries_taken + self._puts_taken - self._finished
+
+    def _refuse_busy(self, query: zenoh.Query) -> None:
+        """Zenoh thread: `max_pending` gets and puts are in flight; 0x716 at once (no
+        reply at all while the interface closes)."""
+        self.refused_busy += 1
+        try:
+            if self._closing.acquire(False):
+                try:
+                    if self._session is not None:
+                        err = AdsError(
+                            AdsErrorCode.DEVICE_NOMOREHDLS,
+                            f"more than {self.options.max_pending} requests in flight on "
+                            "this interface: try again",
+                        )
+                        query.reply_err(_error_payload(err), encoding=JSON)
+                finally:
+                    self._closing.release()
+        finally:
+            query.drop()
 
     def _read_now(self, query: zenoh.Query) -> bool:
         """Zenoh thread: answer a get without payload of one object's key, with no fault
@@ -441,6 +484,18 @@ class ZenohInterface:
 
     def _on_put(self, sample: zenoh.Sample) -> None:
         """Zenoh thread: a put or delete of another session on this machine's keys."""
+        if self._in_flight() >= self.options.max_pending:
+            self.puts_shed += 1
+            now = time.monotonic()
+            if now - self._shed_logged >= 10.0:
+                self._shed_logged = now
+                log.warning(
+                    "zenoh: %d puts dropped so far, %d gets and puts in flight",
+                    self.puts_shed,
+                    self.options.max_pending,
+                )
+            return
+        self._puts_taken += 1
         delete = sample.kind == zenoh.SampleKind.DELETE
         key = str(sample.key_expr)
         payload = b"" if delete else sample.payload.to_bytes()[: MAX_PAYLOAD + 1]
@@ -485,6 +540,7 @@ class ZenohInterface:
             log.exception("zenoh put on %s failed", key[:200])
         finally:
             self.puts += 1
+            self._finished += 1
 
     async def _write(self, route: Route, payload: bytes) -> tuple[bytes, zenoh.Encoding]:
         """Write the object of a raw or named key: what is stored, as a reply payload."""
@@ -525,6 +581,7 @@ class ZenohInterface:
             query.reply_err(_error_payload(err), encoding=JSON)
         finally:
             query.drop()
+            self._finished += 1
 
     async def _faulted(self, query: zenoh.Query, key: str, payload: bytes | None) -> bool:
         """Carry out the injected fault that hits this query (docs/faults.md): True when

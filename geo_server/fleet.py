@@ -155,9 +155,7 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
         "stalled": st["stalled"],
         "computed_cycles": st["computed_cycles"],
         "notifications": int(notes.get("registrations", 0)),
-        "samples_late": int(notes.get("samples_late", 0))
-        + int(notes.get("samples_refused", 0))
-        + int(notes.get("cycles_shed", 0)),
+        "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
         "loop_share_holds": int(share.get("holds", 0)),
         "netid": member.netid,
         "modbus_port": member.modbus_port,

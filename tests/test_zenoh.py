@@ -578,12 +578,22 @@ def test_a_put_is_a_write_and_a_refused_one_is_reported(server, zs):
     )
 
 
-def test_refused_puts_are_reported_in_the_order_they_arrived(server, zs):
+def test_refused_puts_are_reported_in_the_order_they_arrived(server, zs, monkeypatch):
     """One session's puts arrive in order (Zenoh keeps a publisher's order on a reliable
     link); their refusals are listed in that order too, each one in the list by the time
     `refused_puts` counts it — a burst must not come out shuffled by the threads that
-    record it."""
+    record it. Every other report takes 20 ms (as one that waits for a catch-up does)."""
     svc = server.service
+    report = svc.report
+    calls = []
+
+    def slow_every_other(message, **kwargs):
+        calls.append(message)
+        if len(calls) % 2:
+            time.sleep(0.02)
+        return report(message, **kwargs)
+
+    monkeypatch.setattr(svc, "report", slow_every_other)
     keys = [
         f"cnc/t/axis/{axis}/{obj}"
         for _ in range(4)
@@ -608,11 +618,41 @@ def test_refused_puts_are_reported_in_the_order_they_arrived(server, zs):
     assert access.read_name(svc, "TEMPC::coefficient", 2) == 3000.0
 
 
+def test_a_burst_of_refused_puts_is_listed_up_to_a_bound_and_then_counted(server, zs, monkeypatch):
+    """Refusals wait to be listed one by one; with MAX_REFUSALS_WAITING (64) waiting, the
+    next are counted and listed as one line: a session's bad puts cannot flood the errors
+    list or make the server hold a report each. The first report is held until all 80
+    deletes have been refused."""
+    svc = server.service
+    report = svc.report
+    first = threading.Event()
+
+    def held_first(message, **kwargs):
+        if not first.is_set():
+            assert first.wait(TIMEOUT)
+        return report(message, **kwargs)
+
+    monkeypatch.setattr(svc, "report", held_first)
+    for axis in range(80):
+        zs.delete(f"cnc/t/axis/{axis}/tempc/coefficient")
+    _until(lambda: server.iface.puts == 80)
+    first.set()
+    _until(lambda: server.iface.refused_puts == 80)
+    listed = [e["message"] for e in svc.errors()[-66:]]
+    assert [m.split(":")[0] for m in listed[:65]] == [
+        f"zenoh delete cnc/t/axis/{axis}/tempc/coefficient" for axis in range(65)
+    ]
+    assert listed[65] == (
+        "zenoh: 15 more puts refused and not listed (more than 64 refusals waited to be listed)"
+    )
+
+
 def test_work_in_flight_is_capped_however_fast_a_session_sends(loop_thread, service):
     """At most `max_pending` gets and puts wait on the loop at once; beyond, a get is
-    answered 0x716 at once and a put is dropped (counted): a session that sends faster
-    than the machine answers cannot make the server hold unbounded work. An injected
-    delay holds the first gets until it is cleared."""
+    answered 0x716 at once and a put is dropped (counted in the status): a session that
+    sends faster than the machine answers cannot make the server hold unbounded work.
+    An injected delay holds the first gets; the status and the fault command are
+    answered all the same, so the fault is cleared over Zenoh itself."""
     srv = Server(loop_thread, service, max_pending=8)
     zs = zenoh.open(session_config([srv.endpoint]))
     key = "cnc/t/axis/1/tempc/coefficient"
@@ -625,20 +665,24 @@ def test_work_in_flight_is_capped_however_fast_a_session_sends(loop_thread, serv
         assert "more than 8 requests in flight" in err["message"]
         for value in (1000, 2000, 3000):
             zs.put(key, str(value).encode())
-        _until(lambda: srv.iface.puts_shed == 3)
-        assert (srv.iface.refused_busy, srv.iface.puts) == (1, 0)
-        service.faults.remove()  # the held gets go on, each answered with the value
-        for replies in held:
+        _until(lambda: srv.iface.busy["puts_dropped"] == 3)
+        status = json.loads(get_one(zs, "cnc/t/status"))
+        assert status["zenoh_busy"] == {"gets_refused": 1, "puts_dropped": 3}
+        assert srv.iface.puts == 0
+        get_one(zs, "cnc/t/cmd/fault", json.dumps({"clear": "all"}).encode())
+        for replies in held:  # they go on, each answered with the value
             (reply,) = list(replies)
             # the default machine's X: 4000 µm/m (000 p.17), none of the puts taken
             assert reply.ok is not None and reply.ok.payload.to_bytes() == b"4000.0"
-        # nothing is in flight any more: gets and puts are taken again
-        assert get_one(zs, key) == b"4000.0"
+        # nothing is in flight any more: gets (a wildcard goes to the loop) and puts
+        # are taken again
+        oks, errs = get(zs, "cnc/t/axis/1/tempc/*")
+        assert not errs and ("cnc/t/axis/1/tempc/coefficient", b"4000.0") in oks
         zs.put(key, b"3500")
         _until(lambda: srv.iface.puts == 1)
         access.step(service, 1)
         assert access.read_name(service, "TEMPC::coefficient", 1) == 3500.0
-        assert srv.iface.puts_shed == 3
+        assert srv.iface.busy == {"gets_refused": 1, "puts_dropped": 3}
     finally:
         zs.close()
         srv.close()

@@ -29,6 +29,7 @@ import logging
 import threading
 import time
 import weakref
+from collections import deque
 from collections.abc import Awaitable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,6 +56,9 @@ log = logging.getLogger(__name__)
 OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
 JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
+#: Refused puts waiting to be listed in the errors list (`_refused`); beyond, they are
+#: counted and listed as one line.
+MAX_REFUSALS_WAITING = 64
 #: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
 PROBE_TIMEOUT_S = 1.0
 #: seconds `close` waits for Zenoh to undeclare this interface and close its session
@@ -214,6 +218,11 @@ class ZenohInterface:
         self.options = options or ZenohOptions()
         self._shared = session
         self.keys = KeySpace(self.options.machine, service.info.dictionary, service.info.axes)
+        #: answered whatever is in flight (`max_pending`): a fault can always be seen and
+        #: cleared, also over the transport it holds up (docs/faults.md)
+        self._never_busy = frozenset(
+            (f"{self.keys.prefix}/cmd/fault", f"{self.keys.prefix}/status")
+        )
         # KeyExprs built once: a wildcard get intersects every readable key and the
         # publish loop puts every cycle; building (and validating) a KeyExpr from a str
         # each time is pure overhead on the loop the GEO cycle shares the GIL with.
@@ -247,18 +256,20 @@ class ZenohInterface:
         self._queries_taken = 0
         self._puts_taken = 0
         self._finished = 0
-        self.refused_busy = 0  # gets answered 0x716: `max_pending` in flight
-        self.puts_shed = 0  # puts dropped: `max_pending` in flight
+        #: gets answered 0x716 and puts dropped with `max_pending` in flight (in the
+        #: status as `zenoh_busy`; each written by its own Zenoh thread only)
+        self.busy: dict[str, int] = {"gets_refused": 0, "puts_dropped": 0}
         self._shed_logged = 0.0
         self.faulted = 0  # queries an injected fault dropped, answered or delayed
         #: puts and deletes of other sessions on this machine's keys, counted once
         #: handled (queued for the cycle, applied if cycles run, or refused and listed)
         self.puts = 0
         self.refused_puts = 0  # of them, refused and listed in the errors list
-        #: taken by each refused put around its report, in the order the puts arrived
-        #: (an asyncio lock wakes its waiters first come, first served): the errors list
-        #: keeps a session's order, which Zenoh kept on the way (`_put`)
-        self._reporting = asyncio.Lock()
+        #: refused puts waiting to be listed, in the order they were refused, with how
+        #: many each line stands for; one task lists them (`_refused`)
+        self._refusals: deque[tuple[str, int]] = deque()
+        self._unlisted = 0  # refused while MAX_REFUSALS_WAITING waited
+        self._lister: asyncio.Task[None] | None = None
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
         #: Other sessions found answering for this machine: key (their Zenoh id, or
@@ -290,6 +301,7 @@ class ZenohInterface:
         self.zenoh_id = str(s.info.zid())
         log.info("zenoh session %s serves %s/**", self.zenoh_id, prefix)
         self.service.status_extra["zenoh_id"] = self.zenoh_id
+        self.service.status_extra["zenoh_busy"] = self.busy
         self._publish_rivals()
         self._unsubscribe.append(self.service.subscribe_events(self._on_event))
         self._entities.append(s.declare_queryable(f"{prefix}/**", self._on_query))
@@ -339,7 +351,7 @@ class ZenohInterface:
         for t in list(self._tasks):
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        for key in ("zenoh_id", "zenoh_rivals"):
+        for key in ("zenoh_id", "zenoh_rivals", "zenoh_busy"):
             self.service.status_extra.pop(key, None)
         entities, self._entities = list(reversed(self._entities)), []
         session, self._session = self._session, None
@@ -380,10 +392,11 @@ class ZenohInterface:
     def endpoints(self) -> list[str]:
         return list(self.options.listen)
 
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
+        return task
 
     # ------------------------------------------------------------------ queries
 
@@ -395,7 +408,9 @@ class ZenohInterface:
         leaves no never-awaited coroutine behind."""
         if self._read_now(query):
             return
-        if self._in_flight() >= self.options.max_pending:
+        if self._in_flight() >= self.options.max_pending and (
+            str(query.key_expr) not in self._never_busy
+        ):
             self._refuse_busy(query)
             return
         self._queries_taken += 1
@@ -406,10 +421,11 @@ class ZenohInterface:
 
     def _refuse_busy(self, query: zenoh.Query) -> None:
         """Zenoh thread: `max_pending` gets and puts are in flight; 0x716 at once (no
-        reply at all while the interface closes)."""
-        self.refused_busy += 1
+        reply at all while the interface closes; a rival probe holds the lock only
+        while it sends its get)."""
+        self.busy["gets_refused"] += 1
         try:
-            if self._closing.acquire(False):
+            if self._closing.acquire(timeout=0.05):
                 try:
                     if self._session is not None:
                         err = AdsError(
@@ -485,20 +501,20 @@ class ZenohInterface:
     def _on_put(self, sample: zenoh.Sample) -> None:
         """Zenoh thread: a put or delete of another session on this machine's keys."""
         if self._in_flight() >= self.options.max_pending:
-            self.puts_shed += 1
+            self.busy["puts_dropped"] += 1
             now = time.monotonic()
             if now - self._shed_logged >= 10.0:
                 self._shed_logged = now
                 log.warning(
                     "zenoh: %d puts dropped so far, %d gets and puts in flight",
-                    self.puts_shed,
+                    self.busy["puts_dropped"],
                     self.options.max_pending,
                 )
             return
-        self._puts_taken += 1
         delete = sample.kind == zenoh.SampleKind.DELETE
         key = str(sample.key_expr)
         payload = b"" if delete else sample.payload.to_bytes()[: MAX_PAYLOAD + 1]
+        self._puts_taken += 1
         self._to_loop(self._accept_put, (key, None if delete else payload))
 
     def _accept_put(self, put: tuple[str, bytes | None]) -> None:
@@ -530,17 +546,41 @@ class ZenohInterface:
             await self._write(route, payload)
         except AdsError as exc:
             what = "delete" if payload is None else "put"
-            text = f"zenoh {what} {key[:200]}: {exc.message} (ADS 0x{exc.code:X})"
-            # recorded in a worker thread (a report catches the cycle up); one at a
-            # time, or two threads could list a burst of refusals out of order
-            async with self._reporting:
-                await asyncio.to_thread(self.service.report, text)
-                self.refused_puts += 1
+            self._refused(f"zenoh {what} {key[:200]}: {exc.message} (ADS 0x{exc.code:X})")
         except Exception:  # never let one bad put take the interface down
             log.exception("zenoh put on %s failed", key[:200])
         finally:
             self.puts += 1
             self._finished += 1
+
+    def _refused(self, text: str) -> None:
+        """Loop: list a refused put in the errors list — in the order refusals are found
+        (a put refused when it arrives: in the order the puts arrived), by one task, so
+        no two worker threads list a burst out of order. The put itself is done: its
+        slot of `max_pending` is free at once. Beyond MAX_REFUSALS_WAITING waiting, a
+        refusal is only counted, and the count is listed as one line after them: a
+        burst of bad puts neither floods the list nor holds work."""
+        if len(self._refusals) < MAX_REFUSALS_WAITING:
+            self._refusals.append((text, 1))
+        else:
+            self._unlisted += 1
+        if self._lister is None or self._lister.done():
+            self._lister = self._spawn(self._list_refusals())
+
+    async def _list_refusals(self) -> None:
+        """The task of `_refused`: each line in a worker thread (a report catches the
+        cycle up), one after the other."""
+        while self._refusals or self._unlisted:
+            if self._refusals:
+                text, count = self._refusals.popleft()
+            else:
+                count, self._unlisted = self._unlisted, 0
+                text = (
+                    f"zenoh: {count} more puts refused and not listed (more than "
+                    f"{MAX_REFUSALS_WAITING} refusals waited to be listed)"
+                )
+            await asyncio.to_thread(self.service.report, text)
+            self.refused_puts += count
 
     async def _write(self, route: Route, payload: bytes) -> tuple[bytes, zenoh.Encoding]:
         """Write the object of a raw or named key: what is stored, as a reply payload."""
@@ -580,8 +620,8 @@ class ZenohInterface:
             err = AdsError(AdsErrorCode.DEVICE_ERROR, f"internal error: {exc}")
             query.reply_err(_error_payload(err), encoding=JSON)
         finally:
-            query.drop()
             self._finished += 1
+            query.drop()
 
     async def _faulted(self, query: zenoh.Query, key: str, payload: bytes | None) -> bool:
         """Carry out the injected fault that hits this query (docs/faults.md): True when

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import __version__
+from geo_server.aio import wait_set
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
 from geo_server.interfaces import CycleStoppedError, inject_faults, serve
@@ -230,8 +231,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
         while not stop.is_set():
             # With --cycles, look often whether the cycle thread has finished its cycles.
             wait = min(args.status_period, 0.02) if args.cycles else args.status_period
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), wait)
+            await wait_set(stop, wait)
             finished = bool(args.cycles) and not scheduler.running
             if not scheduler.running and not finished and not stop.is_set():
                 # Serving the last snapshot forever would look alive but be wrong.

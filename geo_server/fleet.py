@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import jit
+from geo_server.aio import wait_set
 from geo_server.compose import EngineOptions, Interfaces, build_machine
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
@@ -216,8 +217,7 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
 
             interfaces.closes("the fleet status queryable", undeclare)
         while not stop.is_set():
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), args.status_period)
+            await wait_set(stop, args.status_period)
             worst, lag[0] = lag[0], 0.0
             st = current[0] = await asyncio.to_thread(fleet_status, served, worst, publish)
             latest[0] = json.dumps(st).encode()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import faulthandler
 import gc
 import shutil
 import socket
@@ -109,8 +110,14 @@ def loop_thread() -> Iterator[asyncio.AbstractEventLoop]:
 
 
 def run_in(loop: asyncio.AbstractEventLoop, coro, timeout: float = 10.0):
-    """Run a coroutine on the loop thread and wait for its result."""
-    return asyncio.run_coroutine_threadsafe(coro, loop).result(timeout)
+    """Run a coroutine on the loop thread and wait for its result. One that does not
+    finish in time fails the test with every thread's stack on stderr (where it hung)."""
+    future = asyncio.run_coroutine_threadsafe(coro, loop)
+    try:
+        return future.result(timeout)
+    except TimeoutError:
+        faulthandler.dump_traceback(sys.__stderr__, all_threads=True)
+        raise
 
 
 def wait_until_routed(session, status_key: str, timeout: float = 10.0) -> None:

@@ -10,6 +10,7 @@ timeout; no test asserts a measured duration.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import json
@@ -30,6 +31,7 @@ from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 from geo_server.transports.zenoh.keys import KeySpace
 from geo_server.transports.zenoh.server import (
+    CLOSE_WAIT_S,
     TRANSPORT_LIMITS,
     ZenohInterface,
     ZenohOptions,
@@ -94,6 +96,28 @@ class Stepped:
 
     def close(self) -> None:
         run_in(self.loop, self.iface.close())
+
+
+def test_close_ends_the_loops_when_zenoh_news_comes_in_the_same_moment(loop_thread, service):
+    """The interface's loops wait for Zenoh's news — a subscriber came or went, a rival
+    may have appeared — with a timeout. When such news and the close come in one loop
+    step (another session leaving just as the server closes: it is no longer a
+    subscriber), the close's cancellation must still end them: with
+    `asyncio.wait_for(event.wait(), t)` Python 3.11 lost it, the loop went on, and close
+    waited for ever (two CI runs, in tests whose other session closed just before the
+    server). Nobody subscribes here, so the publish loop waits for that news."""
+    srv = Stepped(loop_thread, service)
+    iface = srv.iface
+
+    async def news_then_close() -> None:
+        for _ in range(100):  # every task of the interface to its first wait
+            await asyncio.sleep(0)
+        assert iface._watched is not None and not iface._watching
+        iface._watched.set()  # as `_watch_changed` does on Zenoh's news
+        await iface.close()
+
+    run_in(loop_thread, news_then_close(), timeout=CLOSE_WAIT_S + 5.0)
+    assert all(t.done() for t in iface._tasks)
 
 
 @pytest.fixture

@@ -40,6 +40,7 @@ from typing import Any
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from geo_server import __version__, access
+from geo_server.aio import wait_set
 from geo_server.dictionary import MAX_AXIS, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -345,8 +346,7 @@ class HmiServer:
             return
         self._watched.clear()
         idle = self.options.idle_period
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._watched.wait(), idle if idle > 0 else None)
+        await wait_set(self._watched, idle if idle > 0 else None)
 
     async def _push_loop(self) -> None:
         while True:

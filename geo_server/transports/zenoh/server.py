@@ -37,6 +37,7 @@ from typing import Any
 import zenoh
 
 from geo_server import access
+from geo_server.aio import wait_set
 from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -848,9 +849,7 @@ class ZenohInterface:
                 # starting one waits for the interpreter lock (milliseconds in a fleet)
                 await loop.run_in_executor(None, self._start_probe, self._probes_started)
             await asyncio.sleep(PROBE_MIN_GAP_S)
-            with contextlib.suppress(TimeoutError):
-                period = self.options.rival_check_period + shift
-                await asyncio.wait_for(self._probe_wanted.wait(), period)
+            await wait_set(self._probe_wanted, self.options.rival_check_period + shift)
             shift = 0.0
 
     def _start_probe(self, number: int) -> None:
@@ -972,8 +971,7 @@ class ZenohInterface:
                 # nobody listens: wait for the matching listener (no polling at rest),
                 # and look again now and then in case a status change went unreported
                 watched.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(watched.wait(), recheck + shift)
+                await wait_set(watched, recheck + shift)
                 shift = 0.0
                 continue
             self._watching = True

@@ -33,6 +33,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
             "geo_server.console",
             "geo_server.safefile",  # reads files on request: bounded, never blocking
             "geo_server.jit",  # the compiler of the cycle's laws
+            "geo_server.aio",  # asyncio helpers (a wait that never loses a cancellation)
         ),
     ),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
@@ -70,6 +71,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
     "geo_server.transports.share",  # a fleet machine's share of the loop, both draw on
+    "geo_server.aio",  # asyncio helpers
 )
 
 

@@ -113,9 +113,10 @@ class ZenohOptions:
     max_nc_bytes: int = 16 * 1024
     #: Gets and puts handed to the event loop and not finished yet, for all sessions
     #: together (a get answered on Zenoh's thread at once is not counted). Beyond, a
-    #: get is answered at once with 0x716 and a put is dropped (counted in
-    #: `puts_shed`, logged at most every 10 s): a session sending faster than the
-    #: machine answers cannot make the server hold unbounded work.
+    #: get is answered at once with 0x716 and a put is dropped (both counted in the
+    #: status as `zenoh_busy`; a dropped put logged at most every 10 s): a session
+    #: sending faster than the machine answers cannot make the server hold unbounded
+    #: work.
     max_pending: int = 1024
     #: Seconds between two looks for another session answering for this machine (also
     #: done at once when Zenoh reports a matching queryable or a liveliness change).

@@ -5,8 +5,10 @@ For each case a fresh server process (every interface on, the default machine): 
 time until a Modbus read of TEMPC::coefficient (FC 3, unit 1, registers 268…271) is
 answered, and until its status line no longer says `interpreted` (the compiled cycle
 loaded, geo_server/jit.py). Cases: a *warm* cache (the compiled cycle in the cache, as
-on every start but the first) and a *cold* one (an empty cache folder: the first start
-after an installation or an edit of a law compiles). `--against TREE` runs another source
+on every start but the first), *after a reinstall* (a copy of this tree's package with new
+modification times, as `pip install` makes, and the same cache: keyed by content, it is
+still warm) and a *cold* one (an empty cache folder: the first start after an
+installation of another version or an edit of a law compiles). `--against TREE` runs another source
 tree (e.g. the code before a change, exported with `git archive`) in the same run,
 alternating, for the warm case (a tree without the compiler has no cold case).
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import socket
 import struct
 import subprocess
@@ -84,6 +87,17 @@ def start_once(tree: str | None, cache: str | None) -> tuple[float, float | None
     return first, (compiled[0] if compiled else None)
 
 
+def _reinstall(into: str) -> str:
+    """This tree's package and data copied into `into` with new modification times (what
+    a reinstall changes); returns the tree."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for part in ("geo_server", "objects", "lists"):
+        shutil.copytree(os.path.join(here, part), os.path.join(into, part),
+                        copy_function=shutil.copy,
+                        ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    return into
+
+
 def _fmt(xs: list[float]) -> str:
     return f"{np.median(xs):.2f} ({min(xs):.2f}–{max(xs):.2f})" if xs else "–"
 
@@ -106,6 +120,14 @@ def main() -> None:
             got[0].append(first)
             if comp is not None and tree is None:  # (a tree without the compiler: none)
                 got[1].append(comp)
+    with tempfile.TemporaryDirectory() as copy:
+        reinstalled = _reinstall(copy)
+        again = cases.setdefault("this tree reinstalled, same cache", ([], []))
+        for _ in range(max(1, args.rounds // 3)):
+            first, comp = start_once(reinstalled, None)
+            again[0].append(first)
+            if comp is not None:
+                again[1].append(comp)
     cold = cases.setdefault("this tree, cold cache", ([], []))
     for _ in range(max(1, args.rounds // 3)):
         with tempfile.TemporaryDirectory() as empty:

@@ -8,11 +8,13 @@ import contextlib
 import csv
 import io
 import json
+import logging
 import os
 import secrets
 import shutil
 import signal
 import sys
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -138,9 +140,6 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from geo_server import jit
-
-    jit.hold()  # the interfaces first; the compiled cycle loads once they are up (`_serve`)
     if args.fleet or args.fleet_size:
         from geo_server.fleet import run_fleet
 
@@ -210,6 +209,7 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
     from geo_server import jit
     from geo_server.compose import Interfaces
+    from geo_server.machine.scheduler import switch_interval
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -220,7 +220,10 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
     interfaces = Interfaces.plan(args)  # the composition root: caps, then each interface
     try:
         await interfaces.start_machine(args, service)
-        jit.release()  # the cycle runs interpreted until its machine code has loaded
+        jit.start()  # the cycle runs interpreted until its machine code has loaded
+        # a short switch interval: the cycle thread is not starved by the transports'
+        # threads (docs/design.md §5); set here, the process's composition root
+        sys.setswitchinterval(switch_interval(1))
         # The cycle starts once every interface is up, so start-up work does not show as
         # lateness of the first cycles.
         # Listen for the program's events before its first cycle can run: an error in
@@ -540,5 +543,42 @@ def main(argv: list[str] | None = None) -> int:
     return int(args.func(args))
 
 
+#: `geo-server`'s exit code when Ctrl-C comes before the server serves (128 + SIGINT)
+EXIT_INTERRUPTED = 130
+
+
+def entry() -> None:
+    """`geo-server` (the console script and `python -m geo_server.cli`): `main`, then the
+    process ends at once, without the interpreter's finalization.
+
+    Finalizing ends every thread that still wants the interpreter by unwinding its stack
+    (pthread_exit); a thread that is then inside C++ or Rust code — LLVM calling back
+    into Python while the compiled cycle is made, a Zenoh thread returning from a
+    callback — aborts the process (SIGABRT, `FATAL: exception not rethrown`). By the time
+    `main` returns, the server has closed its interfaces and stopped its cycles and
+    every file it writes is closed; what is left is flushed here."""
+    try:
+        code = main()
+    except KeyboardInterrupt:  # Ctrl-C before the loop's handlers are installed
+        print("interrupted", file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    except Exception:  # a bug: said as Python says it, and the process still ends here
+        traceback.print_exc()
+        code = 1
+    except SystemExit as exc:  # argparse's --help and usage errors
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        if isinstance(exc.code, str):
+            print(exc.code, file=sys.stderr)
+    _exit_now(code)
+
+
+def _exit_now(code: int) -> None:
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    entry()

@@ -37,6 +37,7 @@ from geo_server.aio import wait_set
 from geo_server.compose import EngineOptions, Interfaces, build_machine
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
+from geo_server.machine.scheduler import switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 
@@ -194,6 +195,9 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         # cores the compiler needs (one machine starts interpreted: cli._serve). The
         # interfaces answer meanwhile, with each machine at its cycle 0.
         await _load_compiled()
+        # many engine threads hand the GIL over more slowly (docs/design.md §13.1); set
+        # here, the fleet process's composition root
+        sys.setswitchinterval(switch_interval(len(served)))
         for s in served:
             s.scheduler.start()
         lag = [0.0]
@@ -251,7 +255,6 @@ def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) 
 
 async def _load_compiled() -> None:
     """`jit.load` off the loop; says so when it takes long (a cold cache compiles)."""
-    jit.release()  # (`_run` held it while the interfaces started)
     loading = asyncio.ensure_future(asyncio.to_thread(jit.load))
     try:
         await asyncio.wait_for(asyncio.shield(loading), 2.0)

@@ -15,30 +15,35 @@ twenty seconds, once per installation and source change). So nothing that needs 
 (`geo-server objects`, the clients) pays for the compiler, and a server answers as soon
 as its interfaces are up: its first cycles run interpreted while the code loads.
 
-The cache (`cache_dir`) is numba's own, one file per function and signature, keyed by the
-stamp (size, modification time) of every module that holds compiled code (`MODULES`), so
-an edited law is never served from a stale cache — numba itself only checks the file of
-the function it compiles, not the files of the laws it calls.
+The cache (`cache_dir`, geo_server/jit_cache.py) is numba's own, one file per function
+and signature, keyed by the content of every module that holds compiled code (`MODULES`),
+numba's version and the processor: an edited law is never served from a stale cache
+(numba itself only checks the file of the function it compiles, not the files of the laws
+it calls), and a reinstall or a second copy of the same code loads the first one's machine
+code. It is used only from a folder nobody else can write (else the laws compile in
+memory, and a log line says why).
+
+Nothing here starts a thread or changes a setting at import: the composition root (`geo-
+server run`, a fleet, the cycle's process) calls `start` or `load`, once.
 
 Compiled code calls other laws by their plain names (`from m import f`, never `m.f`): a
 law's compiled copy sees the machine code of every law in its globals (`_compile`).
 
-`GEO_SERVER_JIT_CACHE` names another cache folder; `NUMBA_DISABLE_JIT=1` keeps every
-law interpreted (slow; for debugging).
+`GEO_SERVER_JIT_CACHE` names another cache folder (a CI keeps it between runs);
+`NUMBA_DISABLE_JIT=1` keeps every law interpreted (slow; for debugging).
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
-import sys
-import tempfile
 import threading
 import types
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar, cast
+
+from geo_server import jit_cache
 
 F = TypeVar("F", bound=Callable[..., Any])
 log = logging.getLogger(__name__)
@@ -67,58 +72,19 @@ MODULES = (
 )
 
 _PACKAGE = Path(__file__).resolve().parent
-_dir: Path | None = None
+_dir: tuple[Path | None, str] | None = None  # (the cache folder or None, how or why not)
 
 
-def _stamp() -> str:
-    """A key of the compiled modules' sources and of the compiler's versions."""
-    import numba
-    import numpy
-
-    h = hashlib.blake2b(digest_size=10)
-    h.update(f"{numba.__version__} {numpy.__version__} {sys.version}".encode())
-    for rel in MODULES:
-        st = (_PACKAGE / rel).stat()
-        h.update(f"{rel} {st.st_size} {st.st_mtime_ns}\n".encode())
-    return h.hexdigest()
-
-
-def _user_cache() -> Path:
-    """The platform's cache folder for this user."""
-    if sys.platform == "win32":
-        base = os.environ.get("LOCALAPPDATA") or str(Path.home() / "AppData" / "Local")
-        return Path(base) / "geo-server" / "Cache"
-    if sys.platform == "darwin":
-        return Path.home() / "Library" / "Caches" / "geo-server"
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geo-server"
-
-
-def _writable(path: Path) -> bool:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError:
-        return False
-    return True
-
-
-def cache_dir() -> Path:
-    """Where the machine code is cached: `GEO_SERVER_JIT_CACHE`, else the package's
-    `__pycache__` (a source checkout or a virtualenv), else the user's cache folder (a
-    read-only installation); a folder per `_stamp`."""
+def cache_dir() -> Path | None:
+    """Where the machine code is cached (jit_cache.cache_folder): `GEO_SERVER_JIT_CACHE`,
+    else the user's cache folder, else a private one under the temporary folder, in a
+    folder per content key; None when none of them is safe (the laws compile in memory)."""
     global _dir
     if _dir is None:
-        key = f"jit-{_stamp()}"
-        given = os.environ.get("GEO_SERVER_JIT_CACHE")
-        places = [Path(given)] if given else [_PACKAGE / "__pycache__", _user_cache()]
-        for base in places:
-            if _writable(base / key):
-                _dir = base / key
-                break
-        else:
-            _dir = Path(tempfile.gettempdir()) / "geo-server" / key
-    return _dir
+        _dir = jit_cache.cache_folder(_PACKAGE, MODULES)
+        if _dir[0] is None:
+            log.warning("the compiled cycle is not cached (it compiles in memory): %s", _dir[1])
+    return _dir[0]
 
 
 class Law:
@@ -167,7 +133,6 @@ _loading = threading.Lock()  # held while `load` runs
 _busy = False  # `load` runs (its warm-ups make machines, which `start` it)
 _loaded = threading.Event()
 _thread: threading.Thread | None = None
-_held = False  # `hold`: `start` waits for `release`
 _jit = os.environ.get("NUMBA_DISABLE_JIT") != "1"  # (else every law stays interpreted)
 
 
@@ -194,26 +159,13 @@ def loaded() -> bool:
     return _loaded.is_set()
 
 
-def hold() -> None:
-    """`start` does nothing until `release`: a server starting its interfaces keeps the
-    interpreter for them (loading the compiler holds the GIL for a second)."""
-    global _held
-    _held = True
-
-
-def release() -> None:
-    """Undo `hold`, and `start`."""
-    global _held
-    _held = False
-    start()
-
-
 def start() -> None:
-    """`load` in a background thread (nothing when loaded, loading or held); the laws
-    stay interpreted until it is done. A machine starts it when it is made."""
+    """`load` in a background thread (nothing when loaded or loading); the laws stay
+    interpreted until it is done. Called by the composition root once its interfaces are
+    up (`geo-server run`), never by a library object."""
     global _thread
     with _lock:
-        if _loaded.is_set() or _thread is not None or _held or _busy:
+        if _loaded.is_set() or _thread is not None or _busy:
             return
         _thread = threading.Thread(target=_load_quietly, name="geo-jit", daemon=True)
         _thread.start()
@@ -256,27 +208,27 @@ def _compile() -> None:
 
 def _dispatch(new: list[Law]) -> None:
     import numba
-    from numba.core import config as _config
 
-    config: Any = _config  # (its settings are made at run time: no annotations)
-    before = config.CACHE_DIR
-    config.CACHE_DIR = str(cache_dir())  # read when a dispatcher is made (its locator)
-    try:
-        # each law's copy gets its module's globals with every law replaced by its
-        # dispatcher: what numba resolves when it compiles a call to another law
-        copies: list[tuple[Law, dict[str, Any]]] = []
-        for law in new:
-            fn = law.py_func
-            scope: dict[str, Any] = {}
-            twin = types.FunctionType(
-                fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__
-            )
-            twin.__qualname__, twin.__module__ = fn.__qualname__, fn.__module__
-            twin.__doc__, twin.__annotations__ = fn.__doc__, fn.__annotations__
-            law.dispatcher = numba.njit(cache=True, nogil=True, error_model="numpy")(twin)
-            copies.append((law, scope))
-    finally:
-        config.CACHE_DIR = before
+    folder = cache_dir()
+    unfit = jit_cache.numba_fits() if folder is not None else None
+    if unfit is not None:
+        log.warning("the compiled cycle is not cached (it compiles in memory): %s", unfit)
+        folder = None
+    # each law's copy gets its module's globals with every law replaced by its
+    # dispatcher: what numba resolves when it compiles a call to another law
+    copies: list[tuple[Law, dict[str, Any]]] = []
+    for law in new:
+        fn = law.py_func
+        scope: dict[str, Any] = {}
+        twin = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+        twin.__qualname__, twin.__module__ = fn.__qualname__, fn.__module__
+        twin.__doc__, twin.__annotations__ = fn.__doc__, fn.__annotations__
+        law.dispatcher = numba.njit(nogil=True, error_model="numpy")(twin)
+        if folder is not None:  # numba's cache, keyed by content, in the checked folder
+            tag = fn.__module__.removeprefix("geo_server.")
+            # (the folder's name is the content key: the index's stamp)
+            law.dispatcher._cache = jit_cache.law_cache(twin, folder, folder.name, tag)
+        copies.append((law, scope))
     for law, scope in copies:
         for name, value in law.py_func.__globals__.items():
             scope[name] = value.dispatcher if isinstance(value, Law) else value
@@ -293,10 +245,8 @@ __all__ = [
     "Law",
     "cache_dir",
     "compiled",
-    "hold",
     "load",
     "loaded",
     "on_load",
-    "release",
     "start",
 ]

@@ -18,6 +18,7 @@ import pytest
 from geo_server import jit
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import switch_interval
 from geo_server.paths import data_dir, default_startup_list
 from geo_server.service import ObjectService
 
@@ -39,6 +40,9 @@ def pytest_configure(config: pytest.Config) -> None:
     before any test: the servers the tests start in subprocesses load it from the cache
     (tests/test_jit.py checks that the interpreted laws give the same numbers)."""
     jit.load()
+    # what `geo-server run` sets for its cycle thread (the suite is the composition root
+    # of the machines its tests make: library code never changes it)
+    sys.setswitchinterval(switch_interval(1))
 
 
 #: Memory blocks the allocator may gain after a test before the cyclic collector runs

@@ -33,6 +33,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
             "geo_server.console",
             "geo_server.safefile",  # reads files on request: bounded, never blocking
             "geo_server.jit",  # the compiler of the cycle's laws
+            "geo_server.jit_cache",  # where the compiled cycle is kept, and when that is safe
             "geo_server.aio",  # asyncio helpers (a wait that never loses a cancellation)
         ),
     ),

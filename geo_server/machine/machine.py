@@ -151,7 +151,6 @@ class Machine:
         homed: bool = False,
         time_scale: float | None = None,
     ) -> None:
-        jit.start()  # the cycle's machine code loads meanwhile (it runs interpreted till then)
         self.cfg = cfg
         self.cycle_s = float(cycle_s)
         self.time_scale = time_scale

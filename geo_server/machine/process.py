@@ -26,6 +26,7 @@ import os
 import queue
 import select
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -48,6 +49,7 @@ from geo_server.machine.scheduler import (
     SYNC_WAIT,
     CycleStats,
     Scheduler,
+    switch_interval,
     sync_summary,
 )
 from geo_server.model import Diagnostic, MachineConfig
@@ -246,6 +248,7 @@ def _child_main(
     # compiled from the first cycle: this process does nothing else, and its server waits
     # for its first frame (`FIRST_FRAME_TIMEOUT`)
     jit.load()
+    sys.setswitchinterval(switch_interval(1))  # (this process's composition root)
     machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
     sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
     sched.idle_wake = IDLE_WAKE_PROCESS  # a frame well within SYNC_DEAD of the last

@@ -30,7 +30,6 @@ at the same cycle numbers.
 from __future__ import annotations
 
 import logging
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -92,16 +91,13 @@ SETTLE_CYCLES = 64
 SWITCH_SHORT = 0.0002
 SWITCH_FLEET = 0.001
 FEW_ENGINES = 4
-_engines = 0  # exact-engine threads running in this process
-_engines_lock = threading.Lock()
 
 
-def _count_engine(delta: int) -> None:
-    """An exact-engine thread starts (+1) or ends (-1): set the switch interval."""
-    global _engines
-    with _engines_lock:
-        _engines += delta
-        sys.setswitchinterval(SWITCH_FLEET if _engines > FEW_ENGINES else SWITCH_SHORT)
+def switch_interval(engines: int) -> float:
+    """The GIL switch interval for a process whose cycles run on `engines` threads (the
+    composition root sets it, once: `geo-server run`, a fleet, the test suite; library
+    code never changes it)."""
+    return SWITCH_FLEET if engines > FEW_ENGINES else SWITCH_SHORT
 
 
 #: exact engine: the longest a request waits for a catch-up another thread is running
@@ -316,15 +312,6 @@ class Scheduler:
         """Start the cycle thread (free / realtime); nothing to do when stepped."""
         if self.mode == "stepped" or self._thread is not None:
             return
-        # A short GIL switch interval keeps the cycle thread from being starved by the
-        # transports' threads (docs/design.md §5) — but many exact-engine threads (a
-        # fleet) switching every 0.2 ms spend the cores on handing the GIL around: 100
-        # machines at rest took 195 % of a 2-core VM and fell ever further behind,
-        # against 30 % at 1 ms (docs/design.md §13.1); `_count_engine` chooses.
-        if self.exact:
-            _count_engine(+1)
-        else:
-            sys.setswitchinterval(SWITCH_SHORT)
         self._stop.clear()
         if self.mode == "realtime":
             self._begin_timeline()  # before any request can sync against it
@@ -673,7 +660,6 @@ class Scheduler:
     def _run_exact(self) -> None:
         clock = self._clock
         self._here = threading.current_thread() is not self._thread
-        counted = not self._here  # a thread `start` counted (`_count_engine`)
         try:
             while not self._stop.is_set() and not self._done():
                 self.wakes += 1
@@ -700,8 +686,6 @@ class Scheduler:
                     self._wait(delay)
         finally:
             self._here = False
-            if counted:
-                _count_engine(-1)
 
     def _wait(self, seconds: float) -> None:
         if self.waiter is not None:

@@ -206,45 +206,60 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         # the fleet's status, computed off the loop once per status period (each machine
         # catches up first: a few hundred machines take tens of milliseconds)
         publish = interfaces.status_publishers
-        current = [await asyncio.to_thread(fleet_status, served, 0.0, publish)]
-        latest = [json.dumps(current[0]).encode()]
-        if args.http:  # its page shows the fleet's status: once the cycles run
-            await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
+        current: list[dict[str, Any]] = [{}]  # the latest status (the web HMI's page)
+        latest: list[bytes | None] = [None]  # ... as JSON (`cnc/fleet/status`)
+
+        def says(st: dict[str, Any]) -> None:
+            """One status computation said everywhere, its status line first, then the
+            same dict to the HMI's page and on Zenoh: whoever reads a status anywhere
+            finds its line printed already (the line and `cnc/fleet/status` never
+            disagree on `throttled`, `starved`, ...)."""
+            print(status_line(st), flush=True)
+            current[0] = st
+            latest[0] = json.dumps(st).encode()
+            if session is not None:
+                session.put(FLEET_STATUS_KEY, latest[0])
+
         if session is not None:
-            # Zenoh thread: answer with the latest status, computed on the loop
-            queryable = session.declare_queryable(
-                FLEET_STATUS_KEY, lambda q: q.reply(FLEET_STATUS_KEY, latest[0])
-            )
+            # Zenoh thread: answer with the latest status said (none before the first)
+            def answer(q: Any) -> None:
+                said = latest[0]
+                if said is not None:
+                    q.reply(FLEET_STATUS_KEY, said)
+
+            queryable = session.declare_queryable(FLEET_STATUS_KEY, answer)
 
             async def undeclare() -> None:
                 await loop.run_in_executor(None, queryable.undeclare)
 
             interfaces.closes("the fleet status queryable", undeclare)
+        says(await asyncio.to_thread(fleet_status, served, 0.0, publish))
+        if args.http:  # its page shows the fleet's status: once the cycles run
+            await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
         while not stop.is_set():
             await wait_set(stop, args.status_period)
             worst, lag[0] = lag[0], 0.0
-            st = current[0] = await asyncio.to_thread(fleet_status, served, worst, publish)
-            latest[0] = json.dumps(st).encode()
-            if session is not None:
-                session.put(FLEET_STATUS_KEY, latest[0])
-            if _report(args, served, st):
+            says(await asyncio.to_thread(fleet_status, served, worst, publish))
+            if _done(args, served):
                 break
     finally:
         await interfaces.close()
 
 
-def _report(args: argparse.Namespace, served: list[Served], st: dict[str, Any]) -> bool:
-    """Print the fleet's status line; True when `--cycles` are done. A machine whose
-    cycle ended by itself otherwise: CycleStoppedError (serving a frozen machine would
-    look alive)."""
+def status_line(st: dict[str, Any]) -> str:
+    """The fleet's status line of status `st` (`fleet_status`)."""
     cycles = [m["cycle"] for m in st["machines"]]
-    print(
+    return (
         f"fleet: {st['count']} machines, cycles {min(cycles)}…{max(cycles)}, "
         f"overruns {st['overruns']}, stalled {len(st['stalled'])}, "
         f"loop lag {st['loop_lag_ms']:g} ms, starved {len(st['starved'])}, "
-        f"throttled {len(st['throttled'])}",
-        flush=True,
+        f"throttled {len(st['throttled'])}"
     )
+
+
+def _done(args: argparse.Namespace, served: list[Served]) -> bool:
+    """True when `--cycles` are done. A machine whose cycle ended by itself otherwise:
+    CycleStoppedError (serving a frozen machine would look alive)."""
     if args.cycles and all(not s.scheduler.running for s in served):
         return True
     dead = [s.member.name for s in served if not s.scheduler.running]

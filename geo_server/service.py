@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -199,6 +200,8 @@ class ObjectService:
         self.info = MachineInfo(machine, scheduler)
         self._refusal_window = (0.0, 0)  # (second, reported in it)
         self._refusals_unreported = 0
+        #: refusals are noted by the thread that refused (the loop, an NC worker)
+        self._refusal_lock = threading.Lock()
         # What the engine can do beyond the ports, decided once by its type: the engine
         # in this process (overruns, chosen cycles, an idle wake) and the machine in
         # this process (the twin's sensors, input taps); the cycle process has neither.
@@ -415,13 +418,14 @@ class ObjectService:
         if exc.code not in REPORTED_REFUSALS:
             return
         second = float(int(time.monotonic()))
-        start, count = self._refusal_window
-        if start != second:
-            start, count = second, 0
-        if count >= REFUSALS_PER_SECOND:
-            self._refusals_unreported += 1
-            return
-        self._refusal_window = (start, count + 1)
+        with self._refusal_lock:
+            start, count = self._refusal_window
+            if start != second:
+                start, count = second, 0
+            if count >= REFUSALS_PER_SECOND:
+                self._refusals_unreported += 1
+                return
+            self._refusal_window = (start, count + 1)
         text = f"{what} refused: {exc.message} (ADS 0x{exc.code:X})"
         self.machine.record(Diagnostic("error", text, entry=exc.name))
 
@@ -582,7 +586,10 @@ class ObjectService:
         recording = self.recordings.status()
         if recording is not None:
             st["recording"] = recording
-        st.update(self.status_extra)
+        # a copy of each: an interface's counters (a dict) go on counting on their own
+        # thread while this status is serialized and read (docs/design.md §7.1)
+        extra = dict(self.status_extra)  # (one C call: atomic against the loop adding)
+        st.update({k: dict(v) if isinstance(v, dict) else v for k, v in extra.items()})
         return st
 
     def errors(self) -> list[dict[str, Any]]:

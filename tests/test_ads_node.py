@@ -36,6 +36,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+@pytest.mark.realtime
 def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None:
     assert NODE is not None and INSTALLED, "GEO_SERVER_REQUIRE_NODE=1 but no ads-client"
     sched = Scheduler(machine, mode="realtime")

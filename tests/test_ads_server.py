@@ -484,6 +484,7 @@ def test_notifications_removed_when_client_disconnects(ads, loop_thread, service
 # ---------------------------------------------------------------------- running scheduler
 
 
+@pytest.mark.realtime
 def test_write_waits_until_applied_with_running_cycles(loop_thread, machine) -> None:
     sched = Scheduler(machine, mode="realtime")
     service = ObjectService(machine, sched)

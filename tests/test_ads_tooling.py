@@ -478,6 +478,7 @@ def test_add_route_refused_without_configured_credentials(loop_thread, service) 
         run_in(loop_thread, srv.close())
 
 
+@pytest.mark.slow
 def test_discovery_answer_and_garbage(udp_ads) -> None:
     import socket
 

@@ -13,6 +13,7 @@ import ast
 from pathlib import Path
 
 import geo_clients
+import pytest
 
 import geo_server
 
@@ -130,6 +131,7 @@ def layer(module: str) -> int:
     return best[1]
 
 
+@pytest.mark.slow
 def test_every_module_has_a_layer():
     for module in graph():
         assert module == "geo_server" or layer(module) > 0 or module in LAYERS[0][1], module
@@ -145,6 +147,7 @@ def test_no_upward_imports():
     assert upward == []
 
 
+@pytest.mark.slow
 def test_no_import_cycles():
     edges = graph()
     state: dict[str, int] = {}
@@ -165,6 +168,7 @@ def test_no_import_cycles():
     assert cycles == []
 
 
+@pytest.mark.slow
 def test_transports_import_only_the_service_the_shared_types_and_the_dictionary():
     bad = []
     for module, targets in graph().items():
@@ -340,6 +344,7 @@ def server_uses(tree: ast.AST) -> list[str]:
     return found
 
 
+@pytest.mark.slow
 def test_only_the_composition_root_builds_an_interface():
     """In `geo_server` and `geo_clients`; tests and benchmarks build one to try it alone."""
     bad = []
@@ -363,6 +368,7 @@ def test_the_server_check_sees_a_construction():
     assert len(server_uses(tree)) == 3
 
 
+@pytest.mark.slow
 def test_every_compiled_module_keys_the_jit_cache():
     """The machine code cache is keyed by the modules that define compiled functions
     (`geo_server.jit.MODULES`): a module that compiles and is not listed could be served

@@ -8,11 +8,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 BENCH = Path(__file__).resolve().parent.parent / "bench"
 AXES = ("--axes", "1,8")
 
 
+@pytest.mark.slow
 def test_bench_server_runs_and_dumps_its_cycles(tmp_path):
     dump = tmp_path / "cycles.npz"
     r = subprocess.run(
@@ -61,6 +63,7 @@ def test_bench_kernel_prints_its_table():
     assert len(rows) == 2, r.stdout
 
 
+@pytest.mark.slow
 def test_bench_batch_prints_its_table():
     r = subprocess.run(
         [sys.executable, str(BENCH / "batch.py"), "--passes", "6"],
@@ -73,6 +76,7 @@ def test_bench_batch_prints_its_table():
     assert len(rows) == 6, r.stdout
 
 
+@pytest.mark.slow
 def test_bench_volcomp_prints_its_table():
     r = subprocess.run(
         [sys.executable, str(BENCH / "volcomp.py"), "--cycles", "100"],
@@ -84,6 +88,7 @@ def test_bench_volcomp_prints_its_table():
     assert "| added per cycle |" in r.stdout, r.stdout
 
 
+@pytest.mark.slow
 def test_bench_recorder_prints_its_table():
     r = subprocess.run(
         [sys.executable, str(BENCH / "recorder.py"), "--cycles", "400"],
@@ -95,6 +100,7 @@ def test_bench_recorder_prints_its_table():
     assert "| cycle, recording 20 values every cycle |" in r.stdout, r.stdout
 
 
+@pytest.mark.slow
 def test_bench_fleet_isolation_prints_its_table():
     """A fleet of 3, every phase briefly (quiet, notifications, client gone, flood)."""
     r = subprocess.run(

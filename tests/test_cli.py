@@ -31,6 +31,7 @@ def run(args: list[str], cwd: Path, timeout: float = 60) -> subprocess.Completed
     return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
+@pytest.mark.slow
 def test_objects_from_any_directory(tmp_path):
     r = run([*script("geo-server"), "objects"], tmp_path)
     assert r.returncode == 0, r.stderr
@@ -44,6 +45,7 @@ def test_objects_from_any_directory(tmp_path):
     assert r.stdout.splitlines()[0].startswith("name,index_group,id,")
 
 
+@pytest.mark.slow
 def test_check_exit_codes(tmp_path, lists_copy):
     r = run([*script("geo-server"), "check"], tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -87,6 +89,8 @@ def test_objects_into_a_closed_pipe_ends_quietly(tmp_path):
     assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "cycle_in, engine", [("thread", "exact"), ("process", "exact"), ("process", "punctual")]
 )
@@ -130,6 +134,7 @@ def test_run_serves_and_stops(tmp_path, cycle_in, engine):
     assert "stopped after 300 cycles" in r.stdout  # --cycles is exact, no overshoot
 
 
+@pytest.mark.realtime
 def test_ctrl_c_stops_run_cleanly(tmp_path):
     """Ctrl-C reaches the whole process group (server and GEO-cycle process): `run`
     stops cleanly, exit 0, no traceback from either process."""
@@ -163,6 +168,8 @@ def test_ctrl_c_stops_run_cleanly(tmp_path):
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_run_program_option(tmp_path):
     """`--program`: a missing or broken program is exit 2 with the reason (and the line),
     no traceback; a good one runs (here on a 2 ms cycle, for exactly 120 cycles)."""
@@ -189,6 +196,7 @@ def test_run_program_option(tmp_path):
     assert "program line 1" in r.stdout
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize(
     ("busy", "option"),
     [
@@ -236,6 +244,7 @@ def test_run_with_a_busy_port_fails_cleanly(tmp_path, busy, option):
     assert "Traceback" not in r.stderr and ".rs:" not in r.stderr
 
 
+@pytest.mark.slow
 def test_init_copies_the_default_machine(tmp_path):
     """`init DIR` gives the user lists of their own (save must not edit an installed
     package); the copy loads like the original and a second init refuses to overwrite."""
@@ -272,6 +281,8 @@ def test_modbus_map_command(tmp_path):
     assert any("TEMPC::coefficient" in line and "268" in line for line in r.stdout.splitlines())
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_run_program_reports_its_end(tmp_path):
     """1 mm at 6000 mm/min takes 10 ms: the program ends long before the 300 cycles."""
     prog = tmp_path / "short.nc"
@@ -312,6 +323,7 @@ def test_run_program_reports_its_end(tmp_path):
     assert f"program {prog}: stopped at line 1: <nc>:1: [70495]" in r.stdout, r.stdout
 
 
+@pytest.mark.realtime
 def test_run_removes_what_an_interrupted_save_left(tmp_path, lists_copy):
     """A save killed between writing its temporary file and renaming it leaves
     `.<list>.<8 chars>.tmp` beside the list; the next start removes exactly those."""

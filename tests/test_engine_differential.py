@@ -110,6 +110,7 @@ def live(request, loop_thread) -> Iterator[Live]:
     srv.close()
 
 
+@pytest.mark.slow
 def test_every_observation_is_the_stepped_machine_at_its_cycle(live: Live) -> None:
     plc = pyads.Connection("127.0.0.5.1.1", 551, live.ads.address)
     plc.open()

@@ -360,6 +360,7 @@ def test_clearing_an_overrun_ends_it_at_once_exact_engine():
     assert cycle_at(3_101_000) == 201
 
 
+@pytest.mark.realtime
 def test_clearing_an_overrun_ends_it_at_once_punctual_engine():
     m = Machine(load_machine(default_startup_list()), homed=True)
     sched = Scheduler(m, mode="realtime", engine="punctual")
@@ -493,6 +494,7 @@ def _adapter(client, temperature=20.0, **kw):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("via", "fault", "code"),
     [
@@ -552,6 +554,7 @@ def test_plc_holds_the_axis_when_a_fault_outlasts_its_retries(srv, via):
     assert srv.read("TEMPC::coefficient", 1) == r.parameters[1].coefficient == 4600.0
 
 
+@pytest.mark.slow
 def test_plc_rides_out_a_delay_shorter_than_its_timeout(srv):
     r = _adapter(srv.client("modbus"), temperature=25.0)
     srv.inject("modbus:delay=150,ops=write")
@@ -664,6 +667,7 @@ def test_plc_retries_through_a_cycle_overrun():
         close()
 
 
+@pytest.mark.realtime
 def test_run_fault_flag_injects_at_start(capsys):
     from geo_server.cli import main
 

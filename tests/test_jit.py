@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from support import jit_run
 
 from geo_server import jit
@@ -23,6 +24,7 @@ from geo_server import jit
 SCRIPT = Path(jit_run.__file__)
 
 
+@pytest.mark.slow
 def test_interpreted_laws_give_the_compiled_numbers(tmp_path: Path) -> None:
     assert jit.loaded()  # (conftest)
     compiled = jit_run.run(tmp_path / "compiled")

@@ -84,6 +84,7 @@ def _seed(cache: Path, without: str | None = None) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_a_copy_of_the_same_code_elsewhere_loads_the_machine_code_compiled_once(
     tmp_path: Path,
 ) -> None:
@@ -114,6 +115,7 @@ def test_an_edited_law_is_never_served_from_the_cache(tmp_path: Path) -> None:
     assert jit_cache.cache_key(tree / "geo_server", jit.MODULES) != key
 
 
+@pytest.mark.slow
 def test_a_truncated_cache_file_is_compiled_again_and_repaired(tmp_path: Path) -> None:
     cache = tmp_path / "cache"
     folder = _seed(cache)
@@ -127,6 +129,7 @@ def test_a_truncated_cache_file_is_compiled_again_and_repaired(tmp_path: Path) -
     assert again["misses"] == 0 and again["hits"] == 1, (again, err)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, "getuid"), reason="file size limits are POSIX")
 def test_a_full_disk_compiles_in_memory_and_runs_compiled(tmp_path: Path) -> None:
     """No cache file can be written (RLIMIT_FSIZE: every write past 64 bytes fails, as on
@@ -155,6 +158,7 @@ def _planted(folder: Path, marker: Path) -> None:
         f.write(pickle.dumps(Payload()))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, "getuid"), reason="owners and modes are POSIX")
 def test_a_cache_folder_others_can_write_is_never_read(tmp_path: Path) -> None:
     """Another local user made the folder first (0777) and planted a pickle in it: the

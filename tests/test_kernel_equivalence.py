@@ -29,6 +29,7 @@ def assert_same(fast: Kernel, ref: ReferenceKernel, cycle: int) -> None:
         np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(8))
 def test_random_scenarios(seed: int) -> None:
     n = 7

@@ -245,6 +245,7 @@ def test_save_round_trips(lists_copy: Path):
 # ------------------------------------------------------------------------- determinism
 
 
+@pytest.mark.realtime
 def test_stepped_and_free_running_give_identical_values(default_cfg):
     program = (data_dir("lists") / "demo_temperature.nc").read_text(encoding="utf-8")
     n = 3000
@@ -279,6 +280,7 @@ def test_stepped_and_free_running_give_identical_values(default_cfg):
     assert moved  # the program really ran
 
 
+@pytest.mark.realtime
 def test_realtime_scheduler_runs_and_reports(default_cfg):
     machine = Machine(default_cfg, cycle_s=0.001)
     sched = Scheduler(machine, mode="realtime")

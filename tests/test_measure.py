@@ -251,6 +251,7 @@ def list_values(path: Path, key: str) -> list[int]:
     return [int(v) for _, v in sorted(found, key=lambda f: int(f[0]))]
 
 
+@pytest.mark.slow
 def test_commissioning_the_default_machine_reproduces_its_lists(tmp_path):
     """`geo-server measure --commission` on X of a copy of the default machine: the
     LSEC table it writes is the shipped one (the twin is the machine those lists were
@@ -334,6 +335,7 @@ def test_measure_over_zenoh(tmp_path):
         assert err.value.code == 0x706 and "ascend" in err.value.message
 
 
+@pytest.mark.realtime
 def test_measure_on_a_free_running_machine(tmp_path):
     """A running machine (free mode: cycles back to back on their own thread): the
     service measures through object writes and waits on the cycles (`LiveBench`) — the

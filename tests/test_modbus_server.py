@@ -146,6 +146,7 @@ def test_block_read_across_objects(server, client, service):
     ]
 
 
+@pytest.mark.realtime
 def test_block_read_never_mixes_cycles(loop_thread, machine):
     """While the GEO cycle runs, output = command + total offset in every block read."""
     sched = Scheduler(machine, mode="realtime")
@@ -275,6 +276,7 @@ def test_client_write_and_raw(server, geo, service):
     assert info.value.code == AdsErrorCode.DEVICE_INVALIDDATA
 
 
+@pytest.mark.realtime
 def test_writes_wait_for_the_cycle_when_running(loop_thread, machine):
     sched = Scheduler(machine, mode="realtime")
     service = ObjectService(machine, sched)

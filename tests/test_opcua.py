@@ -68,6 +68,7 @@ def node_of(c: Client, ns: int, path: str) -> Any:
 # ---------------------------------------------------------------------- address space
 
 
+@pytest.mark.slow
 def test_browse_every_variable_with_its_attributes(service: ObjectService) -> None:
     """Browsing Objects/local finds every object of every axis (the ADS symbol names),
     each with its type, access, unit, range, description, ADS address and value."""
@@ -135,6 +136,7 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
     run(scenario)
 
 
+@pytest.mark.slow
 def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
     services = {
         name: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True))
@@ -162,6 +164,7 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
 # ---------------------------------------------------------------------- reads and writes
 
 
+@pytest.mark.slow
 def test_write_goes_through_the_service_with_its_checks(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -220,6 +223,7 @@ def test_write_goes_through_the_service_with_its_checks(service: ObjectService) 
     run(scenario)
 
 
+@pytest.mark.slow
 def test_writes_of_one_request_are_applied_in_one_cycle(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -277,6 +281,7 @@ class Collect:
         return [(v, t) for n, v, t in self.changes if n == node_id]
 
 
+@pytest.mark.slow
 def test_one_notification_per_sampled_cycle_with_its_time(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -312,6 +317,7 @@ def test_one_notification_per_sampled_cycle_with_its_time(service: ObjectService
     run(scenario)
 
 
+@pytest.mark.slow
 def test_sampling_interval_in_whole_cycles(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -332,6 +338,7 @@ def test_sampling_interval_in_whole_cycles(service: ObjectService) -> None:
     run(scenario)
 
 
+@pytest.mark.slow
 def test_one_read_request_is_answered_from_one_cycle(
     service: ObjectService, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -364,6 +371,7 @@ def test_one_read_request_is_answered_from_one_cycle(
     run(scenario)
 
 
+@pytest.mark.slow
 def test_an_item_with_a_deadband_beside_a_plain_one(service: ObjectService) -> None:
     """An item with a filter of its own (an absolute deadband of 1.5) is notified by
     asyncua's rules; a plain item of the same variable gets every change beside it."""
@@ -392,6 +400,7 @@ def test_an_item_with_a_deadband_beside_a_plain_one(service: ObjectService) -> N
     run(scenario)
 
 
+@pytest.mark.slow
 def test_monitored_items_are_bounded_per_session_and_in_total(service: ObjectService) -> None:
     async def scenario() -> None:
         opts = options(max_monitored_items_per_session=3, max_monitored_items=5)
@@ -438,6 +447,7 @@ def test_monitored_items_are_bounded_per_session_and_in_total(service: ObjectSer
 # ---------------------------------------------------------------------- methods
 
 
+@pytest.mark.slow
 def test_every_method_with_results_and_errors(service: ObjectService, lists_copy: Path) -> None:
     from geo_server.listfile import load_machine
 
@@ -491,6 +501,7 @@ def test_every_method_with_results_and_errors(service: ObjectService, lists_copy
 # ---------------------------------------------------------------------- security
 
 
+@pytest.mark.slow
 def test_read_only_refuses_writes_and_methods(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options(read_only=True))
@@ -513,6 +524,7 @@ def test_read_only_refuses_writes_and_methods(service: ObjectService) -> None:
     run(scenario)
 
 
+@pytest.mark.slow
 def test_user_and_password(service: ObjectService) -> None:
     async def scenario() -> None:
         iface = await started({"local": service}, options(user="op", password="s3cret"))
@@ -554,6 +566,7 @@ def _client_certificate(folder: Path) -> tuple[Path, Path]:
     return cert_path, key_path
 
 
+@pytest.mark.slow
 def test_sign_and_encrypt_with_a_certificate_made_once(
     service: ObjectService, tmp_path: Path
 ) -> None:
@@ -596,6 +609,7 @@ def test_certificate_folder_never_inside_the_shipped_machine(lists_copy: Path) -
     assert shipped.name == "opcua"
 
 
+@pytest.mark.slow
 def test_connections_past_the_cap_are_closed_and_the_rest_served(service: ObjectService) -> None:
     """Idle sockets that never say Hello hold at most `max_connections`; a client past
     them is refused, and served again once they are gone (docs/security.md)."""
@@ -626,6 +640,7 @@ def test_connections_past_the_cap_are_closed_and_the_rest_served(service: Object
     run(scenario)
 
 
+@pytest.mark.slow
 def test_background_start_checks_the_port_first(service: ObjectService) -> None:
     """`geo-server run` starts OPC UA in the background; a taken port is still found at
     once (and the start says how it ended)."""

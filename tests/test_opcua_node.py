@@ -33,6 +33,8 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_node_opcua_reads_and_writes_the_coefficient(loop_thread, machine) -> None:
     assert NODE is not None and INSTALLED, "GEO_SERVER_REQUIRE_NODE=1 but no node-opcua-client"
     sched = Scheduler(machine, mode="realtime")

@@ -117,6 +117,7 @@ def test_parametrized_transport(geo):
 """
 
 
+@pytest.mark.slow
 def test_plugin_from_the_command_line(pytester: pytest.Pytester, tmp_path):
     lists = tmp_path / "machine"
     shutil.copytree(data_dir("lists"), lists, ignore=shutil.ignore_patterns("examples", "tools"))

@@ -98,6 +98,7 @@ def wait_cycle(machine, n: int, timeout: float = 20.0) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.slow
 def test_acknowledged_write_is_in_the_snapshot_and_ramps(remote):
     machine, _, svc = remote
     assert access.read_name(svc, "TEMPC::actual_offset", 1) == 40  # X at 0: 40 + 4000e-6·(0 − 100)
@@ -113,6 +114,7 @@ def test_acknowledged_write_is_in_the_snapshot_and_ramps(remote):
     assert st["cycle"] >= cycle + 25 and st["cycle_pid"] not in (None, os.getpid())
 
 
+@pytest.mark.slow
 def test_errors_and_events_cross_the_process_boundary(remote):
     _, _, svc = remote
     seen = []
@@ -130,6 +132,8 @@ def test_errors_and_events_cross_the_process_boundary(remote):
     assert any(err["error_id"] == 70495 for err in svc.errors())
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_reload_swaps_in_the_child_and_here(lists_copy: Path):
     machine = RemoteMachine(load_machine(lists_copy), cycle_s=0.001, homed=True)
     sched = ProcessScheduler(machine, mode="realtime")
@@ -160,6 +164,8 @@ def test_reload_swaps_in_the_child_and_here(lists_copy: Path):
         sched.stop()
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_same_values_as_the_stepped_machine(default_cfg):
     """Cycles count, not clocks: N free-running cycles in the child end in exactly the
     snapshot N stepped cycles give here (program started before the first cycle)."""
@@ -183,6 +189,7 @@ def test_same_values_as_the_stepped_machine(default_cfg):
     assert machine.snapshot.values[1, col] == -50_000  # Y went to −5 mm: the program ran
 
 
+@pytest.mark.slow
 def test_pyads_reads_and_writes_through_the_cycle_process(loop_thread, remote):
     _, _, svc = remote
     srv = AdsServer(svc, AdsOptions(port=0))
@@ -202,6 +209,7 @@ def test_pyads_reads_and_writes_through_the_cycle_process(loop_thread, remote):
         run_in(loop_thread, srv.close())
 
 
+@pytest.mark.slow
 def test_the_cycle_process_ends_with_its_server(tmp_path):
     """SIGKILL the server process: the cycle process sees end of file and exits."""
     script = tmp_path / "server.py"

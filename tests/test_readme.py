@@ -169,6 +169,7 @@ def transcript(text: str) -> list[tuple[str, list[str]]]:
 CONSOLE = [b for b in blocks() if b.lang == "console"]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("block", CONSOLE, ids=[f"line{b.line}" for b in CONSOLE])
 def test_console_transcripts(block: Block, tmp_path: Path) -> None:
@@ -228,6 +229,7 @@ def expected_prints(text: str) -> list[str]:
     return [m.group(1) for m in re.finditer(r"print\(.*\)\s+# → (.*)$", text, re.M)]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("block", PYTHON, ids=[f"line{b.line}" for b in PYTHON])
 def test_python_examples(block: Block, shared_server: Server, tmp_path: Path) -> None:

@@ -167,6 +167,7 @@ def test_stop_before_the_trigger_keeps_the_pre_samples(srv):
     assert rec.triggered_at is None and trace.cycles.tolist() == [17, 18, 19, 20]
 
 
+@pytest.mark.realtime
 def test_recording_in_a_real_time_machine_has_no_gaps():
     m = Machine(load_machine(default_startup_list()), homed=True)
     sched = Scheduler(m, mode="realtime", engine="exact")
@@ -361,6 +362,7 @@ def _zenoh_record_command(srv, tmp_path):
         assert message in info.value.message
 
 
+@pytest.mark.realtime
 def test_cli_record_replay_compare(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     nc = tmp_path / "p.nc"
@@ -420,6 +422,7 @@ def test_cli_record_replay_compare(tmp_path, capsys, monkeypatch):
     assert server_main(["compare", "golden.csv", "missing.csv"]) == 2
 
 
+@pytest.mark.slow
 def test_the_pytest_plugin_golden_fixture(pytester):
     pytester.makepyfile(
         # the README's example, as written there

@@ -194,6 +194,7 @@ def test_connections_beyond_the_cap_are_closed_at_once(server, plc, service, loo
     plc_reads(plc, service)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("server", [{"incomplete_frame_timeout": 1.0}], indirect=True)
 def test_a_frame_left_unfinished_is_dropped_after_the_timeout(
     server, plc, service, loop_thread

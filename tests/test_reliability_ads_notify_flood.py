@@ -147,6 +147,7 @@ def full(loop_thread, lists_copy):
         yield srv
 
 
+@pytest.mark.slow
 def test_notification_flood_is_capped_and_every_transport_keeps_answering(full) -> None:
     ads = full.ads
     assert ads is not None

@@ -139,6 +139,7 @@ def test_write_then_read_in_one_segment_get_their_own_replies_in_order(loop_thre
         run_in(loop_thread, iface.close())
 
 
+@pytest.mark.realtime
 def test_a_hundred_pipelined_requests_in_random_segments(loop_thread, machine):
     """Real-time cycle: 50 writes interleaved with 50 reads, sent as one byte stream cut
     at random places. Every request gets exactly its own reply, in order, and every read
@@ -197,6 +198,7 @@ CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "pdu", "reply"), CASES, ids=[c[0] for c in CASES])
 def test_protocol_exceptions(stepped, name, pdu, reply):
     with connect(stepped) as s:
@@ -264,6 +266,7 @@ def test_connections_beyond_the_cap_are_closed(loop_thread, service):
         run_in(loop_thread, iface.close())
 
 
+@pytest.mark.slow
 def test_an_unfinished_frame_is_dropped_after_the_timeout(loop_thread, service):
     iface = ModbusInterface(service, ModbusOptions(port=0, incomplete_frame_timeout=0.3))
     run_in(loop_thread, iface.start())

@@ -87,6 +87,7 @@ def quick_to_notice(lists_copy) -> Iterator[Stoppable]:
     m.close()
 
 
+@pytest.mark.slow
 def test_a_write_that_timed_out_is_withdrawn_and_never_applied(slow_to_notice, loop_thread):
     m = slow_to_notice
     svc = m.service
@@ -104,6 +105,7 @@ def test_a_write_that_timed_out_is_withdrawn_and_never_applied(slow_to_notice, l
     assert access.read_name(svc, "TEMPC::coefficient", 1) == before + 1.0
 
 
+@pytest.mark.slow
 def test_a_modbus_write_answered_busy_never_takes_effect(slow_to_notice, loop_thread):
     m = slow_to_notice
     iface = ModbusInterface(m.service, ModbusOptions(port=0, write_timeout=0.5))
@@ -124,6 +126,7 @@ def test_a_modbus_write_answered_busy_never_takes_effect(slow_to_notice, loop_th
         run_in(loop_thread, iface.close())
 
 
+@pytest.mark.slow
 def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, lists_copy):
     m = slow_to_notice
     svc = m.service
@@ -146,6 +149,7 @@ def test_a_reload_that_timed_out_leaves_the_machine_unchanged(slow_to_notice, li
     assert access.read_name(svc, "TEMPC::coefficient", 1) == 4000.0
 
 
+@pytest.mark.slow
 def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice, loop_thread):
     m = quick_to_notice
     svc = m.service
@@ -178,6 +182,7 @@ def test_while_stalled_reads_and_writes_say_so_and_status_tells(quick_to_notice,
         run_in(loop_thread, iface.close())
 
 
+@pytest.mark.slow
 def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, loop_thread):
     import pyads
 
@@ -203,6 +208,7 @@ def test_over_ads_a_timed_out_write_is_0x719_and_never_applied(slow_to_notice, l
         run_in(loop_thread, ads.close())
 
 
+@pytest.mark.slow
 def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thread):
     import pyads
 
@@ -230,6 +236,7 @@ def test_over_ads_reads_answer_not_ready_while_stalled(quick_to_notice, loop_thr
         run_in(loop_thread, ads.close())
 
 
+@pytest.mark.slow
 def test_over_zenoh_stalled_reads_and_a_withdrawn_write(lists_copy, loop_thread):
     """While stalled, Zenoh reads answer reply_err 0x707, status says so, and a write is
     refused at once (0x707, nothing queued); after resuming, values are served again."""

@@ -166,6 +166,7 @@ IDLE_SOCKETS = 150  # more than accept_pending (100): the handshake slots all ta
 MARGIN_S = 5.0
 
 
+@pytest.mark.slow
 def test_idle_connections_do_not_lock_out_new_sessions(loop_thread):
     """150 TCP connections that never speak take every handshake slot; the server drops
     them after `accept_timeout_ms`, so a new client gets its answer within that plus a
@@ -252,6 +253,7 @@ def test_nc_limit_is_the_interfaces_own(loop_thread, service):
         srv.close()
 
 
+@pytest.mark.realtime
 def test_nc_is_parsed_off_the_event_loop(stepped, zs, monkeypatch):
     """The service's NC entry point runs in a worker thread, not on the loop that every
     other query (and ADS, Modbus) shares."""
@@ -442,6 +444,7 @@ def router():
         r.close()
 
 
+@pytest.mark.slow
 def test_client_library_refuses_two_responders(loop_thread, service):
     """Server and impostor behind one router: the client sees both replies, names both
     ids and how to fix it; `server_id` picks one."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
 from robust.harness import TIMEOUT, FullServer, next_netid
 
 from geo_server import access
@@ -49,6 +50,7 @@ def open_client(srv: FullServer, via: str):
     return connect("ads", host="127.0.0.1", port=srv.ads.port, netid=next_netid(), timeout=TIMEOUT)
 
 
+@pytest.mark.slow
 def test_concurrent_writers_on_all_transports(loop_thread, lists_copy):
     with FullServer(loop_thread, lists_copy) as srv:
         service = srv.service

@@ -117,6 +117,7 @@ def run_server(tmp_path, lists_copy):
 # ---------------------------------------------------------------------------- defaults
 
 
+@pytest.mark.realtime
 def test_option_defaults_are_loopback():
     assert ZenohOptions().listen == ["tcp/127.0.0.1:7447"]
     assert ZenohOptions().multicast_scouting is False
@@ -167,6 +168,7 @@ def _inet_sockets(pid: int) -> tuple[list[tuple[str, int]], list[tuple[str, int]
     return listening, udp
 
 
+@pytest.mark.slow
 def test_running_server_listens_on_loopback_only(run_server):
     srv = run_server()
     listening, udp = _inet_sockets(srv.proc.pid)
@@ -196,6 +198,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flag", list(CASES))
 def test_read_only_flags(run_server, flag):
     srv = run_server(flag)

@@ -151,6 +151,7 @@ def axis4_write(key: str, payload: bytes | None, m: str) -> bool:
     )
 
 
+@pytest.mark.slow
 def test_zenoh_fuzz_keys_and_payloads(full):
     m = full.machine_name
     rng = random.Random(0x7447)
@@ -272,6 +273,7 @@ def is_command_write(adu: bytes) -> bool:
     return 0x4008 <= struct.unpack(">H", adu[8:10])[0] <= 0x4017
 
 
+@pytest.mark.slow
 def test_modbus_fuzz_with_clients_on_every_transport(full):
     assert full.modbus is not None
     port = full.modbus.port

@@ -107,6 +107,7 @@ def full(loop_thread, lists_copy):
         yield srv
 
 
+@pytest.mark.slow
 def test_vanishing_clients_leak_nothing(full, loop_thread):
     assert full.modbus is not None and full.ads is not None and full.zenoh is not None
     ads, mb = full.ads, full.modbus

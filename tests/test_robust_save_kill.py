@@ -28,6 +28,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from geo_server.listfile import load_machine
 
 KILLS = 30
@@ -48,6 +50,7 @@ def with_values(original: bytes, coefficient: str, offset_0: str) -> bytes:
     return out
 
 
+@pytest.mark.slow
 def test_save_killed_at_random_points(lists_copy: Path):
     folder = lists_copy.parent
     axis_list = folder / "achsmd1.lis"

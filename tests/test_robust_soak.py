@@ -24,12 +24,14 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from robust.harness import FullServer
 
 SOAK_S = 10.0
 LOAD = Path(__file__).parent / "robust" / "soak_load.py"
 
 
+@pytest.mark.slow
 def test_soak_mixed_load_on_all_transports(loop_thread, lists_copy):
     with FullServer(loop_thread, lists_copy) as srv:
         # something moves all the time: X travels back and forth (NC program over Zenoh)

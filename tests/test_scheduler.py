@@ -94,6 +94,7 @@ def test_status_reports_kernel_time(default_cfg):
     assert st["kernel_p50_us"] <= st["kernel_p99_us"]
 
 
+@pytest.mark.realtime
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
 def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
     """A defect that kills the cycle thread must not leave `run` serving a frozen

@@ -176,6 +176,7 @@ def _close(socks: list[socket.socket]) -> None:
         s.close()
 
 
+@pytest.mark.slow
 def test_a_flood_on_one_interface_leaves_the_others_serving(server) -> None:
     served = {"ads": server.ads, "modbus": server.modbus, "zenoh": server.zenoh}
     # the limit was too low for the default caps: they were shrunk, and said so
@@ -224,6 +225,7 @@ def _eventually(client) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_too_low_a_limit_refuses_to_start(tmp_path) -> None:
     with pytest.raises(AssertionError):
         Server(tmp_path, limit=200).close()
@@ -274,6 +276,7 @@ def test_accept_errors_are_said_once_per_period() -> None:
     assert "Too many open files" in lines[0] and "99999 more" in lines[1]
 
 
+@pytest.mark.slow
 def test_a_fleet_fits_its_ports_under_the_limit() -> None:
     """A fleet has a Modbus port per machine: 100 machines × 64 connections would need
     6400 descriptors and more. Under a limit of 4096 its caps are fitted (each machine's

@@ -239,6 +239,7 @@ def test_pre_is_bounded_by_the_ring_of_a_wide_recording(tmp_path):
 # ---------------------------------------------------------------------- streaming (item 6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])
 def test_a_recording_of_every_object_streams_in_bounded_memory(tmp_path, suffix):
     """The ring is the same size for 3000 rows as for 10 million; the rows reach the
@@ -296,6 +297,7 @@ def test_a_triggered_recording_streams_what_an_in_memory_one_holds(tmp_path):
     assert load_inputs(tmp_path / "t.inputs.jsonl")[0]["cycle"] == 450
 
 
+@pytest.mark.realtime
 def test_a_real_time_recording_to_a_file_has_no_gaps(tmp_path):
     from geo_server.machine.machine import Machine
     from geo_server.machine.scheduler import Scheduler
@@ -353,6 +355,7 @@ def test_inputs_while_the_trigger_is_awaited_are_bounded(tmp_path):
 # ---------------------------------------------------------------------- atomicity (item 6)
 
 
+@pytest.mark.slow
 def test_sigkill_while_a_trace_replaces_a_golden_file_leaves_old_or_whole_new(tmp_path):
     """A child records every object over an existing golden file (overwrite) in a loop,
     400 rows per trace, and is killed with SIGKILL at random moments — while it streams

@@ -53,6 +53,7 @@ def sample(seed: int, lag: float, scatter: float) -> Evaluation:
     return evaluate(p, up, down)
 
 
+@pytest.mark.slow
 @needs_matplotlib
 def test_error_curves_before_and_after(tmp_path):
     stem = tmp_path / "figs" / "x_errors.v1"  # a dot in the name is kept, folders made

@@ -57,6 +57,7 @@ def pair(cfg, **kw) -> tuple[Machine, Machine]:
     return a, b
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "time_scale, setup",
     [
@@ -149,6 +150,7 @@ def driven(cfg) -> tuple[VirtualClock, Machine, Scheduler]:
     return vc, m, sched
 
 
+@pytest.mark.realtime
 def test_exact_engine_shows_the_cycle_due_and_applies_writes_in_the_next(cfg) -> None:
     """Observations at chosen (virtual) instants against a stepped twin of the machine."""
     vc = VirtualClock()
@@ -340,6 +342,7 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     assert m.overruns == 1 and sched.skipped > 0
 
 
+@pytest.mark.realtime
 def test_a_machine_at_rest_wakes_every_second_compiled_every_tenth_interpreted(
     cfg, monkeypatch
 ) -> None:
@@ -456,6 +459,7 @@ def test_an_operation_queued_while_a_snapshot_is_published_is_never_missed(cfg) 
     assert queued and m.rest_snapshot is None
 
 
+@pytest.mark.realtime
 def test_a_read_at_rest_with_an_old_heartbeat_waits_for_the_wake_under_way(cfg) -> None:
     """The engine on its thread, at rest, wakes once a second (docs/design.md §13, *Reads
     at rest*). A read of a constant that arrives while the heartbeat is older than half

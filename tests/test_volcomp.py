@@ -200,6 +200,7 @@ def test_pure_roll_with_a_tool_offset(z: float, length: float) -> None:
     assert fast == pytest.approx([0.0, a * (z - length), 0.0], abs=1e-12)
 
 
+@pytest.mark.slow
 def test_rotary_axis_on_the_workpiece_side_is_ideal_without_errors() -> None:
     """CYXZ, workpiece_axes 1: the table turns by −θ (s = −1), so the tool at (x, y, z)
     is at Rot_z(θ)·(x, y, z) in the workpiece frame; θ = 90°: (−y, x, z)."""
@@ -365,6 +366,7 @@ def test_more_records_than_max_records(lists_copy: Path) -> None:
     assert "2 records in the correction files, more than vol_comp[0].max_records 1" in comp.problem
 
 
+@pytest.mark.realtime
 def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
     """004 p.19, p.22-23 through pyads on AMS port 553: enable (0x291), disable (0x292),
     and an update: the ID to 0x27D, then the VOLC list's path to 0x27C (the second

@@ -31,6 +31,7 @@ def with_plc():
     return run_warmup(hours=HOURS, plc=True, via="modbus", time_scale=500.0)
 
 
+@pytest.mark.slow
 def test_without_the_client_the_residual_is_the_whole_thermal_error(without):
     t = np.array(without.sensor_C)
     expected = 11.5e-6 * (t - 20.0) * 499.99 * 1000  # µm
@@ -41,6 +42,7 @@ def test_without_the_client_the_residual_is_the_whole_thermal_error(without):
     assert without.times_s[-1] >= HOURS * 3600
 
 
+@pytest.mark.slow
 def test_with_the_client_the_residual_stays_within_the_bound(with_plc, without):
     assert with_plc.writes > 100  # the coefficient follows the temperature
     assert with_plc.worst_um <= BOUND_UM

@@ -144,6 +144,7 @@ def tempc_input(pg, axis: int, name: str):
 # ---------------------------------------------------------------------- in the browser
 
 
+@pytest.mark.slow
 def test_the_page_shows_every_axis_live(page, served):
     from playwright.sync_api import expect
 
@@ -181,6 +182,7 @@ def test_the_page_shows_every_axis_live(page, served):
     expect(page.locator("#status")).to_contain_text("exact engine")
 
 
+@pytest.mark.slow
 def test_a_value_changes_when_the_axis_moves(page, served, tmp_path):
     from playwright.sync_api import expect
 
@@ -196,6 +198,7 @@ def test_a_value_changes_when_the_axis_moves(page, served, tmp_path):
     assert (tmp_path / "moved.png").stat().st_size > 50_000
 
 
+@pytest.mark.slow
 def test_a_tempc_edit_reaches_the_server(page, served):
     from playwright.sync_api import expect
 
@@ -216,6 +219,7 @@ def test_a_tempc_edit_reaches_the_server(page, served):
     assert access.read_name(served.service, "TEMPC::activated", 4) is True
 
 
+@pytest.mark.slow
 def test_an_out_of_range_edit_shows_the_servers_error(page, served):
     from playwright.sync_api import expect
 
@@ -235,6 +239,7 @@ def test_an_out_of_range_edit_shows_the_servers_error(page, served):
     assert access.read_name(served.service, "TEMPC::coefficient", 1) == 4000.0
 
 
+@pytest.mark.slow
 def test_save_and_reload_buttons(page, served):
     from playwright.sync_api import expect
 
@@ -261,6 +266,7 @@ def test_save_and_reload_buttons(page, served):
     expect(tempc_input(page, 2, "TEMPC::coefficient")).to_have_value("33.5")
 
 
+@pytest.mark.slow
 def test_new_errors_and_faults_show_up(page, served):
     from playwright.sync_api import expect
 
@@ -275,6 +281,7 @@ def test_new_errors_and_faults_show_up(page, served):
     )
 
 
+@pytest.mark.slow
 def test_a_machine_without_twin(browser, tmp_path):
     """No twin.toml: no twin rows, one trend, and the page still works."""
     from playwright.sync_api import expect
@@ -386,6 +393,7 @@ def test_live_payload_without_twin(tmp_path):
     assert view.trend_sample(service.current(stale_ok=True)) == [4.9, -9.8, 4.3, -0.0007]
 
 
+@pytest.mark.slow
 def test_nobody_watching_costs_one_sample_a_second(tmp_path):
     """No socket: a trend sample every `idle_period`, nothing pushed; a page opened
     later gets those samples, then a push every `period`."""
@@ -463,6 +471,8 @@ def banner(proc: subprocess.Popen) -> tuple[str, str]:
     return "", ""
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
     """`geo-server run --http` on a port in use: exit 2 and one clear line."""
     blocker = socket.socket()
@@ -486,6 +496,8 @@ def test_run_with_the_http_port_taken_fails_cleanly(tmp_path):
     )
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_run_serves_the_page_on_an_ephemeral_port(tmp_path):
     """`--http 127.0.0.1:0`: the banner names the port the page is served on."""
     proc = subprocess.Popen(
@@ -526,6 +538,8 @@ def test_parse_http_refuses_nonsense():
         parse_http("1.2.3.4:70000")
 
 
+@pytest.mark.realtime
+@pytest.mark.slow
 def test_a_fleet_page_reaches_every_machine_by_name(browser, tmp_path):
     """`geo-server run --fleet FILE --http`: `/` lists the machines (docs/web.md §3), a
     name opens that machine's page at /m/<name>/, and an edit there reaches that machine

@@ -389,6 +389,7 @@ def _read_only_refuses(s: Served, prefix: str, name: str | None = None) -> None:
     assert s.list_bytes() == before
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("flag", ["--read-only", "--http-read-only"])
 def test_the_command_line_makes_the_hmi_read_only(flag):
     args = build_parser().parse_args(["run", flag, "--http", "127.0.0.1:0"])
@@ -417,6 +418,7 @@ def http_run(tmp_path, lists_copy, *more: str, env=None):
         proc.stdout.close()
 
 
+@pytest.mark.slow
 def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
     """`geo-server run --read-only --http`: the single-machine HMI refused nothing
     before; now its hello says read_only and a write with the printed token is 0x704."""
@@ -440,6 +442,7 @@ def test_run_read_only_serves_a_read_only_hmi(tmp_path, lists_copy):
         assert (status, body["code"]) == (400, 0x704)
 
 
+@pytest.mark.slow
 def test_passwords_come_from_the_environment_not_the_process_list(tmp_path, lists_copy):
     """A password on the command line is visible to every user in `ps`; the environment
     (GEO_SERVER_HTTP_PASSWORD) is not: the server asks for it, and it is in no argument."""
@@ -463,6 +466,7 @@ def test_passwords_come_from_the_environment_not_the_process_list(tmp_path, list
         assert asyncio.run(go()) == [401, 401, 200]
 
 
+@pytest.mark.realtime
 def test_the_route_and_opcua_passwords_come_from_the_environment_too(monkeypatch):
     monkeypatch.setenv("GEO_SERVER_ADS_ROUTE_PASSWORD", "route-pw")
     monkeypatch.setenv("GEO_SERVER_OPCUA_PASSWORD", "ua-pw")
@@ -478,6 +482,7 @@ def test_the_route_and_opcua_passwords_come_from_the_environment_too(monkeypatch
     assert args.ads_route_password == "cli-pw"
 
 
+@pytest.mark.realtime
 def test_the_command_line_checks_the_http_options(capsys):
     assert main(["run", "--http", "127.0.0.1:0", "--http-user", "op"]) == 2
     assert "--http-user and --http-password go together" in capsys.readouterr().err

@@ -283,6 +283,7 @@ def test_publications_arrive_on_a_subscriber(server, zs):
         sub.undeclare()
 
 
+@pytest.mark.realtime
 def test_nothing_is_computed_for_publication_while_nobody_subscribes(loop_thread, default_cfg):
     """The publish loop asks Zenoh whether any subscriber matches `cnc/<m>/**`: without
     one the exact engine is never made to catch up for a publication; with one, the
@@ -428,6 +429,7 @@ def test_geo_client_by_address_reads_attribute_groups(server, capsys):
     assert access.read_name(server.service, "TEMPC::coefficient", 1) == 3000.0
 
 
+@pytest.mark.slow
 def test_geo_client_commands(server, capsys):
     base = ["--machine", "t", "--connect", server.endpoint, "--timeout", "5"]
     svc = server.service
@@ -714,6 +716,7 @@ def test_the_servers_own_publications_are_not_puts(server, zs):
     assert server.iface.puts == 0
 
 
+@pytest.mark.realtime
 def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_thread):
     """docs/design.md §13, *Repeated reads*: the exact engine on a virtual clock, the
     machine at rest with TEMPC::offset_0 of axis 1 written to -250. A get of its raw or

@@ -80,6 +80,7 @@ def wait_for(predicate, timeout: float = 30.0) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_two_hosts_and_a_client_through_a_router(tmp_path) -> None:
     router_ep = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(config([], [router_ep], "router"))

@@ -4,6 +4,7 @@ cycle overruns through the engine in this process, sensor faults through the twi
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +30,10 @@ class FaultService(Faults):
         self.ports = ports
         self._set_overrun = set_overrun
         self._twin = twin
+        #: held from looking at what is active to acting on the machine: two injects at
+        #: once (Zenoh's cmd/fault and OPC UA's InjectFault run on workers) never both
+        #: find the place free, and a clear never undoes an overrun injected meanwhile
+        self._acting = threading.Lock()
 
     def inject(self, fault: str | Fault) -> dict[str, Any]:
         """Inject a fault (text as in docs/faults.md, or parsed) and return it as listed
@@ -36,26 +41,28 @@ class FaultService(Faults):
         the next cycle on; a sensor fault at the next cycle boundary. Raises
         `FaultError` (a clear message) for a fault this machine cannot have."""
         f = parse_fault(fault) if isinstance(fault, str) else fault
-        if f.target == "cycle":
-            return self._overrun(f)
-        if f.target == "sensor":
-            return self._sensor(f)
-        return self.add(f).as_dict()
+        with self._acting:
+            if f.target == "cycle":
+                return self._overrun(f)
+            if f.target == "sensor":
+                return self._sensor(f)
+            return self.add(f).as_dict()
 
     def clear(self, ident: int | None = None) -> list[dict[str, Any]]:
         """Clear fault `ident` (None: every fault) and undo what it did: overruns stop,
         a sensor reads its node again from its next sample. Returns the faults cleared;
         an `ident` that is not active raises `FaultError`."""
-        gone = self.remove(ident)
-        if ident is not None and not gone:
-            active = ", ".join(str(f["id"]) for f in self.status()) or "none"
-            raise FaultError(f"no active fault {ident} (active: {active})")
-        for f in gone:
-            if f.target == "cycle" and self._set_overrun is not None:
-                self._set_overrun(0, 0)
-            elif f.target == "sensor" and self._twin is not None:
-                self.ports.apply(SensorFault(self._twin().sensor_index(f.sensor), ""))
-        return [f.as_dict() for f in gone]
+        with self._acting:
+            gone = self.remove(ident)
+            if ident is not None and not gone:
+                active = ", ".join(str(f["id"]) for f in self.status()) or "none"
+                raise FaultError(f"no active fault {ident} (active: {active})")
+            for f in gone:
+                if f.target == "cycle" and self._set_overrun is not None:
+                    self._set_overrun(0, 0)
+                elif f.target == "sensor" and self._twin is not None:
+                    self.ports.apply(SensorFault(self._twin().sensor_index(f.sensor), ""))
+            return [f.as_dict() for f in gone]
 
     def _overrun(self, f: Fault) -> dict[str, Any]:
         if self._set_overrun is None:

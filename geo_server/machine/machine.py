@@ -279,7 +279,7 @@ class Machine:
                     pending.set_result(result)
                 else:
                     pending.set_exception(exc)
-        for listener in self.listeners:
+        for listener in tuple(self.listeners):  # (a copy: one may unsubscribe meanwhile)
             listener(snap)
         return snap
 
@@ -489,7 +489,7 @@ class Machine:
                 self._rest_key = key if self.quiescent else None
             self._show(snap)
             self.snapshot_time = monotonic()
-        for listener in self.listeners:
+        for listener in tuple(self.listeners):  # (a copy: one may unsubscribe meanwhile)
             try:
                 listener(snap)
             except Exception:  # one broken subscriber must not stop the engine
@@ -560,7 +560,7 @@ class Machine:
         """Carry out one operation now (at a cycle boundary)."""
         self.rest_snapshot = None
         self._rest_after = False
-        for tap in self.input_taps:  # a recorder's (geo_server/recorder): usually none
+        for tap in tuple(self.input_taps):  # a recorder's (geo_server/recorder): usually none
             try:
                 tap(self.cycle, op)
             except Exception:  # a recording must never stop the cycle
@@ -710,7 +710,7 @@ class Machine:
             self.last_error_id = d.error_id
         if d.severity != "message":  # a #MSG is no error (SIM::last_error)
             self.last_error = d.describe()
-        for listener in self.event_listeners:
+        for listener in tuple(self.event_listeners):
             listener(ev)
         return ev
 

@@ -109,7 +109,11 @@ _NEVER = 1 << 62
 
 
 class CycleStats:
-    """Ring buffers of lateness, whole-cycle time and kernel time (µs) for percentiles."""
+    """Ring buffers of lateness, whole-cycle time and kernel time (µs) for percentiles.
+
+    Recorded from any thread (a catch-up's time is recorded by whichever thread asked:
+    the loop, a Zenoh thread, a worker), so a record takes `_lock`; `summary` reads
+    without it (a ring slot being written shows its old or its new value)."""
 
     def __init__(self, size: int = 10_000) -> None:
         self.lateness = np.zeros(size)
@@ -117,14 +121,16 @@ class CycleStats:
         self.kernel_time = np.zeros(size)
         self.count = 0
         self.max_lateness = 0.0
+        self._lock = threading.Lock()
 
     def record(self, lateness_us: float, cycle_us: float, kernel_us: float = 0.0) -> None:
-        i = self.count % len(self.lateness)
-        self.lateness[i] = lateness_us
-        self.cycle_time[i] = cycle_us
-        self.kernel_time[i] = kernel_us
-        self.count += 1
-        self.max_lateness = max(self.max_lateness, lateness_us)
+        with self._lock:
+            i = self.count % len(self.lateness)
+            self.lateness[i] = lateness_us
+            self.cycle_time[i] = cycle_us
+            self.kernel_time[i] = kernel_us
+            self.count += 1
+            self.max_lateness = max(self.max_lateness, lateness_us)
 
     def summary(self) -> dict[str, float]:
         n = min(self.count, len(self.lateness))
@@ -295,7 +301,15 @@ class Scheduler:
 
     def _overrun(self) -> int:
         """At the boundary after cycle `_next_overrun`: count the overrun and return the
-        periods the time line slips (0 when the fault is used up)."""
+        periods the time line slips (0 when the fault is used up). Under the engine lock,
+        as `set_overrun` (the punctual engine takes it for this alone), so a fault
+        cleared meanwhile is never re-armed by this cycle's `+=`."""
+        with self._engine_lock:
+            return self._overrun_locked()
+
+    def _overrun_locked(self) -> int:
+        if self._next_overrun == _NEVER:  # cleared since the cycle looked
+            return 0
         if self._on_overrun is not None and not self._on_overrun():
             self._next_overrun, self._on_overrun = _NEVER, None
             return 0

@@ -251,7 +251,10 @@ class ZenohInterface:
         self._tasks: set[asyncio.Task[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._unsubscribe: list[Any] = []
-        self.queries = 0
+        #: gets answered: on Zenoh's queryable thread (`_read_now`) and on the loop
+        #: (`_handle`), one counter per writer; `queries` is their sum
+        self._queries_here = 0
+        self._queries_loop = 0
         #: gets and puts handed to the loop (each counter has one writer: Zenoh's
         #: queryable thread, its subscriber thread, the loop) — their difference is the
         #: work in flight that `max_pending` caps
@@ -418,6 +421,11 @@ class ZenohInterface:
         self._queries_taken += 1
         self._to_loop(self._accept, query)
 
+    @property
+    def queries(self) -> int:
+        """Gets answered, on Zenoh's thread and on the loop."""
+        return self._queries_here + self._queries_loop
+
     def _in_flight(self) -> int:
         return self._queries_taken + self._puts_taken - self._finished
 
@@ -471,7 +479,7 @@ class ZenohInterface:
                     data, enc = self._plain_reply(key, route or self._plain[key])
                 except AdsError:
                     return False
-            self.queries += 1
+            self._queries_here += 1
             try:
                 query.reply(ke, data, encoding=enc)  # (as it came: not parsed again)
             finally:
@@ -596,7 +604,7 @@ class ZenohInterface:
         return json.dumps(stored).encode(), JSON
 
     async def _handle(self, query: zenoh.Query) -> None:
-        self.queries += 1
+        self._queries_loop += 1
         try:
             payload = query.payload.to_bytes() if query.payload is not None else None
             key = str(query.key_expr)
@@ -812,7 +820,7 @@ class ZenohInterface:
         self._to_loop(self._matching_changed, bool(status.matching))
 
     def _on_watch(self, status: zenoh.MatchingStatus) -> None:
-        self._watching = bool(status.matching)  # (a flag: read from any thread)
+        # (`_watching` is the loop's: `_publish_loop` sets it when it looks again)
         self._to_loop(self._watch_changed, bool(status.matching))
 
     def _watch_changed(self, matching: bool) -> None:

@@ -401,6 +401,29 @@ def _fault_and_descriptor_rows() -> list[str]:
         "`repeats.MAX_REPEAT_SIZE` | not kept: read again each time |",
         f"| all | descriptors kept for files and the runtime | {RESERVE} | "
         "`descriptors.RESERVE` | the caps are shrunk to fit; too few: the server does not start |",
+        *_opcua_guard_rows(),
+    ]
+
+
+def _opcua_guard_rows() -> list[str]:
+    """The OPC UA guard's bounds (geo_server/transports/opcua/guard.py, logins.py)."""
+    from geo_server.transports.opcua import logins
+    from geo_server.transports.opcua.guard import MAX_REQUEST, MIN_BUFFER, SESSIONS_PER_CONNECTION
+
+    return [
+        f"| OPC UA | one request message | {MAX_REQUEST} bytes | `guard.MAX_REQUEST` | "
+        "BadRequestTooLarge; a chunk over the receive buffer (65535) is refused at its header: "
+        "ERR BadTcpMessageTooLarge, closed |",
+        f"| OPC UA | a Hello's receive and send buffers, at least | {MIN_BUFFER} bytes | "
+        "`guard.MIN_BUFFER` (Part 6 §7.1.2.3) | ERR BadConnectionRejected, closed |",
+        f"| OPC UA | sessions of one connection | {SESSIONS_PER_CONNECTION} | "
+        "`guard.SESSIONS_PER_CONNECTION` | BadTooManySessions |",
+        f"| OPC UA | the wait after a failed login from one address | "
+        f"{logins.LOGIN_BACKOFF_FIRST_S:g} s, doubled per failure up to "
+        f"{logins.LOGIN_BACKOFF_MAX_S:g} s | `logins.LOGIN_BACKOFF_*` | an attempt within it is "
+        "refused unchecked (BadUserAccessDenied) |",
+        f"| OPC UA | addresses whose failed logins are remembered | {logins.LOGIN_ADDRESSES} | "
+        "`logins.LOGIN_ADDRESSES` | the oldest forgotten |",
     ]
 
 

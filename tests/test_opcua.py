@@ -24,6 +24,7 @@ from geo_server import access
 from geo_server.machine.machine import Machine
 from geo_server.opcua_run import cert_folder
 from geo_server.service import ObjectService
+from geo_server.transports.opcua import logins
 from geo_server.transports.opcua.certs import CERT_FILE, KEY_FILE
 from geo_server.transports.opcua.server import (
     STATUS,
@@ -525,9 +526,10 @@ def test_read_only_refuses_writes_and_methods(service: ObjectService) -> None:
 
 
 @pytest.mark.slow
-def test_user_and_password(service: ObjectService) -> None:
+def test_user_and_password(service: ObjectService, tmp_path: Path) -> None:
     async def scenario() -> None:
-        iface = await started({"local": service}, options(user="op", password="s3cret"))
+        opts = options(user="op", password="s3cret", cert_dir=tmp_path)
+        iface = await started({"local": service}, opts)
         try:
             for kw in (
                 {},
@@ -542,6 +544,9 @@ def test_user_and_password(service: ObjectService) -> None:
                     ua.StatusCodes.BadUserAccessDenied,
                     ua.StatusCodes.BadIdentityTokenInvalid,
                 )
+            # three failures from this address: the next login waits out the backoff
+            # (LOGIN_BACKOFF_FIRST_S · 2², the bound the guard sets), then is taken
+            await asyncio.sleep(logins.LOGIN_BACKOFF_FIRST_S * 4)
             async with client(iface, user="op", password="s3cret") as c:
                 ns = await c.get_namespace_index(NAMESPACE_URI)
                 assert await node_of(c, ns, "local/Axes/X/TEMPC/coefficient").read_value() == 4000.0

@@ -50,6 +50,7 @@ from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua.args import parse_endpoint
+from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.space import (
     METHODS,
     NAMESPACE_URI,
@@ -248,6 +249,8 @@ class OpcUaInterface:
         self._loop: asyncio.AbstractEventLoop | None = None
         self.late_samples = 0
         self.notifications = 0
+        #: failed logins per client address (guard.py): the loop's
+        self.login_throttle = LoginThrottle()
         #: the background start (`OpcUaOptions.background`), its failure, and who is
         #: told when it is done (with the failure or None; after a failure the other
         #: interfaces keep serving)
@@ -292,7 +295,10 @@ class OpcUaInterface:
             self._frozen = True
             await self._init_and_build(server)
         self._hook()
-        await server.start()
+        from geo_server.transports.opcua import guard
+
+        guard.guard(server, self.login_throttle)  # (docs/security.md, OPC UA)
+        await guard.start(server)
         assert server.bserver is not None
         self.port = server.bserver.port
 
@@ -309,6 +315,9 @@ class OpcUaInterface:
         server.set_endpoint(f"opc.tcp://{host}:{port}/")
         server.set_server_name("geo-server")
         await server.set_application_uri("urn:geo-server:server")
+        if opts.user is not None and opts.cert_dir is None:
+            # the password travels encrypted with the server's key (guard.py)
+            raise ValueError("a user and password need a certificate folder (cert_dir)")
         policies = [] if opts.encrypt_only else [ua.SecurityPolicyType.NoSecurity]
         if opts.cert_dir is not None:
             from geo_server.transports.opcua.certs import ensure_certificate

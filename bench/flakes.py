@@ -18,6 +18,7 @@ import argparse
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -31,8 +32,9 @@ SUMMARY = re.compile(r"^=*\s*(?P<body>(\d+ \w+(, )?)+) in (?P<secs>[\d.]+)s")
 FAILED = re.compile(r"^(FAILED|ERROR) (\S+)")
 
 
-def run_suite(pytest_args: list[str]) -> tuple[int, str, list[str], float]:
-    """One run of the suite: (exit code, its summary, the failed tests, seconds)."""
+def run_suite(pytest_args: list[str], log: Path) -> tuple[int, str, list[str], float]:
+    """One run of the suite, its whole output in `log`: (exit code, its summary, the
+    failed tests, seconds)."""
     t0 = time.monotonic()
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *pytest_args],
@@ -41,6 +43,7 @@ def run_suite(pytest_args: list[str]) -> tuple[int, str, list[str], float]:
         text=True,
     )
     secs = time.monotonic() - t0
+    log.write_text(done.stdout + done.stderr, encoding="utf-8")
     summary, failed = "no summary", []
     for line in done.stdout.splitlines():
         if m := SUMMARY.match(line.strip("= ")):
@@ -55,6 +58,7 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--busy", type=int, default=2, help="CPU-bound processes beside it")
     ap.add_argument("--limit", type=float, default=3 * 3600, help="the busy ones' lifetime (s)")
+    ap.add_argument("--logs", default=tempfile.gettempdir(), help="folder of each run's output")
     ap.add_argument("pytest_args", nargs="*", help="after --: passed to pytest")
     args = ap.parse_args()
     spin = SPIN.format(limit=args.limit)
@@ -63,9 +67,10 @@ def main() -> int:
     try:
         print(f"the suite {args.runs} times next to {args.busy} busy processes", flush=True)
         for i in range(1, args.runs + 1):
-            code, summary, failed, secs = run_suite(args.pytest_args)
+            log = Path(args.logs) / f"flakes-run{i}.log"
+            code, summary, failed, secs = run_suite(args.pytest_args, log)
             bad += code != 0
-            print(f"run {i}: exit {code}, {summary}, {secs / 60:.1f} min", flush=True)
+            print(f"run {i}: exit {code}, {summary}, {secs / 60:.1f} min ({log})", flush=True)
             for name in failed:
                 print(f"  {name}", flush=True)
     finally:

@@ -190,7 +190,7 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "ads",
         "sample_lag",
         "s",
-        "sampling behind the cycles, with running cycles",
+        "sampling work owed, with running cycles (at what a pass costs lately)",
         "older snapshots are skipped; those samples come from a later cycle (counted: "
         "`cycles_shed`)",
     ),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import faulthandler
 import gc
+import os
 import random
 import shutil
 import socket
@@ -40,6 +41,11 @@ def pytest_configure(config: pytest.Config) -> None:
     before any test: the servers the tests start in subprocesses load it from the cache
     (tests/test_jit.py checks that the interpreted laws give the same numbers)."""
     jit.load()
+    # every process the tests start (servers, the clients' CLIs, pytester's runs, whose
+    # HOME is a fresh folder) loads this one compile: the suite compiles once
+    folder = jit.cache_dir()
+    if folder is not None:
+        os.environ["GEO_SERVER_JIT_CACHE"] = str(folder.parent)
     # what `geo-server run` sets for its cycle thread (the suite is the composition root
     # of the machines its tests make: library code never changes it)
     sys.setswitchinterval(switch_interval(1))

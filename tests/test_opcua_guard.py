@@ -365,3 +365,42 @@ def test_a_session_cannot_touch_another_sessions_subscription(service: ObjectSer
             await iface.close()
 
     run(scenario)
+
+
+@pytest.mark.slow
+def test_a_client_that_does_not_read_its_answers_is_paused_then_closed(
+    service: ObjectService,
+) -> None:
+    """The client stops reading and sends 60 Reads of 8000 values (about 250 kB each):
+    the server stops reading and answering it once its answers back up (what it holds
+    stays near one answer), and closes it after `unread_close_s`. Before: every answer
+    went into memory, and the connection stayed."""
+
+    async def scenario() -> None:
+        iface = await started(service, unread_close_s=0.5)
+        try:
+            c = client(iface)
+            await c.connect()
+            ns = await c.get_namespace_index(NAMESPACE_URI)
+            bserver = iface.server.bserver
+            (conn,) = bserver.clients
+            c.uaclient.protocol.transport.pause_reading()
+            params = read_params(ns)
+            params.NodesToRead = params.NodesToRead * 8000
+            pending = [asyncio.ensure_future(c.uaclient.read(params)) for _ in range(60)]
+            held = 0
+            for _ in range(1000):  # until it is closed (0.5 s after it paused)
+                if conn.transport is None or conn.transport.is_closing():
+                    break
+                held = max(held, conn.transport.get_write_buffer_size())
+                await asyncio.sleep(0.01)
+            assert conn not in bserver.clients
+            assert held < 2 * 1024 * 1024, held
+            for p in pending:
+                p.cancel()
+            await asyncio.gather(*pending, return_exceptions=True)
+            c.uaclient.disconnect_socket()
+        finally:
+            await iface.close()
+
+    run(scenario)

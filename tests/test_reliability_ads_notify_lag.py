@@ -1,17 +1,17 @@
-"""Notification sampling keeps within `sample_lag` of the cycles (docs/design.md §13.1).
+"""Notification sampling after the loop was held: every cycle caught up when a pass is
+cheap (docs/design.md §13.1; `AdsOptions.sample_lag`).
 
 A machine runs in real time (1 ms cycles on its own engine thread) with ADS alone; one
 client watches SIM::cycle_count every cycle (its value is the cycle's number). The
 event loop is then kept busy for 300 ms by a callback that sleeps, as a busy host or a
-long request would: the engine goes on and hands about 300 snapshots over. When the loop
-is back, the sampler skips those handed over longer than `sample_lag` (50 ms) ago and
-samples on from the oldest one that is not: the counter the client receives jumps by
-at least 300 − 50 cycles less the margin below, and the cycles skipped are counted.
+long request would: the engine goes on and hands about 300 snapshots over. Sampling one
+registration costs microseconds a pass, so catching up 300 cycles takes far less than
+`sample_lag`: the client receives every cycle, late, with no gap, and nothing is shed.
 
-Before, the sampler worked through every snapshot waiting, one pass each: harmless for
-one registration, but with hundreds of them on a busy host each pass cost more than a
-cycle, sampling fell further behind with every pass (up to `sample_backlog` = 2000
-cycles), and a registration made meanwhile got its first sample seconds late.
+(Before, every snapshot older than `sample_lag` was skipped whatever the work to catch up:
+a loop held 60 ms on a loaded host left gaps in cyclic streams, and the engine
+differential test failed under load. Skipping is for when catching up would take longer
+than `sample_lag`: hundreds of registrations, tests/test_reliability_ads_notify_flood.py.)
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ CYCLE_COUNT_IO = load_dictionary().by_name("SIM::cycle_count").id  # machine obj
 SERVER = AmsAddr("127.0.0.1.1.1", 551)
 CLIENT = AmsAddr("10.5.5.7.1.1", 32100)
 BUSY_S = 0.3  # the loop sleeps this long
-LAG_S = 0.05  # AdsOptions.sample_lag (the default, set here so that the test says it)
+LAG_S = 0.25  # AdsOptions.sample_lag (the default, set here so that the test says it)
 
 
 @pytest.fixture
@@ -78,7 +78,7 @@ class Watcher:
             self.read()
 
 
-def test_a_loop_kept_busy_is_not_made_to_sample_the_cycles_it_missed(full) -> None:
+def test_a_loop_kept_busy_catches_up_every_cycle_when_a_pass_is_cheap(full) -> None:
     ads = full.ads
     assert ads is not None and ads.options.sample_lag == AdsOptions().sample_lag
     w = Watcher(ads.port)
@@ -91,9 +91,6 @@ def test_a_loop_kept_busy_is_not_made_to_sample_the_cycles_it_missed(full) -> No
     finally:
         w.sock.close()
     steps = [b - a for a, b in zip(w.values, w.values[1:], strict=False)]
-    assert min(steps) >= 1  # every sample is of a later cycle than the one before
-    # the cycles the loop missed, older than sample_lag, were skipped: one jump over
-    # at least 300 - 50 cycles (less 50 for a loop slow to start sleeping)
-    skipped = round((BUSY_S - LAG_S) * 1000) - 50
-    assert max(steps) >= skipped, max(steps)
-    assert ads.stats.cycles_shed >= skipped - 1
+    status = ads.service.status().get("ads_notifications")
+    assert set(steps) == {1}, ([s for s in steps if s != 1], status)
+    assert ads.stats.cycles_shed == 0

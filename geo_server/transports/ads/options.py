@@ -67,13 +67,18 @@ class AdsOptions:
     #: from a later cycle, and are counted (`status()["ads_notifications"]`) — so a loop
     #: that cannot keep up sheds sampling work instead of piling it up.
     sample_backlog: int = HANDOFF_MAX
-    #: With running cycles, sampling is at most this far behind (seconds): a pass never
-    #: begins at a snapshot handed over longer ago than this while a newer one waits —
-    #: the older ones are skipped (counted, `cycles_shed`) and what was due in them is
-    #: sampled from the next one, late. A loop that cannot sample every cycle (a busy
-    #: host) then answers a new registration within this time, not after working through
-    #: `sample_backlog` cycles of the past one by one.
-    sample_lag: float = 0.05
+    #: With running cycles, sampling is at most this much work behind (seconds): when
+    #: working through every snapshot waiting would take longer (at what a pass has cost
+    #: lately), those handed over longer ago than this are skipped (counted,
+    #: `cycles_shed`) and what was due in them is sampled from the next one, late. A loop
+    #: that cannot sample every cycle (many registrations on a busy host) then answers a
+    #: new registration within about this time, not after working through
+    #: `sample_backlog` cycles of the past one by one; a loop that was only held a while,
+    #: with passes that cost little, catches up every cycle (no gap in a cyclic stream).
+    #: 0.25 s: on a loaded 2-core host the loop is held for hundreds of milliseconds at
+    #: times, and a few registrations then owe tens of milliseconds of sampling (50 ms
+    #: left gaps in cyclic streams there); hundreds of registrations still shed.
+    sample_lag: float = 0.25
     #: Longest stretch of notification sampling in one event-loop callback (seconds);
     #: a longer pass continues in a later loop iteration, so requests of every transport
     #: are answered in between. A late slice still sends the values and timestamp of the

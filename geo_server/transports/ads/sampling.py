@@ -106,6 +106,10 @@ class _Sink(Protocol):
     def send(self, frame: bytes) -> None: ...
 
 
+#: the passes whose median cost is what a pass costs (`Sampler._oldest_fresh`)
+_COSTS_KEPT = 15
+
+
 class Sampler:
     """One machine's notification sampling; the head's (the server that listens) also
     runs the rounds over every machine behind the port. It is the engine's
@@ -123,8 +127,14 @@ class Sampler:
         # time it was handed over (see `on_cycle_thread`, `_oldest_fresh`).
         self._handed: deque[tuple[Snapshot, float]] = deque(maxlen=HANDOFF_MAX)
         self._handoff_pending = False
-        # The sampling pass under way (with its FILETIME).
+        # The sampling pass under way (with its FILETIME), the time spent on it so far,
+        # and what a whole pass costs (seconds of the loop thread's own CPU time, the
+        # median of the last `_COSTS_KEPT`: one pass that met a garbage collection does
+        # not make the sampler shed cycles; `_oldest_fresh`).
         self._pass: tuple[SamplingPass, int] | None = None
+        self._pass_spent = 0.0
+        self._pass_costs: deque[float] = deque(maxlen=_COSTS_KEPT)
+        self._pass_cost = 0.0
         # While registrations exist the cycle publishes every cycle's snapshot.
         self._every_cycle: Callable[[], None] | None = None
 
@@ -172,6 +182,7 @@ class Sampler:
         st["samples_late"] = self.dev.notifications.late
         st["samples_refused"] = self.dev.stats.samples_refused
         st["cycles_shed"] = self.dev.stats.cycles_shed
+        st["pass_cost_ns"] = round(self._pass_cost * 1e9)
         st["waiting_snapshots"] = len(self._handed)
         self.dev.service.status_extra["ads_notifications"] = st
 
@@ -260,14 +271,19 @@ class Sampler:
                 self._pass = (self.dev.notifications.begin(snap, time.monotonic()), snap.stamp)
                 stats.sampling_passes += 1
             samples, filetime = self._pass
+            began = time.thread_time()  # (the loop's own time: not the host's other work)
             while not samples.done:
                 samples.step(_SAMPLE_STEP)
                 if time.perf_counter() >= deadline:
                     break
             for batch in samples.take():
                 self._send_batch(batch, filetime)
+            self._pass_spent += time.thread_time() - began
             if samples.done:
                 self._pass = None
+                self._pass_costs.append(self._pass_spent)
+                self._pass_spent = 0.0
+                self._pass_cost = sorted(self._pass_costs)[len(self._pass_costs) // 2]
             else:
                 stats.sampling_slices += 1
             if time.perf_counter() >= deadline:
@@ -276,20 +292,26 @@ class Sampler:
         return self._pass is not None or bool(self._handed)
 
     def _oldest_fresh(self) -> Snapshot | None:
-        """The next snapshot to begin a pass at: the oldest one handed over — but with
-        running cycles none handed over longer than `sample_lag` ago while a newer one
-        waits. A loop that cannot sample every cycle (a busy host, thousands of
-        registrations) would otherwise fall further behind with every pass, up to
-        `sample_backlog` cycles: a registration made meanwhile would get its first
-        sample seconds late. Skipped cycles are counted (`cycles_shed`); what was due in
-        them is sampled from the next pass (late, `NotificationTable.late`)."""
+        """The next snapshot to begin a pass at: the oldest one handed over — unless
+        working through every snapshot waiting would take longer than `sample_lag` (at
+        what a pass has cost lately). Then, with running cycles, those handed over longer
+        than `sample_lag` ago are skipped, down to what can be sampled within it: a loop
+        that cannot sample every cycle (thousands of registrations on a busy host) would
+        otherwise fall further behind with every pass, up to `sample_backlog` cycles, and
+        a registration made meanwhile would get its first sample seconds late. Skipped
+        cycles are counted (`cycles_shed`); what was due in them is sampled from the
+        next pass (late, `NotificationTable.late`). A loop that was only held for a
+        while (a busy host, a long request) with passes that cost little catches up
+        every cycle, late: a cyclic stream then has no gap."""
         handed = self._handed
         if not handed:
             return None
-        if self.dev.service.info.running and len(handed) > 1:
-            oldest = time.monotonic() - self.dev.options.sample_lag
+        lag = self.dev.options.sample_lag
+        keep = max(1, int(lag / self._pass_cost)) if self._pass_cost > 0 else len(handed)
+        if self.dev.service.info.running and len(handed) > keep:
+            oldest = time.monotonic() - lag
             shed = 0
-            while len(handed) > 1 and handed[0][1] < oldest:
+            while len(handed) > keep and handed[0][1] < oldest:
                 handed.popleft()
                 shed += 1
             self.dev.stats.cycles_shed += shed

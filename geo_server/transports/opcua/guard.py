@@ -24,6 +24,7 @@ fails on an asyncua whose start changed, so the copy is looked at again.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import inspect
 import logging
@@ -221,14 +222,58 @@ class GuardedProcessor(UaProcessor):
 
 
 class GuardedProtocol(OPCUAProtocol):
-    """One connection: a frame is refused at its header, before its body is read."""
+    """One connection: a frame is refused at its header, before its body is read; while
+    the client does not read its answers (the transport's write buffer is over its high
+    mark), its requests are neither read nor processed, and after `unread_close_s` it is
+    closed — what one client can make the server hold is one answer and the buffer."""
+
+    unread_close_s = 10.0
 
     def connection_made(self, transport: Any) -> None:
+        self._writable = asyncio.Event()
+        self._writable.set()
+        self._unread: asyncio.TimerHandle | None = None
         super().connection_made(transport)
         if self.processor is not None:  # (None: refused at max_connections)
             processor: Any = GuardedProcessor(self.iserver, self.transport, self.limits)
             processor.set_policies(self.policies)
             self.processor = processor
+
+    def pause_writing(self) -> None:
+        self._writable.clear()
+        if self.transport is not None:
+            self.transport.pause_reading()
+            loop = asyncio.get_running_loop()
+            if self._unread is None:
+                self._unread = loop.call_later(self.unread_close_s, self._close_unread)
+
+    def resume_writing(self) -> None:
+        self._writable.set()
+        if self._unread is not None:
+            self._unread.cancel()
+            self._unread = None
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.resume_reading()
+
+    def _close_unread(self) -> None:
+        self._unread = None
+        if self.transport is not None and not self._writable.is_set():
+            log.warning(
+                "opcua: closing %s: it read none of its answers for %g s",
+                self.peer_name,
+                self.unread_close_s,
+            )
+            self.transport.abort()  # (a graceful close would wait for the unread answers)
+
+    async def _process_one_msg(self, header: Any, buf: Any) -> bool:
+        await self._writable.wait()  # the next request once the client reads again
+        return bool(await super()._process_one_msg(header, buf))
+
+    def connection_lost(self, ex: BaseException | None) -> None:
+        if self._unread is not None:
+            self._unread.cancel()
+        self._writable.set()  # (the processing loop ends with the connection)
+        super().connection_lost(ex)
 
     def data_received(self, data: bytes) -> None:
         problem = self._refused(
@@ -277,19 +322,24 @@ class GuardedProtocol(OPCUAProtocol):
 
 
 class GuardedBinaryServer(BinaryServer):
+    unread_close_s = 10.0
+
     def _make_protocol(self) -> GuardedProtocol:
-        return GuardedProtocol(
+        protocol = GuardedProtocol(
             iserver=self.iserver,
             policies=self._policies,
             clients=self.clients,
             closing_tasks=self.closing_tasks,
             limits=self.limits,
         )
+        protocol.unread_close_s = self.unread_close_s
+        return protocol
 
 
-async def start(server: Any) -> None:
+async def start(server: Any, unread_close_s: float = 10.0) -> None:
     """`Server.start` of asyncua 2.1 (`ASYNCUA_START`) with the guarded transport, and
-    requests bounded by `MAX_REQUEST`."""
+    requests bounded by `MAX_REQUEST`; a client that reads no answers for
+    `unread_close_s` is closed."""
     limits = server.limits
     limits.max_message_size = MAX_REQUEST
     limits.max_chunk_count = MAX_REQUEST // limits.max_recv_buffer + 1
@@ -298,6 +348,7 @@ async def start(server: Any) -> None:
     try:
         host, port = server._get_bind_socket_info()
         server.bserver = GuardedBinaryServer(server.iserver, host, port, limits)
+        server.bserver.unread_close_s = unread_close_s
         server.bserver.set_policies(server._policies)
         await server.bserver.start()
     except Exception:

@@ -174,6 +174,9 @@ class OpcUaOptions:
     max_monitored_items: int = 5000
     #: Subscriptions in all sessions together (asyncua's own default: 1000).
     max_subscriptions: int = 256
+    #: A client that has not read its answers for this long (seconds) is closed; until
+    #: then its requests are not read (guard.py).
+    unread_close_s: float = 10.0
     #: `start` checks the port, then returns; the server (about 1.5 s of asyncua
     #: building its standard address space) comes up while the other interfaces and
     #: the GEO cycle already serve (`geo-server run`). How it ended goes to
@@ -298,7 +301,7 @@ class OpcUaInterface:
         from geo_server.transports.opcua import guard
 
         guard.guard(server, self.login_throttle)  # (docs/security.md, OPC UA)
-        await guard.start(server)
+        await guard.start(server, opts.unread_close_s)
         assert server.bserver is not None
         self.port = server.bserver.port
 

@@ -123,17 +123,6 @@ def cache_folder(package: Path, modules: tuple[str, ...]) -> tuple[Path | None, 
     return None, "; ".join(reasons)
 
 
-def _numba_cache_classes() -> tuple[Any, Any, Any, Any]:
-    from numba.core import caching
-
-    return (
-        caching.FunctionCache,
-        caching.CompileResultCacheImpl,
-        caching._CacheLocator,
-        caching.IndexDataCacheFile,
-    )
-
-
 def numba_fits() -> str | None:
     """Why numba's cache classes cannot be used as `law_cache` expects (None: they can):
     the classes it subclasses, and the index file's arguments."""
@@ -141,9 +130,15 @@ def numba_fits() -> str | None:
 
     import numba
 
-    try:
-        index_file = _numba_cache_classes()[3]
-        args = list(inspect.signature(index_file).parameters)
+    try:  # (the classes `law_cache` imports)
+        from numba.core.caching import (  # noqa: F401
+            CompileResultCacheImpl,
+            FunctionCache,
+            IndexDataCacheFile,
+            _CacheLocator,
+        )
+
+        args = list(inspect.signature(IndexDataCacheFile).parameters)
     except (ImportError, AttributeError, TypeError, ValueError) as exc:
         return f"numba {numba.__version__}: {exc}"
     if args != ["cache_path", "filename_base", "source_stamp"]:

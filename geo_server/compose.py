@@ -18,7 +18,7 @@ import contextlib
 import importlib
 import socket
 import sys
-from collections.abc import Awaitable, Callable, Iterator, Sequence
+from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -232,8 +232,8 @@ class Interfaces:
         """A fleet's interfaces (fleet.py), those not turned off: one Zenoh session with a
         machine's keys per machine, a Modbus port per machine, one ADS port routing by
         AMS NetId, one OPC UA server. The Zenoh session (None without Zenoh), for the
-        fleet's status. Each machine's Modbus and ADS requests draw on one share of the
-        event loop (`transports.share`, docs/design.md §13.1)."""
+        fleet's status. Each machine's Modbus, ADS and OPC UA requests draw on one share of
+        the event loop (`transports.share`, docs/design.md §13.1)."""
         from geo_server.transports.share import LoopShare, fleet_rate
 
         rate = fleet_rate(len(machines))
@@ -250,7 +250,11 @@ class Interfaces:
             services = {m.name: service for m, service in machines}
             where = args.fleet or args.startup  # the certificate beside the fleet file
             said = f"{len(services)} machines: Objects/<name>"
-            await self.start("opcua", *_opcua_server(args, services, where, self.caps, said))
+            by_name = {
+                m.name: share for (m, _), share in zip(machines, shares, strict=True) if share
+            }
+            built = _opcua_server(args, services, where, self.caps, said, by_name)
+            await self.start("opcua", *built)
         return session
 
     async def start_fleet_hmi(
@@ -480,14 +484,17 @@ def _opcua_server(
     where: str | None,
     caps: dict[str, int],
     said: str,
+    shares: Mapping[str, LoopShare] | None = None,
 ) -> _Server:
     """One OPC UA server, each machine of `services` under its own name, its
     certificate beside `where` (the start-up list or the fleet file; README *OPC UA*);
-    it starts in the background, and says so with `said` when ready (`announce`)."""
+    it starts in the background, and says so with `said` when ready (`announce`). In a
+    fleet, each machine's requests draw on its share of the loop (`shares`)."""
     from geo_server.opcua_run import announce, options_from_args
     from geo_server.transports.opcua.server import OpcUaInterface
 
-    ua = OpcUaInterface(services, options_from_args(args, Path(where) if where else None, caps))
+    options = options_from_args(args, Path(where) if where else None, caps)
+    ua = OpcUaInterface(services, options, shares)
     announce(ua, said)
     return ua, lambda: f"opcua: {ua.endpoint} starting (README *OPC UA*)"
 

@@ -407,10 +407,25 @@ def _fault_and_descriptor_rows() -> list[str]:
 
 def _opcua_guard_rows() -> list[str]:
     """The OPC UA guard's bounds (geo_server/transports/opcua/guard.py, logins.py)."""
-    from geo_server.transports.opcua import logins
+    from geo_server.transports.opcua import guard, logins, operations
     from geo_server.transports.opcua.guard import MAX_REQUEST, MIN_BUFFER, SESSIONS_PER_CONNECTION
 
+    per_request = [
+        f"| OPC UA | operations of one request: {name} | {most} | "
+        "`operations.OPERATION_LIMITS` (advertised in ServerCapabilities/OperationLimits) | "
+        "BadTooManyOperations, counted before the request is decoded |"
+        for name, most in operations.OPERATION_LIMITS.items()
+    ]
     return [
+        *per_request,
+        f"| OPC UA | RelativePath elements of one TranslateBrowsePathsToNodeIds | "
+        f"{operations.MAX_PATH_ELEMENTS} | `operations.MAX_PATH_ELEMENTS` | BadTooManyOperations |",
+        f"| OPC UA | subscriptions of one session | {guard.SUBSCRIPTIONS_PER_SESSION} | "
+        "`guard.SUBSCRIPTIONS_PER_SESSION` | BadTooManySubscriptions |",
+        f"| OPC UA | a monitored item's queue | {guard.MAX_QUEUE_SIZE} notifications | "
+        "`guard.MAX_QUEUE_SIZE` | RevisedQueueSize (on Create and Modify) |",
+        f"| OPC UA | publishing interval, at least | {guard.MIN_PUBLISHING_MS:g} ms | "
+        "`guard.MIN_PUBLISHING_MS` | RevisedPublishingInterval |",
         f"| OPC UA | one request message | {MAX_REQUEST} bytes | `guard.MAX_REQUEST` | "
         "BadRequestTooLarge; a chunk over the receive buffer (65535) is refused at its header: "
         "ERR BadTcpMessageTooLarge, closed |",

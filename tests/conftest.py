@@ -120,6 +120,12 @@ def free_port() -> int:
     return port
 
 
+def geo_server_cmd() -> list[str]:
+    """The `geo-server` console script of this environment (the module if none)."""
+    exe = Path(sys.executable).parent / "geo-server"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "geo_server.cli"]
+
+
 @pytest.fixture
 def default_cfg():
     return load_machine(default_startup_list())

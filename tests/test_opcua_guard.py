@@ -371,7 +371,8 @@ def test_a_session_cannot_touch_another_sessions_subscription(service: ObjectSer
 def test_a_client_that_does_not_read_its_answers_is_paused_then_closed(
     service: ObjectService,
 ) -> None:
-    """The client stops reading and sends 60 Reads of 8000 values (about 250 kB each):
+    """The client stops reading and sends 60 Reads of the standard's type dictionary
+    (i=7617, about 210 kB each, one value: a request within every operation limit):
     the server stops reading and answering it once its answers back up (what it holds
     stays near one answer), and closes it after `unread_close_s`. Before: every answer
     went into memory, and the connection stayed."""
@@ -381,12 +382,12 @@ def test_a_client_that_does_not_read_its_answers_is_paused_then_closed(
         try:
             c = client(iface)
             await c.connect()
-            ns = await c.get_namespace_index(NAMESPACE_URI)
             bserver = iface.server.bserver
             (conn,) = bserver.clients
             c.uaclient.protocol.transport.pause_reading()
-            params = read_params(ns)
-            params.NodesToRead = params.NodesToRead * 8000
+            dictionary = ua.ReadValueId(ua.NodeId(ua.ObjectIds.OpcUa_BinarySchema))
+            dictionary.AttributeId = ua.AttributeIds.Value
+            params = ua.ReadParameters(NodesToRead=[dictionary])
             pending = [asyncio.ensure_future(c.uaclient.read(params)) for _ in range(60)]
             held = 0
             for _ in range(1000):  # until it is closed (0.5 s after it paused)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port
+from conftest import free_port, geo_server_cmd
 from pymodbus.client import ModbusTcpClient
 from robust.harness import TIMEOUT, next_netid
 
@@ -41,11 +41,6 @@ from geo_server.transports.zenoh.server import ZenohOptions
 
 BIN = Path(sys.executable).parent
 LOOPBACK = "127.0.0.1"
-
-
-def geo_server_cmd() -> list[str]:
-    exe = BIN / "geo-server"
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "geo_server.cli"]
 
 
 class RunningServer:

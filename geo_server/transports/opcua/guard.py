@@ -25,6 +25,7 @@ fails on an asyncua whose start changed, so the copy is looked at again.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import inspect
 import logging
@@ -38,7 +39,10 @@ from asyncua.common.utils import ServiceError
 from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
 from asyncua.server.uaprocessor import UaProcessor
 
+from geo_server.transports.opcua import operations
 from geo_server.transports.opcua.logins import LoginThrottle
+from geo_server.transports.opcua.metering import RequestMeter
+from geo_server.transports.share import LoopShare
 
 log = logging.getLogger("geo_server.opcua")
 ua: Any = _ua  # (asyncua's types: used as the wire's values, not checked here)
@@ -53,6 +57,15 @@ MIN_BUFFER = 8192
 MAX_REQUEST = 4 * 1024 * 1024
 #: sessions one connection may hold at once (asyncua serves one per secure channel)
 SESSIONS_PER_CONNECTION = 1
+#: subscriptions one session may hold (BadTooManySubscriptions past it), so one client
+#: cannot take the server's whole `OpcUaOptions.max_subscriptions`
+SUBSCRIPTIONS_PER_SESSION = 16
+#: the notifications a monitored item keeps between two Publish responses (its
+#: RevisedQueueSize; asyncua's default cap is 10 000, 1 000 items then held 430 MiB)
+MAX_QUEUE_SIZE = 16
+#: the shortest publishing interval (ms) a subscription gets (asyncua granted 0: a
+#: publish loop that never sleeps)
+MIN_PUBLISHING_MS = 10.0
 _MESSAGE_TYPES = (b"HEL", b"OPN", b"MSG", b"CLO")
 _NONE_POLICY = "http://opcfoundation.org/UA/SecurityPolicy#None"
 
@@ -136,6 +149,7 @@ def _guard_session(
     session.activate_session = activate_session
     session.close_session = close_session
     _own_subscriptions(session, iserver)
+    _bound_subscriptions(session, iserver)
 
 
 _LOGIN_FAILURES = (
@@ -187,6 +201,42 @@ def _own_subscriptions(session: Any, iserver: Any) -> None:
     session.set_publishing_mode = set_publishing_mode
 
 
+def _bound_subscriptions(session: Any, iserver: Any) -> None:
+    """At most `SUBSCRIPTIONS_PER_SESSION` subscriptions, published no faster than
+    `MIN_PUBLISHING_MS`; item queues revised to `MAX_QUEUE_SIZE` on Modify too (asyncua
+    revises them on Create only)."""
+    subs = iserver.subscription_service
+    create, modify = session.create_subscription, session.modify_monitored_items
+
+    async def create_subscription(params: Any, *args: Any, **kwargs: Any) -> Any:
+        held = sum(1 for s in subs.subscriptions.values() if s.session_id == session.session_id)
+        if held >= SUBSCRIPTIONS_PER_SESSION:
+            raise ServiceError(ua.StatusCodes.BadTooManySubscriptions)
+        params.RequestedPublishingInterval = max(
+            float(params.RequestedPublishingInterval), MIN_PUBLISHING_MS
+        )
+        return await create(params, *args, **kwargs)
+
+    async def modify_monitored_items(params: Any) -> Any:
+        results = await modify(params)
+        for item, result in zip(params.ItemsToModify, results, strict=True):
+            asked = int(item.RequestedParameters.QueueSize)
+            size = MAX_QUEUE_SIZE if asked <= 0 else min(asked, MAX_QUEUE_SIZE)
+            result.RevisedQueueSize = size
+            sub = subs.subscriptions.get(params.SubscriptionId)
+            mdata = (
+                None
+                if sub is None
+                else sub.monitored_item_srv._monitored_items.get(item.MonitoredItemId)
+            )
+            if mdata is not None:
+                mdata.queue_size = size
+        return results
+
+    session.create_subscription = create_subscription
+    session.modify_monitored_items = modify_monitored_items
+
+
 def _check_id(session: Any, name: str, mine: Any) -> None:
     """`session.name(params, ...)` refused unless `params.SubscriptionId` is its own."""
     call = getattr(session, name)
@@ -220,6 +270,30 @@ class GuardedProcessor(UaProcessor):
     def _should_close_session_on_transport_loss(self) -> bool:
         return self.session is not None
 
+    async def _process_message(self, typeid: Any, requesthdr: Any, seqhdr: Any, body: Any) -> Any:
+        """A request past an operation limit is refused before it is decoded
+        (`operations.excess`: BadTooManyOperations; a body too short for its counts:
+        BadDecodingError)."""
+        request = _REQUEST_NAMES.get(typeid)
+        if request is not None and self.session is not None and self.session.is_activated():
+            try:
+                over = operations.excess(request, bytes(body.copy()))
+            except operations.Malformed as exc:
+                log.warning("opcua: %s: a %s refused: %s", self.name, request, exc)
+                raise ServiceError(ua.StatusCodes.BadDecodingError) from None
+            if over is not None:
+                log.info("opcua: %s: a %s refused: %s", self.name, request, over)
+                raise ServiceError(ua.StatusCodes.BadTooManyOperations)
+        process: Any = super()._process_message  # (asyncua's, untyped)
+        return await process(typeid, requesthdr, seqhdr, body)
+
+
+#: the binary encoding id of each request whose operations are counted -> its name
+_REQUEST_NAMES: dict[Any, str] = {
+    ua.NodeId(getattr(ua.ObjectIds, f"{name}_Encoding_DefaultBinary")): name
+    for name in operations.bounded_requests()
+}
+
 
 class GuardedProtocol(OPCUAProtocol):
     """One connection: a frame is refused at its header, before its body is read; while
@@ -228,11 +302,15 @@ class GuardedProtocol(OPCUAProtocol):
     closed — what one client can make the server hold is one answer and the buffer."""
 
     unread_close_s = 10.0
+    #: a fleet's: the loop time of each request charged to its machines' shares
+    meter: RequestMeter | None = None
 
     def connection_made(self, transport: Any) -> None:
         self._writable = asyncio.Event()
         self._writable.set()
         self._unread: asyncio.TimerHandle | None = None
+        self._held = False  # reading paused for a used-up share (`_process_one_msg`)
+        self._charged: list[LoopShare] = []  # the shares its last request drew on
         super().connection_made(transport)
         if self.processor is not None:  # (None: refused at max_connections)
             processor: Any = GuardedProcessor(self.iserver, self.transport, self.limits)
@@ -252,7 +330,7 @@ class GuardedProtocol(OPCUAProtocol):
         if self._unread is not None:
             self._unread.cancel()
             self._unread = None
-        if self.transport is not None and not self.transport.is_closing():
+        if self.transport is not None and not self.transport.is_closing() and not self._held:
             self.transport.resume_reading()
 
     def _close_unread(self) -> None:
@@ -267,7 +345,37 @@ class GuardedProtocol(OPCUAProtocol):
 
     async def _process_one_msg(self, header: Any, buf: Any) -> bool:
         await self._writable.wait()  # the next request once the client reads again
-        return bool(await super()._process_one_msg(header, buf))
+        # one request per turn of the loop: asyncua takes the queued requests of a
+        # connection without ever yielding, so a burst of them held every interface
+        await asyncio.sleep(0)
+        meter = self.meter
+        if meter is None:
+            return bool(await super()._process_one_msg(header, buf))
+        await self._wait_for_share(meter)
+        began = meter.begin()
+        try:
+            return bool(await super()._process_one_msg(header, buf))
+        finally:
+            self._charged = meter.end(began)
+
+    async def _wait_for_share(self, meter: RequestMeter) -> None:
+        """While the shares of the machines its last request touched are used up, the
+        connection is neither read nor served (docs/design.md §13.1)."""
+        wait = meter.wait(self._charged)
+        if wait <= 0.0:
+            return
+        self._held = True
+        if self.transport is not None:
+            self.transport.pause_reading()
+        try:
+            while wait > 0.0:
+                await asyncio.sleep(wait)
+                wait = meter.wait(self._charged)
+        finally:
+            self._held = False
+            transport = self.transport
+            if transport is not None and not transport.is_closing() and self._writable.is_set():
+                transport.resume_reading()
 
     def connection_lost(self, ex: BaseException | None) -> None:
         if self._unread is not None:
@@ -323,6 +431,7 @@ class GuardedProtocol(OPCUAProtocol):
 
 class GuardedBinaryServer(BinaryServer):
     unread_close_s = 10.0
+    meter: RequestMeter | None = None
 
     def _make_protocol(self) -> GuardedProtocol:
         protocol = GuardedProtocol(
@@ -333,13 +442,38 @@ class GuardedBinaryServer(BinaryServer):
             limits=self.limits,
         )
         protocol.unread_close_s = self.unread_close_s
+        protocol.meter = self.meter
         return protocol
 
 
-async def start(server: Any, unread_close_s: float = 10.0) -> None:
+async def advertise(server: Any, capabilities: dict[str, int]) -> None:
+    """Write the limits into `Server/ServerCapabilities` (Part 5 §6.3.2, §6.3.11): the
+    operation limits, the guard's own, and `capabilities` (name -> value) of the
+    interface's options. asyncua advertised 10 000 operations and enforced none."""
+    values = {f"OperationLimits_{k}": v for k, v in operations.OPERATION_LIMITS.items()}
+    values |= {
+        "MaxSubscriptionsPerSession": SUBSCRIPTIONS_PER_SESSION,
+        "MaxMonitoredItemsQueueSize": MAX_QUEUE_SIZE,
+    }
+    values |= capabilities
+    params = ua.WriteParameters()
+    for name, value in values.items():
+        node = ua.NodeId(getattr(ua.ObjectIds, f"Server_ServerCapabilities_{name}"))
+        dv = ua.DataValue(ua.Variant(value, ua.VariantType.UInt32))
+        params.NodesToWrite.append(ua.WriteValue(node, ua.AttributeIds.Value, None, dv))
+    for name, status in zip(values, await server.iserver.isession.write(params), strict=True):
+        if not status.is_good():
+            raise RuntimeError(f"ServerCapabilities/{name}: {status}")
+
+
+async def start(
+    server: Any, unread_close_s: float = 10.0, meter: RequestMeter | None = None
+) -> None:
     """`Server.start` of asyncua 2.1 (`ASYNCUA_START`) with the guarded transport, and
     requests bounded by `MAX_REQUEST`; a client that reads no answers for
-    `unread_close_s` is closed."""
+    `unread_close_s` is closed; `meter` (a fleet's) charges requests to loop shares."""
+    iserver = server.iserver
+    iserver.max_monitored_item_queue_size = MAX_QUEUE_SIZE
     limits = server.limits
     limits.max_message_size = MAX_REQUEST
     limits.max_chunk_count = MAX_REQUEST // limits.max_recv_buffer + 1
@@ -349,6 +483,7 @@ async def start(server: Any, unread_close_s: float = 10.0) -> None:
         host, port = server._get_bind_socket_info()
         server.bserver = GuardedBinaryServer(server.iserver, host, port, limits)
         server.bserver.unread_close_s = unread_close_s
+        server.bserver.meter = meter
         server.bserver.set_policies(server._policies)
         await server.bserver.start()
     except Exception:
@@ -356,4 +491,20 @@ async def start(server: Any, unread_close_s: float = 10.0) -> None:
         raise
 
 
-__all__ = ["asyncua_start_hash", "guard", "start"]
+async def stop(server: Any) -> None:
+    """`Server.stop` at once, whatever the clients do: their connections are aborted
+    (a graceful close waits for the answers a client does not read), and the task
+    asyncua uses to tick `ServerStatus/CurrentTime` is cancelled (`iserver.stop` waits
+    for its one-second sleep)."""
+    iserver = server.iserver
+    for transport in list(iserver.asyncio_transports):
+        transport.abort()
+    ticking, iserver.time_task = iserver.time_task, None
+    if ticking is not None:
+        ticking.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await ticking
+    await server.stop()
+
+
+__all__ = ["advertise", "asyncua_start_hash", "guard", "start", "stop"]

@@ -51,6 +51,7 @@ from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua.args import parse_endpoint
 from geo_server.transports.opcua.logins import LoginThrottle
+from geo_server.transports.opcua.metering import RequestMeter
 from geo_server.transports.opcua.space import (
     METHODS,
     NAMESPACE_URI,
@@ -58,6 +59,7 @@ from geo_server.transports.opcua.space import (
     VariableSpec,
     machine_variables,
 )
+from geo_server.transports.share import LoopShare
 
 log = logging.getLogger(__name__)
 
@@ -166,11 +168,11 @@ class OpcUaOptions:
     encrypt_only: bool = False
     #: TCP connections at once (asyncua's own default: 1000); more are refused.
     max_connections: int = 64
-    #: Monitored items of geo-server variables in one session; more are refused with
+    #: Monitored items in one session (of any node); more are refused with
     #: BadTooManyMonitoredItems. 1000 is ten HMI screens of 100 values.
     max_monitored_items_per_session: int = 1000
-    #: Monitored items of geo-server variables in all sessions together (each costs a
-    #: comparison per sampled cycle on the loop the other interfaces share).
+    #: Monitored items in all sessions together, of any node (each of our variables'
+    #: costs a comparison per sampled cycle on the loop the other interfaces share).
     max_monitored_items: int = 5000
     #: Subscriptions in all sessions together (asyncua's own default: 1000).
     max_subscriptions: int = 256
@@ -231,11 +233,17 @@ class OpcUaInterface:
     """Serve the objects of one machine, or of every machine of a fleet, over OPC UA."""
 
     def __init__(
-        self, services: Mapping[str, ObjectService], options: OpcUaOptions | None = None
+        self,
+        services: Mapping[str, ObjectService],
+        options: OpcUaOptions | None = None,
+        shares: Mapping[str, LoopShare] | None = None,
     ) -> None:
-        """`services`: machine name -> its object service."""
+        """`services`: machine name -> its object service; `shares` (a fleet's): machine
+        name -> its share of the event loop, which its OPC UA requests draw on
+        (`metering.py`)."""
         self.services = dict(services)
         self.options = options or OpcUaOptions()
+        self.meter = RequestMeter(shares) if shares else None
         self.server: Any = None
         self.port = 0
         self.ns = 0
@@ -301,7 +309,15 @@ class OpcUaInterface:
         from geo_server.transports.opcua import guard
 
         guard.guard(server, self.login_throttle)  # (docs/security.md, OPC UA)
-        await guard.start(server, opts.unread_close_s)
+        await guard.advertise(
+            server,
+            {
+                "MaxSessions": opts.max_connections,  # (one session per connection)
+                "MaxSubscriptions": opts.max_subscriptions,
+                "MaxMonitoredItems": opts.max_monitored_items,
+            },
+        )
+        await guard.start(server, opts.unread_close_s, self.meter)
         assert server.bserver is not None
         self.port = server.bserver.port
 
@@ -355,9 +371,11 @@ class OpcUaInterface:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._drain
         if self.server is not None:
+            from geo_server.transports.opcua import guard
+
             server, self.server = self.server, None
             with contextlib.suppress(Exception):
-                await server.stop()
+                await guard.stop(server)
         if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
             self._frozen = False
             gc.unfreeze()
@@ -514,6 +532,7 @@ class OpcUaInterface:
         (`snaps`, taken now if it has none yet)."""
         ua = _ua()
 
+        RequestMeter.touch(var.machine)
         if not var.spec.readable:
             return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNotReadable))
         snap = snaps.get(var.machine)
@@ -561,7 +580,7 @@ class OpcUaInterface:
         node = await root.add_method(
             ua.NodeId(f"{machine}/{spec.name}", self.ns),
             f"{self.ns}:{spec.name}",
-            self._caller(service, spec),
+            self._caller(machine, service, spec),
             inputs,
             [out],
         )
@@ -572,10 +591,11 @@ class OpcUaInterface:
             ),
         )
 
-    def _caller(self, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
+    def _caller(self, machine: str, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
         ua = _ua()
 
         async def call(parent: Any, *args: Any) -> Any:
+            RequestMeter.touch(machine)
             if self.options.read_only:
                 return ua.StatusCode(getattr(ua.StatusCodes, READ_ONLY))
             if len(args) < len(spec.inputs):
@@ -657,6 +677,7 @@ class OpcUaInterface:
         for i in ours:
             w = items[i]
             var = self._vars[w.NodeId]
+            RequestMeter.touch(var.machine)
             status, prepared = self._prepare(var, w)
             if status is not None:
                 results[i] = status
@@ -713,37 +734,36 @@ class OpcUaInterface:
     # ------------------------------------------------------------------ monitored items
 
     async def _create_items(self, params: Any, create: Any) -> list[Any]:
-        """Refuse the items of our variables past the limits (BadTooManyMonitoredItems),
-        revise their sampling interval to whole GEO cycles, create the rest."""
+        """Refuse items past the limits (BadTooManyMonitoredItems), whatever node they
+        watch (the server's own nodes too), revise the sampling interval of our
+        variables' to whole GEO cycles, create the rest."""
         ua = _ua()
 
         subs = self.server.iserver.subscription_service
         sub = subs.subscriptions.get(params.SubscriptionId)
         session = getattr(sub, "session_id", None)
-        in_session = sum(
-            1
-            for s in subs.subscriptions.values()
-            if s.session_id == session
-            for m in s.monitored_item_srv._monitored_items.values()
-            if m.read_value_id is not None and m.read_value_id.NodeId in self._vars
-        )
-        total = sum(v.monitors for v in self._vars.values())
+        in_session = total = 0
+        for s in subs.subscriptions.values():
+            held = len(s.monitored_item_srv._monitored_items)
+            total += held
+            in_session += held if s.session_id == session else 0
         opts = self.options
         keep: list[int] = []
         refused: list[int] = []
         intervals: list[tuple[int, _Var, int, float]] = []
         for i, item in enumerate(params.ItemsToCreate):
+            if (
+                in_session >= opts.max_monitored_items_per_session
+                or total >= opts.max_monitored_items
+            ):
+                refused.append(i)
+                continue
+            in_session += 1
+            total += 1
             var = self._vars.get(item.ItemToMonitor.NodeId)
-            is_value = item.ItemToMonitor.AttributeId == ua.AttributeIds.Value
-            if var is not None and is_value:
-                if (
-                    in_session >= opts.max_monitored_items_per_session
-                    or total >= opts.max_monitored_items
-                ):
-                    refused.append(i)
-                    continue
-                in_session += 1
-                total += 1
+            if var is not None:
+                RequestMeter.touch(var.machine)
+            if var is not None and item.ItemToMonitor.AttributeId == ua.AttributeIds.Value:
                 cycle_ms = var.service.info.cycle_s * 1000.0
                 asked = max(float(item.RequestedParameters.SamplingInterval), cycle_ms)
                 every = max(1, round(asked / cycle_ms))

@@ -1,0 +1,267 @@
+"""What an OPC UA attacker costs the other interfaces (issue 44; docs/security.md *OPC UA*).
+
+Against a fresh `geo-server run --homed` (one machine, `--machines 1`) or a fleet of
+`--machines N` (`--fleet-size N`), each attack of issue 44 runs from a process of its own
+against machine 1 over OPC UA while the probes time ADS Reads (4 bytes, raw AMS/TCP) and
+Modbus FC 3 reads (2 registers) — of machine 1 alone, or of machines 2 and N in a fleet —
+alternated with quiet phases (`--rounds` pairs, so slow drifts of a shared host touch
+both alike). Printed per attack: the probes' p50/p99 quiet and under attack, their ratio
+(the issue's target: at most 2), the requests the attacker got answered, and the
+server's RSS before and after.
+
+    python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--out FILE]
+
+The attacks (each within or past the server's limits, as a hostile client would):
+
+- `read-flood`: 4 connections keep 8 Reads each of `MaxNodesPerRead` values in flight;
+- `browse-flood`: 4 connections keep 8 Browses each of `MaxNodesPerBrowse` nodes
+  (the Objects folder, both directions, every field) in flight;
+- `bombs`: 4 connections keep Reads of 100 000 values and TranslateBrowsePaths of
+  40 000 elements in flight (refused: BadTooManyOperations);
+- `unread`: a client that stops reading and sends 60 Reads of the standard's type
+  dictionary (210 kB each): paused, then closed;
+- `items`: one session with 1000 monitored items on a value that changes every cycle,
+  published every 10 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import time
+from typing import Any
+
+from common import (
+    HOST,
+    PYTHON,
+    ServerProcess,
+    emit,
+    free_ports,
+    rss_kib,
+    summary_us,
+    table,
+    wait_port,
+)
+from fleet_isolation import free_range, probe
+
+ATTACKS = ("read-flood", "browse-flood", "bombs", "unread", "items")
+
+
+async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> None:
+    from asyncua import Client, ua
+
+    from geo_server.transports.opcua.operations import OPERATION_LIMITS
+
+    def value(node: Any) -> Any:
+        rv = ua.ReadValueId()
+        rv.NodeId, rv.AttributeId = node, ua.AttributeIds.Value
+        return rv
+
+    clients = [Client(url, timeout=30) for _ in range(1 if kind in ("unread", "items") else 4)]
+    for c in clients:
+        await c.connect()
+    ns = await clients[0].get_namespace_index("urn:geo-server")
+    tempc = ua.NodeId(f"{machine}/Axes/X/TEMPC/coefficient", ns)
+    count = [0]
+
+    async def keep(c: Any, make: Any, depth: int) -> None:
+        async def one() -> None:
+            while not stop.is_set():
+                with contextlib.suppress(Exception):
+                    await make(c)
+                count[0] += 1
+
+        await asyncio.gather(*(one() for _ in range(depth)))
+
+    if kind == "read-flood":
+        read = ua.ReadParameters(NodesToRead=[value(tempc)] * OPERATION_LIMITS["MaxNodesPerRead"])
+        jobs = [keep(c, lambda c: c.uaclient.read(read), 8) for c in clients]
+    elif kind == "browse-flood":
+        desc = ua.BrowseDescription(
+            NodeId=ua.NodeId(ua.ObjectIds.ObjectsFolder),
+            BrowseDirection=ua.BrowseDirection.Both,
+            ResultMask=63,
+        )
+        browse = ua.BrowseParameters(NodesToBrowse=[desc] * OPERATION_LIMITS["MaxNodesPerBrowse"])
+        jobs = [keep(c, lambda c: c.uaclient.browse(browse), 8) for c in clients]
+    elif kind == "bombs":
+        clock = value(ua.NodeId(ua.ObjectIds.Server_ServerStatus_CurrentTime))
+        bomb = ua.ReadParameters(NodesToRead=[clock] * 100_000)
+        element = ua.RelativePathElement(
+            ReferenceTypeId=ua.NodeId(33), TargetName=ua.QualifiedName("Server", 0)
+        )
+        path = ua.BrowsePath(
+            StartingNode=ua.NodeId(84), RelativePath=ua.RelativePath(Elements=[element] * 40_000)
+        )
+        jobs = [keep(c, lambda c: c.uaclient.read(bomb), 2) for c in clients]
+        jobs += [
+            keep(c, lambda c: c.uaclient.translate_browsepaths_to_nodeids([path]), 2)
+            for c in clients
+        ]
+    elif kind == "unread":
+        c = clients[0]
+        c.uaclient.protocol.transport.pause_reading()
+        dictionary = value(ua.NodeId(ua.ObjectIds.OpcUa_BinarySchema))
+        params = ua.ReadParameters(NodesToRead=[dictionary])
+        pending = [asyncio.ensure_future(c.uaclient.read(params)) for _ in range(60)]
+        while not stop.is_set():
+            await asyncio.sleep(0.1)
+        for p in pending:
+            p.cancel()
+        jobs = []
+    else:  # items
+        ticking = ua.NodeId(f"{machine}/SIM/cycle_count", ns)
+
+        class Count:
+            def datachange_notification(self, *_a: Any) -> None:
+                count[0] += 1
+
+        sub = await clients[0].create_subscription(10, Count())
+        node = clients[0].get_node(ticking)
+        for _ in range(4):
+            await sub.subscribe_data_change([node] * 250, sampling_interval=0)
+        while not stop.is_set():
+            await asyncio.sleep(0.1)
+        jobs = []
+
+    async def until_stopped() -> None:
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+
+    await asyncio.wait(
+        [asyncio.ensure_future(j) for j in jobs] + [asyncio.ensure_future(until_stopped())],
+        return_when=asyncio.FIRST_COMPLETED,
+    )
+    done.value = count[0]
+    for c in clients:
+        with contextlib.suppress(Exception):
+            c.uaclient.disconnect_socket()
+
+
+def attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> None:
+    """The attacker's process (its CPU would otherwise compete with the probes'
+    interpreter lock: that measured the client, not the server)."""
+    with contextlib.suppress(Exception):
+        asyncio.run(_attack(kind, url, machine, stop, done))
+
+
+def run_attacks(
+    args: argparse.Namespace,
+    url: str,
+    machine: str,
+    targets: list[int],
+    aport: int,
+    mbase: int,
+    pid: int,
+) -> tuple[list[list[Any]], list[str]]:
+    ctx = multiprocessing.get_context("spawn")
+    out: list[list[Any]] = []
+    notes: list[str] = []
+    for kind in args.attacks:
+        quiet: dict[int, list[float]] = {}
+        attacked: dict[int, list[float]] = {}
+        answered = []
+        rss = [rss_kib(pid)["rss"]]
+        for _ in range(args.rounds):
+            probe(targets, aport, mbase, args.seconds, args.timeout, quiet)
+            stop, done = ctx.Event(), ctx.Value("q", 0)
+            p = ctx.Process(target=attack, args=(kind, url, machine, stop, done), daemon=True)
+            p.start()
+            time.sleep(1.5)  # (connected, attacking)
+            probe(targets, aport, mbase, args.seconds, args.timeout, attacked)
+            rss.append(rss_kib(pid)["rss"])
+            stop.set()
+            p.join(15)
+            if p.is_alive():
+                p.kill()
+            answered.append(done.value)
+            time.sleep(1.0)
+        q = summary_us([x * 1e6 for v in quiet.values() for x in v])
+        a = summary_us([x * 1e6 for v in attacked.values() for x in v])
+        out.append(
+            [
+                kind,
+                q["n"],
+                q["p50"] / 1000,
+                q["p99"] / 1000,
+                a["n"],
+                a["p50"] / 1000,
+                a["p99"] / 1000,
+                round(a["p99"] / q["p99"], 2),
+                answered,
+                f"{rss[0] // 1024} -> {max(rss) // 1024}",
+            ]
+        )
+        print(f"{kind}: p99 {q['p99'] / 1000:.2f} -> {a['p99'] / 1000:.2f} ms", flush=True)
+    notes.append(f"load average after: {os.getloadavg()[0]:.1f}")
+    return out, notes
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--machines", type=int, default=1, help="1: one machine; N: a fleet")
+    ap.add_argument("--seconds", type=float, default=5.0, help="probe time per phase")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--timeout", type=float, default=5.0)
+    ap.add_argument("--attacks", nargs="+", default=list(ATTACKS), choices=ATTACKS)
+    ap.add_argument("--out", help="write the Markdown here too")
+    args = ap.parse_args()
+    n = args.machines
+    zport, aport, oport = free_ports(3)
+    mbase = free_range(n, {zport, aport, oport})
+    url = f"opc.tcp://{HOST}:{oport}"
+    argv = [
+        os.path.join(os.path.dirname(PYTHON), "geo-server"),
+        "run",
+        "--homed",
+        *(["--fleet-size", str(n)] if n > 1 else []),
+        "--zenoh-listen",
+        f"tcp/{HOST}:{zport}",
+        "--ads-port",
+        str(aport),
+        "--ads-udp-port",
+        "0",
+        "--modbus-port",
+        str(mbase),
+        "--opcua-endpoint",
+        url,
+        "--status-period",
+        "5",
+    ]
+    machine = "local-1" if n > 1 else "local"
+    targets = [1] if n == 1 else sorted({2, n})
+    with ServerProcess(argv, "opcua-attacks") as server:
+        wait_port(aport, 120.0, server.proc)
+        end = time.monotonic() + 180
+        while "opcua: ready" not in server.log_text() and time.monotonic() < end:
+            time.sleep(0.2)
+        time.sleep(1.0)
+        rows, notes = run_attacks(args, url, machine, targets, aport, mbase, server.pid)
+    who = "machine 1 (ADS, Modbus)" if n == 1 else f"machines {targets} of {n} (ADS, Modbus)"
+    md = table(
+        [
+            "attack on machine 1",
+            "quiet n",
+            "p50 ms",
+            "p99 ms",
+            "attacked n",
+            "p50 ms",
+            "p99 ms",
+            "p99 ratio",
+            "answered",
+            "RSS MiB",
+        ],
+        rows,
+    )
+    emit(
+        f"OPC UA attacks, probes of {who}, {args.rounds} rounds of {args.seconds:g} s\n\n"
+        f"{md}\n\n" + "\n".join(notes),
+        args.out,
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -16,7 +16,7 @@ import signal
 import sys
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from geo_server import __version__
 from geo_server.aio import wait_set
@@ -26,6 +26,10 @@ from geo_server.interfaces import CycleStoppedError, inject_faults, serve
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 from geo_server.transports.opcua import args as opcua_args
+
+if TYPE_CHECKING:
+    from geo_server.machine.port import CycleRunner
+    from geo_server.service import ObjectService
 
 
 def _objects(args: argparse.Namespace) -> int:
@@ -205,7 +209,7 @@ def _remove_orphans(cfg: Any) -> None:
         print(f"removed {tmp}: left over from an interrupted save", file=sys.stderr)
 
 
-async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None:
+async def _serve(args: argparse.Namespace, service: ObjectService, scheduler: CycleRunner) -> None:
     """Run the transports on the asyncio loop until Ctrl-C / SIGTERM."""
     from geo_server import jit
     from geo_server.compose import Interfaces
@@ -232,18 +236,19 @@ async def _serve(args: argparse.Namespace, service: Any, scheduler: Any) -> None
         scheduler.start()
         next_status = loop.time() + args.status_period
         while not stop.is_set():
-            # With --cycles, look often whether the cycle thread has finished its cycles.
-            wait = min(args.status_period, 0.02) if args.cycles else args.status_period
+            # With --cycles, look often whether the cycle thread has finished its cycles;
+            # while recording, whether the trigger's samples are in (its file is due then)
+            often = bool(args.cycles) or service.recordings.recording is not None
+            wait = min(args.status_period, 0.02) if often else args.status_period
             await wait_set(stop, wait)
             finished = bool(args.cycles) and not scheduler.running
             if not scheduler.running and not finished and not stop.is_set():
                 # Serving the last snapshot forever would look alive but be wrong.
-                raise CycleStoppedError(
-                    f"the GEO cycle ended unexpectedly after cycle {scheduler.machine.cycle}"
-                )
+                last = scheduler.status()["cycle"]  # (the dead thread's last cycle)
+                raise CycleStoppedError(f"the GEO cycle ended unexpectedly after cycle {last}")
             if program is not None:
                 program.update()
-            recording = getattr(service, "recording", None)
+            recording = service.recordings.recording
             if recording is not None and recording.done:  # its trigger's samples are in
                 # the rest of the rows are written off the loop (it keeps serving)
                 await asyncio.to_thread(recorder_cli.finish, service)

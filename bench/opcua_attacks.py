@@ -54,6 +54,7 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
     from asyncua import Client, ua
 
     from geo_server.transports.opcua.operations import OPERATION_LIMITS
+    from geo_server.transports.opcua.space import NAMESPACE_URI
 
     def value(node: Any) -> Any:
         rv = ua.ReadValueId()
@@ -63,15 +64,22 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
     clients = [Client(url, timeout=30) for _ in range(1 if kind in ("unread", "items") else 4)]
     for c in clients:
         await c.connect()
-    ns = await clients[0].get_namespace_index("urn:geo-server")
+    ns = await clients[0].get_namespace_index(NAMESPACE_URI)
     tempc = ua.NodeId(f"{machine}/Axes/X/TEMPC/coefficient", ns)
     count = [0]
+    errors: dict[str, int] = {}
 
     async def keep(c: Any, make: Any, depth: int) -> None:
         async def one() -> None:
             while not stop.is_set():
-                with contextlib.suppress(Exception):
+                try:
                     await make(c)
+                except Exception as exc:  # (refused bombs; a closed connection)
+                    name = type(exc).__name__
+                    errors[name] = errors.get(name, 0) + 1
+                    if name not in ("BadTooManyOperations", "BadRequestTooLarge"):
+                        await asyncio.sleep(0.01)
+                    continue
                 count[0] += 1
 
         await asyncio.gather(*(one() for _ in range(depth)))
@@ -121,8 +129,9 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
 
         sub = await clients[0].create_subscription(10, Count())
         node = clients[0].get_node(ticking)
-        for _ in range(4):
-            await sub.subscribe_data_change([node] * 250, sampling_interval=0)
+        per_call = OPERATION_LIMITS["MaxMonitoredItemsPerCall"]
+        for _ in range(1000 // per_call):
+            await sub.subscribe_data_change([node] * per_call, sampling_interval=0)
         while not stop.is_set():
             await asyncio.sleep(0.1)
         jobs = []
@@ -136,16 +145,23 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
         return_when=asyncio.FIRST_COMPLETED,
     )
     done.value = count[0]
+    if errors:
+        print(f"{kind}: errors {errors}", flush=True)
     for c in clients:
         with contextlib.suppress(Exception):
             c.uaclient.disconnect_socket()
 
 
-def attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> None:
+def attack(kind: str, url: str, machine: str, stop: Any, done: Any, nice: int) -> None:
     """The attacker's process (its CPU would otherwise compete with the probes'
     interpreter lock: that measured the client, not the server)."""
-    with contextlib.suppress(Exception):
-        asyncio.run(_attack(kind, url, machine, stop, done))
+    import logging
+
+    if nice:
+        os.nice(nice)
+
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+    asyncio.run(_attack(kind, url, machine, stop, done))
 
 
 def run_attacks(
@@ -164,15 +180,17 @@ def run_attacks(
         quiet: dict[int, list[float]] = {}
         attacked: dict[int, list[float]] = {}
         answered = []
-        rss = [rss_kib(pid)["rss"]]
+        rss = [rss_kib(pid)["VmRSS"]]
         for _ in range(args.rounds):
             probe(targets, aport, mbase, args.seconds, args.timeout, quiet)
             stop, done = ctx.Event(), ctx.Value("q", 0)
-            p = ctx.Process(target=attack, args=(kind, url, machine, stop, done), daemon=True)
+            p = ctx.Process(
+                target=attack, args=(kind, url, machine, stop, done, args.nice), daemon=True
+            )
             p.start()
             time.sleep(1.5)  # (connected, attacking)
             probe(targets, aport, mbase, args.seconds, args.timeout, attacked)
-            rss.append(rss_kib(pid)["rss"])
+            rss.append(rss_kib(pid)["VmRSS"])
             stop.set()
             p.join(15)
             if p.is_alive():
@@ -207,6 +225,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=5.0)
     ap.add_argument("--attacks", nargs="+", default=list(ATTACKS), choices=ATTACKS)
+    ap.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="run the attacker at this niceness (on a 2-core host its own CPU otherwise "
+        "competes with the probes and the server: an attacker on another host does not)",
+    )
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
     n = args.machines

@@ -332,17 +332,26 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "opcua",
         "max_monitored_items_per_session",
         "",
-        "monitored items of geo-server variables in one session",
+        "monitored items in one session (of any node)",
         "BadTooManyMonitoredItems",
     ),
     (
         "opcua",
         "max_monitored_items",
         "",
-        "monitored items of geo-server variables in all sessions",
+        "monitored items in all sessions (of any node)",
         "BadTooManyMonitoredItems",
     ),
     ("opcua", "max_subscriptions", "", "subscriptions in all sessions", "BadTooManySubscriptions"),
+    (
+        "opcua",
+        "loop_share",
+        "s per s",
+        "event-loop time OPC UA's requests take, and as much again its notifications "
+        "(`loop_burst_s` in a row after a quiet spell)",
+        "requests wait, their connections' reading paused; notifications are sampled "
+        "less often (`late_samples`)",
+    ),
 ]
 
 
@@ -423,7 +432,9 @@ def _opcua_guard_rows() -> list[str]:
         f"| OPC UA | subscriptions of one session | {guard.SUBSCRIPTIONS_PER_SESSION} | "
         "`guard.SUBSCRIPTIONS_PER_SESSION` | BadTooManySubscriptions |",
         f"| OPC UA | a monitored item's queue | {guard.MAX_QUEUE_SIZE} notifications | "
-        "`guard.MAX_QUEUE_SIZE` | RevisedQueueSize (on Create and Modify) |",
+        "`guard.MAX_QUEUE_SIZE` | RevisedQueueSize (on Create and Modify; 0 or 1 asked: 1) |",
+        f"| OPC UA | Publish responses not yet acknowledged, per subscription | "
+        f"{guard.MAX_UNACKED} | `guard.MAX_UNACKED` | the oldest dropped (no Republish) |",
         f"| OPC UA | publishing interval, at least | {guard.MIN_PUBLISHING_MS:g} ms | "
         "`guard.MIN_PUBLISHING_MS` | RevisedPublishingInterval |",
         f"| OPC UA | one request message | {MAX_REQUEST} bytes | `guard.MAX_REQUEST` | "

@@ -24,7 +24,7 @@ from geo_server import access
 from geo_server.machine.machine import Machine
 from geo_server.opcua_run import cert_folder
 from geo_server.service import ObjectService
-from geo_server.transports.opcua import logins
+from geo_server.transports.opcua import guard, logins
 from geo_server.transports.opcua.certs import CERT_FILE, KEY_FILE
 from geo_server.transports.opcua.server import (
     STATUS,
@@ -296,8 +296,11 @@ def test_one_notification_per_sampled_cycle_with_its_time(service: ObjectService
                 sub = await c.create_subscription(
                     ua.CreateSubscriptionParameters(RequestedPublishingInterval=10), handler
                 )
-                await sub.subscribe_data_change([count, coef], sampling_interval=1)
-                await sub.subscribe_data_change(every5, sampling_interval=5)
+                # a queue for each sample between two Publish responses (Part 4
+                # §5.12.1.5: the default of 0 or 1 keeps only the newest)
+                queue = guard.MAX_QUEUE_SIZE
+                await sub.subscribe_data_change([count, coef], sampling_interval=1, queuesize=queue)
+                await sub.subscribe_data_change(every5, sampling_interval=5, queuesize=queue)
                 first = service.current().cycle
                 await handler.until(1, "local/SIM/cycle_count")  # the initial value
                 samples: list[Any] = []
@@ -328,7 +331,8 @@ def test_sampling_interval_in_whole_cycles(service: ObjectService) -> None:
                 count = node_of(c, ns, "local/SIM/cycle_count")
                 handler = Collect()
                 sub = await c.create_subscription(10, handler)
-                await sub.subscribe_data_change(count, sampling_interval=5)
+                queue = guard.MAX_QUEUE_SIZE  # (each sample, not only the newest)
+                await sub.subscribe_data_change(count, sampling_interval=5, queuesize=queue)
                 await handler.until(1, "local/SIM/cycle_count")
                 access.step(service, 10)
                 got = await handler.until(3, "local/SIM/cycle_count")

@@ -63,6 +63,8 @@ SUBSCRIPTIONS_PER_SESSION = 16
 #: the notifications a monitored item keeps between two Publish responses (its
 #: RevisedQueueSize; asyncua's default cap is 10 000, 1 000 items then held 430 MiB)
 MAX_QUEUE_SIZE = 16
+#: Publish responses a subscription keeps until the client acknowledges them
+MAX_UNACKED = 64
 #: the shortest publishing interval (ms) a subscription gets (asyncua granted 0: a
 #: publish loop that never sleeps)
 MIN_PUBLISHING_MS = 10.0
@@ -207,6 +209,13 @@ def _bound_subscriptions(session: Any, iserver: Any) -> None:
     revises them on Create only)."""
     subs = iserver.subscription_service
     create, modify = session.create_subscription, session.modify_monitored_items
+    create_items = session.create_monitored_items
+
+    async def create_monitored_items(params: Any) -> Any:
+        for item in params.ItemsToCreate:
+            asked = item.RequestedParameters
+            asked.QueueSize = _queue_size(int(asked.QueueSize))
+        return await create_items(params)
 
     async def create_subscription(params: Any, *args: Any, **kwargs: Any) -> Any:
         held = sum(1 for s in subs.subscriptions.values() if s.session_id == session.session_id)
@@ -220,8 +229,7 @@ def _bound_subscriptions(session: Any, iserver: Any) -> None:
     async def modify_monitored_items(params: Any) -> Any:
         results = await modify(params)
         for item, result in zip(params.ItemsToModify, results, strict=True):
-            asked = int(item.RequestedParameters.QueueSize)
-            size = MAX_QUEUE_SIZE if asked <= 0 else min(asked, MAX_QUEUE_SIZE)
+            size = _queue_size(int(item.RequestedParameters.QueueSize))
             result.RevisedQueueSize = size
             sub = subs.subscriptions.get(params.SubscriptionId)
             mdata = (
@@ -234,7 +242,14 @@ def _bound_subscriptions(session: Any, iserver: Any) -> None:
         return results
 
     session.create_subscription = create_subscription
+    session.create_monitored_items = create_monitored_items
     session.modify_monitored_items = modify_monitored_items
+
+
+def _queue_size(asked: int) -> int:
+    """Part 4 §5.12.1.5: a requested queue size of 0 or 1 is a queue of one (asyncua
+    gave 0 its largest queue); larger ones at most `MAX_QUEUE_SIZE`."""
+    return max(1, min(asked, MAX_QUEUE_SIZE))
 
 
 def _check_id(session: Any, name: str, mine: Any) -> None:
@@ -302,7 +317,7 @@ class GuardedProtocol(OPCUAProtocol):
     closed — what one client can make the server hold is one answer and the buffer."""
 
     unread_close_s = 10.0
-    #: a fleet's: the loop time of each request charged to its machines' shares
+    #: the loop time of each request charged to loop shares (metering.py)
     meter: RequestMeter | None = None
 
     def connection_made(self, transport: Any) -> None:
@@ -352,6 +367,7 @@ class GuardedProtocol(OPCUAProtocol):
         if meter is None:
             return bool(await super()._process_one_msg(header, buf))
         await self._wait_for_share(meter)
+        await meter.take_turn()
         began = meter.begin()
         try:
             return bool(await super()._process_one_msg(header, buf))
@@ -471,9 +487,12 @@ async def start(
 ) -> None:
     """`Server.start` of asyncua 2.1 (`ASYNCUA_START`) with the guarded transport, and
     requests bounded by `MAX_REQUEST`; a client that reads no answers for
-    `unread_close_s` is closed; `meter` (a fleet's) charges requests to loop shares."""
+    `unread_close_s` is closed; `meter` charges requests to loop shares (metering.py)."""
     iserver = server.iserver
     iserver.max_monitored_item_queue_size = MAX_QUEUE_SIZE
+    # Publish responses a client has not acknowledged, kept for Republish (asyncua:
+    # 5000 of any size each)
+    iserver.max_unacked_messages_per_subscription = MAX_UNACKED
     limits = server.limits
     limits.max_message_size = MAX_REQUEST
     limits.max_chunk_count = MAX_REQUEST // limits.max_recv_buffer + 1

@@ -1,7 +1,12 @@
-"""OPC UA's requests charged to the loop shares of a fleet's machines (docs/design.md
-§13.1 *Isolation*, `geo_server.transports.share`).
+"""OPC UA's requests charged to loop shares (docs/design.md §9.1 and §13.1 *Isolation*,
+`geo_server.transports.share`).
 
-One OPC UA server answers every machine of a fleet, and a request names its machines
+All OPC UA work draws on one share of the event loop (`OpcUaOptions.loop_share`): the
+loop is shared with ADS, Modbus and the web HMI, and asyncua's work is pure Python, so a
+client flooding OPC UA would otherwise take the loop from them. A connection waits,
+its reading paused, while that share is used up.
+
+In a fleet, one OPC UA server answers every machine of a fleet, and a request names its machines
 only in its nodes, so what a request costs is known after it ran: the interface marks the
 machines whose variables a request read, wrote, monitored or called (`touch`), and the
 loop thread's CPU time of the request is split among their shares (`end`). A connection
@@ -16,6 +21,7 @@ that connection's own task, so two connections' requests never mix their marks.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Mapping, Sequence
 from contextvars import ContextVar
@@ -26,10 +32,27 @@ _touched: ContextVar[set[str] | None] = ContextVar("geo_server_opcua_touched", d
 
 
 class RequestMeter:
-    """The shares of a fleet's machines, by machine name, and the requests' charges."""
+    """OPC UA's share of the loop (`overall`: every request draws on it), the shares of
+    a fleet's machines by name (`machines`: a request draws on those it touched), and
+    the requests' charges."""
 
-    def __init__(self, shares: Mapping[str, LoopShare]) -> None:
-        self.shares = dict(shares)
+    def __init__(self, overall: LoopShare, machines: Mapping[str, LoopShare]) -> None:
+        self.overall = overall
+        self.machines = dict(machines)
+        self._turn_taken = False
+
+    async def take_turn(self) -> None:
+        """Wait for this turn of the event loop to have no OPC UA request yet, and take
+        it: one request starts per turn. Several connections with a request ready
+        would otherwise all run in one turn, before the loop looks at its sockets
+        again, and an ADS or Modbus request would wait for all of them."""
+        while self._turn_taken:
+            await asyncio.sleep(0)
+        self._turn_taken = True
+        asyncio.get_running_loop().call_soon(self._next_turn)
+
+    def _next_turn(self) -> None:
+        self._turn_taken = False
 
     @staticmethod
     def touch(machine: str) -> None:
@@ -39,9 +62,9 @@ class RequestMeter:
             touched.add(machine)
 
     def wait(self, last: Sequence[LoopShare]) -> float:
-        """0.0, or how long (seconds) a connection whose last request drew on `last`
-        must wait for those shares to be back."""
-        return max((share.wait() for share in last), default=0.0)
+        """0.0, or how long (seconds) a connection whose last request drew on the
+        machines' shares `last` must wait for OPC UA's share and those to be back."""
+        return max((share.wait() for share in (self.overall, *last)), default=0.0)
 
     @staticmethod
     def begin() -> float:
@@ -50,15 +73,17 @@ class RequestMeter:
         return time.thread_time()
 
     def end(self, began: float) -> list[LoopShare]:
-        """The request ended: its CPU time charged to the shares of the machines it
-        touched (split evenly); those shares."""
+        """The request ended: its CPU time charged to OPC UA's share and, split evenly,
+        to the shares of the machines it touched; those machines' shares."""
+        took = time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
-        shares = [self.shares[m] for m in sorted(touched) if m in self.shares]
-        if shares:
-            each = (time.thread_time() - began) / len(shares)
-            for share in shares:
-                share.charge(each)
+        # at most a burst: the wait after one request stays a fraction of a second
+        # (asyncua's client gives a connection up when its keep-alive Read waits 1 s)
+        self.overall.charge(min(took, self.overall.burst))
+        shares = [self.machines[m] for m in sorted(touched) if m in self.machines]
+        for share in shares:
+            share.charge(took / len(shares))
         return shares
 
 

@@ -39,6 +39,7 @@ import logging
 import math
 import os
 import socket
+import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -152,6 +153,11 @@ def _collector_paused() -> Iterator[None]:
             gc.enable()
 
 
+#: monitored items notified of one value before the loop's other work runs (a thousand
+#: items of one variable took 30-40 ms in one go)
+NOTIFY_SLICE = 64
+
+
 @dataclass
 class OpcUaOptions:
     """The OPC UA endpoint, its security and its limits (README *Limits*)."""
@@ -179,6 +185,17 @@ class OpcUaOptions:
     #: A client that has not read its answers for this long (seconds) is closed; until
     #: then its requests are not read (guard.py).
     unread_close_s: float = 10.0
+    #: The event loop's time (seconds per second) that OPC UA's requests may take, and
+    #: as much again its notifications (`metering.py`; two buckets, so a flood of
+    #: notifications never starves the requests, a client's keep-alive among them): the
+    #: loop is shared with ADS, Modbus and the web HMI, and asyncua's work is pure
+    #: Python. An HMI that reads 100 values every 100 ms takes about a thirtieth. Past
+    #: it, requests wait and values are sampled less often.
+    loop_share: float = 0.2
+    #: The most loop time (seconds) OPC UA may take in a row after a quiet spell (a
+    #: client connecting and subscribing takes a few tens of ms), one request per turn
+    #: of the loop, so the others' requests are answered in between.
+    loop_burst_s: float = 0.05
     #: `start` checks the port, then returns; the server (about 1.5 s of asyncua
     #: building its standard address space) comes up while the other interfaces and
     #: the GEO cycle already serve (`geo-server run`). How it ended goes to
@@ -237,13 +254,21 @@ class OpcUaInterface:
         services: Mapping[str, ObjectService],
         options: OpcUaOptions | None = None,
         shares: Mapping[str, LoopShare] | None = None,
+        *,
+        loop_share: LoopShare | None = None,
     ) -> None:
         """`services`: machine name -> its object service; `shares` (a fleet's): machine
         name -> its share of the event loop, which its OPC UA requests draw on
-        (`metering.py`)."""
+        (`metering.py`); `loop_share`: OPC UA's own (default: of the options)."""
         self.services = dict(services)
         self.options = options or OpcUaOptions()
-        self.meter = RequestMeter(shares) if shares else None
+        opts = self.options
+        #: OPC UA's share of the loop for its requests (`OpcUaOptions.loop_share`), and
+        #: a fleet's machines'
+        self.loop_share = loop_share or LoopShare(opts.loop_share, opts.loop_burst_s)
+        self.meter = RequestMeter(self.loop_share, shares or {})
+        #: the share of its notifications (as much again, a bucket of its own)
+        self.notify_share = LoopShare(opts.loop_share, opts.loop_burst_s)
         self.server: Any = None
         self.port = 0
         self.ns = 0
@@ -858,21 +883,40 @@ class OpcUaInterface:
         items of their variables (`_notify`), in cycle order, each snapshot followed by
         the loop's other work (the cycle's thread keeps adding snapshots: draining them
         without a pause could hold the loop for good)."""
+        share = self.notify_share
         while True:
+            wait = share.wait()
+            if wait > 0.0:  # OPC UA's share is used up: sample less often
+                await asyncio.sleep(wait)
+                self._coalesce()
             batch = [(m, s) for m, q in self._queue.items() for s in _taken(q)]
             if not batch:
                 return
             for machine, snap in batch:
-                for var in self._watched.get(machine, ()):
-                    if snap.cycle % var.every:
-                        continue
-                    value = snap.value(var.spec.obj, var.spec.axis)
-                    if value == var.last:
-                        continue
-                    var.last = value
-                    self.notifications += 1
-                    await self._notify(var, self._datavalue(var, value, snap))
+                began = time.thread_time()
+                await self._notify_snapshot(machine, snap)
+                share.charge(time.thread_time() - began)
                 await asyncio.sleep(0)
+
+    def _coalesce(self) -> None:
+        """Keep only the newest snapshot of each machine (the others count as late)."""
+        for queue in self._queue.values():
+            while len(queue) > 1:
+                with contextlib.suppress(IndexError):
+                    queue.popleft()
+                    self.late_samples += 1
+
+    async def _notify_snapshot(self, machine: str, snap: Snapshot) -> None:
+        """The changed values of one sampled cycle to their monitored items."""
+        for var in self._watched.get(machine, ()):
+            if snap.cycle % var.every:
+                continue
+            value = snap.value(var.spec.obj, var.spec.axis)
+            if value == var.last:
+                continue
+            var.last = value
+            self.notifications += 1
+            await self._notify(var, self._datavalue(var, value, snap))
 
     async def _notify(self, var: _Var, dv: Any) -> None:
         """`dv` to every monitored item of `var`, as asyncua's `datachange_callback` does
@@ -885,7 +929,10 @@ class OpcUaInterface:
 
         ua = _ua()
 
-        for handle, callback in list(var.attval.datachange_callbacks.items()):
+        callbacks = list(var.attval.datachange_callbacks.items())
+        for i, (handle, callback) in enumerate(callbacks):
+            if i and i % NOTIFY_SLICE == 0:  # the loop's other work in between
+                await asyncio.sleep(0)
             owner = getattr(callback, "__self__", None)
             if isinstance(owner, MonitoredItemService):
                 mid = owner._monitored_datachange.get(handle)

@@ -256,8 +256,19 @@ def test_crosstalk_mode3_000_p92_alternative_names(tmp_path):
     assert ct.acceleration == 1000 and ct.deceleration == -1000  # acceleration_pos / _neg
     assert len(ct.ax_1) == 9
     assert (ct.ax_1[8], ct.ax_2[8]) == (3000, 3000)
-    # acc_pos_vel_pos is "accelerate, positive direction" under every reading of the names
-    assert ct.corrections[0, CROSSTALK_COLUMNS.index("accelerate_dir_pos")] == 60
+    # 000 p.92, position[0]: acc_pos_vel_pos 60, acc_pos_vel_neg 60, acc_neg_vel_pos 70,
+    # acc_neg_vel_neg 70. The names give the signs of acceleration and velocity, and
+    # accelerating is a·v > 0 (002 §3.5.13-16: "acceleration/deceleration in positive/
+    # negative motion direction"): a > 0, v > 0 accelerates in + (60); a < 0, v > 0
+    # decelerates in + (70); a < 0, v < 0 accelerates in − (70); a > 0, v < 0
+    # decelerates in − (60). Before, the two − columns were swapped (60 and 70).
+    by_hand = {
+        "accelerate_dir_pos": 60,
+        "decelerate_dir_pos": 70,
+        "accelerate_dir_neg": 70,
+        "decelerate_dir_neg": 60,
+    }
+    assert {c: ct.corrections[0, CROSSTALK_COLUMNS.index(c)] for c in by_hand} == by_hand
 
 
 def test_crosstalk_old_model_001(tmp_path):

@@ -141,8 +141,9 @@ def test_crosstalk_mode3_alternative_names(cfg: MachineConfig) -> None:
     assert ct.max_points == 4
     np.testing.assert_array_equal(ct.ax_1, [0, 3000, 0, 3000])
     np.testing.assert_array_equal(ct.ax_2, [0, 0, 3000, 3000])
-    # columns: accelerate_dir_pos, accelerate_dir_neg, decelerate_dir_pos, decelerate_dir_neg
-    np.testing.assert_array_equal(ct.corrections[0], [60, 61, 70, 71])
+    # columns: accelerate_dir_pos, accelerate_dir_neg, decelerate_dir_pos, decelerate_dir_neg;
+    # acc_neg_vel_neg (71) accelerates in − (a < 0, v < 0), acc_pos_vel_neg (61) decelerates
+    np.testing.assert_array_equal(ct.corrections[0], [60, 71, 70, 61])
     np.testing.assert_array_equal(ct.corrections[1], [50, 0, 0, 0])
     np.testing.assert_array_equal(ct.corrections[2], [0, 0, 0, 40])
 

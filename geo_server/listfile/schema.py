@@ -197,13 +197,16 @@ _SPECS: list[Spec] = [
     Spec("kw.crosstalk.position[].ax_2", "SGN64", _C, "P-COMP-00086", _CT),
 ]
 
-#: The four correction columns of the new crosstalk model with their P-COMP IDs and the
-#: alternative names the mode-3 example of 000 p.92 prints.
+#: The four correction columns of the new crosstalk model with their P-COMP IDs (002
+#: §3.5.13-16) and the alternative names the mode-3 example of 000 p.92 prints. Those
+#: name the signs of the acceleration and the velocity: `acc_neg_vel_neg` is a negative
+#: acceleration while moving in the negative direction, i.e. accelerating in the
+#: negative direction (a·v > 0), and `acc_pos_vel_neg` is decelerating there.
 CROSSTALK_CORRECTIONS: dict[str, tuple[str, str]] = {
     "correction_accelerate_dir_pos": ("P-COMP-00087", "acc_pos_vel_pos_correction"),
-    "correction_accelerate_dir_neg": ("P-COMP-00088", "acc_pos_vel_neg_correction"),
+    "correction_accelerate_dir_neg": ("P-COMP-00088", "acc_neg_vel_neg_correction"),
     "correction_decelerate_dir_pos": ("P-COMP-00089", "acc_neg_vel_pos_correction"),
-    "correction_decelerate_dir_neg": ("P-COMP-00090", "acc_neg_vel_neg_correction"),
+    "correction_decelerate_dir_neg": ("P-COMP-00090", "acc_pos_vel_neg_correction"),
 }
 for _col, (_pid, _alt) in CROSSTALK_CORRECTIONS.items():
     _full = f"kw.crosstalk.position[].{_col}"

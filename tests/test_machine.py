@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from geo_server import access
+from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -467,3 +468,36 @@ def test_refused_writes_and_nc_text_are_in_the_error_list(default_cfg):
     listed = len(service.errors()) - before
     assert listed <= 2 * REFUSALS_PER_SECOND  # the loop may straddle a second
     assert listed + service.status()["refusals_unreported"] == 3 * REFUSALS_PER_SECOND
+
+
+def test_nc_run_applied_returns_the_cycle_that_ran_its_first_block(default_cfg):
+    """`NC started at cycle N` (geo-client nc): N is the first cycle whose snapshot shows
+    the program running, not the cycle of the snapshot after the wait (which came
+    later than the program's first messages)."""
+    import asyncio
+
+    machine = Machine(default_cfg, cycle_s=0.001, homed=True)
+    sched = Scheduler(machine, mode="realtime")
+    service = ObjectService(machine, sched)
+    running: list[int] = []
+    obj = load_dictionary().by_name("SIM::program_running")
+
+    def seen(snap) -> None:  # (the cycle's thread)
+        if snap.value(obj, 0) and not running:
+            running.append(snap.cycle)
+
+    unsubscribe = service.subscribe(seen)
+    release = sched.demand_every_cycle()
+    sched.start()
+    try:
+        started = asyncio.run(service.nc.run_applied("N10 G91 G01 X10 F600\nM30"))
+        deadline = threading.Event()
+        for _ in range(200):
+            if running:
+                break
+            deadline.wait(0.01)
+    finally:
+        release()
+        unsubscribe()
+        sched.stop()
+    assert running == [started]

@@ -51,8 +51,10 @@ class NcService:
         """`run`, parsed in a worker thread, and wait until the cycle started it (the
         service's timeout/withdraw rule); returns the cycle that started it."""
         pending = await asyncio.to_thread(self.run, text)
-        await self.ports.settle(pending, timeout)
-        return self.ports.snapshot().cycle
+        started = await self.ports.settle(pending, timeout)
+        # the cycle that ran its first block (not the snapshot's after the wait: by then
+        # the program may have run on and said things of later cycles)
+        return started if isinstance(started, int) else self.ports.snapshot().cycle
 
     def reset(self) -> Pending:
         """CNC reset at the next cycle boundary: program stopped, axes stopped."""

@@ -569,7 +569,8 @@ class Machine:
             case WriteObjects(items):
                 return tuple(self._apply_item(*item) for item in items)
             case StartProgram(program, mdi, _text):
-                return self.start(program, mdi)
+                self.start(program, mdi)
+                return self.cycle + 1  # the cycle being computed runs its first block
             case Reset():
                 return self.reset()
             case Reload(cfg):

@@ -120,9 +120,10 @@ def _make_yours(path: Path) -> None:
 
 
 def _check(args: argparse.Namespace) -> int:
-    """Exit 0 when the machine loads, 1 when a compensation was deactivated or a list had
-    to be skipped (any error: the same that makes a reload fail), 2 when the lists cannot
-    be read."""
+    """Exit 0 when the machine loads, 1 when a compensation was deactivated, a list had
+    to be skipped (any error: the same that makes a reload fail) or a value was replaced
+    by its default (`40O0` for a number: the CNC warns and goes on, 002 §1.3; a check
+    says so), 2 when the lists cannot be read."""
     from geo_server.listfile import ListFileError, load_machine
 
     path = Path(args.startup) if args.startup else default_startup_list()
@@ -136,11 +137,13 @@ def _check(args: argparse.Namespace) -> int:
     names = ", ".join(f"{a}={cfg.axes[a].params.name or '?'}" for a in sorted(cfg.axes))
     deactivated = cfg.deactivated
     errors = [d for d in cfg.diagnostics if d.severity == "error"]
+    replaced = [d for d in cfg.diagnostics if d.replaced]
     print(
         f"{path}: {len(cfg.axes)} axes ({names}), {len(cfg.diagnostics)} diagnostics, "
         f"{len(deactivated)} compensations deactivated, {len(errors)} errors"
+        + (f", {len(replaced)} values replaced by their default" if replaced else "")
     )
-    return 1 if deactivated or errors else 0
+    return 1 if deactivated or errors or replaced else 0
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -94,6 +94,8 @@ class Diagnostic:
     error_id: int = 0
     axis: int = 0
     deactivated: CompKind | None = None
+    #: the entry's value could not be used and its default stands in its place
+    replaced: bool = False
 
     def describe(self) -> str:
         """`file:line: [id] entry: message (axis N)` without the severity word: what went

@@ -362,3 +362,20 @@ def test_where_the_cycle_runs_by_default_and_priority_without_os_nice(monkeypatc
     assert default_cycle_in("posix") == "thread"
     monkeypatch.delattr(process.os, "nice", raising=False)
     process._raise_priority()  # logs "keeps normal priority", raises nothing
+
+
+def test_check_exits_1_when_a_value_was_replaced_by_its_default(tmp_path, lists_copy):
+    """`40O0` (a letter O) for the coefficient: the CNC warns and uses the default
+    (002/003 §1.3), so the machine loads; `check` says so and exits 1, since the
+    machine would run with 0 where the list meant 4000."""
+    axis_list = lists_copy.parent / "achsmd1.lis"
+    text = axis_list.read_text(encoding="utf-8")
+    broken = text.replace(
+        "lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 40O0"
+    )
+    assert broken != text
+    axis_list.write_text(broken, encoding="utf-8")
+    r = run([*script("geo-server"), "check", str(lists_copy)], tmp_path)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "achsmd1.lis:" in r.stdout and "'40O0'" in r.stdout
+    assert "1 values replaced by their default" in r.stdout

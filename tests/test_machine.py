@@ -501,3 +501,21 @@ def test_nc_run_applied_returns_the_cycle_that_ran_its_first_block(default_cfg):
         unsubscribe()
         sched.stop()
     assert running == [started]
+
+
+def test_reload_says_which_value_it_replaced_by_its_default(lists_copy: Path):
+    """A reload of a list whose coefficient reads `40O0` goes through (the CNC's rule,
+    002/003 §1.3: warn, use the default) and its answer names the file, line, entry and
+    value it replaced."""
+    svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
+    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    text = axis_list.read_text(encoding="utf-8")
+    axis_list.write_text(
+        text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 40O0"),
+        encoding="utf-8",
+    )
+    result = svc.commands.reload()
+    assert result.ok, result.errors
+    (warning,) = [w for w in result.warnings if "40O0" in w]
+    assert "achsmd1.lis:" in warning and "lr_param.temp_comp_coefficient" in warning
+    assert "default used" in warning

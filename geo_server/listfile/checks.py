@@ -36,6 +36,8 @@ class Check:
     listed_in: str
     deactivates: bool = True
     severity: str = "warning"
+    #: the entry's value is replaced by its default (`geo-server check` exits 1)
+    replaces: bool = False
 
 
 _BL, _TE, _CR, _PL = CompKind.BACKLASH, CompKind.TEMP, CompKind.CROSS, CompKind.PLANE
@@ -61,6 +63,7 @@ CHECKS: tuple[Check, ...] = (
         "non-compensation entry is outside its range: the default is used",
         _LIST,
         False,
+        replaces=True,
     ),
     Check(
         "list.alias",

@@ -99,6 +99,7 @@ class Reporter:
             error_id=check.error_id,
             axis=axis,
             deactivated=check.comp if check.deactivates else None,
+            replaced=check.replaces,
         )
         self.out.append(diag)
         return diag

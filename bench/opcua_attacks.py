@@ -35,11 +35,10 @@ import time
 from typing import Any
 
 from common import (
-    HOST,
-    PYTHON,
     ServerProcess,
     emit,
     free_ports,
+    geo_server_argv,
     rss_kib,
     summary_us,
     table,
@@ -235,27 +234,13 @@ def main() -> None:
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
     n = args.machines
-    zport, aport, oport = free_ports(3)
-    mbase = free_range(n, {zport, aport, oport})
-    url = f"opc.tcp://{HOST}:{oport}"
-    argv = [
-        os.path.join(os.path.dirname(PYTHON), "geo-server"),
-        "run",
-        "--homed",
-        *(["--fleet-size", str(n)] if n > 1 else []),
-        "--zenoh-listen",
-        f"tcp/{HOST}:{zport}",
-        "--ads-port",
-        str(aport),
-        "--ads-udp-port",
-        "0",
-        "--modbus-port",
-        str(mbase),
-        "--opcua-endpoint",
-        url,
-        "--status-period",
-        "5",
-    ]
+    zport, aport = free_ports(2)
+    mbase = free_range(n, {zport, aport})
+    ports = {"zenoh": zport, "ads": aport, "modbus": mbase}
+    fleet = ["--fleet-size", str(n)] if n > 1 else []
+    # the exact engine, geo-server run's default, as the figures in docs/benchmarks.md
+    argv = geo_server_argv(1.0, ports, engine="exact", extra=[*fleet, "--ads-udp-port", "0"])
+    url = argv[argv.index("--opcua-endpoint") + 1]
     machine = "local-1" if n > 1 else "local"
     targets = [1] if n == 1 else sorted({2, n})
     with ServerProcess(argv, "opcua-attacks") as server:

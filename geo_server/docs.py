@@ -350,7 +350,7 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "event-loop time OPC UA's requests take, and as much again its notifications "
         "(`loop_burst_s` in a row after a quiet spell)",
         "requests wait, their connections' reading paused; notifications are sampled "
-        "less often (`late_samples`)",
+        "less often (`samples_skipped`)",
     ),
 ]
 

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import faulthandler
 import gc
 import os
 import random
 import shutil
+import signal
 import socket
+import subprocess
 import sys
 import threading
 from collections.abc import Iterator
@@ -124,6 +127,35 @@ def geo_server_cmd() -> list[str]:
     """The `geo-server` console script of this environment (the module if none)."""
     exe = Path(sys.executable).parent / "geo-server"
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "geo_server.cli"]
+
+
+@contextlib.contextmanager
+def geo_server_running(args: list[str], cwd: Path, ready: str) -> Iterator[subprocess.Popen[str]]:
+    """`geo-server ARGS` in a subprocess (this environment's installed copy: no
+    PYTHONPATH), once it printed a line starting with `ready`; stopped with Ctrl-C
+    (SIGINT) after, unless it ended already."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.Popen(
+        [*geo_server_cmd(), *args], cwd=cwd, env=env, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith(ready):
+                break
+        else:
+            raise AssertionError(f"geo-server {args[0]} ended before printing {ready!r}")
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        proc.wait(5)
+        if proc.stdout is not None:
+            proc.stdout.close()
 
 
 @pytest.fixture

@@ -200,16 +200,20 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
     np.testing.assert_array_equal(a.snapshot.values, b.snapshot.values)
 
 
+def _set_coefficient_in_the_list(svc: ObjectService, text: str) -> None:
+    """Axis 1's list says `lr_param.temp_comp_coefficient <text>` instead of 4000."""
+    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    before = axis_list.read_text(encoding="utf-8")
+    after = before.replace("temp_comp_coefficient 4000", f"temp_comp_coefficient {text}")
+    assert after != before
+    axis_list.write_text(after, encoding="utf-8")
+
+
 def test_valid_reload_ramps_to_the_new_value(lists_copy: Path):
     svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
     access.write_name(svc, "SIM::set_position", 1, 1_000_000)
     access.step(svc, 30)
-    axis_list = Path(svc.machine.cfg.axes[1].params.path)
-    text = axis_list.read_text(encoding="utf-8")
-    axis_list.write_text(
-        text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 2000"),
-        encoding="utf-8",
-    )
+    _set_coefficient_in_the_list(svc, "2000")
     result = svc.commands.reload()
     assert result.ok, result.errors
     old, new = 40 + 4000e-6 * 999_900, 40 + 2000e-6 * 999_900
@@ -508,12 +512,7 @@ def test_reload_says_which_value_it_replaced_by_its_default(lists_copy: Path):
     002/003 §1.3: warn, use the default) and its answer names the file, line, entry and
     value it replaced."""
     svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
-    axis_list = Path(svc.machine.cfg.axes[1].params.path)
-    text = axis_list.read_text(encoding="utf-8")
-    axis_list.write_text(
-        text.replace("lr_param.temp_comp_coefficient 4000", "lr_param.temp_comp_coefficient 40O0"),
-        encoding="utf-8",
-    )
+    _set_coefficient_in_the_list(svc, "40O0")
     result = svc.commands.reload()
     assert result.ok, result.errors
     (warning,) = [w for w in result.warnings if "40O0" in w]

@@ -9,10 +9,8 @@ a queue of 100 000, one session taking every subscription.
 from __future__ import annotations
 
 import asyncio
-import os
 import signal
 import struct
-import subprocess
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -21,7 +19,7 @@ from typing import Any
 import pytest
 from asyncua import Client, ua
 from asyncua.ua.uaerrors import UaStatusCodeError
-from conftest import free_port, geo_server_cmd
+from conftest import free_port, geo_server_running
 
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -61,6 +59,18 @@ def value_of(node: ua.NodeId) -> ua.ReadValueId:
     rv.NodeId = node
     rv.AttributeId = ua.AttributeIds.Value
     return rv
+
+
+async def held(share: LoopShare, request: Awaitable[Any]) -> asyncio.Future[Any]:
+    """`request` sent, once the server holds it for `share` (a hold counted); not done."""
+    holds = share.holds
+    waiting = asyncio.ensure_future(request)
+    for _ in range(500):  # (the server looks at the share when the request arrives)
+        if share.holds > holds:
+            break
+        await asyncio.sleep(0.01)
+    assert share.holds > holds and not waiting.done()
+    return waiting
 
 
 async def refused(call: Awaitable[Any]) -> int:
@@ -267,19 +277,10 @@ def test_sigterm_stops_the_server_within_two_seconds_during_a_browse_bomb(
     2 s the issue asks (before: 7.4 s with a reading
     client, not at all while it did not read; asyncua's own stop waits up to 1 s for
     its clock task)."""
-    port = free_port()
-    endpoint = f"opc.tcp://127.0.0.1:{port}"
-    args = [*geo_server_cmd(), "run", str(lists_copy), "--homed", "--no-zenoh", "--no-ads"]
-    args += ["--no-modbus", "--opcua-endpoint", endpoint, "--status-period", "60"]
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("opcua: ready"):
-                break
-        else:
-            raise AssertionError("geo-server run ended before OPC UA was ready")
+    endpoint = f"opc.tcp://127.0.0.1:{free_port()}"
+    args = ["run", str(lists_copy), "--homed", "--no-zenoh", "--no-ads", "--no-modbus"]
+    args += ["--opcua-endpoint", endpoint, "--status-period", "60"]
+    with geo_server_running(args, tmp_path, "opcua: ready") as proc:
 
         async def attack() -> float:
             c = Client(endpoint, timeout=30)
@@ -313,12 +314,6 @@ def test_sigterm_stops_the_server_within_two_seconds_during_a_browse_bomb(
         took = asyncio.run(asyncio.wait_for(attack(), TIMEOUT))
         assert proc.returncode == 0, proc.returncode
         assert took < 2.0, f"{took:.2f} s"
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait(5)
-        if proc.stdout is not None:
-            proc.stdout.close()
 
 
 # ---------------------------------------------------------------- a fleet's loop shares
@@ -352,12 +347,7 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
                 params = ua.ReadParameters(NodesToRead=[of_a] * most)
                 while share.status["loop_s"] <= share.burst:  # (until the burst is used)
                     await flood.uaclient.read(params)
-                waiting = asyncio.ensure_future(flood.uaclient.read(params))
-                for _ in range(500):
-                    if share.holds:
-                        break
-                    await asyncio.sleep(0.01)
-                assert share.holds >= 1
+                waiting = await held(share, flood.uaclient.read(params))
                 b = other.get_node(ua.NodeId("b/Axes/X/TEMPC/coefficient", ns))
                 assert await b.read_value() == 4000.0
                 assert not waiting.done()
@@ -399,16 +389,9 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
                 params = ua.ReadParameters(NodesToRead=[value_of(ua.NodeId(TEMPC, ns))] * most)
                 await asyncio.sleep(share.burst / share.rate)  # (a full burst)
                 frozen[0] = now[0] = time.monotonic()
-                holds = share.holds
                 while share.wait() == 0.0:  # Reads until the burst is used up
                     await first.uaclient.read(params)
-                share.status["holds"] = holds  # (that look counted one)
-                waiting = asyncio.ensure_future(second.uaclient.read(params))
-                for _ in range(500):
-                    if share.holds:
-                        break
-                    await asyncio.sleep(0.01)
-                assert share.holds >= 1 and not waiting.done()
+                waiting = await held(share, second.uaclient.read(params))
                 frozen[0] = now[0] + 1.0  # the share is back
                 assert (await waiting)[0].Value.Value == 4000.0
                 frozen[0] = None  # (the clients' CloseSession wait for it too)

@@ -4,14 +4,12 @@ a real-time machine, over Zenoh and from the command line."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import geo_server_cmd
+from conftest import geo_server_running
 from geo_clients.testing import GeoTestServer, check_golden
 
 from geo_server import access
@@ -484,24 +482,12 @@ def test_run_writes_a_triggered_recording_when_it_completes_not_at_ctrl_c(
     still serves (before, `run` looked for a `service.recording` that had moved to
     `service.recordings.recording`, and wrote nothing until Ctrl-C)."""
     out = tmp_path / "trace.csv"
-    args = [*geo_server_cmd(), "run", str(lists_copy), "--homed", "--no-zenoh", "--no-ads"]
-    args += ["--no-modbus", "--no-opcua", "--status-period", "60", "--record", "SIM::cycle_count"]
+    args = ["run", str(lists_copy), "--homed", "--no-zenoh", "--no-ads", "--no-modbus"]
+    args += ["--no-opcua", "--status-period", "60", "--record", "SIM::cycle_count"]
     args += ["--record-trigger", "SIM::cycle_count > 50", "--record-pre", "0"]
     args += ["--record-post", "100", "--record-out", str(out)]
-    proc = subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("recording written"):
-                break
-        else:
-            raise AssertionError("run ended without writing the recording")
+    with geo_server_running(args, tmp_path, "recording written") as proc:
         assert proc.poll() is None  # still serving
         rows = [r for r in out.read_text(encoding="utf-8").splitlines() if r[:1] != "#"]
         # the trigger's cycle (the first with a count above 50) and the 100 after it
         assert [rows[1].split(",")[0], rows[-1].split(",")[0], len(rows)] == ["51", "151", 102]
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(30)
-        if proc.stdout is not None:
-            proc.stdout.close()

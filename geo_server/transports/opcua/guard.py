@@ -228,15 +228,12 @@ def _bound_subscriptions(session: Any, iserver: Any) -> None:
 
     async def modify_monitored_items(params: Any) -> Any:
         results = await modify(params)
+        sub = subs.subscriptions.get(params.SubscriptionId)
+        items = {} if sub is None else sub.monitored_item_srv._monitored_items
         for item, result in zip(params.ItemsToModify, results, strict=True):
             size = _queue_size(int(item.RequestedParameters.QueueSize))
             result.RevisedQueueSize = size
-            sub = subs.subscriptions.get(params.SubscriptionId)
-            mdata = (
-                None
-                if sub is None
-                else sub.monitored_item_srv._monitored_items.get(item.MonitoredItemId)
-            )
+            mdata = items.get(item.MonitoredItemId)
             if mdata is not None:
                 mdata.queue_size = size
         return results
@@ -318,7 +315,7 @@ class GuardedProtocol(OPCUAProtocol):
 
     unread_close_s = 10.0
     #: the loop time of each request charged to loop shares (metering.py)
-    meter: RequestMeter | None = None
+    meter: RequestMeter
 
     def connection_made(self, transport: Any) -> None:
         self._writable = asyncio.Event()
@@ -364,8 +361,6 @@ class GuardedProtocol(OPCUAProtocol):
         # connection without ever yielding, so a burst of them held every interface
         await asyncio.sleep(0)
         meter = self.meter
-        if meter is None:
-            return bool(await super()._process_one_msg(header, buf))
         await self._wait_for_share(meter)
         await meter.take_turn()
         began = meter.begin()
@@ -447,7 +442,7 @@ class GuardedProtocol(OPCUAProtocol):
 
 class GuardedBinaryServer(BinaryServer):
     unread_close_s = 10.0
-    meter: RequestMeter | None = None
+    meter: RequestMeter
 
     def _make_protocol(self) -> GuardedProtocol:
         protocol = GuardedProtocol(
@@ -482,9 +477,7 @@ async def advertise(server: Any, capabilities: dict[str, int]) -> None:
             raise RuntimeError(f"ServerCapabilities/{name}: {status}")
 
 
-async def start(
-    server: Any, unread_close_s: float = 10.0, meter: RequestMeter | None = None
-) -> None:
+async def start(server: Any, unread_close_s: float, meter: RequestMeter) -> None:
     """`Server.start` of asyncua 2.1 (`ASYNCUA_START`) with the guarded transport, and
     requests bounded by `MAX_REQUEST`; a client that reads no answers for
     `unread_close_s` is closed; `meter` charges requests to loop shares (metering.py)."""

@@ -284,6 +284,8 @@ class OpcUaInterface:
         self._frozen = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self.late_samples = 0
+        #: samples skipped while the notifications' share was used up (the loop's)
+        self.samples_skipped = 0
         self.notifications = 0
         #: failed logins per client address (guard.py): the loop's
         self.login_throttle = LoginThrottle()
@@ -899,12 +901,13 @@ class OpcUaInterface:
                 await asyncio.sleep(0)
 
     def _coalesce(self) -> None:
-        """Keep only the newest snapshot of each machine (the others count as late)."""
+        """Keep only the newest snapshot of each machine (`samples_skipped` counts the
+        others; `late_samples` is the cycle's thread's)."""
         for queue in self._queue.values():
             while len(queue) > 1:
                 with contextlib.suppress(IndexError):
                     queue.popleft()
-                    self.late_samples += 1
+                    self.samples_skipped += 1
 
     async def _notify_snapshot(self, machine: str, snap: Snapshot) -> None:
         """The changed values of one sampled cycle to their monitored items."""

@@ -217,6 +217,23 @@ def run_attacks(
     return out, notes
 
 
+def stop_during_attack(url: str, machine: str, server: ServerProcess) -> str:
+    """SIGTERM while a client that does not read keeps its requests in flight (issue
+    44: within 2 s): how long the server took to exit."""
+    ctx = multiprocessing.get_context("spawn")
+    stop, done = ctx.Event(), ctx.Value("q", 0)
+    p = ctx.Process(target=attack, args=("unread", url, machine, stop, done, 0), daemon=True)
+    p.start()
+    time.sleep(1.5)  # (connected, its answers backed up)
+    code = server.stop(timeout=30.0)
+    stop.set()
+    p.join(15)
+    if p.is_alive():
+        p.kill()
+    took = server.stop_seconds or 0.0
+    return f"SIGTERM during an attack by a client that does not read: exit {code}, {took:.2f} s"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--machines", type=int, default=1, help="1: one machine; N: a fleet")
@@ -250,6 +267,7 @@ def main() -> None:
             time.sleep(0.2)
         time.sleep(1.0)
         rows, notes = run_attacks(args, url, machine, targets, aport, mbase, server.pid)
+        notes.append(stop_during_attack(url, machine, server))
     who = "machine 1 (ADS, Modbus)" if n == 1 else f"machines {targets} of {n} (ADS, Modbus)"
     md = table(
         [

@@ -283,10 +283,14 @@ class ZenohInterface:
         self._matching = False  # a remote queryable covers all of cnc/<m>/**
         self._probe_wanted: asyncio.Event | None = None
         self._probes_started = 0
-        #: held while a probe's get is sent (a worker thread), while a read is answered
-        #: on Zenoh's thread (`_read_now`) and while the interface undeclares and closes
-        #: (`close`): nothing is sent on a session being closed
+        #: held while a read is answered on Zenoh's thread (`_read_now`, `_refuse_busy`)
+        #: and while the interface undeclares and closes (`close`): nothing is sent on a
+        #: session being closed
         self._closing = threading.Lock()
+        #: held while a probe's get is sent (a worker thread) and, after `_closing`, by
+        #: `close`: a lock of its own, so that a probe never sends a read that could be
+        #: answered at once to the loop (and its reply would not be kept)
+        self._probing = threading.Lock()
         self._probes_applied = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -369,7 +373,7 @@ class ZenohInterface:
             # get sent from a worker thread (its task cancelled above, its thread not)
             # finishes first. (`done` is never cancelled: the wait below is shielded.)
             try:
-                with self._closing:
+                with self._closing, self._probing:
                     for ent in entities:
                         ent.undeclare()
                     if session is not None and session is not self._shared:
@@ -431,8 +435,7 @@ class ZenohInterface:
 
     def _refuse_busy(self, query: zenoh.Query) -> None:
         """Zenoh thread: `max_pending` gets and puts are in flight; 0x716 at once (no
-        reply at all while the interface closes; a rival probe holds the lock only
-        while it sends its get)."""
+        reply at all while the interface closes)."""
         self.busy["gets_refused"] += 1
         try:
             if self._closing.acquire(timeout=0.05):
@@ -868,7 +871,7 @@ class ZenohInterface:
         The replies name their sender (`Reply.replier_id`); the answer is evaluated
         when Zenoh ends the query (all answered, or `PROBE_TIMEOUT_S`).
         """
-        with self._closing:
+        with self._probing:
             session = self._session
             if session is not None:
                 self._send_probe(session, number)

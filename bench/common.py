@@ -76,24 +76,23 @@ def address(name: str, axis: int = 1, machine: str = "local") -> Address:
 
 
 def free_port() -> int:
-    """An ephemeral TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((HOST, 0))
-        return int(s.getsockname()[1])
+    """A TCP port on 127.0.0.1 that was free a moment ago, below the ephemeral range
+    where there is room and never one handed out before (`geo_server.ports`)."""
+    from geo_server import ports
+
+    return ports.free_port(HOST)
 
 
 def free_ports(n: int) -> list[int]:
-    """`n` distinct free ports (held open together so they differ)."""
-    socks = []
-    try:
-        for _ in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.bind((HOST, 0))
-            socks.append(s)
-        return [int(s.getsockname()[1]) for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+    """`n` distinct free ports."""
+    return [free_port() for _ in range(n)]
+
+
+def free_range(n: int) -> int:
+    """The first of `n` consecutive free ports (a fleet's Modbus ports)."""
+    from geo_server import ports
+
+    return ports.free_range(n, HOST)
 
 
 def wait_port(port: int, timeout: float, proc: subprocess.Popen | None = None) -> None:
@@ -195,7 +194,7 @@ def opcua_argv(pythonpath: str = "") -> list[str]:
     4840: two servers of one benchmark would collide there)."""
     if not knows_option("--opcua-endpoint", pythonpath):
         return []
-    return ["--opcua-endpoint", f"opc.tcp://{HOST}:{free_ports(1)[0]}"]
+    return ["--opcua-endpoint", f"opc.tcp://{HOST}:{free_port()}"]
 
 
 def geo_server_argv(

@@ -35,6 +35,7 @@ from common import (
     cpu_seconds,
     emit,
     free_ports,
+    free_range,
     geo_server_argv,
     get_status,
     start_geo,
@@ -282,21 +283,6 @@ def settle(pid: int, limit: float = 60.0) -> None:
         time.sleep(1.0)
         if (_children_cpu(pid) - c0) / (time.monotonic() - t0) < 0.5:
             return
-
-
-def free_range(n: int) -> int:
-    """The first of n consecutive TCP ports that are free (below the ephemeral range)."""
-    rng = random.Random()
-    for _ in range(200):
-        base = rng.randint(10_000, 32_000 - n)
-        try:
-            for p in range(base, base + n):
-                with socket.socket() as s:
-                    s.bind((HOST, p))
-        except OSError:
-            continue
-        return base
-    raise RuntimeError(f"no {n} free consecutive ports")
 
 
 def largest(engine: str, sizes: list[int], seconds: float) -> list[dict[str, Any]]:

@@ -48,6 +48,7 @@ from common import (
     address,
     emit,
     free_ports,
+    free_range,
     opcua_argv,
     summary_us,
     table,
@@ -205,27 +206,6 @@ def probe(
         us = [v * 1e6 for v in values]
         out[f"{key[0]} m{key[1]}"] = {**summary_us(us), "timeouts": fails[key]}
     return out
-
-
-def free_range(n: int, avoid: set[int]) -> int:
-    """The first of `n` consecutive free TCP ports on HOST (one Modbus port per machine)."""
-    import random
-
-    for _ in range(200):
-        base = random.randrange(30000, 60000 - n)
-        ok = True
-        for port in range(base, base + n):
-            with socket.socket() as s:
-                try:
-                    s.bind((HOST, port))
-                except OSError:
-                    ok = False
-            if not ok or port in avoid:
-                ok = False
-                break
-        if ok:
-            return base
-    raise RuntimeError(f"no {n} consecutive free ports")
 
 
 def fleet_status(session: Any) -> dict[str, Any]:
@@ -422,7 +402,7 @@ def main() -> None:
         args.machines, args.seconds, args.rounds = 3, 1.0, min(args.rounds, 1)
     n = args.machines
     zport, aport = free_ports(2)
-    mbase = free_range(n, {zport, aport})
+    mbase = free_range(n)
     env = {"PYTHONPATH": args.pythonpath} if args.pythonpath else {}
     argv = [
         str(os.path.join(os.path.dirname(PYTHON), "geo-server")),

@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import contextlib
 import importlib
-import socket
 import sys
 from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -513,11 +512,10 @@ def loopback_interface(
     scouting off and an explicit listen endpoint (it needs its port number up front;
     Modbus and ADS bind port 0 and report theirs)."""
     if via == "zenoh":
+        from geo_server.ports import free_port
         from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
 
-        with socket.socket() as s:  # free a moment ago
-            s.bind(("127.0.0.1", 0))
-            port = int(s.getsockname()[1])
+        port = free_port()  # (free a moment ago, never one handed out before)
         options = ZenohOptions(
             machine=machine,
             listen=[f"tcp/127.0.0.1:{port}"],

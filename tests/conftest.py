@@ -7,10 +7,8 @@ import contextlib
 import faulthandler
 import gc
 import os
-import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -19,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from geo_server import jit
+from geo_server import jit, ports
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import switch_interval
@@ -80,47 +78,10 @@ def _collect_big_garbage() -> Iterator[None]:
         _blocks_after_collect = sys.getallocatedblocks()
 
 
-#: Ports `free_port` handed out in this test run (never twice).
-_ports_handed: set[int] = set()
-
-
-def _ephemeral_range() -> tuple[int, int]:
-    """The ports the system takes for outgoing connections and bind(0) (Linux: from
-    /proc; elsewhere the IANA range)."""
-    try:
-        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
-        return int(lo), int(hi)
-    except (OSError, ValueError):
-        return 49152, 65535
-
-
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago, for a server a test starts
-    (often in another process), never one handed out before in this run.
-
-    Taken below the ephemeral range where it can be: a port bind(0) returns is an
-    ephemeral one, and until the server binds it, any outgoing connection of this
-    process (a client of an earlier test, a Zenoh session) may take it as its own local
-    port — the server then fails with "address in use" (seen once in CI)."""
-    lo, _hi = _ephemeral_range()
-    if lo > 21_000:
-        rng = random.Random()
-        for _ in range(200):
-            port = rng.randrange(20_000, lo)
-            if port in _ports_handed:
-                continue
-            with socket.socket() as s:
-                try:
-                    s.bind(("127.0.0.1", port))
-                except OSError:
-                    continue
-            _ports_handed.add(port)
-            return port
-    with socket.socket() as s:  # (no room below the ephemeral range)
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    _ports_handed.add(port)
-    return port
+    (often in another process), never one handed out before in this run."""
+    return ports.free_port()
 
 
 def geo_server_cmd() -> list[str]:

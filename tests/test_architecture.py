@@ -36,6 +36,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
             "geo_server.jit",  # the compiler of the cycle's laws
             "geo_server.jit_cache",  # where the compiled cycle is kept, and when that is safe
             "geo_server.aio",  # asyncio helpers (a wait that never loses a cancellation)
+            "geo_server.ports",  # free ports for servers that tests and benchmarks start
         ),
     ),
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),

@@ -1,0 +1,77 @@
+"""Free TCP ports for servers started on 127.0.0.1 by tests and benchmarks.
+
+A port `bind(0)` returns is an ephemeral one: until the server that was given it binds
+it, any outgoing connection of any process (a client of an earlier test, a Zenoh
+session) may take it as its own local port, and the server then fails with "address in
+use" (seen in CI, twice). So a port is taken below the system's ephemeral range where
+there is room, and never handed out twice by one process.
+"""
+
+from __future__ import annotations
+
+import random
+import socket
+import threading
+from pathlib import Path
+
+#: Ports `free_port` handed out in this process (never twice), under `_lock`: the one
+#: piece of state here, a memo any thread may add to.
+_handed: set[int] = set()
+_lock = threading.Lock()
+
+
+def ephemeral_range() -> tuple[int, int]:
+    """The ports the system takes for outgoing connections and bind(0) (Linux: from
+    /proc; elsewhere the IANA range)."""
+    try:
+        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(lo), int(hi)
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on `host` that was free a moment ago, for a server about to start
+    (often in another process), never one this process handed out before."""
+    lo, _hi = ephemeral_range()
+    rng = random.Random()
+    with _lock:
+        if lo > 21_000:
+            for _ in range(200):
+                port = rng.randrange(20_000, lo)
+                if port not in _handed and _bindable(host, port):
+                    _handed.add(port)
+                    return port
+        while True:  # (no room below the ephemeral range)
+            with socket.socket() as s:
+                s.bind((host, 0))
+                port = int(s.getsockname()[1])
+            if port not in _handed:
+                _handed.add(port)
+                return port
+
+
+def free_range(n: int, host: str = "127.0.0.1") -> int:
+    """The first of `n` consecutive ports that were free a moment ago (a fleet's
+    Modbus ports, one per machine), below the ephemeral range where there is room;
+    none of them handed out before, and all of them handed out now."""
+    lo, _hi = ephemeral_range()
+    top = lo if lo > 10_000 + 2 * n else 65_536
+    rng = random.Random()
+    with _lock:
+        for _ in range(200):
+            base = rng.randrange(10_000, top - n)
+            span = range(base, base + n)
+            if all(p not in _handed and _bindable(host, p) for p in span):
+                _handed.update(span)
+                return base
+    raise OSError(f"no {n} consecutive free ports on {host}")
+
+
+def _bindable(host: str, port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True

@@ -130,7 +130,7 @@ def _check(args: argparse.Namespace) -> int:
     try:
         cfg = load_machine(path, args.allow_dir)
     except ListFileError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(*exc.report(), sep="\n", file=sys.stderr)
         return 2
     for d in cfg.diagnostics:
         print(d)
@@ -163,7 +163,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         cfg = load_machine(path, args.allow_dir)
     except ListFileError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(*exc.report(), sep="\n", file=sys.stderr)
         return 2
     for d in cfg.diagnostics:
         print(d, file=sys.stderr)

@@ -78,7 +78,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         try:
             cfg = configs.get(m.startup) or load_machine(m.startup, args.allow_dir)
         except ListFileError as exc:
-            print(f"error: {m.name}: {exc}", file=sys.stderr)
+            print(*(f"{m.name}: {line}" for line in exc.report()), sep="\n", file=sys.stderr)
             return 2
         configs[m.startup] = cfg
         built = build_machine(cfg, EngineOptions.from_args(args))  # cycles on threads

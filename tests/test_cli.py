@@ -379,3 +379,19 @@ def test_check_exits_1_when_a_value_was_replaced_by_its_default(tmp_path, lists_
     assert r.returncode == 1, r.stdout + r.stderr
     assert "achsmd1.lis:" in r.stdout and "'40O0'" in r.stdout
     assert "1 values replaced by their default" in r.stdout
+
+
+def test_check_names_the_first_cause_first(tmp_path, lists_copy):
+    """Issue 45 #12: a typo `achs_mdz[0]` in the start-up list loses axis X; the twin
+    file then names an axis the machine lacks, which stops the load (exit 2). The typo's
+    diagnostic, with its suggestion, comes before the twin file's error (before, only
+    the twin file's error was printed)."""
+    assert (lists_copy.parent / "twin.toml").exists()
+    text = lists_copy.read_text(encoding="utf-8")
+    lists_copy.write_text(text.replace("achs_mds[0] ", "achs_mdz[0] ", 1), encoding="utf-8")
+    r = run([*script("geo-server"), "check", str(lists_copy)], tmp_path)
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.splitlines()
+    assert "achs_mdz[0]: unknown entry" in lines[0] and "did you mean achs_mds[0]?" in lines[0]
+    assert lines[-1].startswith("error: ") and "twin.toml:" in lines[-1]
+    assert "no axis 'X'" in lines[-1]

@@ -193,6 +193,20 @@ def test_a_bad_twin_file_fails_the_start_and_the_reload_keeps_the_old_twin(tmp_p
     assert twin_before is not None and twin_before.axes["X"].reversal == 5.0
 
 
+def test_a_reload_that_lost_an_axis_to_a_typo_names_the_typo_first(lists_copy):
+    """Issue 45 #12, for `reload`: the start-up list's typo `achs_mdz[0]` loses axis X,
+    the twin file then names a missing axis; the answer carries the typo's diagnostic
+    (with its suggestion) beside the twin file's error, the machine unchanged."""
+    svc = service(lists_copy)
+    text = lists_copy.read_text(encoding="utf-8")
+    lists_copy.write_text(text.replace("achs_mds[0] ", "achs_mdz[0] ", 1), encoding="utf-8")
+    result = svc.commands.reload()
+    assert not result.ok
+    assert "achs_mdz[0]" in result.warnings[0] and "did you mean achs_mds[0]?" in result.warnings[0]
+    assert "twin.toml:" in result.errors[0] and "no axis 'X'" in result.errors[0]
+    assert 1 in svc.machine.cfg.axes
+
+
 def test_a_reload_keeps_the_temperatures(tmp_path):
     startup = one_axis(tmp_path, THERMAL)
     svc = service(startup)

@@ -19,7 +19,10 @@ def reload_lists(ports: Ports, startup: Path | str | None) -> CommandResult:
     try:  # the folders the user allowed at start stay allowed
         new = load_machine(path, machine.cfg.allow_dirs)
     except ListFileError as exc:
-        return CommandResult(False, "reload", errors=[str(exc)], code=ADSERR_DEVICE_SYNTAX)
+        earlier = [str(d) for d in exc.earlier]  # (the first cause first)
+        return CommandResult(
+            False, "reload", errors=[str(exc)], warnings=earlier, code=ADSERR_DEVICE_SYNTAX
+        )
     problems = _rejecting(new) + compare_max_points(machine.cfg, new)
     if set(new.axes) != set(machine.cfg.axes):
         problems.append(

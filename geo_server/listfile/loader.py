@@ -40,10 +40,19 @@ class ListFileError(GeoError):
     """The lists cannot be read at all: a file missing, unreadable or not a list file
     (binary, UTF-16, a FIFO, nothing of its kind in it), or no axes."""
 
-    def __init__(self, path: Path | str, line: int, message: str) -> None:
+    def __init__(
+        self, path: Path | str, line: int, message: str, earlier: Sequence[Diagnostic] = ()
+    ) -> None:
         self.path, self.line, self.message = str(path), line, message
+        #: what the lists read before this said (a typo in the start-up list that lost
+        #: an axis comes before the twin file's complaint that the axis is missing)
+        self.earlier = tuple(earlier)
         where = f"{self.path}:{line}" if line else self.path
         super().__init__(f"{where}: {message}")
+
+    def report(self) -> list[str]:
+        """The lines to show, the first cause first: the earlier diagnostics, then this."""
+        return [*map(str, self.earlier), f"error: {self}"]
 
 
 def load_machine(startup: Path | str, allow_dirs: Sequence[Path | str] = ()) -> MachineConfig:
@@ -84,7 +93,7 @@ def load_machine(startup: Path | str, allow_dirs: Sequence[Path | str] = ()) -> 
     try:
         twin = find_twin(startup, names)
     except TwinFileError as exc:
-        raise ListFileError(exc.path, exc.line, exc.message) from None
+        raise ListFileError(exc.path, exc.line, exc.message, diags) from None
     # (imported here: geo_server.volcomp.config reads its lists with this package)
     from geo_server.volcomp.config import load_volumetric
 

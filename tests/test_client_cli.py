@@ -185,15 +185,21 @@ def test_no_server_is_one_line_and_exit_2(via):
 
 
 def test_an_injected_ads_error_names_the_object_asked_for(servers, capfd):
-    """`read --axis X TEMPC::coefficient` with every ADS request answered 0x707: the
-    message names the object asked for (and the one read on the way: the axis names),
-    not just an address."""
+    """Issue 45 #15: `read`/`write --axis X TEMPC::…` with every ADS request answered
+    0x707: the first request is the lookup of axis X's number (SIM::axis_names); the
+    message is the object's, and says the lookup was refused (before, it was reported
+    against SIM::axis_names alone). With the axis by number, the object's own read."""
     servers.service.faults.inject("ads:error=0x707")
+    lookup = (
+        "axis 'X': its number could not be looked up "
+        "(the read of SIM::axis_names was answered with ADS 0x707) (ADS 0x707)"
+    )
     code, _, err = run(servers, "ads", "read", "--axis", "X", "TEMPC::coefficient", capfd=capfd)
     assert code == 1
-    assert err.strip() == (
-        "error: TEMPC::coefficient: read SIM::axis_names (0x12F300/0xA) failed (ADS 0x707)"
-    )
+    assert err.strip() == f"error: TEMPC::coefficient: {lookup}"
+    code, _, err = run(servers, "ads", "write", "--axis", "X", "TEMPC::offset_0", "5", capfd=capfd)
+    assert code == 1
+    assert err.strip() == f"error: TEMPC::offset_0: {lookup}"
     code, _, err = run(servers, "ads", "read", "--axis", "1", "TEMPC::coefficient", capfd=capfd)
     assert err.strip() == (
         "error: read TEMPC::coefficient of axis 1 (0x120300/0x10043) failed (ADS 0x707)"

@@ -76,6 +76,9 @@ class ObjectClient:
     """Commands, axis names and status on top of `read`/`write` by name."""
 
     dictionary: Dictionary
+    #: {"X": 1, …} once read (`axis_names`); each axis' kind once read (`axis_type`)
+    _axis_names: dict[str, int] | None = None
+    _axis_types: dict[int, int] | None = None
 
     def read(self, name: str, axis: int = 0) -> Any:
         raise NotImplementedError
@@ -87,11 +90,9 @@ class ObjectClient:
 
     def axis_names(self) -> dict[str, int]:
         """{"X": 1, …} from the server (read once)."""
-        cached: dict[str, int] | None = getattr(self, "_axis_names", None)
-        if cached is None:
-            cached = parse_axis_names(str(self.read("SIM::axis_names", 0)))
-            self._axis_names = cached
-        return cached
+        if self._axis_names is None:
+            self._axis_names = parse_axis_names(str(self.read("SIM::axis_names", 0)))
+        return self._axis_names
 
     def axis_number(self, axis: int | str) -> int:
         """A logical axis number from a number or an axis name ("X", "1")."""
@@ -100,7 +101,15 @@ class ObjectClient:
         text = str(axis).strip()
         if text.isdigit():
             return int(text)
-        names = self.axis_names()
+        try:
+            names = self.axis_names()
+        except AdsError as exc:
+            # (a request of its own, which an injected fault may hit: say what was asked)
+            raise AdsError(
+                exc.code,
+                f"axis {text!r}: its number could not be looked up "
+                f"(the read of SIM::axis_names was answered with ADS 0x{exc.code:X})",
+            ) from None
         try:
             return names[text.upper()]
         except KeyError:
@@ -111,11 +120,11 @@ class ObjectClient:
 
     def axis_type(self, axis: int) -> int:
         """kenngr.achs_typ of an axis: 1 linear, 2 rotary, 4 spindle (read once)."""
-        types: dict[int, int] = getattr(self, "_axis_types", {})
-        if axis not in types:
-            types[axis] = int(self.read("SIM::axis_type", axis))
-            self._axis_types = types
-        return types[axis]
+        if self._axis_types is None:
+            self._axis_types = {}
+        if axis not in self._axis_types:
+            self._axis_types[axis] = int(self.read("SIM::axis_type", axis))
+        return self._axis_types[axis]
 
     # ------------------------------------------------------------------ commands
 

@@ -70,8 +70,15 @@ class Shell:
         return f"axis {axis} ({name})" if name else f"axis {axis}"
 
     def target(self, name: str) -> tuple[ObjectDef, int]:
+        """The object named and its axis; a failed lookup of the axis' number is
+        reported against the object asked for (issue 45 #15)."""
         obj = self.dictionary.by_name(name)
-        return obj, (0 if obj.scope == "machine" else self.axis)
+        if obj.scope == "machine":
+            return obj, 0
+        try:
+            return obj, self.axis
+        except AdsError as exc:
+            raise AdsError(exc.code, f"{obj.name}: {exc.message}", obj.name) from None
 
     def address(self, words: list[str]) -> tuple[ObjectDef, int, int, int, str | None]:
         ig, io = int(words[0], 0), int(words[1], 0)
@@ -122,7 +129,7 @@ def _read(sh: Shell) -> int:
         except AdsError as exc:
             if name.lower() in exc.message.lower():  # it names the object already
                 raise
-            raise AdsError(exc.code, f"{name}: {exc.message}", exc.name) from None
+            raise AdsError(exc.code, f"{name}: {exc.message}", exc.name or name) from None
         sh.print_value(obj, axis, value)
     return 0
 

@@ -20,6 +20,7 @@ import math
 import struct
 import sys
 import tomllib
+import unicodedata
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cache
@@ -54,6 +55,66 @@ ATTRIBUTES: dict[int, str] = {
 #: "0x600: object address: in (channel, axis), out (IndexGroup, IndexOffset)"); ReadWrite.
 ADDRESS_LOOKUP = 0x600
 STRING_LENGTH = 256
+
+#: ASCII for the characters the emulator's own texts use (units, messages): a STRING on
+#: the wire is plain ASCII, which pyads (UTF-8 by default) and ads-client and TwinCAT
+#: (Windows-1252) decode alike (issue 45 #10; Zenoh's JSON, OPC UA and the error lists
+#: keep the full text).
+_ASCII = str.maketrans(
+    {
+        "µ": "u",
+        "…": "...",
+        "°": "deg",
+        "²": "^2",
+        "³": "^3",
+        "·": "*",
+        "×": "x",
+        "±": "+/-",
+        "−": "-",
+        "–": "-",
+        "—": "-",
+        "→": "->",
+        "←": "<-",
+        "≤": "<=",
+        "≥": ">=",
+        "≠": "!=",
+        "‘": "'",
+        "’": "'",
+        "“": '"',
+        "”": '"',
+        "ä": "ae",
+        "ö": "oe",
+        "ü": "ue",
+        "Ä": "Ae",
+        "Ö": "Oe",
+        "Ü": "Ue",
+        "ß": "ss",
+        "\u00a0": " ",
+    }
+)
+
+
+def ascii_text(text: str) -> str:
+    """`text` in plain ASCII: the emulator's characters spelled out (`µm` → `um`, `…` →
+    `...`), accents dropped (`é` → `e`), anything else `?`."""
+    spelled = unicodedata.normalize("NFKD", text.translate(_ASCII))
+    bare = "".join(c for c in spelled if not unicodedata.combining(c))
+    return bare.encode("ascii", errors="replace").decode("ascii")
+
+
+def string_bytes(text: str, size: int = STRING_LENGTH) -> bytes:
+    """`text` as a STRING of `size` bytes on the wire: ASCII (`ascii_text`), NUL-ended
+    and padded; a longer text is cut after a whole word and ends in `...` (issue 45 #18:
+    never mid-word)."""
+    s = ascii_text(text)
+    limit = size - 1
+    if len(s) > limit:
+        room = limit - 3
+        cut = s.rfind(" ", 0, room + 1)
+        s = s[: cut if cut > room // 2 else room].rstrip() + "..."
+    return s.encode("ascii").ljust(size, b"\0")
+
+
 #: The highest logical axis number (docs/design.md §2.1: the index offset's high word).
 MAX_AXIS = 0xFFFF
 #: Most characters a JSON integer may have. More than any object type can hold (a REAL64
@@ -241,8 +302,7 @@ class ObjectDef:
         """Encode a Python value as ADS bytes (little-endian); checks type and range."""
         v = self.coerce(value)
         if self.type.name == "STRING":
-            raw = str(v).encode("cp1252", errors="replace")[: STRING_LENGTH - 1]
-            return raw.ljust(STRING_LENGTH, b"\0")
+            return string_bytes(str(v))
         return struct.pack("<" + self.type.code, v)
 
     def decode(self, data: bytes) -> Any:
@@ -371,9 +431,7 @@ class ObjectDef:
         if kind == "writable":
             return struct.pack("<B", int(self.writable))
         text = {"name": self.name, "type": self.type.name, "unit": self.unit}[kind]
-        return text.encode("cp1252", errors="replace")[: STRING_LENGTH - 1].ljust(
-            STRING_LENGTH, b"\0"
-        )
+        return string_bytes(text)
 
     def decode_attribute(self, kind: str, data: bytes) -> Any:
         """Decode the bytes of an attribute group read (inverse of `attribute`)."""

@@ -79,6 +79,11 @@ def test_ads_client_connects_with_default_settings(loop_thread, machine) -> None
     assert out["readByHandle"] == 12.5
     assert out["multi"] == ["DINT", 0x710]
     assert out["badWrite"] == 0x706  # the same range check as by address
+    # issue 45 #10: the text pyads reads too (tests/test_ads_tooling.py), in ASCII
+    assert out["lastError"] == (
+        "TEMPC::coefficient: write refused: TEMPC::coefficient: 20000.0 outside the range "
+        "-10000 ... 10000 [um/m] (ADS 0x706)"
+    )
     assert out["unknown"] == 0x710
     samples = out["samples"]
     # every 10 ms = 10 cycles, each sample its own cycle's count (none skipped)

@@ -797,7 +797,7 @@ def test_geo_client_via_ads(ads, service, capsys) -> None:
     assert "ADS 0x704" in capsys.readouterr().err
     # by address: attribute groups answer their attribute, writes to them get 0x704
     assert client_main([*base, "read", "0x120700", "0x10043"]) == 0
-    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient unit = [µm/m]"
+    assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::coefficient unit = [um/m]"
     assert client_main([*base, "read", "0x120600", "0x10044"]) == 0
     assert capsys.readouterr().out.strip() == "axis 1 (X) TEMPC::offset_0 length = 4"
     assert client_main([*base, "write", "0x120800", "0x10043", "1"]) == 1

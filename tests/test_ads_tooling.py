@@ -189,7 +189,7 @@ def test_symbol_info_by_name(raw) -> None:
     s = parse_symbol(data)
     assert (s["ig"], s["io"], s["size"], s["adst"]) == (GEO, COEFFICIENT_X, 8, 5)  # LREAL
     assert s["type"] == "LREAL" and s["flags"] == 0 and s["dims"] == 0
-    assert s["name"] == "GEO.X.TEMPC.coefficient" and s["comment"] == "TEMPC::coefficient [µm/m]"
+    assert s["name"] == "GEO.X.TEMPC.coefficient" and s["comment"] == "TEMPC::coefficient [um/m]"
     assert s["length"] == len(data)
     code, data = raw.read_write(INFOBYNAMEEX, 0, 0xFFFF, name("geo.z.lsec.SUM_EPSILON"))
     s = parse_symbol(data)  # names are case-insensitive
@@ -341,6 +341,20 @@ def test_pyads_by_name(plc, service) -> None:
     with pytest.raises(pyads.ADSError) as err:
         plc.write_by_name("GEO.X.TEMPC.coefficient", float("inf"))
     assert err.value.err_code == 0x706
+    # issue 45 #10: the refusal's text, in ASCII, which pyads decodes as UTF-8 (before:
+    # "…" and "µ" in CP1252, and pyads failed with UnicodeDecodeError)
+    with pytest.raises(pyads.ADSError) as err:
+        plc.write_by_name("GEO.X.TEMPC.coefficient", 20000.0)
+    assert err.value.err_code == 0x706
+    refused = (
+        "TEMPC::coefficient: write refused: TEMPC::coefficient: 20000.0 outside the range "
+        "-10000 ... 10000 [um/m] (ADS 0x706)"
+    )
+    assert plc.read_by_name("GEO.SIM.last_error") == refused
+    assert plc.read_list_by_name(["GEO.SIM.last_error", "GEO.SIM.axis_names"]) == {
+        "GEO.SIM.last_error": refused,
+        "GEO.SIM.axis_names": "1=X 2=Y 3=Z 4=C",
+    }
     with pytest.raises(pyads.ADSError) as err:
         plc.read_by_name("GEO.X.TEMPC.nothing")
     assert err.value.err_code == 0x710

@@ -10,7 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from geo_server.dictionary import dictionary_markdown, load_dictionary, round_half_away
+from geo_server.dictionary import (
+    dictionary_markdown,
+    load_dictionary,
+    round_half_away,
+    string_bytes,
+)
 from geo_server.errors import AdsError
 
 # Every CNC object of the axis-compensation manuals (000–003), read off the manuals once:
@@ -87,7 +92,7 @@ def test_attribute_groups(d):
     assert obj.attribute("name") == b"TEMPC::coefficient".ljust(256, b"\0")
     assert obj.attribute("type").rstrip(b"\0") == b"REAL64"
     assert obj.attribute("length") == b"\x08\x00\x00\x00"
-    assert obj.attribute("unit").rstrip(b"\0") == "[µm/m]".encode("cp1252")
+    assert obj.attribute("unit").rstrip(b"\0") == b"[um/m]"  # (ASCII: issue 45 #10)
     assert obj.attribute("writable") == b"\x01"
     _, _, attr = d.resolve(0x120800, 0x10093, [1])
     assert attr == "writable"
@@ -126,10 +131,27 @@ def test_every_type_round_trips_with_its_bytes(d, name, value, wire):
     assert type(obj.decode(bytes.fromhex(wire))) is type(value)
 
 
-def test_string_attribute_is_256_bytes_cp1252_nul_padded(d):
-    unit = d.by_name("TEMPC::coefficient").attribute("unit")  # "[µm/m]": µ is 0xB5 in CP1252
-    assert len(unit) == 256 and unit[:7] == b"[\xb5m/m]\0" and unit[7:] == bytes(249)
-    assert d.by_name("TEMPC::coefficient").decode_attribute("unit", unit) == "[µm/m]"
+def test_string_attribute_is_256_bytes_ascii_nul_padded(d):
+    """Issue 45 #10: a STRING on the wire is plain ASCII, which pyads (UTF-8) and
+    ads-client (CP1252) both decode: `[µm/m]` goes out as `[um/m]`."""
+    unit = d.by_name("TEMPC::coefficient").attribute("unit")
+    assert len(unit) == 256 and unit[:7] == b"[um/m]\0" and unit[7:] == bytes(249)
+    assert d.by_name("TEMPC::coefficient").decode_attribute("unit", unit) == "[um/m]"
+
+
+def test_a_string_is_ascii_and_cut_after_a_whole_word():
+    """Issue 45 #10 and #18: the emulator's characters spelled out (µ → u, … → ..., °
+    → deg, ≤ → <=), accents dropped, others `?`; a text longer than 255 characters is
+    cut after its last whole word and ends in `...` (before: cut mid-word)."""
+    assert string_bytes("0 … 100 µm/m, 20 °C, a ≤ b, é, 漢", 64).rstrip(b"\0") == (
+        b"0 ... 100 um/m, 20 degC, a <= b, e, ?"
+    )
+    words = " ".join(["word"] * 60)  # 299 characters: "word word … word"
+    out = string_bytes(words).rstrip(b"\0")
+    # room for 252 characters before "...": 50 words with the 49 spaces between them
+    # make 249, the 51st word would end at 254
+    assert out == b" ".join([b"word"] * 50) + b"..."
+    assert string_bytes("x" * 300) == b"x" * 252 + b"..." + b"\0"
 
 
 @pytest.mark.parametrize(

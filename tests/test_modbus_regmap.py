@@ -44,16 +44,17 @@ def code_of(fn, *args) -> int:
 
 def test_text_objects_own_128_registers_at_0x6000():
     """SIM::last_error (STRING, ID 9): registers 0x6000 + 128·9 = 0x6480 … 0x64FF, the
-    first 125 (one request) carry two CP1252 bytes each, first byte high, NUL-padded;
-    249 characters at most."""
+    first 125 (one request) carry two ASCII bytes each, first byte high, NUL-padded;
+    249 characters at most. µ is spelled u (issue 45 #10: plain ASCII on the wire)."""
     o = D.by_name("SIM::last_error")
     assert register_address(o) == 0x6480 and register_count(o) == 125
     assert MM.machine.registers[0x6480] == (o, 0) and MM.machine.registers[0x64FF] == (o, 127)
     assert MM.machine.registers[0x6500][0] is D.by_name("SIM::axis_names")  # ID 10
-    regs = encode(o, "ab\u00b5")  # µ is 0xB5 in CP1252
-    assert regs[:3] == [0x6162, 0xB500, 0] and len(regs) == 125
-    assert decode(o, regs) == "ab\u00b5"
-    assert encode(o, "x" * 300)[124] == 0x7800  # 249 characters and the NUL
+    regs = encode(o, "ab\u00b5")  # "abu": 0x61 0x62, 0x75 0x00
+    assert regs[:3] == [0x6162, 0x7500, 0] and len(regs) == 125
+    assert decode(o, regs) == "abu"
+    # 249 characters at most: a longer text ends in "..." (246 x and "...", then NUL)
+    assert encode(o, "x" * 300)[122:] == [0x7878, 0x2E2E, 0x2E00]
 
 
 @pytest.mark.parametrize(

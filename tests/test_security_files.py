@@ -51,8 +51,10 @@ D = load_dictionary()
 COM_GROUP, FILE_W, INDEX_W = 0x120100, 0x27C, 0x27D
 #: what a name that is not read is answered with, whatever it names
 REFUSAL = f"[990525] volumetric compensation 0: {REFUSED}"
-#: ... as SIM::last_error (a STRING(255)) says it after a refused 0x27C write
-LAST_ERROR = f"[990525] volcomp_update failed: {REFUSAL}: {REFUSAL}"[:255]
+#: ... as SIM::last_error (a STRING(255)) says it after a refused 0x27C write: cut
+#: after the last whole word that leaves room for "..." (docs/design.md, strings)
+_FULL = f"[990525] volcomp_update failed: {REFUSAL}: {REFUSAL}"
+LAST_ERROR = _FULL[: _FULL[:253].rindex(" ")] + "..."
 #: the first line of /etc/passwd on any Linux: it must never appear in an answer
 SECRET = "root:x:0:0:root:/root:/bin/bash"
 JSON = zenoh.Encoding.APPLICATION_JSON

@@ -415,7 +415,7 @@ def test_geo_client_by_address_reads_attribute_groups(server, capsys):
         "0x120400": "axis 1 (X) TEMPC::coefficient name = TEMPC::coefficient",
         "0x120500": "axis 1 (X) TEMPC::coefficient type = REAL64",
         "0x120600": "axis 1 (X) TEMPC::coefficient length = 8",
-        "0x120700": "axis 1 (X) TEMPC::coefficient unit = [µm/m]",
+        "0x120700": "axis 1 (X) TEMPC::coefficient unit = [um/m]",
         "0x120800": "axis 1 (X) TEMPC::coefficient writable = True",
     }
     for group, line in expected.items():

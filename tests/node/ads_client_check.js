@@ -34,6 +34,12 @@ async function main() {
   } catch (err) {
     out.badWrite = err.adsError ? err.adsError.errorCode : String(err);
   }
+  try {
+    await client.writeValue("GEO.X.TEMPC.coefficient", 20000);
+  } catch (err) {
+    // the refusal's text, as TwinCAT's clients decode a STRING (Windows-1252)
+    out.lastError = (await client.readValue("GEO.SIM.last_error")).value;
+  }
   const handle = await client.createVariableHandle("GEO.Y.TEMPC.coefficient");
   out.handle = { size: handle.size, dataType: handle.dataType };
   await client.writeRawByHandle(handle, Buffer.from(new Float64Array([12.5]).buffer));

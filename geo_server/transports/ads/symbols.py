@@ -32,7 +32,14 @@ import struct
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from geo_server.dictionary import GEO_AMS_PORT, GROUPS, DataType, Dictionary, ObjectDef
+from geo_server.dictionary import (
+    GEO_AMS_PORT,
+    GROUPS,
+    DataType,
+    Dictionary,
+    ObjectDef,
+    ascii_text,
+)
 from geo_server.errors import AdsError, AdsErrorCode
 
 #: Reserved index groups of the symbol and state services (AdsDef.h `ADSIGRP_*`).
@@ -93,9 +100,9 @@ def symbol_name(obj: ObjectDef, axis_name: str | None) -> str:
 
 
 def _enc(text: str) -> bytes:
-    """Symbol strings are CP1252, as every CNC string (TF5200) and as pyads and
-    ads-client decode them."""
-    return text.encode("cp1252", errors="replace")
+    """Symbol strings (names, types, comments) in plain ASCII, which pyads (UTF-8) and
+    ads-client (CP1252, as every CNC string, TF5200) decode alike (`ascii_text`)."""
+    return ascii_text(text).encode("ascii")
 
 
 def _strings(*texts: str) -> bytes:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
-from geo_server.dictionary import TYPES, Dictionary, ObjectDef, load_dictionary
+from geo_server.dictionary import TYPES, Dictionary, ObjectDef, load_dictionary, string_bytes
 from geo_server.errors import AdsError, AdsErrorCode, GeoError
 
 #: First address of the emulator group `0x12F300` (registers and bits).
@@ -200,8 +200,7 @@ def encode(obj: ObjectDef, value: Any) -> list[int]:
     """
     t = obj.type.name
     if t == "STRING":
-        text = str(value).encode("cp1252", errors="replace")[: 2 * TEXT_REGISTERS - 1]
-        raw = text.ljust(2 * TEXT_REGISTERS, b"\0")
+        raw = string_bytes(str(value), 2 * TEXT_REGISTERS)
     elif t == "REAL64":
         raw = struct.pack(_STRUCT[t], float(value))
     elif t == "BOOLEAN":

@@ -9,6 +9,7 @@ there is room, and never handed out twice by one process.
 
 from __future__ import annotations
 
+import os
 import random
 import socket
 import threading
@@ -18,6 +19,8 @@ from pathlib import Path
 #: piece of state here, a memo any thread may add to.
 _handed: set[int] = set()
 _lock = threading.Lock()
+#: The lowest port handed out (below the ephemeral range, where there is room).
+BELOW_EPHEMERAL_FROM = 20_000
 
 
 def ephemeral_range() -> tuple[int, int]:
@@ -30,15 +33,26 @@ def ephemeral_range() -> tuple[int, int]:
         return 49152, 65535
 
 
+def _span() -> tuple[int, int]:
+    """Where to look: `GEO_SERVER_PORT_SPAN` (`first-end`), a share of the ports that no
+    other process draws from (each test worker's: tests/conftest.py), else every port
+    from `BELOW_EPHEMERAL_FROM` up to the ephemeral range."""
+    text = os.environ.get("GEO_SERVER_PORT_SPAN", "")
+    first, _, end = text.partition("-")
+    if first.isdigit() and end.isdigit() and 1024 <= int(first) < int(end) <= 65_536:
+        return int(first), int(end)
+    return BELOW_EPHEMERAL_FROM, ephemeral_range()[0]
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port on `host` that was free a moment ago, for a server about to start
     (often in another process), never one this process handed out before."""
-    lo, _hi = ephemeral_range()
+    first, end = _span()
     rng = random.Random()
     with _lock:
-        if lo > 21_000:
+        if end - first > 1_000:
             for _ in range(200):
-                port = rng.randrange(20_000, lo)
+                port = rng.randrange(first, end)
                 if port not in _handed and _bindable(host, port):
                     _handed.add(port)
                     return port

@@ -47,6 +47,17 @@ def pytest_configure(config: pytest.Config) -> None:
     folder = jit.cache_dir()
     if folder is not None:
         os.environ["GEO_SERVER_JIT_CACHE"] = str(folder.parent)
+    # each pytest-xdist worker draws its servers' ports from a share of its own
+    # (`ports.free_port`), so that two workers never hand out the same port
+    worker, count = (
+        os.environ.get("PYTEST_XDIST_WORKER"),
+        os.environ.get("PYTEST_XDIST_WORKER_COUNT"),
+    )
+    if worker and count:
+        lo, hi = ports.BELOW_EPHEMERAL_FROM, ports.ephemeral_range()[0]
+        width = (hi - lo) // int(count)
+        first = lo + int(worker.removeprefix("gw")) * width
+        os.environ["GEO_SERVER_PORT_SPAN"] = f"{first}-{first + width}"
     # what `geo-server run` sets for its cycle thread (the suite is the composition root
     # of the machines its tests make: library code never changes it)
     sys.setswitchinterval(switch_interval(1))

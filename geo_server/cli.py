@@ -238,6 +238,9 @@ async def _serve(args: argparse.Namespace, service: ObjectService, scheduler: Cy
         program = ProgramReport(args.program, service) if args.program else None
         scheduler.start()
         next_status = loop.time() + args.status_period
+        # a line of its own when the compiled cycle takes over from the interpreted one
+        # a status line showed (issue 45 #17)
+        interpreted_seen = compiled_said = False
         while not stop.is_set():
             # With --cycles, look often whether the cycle thread has finished its cycles;
             # while recording, whether the trigger's samples are in (its file is due then)
@@ -266,6 +269,15 @@ async def _serve(args: argparse.Namespace, service: ObjectService, scheduler: Cy
                     flush=True,
                 )
                 continue
+            if st.get("compiled") and not compiled_said:
+                compiled_said = True
+                if interpreted_seen:  # (not when it started compiled: a warm fleet)
+                    print(
+                        f"cycle {st['cycle']}  the GEO cycle runs compiled now; its figures "
+                        "start again from here",
+                        flush=True,
+                    )
+            interpreted_seen = interpreted_seen or st.get("compiled") is False
             print(status_line(st) + (program.line() if program else ""), flush=True)
             if finished:
                 break

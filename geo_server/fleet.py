@@ -269,14 +269,18 @@ def _done(args: argparse.Namespace, served: list[Served]) -> bool:
 
 
 async def _load_compiled() -> None:
-    """`jit.load` off the loop; says so when it takes long (a cold cache compiles)."""
+    """`jit.load` off the loop; says so when it takes long: compiling (a cold cache) or
+    only loading the machine code from the cache (a warm one, on a busy host)."""
+    warm = await asyncio.to_thread(jit.cache_is_warm)
     loading = asyncio.ensure_future(asyncio.to_thread(jit.load))
     try:
         await asyncio.wait_for(asyncio.shield(loading), 2.0)
     except TimeoutError:
         print(
-            "compiling the GEO cycle (the first start after an installation or an update: "
-            "up to a minute; the machines' cycles start after it)",
+            "loading the compiled GEO cycle from its cache (the machines' cycles start after it)"
+            if warm
+            else "compiling the GEO cycle (the first start after an installation or an "
+            "update: up to a minute; the machines' cycles start after it)",
             flush=True,
         )
         await loading

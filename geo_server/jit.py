@@ -154,6 +154,13 @@ def on_load(warm_up: Callable[[], None]) -> None:
         warm_up()
 
 
+def cache_is_warm() -> bool:
+    """The cache holds machine code of these laws already: `load` reads it instead of
+    compiling (what a slow start is then waiting for: issue 45 #17)."""
+    folder = cache_dir()
+    return folder is not None and any(folder.glob("*.nbi"))
+
+
 def loaded() -> bool:
     """The machine code runs (else the laws run interpreted)."""
     return _loaded.is_set()
@@ -244,6 +251,7 @@ __all__ = [
     "MODULES",
     "Law",
     "cache_dir",
+    "cache_is_warm",
     "compiled",
     "load",
     "loaded",

@@ -119,3 +119,23 @@ def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
     with pytest.raises(cli.CycleStoppedError, match="after cycle 1"):
         asyncio.run(cli._serve(args, ObjectService(machine, sched), sched))
     sched.stop()
+
+
+def test_the_figures_start_again_when_the_compiled_cycle_takes_over(monkeypatch):
+    """Issue 45 #17: 300 interpreted cycles of 290 µs, then the machine code loads and
+    the cycles take 30 µs: the summary is of the compiled cycles alone (p50 30 µs, not
+    290 µs while the machine rests and computes few cycles), the count starts again."""
+    from geo_server import jit
+
+    state = {"loaded": False}
+    monkeypatch.setattr(jit, "loaded", lambda: state["loaded"])
+    stats = CycleStats(1000)
+    for _ in range(300):
+        stats.record(5.0, 290.0, 250.0)
+    assert stats.summary()["cycle_p50_us"] == 290.0
+    state["loaded"] = True
+    for _ in range(3):
+        stats.record(1.0, 30.0, 20.0)
+    s = stats.summary()
+    assert stats.count == 3
+    assert (s["cycle_p50_us"], s["kernel_p50_us"], s["lateness_max_us"]) == (30.0, 20.0, 1.0)

@@ -113,7 +113,11 @@ class CycleStats:
 
     Recorded from any thread (a catch-up's time is recorded by whichever thread asked:
     the loop, a Zenoh thread, a worker), so a record takes `_lock`; `summary` reads
-    without it (a ring slot being written shows its old or its new value)."""
+    without it (a ring slot being written shows its old or its new value).
+
+    The rings start again when the cycle's machine code takes over (`jit.loaded`): the
+    interpreted start-up cycles (≈300 µs) would otherwise stay in the figures for as long
+    as a machine at rest computes too few cycles to replace them (issue 45 #17)."""
 
     def __init__(self, size: int = 10_000) -> None:
         self.lateness = np.zeros(size)
@@ -122,9 +126,13 @@ class CycleStats:
         self.count = 0
         self.max_lateness = 0.0
         self._lock = threading.Lock()
+        self._compiled = jit.loaded()
 
     def record(self, lateness_us: float, cycle_us: float, kernel_us: float = 0.0) -> None:
         with self._lock:
+            if not self._compiled and jit.loaded():  # (figures of the compiled cycle only)
+                self._compiled = True
+                self.count, self.max_lateness = 0, 0.0
             i = self.count % len(self.lateness)
             self.lateness[i] = lateness_us
             self.cycle_time[i] = cycle_us
@@ -800,8 +808,9 @@ class Scheduler:
     def _cached_summary(self) -> dict[str, float]:
         """Percentiles cost ~1 ms of GIL time: recompute at most every 250 cycles."""
         count = self._summary[0]
-        if count < 0 or self.stats.count - count >= 250 or self.mode == "stepped":
-            self._summary = (self.stats.count, self.stats.summary())
+        n = self.stats.count  # (smaller than `count` once the rings started again)
+        if count < 0 or not 0 <= n - count < 250 or self.mode == "stepped":
+            self._summary = (n, self.stats.summary())
         return self._summary[1]
 
     def status(self) -> dict[str, Any]:

@@ -254,6 +254,23 @@ CASES = [
         CompKind.PLANE,
     ),
     (
+        # 000 p.44: without max_points each last index is at most 100, although 201 x 21
+        # points fit the default 10201
+        "plane.size",
+        3,
+        L(
+            "kw.crosscomp2.interval 10",
+            "kw.crosscomp2.last_index_master1 200",
+            "kw.crosscomp2.last_index_master2 20",
+            "kw.crosscomp2.master1_ax_nr 1",
+            "kw.crosscomp2.master2_ax_nr 2",
+        ),
+        70184,
+        4,
+        "kw.crosscomp2.last_index_master1",
+        CompKind.PLANE,
+    ),
+    (
         "plane.index",
         3,
         L(
@@ -303,6 +320,20 @@ CASES = [
         3,
         L(
             "kw.ssfk.max_points 3",
+            "kw.ssfk.interval 10",
+            "kw.ssfk.kw_nr_max 4",
+        ),
+        110218,
+        5,
+        "kw.ssfk.kw_nr_max",
+        CompKind.LEAD,
+    ),
+    (
+        # 000 p.57: kw_nr_max "must be smaller than" max_points: equal is refused too
+        "lead.size",
+        3,
+        L(
+            "kw.ssfk.max_points 4",
             "kw.ssfk.interval 10",
             "kw.ssfk.kw_nr_max 4",
         ),

@@ -195,8 +195,9 @@ CHECKS: tuple[Check, ...] = (
         "plane.size",
         _PL,
         70184,
-        "(last_index_master1+1)·(last_index_master2+1) > max_points (002 §3.2.1), or a "
-        "`table[j][i]` index beyond the last indices",
+        "(last_index_master1+1)·(last_index_master2+1) > max_points (002 §3.2.1); without "
+        "max_points a last index above 100 (000 p.44); or a `table[j][i]` index beyond the "
+        "last indices",
         _M000_PL,
     ),
     Check(
@@ -216,7 +217,13 @@ CHECKS: tuple[Check, ...] = (
         "`kopf.achs_nr` names no axis / disagrees with the start-up list",
         _M000_LE,
     ),
-    Check("lead.size", _LE, 110218, "`kw_nr_max` > `max_points`", _M000_LE),
+    Check(
+        "lead.size",
+        _LE,
+        110218,
+        "`kw_nr_max` >= `max_points` (must be smaller, 000 p.57)",
+        _M000_LE,
+    ),
     Check(
         "lead.bilateral",
         _LE,

@@ -37,6 +37,8 @@ PREFIX: dict[CompKind, str] = {
     CompKind.CROSSTALK: "kw.crosstalk.",
 }
 MAX_CROSSTALK_POINTS = 15  # 000 §4.6 "up to 15 measurement tests"
+#: Each plane last index without `max_points` ("the previous restrictions", 000 p.44)
+PLANE_LAST_INDEX_MAX = 100
 _PLANE_READ_LIMIT = 4_000_000  # grid points read into memory at most
 
 
@@ -191,13 +193,25 @@ def build_plane(values: Values, ctx: Ctx) -> PlaneComp | None:
     m2 = b.axis_ref("master2_ax_nr", "plane.missing", "plane.axis", slave_ok=True)
     if m1 and m1 == m2:
         b.fail("plane.axis", "both master axes are the same axis", b.entry("master2_ax_nr"))
-    max_points = int(b.get("max_points") or 10201)
+    given = int(b.get("max_points") or 0)  # 0 / missing: the default (002 §3.2.1)
+    max_points = given or 10201
     l1 = b.required("last_index_master1", "plane.missing")
     l2 = b.required("last_index_master2", "plane.missing")
     table = np.zeros((1, 1))
     if l1 is not None and l2 is not None and l1 >= 0 and l2 >= 0:
         points = (l1 + 1) * (l2 + 1)
-        if points > max_points:
+        # 000 p.44: without max_points "the previous restrictions apply": each last
+        # index at most 100 (a 201 x 21 table fits 10201 points, and is still refused)
+        over = [(k, v) for k, v in ((1, l1), (2, l2)) if v > PLANE_LAST_INDEX_MAX]
+        if not given and over:
+            k, v = over[0]
+            b.fail(
+                "plane.size",
+                f"last_index_master{k} {v} > {PLANE_LAST_INDEX_MAX}: without max_points "
+                f"each last index is at most {PLANE_LAST_INDEX_MAX} (000 p.44)",
+                b.entry(f"last_index_master{k}"),
+            )
+        elif points > max_points:
             msg = f"(last_index_master1+1)·(last_index_master2+1) = {points}"
             b.fail("plane.size", f"{msg} > max_points {max_points}", b.entry("last_index_master2"))
         if points <= _PLANE_READ_LIMIT:  # read even when too big, for the diagnostics
@@ -298,8 +312,9 @@ def _lsec_count(b: _Build, max_points: int) -> int | None:
     if not n:
         b.fail("lead.missing", "kw_nr_max missing or 0: no table", b.entry("kw_nr_max"))
         return None
-    if n > max_points:  # type: ignore[operator]
-        b.fail("lead.size", f"kw_nr_max {n} > max_points {max_points}", b.entry("kw_nr_max"))
+    if n >= max_points:  # type: ignore[operator]  # ("must be smaller", 000 p.57)
+        msg = f"kw_nr_max {n} must be smaller than max_points {max_points} (000 p.57)"
+        b.fail("lead.size", msg, b.entry("kw_nr_max"))
         return None
     return n if n > 0 else None  # type: ignore[operator, return-value]
 

@@ -200,3 +200,32 @@ def test_axis_exchange_syntax_errors(manual_machine, text, message):
     m, _ = manual_machine
     with pytest.raises(ValueError, match=re.escape(message)):
         m.start_program(text + "\nM30\n")
+
+
+def test_comp_on_switches_on_only_what_is_initialised(lists_copy: Path) -> None:
+    """Issue 45 #8, 000 §5.1-5.2 p.94-95: a compensation is active only once initialised
+    (enabled in the axis list, validly configured). X has no cross compensation
+    (`lr_param.crosscomp 0`): `X[COMP ON CROSS]` leaves CROSSC::activated FALSE. X's
+    temperature compensation is switched off by its list's error (n_cycles 25 is outside
+    0…20: 990271, `temp_comp` 0): `X[COMP ON TEMP]` leaves it off, its offset_0 (40, i.e.
+    4 µm) never output. Before: activated TRUE, and 40 + 4000e-6·(0 - position_0)
+    output. Neither is an error (the manual names one for friction only)."""
+    _edit(lists_copy.parent / "achsmd1.lis", "lr_param.temp_comp_n_cycles", "")
+    with (lists_copy.parent / "achsmd1.lis").open("a", encoding="utf-8") as f:
+        f.write("lr_param.temp_comp_n_cycles 25\n")
+    cfg = load_machine(lists_copy)
+    assert [d.error_id for d in cfg.diagnostics if d.axis == X] == [990271]
+    m = Machine(cfg, homed=True)
+    svc = ObjectService(m)
+    m.step(5)
+    prog = "N10 X[COMP ON CROSS TEMP]\nN20 G04 0.05\nN30 M30\n"
+    reads = [
+        ("CROSSC::activated", X),
+        ("TEMPC::activated", X),
+        ("TEMPC::actual_offset", X),
+    ]
+    rows = _run(m, svc, prog, reads)
+    assert rows[-1]["error"] is None
+    assert all(r["CROSSC::activated@1"] is False for r in rows)
+    assert all(r["TEMPC::activated@1"] is False for r in rows)
+    assert all(r["TEMPC::actual_offset@1"] == 0 for r in rows)

@@ -202,9 +202,9 @@ def test_axis_exchange_syntax_errors(manual_machine, text, message):
         m.start_program(text + "\nM30\n")
 
 
-def test_comp_on_switches_on_only_what_is_initialised(lists_copy: Path) -> None:
-    """Issue 45 #8, 000 §5.1-5.2 p.94-95: a compensation is active only once initialised
-    (enabled in the axis list, validly configured). X has no cross compensation
+def test_comp_on_switches_on_only_what_the_axis_list_enables(lists_copy: Path) -> None:
+    """Issue 45 #8, 000 p.35 and §5.1 p.94: COMP ON selects a compensation the axis list
+    enables ("activated (selected) via" its parameter). X has no cross compensation
     (`lr_param.crosscomp 0`): `X[COMP ON CROSS]` leaves CROSSC::activated FALSE. X's
     temperature compensation is switched off by its list's error (n_cycles 25 is outside
     0…20: 990271, `temp_comp` 0): `X[COMP ON TEMP]` leaves it off, its offset_0 (40, i.e.

@@ -770,17 +770,18 @@ class Machine:
         """COMP ON/OFF (manual §5.1). Returns 70495 for `COMP ON FRICT` without
         `lr_param.frict_comp` (000 p.73), else 0.
 
-        COMP ON switches on only compensations that are initialised (`initialised`, 000
-        §5.2 p.95: enabled in the axis list and validly configured): a compensation is
-        active only once initialised, so `COMP ON CROSS` on an axis without cross
-        compensation leaves `CROSSC::activated` FALSE, and a temperature compensation
-        its list's error switched off (990271) stays off, its `offset_0` not output.
-        The manual names an error for friction only; the others change nothing."""
+        COMP ON switches on only compensations the axis list enables (`_listed`: what
+        `*::activated` reads, "activated (selected) via" the axis parameter, 000 p.35;
+        a list error clears the parameter, 000 §2.4): `COMP ON CROSS` on an axis
+        without cross compensation leaves `CROSSC::activated` FALSE, and a temperature
+        compensation its list's error switched off (990271) stays off, its `offset_0`
+        not output. The manual names an error for friction only; the others change
+        nothing."""
         params = self.cfg.axes[self.axes[slot]].params
         if on and kinds & CompKind.FRICT and not params.frict_comp:
             return CncErrorId.FRICT_NOT_SELECTED
         if on:
-            kinds &= self.initialised(slot)
+            kinds &= _listed(params)
         for kind in COMP_ORDER:
             if kinds & kind:
                 self.kernel.set_selected(slot, kind, on)

@@ -698,6 +698,26 @@ def test_friction_position_delay_buildup(kernel_cls: type) -> None:
 
 
 @pytest.mark.parametrize("kernel_cls", KERNELS)
+def test_friction_builds_up_from_standstill(kernel_cls: type) -> None:
+    """Issue 45 #3, 000 p.76 (P-COMP-00043 "distance over which the motor current is
+    built up during start-up"): after a standstill, a start in the same direction (no
+    reversal) builds the current up over position_delay 30 like a reversal does, 10
+    units of path per cycle: 1/3, 2/3, then all of 3722 (before: all of it at once)."""
+    d = Drive(kernel_cls, frict_machine(position_delay=30))
+    d.vel[0] = 3160.0
+    d.step()
+    assert d.k.friction_current[0] == pytest.approx(3722.0)
+    d.vel[0] = 0.0  # standstill: no current
+    d.step()
+    assert d.k.friction_current[0] == 0.0
+    d.vel[0] = 3160.0  # the same direction again
+    for k, w in ((1, 10 / 30), (2, 20 / 30), (3, 1.0), (4, 1.0)):
+        d.pos[0] += 10.0
+        d.step()
+        assert d.k.friction_current[0] == pytest.approx(3722.0 * w), k
+
+
+@pytest.mark.parametrize("kernel_cls", KERNELS)
 def test_friction_delay_cycles(kernel_cls: type) -> None:
     d = Drive(kernel_cls, frict_machine(delay_cycles=3))
     values = [3160.0, 3160.0, -3160.0, 0.0, 3160.0, 3160.0, 3160.0, 0.0]

@@ -2,8 +2,10 @@
 
 The value a cycle writes into the axis' delay line is sign(v)·scaling_factor/1000·
 table(|v|) (|v| in µm/s), weighed before a known reversal by r/(lookahead + 1) for the r
-cycles left (0 ≤ r ≤ lookahead) and after it by min(1, path since the reversal /
-position_delay); the axis gets the value written `delay_cycles` ago (< `RING`).
+cycles left (0 ≤ r ≤ lookahead) and after it, or after a standstill ("the motor current
+is built up during start-up", 000 p.76), by min(1, path since the reversal or the
+standstill / position_delay); the axis gets the value written `delay_cycles` ago (<
+`RING`).
 """
 
 from __future__ import annotations

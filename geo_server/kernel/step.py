@@ -323,8 +323,9 @@ def step(
             # a bilateral LSEC (its own table per direction) reverses (P-AXIS-00243)
             B7[EVENT, i, LEAD] = True
         _filter(i, LEAD, F7, B7, I7, weights)
-        # friction's path since the last reversal
-        if rev:
+        # friction's path since the last reversal or standstill: its current builds up
+        # over position_delay after either ("during start-up", 000 p.76-77)
+        if rev or s == 0.0:
             F1[PATH, i] = 0.0
         F1[PATH, i] += abs(pos[i] - (pos[i] if first else F1[POSP, i]))
         _friction(i, F7, B7, F1, P, IP, ring, wpos, tab, v, rev_in[i])

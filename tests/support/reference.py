@@ -461,8 +461,9 @@ class ReferenceKernel:
             if look > 0 and 0 <= rev_in <= look:
                 w_pre = rev_in / (look + 1)
             cur = base * w_pre
-        # after the zero crossing: weighted by path since the reversal (position_delay)
-        if reversal:
+        # after the zero crossing, and from standstill ("built up during start-up", 000
+        # p.76): weighted by the path since the reversal or the standstill
+        if reversal or vel[i] == 0.0:
             self._path[i] = 0.0
         self._path[i] += abs(pos[i] - prev_pos)
         if eff[FRICT] and ax.frict.position_delay > 0:

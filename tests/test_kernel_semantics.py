@@ -636,6 +636,36 @@ def test_crosstalk_filter_on_activation(kernel_cls: type) -> None:
         assert d.k.actual[1, XT] == pytest.approx(25 * sin2(k, 4), abs=1e-9)
 
 
+@pytest.mark.parametrize("kernel_cls", KERNELS)
+def test_crosstalk_values_are_smoothed_while_active(kernel_cls: type) -> None:
+    """Issue 45 #4, 000 p.83 ("these compensation values can be smoothed by using a
+    sine-square filter", order n_cycles 4): with the compensation on and settled at
+    25·0.2 = 5 (a = 2000 mm/s² of the reference 10000), the master's acceleration steps
+    to 10000 mm/s²: the output follows 5 + 20·sin²(πk/8), k = 1…4, and does not jump to
+    25 (before: only switching on and off was smoothed). A ramp of the target is the
+    sum of the steps it makes: at k = 1…3 the target 5 + 5k gives the output
+    5 + Σ_j 5·sin²(π(k − j)/8), j = 0…k−1."""
+    xt = mode1()
+    xt.n_cycles = 4
+    d = Drive(kernel_cls, xt_machine(xt))
+    d.vel[0], d.acc[0] = 100.0, 2000 * MM
+    d.step(6)  # switched on at the first cycle, settled after 4
+    assert d.k.actual[1, XT] == pytest.approx(5.0)
+    d.acc[0] = 10000 * MM
+    for k in range(1, 6):
+        d.step()
+        assert d.k.target[1, XT] == pytest.approx(25.0)
+        assert d.k.actual[1, XT] == pytest.approx(5 + 20 * sin2(min(k, 4), 4), abs=1e-9), k
+    d.acc[0] = 2000 * MM
+    d.step(4)
+    assert d.k.actual[1, XT] == pytest.approx(5.0)
+    for k in range(1, 4):
+        d.acc[0] = (2000 + 2000 * k) * MM  # the target 25·a/10000 = 5 + 5k
+        d.step()
+        want = 5 + sum(5 * sin2(k - j, 4) for j in range(k))
+        assert d.k.actual[1, XT] == pytest.approx(want, abs=1e-9), k
+
+
 # --------------------------------------------------------------------------- friction
 
 

@@ -45,6 +45,7 @@ from geo_server.kernel.layout import (
     EFF,
     FIRST,
     HELD,
+    HIST,
     HOME1,
     HOME2,
     KIDX,
@@ -214,6 +215,9 @@ class Kernel:
         self.I7[NCYC] = ncyc
         k = self.I7[KIDX]
         np.copyto(k, ncyc) if idle else np.minimum(k, ncyc, out=k)
+        # crosstalk's filter goes on from its present output (a new order reads no
+        # targets an older load left behind)
+        self.F7[HIST:, :, CROSSTALK] = self.F7[ACT, :, CROSSTALK]
 
     def _configured(self, axes: list[AxisConfig], rows: Rows) -> None:
         c = self.configured

@@ -21,7 +21,11 @@ from __future__ import annotations
 
 # ---- F7: [n, 7] float blocks
 ACT, TGT, PREV, DELTA, JUMP = range(5)
-NF7 = 5
+#: crosstalk: its last targets, HIST the latest (000 p.83: its values pass the sin²
+#: filter, of order n_cycles <= XT_ORDER_MAX, 000 p.87); in column CROSSTALK only
+HIST = 5
+XT_ORDER_MAX = 20
+NF7 = HIST + XT_ORDER_MAX
 
 # ---- B7: [n, 7] boolean blocks
 EFF, SEL, HELD, PRE, PEND, EVENT, CONF = range(7)

@@ -40,6 +40,7 @@ from geo_server.kernel.layout import (
     FR_SCALE,
     FR_T,
     HELD,
+    HIST,
     HOME1,
     HOME2,
     INIT_DIR,
@@ -219,6 +220,35 @@ def _filter(
 
 
 @compiled
+def _smooth(i: int, F7: np.ndarray, B7: np.ndarray, I7: np.ndarray, weights: np.ndarray) -> None:
+    """Crosstalk's sin² filter of order N = n_cycles (000 p.83: "these compensation
+    values can be smoothed by using a sine-square filter"; P-COMP-00064 p.87): the last
+    N targets weighed by the steps of the sin² ramp, w(j) − w(j+1) with w(j) =
+    cos²(π·j/(2N)). A step of the target, as at switching on or off, becomes the ramp
+    A·sin²(π·k/(2N)) of the other columns' filter; every later change of the values is
+    smoothed the same way (before, only switching was). k counts the cycles since the
+    target last changed (N: settled, the machine may rest). A held column (COMP …
+    NO_MOVE) keeps its previous output, and the filter sees that output: released, it
+    ramps from there to the target."""
+    c = CROSSTALK
+    n = I7[NCYC, i, c]
+    target = F7[PREV, i, c] if B7[HELD, i, c] else F7[TGT, i, c]
+    if B7[EVENT, i, c] or target != F7[HIST, i, c]:
+        I7[KIDX, i, c] = 0
+    I7[KIDX, i, c] = min(I7[KIDX, i, c] + 1, n)
+    for j in range(n - 1, 0, -1):
+        F7[HIST + j, i, c] = F7[HIST + j - 1, i, c]
+    F7[HIST, i, c] = target
+    out = target
+    if n > 1:
+        w = I7[WOFF, i, c]
+        out = 0.0
+        for j in range(n):
+            out += (weights[w + j] - weights[w + j + 1]) * F7[HIST + j, i, c]
+    F7[ACT, i, c] = F7[PREV, i, c] if B7[HELD, i, c] else out
+
+
+@compiled
 def _lsec(
     i: int,
     F7: np.ndarray,
@@ -316,8 +346,9 @@ def step(
             F7[PREV, i, c] = F7[ACT, i, c]
         _effective(i, B7, I7, B1, homed, rev)
         _targets(i, F7, F1, P, IP, B7, tab, pos, vel, acc)
-        for c in (BC, TEMP, CROSS, PLANE, CROSSTALK):
+        for c in (BC, TEMP, CROSS, PLANE):
             _filter(i, c, F7, B7, I7, weights)
+        _smooth(i, F7, B7, I7, weights)
         _lsec(i, F7, B7, F1, P, IP, tab, pos)
         if rev and B7[EFF, i, LEAD] and IP[LS_NEG, i] != IP[LS_POS, i]:
             # a bilateral LSEC (its own table per direction) reverses (P-AXIS-00243)

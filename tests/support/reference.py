@@ -258,6 +258,7 @@ class ReferenceKernel:
         self.drive_enabled = np.ones(n, dtype=bool)
         self._tempc = [[float(getattr(ax.p, a)) for a in TEMPC_ATTRS] for ax in self._axes]
         self._path = [math.inf] * n  # path travelled since the last reversal (friction)
+        self._hist: list[list[float]] = [[] for _ in range(n)]  # crosstalk's last targets
         self._prev_pos: list[float] | None = None
         self._ring = [[0.0] * 249 for _ in range(n)]  # friction delay line (delay < 249)
         self._ring_pos = 0
@@ -325,6 +326,8 @@ class ReferenceKernel:
             for f, value in values:
                 self._tempc[i][f] = value
             self._event[i] = [True] * 7
+            # crosstalk's filter goes on from its present output
+            self._hist[i] = [float(self.actual[i, CROSSTALK])] * 20
 
     # ------------------------------------------------------------------ the cycle
 
@@ -423,7 +426,11 @@ class ReferenceKernel:
         out = [0.0] * 7
         held = [bool(v) for v in self.held[i]]
         for c in (BC, TEMP, CROSS, PLANE, CROSSTALK):
-            out[c] = self._filter(i, c, ax.n_cycles[c], tgt[c], prev_out[c], ev[c])
+            if c == CROSSTALK:  # (held: the filter sees the held output)
+                seen = prev_out[c] if held[c] else tgt[c]
+                out[c] = self._smooth(i, ax.n_cycles[c], seen)
+            else:
+                out[c] = self._filter(i, c, ax.n_cycles[c], tgt[c], prev_out[c], ev[c])
             if held[c]:  # COMP … NO_MOVE: the offset waits for the axis' next motion
                 out[c] = prev_out[c]
 
@@ -493,6 +500,18 @@ class ReferenceKernel:
         self._k[i][c] = min(self._k[i][c] + 1.0, float(n))
         k = self._k[i][c]
         return target - self._jump[i][c] * math.cos(math.pi * k / (2 * n)) ** 2
+
+    def _smooth(self, i: int, n: int, target: float) -> float:
+        """Crosstalk's values through a sin² filter of order n (000 p.83): the last n
+        targets (none before the first cycle: 0; the held output while the column is
+        held) weighed by the steps of the sin² ramp, cos²(πj/(2n)) − cos²(π(j+1)/(2n))."""
+        hist = self._hist[i]
+        hist.insert(0, target)
+        del hist[max(n, 1) :]
+        if n <= 1:
+            return target
+        w = [math.cos(math.pi * j / (2 * n)) ** 2 for j in range(n + 1)]
+        return sum((w[j] - w[j + 1]) * (hist[j] if j < len(hist) else 0.0) for j in range(n))
 
     def _plane(self, ax: _Axis, pos: list[float]) -> float:
         """Bilinear over table[j][i], j = master 2, i = master 1; clamp outside

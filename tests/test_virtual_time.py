@@ -342,6 +342,31 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     assert m.overruns == 1 and sched.skipped > 0
 
 
+def test_while_interpreted_a_catch_up_computes_a_twentieth_of_a_second(cfg, monkeypatch) -> None:
+    """While the cycle still runs interpreted, one catch-up computes at most 0.05 s of
+    cycles (50 of 1 ms): a moving machine 0.2 s behind gives the cycles up (one overrun)
+    instead of holding the engine for 200 interpreted cycles, longer than a write waits
+    for it on a busy host (before: a second of cycles, and a write right after the
+    start was refused 0x707). Compiled, the same lag is computed."""
+    from geo_server import jit
+
+    loaded = [False]
+    monkeypatch.setattr(jit, "loaded", lambda: loaded[0])
+    # (cycles computed, overruns, cycles given up): 199 of the 200 given up, the time
+    # line slipped by them (the machine's count is of computed cycles)
+    for compiled, outcome in ((False, (3, 1, 199)), (True, (202, 0, 0))):
+        loaded[0] = compiled
+        vc, m, sched = driven(cfg)
+        assert sched.max_lag == (1000 if compiled else 50)
+        m.submit(WriteObjects((("SIM::target_position", 1, 1_000_000.0),)))
+        vc.t += 2 * P
+        sched.sync()
+        assert not m.quiescent
+        vc.t += 200 * P
+        sched.sync()
+        assert (m.cycle, m.overruns, sched.skipped) == outcome
+
+
 @pytest.mark.realtime
 def test_a_machine_at_rest_wakes_every_second_compiled_every_tenth_interpreted(
     cfg, monkeypatch

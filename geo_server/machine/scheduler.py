@@ -80,6 +80,10 @@ IDLE_WAKE_PROCESS = 0.1
 #: compiler holds the interpreter lock, and a request (or the stall watch) arriving
 #: meanwhile would wait for it, up to `SYNC_WAIT`
 IDLE_WAKE_INTERPRETED = 0.1
+#: exact engine: the most cycle time one catch-up computes while the cycle runs
+#: interpreted, before the time line slips (`Scheduler.max_lag`): 50 interpreted cycles
+#: take about 15 ms, well inside `SYNC_WAIT` also on a host several times as busy
+INTERPRETED_LAG_S = 0.05
 #: exact engine: the most cycles computed to let a standing machine become quiescent
 #: (a ramp runs out) before a long catch-up would give its cycles up (`_reachable`)
 SETTLE_CYCLES = 64
@@ -653,7 +657,14 @@ class Scheduler:
     @property
     def max_lag(self) -> int:
         """Cycles the exact engine computes in one catch-up before it calls it an overrun
-        (a stall of the host, not a batch): at least a second of cycles."""
+        (a stall of the host, not a batch): at least a second of cycles. While the cycle
+        still runs interpreted (its first seconds, `jit.loaded`) only `INTERPRETED_LAG_S`
+        of cycles: an interpreted cycle (≈300 µs, several times that on a loaded host)
+        can be slower than the period, and a catch-up of a second of them held the engine
+        for longer than a request waits for it (`SYNC_WAIT`), so a write right after the
+        start was refused 0x707 ("busy catching up"; CI, next to busy processes)."""
+        if not jit.loaded():
+            return max(self.max_catchup, round(INTERPRETED_LAG_S / self.machine.cycle_s))
         return max(self.max_catchup, 10 * self.batch, round(1.0 / self.machine.cycle_s))
 
     def _next_wake(self, now: int) -> int:

@@ -138,7 +138,11 @@ def member(
     """The machine `name` of a fleet file (clients: its NetId and Modbus port). Where the
     file leaves them out they count from `base_netid` / `base_port`, which must be the
     server's `--ads-netid` / `--modbus-port`."""
-    for m in load_fleet(path, base_netid, base_port):
+    members = load_fleet(path, base_netid, base_port)
+    for m in members:
         if m.name == name:
             return m
-    raise FleetError(f"{path}: no machine named {name!r}")
+    names = ", ".join(m.name for m in members[:20]) + (", …" if len(members) > 20 else "")
+    raise FleetError(
+        f"{path}: no machine named {name!r} (machines: {names}; choose with --machine)"
+    )

@@ -299,6 +299,22 @@ def test_every_machine_on_every_transport_by_name(fleet) -> None:
     assert "lathe-b" in r.stdout and str(before + 77) in r.stdout
     r = client(fleet, "--via", "ads", "--machine", "drill-c", "read", "TEMPC::offset_0")
     assert r.returncode == 2 and "no machine named 'drill-c'" in r.stderr
+    # issue 45 #16: a client that names no machine is told the fleet's names, the same
+    # on every transport (before: Modbus and ADS answered for the first machine)
+    for via in ("zenoh", "ads", "modbus"):
+        r = client(fleet, "--via", via, "read", "TEMPC::offset_0")
+        told = "no machine named 'local' (machines: mill-a, lathe-b; choose with --machine)"
+        assert r.returncode == 2 and told in r.stderr, (via, r.stderr)
+    # ... and over Zenoh without the fleet file, the machines alive on the network
+    r = subprocess.run(
+        [str(BIN / "geo-client"), "--connect", f"tcp/127.0.0.1:{fleet['zport']}"]
+        + ["--timeout", "1", "read", "TEMPC::offset_0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode != 0
+    assert "no machine named 'local'; machines alive: lathe-b, mill-a" in r.stderr, r.stderr
     assert "fleet: 2 machines, cycles" in fleet["out"].read_text()
 
 

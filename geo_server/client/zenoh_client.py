@@ -175,10 +175,26 @@ class ZenohClient(ObjectClient):
         if not out:
             chosen = f" from Zenoh session {self.server_id}" if self.server_id else ""
             raise TimeoutError(
-                f"no reply for {key}{chosen} within {wait} s (is the server "
-                f"running with machine name {self.machine!r}?)"
+                f"no reply for {key}{chosen} within {wait} s ({self._who_answers(wait)})"
             )
         return out
+
+    def _who_answers(self, wait: float) -> str:
+        """Why a get went unanswered, as far as Zenoh tells: the machines whose servers
+        are alive on this network (their liveliness tokens `cnc/<name>/alive`), so that
+        a client of a fleet started without --machine learns the names (issue 45 #16)."""
+        names = set()
+        for reply in self.session.liveliness().get("cnc/*/alive", timeout=min(wait, 1.0)):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 3:
+                    names.add(parts[1])
+        if not names:
+            return f"is a server running with machine name {self.machine!r}?"
+        listed = ", ".join(sorted(names)[:20]) + (", …" if len(names) > 20 else "")
+        return (
+            f"no machine named {self.machine!r}; machines alive: {listed} (choose with --machine)"
+        )
 
     def _one(self, key: str, payload: bytes | None = None, encoding: Any = None) -> bytes:
         return self.get(key, payload, encoding)[0][1]

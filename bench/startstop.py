@@ -9,7 +9,7 @@ signal often lands while the cycle compiles.
 
     python bench/startstop.py [--starts 200] [--cold-every 20] [--seed 1]
 
-Accepted exit codes: 0 (stopped), 130 (Ctrl-C before it served: `cli.EXIT_INTERRUPTED`),
+Accepted exit codes: 0 (stopped), 130 (Ctrl-C before it served: `entry.EXIT_INTERRUPTED`),
 and -2 or -15 (SIGINT or SIGTERM while Python was still importing, before any handler was
 installed: the signal's default action; a shell shows 130 and 143). Anything
 else — above all -6 (SIGABRT) — is listed with the start's output. Exit status 0 when

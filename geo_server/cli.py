@@ -22,6 +22,7 @@ from geo_server import __version__
 from geo_server.aio import wait_set
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
+from geo_server.entry import EXIT_INTERRUPTED
 from geo_server.interfaces import CycleStoppedError, inject_faults, serve
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
@@ -561,10 +562,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     return int(args.func(args))
-
-
-#: `geo-server`'s exit code when Ctrl-C comes before the server serves (128 + SIGINT)
-EXIT_INTERRUPTED = 130
 
 
 def entry() -> None:

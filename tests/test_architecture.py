@@ -60,6 +60,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
     (7, ("geo_server.compose",)),  # the composition root: machine, engine, service
     (7, ("geo_server.opcua_run",)),  # `run`'s OPC UA options, certificate folder
+    (7, ("geo_server.entry",)),  # console scripts: import their program inside a try
     (8, ("geo_clients",)),
 ]
 #: What a transport may import outside its own package.

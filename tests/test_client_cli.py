@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from conftest import free_port, run_in
@@ -231,3 +232,50 @@ def test_status_shows_what_the_engine_did():
     )
     punctual = {**st, "engine": "punctual", "lateness_p50_us": 12.0, "lateness_p99_us": 80.6}
     assert status_lines(punctual)[1].startswith("lateness p50 12 µs p99 81 µs max 0 µs  ")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="reads /proc/<pid>/maps")
+@pytest.mark.parametrize("library", ["numpy", "zenoh", "connected"])
+def test_ctrl_c_while_starting_is_one_line_and_130(library: str) -> None:
+    """Issue 45 #18: Ctrl-C while `geo-client` starts — while Python loads numpy, or
+    Zenoh, or once it waits for a server that accepted its connection and says nothing
+    — ends it with the one line `interrupted` and status 130 (before: a traceback of 31
+    lines when it came during the imports). The moment is observed, not slept for: the
+    library's shared object in the process' memory map, or the connection accepted."""
+    import contextlib
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        where = f"tcp/127.0.0.1:{listener.getsockname()[1]}"
+        script = Path(sys.executable).with_name("geo-client")
+        proc = subprocess.Popen(
+            [str(script), "--connect", where, "--timeout", "30", "read", "TEMPC::coefficient"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        maps = Path(f"/proc/{proc.pid}/maps")
+        deadline = time.monotonic() + 60
+        held = []
+        while time.monotonic() < deadline and proc.poll() is None:
+            if library == "connected":
+                listener.settimeout(0.01)
+                with contextlib.suppress(TimeoutError):
+                    held.append(listener.accept()[0])  # (the probe's, then Zenoh's)
+                if len(held) >= 2:
+                    break
+            elif library in maps.read_text():
+                break
+            time.sleep(0.001)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+        for conn in held:
+            conn.close()
+    assert (proc.returncode, err, out) == (130, "interrupted\n", "")

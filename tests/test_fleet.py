@@ -307,8 +307,11 @@ def test_every_machine_on_every_transport_by_name(fleet) -> None:
         assert r.returncode == 2 and told in r.stderr, (via, r.stderr)
     # ... and over Zenoh without the fleet file, the machines alive on the network
     r = subprocess.run(
-        [str(BIN / "geo-client"), "--connect", f"tcp/127.0.0.1:{fleet['zport']}"]
-        + ["--timeout", "1", "read", "TEMPC::offset_0"],
+        [
+            str(BIN / "geo-client"),
+            *("--connect", f"tcp/127.0.0.1:{fleet['zport']}", "--timeout", "1"),
+            *("read", "TEMPC::offset_0"),
+        ],
         capture_output=True,
         text=True,
         timeout=60,

@@ -4,8 +4,8 @@ loop until killed.
 Imports geo-server once, then, per line `go` on stdin, forks a worker that builds the
 default machine (stepped) with the recordings folder argv[1], prints `ready <pid>`, and
 then records `*` into `golden.csv` with `overwrite` — argv[2] cycles, stop (the rest
-written, the file replaced), again — as fast as it can, until the parent kills it with
-SIGKILL. The zygote reaps the worker and prints `dead <signal>`.
+written, the file replaced, `replaced` printed), again — as fast as it can, until the
+parent kills it with SIGKILL. The zygote reaps the worker and prints `dead <signal>`.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ def worker(folder: str, rows: int) -> None:
         service.recordings.start({"objects": ["*"]}, "golden.csv", "kill", overwrite=True)
         access.step(service, rows)
         service.recordings.stop()
+        print("replaced", flush=True)  # (the parent may wait for one before its kill)
     os._exit(0)
 
 

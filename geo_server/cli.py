@@ -8,7 +8,6 @@ import contextlib
 import csv
 import io
 import json
-import logging
 import os
 import secrets
 import shutil
@@ -22,7 +21,7 @@ from geo_server import __version__
 from geo_server.aio import wait_set
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
-from geo_server.entry import EXIT_INTERRUPTED
+from geo_server.entry import EXIT_INTERRUPTED, exit_now
 from geo_server.interfaces import CycleStoppedError, inject_faults, serve
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
@@ -586,15 +585,7 @@ def entry() -> None:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         if isinstance(exc.code, str):
             print(exc.code, file=sys.stderr)
-    _exit_now(code)
-
-
-def _exit_now(code: int) -> None:
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    os._exit(code)
+    exit_now(code)
 
 
 if __name__ == "__main__":

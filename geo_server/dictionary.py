@@ -103,16 +103,43 @@ def ascii_text(text: str) -> str:
 
 
 def string_bytes(text: str, size: int = STRING_LENGTH) -> bytes:
-    """`text` as a STRING of `size` bytes on the wire: ASCII (`ascii_text`), NUL-ended
-    and padded; a longer text is cut after a whole word and ends in `...` (issue 45 #18:
-    never mid-word)."""
+    """`text` as a STRING of `size` bytes the server sends: ASCII (`ascii_text`),
+    NUL-ended and padded. A longer text is cut and ends in `...`: after its last whole
+    word when one ends in the second half of the room (issue 45 #18: before, always
+    mid-word), else at the room's end (a long path or a run without blanks)."""
+    if size <= 0:
+        return b""
     s = ascii_text(text)
     limit = size - 1
     if len(s) > limit:
         room = limit - 3
-        cut = s.rfind(" ", 0, room + 1)
-        s = s[: cut if cut > room // 2 else room].rstrip() + "..."
+        if room <= 0:
+            s = s[:limit]
+        else:
+            cut = s.rfind(" ", 0, room + 1)
+            s = s[: cut if cut > room // 2 else room].rstrip() + "..."
     return s.encode("ascii").ljust(size, b"\0")
+
+
+def written_string(name: str, text: str, size: int = STRING_LENGTH) -> bytes:
+    """`text` as a STRING of `size` bytes a client writes: CP1252, as TwinCAT's strings
+    (a file name keeps its `ü`), NUL-padded; 0x706 for a character CP1252 lacks or a
+    text longer than `size` − 1 bytes (never cut: a path cut short names another file)."""
+    try:
+        raw = text.encode("cp1252")
+    except UnicodeEncodeError as exc:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDDATA,
+            f"{name}: {text[exc.start : exc.end]!r} is not a CP1252 character",
+            name,
+        ) from None
+    if len(raw) > size - 1:
+        raise AdsError(
+            AdsErrorCode.DEVICE_INVALIDDATA,
+            f"{name}: a text of {len(raw)} bytes is longer than {size - 1}",
+            name,
+        )
+    return raw.ljust(size, b"\0")
 
 
 #: The highest logical axis number (docs/design.md §2.1: the index offset's high word).
@@ -299,11 +326,19 @@ class ObjectDef:
     # ------------------------------------------------------------------ value codec
 
     def encode(self, value: Any) -> bytes:
-        """Encode a Python value as ADS bytes (little-endian); checks type and range."""
+        """Encode a Python value as ADS bytes (little-endian) to write it; checks type
+        and range (a STRING in CP1252, whole: `written_string`)."""
         v = self.coerce(value)
         if self.type.name == "STRING":
-            return string_bytes(str(v))
+            return written_string(self.name, str(v))
         return struct.pack("<" + self.type.code, v)
+
+    def encode_reply(self, value: Any) -> bytes:
+        """The ADS bytes the server sends for a value: as `encode`, but a STRING in plain
+        ASCII, cut to fit (`string_bytes`: what pyads and ads-client both decode)."""
+        if self.type.name == "STRING":
+            return string_bytes(str(value))
+        return self.encode(value)
 
     def decode(self, data: bytes) -> Any:
         """Decode ADS bytes; wrong length -> 0x705, invalid BOOLEAN/NaN -> 0x706. A

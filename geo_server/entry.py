@@ -8,6 +8,9 @@ interpreter's own start-up.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import sys
 
 #: The exit status of a program stopped by Ctrl-C (128 + SIGINT), as shells report it.
@@ -24,4 +27,17 @@ def client() -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         code = EXIT_INTERRUPTED
-    sys.exit(code)
+    exit_now(code)
+
+
+def exit_now(code: int) -> None:
+    """End the process at once, its output flushed, without the interpreter's
+    finalization: that unwinds the stack of every thread still in the interpreter, and
+    one inside Rust or C++ code (a Zenoh thread, LLVM compiling) then aborts the
+    process (SIGABRT, `FATAL: exception not rethrown`) — as after a Ctrl-C that came
+    while Zenoh opened its session."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)

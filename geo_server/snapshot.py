@@ -122,7 +122,7 @@ class Snapshot:
 
     def encode(self, obj: ObjectDef, axis: int) -> bytes:
         """ADS bytes of `obj` for `axis`, as they were at the end of this cycle."""
-        return self.kept("ads", obj, axis, lambda: obj.encode(self.value(obj, axis)))
+        return self.kept("ads", obj, axis, lambda: obj.encode_reply(self.value(obj, axis)))
 
     def kept(self, form: str, obj: ObjectDef, axis: int, make: Callable[[], bytes]) -> bytes:
         """`make()`: the value of `obj` for `axis` in the form `form` ("ads" bytes, an

@@ -56,7 +56,8 @@ def pytest_configure(config: pytest.Config) -> None:
     if worker and count:
         lo, hi = ports.BELOW_EPHEMERAL_FROM, ports.ephemeral_range()[0]
         width = (hi - lo) // int(count)
-        first = lo + int(worker.removeprefix("gw")) * width
+        # (modulo: a worker xdist starts again in place of a dead one counts on)
+        first = lo + (int(worker.removeprefix("gw")) % int(count)) * width
         os.environ["GEO_SERVER_PORT_SPAN"] = f"{first}-{first + width}"
     # what `geo-server run` sets for its cycle thread (the suite is the composition root
     # of the machines its tests make: library code never changes it)

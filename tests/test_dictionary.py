@@ -152,6 +152,24 @@ def test_a_string_is_ascii_and_cut_after_a_whole_word():
     # make 249, the 51st word would end at 254
     assert out == b" ".join([b"word"] * 50) + b"..."
     assert string_bytes("x" * 300) == b"x" * 252 + b"..." + b"\0"
+    assert string_bytes("y" * 255) == b"y" * 255 + b"\0"  # exactly the limit: whole
+    assert string_bytes("") == bytes(256)
+    assert [string_bytes("abcdef", n) for n in (0, 1, 2, 4)] == [b"", b"\0", b"a\0", b"abc\0"]
+
+
+def test_a_string_a_client_writes_is_cp1252_and_whole():
+    """What a client writes (a volumetric file name) keeps its CP1252 characters and is
+    never cut: a path cut short or spelled in ASCII names another file; 0x706 instead."""
+    d = load_dictionary()
+    obj = next(o for o in d.objects if o.type.name == "STRING" and o.writable)
+    path = "/data/Prüfstand/vol é.txt"
+    assert obj.encode(path) == path.encode("cp1252").ljust(256, b"\0")
+    for bad in ("x" * 256, "漢"):
+        with pytest.raises(AdsError) as err:
+            obj.encode(bad)
+        assert err.value.code == 0x706
+    # what the server sends of the same text: ASCII
+    assert obj.encode_reply(path).rstrip(b"\0") == b"/data/Pruefstand/vol e.txt"
 
 
 @pytest.mark.parametrize(

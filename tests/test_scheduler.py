@@ -102,6 +102,7 @@ def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
 
     class Broken:
         count = 0
+        generation = 0
 
         def record(self, *values: float) -> None:
             raise RuntimeError("defect in the cycle thread")
@@ -124,7 +125,8 @@ def test_run_ends_with_an_error_when_the_cycle_thread_dies(default_cfg):
 def test_the_figures_start_again_when_the_compiled_cycle_takes_over(monkeypatch):
     """Issue 45 #17: 300 interpreted cycles of 290 µs, then the machine code loads and
     the cycles take 30 µs: the summary is of the compiled cycles alone (p50 30 µs, not
-    290 µs while the machine rests and computes few cycles), the count starts again."""
+    290 µs while the machine rests and computes few cycles), the count starts again, and
+    a summary taken before any compiled cycle shows none of the interpreted ones."""
     from geo_server import jit
 
     state = {"loaded": False}
@@ -134,6 +136,8 @@ def test_the_figures_start_again_when_the_compiled_cycle_takes_over(monkeypatch)
         stats.record(5.0, 290.0, 250.0)
     assert stats.summary()["cycle_p50_us"] == 290.0
     state["loaded"] = True
+    # a machine at rest records nothing: a summary alone starts the rings again
+    assert stats.summary()["cycle_p50_us"] == 0.0 and stats.generation == 1
     for _ in range(3):
         stats.record(1.0, 30.0, 20.0)
     s = stats.summary()

@@ -107,7 +107,7 @@ class ModbusClient(ObjectClient):
         self._mapped(obj)
         unit = 0 if obj.scope == "machine" else axis
         v = obj.coerce(value)
-        regs = encode(obj, v)
+        regs = encode(obj, v, written=True)
         try:
             if len(regs) == 1:
                 rr = self._client.write_register(register_address(obj), regs[0], device_id=unit)

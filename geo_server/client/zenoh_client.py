@@ -191,6 +191,8 @@ class ZenohClient(ObjectClient):
                     names.add(parts[1])
         if not names:
             return f"is a server running with machine name {self.machine!r}?"
+        if self.machine in names:  # alive, but it did not answer this key (in time)
+            return f"machine {self.machine!r} is alive but did not answer"
         listed = ", ".join(sorted(names)[:20]) + (", …" if len(names) > 20 else "")
         return (
             f"no machine named {self.machine!r}; machines alive: {listed} (choose with --machine)"

@@ -61,6 +61,7 @@ from geo_server.kernel.layout import (
     TGT,
     TOTAL,
     WOFF,
+    XT_ORDER_MAX,
 )
 from geo_server.kernel.tables import Packer
 from geo_server.model import AxisConfig, CompKind, MachineConfig
@@ -211,6 +212,9 @@ class Kernel:
         self.I7[HOME1], self.I7[HOME2] = _homing(axes, rows, self._slot)
         ncyc = np.array([filter_cycles(ax) for ax in axes], dtype=np.int64).reshape(self.n, 7)
         ncyc[:, FRICT] = 0  # friction is not sin²-filtered: its output is the delay line
+        # crosstalk keeps that many targets: a list's larger n_cycles deactivates the
+        # compensation (70631), and the filter of its zero output never reads beyond
+        np.minimum(ncyc[:, CROSSTALK], XT_ORDER_MAX, out=ncyc[:, CROSSTALK])
         self.weights, self.I7[WOFF] = sin2.weights(ncyc)
         self.I7[NCYC] = ncyc
         k = self.I7[KIDX]

@@ -231,7 +231,7 @@ def _smooth(i: int, F7: np.ndarray, B7: np.ndarray, I7: np.ndarray, weights: np.
     NO_MOVE) keeps its previous output, and the filter sees that output: released, it
     ramps from there to the target."""
     c = CROSSTALK
-    n = I7[NCYC, i, c]
+    n = I7[NCYC, i, c]  # (<= XT_ORDER_MAX: the kernel clamps it when the lists load)
     target = F7[PREV, i, c] if B7[HELD, i, c] else F7[TGT, i, c]
     if B7[EVENT, i, c] or target != F7[HIST, i, c]:
         I7[KIDX, i, c] = 0
@@ -239,8 +239,8 @@ def _smooth(i: int, F7: np.ndarray, B7: np.ndarray, I7: np.ndarray, weights: np.
     for j in range(n - 1, 0, -1):
         F7[HIST + j, i, c] = F7[HIST + j - 1, i, c]
     F7[HIST, i, c] = target
-    out = target
-    if n > 1:
+    out = target  # settled (the last n targets are this one): exactly it, no rounding
+    if n > 1 and I7[KIDX, i, c] < n:
         w = I7[WOFF, i, c]
         out = 0.0
         for j in range(n):

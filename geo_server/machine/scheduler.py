@@ -131,12 +131,21 @@ class CycleStats:
         self.max_lateness = 0.0
         self._lock = threading.Lock()
         self._compiled = jit.loaded()
+        #: how often the rings started again (a cached summary of an older one is stale)
+        self.generation = 0
+
+    def _restart_when_compiled(self) -> None:
+        """(under `_lock`) The rings start again once the machine code runs: checked at
+        every record and every summary, so a machine at rest, which records nothing,
+        shows no interpreted figures either."""
+        if not self._compiled and jit.loaded():
+            self._compiled = True
+            self.count, self.max_lateness = 0, 0.0
+            self.generation += 1
 
     def record(self, lateness_us: float, cycle_us: float, kernel_us: float = 0.0) -> None:
         with self._lock:
-            if not self._compiled and jit.loaded():  # (figures of the compiled cycle only)
-                self._compiled = True
-                self.count, self.max_lateness = 0, 0.0
+            self._restart_when_compiled()
             i = self.count % len(self.lateness)
             self.lateness[i] = lateness_us
             self.cycle_time[i] = cycle_us
@@ -145,6 +154,9 @@ class CycleStats:
             self.max_lateness = max(self.max_lateness, lateness_us)
 
     def summary(self) -> dict[str, float]:
+        if not self._compiled:
+            with self._lock:
+                self._restart_when_compiled()
         n = min(self.count, len(self.lateness))
         if n == 0:
             return {
@@ -240,7 +252,7 @@ class Scheduler:
         self.spin_ns = SPIN_NS
         self.cycle_errors = 0
         self.skipped = 0
-        self._summary: tuple[int, dict[str, float]] = (-1, {})
+        self._summary: tuple[tuple[int, int], dict[str, float]] = ((0, -1), {})
         self._punctual = 0
         self._here = False  # the exact loop runs in the caller's thread (`run_here`)
         # an injected overrun (geo_server/faults.py): after cycle `_next_overrun` the
@@ -817,11 +829,14 @@ class Scheduler:
             self.spin_ns = max(int(self.spin_ns * 0.9), SPIN_MIN_NS)
 
     def _cached_summary(self) -> dict[str, float]:
-        """Percentiles cost ~1 ms of GIL time: recompute at most every 250 cycles."""
-        count = self._summary[0]
-        n = self.stats.count  # (smaller than `count` once the rings started again)
-        if count < 0 or not 0 <= n - count < 250 or self.mode == "stepped":
-            self._summary = (n, self.stats.summary())
+        """Percentiles cost ~1 ms of GIL time: recompute at most every 250 cycles, and
+        whenever the rings started again (the compiled cycle took over)."""
+        generation, count = self._summary[0]
+        stats = self.stats
+        stale = generation != stats.generation or not 0 <= stats.count - count < 250
+        if count < 0 or stale or self.mode == "stepped" or not jit.loaded():
+            summary = stats.summary()  # (may start the rings again: read the keys after)
+            self._summary = ((stats.generation, stats.count), summary)
         return self._summary[1]
 
     def status(self) -> dict[str, Any]:

@@ -505,13 +505,15 @@ class ReferenceKernel:
         """Crosstalk's values through a sin² filter of order n (000 p.83): the last n
         targets (none before the first cycle: 0; the held output while the column is
         held) weighed by the steps of the sin² ramp, cos²(πj/(2n)) − cos²(π(j+1)/(2n))."""
+        n = min(n, 20)  # (a larger n_cycles deactivates it: 70631)
         hist = self._hist[i]
         hist.insert(0, target)
         del hist[max(n, 1) :]
-        if n <= 1:
+        seen = hist + [0.0] * (n - len(hist))
+        if n <= 1 or all(h == target for h in seen):  # settled: exactly the target
             return target
         w = [math.cos(math.pi * j / (2 * n)) ** 2 for j in range(n + 1)]
-        return sum((w[j] - w[j + 1]) * (hist[j] if j < len(hist) else 0.0) for j in range(n))
+        return sum((w[j] - w[j + 1]) * seen[j] for j in range(n))
 
     def _plane(self, ax: _Axis, pos: list[float]) -> float:
         """Bilinear over table[j][i], j = master 2, i = master 1; clamp outside

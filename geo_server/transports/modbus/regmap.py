@@ -14,8 +14,9 @@ emulator objects of index offset axis 0):
   the slot, big-endian bytes and words (high word first): BOOLEAN and UNS16 one register,
   SGN32/UNS32 two, REAL64 four. The unused registers of a slot read 0. Text objects
   (`SIM::last_error`) own 128 registers from `0x6000 + 128·ID`; the first 125 carry the
-  text, two CP1252 bytes per register, the first byte in the high half, NUL-padded (the
-  first 249 characters; one request of 125 registers reads it).
+  text, two bytes per register (plain ASCII as the server sends it, CP1252 as a client
+  writes it), the first byte in the high half, NUL-padded (249 characters at most; one
+  request of 125 registers reads it).
 - discrete inputs (FC 2): every BOOLEAN object at address `ID` (emulator group
   `0x4000 + ID`); coils (FC 1, 5, 15): the writable BOOLEAN objects at the same address.
 
@@ -37,7 +38,14 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
 
-from geo_server.dictionary import TYPES, Dictionary, ObjectDef, load_dictionary, string_bytes
+from geo_server.dictionary import (
+    TYPES,
+    Dictionary,
+    ObjectDef,
+    load_dictionary,
+    string_bytes,
+    written_string,
+)
 from geo_server.errors import AdsError, AdsErrorCode, GeoError
 
 #: First address of the emulator group `0x12F300` (registers and bits).
@@ -60,8 +68,8 @@ DIRECT_UNIT = 255
 
 #: First register of the text (STRING) objects: each owns `TEXT_SLOT` registers from
 #: `TEXT_BASE + TEXT_SLOT·ID`; its value is the first `TEXT_REGISTERS` of them (the most
-#: one FC 3/4 request reads): two CP1252 bytes per register (first byte high), the first
-#: 249 characters of the text and a NUL.
+#: one FC 3/4 request reads): two bytes per register (first byte high), at most 249
+#: characters of the text and a NUL.
 TEXT_BASE = 0x6000
 TEXT_SLOT = 128
 TEXT_REGISTERS = 125
@@ -192,15 +200,18 @@ def _clamp_int(obj: ObjectDef, value: Any) -> int:
     return max(int(obj.type.lo), min(int(obj.type.hi), v))
 
 
-def encode(obj: ObjectDef, value: Any) -> list[int]:
+def encode(obj: ObjectDef, value: Any, written: bool = False) -> list[int]:
     """A decoded object value as big-endian registers (high word first).
 
     Reads never fail: an integer outside its type saturates, a non-finite REAL64 is sent
-    as it is (IEEE-754).
+    as it is (IEEE-754); a text is sent in plain ASCII, cut to fit (`string_bytes`).
+    `written`: a client's write, a text in CP1252 and whole (`written_string`, 0x706).
     """
     t = obj.type.name
     if t == "STRING":
-        raw = string_bytes(str(value), 2 * TEXT_REGISTERS)
+        size = 2 * TEXT_REGISTERS
+        text = str(value)
+        raw = written_string(obj.name, text, size) if written else string_bytes(text, size)
     elif t == "REAL64":
         raw = struct.pack(_STRUCT[t], float(value))
     elif t == "BOOLEAN":

@@ -120,15 +120,21 @@ def geo_server_running(args: list[str], cwd: Path, ready: str) -> Iterator[subpr
             raise AssertionError(f"geo-server {args[0]} ended before printing {ready!r}")
         yield proc
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        proc.wait(5)
+        stop_process(proc, signal.SIGINT, 30)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def stop_process(proc: subprocess.Popen, sig: int, grace: float) -> None:
+    """Send `sig` to `proc` if it still runs, give it `grace` seconds to end, then kill
+    it; reaped either way."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    proc.wait(5)
 
 
 @pytest.fixture

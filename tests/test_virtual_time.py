@@ -333,13 +333,19 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     sched.sync()
     assert (m.cycle, m.overruns, sched.skipped) == (5000, 0, 0)
     # the same machine moving (X to 100 mm at 100 mm/s takes a second), 3 s behind
+    _moving_and_behind(vc, m, sched, 3000)
+    assert m.overruns == 1 and sched.skipped > 0
+
+
+def _moving_and_behind(vc: VirtualClock, m: Machine, sched: Scheduler, cycles: int) -> None:
+    """X set moving to 100 mm (a second at 100 mm/s), two cycles on, then the clock
+    `cycles` periods ahead and one catch-up."""
     m.submit(WriteObjects((("SIM::target_position", 1, 1_000_000.0),)))
     vc.t += 2 * P
     sched.sync()
     assert not m.quiescent
-    vc.t += 3000 * P
+    vc.t += cycles * P
     sched.sync()
-    assert m.overruns == 1 and sched.skipped > 0
 
 
 def test_while_interpreted_a_catch_up_computes_a_twentieth_of_a_second(cfg, monkeypatch) -> None:
@@ -358,12 +364,7 @@ def test_while_interpreted_a_catch_up_computes_a_twentieth_of_a_second(cfg, monk
         loaded[0] = compiled
         vc, m, sched = driven(cfg)
         assert sched.max_lag == (1000 if compiled else 50)
-        m.submit(WriteObjects((("SIM::target_position", 1, 1_000_000.0),)))
-        vc.t += 2 * P
-        sched.sync()
-        assert not m.quiescent
-        vc.t += 200 * P
-        sched.sync()
+        _moving_and_behind(vc, m, sched, 200)
         assert (m.cycle, m.overruns, sched.skipped) == outcome
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port
+from conftest import free_port, stop_process
 
 TIMEOUT = 5.0
 BIN = Path(sys.executable).parent
@@ -114,13 +114,7 @@ def test_two_hosts_and_a_client_through_a_router(tmp_path) -> None:
     finally:
         client.close()
         for p in hosts:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p, signal.SIGTERM, 20)
         router.close()
     for name in ("mill", "lathe"):
         err = (tmp_path / f"{name}.err").read_text(errors="replace")

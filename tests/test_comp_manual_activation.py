@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from geo_server import access
+from geo_server.errors import AdsError
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import data_dir
@@ -229,3 +230,17 @@ def test_comp_on_switches_on_only_what_the_axis_list_enables(lists_copy: Path) -
     assert all(r["CROSSC::activated@1"] is False for r in rows)
     assert all(r["TEMPC::activated@1"] is False for r in rows)
     assert all(r["TEMPC::actual_offset@1"] == 0 for r in rows)
+    # the object activates temperature compensation also without temp_comp 1 (000 p.17),
+    # but not one a list error deactivated: refused with 0x70B naming the diagnostic
+    pending = access.write_name(svc, "TEMPC::activated", X, True)
+    m.step(1)
+    with pytest.raises(AdsError) as refused:
+        pending.result(timeout=0)
+    assert refused.value.code == 0x70B
+    assert "[990271]" in refused.value.message and "achsmd1.lis" in refused.value.message
+    m.step(20)
+    assert access.read_name(svc, "TEMPC::activated", X) is False
+    assert access.read_name(svc, "TEMPC::actual_offset", X) == 0
+    pending = access.write_name(svc, "TEMPC::activated", X, False)  # off stays allowed
+    m.step(1)
+    assert pending.result(timeout=0) is None

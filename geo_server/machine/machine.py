@@ -1177,7 +1177,21 @@ def _move(m: Machine, slot: int, target: float) -> None:
 
 
 def _set_tempc_activated(m: Machine, slot: int, on: bool) -> None:
-    """A selection by object acts at once, also on an offset a NO_MOVE held back."""
+    """A selection by object acts at once, also on an offset a NO_MOVE held back.
+
+    The object activates the compensation also without `temp_comp 1` (000 p.17), but
+    not one its list's error switched off (000 §2.4: the compensation is deactivated;
+    990271): TRUE is refused with 0x70B and the diagnostic, as `COMP ON TEMP` leaves it
+    off (`set_comp`)."""
+    if on:
+        axis = m.axes[slot]
+        for d in m.cfg.deactivated:
+            if d.axis == axis and d.deactivated == CompKind.TEMP:
+                raise AdsError(
+                    AdsErrorCode.DEVICE_INVALIDPARM,
+                    f"axis {axis}: temperature compensation is deactivated by a list "
+                    f"error, not switched on: {d.describe()}",
+                )
     m.kernel.set_selected(slot, CompKind.TEMP, on)
     m.kernel.release(slot, CompKind.TEMP)
 

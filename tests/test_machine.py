@@ -154,6 +154,30 @@ def test_required_compensations_are_monitored_70435(default_cfg):
     assert [e["error_id"] for e in svc.errors()].count(70435) == 1
 
 
+def test_70435_while_moving_is_reported_in_the_motion(default_cfg):
+    """Issue 45 #5, 000 §5.3 p.97: Y requires LEAD | TEMP, both need the axis referenced.
+    Y loses its reference 100 cycles into a 10 mm move: 70435 comes in that motion (within
+    the two cycles a write and the effective flags it changes take), the axis stops
+    short of its target (a controlled stop), and the program's next block never runs."""
+    machine = Machine(default_cfg, cycle_s=0.001, homed=True)
+    svc = ObjectService(machine)
+    svc.nc.run("N10 G01 Y10 F1000\nN20 X5")
+    access.step(svc, 100)
+    before = access.read_name(svc, "SIM::command_position", 2)
+    assert 0 < before < 100_000 and not svc.errors()
+    access.write_name(svc, "SIM::homed", 2, False)
+    access.step(svc, 2)
+    assert [e["error_id"] for e in svc.errors()] == [70435]
+    assert machine.player is not None and machine.player.error is not None
+    assert machine.player.error.line == 1
+    access.step(svc, 2000)
+    after = access.read_name(svc, "SIM::command_position", 2)
+    assert before < after < 100_000  # decelerated from where it was, never arrived
+    assert access.read_name(svc, "SIM::command_position", 1) == 0  # N20 never ran
+    assert access.read_name(svc, "SIM::velocity", 2) == 0
+    assert access.read_name(svc, "SIM::program_running") is False
+
+
 # ------------------------------------------------------------------------- service errors
 
 

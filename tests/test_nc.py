@@ -57,6 +57,9 @@ class FakePort:
             return False
         return True
 
+    def stop_axes(self, slots: Iterable[int]) -> None:
+        self.calls.append(("stop", tuple(slots)))
+
     def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
         self.calls.append(("comp", slot, on, kinds, no_move))
         if on and kinds & K.FRICT and slot not in self.frict_allowed:
@@ -467,3 +470,22 @@ def test_axis_exchange_in_the_player():
     assert len(port.kinds("move")) == 1  # N40; N80 fails
     assert player.error is not None and player.error.line == 8
     assert "axis X is not in the channel" in player.error.message
+
+
+def test_70435_while_moving_stops_the_block_and_its_axes():
+    """Issue 45 #5, 000 §5.3 p.97: "The CNC then outputs the error message P-ERR-70435
+    if the axis is moved in automatic mode and the specified axis compensations are not
+    active": also when a required compensation drops out during the motion, not only at
+    the block's start. The block's axes come to a controlled stop; no later block runs."""
+    port = FakePort(selected={0: K.LEAD}, requires={0: K.LEAD}, active={0: K.LEAD})
+    port.busy_cycles = 10
+    player = Player(parse_program("N10 G01 X10 F1000\nN20 Y5\nM30", AXES), port, DT)
+    for _ in range(3):
+        player.step()
+    assert player.running and player.motion_wait() == (0,)
+    port.active[0] = K(0)  # e.g. the axis lost its reference
+    assert player.motion_wait() == ()  # no batch may skip the cycle that reports it
+    player.step()
+    assert not player.running and (player.error.error_id, player.error.line) == (70435, 1)
+    assert port.kinds("stop") == [("stop", (0,))]
+    assert len(port.kinds("move")) == 1 and port.kinds("end") == []

@@ -934,6 +934,10 @@ class Machine:
     def in_position(self, slots: Iterable[int]) -> bool:
         return self.motion.all_in_position(slots)
 
+    def stop_axes(self, slots: Iterable[int]) -> None:
+        for s in slots:
+            self.motion.stop(s)
+
     def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
         return self._switch(slot, kinds, on, no_move)
 

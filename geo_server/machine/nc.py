@@ -134,6 +134,10 @@ class MachinePort(Protocol):
         """True when every axis in `slots` is at rest on its target."""
         ...
 
+    def stop_axes(self, slots: Iterable[int]) -> None:
+        """Controlled stop of these axes (an error during their motion block)."""
+        ...
+
     def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
         """`COMP ON|OFF kinds` for one axis; returns 0 or an error ID (e.g. 70495)."""
         ...
@@ -986,6 +990,8 @@ class Player:
             return
         self.cycle += 1
         if self._wait is not None:
+            if self.monitor and not self._still_compensated(self._wait.motion):
+                return
             if not self._wait_over(self._wait):
                 return
             end, self._wait = self._wait.end, None
@@ -1006,10 +1012,12 @@ class Player:
 
     def motion_wait(self) -> tuple[int, ...]:
         """The axes whose motion the waiting block waits for (empty when it waits for
-        nothing or for something else as well): while one of them moves, `step` only
-        counts the cycle."""
+        nothing or for something else as well, or when the 70435 monitoring has an
+        error to give): while one of them moves, `step` only counts the cycle."""
         w = self._wait
         if w is None or w.comp or w.end or w.volcomp:
+            return ()
+        if self.monitor and any(self._missing(s) for s in w.motion):
             return ()
         return w.motion
 
@@ -1136,10 +1144,26 @@ class Player:
         wait.motion = tuple(targets)
         return True
 
+    def _still_compensated(self, slots: tuple[int, ...]) -> bool:
+        """000 §5.3 p.97: the monitoring holds while an axis moves, not only when its
+        block starts ("if the axis is moved in automatic mode and the specified axis
+        compensations are not active"): a required compensation that drops out during
+        the motion (its master unreferenced, a drive disabled) raises 70435 then, and
+        the block's axes come to a controlled stop. False after that error."""
+        moving = [s for s in slots if not self.port.in_position((s,))]
+        if self._check_required(moving):
+            return True
+        self.port.stop_axes(slots)
+        return False
+
+    def _missing(self, slot: int) -> CompKind:
+        """The required compensations of the axis that are not effective now."""
+        return self.port.required(slot) & ~self.port.effective(slot)
+
     def _check_required(self, slots: Iterable[int]) -> bool:
         """000 §5.3: required compensations must be effective on every moved axis."""
         for s in slots:
-            missing = self.port.required(s) & ~self.port.effective(s)
+            missing = self._missing(s)
             if missing:
                 names = " ".join(k.name or "" for k in CompKind if k & missing)
                 axis = self._axis_name(s)

@@ -317,6 +317,44 @@ def test_nc_volcomp_on_ramps_weights_and_off(lists_copy: Path) -> None:
     assert m.volc.offset[0] == pytest.approx(full * 2, abs=1e-6)  # CFACT is not modal
 
 
+def test_no_move_holds_the_drive_until_the_axis_moves(lists_copy: Path) -> None:
+    """004 p.21: with NO_MOVE "the axes do not move when compensation is activated/
+    deactivated", as the axis compensations' NO_MOVE, whose offset "is only executed at
+    the next axis motion programmed" (000 p.94). At x = 100 mm the correction is −20
+    increments (−19.9996): #VOLCOMP ON [ID0 NO_MOVE] switches it on at once, the drive
+    keeps what it got (VOLC::held +20, the output unchanged) until X moves; from the
+    motion's first cycle the +20 ramps out over filter_steps 4 (15, 10, 5, 0). OFF
+    NO_MOVE at rest likewise holds −20."""
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    for _ in range(30):
+        m.run_cycle()
+    before = value(m, "SIM::output_position", 1)
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(5):
+        m.run_cycle()
+        assert value(m, "VOLC::correction", 1) == -20 or value(m, "VOLC::active") == 0
+        assert value(m, "SIM::output_position", 1) == before
+    assert value(m, "VOLC::held", 1) == 20
+    m.start_program("G91 G01 X-0.01 F60\n", mdi=True)
+    held, moving = [], []
+    for _ in range(8):
+        m.run_cycle()
+        held.append(value(m, "VOLC::held", 1))
+        moving.append(value(m, "SIM::velocity", 1) != 0)
+    first = moving.index(True)
+    assert held[:first] == [20] * first and held[first : first + 4] == [15, 10, 5, 0]
+    for _ in range(50):
+        m.run_cycle()
+    before = value(m, "SIM::output_position", 1)
+    m.start_program("#VOLCOMP OFF [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(5):
+        m.run_cycle()
+    assert value(m, "VOLC::correction", 1) == 0 and value(m, "VOLC::held", 1) == -20
+    assert value(m, "SIM::output_position", 1) == before
+
+
 def test_s_limit_missing_refuses_activation(lists_copy: Path) -> None:
     add_volc(lists_copy, smooth_files(lists_copy.parent), {}, s_limit=None)
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)

@@ -3,7 +3,8 @@ over arguments (004 p.24, p.31-32; docs/volumetric.md §3, §5).
 
 - M30 with a compensation linked to the channel (`associate_to_channel 1`, 004 p.17) still
   active: an error is output and the values are reduced without movement (p.24) — at
-  once, in the M30's cycle, the command position unchanged;
+  once, in the M30's cycle, the command position unchanged and the drive holding what it
+  got (`VOLC::held`) until the axis' next motion ramps it out;
 - an axis in error state (its reference lost, its drive no longer enabled) marks every
   active compensation it takes part in incorrect (`VOLC::incorrect`) and switches it off
   without movement (p.24); the drive enable is a precondition of ON (p.20: "error-free");
@@ -93,9 +94,24 @@ def test_m30_reduces_a_compensation_linked_to_the_channel(lists_copy: Path) -> N
     assert err[1:] == ("<nc>", 2)
     assert "associate_to_channel 1" in err[0] and "program end" in err[0]
     assert m.player is not None and m.player.finished and not m.volc.get(0).wanted
-    out = value(m, "SIM::output_position", 1)
-    assert out == 1_000_000 + value(m, "SIM::total_offset", 1)  # nothing volumetric left
+    # "without any additional movement": the drive keeps getting the −20 the
+    # compensation gave it (VOLC::held), until X moves next; then it ramps out over
+    # filter_steps 4 cycles, a quarter per cycle, from the motion's first cycle
+    assert value(m, "VOLC::held", 1) == -20
+    out = value(m, "SIM::output_position", 1) - value(m, "SIM::total_offset", 1)
+    assert 1_000_000 - 21 <= out <= 1_000_000 - 19  # (two values rounded apart)
+    m.start_program("G91 G01 X1 F6000\n", mdi=True)
+    held, moving = [], []
+    for _ in range(12):
+        m.run_cycle()
+        held.append(value(m, "VOLC::held", 1))
+        moving.append(value(m, "SIM::velocity", 1) != 0)
+    first = moving.index(True)
+    assert held[:first] == [-20] * first
+    assert held[first : first + 4] == [-15, -10, -5, 0] and set(held[first + 4 :]) == {0}
     # switched on again by #VOLCOMP (p.24: "re-activated by the #VOLCOMP command")
+    for _ in range(200):
+        m.run_cycle()
     m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
     assert trace(m, 2)[-1][:2] == (1, -20)
 
@@ -181,6 +197,33 @@ def test_a_disabled_drive_marks_the_compensation_incorrect(lists_copy: Path) -> 
     m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
     assert trace(m, 2)[-1] == (1, -20, 1_000_000)
     assert value(m, "VOLC::incorrect") == 0
+
+
+def test_the_error_case_holds_the_axis_in_error_and_reduces_the_others(lists_copy) -> None:
+    """p.24: "Compensation values are removed from the axis without causing an
+    additional axis movement [...] the other participating axes are stopped in a
+    controlled fashion and their compensation values are reduced". X carries −20.
+    Y's drive goes off: X is one of the other axes, its −20 is reduced over filter_steps
+    4 from that cycle on (−15, −10, −5, 0). X's own drive goes off: X is the axis in error,
+    its drive keeps getting −20 (VOLC::held) while the correction is 0."""
+    m = machine(lists_copy, smooth_files(lists_copy.parent))
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\nG91 G01 X0.001 F600\n", mdi=True)
+    trace(m, 40)  # (the move takes the held −20 in: nothing held any more)
+    assert value(m, "VOLC::correction", 1) == -20 and value(m, "VOLC::held", 1) == 0
+    m.set_drive_enable(1, False)  # Y
+    held = []
+    for _ in range(6):
+        m.run_cycle()
+        held.append(value(m, "VOLC::held", 1))
+    assert value(m, "VOLC::correction", 1) == 0 and held == [-15, -10, -5, 0, 0, 0]
+    m.set_drive_enable(1, True)
+    m.start_program("#VOLCOMP ON [ID0]\n", mdi=True)
+    trace(m, 8)
+    assert value(m, "VOLC::correction", 1) == -20 and value(m, "VOLC::held", 1) == 0
+    m.set_drive_enable(X, False)
+    for _ in range(6):
+        m.run_cycle()
+        assert value(m, "VOLC::correction", 1) == 0 and value(m, "VOLC::held", 1) == -20
 
 
 def test_a_lost_reference_marks_it_incorrect_and_reset_clears_the_mark(lists_copy) -> None:

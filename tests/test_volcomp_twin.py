@@ -96,7 +96,9 @@ def test_measure_correct_and_the_residual_is_the_interpolation_floor(
     assert rb is not None
     blocks = measure_rigid_body(rb, TRAVEL, step)
     write_correction(stup.parent, blocks, rb, {"X": 1, "Y": 2, "Z": 3})
-    m.start_program("#VOLCOMP [ID0 UPDATE]\n#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    # (ramped in: a NO_MOVE would hold the drives until the axes move, and the points
+    # below are set, not travelled to)
+    m.start_program("#VOLCOMP [ID0 UPDATE]\n#VOLCOMP ON [ID0]\n", mdi=True)
     # the UPDATE reads the files in a worker thread (the cycle never waits for a disk):
     # cycles run until it is done, however long a loaded host takes
     deadline = time.monotonic() + 30.0
@@ -106,6 +108,11 @@ def test_measure_correct_and_the_residual_is_the_interpolation_floor(
             break
         time.sleep(0.001)
     assert m.snapshot.value(D.by_name("VOLC::active"), 0) == 1
+    for _ in range(1000):  # (the program waits for the ramp of filter_steps cycles)
+        if m.player is None or not m.player.running:
+            break
+        m.run_cycle()
+    assert m.volc.at_rest and not m.volc.held.any()
     after = volumetric_errors(m)
     assert after.max() < floor_um
     print(

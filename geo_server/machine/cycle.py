@@ -35,7 +35,9 @@ from geo_server.machine.motion import (
 )
 from geo_server.twin.engine import MOTION, twin_cycle
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
+from geo_server.volcomp.step import DIFF as VDIFF
 from geo_server.volcomp.step import ENDED, FAULT, OFF
+from geo_server.volcomp.step import SUM as VSUM
 from geo_server.volcomp.step import attention as volc_attention
 from geo_server.volcomp.step import step as volc_step
 
@@ -93,7 +95,7 @@ def cycles(
     vti: np.ndarray,
     VH: np.ndarray,
     VS: np.ndarray,
-    voff: np.ndarray,
+    VX: np.ndarray,
     tool_length: float,
     output: np.ndarray,
     drive_act: np.ndarray,
@@ -104,7 +106,8 @@ def cycles(
     computed and the flags say `VOLC_PREPARE`) — only operations change what it looks
     at, so once before a pass is enough. Writes the cycles until a known
     reversal into `rev`, the output to the drives (command + total offset + the
-    volumetric offset `voff`, where the machine has volumetric compensations) into
+    volumetric offset `VX` — sum and held difference, `volcomp.step.X` — where the
+    machine has volumetric compensations) into
     `output` and, where the drive is enabled, into `drive_act`."""
     n = MF.shape[1]
     vol = VH.shape[0] > 0
@@ -123,13 +126,14 @@ def cycles(
             MB[HOMED], rev,
         )  # fmt: skip
         if vol:
-            vflags = volc_step(vtf, vti, VH, VS, voff, tool_length, MF[POS]) << VOLC_SHIFT
+            vflags = volc_step(vtf, vti, VH, VS, VX, tool_length, MF[POS], MF[VEL])
+            vflags <<= VOLC_SHIFT
             flags |= vflags & VOLC_OFF
             ended |= vflags & VOLC_ENDED
         for i in range(n):
             out = MF[POS, i] + F1[TOTAL, i]
             if vol:
-                out = out + voff[i]
+                out = out + VX[VSUM, i] + VX[VDIFF, i]
             output[i] = out
             if B1[DRIVE, i]:
                 drive_act[i] = out

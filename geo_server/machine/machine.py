@@ -1161,6 +1161,7 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "TWIN::residual": lambda m: m.twin.residual,
     "TWIN::friction_current": lambda m: m.twin.friction_current,
     "VOLC::correction": lambda m: m.volc.offset,
+    "VOLC::held": lambda m: m.volc.held,
 }
 
 

@@ -1150,7 +1150,8 @@ class Player:
         compensations are not active"): a required compensation that drops out during
         the motion (its master unreferenced, a drive disabled) raises 70435 then, and
         the block's axes come to a controlled stop. False after that error."""
-        moving = [s for s in slots if not self.port.in_position((s,))]
+        lacking = [s for s in slots if self._missing(s)]
+        moving = [s for s in lacking if not self.port.in_position((s,))]
         if self._check_required(moving):
             return True
         self.port.stop_axes(slots)

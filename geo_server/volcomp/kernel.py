@@ -111,7 +111,8 @@ class VolKernel:
         self.slot_of = {a: i for i, a in enumerate(axes)}
         self.params = list(params)
         self.n = len(axes)
-        self.offset = np.zeros(self.n)
+        #: per machine axis: the sum, the held difference and its state (`step.X`)
+        self.X = np.zeros((vs.NX, self.n))
         self.tool_length = 0.0  # mm: VOLC::tool_length (the tool table's, 004 p.15)
         self.report = report or (lambda _id, _msg: None)
         self.states: dict[int, CompState] = {}
@@ -158,7 +159,26 @@ class VolKernel:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """What the compiled cycle takes (`step.step`'s order; the models change on an
         update: ask again after one)."""
-        return self.tf, self.ti, self.H, self.S, self.offset, self.tool_length
+        return self.tf, self.ti, self.H, self.S, self.X, self.tool_length
+
+    @property
+    def offset(self) -> np.ndarray:
+        """VOLC::correction per machine axis (increments): the sum of the corrections."""
+        return self.X[vs.SUM]
+
+    @property
+    def held(self) -> np.ndarray:
+        """VOLC::held per machine axis (increments): what its drive gets on top of the
+        sum since a switch without movement, until ramped out (`step._hold`)."""
+        return self.X[vs.DIFF]
+
+    def _hold(self, st: CompState, mode: float = vs.HELD, only: np.ndarray | None = None) -> None:
+        """A switch of `st` without movement (004 p.21-24): its X, Y, Z (where `only`
+        is True, if given) keep what their drives get now."""
+        steps = float(st.row[vs.FSTEPS])
+        for s in st.linear_list:
+            if only is None or only[s]:
+                vs.hold(self.X, s, mode, steps, float(self.X[vs.SUM, s] + self.X[vs.DIFF, s]))
 
     def _state(self, c: VolComp) -> CompState:
         if c.model is None or c.config is None:
@@ -174,6 +194,7 @@ class VolKernel:
         st = CompState(c, Evaluator(c.model), slots, limits, modify)
         st.linear_list = lin.tolist()
         st.wanted = not cfg.manual_activation  # automatic activation (004 p.20)
+        st.row[vs.FSTEPS] = float(cfg.filter_steps)
         return st
 
     # ------------------------------------------------------------------ switching
@@ -225,18 +246,20 @@ class VolKernel:
         st.step = 1.0 if no_move or steps <= 1 else 1.0 / steps
         st.target = 1.0 if on else 0.0
         if no_move:
+            self._hold(st)
             st.factor = st.target
         self._refresh()
 
     def reset(self) -> None:
         """Controller reset: every compensation off without axis movement (004 p.24)."""
         for st in self.states.values():
+            if st.active:
+                self._hold(st)
             st.wanted = False
             st.target = st.factor = 0.0
             st.value = [0.0, 0.0, 0.0]
             st.incorrect = False
         self._refresh()
-        self.offset[:] = 0.0
 
     def program_end(self) -> list[int]:
         """M30 (004 p.24: "If compensations are still active at program end (M30) and
@@ -249,6 +272,7 @@ class VolKernel:
         for st in self._active:
             cfg = st.comp.config
             if cfg is not None and cfg.associate_to_channel and st.active:
+                self._hold(st)
                 st.wanted = False
                 st.target = st.factor = 0.0
                 st.value = [0.0, 0.0, 0.0]
@@ -265,6 +289,8 @@ class VolKernel:
         old = self.get(ident)
         if not comp.available:
             return
+        if old.active:
+            self._hold(old)
         old.target = old.factor = 0.0
         new = self.states[ident] = self._state(comp)
         self._bind(ident, new)
@@ -275,6 +301,8 @@ class VolKernel:
         """After a reload: the tool length, and the switching state of every compensation
         that is still available (its corrections follow the new files at once)."""
         self.tool_length = old.tool_length
+        if old.X.shape == self.X.shape:
+            self.X[:] = old.X  # (what the drives get goes on)
         for ident, st in old.states.items():
             new = self.states.get(ident)
             if new is None or new.evaluator is None:
@@ -314,8 +342,9 @@ class VolKernel:
 
     @property
     def at_rest(self) -> bool:
-        """No ramp running (a quiescent machine keeps its corrections)."""
-        return all(s.factor == s.target for s in self._active)
+        """No ramp running (a quiescent machine keeps its corrections), no held
+        difference ramping out."""
+        return all(s.factor == s.target for s in self._active) and not vs.releasing(self.X)
 
     # ------------------------------------------------------------------ the cycle
 
@@ -349,9 +378,16 @@ class VolKernel:
             return f"the drive of axis {self._names(st, drive)} is not enabled"
         return ""
 
-    def _off(self, st: CompState, why: str) -> None:
-        """Switch `st` off without movement (004 p.24, the error case) and say why."""
+    def _off(self, st: CompState, why: str, faulty: np.ndarray) -> None:
+        """Switch `st` off in the error case and say why (004 p.24: "Compensation values
+        are removed from the axis without causing an additional axis movement [...] the
+        other participating axes are stopped in a controlled fashion and their
+        compensation values are reduced"): the `faulty` axes hold what their drives get,
+        the others' values ramp out over filter_steps from now (the machine stops
+        them)."""
         self.report(VOLC_ERROR, f"volumetric compensation {st.comp.id}: {why}")
+        self._hold(st, vs.HELD, faulty)
+        self._hold(st, vs.RELEASE, ~faulty)
         st.wanted = False
         st.target = st.factor = 0.0
         st.value = [0.0, 0.0, 0.0]
@@ -374,9 +410,11 @@ class VolKernel:
         for st in self._active:
             fault = self._fault(st, homed, drive)
             if fault:
+                faulty = ~homed if drive is None else ~(homed & drive)
                 self._off(
                     st,
                     f"{fault}: marked incorrect, switched off without movement (004 p.24)",
+                    faulty.astype(bool),
                 )
                 st.incorrect = True
                 ok = False
@@ -406,14 +444,23 @@ class VolKernel:
         self._refresh()
         return ok
 
-    def step(self, pos: np.ndarray, homed: np.ndarray, drive: np.ndarray | None = None) -> bool:
+    def step(
+        self,
+        pos: np.ndarray,
+        homed: np.ndarray,
+        drive: np.ndarray | None = None,
+        vel: np.ndarray | None = None,
+    ) -> bool:
         """One cycle of the volumetric compensations alone: `prepare`, the compiled step
-        (`step.step`: `offset` for command positions `pos`, increments), `settle`. False
-        when a compensation had to be switched off in this cycle (reported; the caller
-        stops the program). The machine runs the compiled step inside its cycle instead
+        (`step.step`: `offset` for command positions `pos`, increments, and velocities
+        `vel`, none moving if not given), `settle`. False when a compensation had to be
+        switched off in this cycle (reported; the caller stops the program). The
+        machine runs the compiled step inside its cycle instead
         (`geo_server.machine.cycle.cycles`)."""
         ok = self.prepare(homed, drive)
-        flags = vs.step(self.tf, self.ti, self.H, self.S, self.offset, self.tool_length, pos)
+        v = np.zeros(self.n) if vel is None else vel
+        X, tl = self.X, self.tool_length
+        flags = vs.step(self.tf, self.ti, self.H, self.S, X, tl, pos, v)
         return self.settle(flags) and ok
 
 

@@ -10,11 +10,18 @@ the sum. `geo_server.machine.cycle.cycles` runs it inside the compiled cycle, so
 of many cycles computes it as single cycles do; `VolKernel` is its Python face and does
 what needs Python: switching, automatic activation, the faults, the reports.
 
+A switch without movement (`NO_MOVE`, the reset, M30, UPDATE, the error case and the
+s_limit watch, 004 p.21-24) holds what the drive of each X, Y, Z it concerns gets, as the
+axis compensations' NO_MOVE does (000 p.94, docs/volumetric.md §5): the difference
+between that and the new correction is kept at rest and ramped out over `filter_steps`
+cycles from the axis' next motion (`_hold`).
+
 The arrays (`VolKernel.arrays`): `tf`, `ti` the packed models of every available
 compensation (`law.pack`, at the bases in `H`); `H` [compensations, NH] integers: where
 each model starts and which machine slots its chain and its X, Y, Z are; `S`
-[compensations, NS] floats: the run-time state of each; `off` [axes]: the sum
-(increments, `VOLC::correction`).
+[compensations, NS] floats: the run-time state of each; `X` [NX, axes] floats per
+machine axis: the sum (`SUM`, increments, `VOLC::correction`) and the held difference
+(`DIFF`, `VOLC::held`) the drive gets on top of it, with its state.
 """
 
 from __future__ import annotations
@@ -52,7 +59,21 @@ MOD = CF + 3  # +1, −1 (negate), 0 (set_to_zero) per X, Y, Z (3)
 LIM = MOD + 3  # s_limit of X, Y, Z (increments, 0: not defined) (3)
 VAL = LIM + 3  # the weighed correction (increments, 3)
 RAW = VAL + 3  # the correction (mm, 3)
-NS = RAW + 3
+FSTEPS = RAW + 3  # filter_steps of its configuration (a held difference's ramp)
+NS = FSTEPS + 1
+
+# ---- X: per machine axis, floats
+(
+    SUM,  # the sum of the corrections (increments): VOLC::correction
+    DIFF,  # held: what the drive gets minus SUM (increments): VOLC::held
+    MODE,  # FOLLOW, HELD (until the axis moves) or RELEASE (ramp DIFF out from now)
+    KEEP,  # HELD: what the drive keeps getting (SUM + DIFF when it was held)
+    RATE,  # DIFF's change per cycle while it ramps out
+    STEPS,  # the cycles of that ramp (filter_steps of the compensation switched)
+    PREV,  # scratch: what the drive got in the cycle before
+) = range(7)
+NX = 7
+FOLLOW, HELD, RELEASE = 0.0, 1.0, 2.0
 
 #: `step`'s flags: a compensation was switched off for its s_limit (its `OVER` says
 #: why); a compensation's ramp ended at 0 (it is no longer active); and `VolKernel.
@@ -77,24 +98,59 @@ def _ramp(S: np.ndarray, c: int) -> None:
 
 
 @compiled
-def _limits(H: np.ndarray, S: np.ndarray, off: np.ndarray) -> bool:
-    """The s_limit watch (004 p.14) over the sum `off`: a compensation (active since the
-    start of the cycle and still) with an axis beyond its limit is switched off without
-    movement, `OVER` and `OVERSUM` saying why (`VolKernel` reports it). Whether one
-    was."""
+def hold(X: np.ndarray, slot: int, mode: float, steps: float, now: float) -> None:
+    """Hold `now`, what the drive of `slot` gets now (`HELD`: until the axis moves;
+    `RELEASE`: ramped out from the next step on) over `steps` cycles: a switch without
+    movement. An axis already held keeps what it holds."""
+    if X[MODE, slot] != HELD:
+        X[KEEP, slot] = now
+    if X[MODE, slot] != HELD or mode == RELEASE:
+        X[MODE, slot] = mode
+    X[STEPS, slot] = max(steps, 1.0)
+
+
+@compiled
+def _limits(H: np.ndarray, S: np.ndarray, X: np.ndarray) -> bool:
+    """The s_limit watch (004 p.14) over the sum `X[SUM]`: a compensation (active since
+    the start of the cycle and still) with an axis beyond its limit is switched off
+    without movement (its X, Y, Z held), `OVER` and `OVERSUM` saying why (`VolKernel`
+    reports it). Whether one was."""
     over = False
     for c in range(H.shape[0]):
         if S[c, WAS] == 0.0 or not _active(S, c):
             continue
         for k in range(3):
-            v = off[H[c, LS + k]]
+            v = X[SUM, H[c, LS + k]]
             if abs(v) > S[c, LIM + k]:
                 S[c, OVER], S[c, OVERSUM] = k, v
                 S[c, TARGET] = S[c, FACTOR] = S[c, WANT] = 0.0
                 S[c, VAL] = S[c, VAL + 1] = S[c, VAL + 2] = 0.0
+                for j in range(3):
+                    a = H[c, LS + j]
+                    hold(X, a, HELD, S[c, FSTEPS], X[PREV, a])
                 over = True
                 break
     return over
+
+
+@compiled
+def _hold(X: np.ndarray, vel: np.ndarray) -> None:
+    """What the drives get on top of the sum: a held axis keeps `KEEP` until it moves
+    (000 p.94's rule for NO_MOVE, "executed at the next axis motion"); from that cycle
+    on — or at once for `RELEASE` — the difference ramps out linearly in `STEPS`
+    cycles, as the compensations' own filter does (004 p.22)."""
+    for i in range(X.shape[1]):
+        mode = X[MODE, i]
+        if mode == HELD and vel[i] == 0.0:
+            X[DIFF, i] = X[KEEP, i] - X[SUM, i]
+            continue
+        if mode != FOLLOW:  # the ramp starts: its size
+            X[MODE, i] = FOLLOW
+            X[DIFF, i] = X[KEEP, i] - X[SUM, i]
+            X[RATE, i] = abs(X[DIFF, i]) / X[STEPS, i]
+        d = X[DIFF, i]
+        if d != 0.0:
+            X[DIFF, i] = 0.0 if abs(d) <= X[RATE, i] else d - math.copysign(X[RATE, i], d)
 
 
 @compiled
@@ -103,16 +159,21 @@ def step(
     ti: np.ndarray,
     H: np.ndarray,
     S: np.ndarray,
-    off: np.ndarray,
+    X: np.ndarray,
     length: float,
     pos: np.ndarray,
+    vel: np.ndarray,
 ) -> int:
-    """`off` for the command positions `pos` (increments) and a tool of `length` mm;
-    the flags `OFF`, `ENDED`. Without compensations `off` is left alone."""
+    """`X[SUM]` and `X[DIFF]` for the command positions `pos` (increments) and
+    velocities `vel` and a tool of `length` mm; the flags `OFF`, `ENDED`. Without
+    compensations `X` is left alone."""
     nc = H.shape[0]
     if nc == 0:
         return 0
-    off[:] = 0.0
+    off = X[SUM]
+    for i in range(X.shape[1]):
+        X[PREV, i] = off[i] + X[DIFF, i]
+        off[i] = 0.0
     q = np.empty(MAXARGS)
     d = np.empty(3)
     flags = 0
@@ -139,14 +200,24 @@ def step(
             off[H[c, LS + k]] += S[c, VAL + k]
         if not _active(S, c):
             flags |= ENDED
-    if _limits(H, S, off):
+    if _limits(H, S, X):
         flags |= OFF
         off[:] = 0.0
         for c in range(nc):
             if S[c, WAS] != 0.0 and _active(S, c):
                 for k in range(3):
                     off[H[c, LS + k]] += S[c, VAL + k]
+    _hold(X, vel)
     return flags
+
+
+@compiled
+def releasing(X: np.ndarray) -> bool:
+    """Whether a held difference is ramping out or about to (not at rest)."""
+    for i in range(X.shape[1]):
+        if X[MODE, i] == RELEASE or (X[MODE, i] == FOLLOW and X[DIFF, i] != 0.0):
+            return True
+    return False
 
 
 @compiled
@@ -171,4 +242,7 @@ def attention(H: np.ndarray, S: np.ndarray, homed: np.ndarray, drive: np.ndarray
     return False
 
 
-__all__ = ["ENDED", "FAULT", "NH", "NS", "OFF", "attention", "step"]
+__all__ = [
+    "ENDED", "FAULT", "HELD", "NH", "NS", "NX", "OFF", "RELEASE", "SUM", "attention", "hold",
+    "releasing", "step",
+]  # fmt: skip

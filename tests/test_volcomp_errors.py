@@ -8,9 +8,10 @@ over arguments (004 p.24, p.31-32; docs/volumetric.md §3, §5).
 - an axis in error state (its reference lost, its drive no longer enabled) marks every
   active compensation it takes part in incorrect (`VOLC::incorrect`) and switches it off
   without movement (p.24); the drive enable is a precondition of ON (p.20: "error-free");
-- a position error (or another constant of the model) whose values differ over the
-  arguments of its block is refused with file and line, the compensation not available;
-  records that all give one value are that constant.
+- a position error given over arguments is a function of them (p.32: "typically (but
+  not necessarily) constant"); an ISG parameter whose values differ over the arguments
+  of its block is refused with file and line, the compensation not available; records
+  that all give one value are that constant.
 
 Expected values are worked out by hand from the model (docs/volumetric.md §2), as in
 tests/test_volcomp.py: EXX = 2e-5·x at x = 100 mm gives Δx = −2e-5·100/1.00002 mm =
@@ -302,20 +303,45 @@ def csv_volc(folder: Path, csv: str) -> tuple[str, dict[str, str]]:
 
 
 @pytest.mark.parametrize(
+    ("x_mm", "want"),
+    [(0.0, 100), (50.0, 150), (100.0, 200), (200.0, 200), (-10.0, 100)],
+)
+def test_a_position_error_over_an_argument_is_applied_as_its_function(
+    lists_copy: Path, x_mm: float, want: int
+) -> None:
+    """004 p.32: position errors are "typically (but not necessarily) constant", and a
+    header may name arguments with them. C0Y, the squareness of Y, given over X: 1e-4
+    rad at x = 0, 2e-4 rad at x = 100 mm, linear between, the edge values held beyond
+    (docs/volumetric.md §3). At y = 100 mm Y's travel is tilted by C0Y(x), the tool is
+    off by −C0Y(x)·y in X, so Δx = +C0Y(x)·100 mm: 100, 150, 200 increments at x = 0,
+    50, 100 mm, 200 beyond and 100 below (the second Newton step moves x by 0.015 mm at
+    most: C0Y changes by 1.5e-8 rad, Δx by 0.015 increments). Before: refused with
+    990525."""
+    volc, files = csv_volc(lists_copy.parent, "// sag\nX C0Y\n0 0.0001\n100 0.0002\n")
+    add_volc(lists_copy, volc, files)
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(X, round(x_mm * 10_000))
+    m.motion.set_position(1, 100 * 10_000)  # Y (axis 2)
+    m.run_cycle()
+    m.run_cycle()
+    assert value(m, "VOLC::available") == 1 and value(m, "VOLC::active") == 1
+    assert [value(m, "VOLC::correction", a) for a in (1, 2, 3)] == [want, 0, 0]
+
+
+@pytest.mark.parametrize(
     ("csv", "line", "what"),
     [
-        # the squareness of Y given over X with two values (p.32's header may hold arguments)
-        ("// sag\nX C0Y\n0 0.0001\n100 0.0002\n", 2, "C0Y is a position error"),
         # an ISG parameter (the offset IDX, p.30) varying over Z, after a component block
         ("X EXX\n0 0\n100 0.001\n#\nZ IDX\n0 0\n100 1\n", 5, "IDX is a constant of the machine"),
+        ("// centre\nX PXC\n0 0\n100 1\n", 2, "PXC is a constant of the machine"),
     ],
 )
-def test_a_varying_position_error_is_refused_with_file_and_line(
+def test_a_varying_isg_parameter_is_refused_with_file_and_line(
     lists_copy: Path, csv: str, line: int, what: str
 ) -> None:
-    """Before: taken as 0 and the compensation reported available and active. Now: an
-    error 990525 naming the correction file and the line of the block's header, the
-    compensation not available, ON refused."""
+    """An ISG parameter describes the machine (004 p.30) and has one value: one that
+    varies over arguments is an error 990525 naming the correction file and the line of
+    the block's header, the compensation not available, ON refused."""
     volc, files = csv_volc(lists_copy.parent, csv)
     add_volc(lists_copy, volc, files)
     cfg = load_machine(lists_copy)

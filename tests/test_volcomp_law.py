@@ -298,3 +298,36 @@ def test_models_packed_side_by_side_are_read_at_their_bases() -> None:
     assert out.tolist() == alone.tolist()
     ref = R.correction(b, dict(zip("CYXZ", q.tolist(), strict=True)), LENGTH)
     assert alone == pytest.approx([ref["X"], ref["Y"], ref["Z"]], abs=TOL)
+
+
+@pytest.mark.parametrize(
+    ("chain", "wp", "alternative"),
+    [("YXZ", 0, False), ("CYXZ", 1, False), ("CYXZ", 1, True), ("XYZAC", 2, True)],
+)
+def test_position_errors_over_arguments_match_the_reference(
+    chain: str, wp: int, alternative: bool
+) -> None:
+    """004 p.32: position errors "typically (but not necessarily) constant". Every
+    position error of every axis also given as a table over arguments (GRID over one or
+    two axes, SCATTER, PATH) on top of a random model's constants: the tilt of a linear
+    axis' travel, the centre and the tilt of a rotary one, in the default and the
+    alternative model (where they distort the axis itself, 004 p.16). The compiled law
+    matches the reference, and each table moves the correction."""
+    rng = np.random.default_rng(17)
+    mdl = random_model(40, chain, wp, alternative, interpolation="GRID")
+    tabs = dict(mdl.tables)
+    modes = ["GRID", "SCATTER", "PATH"]
+    names = [f"{d}0{a}" for a in chain for d in ("XYZ" if a in ROTARY else "") + "ABC"]
+    for k, name in enumerate(names):
+        args = (chain[(k + 1) % len(chain)],) if k % 2 else (chain[k % len(chain)], chain[-1])
+        args = tuple(dict.fromkeys(args))
+        t = _general(rng, f"E{name[0]}{name[2]}", args, modes[k % 3])
+        tabs[name] = ParamTable(
+            name, t.arguments, t.grid, t.values, mode=t.mode, points=t.points,
+            point_values=t.point_values,
+        )  # fmt: skip
+    varying = build_model(chain, wp, tabs, alternative)
+    assert_matches_reference(varying, seed=3, count=30)
+    q = positions(np.random.default_rng(4), chain, 5)
+    tip = mdl.tool_point(LENGTH)
+    assert not np.allclose(Evaluator(varying).correction(q, tip), Evaluator(mdl).correction(q, tip))

@@ -280,31 +280,30 @@ def _tables(
 
 
 def _constants(tables: Mapping[str, ParamTable]) -> dict[str, ParamTable]:
-    """The position errors and the ISG parameters as the constants the model takes
-    (004 p.31: position errors "are global quantities and have only one value"; P0?,
-    N0?, P?k, V?k, IDk, LNk describe the machine, p.30). A header may still name
-    arguments with them (p.32: "typically (but not necessarily) constant"): records that
-    all give one value are that constant; values that differ over the arguments are
-    refused at the block naming them — the manual's model has no place for a varying
-    one (a variation over the travel is a component error), and taking it as 0 would
-    report a compensation active that corrects nothing (docs/volumetric.md §3)."""
+    """The ISG parameters as the constants the model takes (P0?, N0?, P?k, V?k, IDk,
+    LNk describe the machine, 004 p.30), and the position errors, constants where they
+    have one value. A header may name arguments with them (p.32: position errors are
+    "typically (but not necessarily) constant"): records that all give one value are
+    that constant; a position error whose values differ over its arguments stays a
+    table, evaluated at the axes' positions like a component error (docs/volumetric.md
+    §3); an ISG parameter whose values differ is refused at the block naming it — the
+    model has no place for a varying one, and taking it as 0 would report a
+    compensation active that corrects nothing."""
     out = dict(tables)
     for name, t in tables.items():
         if not t.arguments or name in COMPONENT_ERRORS:
             continue
         raw = t.values if t.mode == "GRID" else t.point_values
         values = np.unique(np.asarray(raw, dtype=float).ravel())
+        if len(values) != 1 and name in POSITION_ERRORS:
+            continue
         if len(values) != 1:
-            what = (
-                "a position error, a global quantity with one value (004 p.31)"
-                if name in POSITION_ERRORS
-                else "a constant of the machine model (004 p.30)"
-            )
             raise _Problem(
                 "volc.file",
-                f"{name} is {what}, but its values over ({', '.join(t.arguments)}) differ "
-                f"({values[0]:g} … {values[-1]:g}); give a variation over the travel as a "
-                "component error (E<direction><axis>, 004 p.29-30)",
+                f"{name} is a constant of the machine model (004 p.30), but its values over "
+                f"({', '.join(t.arguments)}) differ ({values[0]:g} … {values[-1]:g}); give a "
+                "variation over the travel as a component error (E<direction><axis>) or a "
+                "position error (<direction>0<axis>, 004 p.29-32)",
                 t.file,
                 t.line,
             )

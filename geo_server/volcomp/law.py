@@ -37,6 +37,8 @@ STEPS = 2
 #: the most arguments a table has (the chain's axes X Y Z A B C)
 MAXARGS = 6
 _COMPONENTS = ("EX", "EY", "EZ", "EA", "EB", "EC")
+#: position errors over arguments add to these (004 p.32), after the components
+_POSITIONS = ("X0", "Y0", "Z0", "A0", "B0", "C0")
 
 # ---- ti: the model's integers, from its base `ib`
 (
@@ -50,10 +52,11 @@ _COMPONENTS = ("EX", "EY", "EZ", "EA", "EB", "EC")
 ) = range(7)
 IHDR = LIN + 3
 # per chain axis, AXI integers from IHDR: rotary, spliced, merged table (float offset
-# relative to fb) and its points
-A_ROT, A_SPL, A_TAB, A_PTS = range(4)
-AXI = 4
-# per general table, GENI integers: chain axis and component it adds to, mode, number of
+# relative to fb) and its points, position errors over arguments (general tables)
+A_ROT, A_SPL, A_TAB, A_PTS, A_VPOS = range(5)
+AXI = 5
+# per general table, GENI integers: chain axis and what it adds to (0-5: the component
+# errors EX? … EC?, 6-11: the position errors X0? … C0?), mode, number of
 # arguments, spliced, float offset of its data (relative to fb), records (SCATTER, PATH),
 # the arguments' chain indices (MAXARGS), the grid's size per argument (GRID, MAXARGS),
 # the columns a PATH measures distance in (how many, which: MAXARGS)
@@ -208,12 +211,18 @@ def pack(model: VolModel) -> tuple[np.ndarray, np.ndarray]:
                 f[F_CONST + j] = float(t.values)
             else:
                 general.append(_general(out, i, j, t, chain))
+        varying = False
+        for j, c in enumerate(_POSITIONS):
+            t = model.tables.get(f"{c}{a}")
+            if t is not None and t.arguments:  # (the constant part is in F_SH, F_TL)
+                general.append(_general(out, i, 6 + j, t, chain))
+                varying = True
         grid, values = _merged(merged)
         slope = np.zeros_like(values)
         with np.errstate(divide="ignore", invalid="ignore"):
             slope[:-1] = np.diff(values, axis=0) / np.diff(grid)[:, None]
         ai = out.i[0][IHDR + AXI * i : IHDR + AXI * (i + 1)]
-        ai[A_ROT], ai[A_SPL] = int(a in ROTARY), int(spliced)
+        ai[A_ROT], ai[A_SPL], ai[A_VPOS] = int(a in ROTARY), int(spliced), int(varying)
         ai[A_TAB], ai[A_PTS] = out.floats(grid), len(grid)
         out.floats(values)
         out.floats(slope)
@@ -415,10 +424,12 @@ def general(tf: np.ndarray, ti: np.ndarray, fb: int, gi: int, q: np.ndarray) -> 
 @compiled
 def errors(
     tf: np.ndarray, ti: np.ndarray, fb: int, ib: int, i: int, q: np.ndarray
-) -> tuple[float, float, float, float, float, float]:
+) -> tuple[float, ...]:
     """(δx, δy, δz, εa, εb, εc) (mm, rad) of chain axis i at the model positions q: its
     merged table (linear between the points, the edge values held; its argument modulo
-    360° when spliced), its constants, then its general tables in their order."""
+    360° when spliced), its constants, then its general tables in their order; and
+    (δ0x … ε0c), its position errors over arguments (004 p.32; 0 without: the
+    constant ones are F_SH and F_TL)."""
     ai = ib + IHDR + AXI * i
     c = fb + FHDR + AXF * i + F_CONST
     off, m = fb + ti[ai + A_TAB], ti[ai + A_PTS]
@@ -437,25 +448,28 @@ def errors(
     e3 = tf[v + 3] + f * tf[s + 3] + tf[c + 3]
     e4 = tf[v + 4] + f * tf[s + 4] + tf[c + 4]
     e5 = tf[v + 5] + f * tf[s + 5] + tf[c + 5]
+    p = np.zeros(12)
     gi = ib + ti[ib + GEN]
     for _ in range(ti[ib + NGEN]):
         if ti[gi + G_AXIS] == i:
-            val = general(tf, ti, fb, gi, q)
-            comp = ti[gi + G_COMP]
-            if comp == 0:
-                e0 += val
-            elif comp == 1:
-                e1 += val
-            elif comp == 2:
-                e2 += val
-            elif comp == 3:
-                e3 += val
-            elif comp == 4:
-                e4 += val
-            else:
-                e5 += val
+            p[ti[gi + G_COMP]] += general(tf, ti, fb, gi, q)
         gi += GENI
-    return e0, e1, e2, e3, e4, e5
+    return (
+        e0 + p[0], e1 + p[1], e2 + p[2], e3 + p[3], e4 + p[4], e5 + p[5],
+        p[6], p[7], p[8], p[9], p[10], p[11],
+    )  # fmt: skip
+
+
+@compiled
+def rodrigues_of(x: float, y: float, z: float, angle: float) -> tuple[float, ...]:
+    """I + sin·K + (1 − cos)·K² for the unit vector (x, y, z): K its cross-product
+    matrix, K² = u·uᵀ − I."""
+    s, c = math.sin(angle), 1.0 - math.cos(angle)
+    return (
+        1.0 + c * (x * x - 1.0), -s * z + c * x * y, s * y + c * x * z,
+        s * z + c * x * y, 1.0 + c * (y * y - 1.0), -s * x + c * y * z,
+        -s * y + c * x * z, s * x + c * y * z, 1.0 + c * (z * z - 1.0),
+    )  # fmt: skip
 
 
 @compiled
@@ -466,34 +480,45 @@ def transform(
     machine (`with_errors`) or the ideal one (docs/volumetric.md §2's table)."""
     a = fb + FHDR + AXF * i
     v, s = q[i], tf[a + F_SIGN]
+    u = a + F_U
     if with_errors:
-        e0, e1, e2, e3, e4, e5 = errors(tf, ti, fb, ib, i, q)
+        e0, e1, e2, e3, e4, e5, p0, p1, p2, p3, p4, p5 = errors(tf, ti, fb, ib, i, q)
     else:
-        e0 = e1 = e2 = e3 = e4 = e5 = 0.0
+        e0 = e1 = e2 = e3 = e4 = e5 = p0 = p1 = p2 = p3 = p4 = p5 = 0.0
     if not ti[ib + IHDR + AXI * i + A_ROT]:
         if not with_errors:
-            u = a + F_U
             eye = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
             return eye, (s * v * tf[u], s * v * tf[u + 1], s * v * tf[u + 2])
-        su = a + F_SU
-        return omega(e3, e4, e5), (v * tf[su] + e0, v * tf[su + 1] + e1, v * tf[su + 2] + e2)
+        # s·Ω(ε0 + ε0(q))·u = s·Ω(ε0)·u + s·ε0(q) × u: the tilt over arguments added
+        su, sv = a + F_SU, s * v
+        return omega(e3, e4, e5), (
+            v * tf[su] + sv * (p4 * tf[u + 2] - p5 * tf[u + 1]) + e0,
+            v * tf[su + 1] + sv * (p5 * tf[u] - p3 * tf[u + 2]) + e1,
+            v * tf[su + 2] + sv * (p3 * tf[u + 1] - p4 * tf[u]) + e2,
+        )
     angle = math.radians(s * v)
     cx, cy, cz = tf[a + F_C], tf[a + F_C + 1], tf[a + F_C + 2]
+    sh, tl = a + F_SH, a + F_TL
     if not with_errors:
         r = rodrigues(tf, a + F_K, a + F_K2, angle)
         dx = dy = dz = 0.0
     elif ti[ib + ALT]:
-        r = mul(omega(e3, e4, e5), rodrigues(tf, a + F_KT, a + F_KT2, angle))
-        cx, cy, cz = cx + tf[a + F_SH], cy + tf[a + F_SH + 1], cz + tf[a + F_SH + 2]
+        if ti[ib + IHDR + AXI * i + A_VPOS]:  # the distorted axis here: Ω(ε0)·u, normalised
+            ux, uy, uz = apply(
+                omega(tf[tl] + p3, tf[tl + 1] + p4, tf[tl + 2] + p5), tf[u], tf[u + 1], tf[u + 2]
+            )
+            n = math.sqrt(ux * ux + uy * uy + uz * uz)
+            r = mul(omega(e3, e4, e5), rodrigues_of(ux / n, uy / n, uz / n, angle))
+        else:
+            r = mul(omega(e3, e4, e5), rodrigues(tf, a + F_KT, a + F_KT2, angle))
+        cx, cy, cz = cx + tf[sh] + p0, cy + tf[sh + 1] + p1, cz + tf[sh + 2] + p2
         dx, dy, dz = e0, e1, e2
     else:
-        tl = a + F_TL
         r = mul(
-            omega(e3 + tf[tl], e4 + tf[tl + 1], e5 + tf[tl + 2]),
+            omega(e3 + tf[tl] + p3, e4 + tf[tl + 1] + p4, e5 + tf[tl + 2] + p5),
             rodrigues(tf, a + F_K, a + F_K2, angle),
         )
-        sh = a + F_SH
-        dx, dy, dz = tf[sh] + e0, tf[sh + 1] + e1, tf[sh + 2] + e2
+        dx, dy, dz = tf[sh] + p0 + e0, tf[sh + 1] + p1 + e1, tf[sh + 2] + p2 + e2
     rx, ry, rz = apply(r, cx, cy, cz)
     return r, (cx + dx - rx, cy + dy - ry, cz + dz - rz)
 

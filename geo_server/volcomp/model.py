@@ -57,6 +57,12 @@ class AxisModel:
         letters = _DIRS if kind == "shift" else _ANGLES
         return [f"E{d}{self.letter}" for d in letters]
 
+    def position(self, kind: str) -> list[str]:
+        """The names of its position errors: the shift X0?, Y0?, Z0? or the tilt A0?,
+        B0?, C0? (004 p.30)."""
+        letters = _DIRS if kind == "shift" else _ANGLES
+        return [f"{d}0{self.letter}" for d in letters]
+
 
 @dataclass(frozen=True)
 class VolModel:

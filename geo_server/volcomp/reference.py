@@ -58,15 +58,23 @@ def _homogeneous(r: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _errors(model: VolModel, ax: AxisModel, point: dict[str, float]) -> tuple[np.ndarray, ...]:
-    """δ (mm) and ε (rad) of `ax` at `point`: its component-error tables, 0 where none."""
+    """δ (mm) and ε (rad) of `ax` at `point`: its component-error tables, 0 where none;
+    then δ0 and ε0: its position errors, the constants and the tables over arguments
+    (004 p.32: "typically (but not necessarily) constant")."""
 
     def value(name: str) -> float:
         table = model.tables.get(name)
         return 0.0 if table is None else evaluate(table, point)
 
+    def varying(name: str) -> float:
+        table = model.tables.get(name)
+        return 0.0 if table is None or not table.arguments else evaluate(table, point)
+
     return (
         np.array([value(n) for n in ax.component("shift")]),
         np.array([value(n) for n in ax.component("tilt")]),
+        ax.position_shift + np.array([varying(n) for n in ax.position("shift")]),
+        ax.position_tilt + np.array([varying(n) for n in ax.position("tilt")]),
     )
 
 
@@ -81,20 +89,18 @@ def axis_transform(
             return _homogeneous(np.eye(3), ax.sign * q * u)
         r = rotation(u, math.radians(ax.sign * q))
         return _homogeneous(r, ax.centre - r @ ax.centre)
-    d, e = _errors(model, ax, point)
+    d, e, d0, e0 = _errors(model, ax, point)
     if not ax.rotary:
-        return _homogeneous(
-            small_rotation(e), ax.sign * q * (small_rotation(ax.position_tilt) @ u) + d
-        )
+        return _homogeneous(small_rotation(e), ax.sign * q * (small_rotation(e0) @ u) + d)
     angle = math.radians(ax.sign * q)
     if model.alternative:
-        u2 = small_rotation(ax.position_tilt) @ u
+        u2 = small_rotation(e0) @ u
         u2 = u2 / np.linalg.norm(u2)
-        c2 = ax.centre + ax.position_shift
+        c2 = ax.centre + d0
         r = small_rotation(e) @ rotation(u2, angle)
         return _homogeneous(r, c2 + d - r @ c2)
-    r = small_rotation(ax.position_tilt + e) @ rotation(u, angle)
-    return _homogeneous(r, ax.centre + ax.position_shift + d - r @ ax.centre)
+    r = small_rotation(e0 + e) @ rotation(u, angle)
+    return _homogeneous(r, ax.centre + d0 + d - r @ ax.centre)
 
 
 def forward(

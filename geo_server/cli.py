@@ -269,7 +269,7 @@ async def _serve(args: argparse.Namespace, service: ObjectService, scheduler: Cy
                     flush=True,
                 )
                 continue
-            if st.get("compiled") and not compiled_said:
+            if st.get("compiled") and not compiled_said and not args.quiet:
                 compiled_said = True
                 if interpreted_seen:  # (not when it started compiled: a warm fleet)
                     print(
@@ -278,7 +278,8 @@ async def _serve(args: argparse.Namespace, service: ObjectService, scheduler: Cy
                         flush=True,
                     )
             interpreted_seen = interpreted_seen or st.get("compiled") is False
-            print(status_line(st) + (program.line() if program else ""), flush=True)
+            if not args.quiet:
+                print(status_line(st) + (program.line() if program else ""), flush=True)
             if finished:
                 break
     finally:
@@ -397,6 +398,12 @@ def build_parser() -> argparse.ArgumentParser:
         "thread of the server (the default of the exact engine, and on Windows)",
     )
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
+    r.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no status lines (a stalled cycle, the program's start and end and errors are "
+        "still printed)",
+    )
     r.add_argument("--cycles", type=int, default=0, help="stop after this many cycles (0: never)")
     r.add_argument("--machine", default="local", help="machine name (Zenoh key prefix)")
     fl = r.add_mutually_exclusive_group()

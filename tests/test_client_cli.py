@@ -279,3 +279,56 @@ def test_ctrl_c_while_starting_is_one_line_and_130(library: str) -> None:
         for conn in held:
             conn.close()
     assert (proc.returncode, err, out) == (130, "interrupted\n", "")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("via", ["zenoh", "modbus", "ads"])
+def test_wait_lets_a_client_started_first_answer_once_the_server_is_up(
+    tmp_path: Path, via: str
+) -> None:
+    """Issue 48 #2: the README's tour reads right after `geo-server run … &`, before the
+    server listens (0.4-2 s). `geo-client --wait S` tries until the server answers, up to
+    S seconds: started before the server, it reads its cycle count once the server is
+    up, over each transport. Without --wait the same read fails at once (exit 2)."""
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import geo_server_cmd, stop_process
+
+    zport, mport, aport, oport = free_port(), free_port(), free_port(), free_port()
+    where = {
+        "zenoh": f"tcp/127.0.0.1:{zport}",
+        "modbus": f"127.0.0.1:{mport}",
+        "ads": f"127.0.0.1:{aport}",
+    }[via]
+    client = [str(Path(sys.executable).with_name("geo-client")), "--via", via]
+    client += ["--connect", where]
+    early = subprocess.run([*client, "read", "SIM::cycle_count"], capture_output=True, text=True)
+    assert early.returncode == 2 and "error:" in early.stderr
+    waiting = subprocess.Popen(
+        [*client, "--wait", "120", "read", "SIM::axis_names"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    ports = ["--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--modbus-port", str(mport)]
+    ports += ["--ads-port", str(aport), "--ads-udp-port", "0"]
+    ports += ["--opcua-endpoint", f"opc.tcp://127.0.0.1:{oport}"]
+    server = subprocess.Popen(
+        [*geo_server_cmd(), "run", "--homed", "--quiet", *ports],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        out, err = waiting.communicate(timeout=150)
+        assert waiting.returncode == 0, err
+        assert "X" in out and "C" in out
+    finally:
+        stop_process(server, signal.SIGINT, 30)
+        stop_process(waiting, signal.SIGKILL, 5)
+    printed = server.stdout.read() if server.stdout else ""
+    status = [ln for ln in printed.splitlines() if ln.startswith("cycle ") and "STALLED" not in ln]
+    assert status == []  # --quiet: no status lines

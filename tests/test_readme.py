@@ -295,5 +295,46 @@ def test_mbpoll_lines(block: Block, shared_server: Server) -> None:
         assert re.search(r"\[264\]:\s+40\b", r.stdout), r.stdout  # TEMPC::actual_offset of X
 
 
+JS = [b for b in blocks() if b.lang == "js"]
+NODE = shutil.which("node")
+NODE_DIR = README.parent / "tests" / "node"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(
+    os.environ.get("GEO_SERVER_REQUIRE_NODE") != "1"
+    and (NODE is None or not (NODE_DIR / "node_modules" / "ads-client").is_dir()),
+    reason="node or tests/node/node_modules missing (npm ci --prefix tests/node)",
+)
+@pytest.mark.parametrize("block", JS, ids=[f"line{b.line}" for b in JS])
+def test_node_examples(block: Block, tmp_path: Path) -> None:
+    """Issue 48 #3: each Node.js snippet as pasted into the file its first line names
+    (an ES module), beside the project's Node clients (tests/node, whose node_modules
+    it imports from), run with `node` against a server of its own; what it prints is
+    what its `// → value` comments say."""
+    assert NODE is not None
+    fresh = tmp_path / "fresh"
+    subprocess.run(
+        [str(BIN / "geo-server"), "init", str(fresh)], check=True, capture_output=True, env=env()
+    )
+    server = Server(fresh / "hochlauf.lis", ["--homed"], tmp_path)
+    name = re.match(r"// (\S+\.mjs) ", block.text)
+    assert name, "a Node.js snippet names its file on its first line"
+    script = NODE_DIR / f".readme-{os.getpid()}-{name.group(1)}"
+    try:
+        script.write_text(server.rewrite(block.text), encoding="utf-8")
+        r = subprocess.run(
+            [NODE, str(script)], capture_output=True, text=True, timeout=120, cwd=NODE_DIR
+        )
+    finally:
+        script.unlink(missing_ok=True)
+        server.close()
+    assert r.returncode == 0, r.stdout + r.stderr
+    want = [m for line in block.text.splitlines() for m in re.findall(r"// → (.+)$", line)]
+    got = [ln for ln in r.stdout.splitlines() if not ln.startswith("[")]  # (client logs)
+    assert got[: len(want)] == want, r.stdout
+
+
 def test_the_readme_has_examples_of_each_kind() -> None:
     assert len(CONSOLE) >= 2 and len(PYTHON) >= 4 and SH

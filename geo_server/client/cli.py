@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import __version__
-from geo_server.client import TRANSPORTS, open_client, resolve
+from geo_server.client import TRANSPORTS, GeoClient, open_client, resolve
 from geo_server.client.base import ServerUnreachable
 from geo_server.console import closes_quietly_on_broken_pipe, engine_figures
 from geo_server.dictionary import ObjectDef, load_dictionary
@@ -388,6 +388,14 @@ def build_parser() -> argparse.ArgumentParser:
         "and the --connect port, as the server's from --ads-netid and --modbus-port)",
     )
     p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for a reply")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="wait up to S seconds for the server to answer (a server just started) "
+        "before the command",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
         "--raw", action="store_true", help="internal units (increments, µm/s) instead of mm, µm"
@@ -429,6 +437,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _open_ready(args: argparse.Namespace, endpoint: str | None) -> GeoClient:
+    """The client; with `--wait S`, once the server answers a read of its cycle count,
+    tried every 0.2 s for up to S seconds (not listening yet, not answering yet), the
+    last failure raised when S has passed."""
+    deadline = time.monotonic() + max(0.0, args.wait)
+    while True:
+        client = None
+        try:
+            client = open_client(
+                args.via, endpoint, machine=args.machine, timeout=args.timeout, netid=args.netid
+            )
+            if args.wait > 0:
+                client.read("SIM::cycle_count")
+            return client
+        except (ServerUnreachable, TimeoutError, AdsError, OSError):
+            if client is not None:
+                client.close()
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.2)
+
+
 @closes_quietly_on_broken_pipe
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -462,9 +492,7 @@ def main(argv: list[str] | None = None) -> int:
             host = (endpoint or "127.0.0.1:5020").rsplit(":", 1)[0]
             endpoint = f"{host}:{found.modbus_port}"
     try:
-        client = open_client(
-            args.via, endpoint, machine=args.machine, timeout=args.timeout, netid=args.netid
-        )
+        client = _open_ready(args, endpoint)
     except ServerUnreachable as exc:  # one line, the same on every transport
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -733,3 +733,79 @@ def test_path_xy_needs_x_and_y(lists_copy: Path) -> None:
     add_volc(lists_copy, volc, {})
     (comp,) = load_machine(lists_copy).volumetric
     assert "PATH_XY needs X and Y" in comp.problem
+
+
+def test_v_g_volcomp_variables_read_write_and_update(lists_copy: Path) -> None:
+    """004 p.18: `V.G.VOLCOMP[i].ACTIVE` reads whether compensation i is active (no write
+    access); `V.G.VOLCOMP[i].FILE[j]` reads and writes the name of its file j (the VOLC
+    list's file[j]); reading them flushes the channel (read when the block is reached).
+    The program switches ID0 on only while it is off, checks the listed file by name,
+    names a second file with twice the error (EXX = 4e-5·x), updates and switches on:
+    at x = 100 mm Δx = −20 increments before (−2e-5·100/1.00002 mm) and −40 after
+    (−4e-5·100/1.00004 mm = −39.998). Each #MSG below says a condition held."""
+    folder = lists_copy.parent
+    add_volc(lists_copy, smooth_files(folder), {"exx2.csv": "X EXX\n-1000 -0.04\n1000 0.04\n"})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    program = (
+        "N10 $IF V.G.VOLCOMP[0].ACTIVE == FALSE\n"
+        "N20 #VOLCOMP ON [ID0]\n"
+        "N30 $ENDIF\n"
+        '$IF V.G.VOLCOMP[0].ACTIVE AND V.G.VOLCOMP[0].FILE[0] == "exx.csv"\n'
+        '#MSG ["on, from exx.csv"]\n'
+        "$ENDIF\n"
+        '$IF V.G.VOLCOMP[0].FILE[1] == ""\n'
+        '#MSG ["no file[1]"]\n'
+        "$ENDIF\n"
+        'N40 V.G.VOLCOMP[0].FILE[0] = "exx2.csv"\n'
+        '$IF V.G.VOLCOMP[0].FILE[0] != "exx.csv"\n'
+        '#MSG ["renamed"]\n'
+        "$ENDIF\n"
+        "#VOLCOMP OFF [ID0]\n"
+        "#VOLCOMP [ID0 UPDATE]\n"
+        "#VOLCOMP ON [ID0]\n"
+        "M30\n"
+    )
+    m.start_program(program)
+    seen = []
+    for _ in range(3000):
+        m.run_cycle()
+        seen.append(value(m, "VOLC::correction", 1))
+        if m.player is not None and not m.player.running:
+            break
+    assert m.player is not None and m.player.error is None and m.player.finished
+    messages = [ev.diagnostic.message for ev in m.events if ev.diagnostic.severity == "message"]
+    assert messages == ["on, from exx.csv", "no file[1]", "renamed"]
+    assert -20 in seen and seen[-1] == -40
+    # the list on disk is unchanged (004 p.23: an update does not change the configuration)
+    assert "file[0] exx.csv" in (folder / "volc0.lis").read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("V.G.VOLCOMP[0].ACTIVE = 1", "is read only"),
+        ('V.G.VOLCOMP[5].FILE[0] = "a.csv"', "the ID is 0 … 4"),
+        ('V.G.VOLCOMP[0].FILE[10] = "a.csv"', "the index is 0 … 9"),
+        ('$IF V.G.VOLCOMP[0].FILE[0] < "a.csv"', "by == or != only"),
+        ("$IF V.G.VOLCOMP[0].FILE[0] == 1", "by == or != only"),
+        ('$IF "a.csv"', "by == or != only"),
+        ('X10 V.G.VOLCOMP[0].FILE[0] = "a.csv"', "stands alone"),
+    ],
+)
+def test_v_g_volcomp_syntax_errors(line: str, message: str) -> None:
+    from geo_server.machine.nc import NcError, parse_program
+
+    with pytest.raises(NcError, match=message):
+        parse_program(line + "\n$ENDIF\nM30\n" if line.startswith("$IF") else line, {"X": 0})
+
+
+def test_v_g_volcomp_file_of_an_unconfigured_compensation_stops_the_program(
+    lists_copy: Path,
+) -> None:
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.start_program('N10 V.G.VOLCOMP[3].FILE[0] = "a.csv"\nM30\n')
+    for _ in range(3):
+        m.run_cycle()
+    assert m.player is not None and m.player.error is not None
+    assert "no volumetric compensation 3" in m.player.error.message

@@ -122,6 +122,8 @@ class _MachineColumns:
 
 #: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
 VOLC_LOAD_TIMEOUT = 30.0
+#: the longest name `V.G.VOLCOMP[i].FILE[j] = "…"` takes (a STRING of 255, as the CNC's)
+MAX_VOLC_FILE_NAME = 255
 
 
 def _in_worker(fn: Callable[[], Any]) -> Future[Any]:
@@ -166,6 +168,9 @@ class Machine:
         self.volc_index = 0
         #: #VOLCOMP UPDATE: (ID, the worker reading its files)
         self._volc_loading: list[tuple[int, float, Future[Any]]] = []
+        #: `V.G.VOLCOMP[i].FILE[j] = "…"` of NC programs: ID -> j -> name, for the next
+        #: UPDATE (004 p.18); a reload of the lists forgets them, as a start-up would
+        self._volc_files: dict[int, dict[int, str]] = {}
         self.twin = self._new_twin(cfg)
         #: called with (cycle, operation) for every operation applied at a cycle boundary
         #: (after `cycle`): what a recording replays (docs/recorder.md §4)
@@ -852,6 +857,7 @@ class Machine:
         self.volc = self._new_volc(cfg)
         self.volc.carry_over(old)
         self._volc_loading.clear()  # an UPDATE still reading belongs to the old lists
+        self._volc_files.clear()
         twin = self._new_twin(cfg)
         twin.take_state(self.twin)  # the machine does not cool down on a reload
         self.twin = twin
@@ -995,12 +1001,44 @@ class Machine:
         comp = self.volc.get(ident).comp
         cfg = self.cfg
 
+        written = dict(self._volc_files.get(ident, {}))
+
         def load() -> tuple[Any, list[Diagnostic]]:
             diags: list[Diagnostic] = []
-            new = reload_compensation(cfg, ident, comp.path or comp.file_name, Reporter(diags))
+            path = comp.path or comp.file_name
+            new = reload_compensation(cfg, ident, path, Reporter(diags), written)
             return new, diags
 
         self._volc_loading.append((ident, monotonic(), _in_worker(load)))
+
+    def volcomp_active(self, ident: int) -> bool:
+        st = self.volc.states.get(ident)
+        return st is not None and st.active
+
+    def volcomp_file(self, ident: int, index: int) -> str:
+        written = self._volc_files.get(ident, {})
+        if index in written:
+            return written[index]
+        st = self.volc.states.get(ident)
+        cfg = st.comp.config if st is not None else None
+        if cfg is None:
+            return ""
+        by_slot = dict(zip(cfg.file_slots, (name for name, _, _ in cfg.files), strict=True))
+        return by_slot.get(index, "")
+
+    def set_volcomp_file(self, ident: int, index: int, name: str) -> tuple[int, str]:
+        if ident not in self.volc.states:
+            return VOLC_ERROR, (
+                f"V.G.VOLCOMP[{ident}].FILE[{index}]: no volumetric compensation {ident} "
+                f"(vol_comp[{ident}] in the start-up list, 004 p.12)"
+            )
+        if not name.strip() or len(name) > MAX_VOLC_FILE_NAME:
+            return VOLC_ERROR, (
+                f"V.G.VOLCOMP[{ident}].FILE[{index}]: a file name of 1 … "
+                f"{MAX_VOLC_FILE_NAME} characters"
+            )
+        self._volc_files.setdefault(ident, {})[index] = name.strip()
+        return 0, ""
 
     def volcomp_settled(self) -> bool:
         """The #VOLCOMP ramps are over and the updates read and applied. An update

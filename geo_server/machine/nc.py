@@ -57,7 +57,7 @@ import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Protocol
+from typing import Any, Protocol
 
 from geo_server.errors import CncErrorId, GeoError
 from geo_server.model import CompKind, Diagnostic
@@ -154,6 +154,20 @@ class MachinePort(Protocol):
         """True when the volumetric ramps and updates started by #VOLCOMP are done."""
         ...
 
+    def volcomp_active(self, ident: int) -> bool:
+        """`V.G.VOLCOMP[i].ACTIVE` (004 p.18): compensation `ident` active (or ramping)."""
+        ...
+
+    def volcomp_file(self, ident: int, index: int) -> str:
+        """`V.G.VOLCOMP[i].FILE[j]` (004 p.18): the name of its correction file j, as
+        written in its VOLC list or last given by the program; "" if none."""
+        ...
+
+    def set_volcomp_file(self, ident: int, index: int, name: str) -> tuple[int, str]:
+        """`V.G.VOLCOMP[i].FILE[j] = "name"`: the file the next UPDATE reads as file j;
+        returns (0, "") or (error ID, message)."""
+        ...
+
     def comp_settled(self, slots: Iterable[int]) -> bool:
         """True when the offset ramps started by COMP on these axes have finished."""
         ...
@@ -248,9 +262,22 @@ class VaVariable:
         return float(port.current(self.slot, self.kind))
 
 
-Operand = VaVariable | float
+@dataclass(frozen=True)
+class VgVariable:
+    """`V.G.VOLCOMP[i].ACTIVE` (BOOLEAN) or `V.G.VOLCOMP[i].FILE[j]` (STRING), 004 p.18."""
 
-_COMPARE: dict[str, Callable[[float, float], bool]] = {
+    ident: int
+    index: int | None = None  # j of FILE[j]; None: ACTIVE
+
+    def read(self, port: MachinePort) -> float | str:
+        if self.index is None:
+            return float(port.volcomp_active(self.ident))
+        return port.volcomp_file(self.ident, self.index)
+
+
+Operand = VaVariable | VgVariable | float | str
+
+_COMPARE: dict[str, Callable[[Any, Any], bool]] = {  # (texts: == and != only)
     "==": lambda a, b: a == b,
     "!=": lambda a, b: a != b,
     "<": lambda a, b: a < b,
@@ -267,8 +294,8 @@ class Condition:
     any_of: tuple[tuple[tuple[Operand, str, Operand], ...], ...]
 
     def holds(self, port: MachinePort) -> bool:
-        def value(x: Operand) -> float:
-            return x.read(port) if isinstance(x, VaVariable) else x
+        def value(x: Operand) -> float | str:
+            return x.read(port) if isinstance(x, (VaVariable, VgVariable)) else x
 
         return any(
             all(_COMPARE[op](value(a), value(b)) for a, op, b in group) for group in self.any_of
@@ -309,6 +336,7 @@ class Block:
     volcomp: VolcompCommand | None = None  # `#VOLCOMP …` (004 p.21)
     branch: Branch | None = None  # `$IF` / `$ELSEIF` / `$ELSE` / `$ENDIF`
     message: str | None = None  # `#MSG ["text"]` (000 p.96)
+    volcomp_file: tuple[int, int, str] | None = None  # `V.G.VOLCOMP[i].FILE[j] = "…"`
 
 
 @dataclass
@@ -580,6 +608,19 @@ def _parse_block(
     special = _parse_control(line, body, names, warnings)
     if special is not None:
         return special
+    m = _VG_FILE_WRITE.fullmatch(body.strip())
+    if m is not None:
+        ident, index = _vg_indices(line, m["i"], m["j"])
+        assert index is not None
+        b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None)
+        b.label, b.volcomp_file = bool(m["colon"]), (ident, index, m["text"])
+        return b
+    if re.search(r"V\s*\.\s*G\s*\.", body.upper()):
+        raise NcError(
+            line,
+            'V.G.VOLCOMP[i].FILE[j] = "name" stands alone in its block; V.G.VOLCOMP[i].ACTIVE '
+            "is read only, in $IF (004 p.18)",
+        )
     exchange = _AXIS_EXCHANGE.fullmatch(body.upper())
     if exchange is not None:
         return _parse_exchange(line, body, exchange, names, warnings)
@@ -610,12 +651,21 @@ _BRANCH = re.compile(
 _MSG = re.compile(
     r'(?:N(?P<n>\d+)(?P<colon>:)?\s*)?#\s*MSG\s*\[\s*"(?P<text>[^"]*)"\s*\]', re.IGNORECASE
 )
+#: `V.G.VOLCOMP[i].FILE[j] = "name"` (004 p.18), alone in its block; the name keeps its case
+_VG_FILE_WRITE = re.compile(
+    r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?V\s*\.\s*G\s*\.\s*VOLCOMP\s*\[\s*(?P<i>\d+)\s*\]\s*\.\s*"
+    r'FILE\s*\[\s*(?P<j>\d+)\s*\]\s*=\s*"(?P<text>[^"]*)"',
+    re.IGNORECASE,
+)
 #: `N150 ...`: the manuals' elision of the rest of a program (000 p.96)
 _ELISION = re.compile(r"(?:N(?P<n>\d+)(?P<colon>:)?\s*)?(?:\.\.\.+|…)")
 _CONDITION_TOKEN = re.compile(
     r"""\s*(?:
       (?P<va>V\s*\.\s*A\s*\.\s*(?P<word>[A-Z]+)_COMP_(?P<field>[A-Z]+)\s*
           (?:\.\s*(?P<axis>[A-Z][A-Z0-9_]*)|\[\s*(?P<index>\d+)\s*\]))
+    | (?P<vg>V\s*\.\s*G\s*\.\s*VOLCOMP\s*\[\s*(?P<vi>\d+)\s*\]\s*\.\s*
+          (?:(?P<active>ACTIVE)|FILE\s*\[\s*(?P<vj>\d+)\s*\]))
+    | "(?P<text>[^"]*)"
     | (?P<op>==|!=|<=|>=|<|>)
     | (?P<logic>AND|OR)\b
     | (?P<bool>TRUE|FALSE)\b
@@ -631,7 +681,7 @@ def _parse_control(
     """`$IF`/`$ELSEIF`/`$ELSE`/`$ENDIF`, `#MSG` and the elision `...` (000 p.96); None
     for any other block."""
     upper = body.upper()
-    m = _BRANCH.fullmatch(upper)
+    m = _BRANCH.fullmatch(_upper_outside_texts(body))
     if m is not None:
         kind, rest = m["kind"], m["rest"].strip()
         b = Block(line=line, text=body, number=int(m["n"]) if m["n"] else None)
@@ -673,6 +723,13 @@ def _parse_condition(line: int, text: str, names: dict[str, int]) -> Condition:
         nonlocal left, op
         if left is None or (op is not None and expect == "operand"):
             raise NcError(line, f"$IF {text}: incomplete condition")
+        texts = (_is_text(left), op is not None and _is_text(right))
+        if any(texts) and (op not in ("==", "!=") or not all(texts)):
+            raise NcError(
+                line,
+                f'$IF {text}: a text (V.G.VOLCOMP[i].FILE[j], "…") is '
+                "compared with a text by == or != only",
+            )
         groups[-1].append((left, "!=", 0.0) if op is None else (left, op, right))
         left, op = None, None
 
@@ -706,7 +763,33 @@ def _parse_condition(line: int, text: str, names: dict[str, int]) -> Condition:
     return Condition(tuple(tuple(g) for g in groups))
 
 
+def _is_text(x: Operand) -> bool:
+    return isinstance(x, str) or (isinstance(x, VgVariable) and x.index is not None)
+
+
+def _upper_outside_texts(body: str) -> str:
+    """The block in capitals but for its `"…"` texts (a file name keeps its case)."""
+    parts = body.split('"')
+    return '"'.join(p.upper() if i % 2 == 0 else p for i, p in enumerate(parts))
+
+
+def _vg_indices(line: int, i: str, j: str | None) -> tuple[int, int | None]:
+    """The compensation ID 0 … 4 and the file index 0 … 9 of a V.G.VOLCOMP variable
+    (004 p.12: five compensations, up to 10 files each)."""
+    ident, index = int(i), None if j is None else int(j)
+    if ident > 4:
+        raise NcError(line, f"V.G.VOLCOMP[{ident}]: the ID is 0 … 4 (004 p.21)")
+    if index is not None and index > 9:
+        raise NcError(line, f"V.G.VOLCOMP[{ident}].FILE[{index}]: the index is 0 … 9 (004 p.12)")
+    return ident, index
+
+
 def _operand(line: int, m: re.Match[str], names: dict[str, int]) -> Operand:
+    if m["text"] is not None:
+        return m["text"]
+    if m["vg"]:
+        ident, index = _vg_indices(line, m["vi"], m["vj"])
+        return VgVariable(ident, index)
     if m["bool"]:
         return 1.0 if m["bool"] == "TRUE" else 0.0
     if m["number"] is not None:
@@ -1048,13 +1131,8 @@ class Player:
         if b.release or b.call:
             self._exchange(b)
             return
-        if b.volcomp is not None:
-            err, message = self.port.volcomp(b.volcomp)
-            if err:
-                self._fail(err, message)
-                return
-            # "The machine stops when a #VOLCOMP command is used" (004 p.22)
-            self._wait = _Wait(volcomp=True)
+        if b.volcomp_file is not None or b.volcomp is not None:
+            self._volcomp(b)
             return
         if not self._in_channel(b):
             return
@@ -1076,6 +1154,19 @@ class Player:
         elif waits:
             wait.end = b.end
             self._wait = wait
+
+    def _volcomp(self, b: Block) -> None:
+        """`V.G.VOLCOMP[i].FILE[j] = "…"`, or `#VOLCOMP …` and its wait ("The machine
+        stops when a #VOLCOMP command is used", 004 p.22)."""
+        if b.volcomp_file is not None:
+            err, message = self.port.set_volcomp_file(*b.volcomp_file)
+        else:
+            assert b.volcomp is not None
+            err, message = self.port.volcomp(b.volcomp)
+        if err:
+            self._fail(err, message)
+        elif b.volcomp is not None:
+            self._wait = _Wait(volcomp=True)
 
     def _branch(self, br: Branch) -> None:
         """`$IF`: the first branch whose condition holds runs, else the `$ELSE` branch;

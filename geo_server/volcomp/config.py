@@ -53,6 +53,7 @@ class VolcConfig:
     chain: str
     workpiece_axes: int = 0
     files: tuple[tuple[str, str, int], ...] = ()  # (file as written, format, line)
+    file_slots: tuple[int, ...] = ()  # the j of each of `files` (file[j])
     negate: str = ""
     set_to_zero: str = ""
     alternative_model: bool = False
@@ -114,8 +115,10 @@ def _letters(text: str, allowed: str, what: str, values: Values, rep: Reporter) 
     return out
 
 
-def _config(values: Values, rep: Reporter) -> VolcConfig:
-    """The VOLC list's entries, checked; `_Problem` when it cannot be used."""
+def _config(values: Values, rep: Reporter, written: Mapping[int, str]) -> VolcConfig:
+    """The VOLC list's entries, checked; `_Problem` when it cannot be used. `written`:
+    file names an NC program gave `V.G.VOLCOMP[i].FILE[j]` (004 p.18), in place of the
+    list's `file[j]` (or beside it, with the list's `file_format[j]`)."""
     axes = {a: int(v) for a in AXES if (v := values.get(a.lower())) is not None}
     order = sorted(axes, key=lambda a: values.item(a.lower()).entry.line)  # type: ignore[union-attr]
     chain_item = values.item("chain")
@@ -143,22 +146,26 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
             "",
             item.entry.line if item else 0,
         )
-    files = []
-    for (j,), item in sorted(values.table("file[]").items()):
+    files, slots = [], []
+    listed = {j: item for (j,), item in values.table("file[]").items()}
+    for j in sorted(set(listed) | set(written)):
+        item = listed.get(j)
+        line = item.entry.line if item is not None else 0
         fmt_item = values.item("file_format[]", (j,))
         if j >= MAX_FILES:
             raise _Problem(
                 "volc.config",
                 f"file[{j}]: at most 10 files (file[0] … file[9], 004 p.12)",
                 "",
-                item.entry.line,
+                line,
             )
         if fmt_item is None:
             raise _Problem(
                 "volc.config",
-                f"file[{j}] without file_format[{j}] (ISG_CSV or ETALON_EXCHANGE, 004 p.12)",
+                f"file[{j}] without file_format[{j}] (ISG_CSV or ETALON_EXCHANGE, 004 p.12)"
+                + ("" if item is not None else f": given by V.G.VOLCOMP[..].FILE[{j}]"),
                 "",
-                item.entry.line,
+                line,
             )
         fmt = str(fmt_item.value).strip().upper()
         if fmt not in FORMATS:
@@ -168,9 +175,11 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
                 "",
                 fmt_item.entry.line,
             )
-        files.append((str(item.value).strip(), fmt, item.entry.line))
+        name = written[j] if j in written else str(item.value).strip() if item else ""
+        files.append((name, fmt, line))
+        slots.append(j)
     for (j,), item in values.table("file_format[]").items():
-        if values.item("file[]", (j,)) is None:
+        if values.item("file[]", (j,)) is None and j not in written:
             rep.at("list.ignored", f"file_format[{j}] without file[{j}]: ignored", item.entry)
     interp = str(values.get("interpolation", "GRID")).strip().upper()
     if interp not in INTERPOLATIONS:
@@ -193,6 +202,7 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
         chain=chain,
         workpiece_axes=wp,
         files=tuple(files),
+        file_slots=tuple(slots),
         negate=_letters(str(values.get("negate", "")), "XYZ", "negate", values, rep),
         set_to_zero=_letters(str(values.get("set_to_zero", "")), "XYZ", "set_to_zero", values, rep),
         alternative_model=bool(values.get("alternative_model", False)),
@@ -204,10 +214,17 @@ def _config(values: Values, rep: Reporter) -> VolcConfig:
     )
 
 
-def read_volc_list(path: Path, rep: Reporter, *, from_network: bool = False) -> VolcConfig:
+def read_volc_list(
+    path: Path,
+    rep: Reporter,
+    *,
+    from_network: bool = False,
+    written: Mapping[int, str] | None = None,
+) -> VolcConfig:
     """Parse and check one VOLC list (at most `FileLimits.volc_list_bytes`); `_Problem`
     if it cannot be used. `from_network`: the name came over the network, and whatever
-    keeps it from being read as a VOLC list is answered with `REFUSED` alone."""
+    keeps it from being read as a VOLC list is answered with `REFUSED` alone.
+    `written`: `file[j]` names given by `V.G.VOLCOMP[i].FILE[j]` (`_config`)."""
     try:
         try:
             parsed = parse_list(path, LIMITS.volc_list_bytes)
@@ -234,7 +251,7 @@ def read_volc_list(path: Path, rep: Reporter, *, from_network: bool = False) -> 
         raise
     values = read_values(parsed, ListKind.VOLC, rep)
     try:
-        return _config(values, rep)
+        return _config(values, rep, written or {})
     except _Problem as exc:
         exc.file = exc.file or str(path)
         raise
@@ -348,10 +365,12 @@ def load_compensation(
     *,
     roots: Sequence[Path],
     from_network: bool = False,
+    written: Mapping[int, str] | None = None,
 ) -> VolComp:
     """Load compensation `ident` from its VOLC list; report what is wrong and return it
     unavailable then (never raises on content). Files are read only inside `roots`
-    (see the module docstring); `from_network`: `file_name` came over the network."""
+    (see the module docstring); `from_network`: `file_name` came over the network;
+    `written`: file names given by `V.G.VOLCOMP[ident].FILE[j]` (004 p.18)."""
     path = Path(os.path.abspath(resolve(folder, file_name))) if file_name else Path()
     try:
         if not file_name:
@@ -369,7 +388,7 @@ def load_compensation(
             )
         if not is_inside(path, roots):
             raise _Problem("volc.file", REFUSED, *where)
-        cfg = read_volc_list(path, rep, from_network=from_network)
+        cfg = read_volc_list(path, rep, from_network=from_network, written=written)
         tables, records, paths = _tables(cfg, path.parent, roots)
         if records > max_records:
             raise _Problem(
@@ -392,7 +411,11 @@ def load_compensation(
 
 
 def reload_compensation(
-    cfg: MachineConfig, ident: int, file_name: str, rep: Reporter
+    cfg: MachineConfig,
+    ident: int,
+    file_name: str,
+    rep: Reporter,
+    written: Mapping[int, str] | None = None,
 ) -> VolComp | None:
     """Compensation `ident` of a loaded machine read again from the VOLC list
     `file_name` (`#VOLCOMP UPDATE`, cnc_interpr_vol_comp_file_w: 004 p.23), with the
@@ -412,6 +435,7 @@ def reload_compensation(
         rep,
         roots=cfg.file_roots,
         from_network=True,
+        written=written,
     )
 
 

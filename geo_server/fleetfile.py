@@ -46,7 +46,7 @@ class Member:
     modbus_port: int
 
 
-#: the most machines of one fleet, `--fleet-size` or a fleet file (README *Limits*;
+#: the most machines of one fleet, `--fleet-size` or a fleet file (docs/limits.md;
 #: bench/engine.py measures how many a 2-core machine serves)
 MAX_FLEET_SIZE = 1000
 

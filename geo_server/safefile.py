@@ -57,7 +57,7 @@ for _name in ("O_NONBLOCK", "O_NOCTTY", "O_BINARY", "O_CLOEXEC"):
 
 @dataclass(frozen=True)
 class FileLimits:
-    """Largest files read on request (README "Limits"); a larger one is refused unread
+    """Largest files read on request (docs/limits.md); a larger one is refused unread
     beyond the limit. List files have their own bound, `listfile.MAX_LIST_BYTES`."""
 
     #: a VOLC list (004 §3.1): some twenty lines; 1 MiB leaves room for any comment

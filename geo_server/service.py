@@ -97,7 +97,7 @@ REPORTED_REFUSALS = frozenset({AdsErrorCode.DEVICE_INVALIDDATA, ADSERR_DEVICE_SY
 
 @dataclass(frozen=True)
 class ServiceLimits:
-    """Time and size bounds of the object service (README, *Limits*)."""
+    """Time and size bounds of the object service (docs/limits.md)."""
 
     #: Seconds a write may wait for the cycle that applies it; then it is withdrawn (0x719).
     write_timeout: float = 2.0

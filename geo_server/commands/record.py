@@ -30,7 +30,7 @@ class RecordingService:
         #: where recordings asked for over an interface go (`run --record-dir`); None:
         #: `recordings/` beside the start-up list (recorder.paths.default_record_dir)
         self.record_dir: Path | None = None
-        #: bounds of a recording (README *Limits*, docs/recorder.md §8)
+        #: bounds of a recording (docs/limits.md, docs/recorder.md §8)
         self.limits = RecorderLimits()
 
     def start(

@@ -53,7 +53,7 @@ WRITER_WAKE = 0.5
 
 @dataclass(frozen=True)
 class RecorderLimits:
-    """Bounds of a recording (README *Limits*, docs/recorder.md §8). A setting outside
+    """Bounds of a recording (docs/limits.md, docs/recorder.md §8). A setting outside
     them is refused with 0x70B (invalid parameter), the message naming it and its range."""
 
     #: Rows of a recording without a trigger (`samples`) and after one (`post`).

@@ -1,5 +1,5 @@
 """How the ADS interface listens and what it counts (docs/design.md §9): `AdsOptions`
-(every limit a client meets, README *Limits*) and `AdsStats`."""
+(every limit a client meets, docs/limits.md) and `AdsStats`."""
 
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ hooks (the SimDevice `action`, `trace_packet`, `custom_pdu`) can serialise a con
 so the server speaks Modbus TCP itself; pymodbus stays the client library (geo-client,
 tests) and the bare floor of the benchmarks.
 
-Limits (README, *Limits*): `max_connections` (beyond: the new connection is closed at
+Limits (docs/limits.md): `max_connections` (beyond: the new connection is closed at
 once), `max_pipeline` requests queued per connection (beyond: the server stops reading
 that connection until it has answered), `incomplete_frame_timeout` for a frame that
 never completes (the connection is closed). A header that is not Modbus TCP closes the

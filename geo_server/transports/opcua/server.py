@@ -160,7 +160,7 @@ NOTIFY_SLICE = 64
 
 @dataclass
 class OpcUaOptions:
-    """The OPC UA endpoint, its security and its limits (README *Limits*)."""
+    """The OPC UA endpoint, its security and its limits (docs/limits.md)."""
 
     endpoint: str = "opc.tcp://127.0.0.1:4840"
     read_only: bool = False

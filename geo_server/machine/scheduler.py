@@ -108,6 +108,13 @@ def switch_interval(engines: int) -> float:
 #: (a VM pausing the engine thread for tens of milliseconds is not a stall; a longer
 #: wait is answered 0x707)
 SYNC_WAIT = 0.25
+#: exact engine: the longest an operation (a write, a command) waits for a catch-up
+#: another thread is running before it is refused 0x707. Longer than a read's wait: a
+#: read answered late shows a stale cycle, a write queued late only lands later, and
+#: right after a start the loading of the cycle's machine code holds the interpreter
+#: lock in stretches that, on a loaded 2-core runner, kept the catch-up of 50 cycles
+#: from finishing within `SYNC_WAIT` (a write at start refused, CI)
+WRITE_SYNC_WAIT = 1.0
 #: `_next_overrun` while no overrun is injected: a cycle never reached
 _NEVER = 1 << 62
 
@@ -477,7 +484,7 @@ class Scheduler:
         if not self.running_exact:
             return self.machine.submit(op)
         self._observed_at = self._clock()
-        if not self._engine_lock.acquire(timeout=SYNC_WAIT):
+        if not self._engine_lock.acquire(timeout=WRITE_SYNC_WAIT):
             # queued now it could land in a cycle that belongs to the past
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,

@@ -78,10 +78,11 @@ def test_linear_pitch_error_by_hand(tmp_path):
 def test_the_drives_actual_torque_at_constant_speed_by_hand(tmp_path):
     """000 p.74: friction compensation's parameters are read off the drive's current,
     dig_drv.act_torque, "during a motion at constant speed", where it is the friction
-    alone: sign(v)·(coulomb + viscous·|v|) (docs/twin.md). G01 at F6000 = 0.1 m/s with
-    coulomb 2000 and viscous 12 per m/s: 2001.2 drive units, −2001.2 the other way."""
+    alone: sign(v)·(coulomb + viscous·|v|), v in mm/s (docs/twin.md). G01 at F6000 =
+    100 mm/s with coulomb 2000 and viscous 12: 3200 drive units, −3200 the other way —
+    the default machine's friction table was measured so (7900 at 500 mm/s)."""
     svc = service(one_axis(tmp_path, "[axis.X]\nfriction = { coulomb = 2000.0, viscous = 12.0 }\n"))
-    for target, want in ((100, 2001.2), (0, -2001.2)):
+    for target, want in ((100, 3200.0), (0, -3200.0)):
         svc.nc.run(f"G90 G01 X{target} F6000")
         access.step(svc, 300)  # past the ramp (0.05 s at a_max 2000 mm/s²), not there yet
         assert value(svc, "SIM::velocity") == pytest.approx(math.copysign(100_000, want))

@@ -809,3 +809,84 @@ def test_v_g_volcomp_file_of_an_unconfigured_compensation_stops_the_program(
         m.run_cycle()
     assert m.player is not None and m.player.error is not None
     assert "no volumetric compensation 3" in m.player.error.message
+
+
+def test_a_ramped_switch_executes_what_a_no_move_held(lists_copy: Path) -> None:
+    """#VOLCOMP ON [ID0 NO_MOVE] at rest at x = 100 mm: the drive keeps 0 (VOLC::held
+    +20). #VOLCOMP OFF [ID0] (ramped, the axis standing): the held +20 ramps out with the
+    switch over filter_steps 4 while the correction ramps from −20 to 0 — the output, sum
+    plus held, goes from 0 to 0 through −20·(1−k/4) + 20·(1−k/4) = 0 and both end at 0.
+    Then ON [ID0] ramps −5, −10, −15, −20 into the drive. Before: the whole ramp went into
+    VOLC::held and the output never changed."""
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.run_cycle()
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n", mdi=True)
+    for _ in range(3):
+        m.run_cycle()
+    assert value(m, "VOLC::held", 1) == 20
+    m.start_program("#VOLCOMP OFF [ID0]\n", mdi=True)
+    for _ in range(8):
+        m.run_cycle()
+    assert value(m, "VOLC::held", 1) == 0 and value(m, "VOLC::correction", 1) == 0
+    m.start_program("#VOLCOMP ON [ID0]\n", mdi=True)
+    out = []  # what the drive gets of the volumetric compensation: sum + held
+    for _ in range(8):
+        m.run_cycle()
+        out.append(value(m, "VOLC::correction", 1) + value(m, "VOLC::held", 1))
+    assert [d for d in out if d][:4] == [-5, -10, -15, -20]
+
+
+def test_a_reload_without_volumetric_compensation_leaves_no_stale_correction(
+    lists_copy: Path,
+) -> None:
+    add_volc(lists_copy, smooth_files(lists_copy.parent), {})
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\nG91 G01 X0.001 F600\n", mdi=True)
+    for _ in range(40):
+        m.run_cycle()
+    assert value(m, "VOLC::correction", 1) == -20
+    text = lists_copy.read_text(encoding="utf-8")
+    lists_copy.write_text(
+        "".join(ln + "\n" for ln in text.splitlines() if not ln.startswith("vol_comp[")),
+        encoding="utf-8",
+    )
+    m.reload(load_machine(lists_copy))
+    m.run_cycle()
+    assert value(m, "VOLC::correction", 1) == 0 and value(m, "VOLC::held", 1) == 0
+
+
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("secret.txt", "password\n"),  # not a correction file: its content is not quoted
+        ("nothere.csv", None),  # missing: not where it was looked for
+        ("sub", "dir"),  # a directory
+        ("../outside.csv", "X EXX\n0 0\n"),  # outside the machine's folder
+    ],
+)
+def test_a_file_an_nc_program_names_is_refused_with_one_text(
+    lists_copy: Path, name: str, text: str | None
+) -> None:
+    """docs/security.md "Files": a name from the network that cannot be used gets one
+    text, which says nothing of the file (its content, existence, path)."""
+    from geo_server.safefile import REFUSED
+
+    folder = lists_copy.parent
+    add_volc(lists_copy, smooth_files(folder), {})
+    if text == "dir":
+        (folder / name).mkdir()
+    elif text is not None:
+        (folder / name).write_text(text, encoding="utf-8")
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.start_program(f'V.G.VOLCOMP[0].FILE[0] = "{name}"\n#VOLCOMP [ID0 UPDATE]\n', mdi=True)
+    for _ in range(3000):
+        m.run_cycle()
+        if m.player is not None and not m.player.running:
+            break
+    message = value(m, "SIM::last_error")
+    assert "UPDATE] failed, compensation unchanged" in message and REFUSED in message
+    for leak in ("password", "looked for", "directory", str(folder), "outside"):
+        assert leak not in message, message

@@ -377,3 +377,16 @@ def test_a_position_error_with_one_value_is_that_constant(lists_copy: Path, csv:
     m.run_cycle()
     assert value(m, "VOLC::available") == 1 and value(m, "VOLC::active") == 1
     assert [value(m, "VOLC::correction", a) for a in (1, 2, 3)] == [50, 0, 0]
+
+
+def test_a_varying_shift_of_a_linear_axis_is_refused(lists_copy: Path) -> None:
+    """004 p.28: the position shift (X0k, Y0k, Z0k) "is only relevant for rotary axes":
+    varying over X it would be accepted and change nothing, a compensation reported
+    active that corrects nothing; refused at the block's header with 990525."""
+    volc, files = csv_volc(lists_copy.parent, "X Y0X\n0 0.001\n100 0.002\n")
+    add_volc(lists_copy, volc, files)
+    cfg = load_machine(lists_copy)
+    (comp,) = cfg.volumetric
+    assert not comp.available and "only relevant for rotary axes" in comp.problem
+    (err,) = [d for d in cfg.diagnostics if d.error_id == EMU_VOLC_ERROR]
+    assert Path(err.file).name == "pos.csv" and err.line == 1

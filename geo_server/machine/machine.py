@@ -585,6 +585,7 @@ class Machine:
                 return None
             case VolcUpdate(ident, comp):
                 self.volc.update(ident, comp)
+                self._volc_files.pop(ident, None)  # (the names are the loaded list's now)
                 self.volc_index = ident
                 return None
             case SensorFault(sensor, kind, sigma):
@@ -1067,6 +1068,7 @@ class Machine:
                     f"#VOLCOMP [ID{ident} UPDATE] failed, compensation unchanged: {why}",
                 )
             self.volc.update(ident, new)
+            self._volc_files.pop(ident, None)  # (the loaded list carries the names given)
         return not self._volc_loading and self.volc.at_rest
 
     def comp_settled(self, slots: Iterable[int]) -> bool:

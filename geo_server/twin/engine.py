@@ -231,9 +231,8 @@ class TwinEngine:
         self._half_reversal[:] = self.reversal / 2
         self.fr_coulomb = np.array([a.friction_coulomb for a in axes])
         self.fr_viscous = np.array([a.friction_viscous for a in axes])
-        # per m/s (rotary: per 1000 °/s, docs/twin.md) -> per increment/s: an increment is
-        # 0.1 µm = 1e-7 m (1e-4 ° = 1e-7 · 1000 °)
-        self._fr_viscous_incr = self.fr_viscous * 1e-7
+        # per mm/s (°/s) -> per increment/s: an increment is 0.1 µm (1e-4 °)
+        self._fr_viscous_incr = self.fr_viscous * 1e-4
         # every 1-D curve of every axis: (source slot, target slot, direction it holds in)
         tab = Packer()
         curves: list[tuple[int, int, int, int, int]] = []  # (table, points, src, tgt, dir)

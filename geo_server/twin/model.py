@@ -88,7 +88,7 @@ class AxisTwin:
     expansion: Expansion | None = None
     #: Friction the drive must overcome: sign(v) · (coulomb + viscous · |v|).
     friction_coulomb: float = 0.0  # drive units
-    friction_viscous: float = 0.0  # drive units per m/s (per °/s rotary ×1000)
+    friction_viscous: float = 0.0  # drive units per mm/s (per °/s rotary)
     #: Random positioning scatter of each approach (the machine's repeatability).
     scatter: float = 0.0  # µm, one standard deviation
 

@@ -258,16 +258,29 @@ def read_volc_list(
 
 
 def _tables(
-    cfg: VolcConfig, folder: Path, roots: Sequence[Path]
+    cfg: VolcConfig, folder: Path, roots: Sequence[Path], written: Mapping[int, str]
 ) -> tuple[dict[str, ParamTable], int, tuple[str, ...]]:
+    """The correction files' tables. A file an NC program named (`written`, from the
+    network) that cannot be used is answered with `REFUSED` alone: its content, whether
+    it exists and where it was looked for are not told (docs/security.md, "Files")."""
     blocks: list[Block] = []
     paths: list[str] = []
-    for name, fmt, line in cfg.files:
+    untold: set[str] = set()
+    for j, (name, fmt, line) in zip(
+        cfg.file_slots or range(len(cfg.files)), cfg.files, strict=True
+    ):
         p = resolve(folder, name)
         if not is_inside(p, roots):
             raise _Problem("volc.file", REFUSED, cfg.path, line)
         try:
-            pf = read_param_file(p, fmt)
+            if j in written:
+                untold.add(str(p))
+                try:
+                    pf = read_param_file(p, fmt)
+                except (OSError, ParamFileError):
+                    raise _Problem("volc.file", REFUSED, cfg.path, line) from None
+            else:
+                pf = read_param_file(p, fmt)
         except FileNotFoundError:
             raise _Problem(
                 "volc.file", f"correction file {name} not found (looked for {p})", cfg.path, line
@@ -283,6 +296,8 @@ def _tables(
     try:
         tables, records = build_tables(blocks, cfg.enable_splicing, cfg.interpolation)
     except TableError as exc:
+        if exc.file in untold:
+            raise _Problem("volc.file", REFUSED, cfg.path) from None
         raise _Problem("volc.file", exc.message, exc.file, exc.line) from None
     for t in tables.values():
         for arg in t.arguments:
@@ -313,6 +328,16 @@ def _constants(tables: Mapping[str, ParamTable]) -> dict[str, ParamTable]:
         raw = t.values if t.mode == "GRID" else t.point_values
         values = np.unique(np.asarray(raw, dtype=float).ravel())
         if len(values) != 1 and name in POSITION_ERRORS:
+            if name[0] in LINEAR and name[2] in LINEAR:
+                raise _Problem(
+                    "volc.file",
+                    f"{name} is the position shift of the linear axis {name[2]}, which has no "
+                    "effect (004 p.28: 'only relevant for rotary axes'); its values over "
+                    f"({', '.join(t.arguments)}) differ: give a variation over the travel "
+                    f"as a component error (E<direction>{name[2]}, 004 p.29-30)",
+                    t.file,
+                    t.line,
+                )
             continue
         if len(values) != 1:
             raise _Problem(
@@ -389,7 +414,7 @@ def load_compensation(
         if not is_inside(path, roots):
             raise _Problem("volc.file", REFUSED, *where)
         cfg = read_volc_list(path, rep, from_network=from_network, written=written)
-        tables, records, paths = _tables(cfg, path.parent, roots)
+        tables, records, paths = _tables(cfg, path.parent, roots, written or {})
         if records > max_records:
             raise _Problem(
                 "volc.file",

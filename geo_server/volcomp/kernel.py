@@ -248,6 +248,9 @@ class VolKernel:
         if no_move:
             self._hold(st)
             st.factor = st.target
+        else:  # a switch with movement also executes what an earlier one held back
+            held = self.X[vs.MODE] == vs.HELD
+            self._hold(st, vs.RELEASE, held)
         self._refresh()
 
     def reset(self) -> None:
@@ -301,8 +304,8 @@ class VolKernel:
         """After a reload: the tool length, and the switching state of every compensation
         that is still available (its corrections follow the new files at once)."""
         self.tool_length = old.tool_length
-        if old.X.shape == self.X.shape:
-            self.X[:] = old.X  # (what the drives get goes on)
+        if old.X.shape == self.X.shape and self.H.shape[0] > 0:
+            self.X[:] = old.X  # (what the drives get goes on; the sums are recomputed)
         for ident, st in old.states.items():
             new = self.states.get(ident)
             if new is None or new.evaluator is None:

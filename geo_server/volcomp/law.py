@@ -448,6 +448,8 @@ def errors(
     e3 = tf[v + 3] + f * tf[s + 3] + tf[c + 3]
     e4 = tf[v + 4] + f * tf[s + 4] + tf[c + 4]
     e5 = tf[v + 5] + f * tf[s + 5] + tf[c + 5]
+    if ti[ib + NGEN] == 0:  # (no general table: nothing to allocate in the cycle)
+        return e0, e1, e2, e3, e4, e5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     p = np.zeros(12)
     gi = ib + ti[ib + GEN]
     for _ in range(ti[ib + NGEN]):

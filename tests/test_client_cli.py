@@ -262,23 +262,33 @@ def test_ctrl_c_while_starting_is_one_line_and_130(library: str) -> None:
             text=True,
         )
         maps = Path(f"/proc/{proc.pid}/maps")
-        deadline = time.monotonic() + 60
+        t0 = time.monotonic()
+        deadline = t0 + 60
         held = []
+        seen, polls = None, 0
         while time.monotonic() < deadline and proc.poll() is None:
+            polls += 1
             if library == "connected":
                 listener.settimeout(0.01)
                 with contextlib.suppress(TimeoutError):
                     held.append(listener.accept()[0])  # (the probe's, then Zenoh's)
                 if len(held) >= 2:
+                    seen = time.monotonic() - t0
                     break
             elif library in maps.read_text():
+                seen = time.monotonic() - t0
                 break
             time.sleep(0.001)
+        signalled = time.monotonic() - t0
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
         for conn in held:
             conn.close()
-    assert (proc.returncode, err, out) == (130, "interrupted\n", "")
+    # (a failure says when the moment was seen, after how many looks, and when the
+    # signal went: in the stress check all three variants once failed with exit 1 and
+    # the client's own "no reply" error, cause not yet found)
+    why = f"seen at {seen} s after {polls} looks, signalled at {signalled:.2f} s; {err!r}"
+    assert (proc.returncode, err, out) == (130, "interrupted\n", ""), why
 
 
 @pytest.mark.slow

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 from conftest import run_in
-from test_volcomp import add_volc, smooth_files, value
+from test_volcomp import add_volc, held_around_a_move, smooth_files, value
 from test_zenoh_commands import JSON, Served, get
 
 from geo_server import access
@@ -101,15 +101,9 @@ def test_m30_reduces_a_compensation_linked_to_the_channel(lists_copy: Path) -> N
     assert value(m, "VOLC::held", 1) == -20
     out = value(m, "SIM::output_position", 1) - value(m, "SIM::total_offset", 1)
     assert 1_000_000 - 21 <= out <= 1_000_000 - 19  # (two values rounded apart)
-    m.start_program("G91 G01 X1 F6000\n", mdi=True)
-    held, moving = [], []
-    for _ in range(12):
-        m.run_cycle()
-        held.append(value(m, "VOLC::held", 1))
-        moving.append(value(m, "SIM::velocity", 1) != 0)
-    first = moving.index(True)
-    assert held[:first] == [-20] * first
-    assert held[first : first + 4] == [-15, -10, -5, 0] and set(held[first + 4 :]) == {0}
+    before_motion, from_motion = held_around_a_move(m, "G91 G01 X1 F6000", 12)
+    assert set(before_motion) <= {-20}
+    assert from_motion[:4] == [-15, -10, -5, 0] and set(from_motion[4:]) == {0}
     # switched on again by #VOLCOMP (p.24: "re-activated by the #VOLCOMP command")
     for _ in range(200):
         m.run_cycle()

@@ -4,7 +4,9 @@ leaves either the old or the new file).
 A child process (`tests/robust/save_child.py`) loads a private copy of the default lists
 and saves new `TEMPC::coefficient` / `TEMPC::offset_0` values of axis 1 in a loop,
 alternating two value sets A and B that are new in every round; the parent kills it with
-SIGKILL after a random delay (fixed seed) — `KILLS` times. After each kill the axis list
+SIGKILL after a random delay (fixed seed) — `KILLS` times, in every other round counted
+from the child's first completed save (under load a worker can be slow to start its
+first save, and every kill would otherwise land before it). After each kill the axis list
 must be byte-identical to one of the complete versions it can legally be in: the one
 before the round, the A version or the B version. The parent computes these byte strings
 itself (token replacement on the original bytes, not the project's writer).
@@ -78,9 +80,13 @@ def test_save_killed_at_random_points(lists_copy: Path):
             line = child.stdout.readline().split()
             assert line[0] == "ready", line
             pid = int(line[1])
+            if r % 2:  # every other round from after its first save, however slow it is
+                assert child.stdout.readline().split() == ["saved"]
             time.sleep(rng.uniform(0, MAX_DELAY_S))
             os.kill(pid, signal.SIGKILL)  # (a zombie until the zygote reaps it: no reuse)
             dead = child.stdout.readline().split()
+            if dead == ["saved"]:  # (a first save before the kill, not waited for)
+                dead = child.stdout.readline().split()
             assert dead == ["dead", "9"], dead  # killed, not finished or failed
 
             now = axis_list.read_bytes()
@@ -102,8 +108,10 @@ def test_save_killed_at_random_points(lists_copy: Path):
         if child.stdout is not None:
             child.stdout.close()
 
-    # the kills landed at different points: the file was replaced in many rounds
-    assert outcomes["A"] + outcomes["B"] >= KILLS // 3, outcomes
+    # the kills landed at different points: the file was replaced in many rounds (in
+    # every round that waited for a first save, at the least: on a loaded machine the
+    # others may all end before it)
+    assert outcomes["A"] + outcomes["B"] >= KILLS // 2, outcomes
     # stray temporary files: only the writer's hidden `.achsmd1.lis.*.tmp`, never a list
     stray = sorted(p.name for p in folder.iterdir() if p.name not in files_before)
     assert all(re.fullmatch(r"\.achsmd1\.lis\.[^/]+\.tmp", n) for n in stray), stray

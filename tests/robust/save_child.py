@@ -4,7 +4,8 @@ Imports geo-server once, then, per line `go <coefA> <offA> <coefB> <offB>` on st
 forks a worker that loads the machine from the start-up list given as argv[1] (the
 current state of the lists), prints `ready <pid>`, and then alternately writes the A and
 the B values of axis 1 and calls `service.commands.save()` — as fast as it can, until the
-parent kills it with SIGKILL. The zygote reaps the worker and prints `dead <signal>`.
+parent kills it with SIGKILL; after its first save it prints `saved`. The zygote reaps
+the worker and prints `dead <signal>`.
 Forking keeps the 30 rounds cheap (no interpreter start, numpy import or loading of the
 compiled cycle per kill: the zygote runs a cycle once before it forks).
 """
@@ -32,6 +33,8 @@ def worker(startup: str, a: tuple[float, int], b: tuple[float, int]) -> None:
         if not result.ok:
             print(f"save failed: {result.errors}", flush=True)
             os._exit(3)
+        if j == 0:
+            print("saved", flush=True)
     os._exit(0)
 
 

@@ -66,10 +66,44 @@ _ROTARY_RAW = {"position": "0.0001°", "offset": "0.0001°", "velocity": "0.001�
 
 def raw_unit_on(obj: ObjectDef, axis_type: int) -> str:
     """`raw_unit` for an axis of `axis_type`: a position or offset of a rotary axis
-    counts 0.0001°, not 0.1 µm."""
-    if axis_type != LINEAR and obj.quantity in _ROTARY_RAW and raw_unit(obj) != "Incr.":
+    counts 0.0001°, not 0.1 µm; of a unit the dictionary gives for both kinds
+    (`mm/s² | °/s²`) the one of the axis' kind."""
+    unit = raw_unit(obj)
+    if "|" in unit:
+        linear, _, rotary = unit.partition("|")
+        return (linear if axis_type == LINEAR else rotary).strip()
+    if axis_type != LINEAR and obj.quantity in _ROTARY_RAW and unit != "Incr.":
         return _ROTARY_RAW[obj.quantity]
-    return raw_unit(obj)
+    return unit
+
+
+#: A unit as the dictionary writes it -> its UN/CEFACT common code (UNECE
+#: Recommendation 20) and name, as OPC UA's EUInformation takes them (OPC 10000-8
+#: §5.6.3). The dictionary's other units (an increment of 0.1 µm or 0.0001°, µm/s,
+#: 0.001°/s, drive units) have no common code: their UnitId is -1.
+UNECE: dict[str, tuple[str, str]] = {
+    "mm": ("MMT", "millimetre"),
+    "µm": ("4H", "micrometre (micron)"),
+    "°": ("DD", "degree [unit of angle]"),
+    "s": ("SEC", "second [unit of time]"),
+    "µs": ("B98", "microsecond"),
+    "°C": ("CEL", "degree Celsius"),
+    "mm/s": ("C16", "millimetre per second"),
+    "°/s": ("E96", "degree per second"),
+    "mm/s²": ("M41", "millimetre per second squared"),
+    "°/s²": ("M45", "degree [unit of angle] per second squared"),
+    "µm/m": ("59", "part per million"),  # (µm/m is 10⁻⁶: a part per million)
+}
+
+
+def unece_unit_id(unit: str) -> int:
+    """The EUInformation UnitId of a unit: its common code's characters as the bytes
+    of one number (OPC 10000-8 §5.6.3: "MMT" is 5 066 068), -1 without a code."""
+    code = UNECE.get(unit, ("", ""))[0]
+    number = 0
+    for char in code:
+        number = number << 8 | ord(char)
+    return number if code else -1
 
 
 def show(obj: ObjectDef, value: Any, axis_type: int = LINEAR, raw: bool = False) -> Shown:
@@ -96,6 +130,7 @@ __all__ = [
     "LINEAR",
     "ROTARY",
     "SPINDLE",
+    "UNECE",
     "UNITS_PER_MM",
     "UNITS_PER_UM",
     "Shown",
@@ -103,4 +138,5 @@ __all__ = [
     "raw_unit",
     "raw_unit_on",
     "show",
+    "unece_unit_id",
 ]

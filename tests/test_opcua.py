@@ -74,7 +74,11 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
     """Browsing Objects/local finds every object of every axis (the ADS symbol names),
     each with its type, access, unit, range, description, ADS address and value."""
     names = {int(a): n for a, n in service.status()["axis_names"].items()}
-    specs = {s.node_id: s for s in machine_variables("local", service.info.dictionary, names)}
+    kind = service.info.dictionary.by_name("SIM::axis_type")
+    kinds = {a: int(service.current().value(kind, a)) for a in names}
+    specs = {
+        s.node_id: s for s in machine_variables("local", service.info.dictionary, names, kinds)
+    }
 
     async def scenario() -> None:
         iface = await started({"local": service}, options())
@@ -109,6 +113,8 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
                         for p in await node.get_properties()
                     }
                     assert props["AdsAddress"] == spec.ads_address
+                    kind_id = getattr(ua.ObjectIds, spec.type_definition)
+                    assert await node.read_type_definition() == ua.NodeId(kind_id)
                     if spec.unit:
                         assert props["EngineeringUnits"].DisplayName.Text == spec.unit
                     if spec.eu_range:
@@ -389,7 +395,8 @@ def test_an_item_with_a_deadband_beside_a_plain_one(service: ObjectService) -> N
                 coef = node_of(c, ns, "local/Axes/X/TEMPC/coefficient")
                 name = "local/Axes/X/TEMPC/coefficient"
                 plain, banded = Collect(), Collect()
-                await (await c.create_subscription(10, plain)).subscribe_data_change(coef)
+                sub = await c.create_subscription(10, plain)
+                await sub.subscribe_data_change(coef, sampling_interval=1)
                 await (await c.create_subscription(10, banded)).deadband_monitor(coef, 1.5)
                 await plain.until(1, name)
                 await banded.until(1, name)
@@ -523,6 +530,13 @@ def test_read_only_refuses_writes_and_methods(service: ObjectService) -> None:
                     await node_of(c, ns, "local").call_method(f"{ns}:Reset")
                 assert err.value.code == ua.StatusCodes.BadUserAccessDenied
                 assert await coef.read_value() == 4000.0
+                # each method says so before it is called (OPC 10000-3 §5.7: for this
+                # user), while it stays a method of the machine
+                for method in METHODS:
+                    node = node_of(c, ns, f"local/{method.name}")
+                    user = await node.read_attribute(ua.AttributeIds.UserExecutable)
+                    anyone = await node.read_attribute(ua.AttributeIds.Executable)
+                    assert (user.Value.Value, anyone.Value.Value) == (False, True)
         finally:
             await iface.close()
 

@@ -42,15 +42,23 @@ import socket
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geo_server import __version__
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua.args import parse_endpoint
+from geo_server.transports.opcua.items import (
+    STATUS_VALUE_TIMESTAMP,
+    ItemRule,
+    Sample,
+    cycles_of,
+    rule_for,
+)
 from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.metering import RequestMeter
 from geo_server.transports.opcua.space import (
@@ -61,6 +69,7 @@ from geo_server.transports.opcua.space import (
     machine_variables,
 )
 from geo_server.transports.share import LoopShare
+from geo_server.units import UNECE, unece_unit_id
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +88,12 @@ STATUS: dict[int, str] = {
     AdsErrorCode.DEVICE_SRVNOTSUPP: "BadNotSupported",
     AdsErrorCode.DEVICE_TIMEOUT: "BadTimeout",
 }
+#: The namespace of the units' common codes (OPC 10000-8 §5.6.3).
+UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
+#: Who the server says it is (Server/ServerStatus/BuildInfo, the endpoints'
+#: ApplicationDescription).
+PRODUCT_URI = "urn:geo-server"
+PRODUCT_NAME = MANUFACTURER = "geo-server"
 #: Status of a write of a variant of the wrong type (checked before the service).
 TYPE_MISMATCH = "BadTypeMismatch"
 #: Status of a write or method call on a read-only interface.
@@ -222,8 +237,28 @@ class _Var:
     vtype: Any = None  # ua.VariantType of its values
     attval: Any = None  # asyncua's AttributeValue of its Value (the items' callbacks)
     monitors: int = 0
-    every: int = 1  # sampled every `every` cycles while monitored
-    last: Any = None
+    #: its items' sampling intervals (cycles) -> how many items sample at each
+    rates: dict[int, int] = field(default_factory=dict)
+    #: sampling interval -> the value sampled last at it (`_notify_snapshot`)
+    lasts: dict[int, Any] = field(default_factory=dict)
+    #: items notified on every sample, changed or not (trigger StatusValueTimestamp)
+    stamped: int = 0
+
+    @property
+    def every(self) -> int:
+        """Sampled every `every` cycles: each of its items' intervals is a multiple."""
+        return math.gcd(*self.rates) if self.rates else 1
+
+    def count(self, rule: ItemRule, delta: int) -> None:
+        """An item of `rule` added (+1) or removed (-1); the samples at its interval
+        are compared afresh (a new item's first value was read, not sampled)."""
+        left = self.rates.get(rule.every, 0) + delta
+        if left > 0:
+            self.rates[rule.every] = left
+        else:
+            self.rates.pop(rule.every, None)
+        self.lasts.pop(rule.every, None)
+        self.stamped += delta if rule.trigger == STATUS_VALUE_TIMESTAMP else 0
 
 
 class _Demand:
@@ -274,6 +309,8 @@ class OpcUaInterface:
         self.ns = 0
         self._vars: dict[Any, _Var] = {}
         self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
+        #: datachange callback handle -> the rule of its item (`items.py`)
+        self._rules: dict[int, ItemRule] = {}
         self._hold: dict[str, Callable[[], None]] = {}
         self._queue: dict[str, deque[Snapshot]] = {}
         self._demands: dict[str, _Demand] = {}
@@ -354,7 +391,12 @@ class OpcUaInterface:
         ua = _ua()
         opts = self.options
         host, port = opts.host_port
+        server.product_uri = PRODUCT_URI
+        server.manufacturer_name = MANUFACTURER
         await server.init()
+        await server.set_build_info(
+            PRODUCT_URI, MANUFACTURER, PRODUCT_NAME, __version__, __version__, _build_date()
+        )
         iserver = server.iserver
         iserver.max_connections = opts.max_connections
         iserver.max_subscriptions = opts.max_subscriptions
@@ -421,19 +463,24 @@ class OpcUaInterface:
         ua = _ua()
 
         names = {int(a): n for a, n in service.status()["axis_names"].items()}
-        await asyncio.to_thread(self._add_variables, machine, service, names)
+        kind = service.info.dictionary.by_name("SIM::axis_type")
+        snap = service.current()
+        kinds = {axis: int(snap.value(kind, axis)) for axis in names}
+        await asyncio.to_thread(self._add_variables, machine, service, names, kinds)
         root = self.server.get_node(ua.NodeId(machine, self.ns))
         for method in METHODS:
             await self._method(root, machine, service, method)
 
-    def _add_variables(self, machine: str, service: ObjectService, names: dict[int, str]) -> None:
+    def _add_variables(
+        self, machine: str, service: ObjectService, names: dict[int, str], kinds: dict[int, int]
+    ) -> None:
         ua = _ua()
 
         ns = self.ns
         objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
         items = [_object_item(ua.NodeId(machine, ns), objects, ua.QualifiedName(machine, ns))]
         folders: set[tuple[str, ...]] = {()}
-        specs = machine_variables(machine, service.info.dictionary, names)
+        specs = machine_variables(machine, service.info.dictionary, names, kinds)
         for spec in specs:
             for depth in range(1, len(spec.path)):
                 path = spec.path[:depth]
@@ -491,16 +538,16 @@ class OpcUaInterface:
                 BrowseName=ua.QualifiedName(spec.path[-1], ns),
                 NodeClass=ua.NodeClass.Variable,
                 NodeAttributes=attrs,
-                TypeDefinition=ua.NodeId(ua.ObjectIds.BaseDataVariableType),
+                TypeDefinition=ua.NodeId(getattr(ua.ObjectIds, spec.type_definition)),
             )
         ]
         props: list[tuple[str, Any]] = []
         if spec.unit:
             eu = ua.EUInformation(
-                NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
-                UnitId=-1,
+                NamespaceUri=UNECE_URI,
+                UnitId=unece_unit_id(spec.unit),
                 DisplayName=ua.LocalizedText(spec.unit),
-                Description=ua.LocalizedText(spec.obj.unit),
+                Description=ua.LocalizedText(UNECE.get(spec.unit, ("", spec.unit))[1]),
             )
             props.append(("EngineeringUnits", ua.Variant(eu)))
         if spec.eu_range is not None:
@@ -542,16 +589,25 @@ class OpcUaInterface:
         variables answered here: one `service.current()` per machine and request (its
         values come from one cycle, as an ADS sum read's), asyncua's address space for
         every other attribute and node."""
-        value = _ua().AttributeIds.Value
+        ua = _ua()
+        value = ua.AttributeIds.Value
+        stamps = int(params.TimestampsToReturn)
+        if stamps not in _STAMPS:
+            from asyncua.common.utils import ServiceError
+
+            raise ServiceError(ua.StatusCodes.BadTimestampsToReturnInvalid)
         read_attribute = self.server.iserver.aspace.read_attribute_value
         snaps: dict[str, Snapshot | AdsError] = {}
         out = []
         for item in params.NodesToRead:
             var = self._vars.get(item.NodeId) if item.AttributeId == value else None
             if var is None:
-                out.append(read_attribute(item.NodeId, item.AttributeId))
+                dv = read_attribute(item.NodeId, item.AttributeId)
             else:
-                out.append(self._read_var(var, snaps))
+                dv = self._read_var(var, snaps)
+                if item.IndexRange:
+                    dv = _ranged(dv, item.IndexRange)
+            out.append(_stamped(dv, stamps))
         return out
 
     def _read_var(self, var: _Var, snaps: dict[str, Snapshot | AdsError]) -> Any:
@@ -617,6 +673,11 @@ class OpcUaInterface:
                 ua.Variant(ua.LocalizedText(spec.description), ua.VariantType.LocalizedText)
             ),
         )
+        if self.options.read_only:  # (Executable stays: the method is there, not for us)
+            await node.write_attribute(
+                ua.AttributeIds.UserExecutable,
+                ua.DataValue(ua.Variant(False, ua.VariantType.Boolean)),
+            )
 
     def _caller(self, machine: str, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
         ua = _ua()
@@ -673,11 +734,22 @@ class OpcUaInterface:
         def hooked_delete(handle: int) -> Any:
             node_id = self._handles.pop(handle, None)
             if node_id is not None:
-                self._monitor(self._vars[node_id], -1)
+                var = self._vars[node_id]
+                rule = self._rules.pop(handle, None)
+                if rule is not None:
+                    var.count(rule, -1)
+                self._monitor(var, -1)
             return delete(handle)
 
         aspace.add_datachange_callback = hooked_add
         aspace.delete_datachange_callback = hooked_delete
+        methods = iserver.method_service
+        call = methods.call
+
+        async def hooked_call(requests: list[Any]) -> list[Any]:
+            return await self._call(requests, call)
+
+        methods.call = hooked_call
         subs = iserver.subscription_service
         create = subs.create_monitored_items
 
@@ -685,6 +757,62 @@ class OpcUaInterface:
             return await self._create_items(params, create)
 
         subs.create_monitored_items = hooked_create
+        modify = subs.modify_monitored_items
+
+        def hooked_modify(params: Any) -> list[Any]:
+            return self._modify_items(params, modify)
+
+        subs.modify_monitored_items = hooked_modify
+
+    async def _call(self, requests: list[Any], call: Any) -> list[Any]:
+        """The Call service with each method checked against its object first (OPC
+        10000-4 §5.11.2): an unknown object is Bad_NodeIdUnknown, a method that is not
+        a component of the object or of its type Bad_MethodInvalid; the rest is
+        asyncua's."""
+        ua = _ua()
+
+        results: list[Any] = [None] * len(requests)
+        passed: list[int] = []
+        for i, request in enumerate(requests):
+            status = self._method_refusal(request.ObjectId, request.MethodId)
+            if status is None:
+                passed.append(i)
+            else:
+                results[i] = ua.CallMethodResult(StatusCode=ua.StatusCode(status))
+        done = await call([requests[i] for i in passed]) if passed else []
+        for i, result in zip(passed, done, strict=True):
+            results[i] = result
+        return results
+
+    def _method_refusal(self, object_id: Any, method_id: Any) -> int | None:
+        """None when `method_id` is a method of `object_id`: a component of the object,
+        or of its type or one of that type's supertypes."""
+        ua = _ua()
+
+        aspace = self.server.iserver.aspace
+        if object_id not in aspace:
+            return int(ua.StatusCodes.BadNodeIdUnknown)
+        if method_id not in aspace:
+            return int(ua.StatusCodes.BadMethodInvalid)
+        component = ua.NodeId(ua.ObjectIds.HasComponent)
+        typed = ua.NodeId(ua.ObjectIds.HasTypeDefinition)
+        subtype = ua.NodeId(ua.ObjectIds.HasSubtype)
+        node: Any = object_id
+        for _ in range(_TYPE_DEPTH):
+            refs = aspace[node].references
+            has = (r.IsForward and r.ReferenceTypeId == component for r in refs)
+            if any(h and r.NodeId == method_id for h, r in zip(has, refs, strict=True)):
+                return None
+            up = [
+                r.NodeId
+                for r in refs
+                if (r.IsForward and r.ReferenceTypeId == typed)
+                or (not r.IsForward and r.ReferenceTypeId == subtype)
+            ]
+            if not up or up[0] not in aspace:
+                break
+            node = up[0]
+        return int(ua.StatusCodes.BadMethodInvalid)
 
     # ------------------------------------------------------------------ writes
 
@@ -693,7 +821,13 @@ class OpcUaInterface:
 
         items = list(params.NodesToWrite)
         results: list[Any] = [None] * len(items)
-        others = [i for i, w in enumerate(items) if w.NodeId not in self._vars]
+        aspace = self.server.iserver.aspace
+        for i, w in enumerate(items):
+            if w.NodeId not in aspace:  # (before asyncua's access check says Denied)
+                results[i] = ua.StatusCode(ua.StatusCodes.BadNodeIdUnknown)
+        others = [
+            i for i, w in enumerate(items) if w.NodeId not in self._vars and results[i] is None
+        ]
         if others:
             sub = ua.WriteParameters(NodesToWrite=[items[i] for i in others])
             done = await (write(sub, user) if user is not None else write(sub))
@@ -762,8 +896,9 @@ class OpcUaInterface:
 
     async def _create_items(self, params: Any, create: Any) -> list[Any]:
         """Refuse items past the limits (BadTooManyMonitoredItems), whatever node they
-        watch (the server's own nodes too), revise the sampling interval of our
-        variables' to whole GEO cycles, create the rest."""
+        watch (the server's own nodes too), and items of our variables whose filter
+        cannot apply (`items.rule_for`); give each item of our variables its own
+        sampling interval in whole GEO cycles and its rule; create the rest."""
         ua = _ua()
 
         subs = self.server.iserver.subscription_service
@@ -776,25 +911,26 @@ class OpcUaInterface:
             in_session += held if s.session_id == session else 0
         opts = self.options
         keep: list[int] = []
-        refused: list[int] = []
-        intervals: list[tuple[int, _Var, int, float]] = []
+        refused: dict[int, str] = {}
+        rules: list[tuple[int, _Var, ItemRule]] = []
         for i, item in enumerate(params.ItemsToCreate):
             if (
                 in_session >= opts.max_monitored_items_per_session
                 or total >= opts.max_monitored_items
             ):
-                refused.append(i)
+                refused[i] = "BadTooManyMonitoredItems"
                 continue
-            in_session += 1
-            total += 1
             var = self._vars.get(item.ItemToMonitor.NodeId)
             if var is not None:
                 RequestMeter.touch(var.machine)
             if var is not None and item.ItemToMonitor.AttributeId == ua.AttributeIds.Value:
-                cycle_ms = var.service.info.cycle_s * 1000.0
-                asked = max(float(item.RequestedParameters.SamplingInterval), cycle_ms)
-                every = max(1, round(asked / cycle_ms))
-                intervals.append((len(keep), var, every, every * cycle_ms))
+                rule = self._rule(var, item.RequestedParameters, sub)
+                if isinstance(rule, str):
+                    refused[i] = rule
+                    continue
+                rules.append((len(keep), var, rule))
+            in_session += 1
+            total += 1
             keep.append(i)
         created: list[Any] = []
         if keep:
@@ -804,27 +940,100 @@ class OpcUaInterface:
                 ItemsToCreate=[params.ItemsToCreate[i] for i in keep],
             )
             created = await create(sub_params)
-            for k, var, every, ms in intervals:
+            for k, var, rule in rules:
                 if created[k].StatusCode.is_good():
-                    var.every = every if var.monitors <= 1 else min(var.every, every)
-                    created[k].RevisedSamplingInterval = ms
-                    self._retune(var.machine)
+                    self._ruled(var, sub, created[k].MonitoredItemId, rule)
+                    created[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
         results: list[Any] = [None] * len(params.ItemsToCreate)
         for k, i in enumerate(keep):
             results[i] = created[k]
-        for i in refused:
+        for i, status in refused.items():
             results[i] = ua.MonitoredItemCreateResult(
-                StatusCode=ua.StatusCode(ua.StatusCodes.BadTooManyMonitoredItems)
+                StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status))
             )
         return results
+
+    def _modify_items(self, params: Any, modify: Any) -> list[Any]:
+        """ModifyMonitoredItems: an item of our variables gets its new interval and
+        filter as at its creation, or keeps both when the new filter is refused."""
+        ua = _ua()
+
+        sub = self.server.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
+        items = sub.monitored_item_srv._monitored_items if sub is not None else {}
+        refused: dict[int, str] = {}
+        rules: list[tuple[int, _Var, ItemRule]] = []
+        passed: list[int] = []
+        for i, request in enumerate(params.ItemsToModify):
+            data = items.get(request.MonitoredItemId)
+            watched: Any = data.read_value_id if data is not None else None
+            var = self._vars.get(watched.NodeId) if watched is not None else None
+            if var is not None and watched.AttributeId == ua.AttributeIds.Value:
+                rule = self._rule(var, request.RequestedParameters, sub)
+                if isinstance(rule, str):
+                    refused[i] = rule
+                    continue
+                rules.append((len(passed), var, rule))
+            passed.append(i)
+        done = (
+            modify(
+                ua.ModifyMonitoredItemsParameters(
+                    SubscriptionId=params.SubscriptionId,
+                    TimestampsToReturn=params.TimestampsToReturn,
+                    ItemsToModify=[params.ItemsToModify[i] for i in passed],
+                )
+            )
+            if passed
+            else []
+        )
+        for k, var, rule in rules:
+            if done[k].StatusCode.is_good():
+                self._ruled(var, sub, params.ItemsToModify[passed[k]].MonitoredItemId, rule)
+                done[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
+        results: list[Any] = [None] * len(params.ItemsToModify)
+        for k, i in enumerate(passed):
+            results[i] = done[k]
+        for i, status in refused.items():
+            results[i] = ua.MonitoredItemModifyResult(
+                StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status))
+            )
+        return results
+
+    def _rule(self, var: _Var, asked: Any, sub: Any) -> ItemRule | str:
+        """The rule of an item of `var` with the MonitoringParameters `asked`, or the
+        status that refuses its filter."""
+        publishing = float(sub.data.RevisedPublishingInterval) if sub is not None else 0.0
+        every = cycles_of(float(asked.SamplingInterval), publishing, _cycle_ms(var))
+        flt = asked.Filter
+        if _plain(flt):
+            return ItemRule(every)
+        if not isinstance(flt, _change_filter()):
+            return "BadFilterNotAllowed"  # (an event or aggregate filter on a value)
+        return rule_for(
+            every,
+            int(flt.Trigger),
+            int(flt.DeadbandType),
+            float(flt.DeadbandValue),
+            numeric=var.spec.ua_type not in ("Boolean", "String"),
+            eu_range=var.spec.eu_range,
+        )
+
+    def _ruled(self, var: _Var, sub: Any, mid: int, rule: ItemRule) -> None:
+        """Give the item `mid` of `sub` its rule (replacing the one it had)."""
+        data = sub.monitored_item_srv._monitored_items.get(mid)
+        handle = data.callback_handle if data is not None else None
+        if handle is None or self._handles.get(handle) != var.node_id:
+            return
+        old = self._rules.get(handle)
+        if old is not None:
+            var.count(old, -1)
+        self._rules[handle] = rule
+        var.count(rule, +1)
+        self._retune(var.machine)
 
     def _monitor(self, var: _Var, delta: int) -> None:
         """Count the monitored items of `var`; the first one of a machine starts
         sampling it every cycle, the last one's removal stops that."""
         var.monitors = max(0, var.monitors + delta)
-        if var.monitors == 0:
-            var.last = None
-            var.every = 1
         watched = any(v.monitors for v in self._vars.values() if v.machine == var.machine)
         if watched and var.machine not in self._hold:
             self._hold[var.machine] = self._sample(var.machine, var.service)
@@ -910,54 +1119,56 @@ class OpcUaInterface:
                     self.samples_skipped += 1
 
     async def _notify_snapshot(self, machine: str, snap: Snapshot) -> None:
-        """The changed values of one sampled cycle to their monitored items."""
+        """The values of one sampled cycle to the monitored items that sample it: at
+        each sampling interval that falls on this cycle, a value that differs from the
+        one sampled last at that interval (or any value, for an item notified of every
+        sample) goes to its items (`_notify`), one DataValue shared by them."""
         for var in self._watched.get(machine, ()):
             if snap.cycle % var.every:
                 continue
             value = snap.value(var.spec.obj, var.spec.axis)
-            if value == var.last:
-                continue
-            var.last = value
-            self.notifications += 1
-            await self._notify(var, self._datavalue(var, value, snap))
+            due = set()
+            for every in var.rates:
+                if snap.cycle % every:
+                    continue
+                if var.stamped or var.lasts.get(every, _NONE) != value:
+                    var.lasts[every] = value
+                    due.add(every)
+            if due:
+                self.notifications += 1
+                await self._notify(var, self._datavalue(var, value, snap), due)
 
-    async def _notify(self, var: _Var, dv: Any) -> None:
-        """`dv` to every monitored item of `var`, as asyncua's `datachange_callback` does
-        after a write of the node, without its deep copy of the value per item (most of
-        its cost: `dv` is made for this and never changed): the item's last value, a
-        notification when value or status differ (the default trigger, StatusValue),
-        queued for the item's subscription with the item's queue size. An item with a
-        trigger or deadband of its own goes through asyncua's callback."""
+    async def _notify(self, var: _Var, dv: Any, due: set[int]) -> None:
+        """`dv` to the monitored items of `var` that sample at an interval in `due` and
+        whose rule passes it (`ItemRule.notifies`, against the value last notified to
+        the item), as asyncua's `datachange_callback` does after a write of the node,
+        without its deep copy of the value per item (most of its cost: `dv` is made for
+        this and never changed): the item's last value, queued for the item's
+        subscription with the item's queue size."""
         from asyncua.server.monitored_item_service import MonitoredItemService
 
         ua = _ua()
 
+        new = _sample(dv)
         callbacks = list(var.attval.datachange_callbacks.items())
         for i, (handle, callback) in enumerate(callbacks):
             if i and i % NOTIFY_SLICE == 0:  # the loop's other work in between
                 await asyncio.sleep(0)
+            rule = self._rules.get(handle)
             owner = getattr(callback, "__self__", None)
-            if isinstance(owner, MonitoredItemService):
-                mid = owner._monitored_datachange.get(handle)
-                item = owner._monitored_items.get(mid) if mid is not None else None
-                if mid is None or item is None:  # deleted meanwhile
-                    continue
-                if _plain(item.filter):
-                    if item.mode == ua.MonitoringMode.Disabled:
-                        continue
-                    values = item.mvalue
-                    old = values.current_dvalue
-                    values.old_dvalue, values.current_dvalue = old, dv
-                    if old is None or old.StatusCode != dv.StatusCode or old.Value != dv.Value:
-                        note = ua.MonitoredItemNotification(
-                            ClientHandle=item.client_handle, Value=dv
-                        )
-                        await owner.isub.enqueue_datachange_event(mid, note, item.queue_size)
-                    continue
-            try:
-                await callback(handle, dv)
-            except Exception:  # as asyncua's write: one broken callback, not the others
-                log.exception("opcua monitored item %s", handle)
+            if rule is None or rule.every not in due or not isinstance(owner, MonitoredItemService):
+                continue  # (an item being made or deleted meanwhile)
+            mid = owner._monitored_datachange.get(handle)
+            item = owner._monitored_items.get(mid) if mid is not None else None
+            if mid is None or item is None or item.mode == ua.MonitoringMode.Disabled:
+                continue
+            values = item.mvalue
+            old = values.current_dvalue
+            if not rule.notifies(None if old is None else _sample(old), new):
+                continue
+            values.old_dvalue, values.current_dvalue = old, dv
+            note = ua.MonitoredItemNotification(ClientHandle=item.client_handle, Value=dv)
+            await owner.isub.enqueue_datachange_event(mid, note, item.queue_size)
 
 
 async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:
@@ -1027,6 +1238,95 @@ def _taken(queue: deque[Snapshot]) -> list[Snapshot]:
     return out
 
 
+#: no value sampled yet (at an interval; `_Var.lasts`)
+_NONE = object()
+
+
+def _cycle_ms(var: _Var) -> float:
+    return var.service.info.cycle_s * 1000.0
+
+
+def _sample(dv: Any) -> Sample:
+    """What `items.ItemRule` compares of a DataValue."""
+    value = dv.Value.Value if dv.Value is not None else None
+    stamp = dv.SourceTimestamp or _FILETIME_EPOCH.replace(tzinfo=None)
+    return Sample(dv.StatusCode.value, value, stamp.replace(tzinfo=None))
+
+
+#: TimestampsToReturn: Source, Server, Both, Neither (OPC 10000-4 §7.40)
+_STAMPS = (0, 1, 2, 3)
+#: how far up from an object to look for its methods (the object, its type, supertypes)
+_TYPE_DEPTH = 8
+
+
+def _stamped(dv: Any, stamps: int) -> Any:
+    """`dv` with the timestamps a Read asked for (OPC 10000-4 §5.10.2: Source,
+    Server, Both or Neither), a new DataValue when one is dropped (asyncua's own
+    nodes' values are shared)."""
+    if stamps == 2:
+        return dv
+    ua = _ua()
+
+    return ua.DataValue(
+        Value=dv.Value,
+        StatusCode=dv.StatusCode,
+        SourceTimestamp=dv.SourceTimestamp if stamps == 0 else None,
+        ServerTimestamp=dv.ServerTimestamp if stamps == 1 else None,
+    )
+
+
+def _ranged(dv: Any, text: str) -> Any:
+    """The part of a value an IndexRange asks for (OPC 10000-4 §7.27): our values are
+    scalars, of which a String is the one with parts (its characters): a range with
+    bad syntax is Bad_IndexRangeInvalid, one that finds no data Bad_IndexRangeNoData."""
+    ua = _ua()
+
+    bounds = _index_range(text)
+    if bounds is None:
+        return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadIndexRangeInvalid))
+    value = dv.Value.Value if dv.Value is not None else None
+    if not dv.StatusCode.is_good():
+        return dv
+    if len(bounds) != 1 or not isinstance(value, str) or bounds[0][0] >= len(value):
+        return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadIndexRangeNoData))
+    first, last = bounds[0]
+    return ua.DataValue(
+        ua.Variant(value[first : last + 1], ua.VariantType.String),
+        SourceTimestamp=dv.SourceTimestamp,
+        ServerTimestamp=dv.ServerTimestamp,
+    )
+
+
+def _index_range(text: str) -> list[tuple[int, int]] | None:
+    """A NumericRange ("2", "0:3", "1:2,0:1") as (first, last) per dimension; None
+    when its syntax is bad (a bound missing, last not above first)."""
+    out = []
+    for part in text.split(","):
+        low, colon, high = part.partition(":")
+        if not low.isdigit() or (colon and not high.isdigit()) or len(part) > 21:
+            return None
+        first = int(low)
+        last = int(high) if colon else first
+        if colon and last <= first:
+            return None
+        out.append((first, last))
+    return out
+
+
+def _build_date() -> dt.datetime:
+    """When this copy of geo-server was built or installed: its package's time."""
+    stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
+    return dt.datetime.fromtimestamp(stamp, dt.UTC)
+
+
+def _change_filter() -> Any:
+    """The DataChangeFilter class that asyncua decodes (`ua.DataChangeFilter` is a
+    subclass of it that the decoder does not make)."""
+    from asyncua.ua import uaprotocol_auto
+
+    return uaprotocol_auto.DataChangeFilter
+
+
 def _plain(flt: Any) -> bool:
     """No filter (None, or an empty ExtensionObject as asyncua's client sends), or a
     DataChangeFilter that asks for the default: a notification when the status or the
@@ -1036,7 +1336,7 @@ def _plain(flt: Any) -> bool:
     ua = _ua()
 
     return (
-        isinstance(flt, ua.DataChangeFilter)
+        isinstance(flt, _change_filter())
         and flt.Trigger == ua.DataChangeTrigger.StatusValue
         and flt.DeadbandType == ua.DeadbandType.None_
     )

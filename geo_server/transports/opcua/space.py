@@ -20,6 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from geo_server.dictionary import Dictionary, ObjectDef
+from geo_server.units import LINEAR, raw_unit_on
 
 #: The namespace of every geo-server node (README *OPC UA*): stable across versions.
 NAMESPACE_URI = "urn:geo-server:cnc"
@@ -45,6 +46,7 @@ class VariableSpec:
     obj: ObjectDef
     axis: int
     ua_type: str
+    axis_type: int = LINEAR  # its axis' kind (`units.LINEAR`, `ROTARY`, `SPINDLE`)
 
     @property
     def readable(self) -> bool:
@@ -56,22 +58,35 @@ class VariableSpec:
 
     @property
     def unit(self) -> str:
-        """The unit without the manual's brackets (`µm/m`); "" for `[-]`."""
-        text = self.obj.unit.strip().removeprefix("[").removesuffix("]").strip()
-        return "" if text == "-" else text
+        """The one unit of its values on its axis (`µm/m`; `°/s²` on a rotary axis
+        where the dictionary gives `mm/s² | °/s²`); "" for `[-]`."""
+        return raw_unit_on(self.obj, self.axis_type)
+
+    @property
+    def analog(self) -> bool:
+        """A number with a unit: a measured or set quantity (OPC 10000-8 §5.3.2),
+        not a flag, a counter, a mode or a text."""
+        return self.ua_type not in ("Boolean", "String") and bool(self.unit)
 
     @property
     def eu_range(self) -> tuple[float, float] | None:
-        """(low, high) of the documented range, else of the type; None when unbounded
-        (REAL64 without a range, STRING) or not a number."""
+        """(low, high) of an analog value's documented range (the dictionary's min and
+        max, from the manual); None without one."""
         obj = self.obj
-        if obj.type.name in ("STRING", "BOOLEAN"):
+        if not self.analog or obj.min is None or obj.max is None:
             return None
-        lo = obj.type.lo if obj.min is None else obj.min
-        hi = obj.type.hi if obj.max is None else obj.max
-        if not (math.isfinite(lo) and math.isfinite(hi)):
+        if not (math.isfinite(obj.min) and math.isfinite(obj.max)):
             return None
-        return float(lo), float(hi)
+        return float(obj.min), float(obj.max)
+
+    @property
+    def type_definition(self) -> str:
+        """Its VariableType (OPC 10000-8 §5.3.2): AnalogItemType (EURange mandatory)
+        where the range is documented, BaseAnalogType for other analog values,
+        BaseDataVariableType for the rest."""
+        if self.eu_range is not None:
+            return "AnalogItemType"
+        return "BaseAnalogType" if self.analog else "BaseDataVariableType"
 
     @property
     def description(self) -> str:
@@ -123,9 +138,14 @@ def field_parts(obj: ObjectDef) -> tuple[str, str]:
 
 
 def machine_variables(
-    machine: str, dictionary: Dictionary, axis_names: Mapping[int, str]
+    machine: str,
+    dictionary: Dictionary,
+    axis_names: Mapping[int, str],
+    axis_types: Mapping[int, int] | None = None,
 ) -> list[VariableSpec]:
-    """Every variable of one machine (`axis_names`: axis number -> name, in order)."""
+    """Every variable of one machine (`axis_names`: axis number -> name, in order;
+    `axis_types`: axis number -> `SIM::axis_type`, linear where not given)."""
+    kinds = axis_types or {}
     out: list[VariableSpec] = []
     for obj in dictionary.objects:
         group, field = field_parts(obj)
@@ -134,7 +154,9 @@ def machine_variables(
         if obj.scope == "axis":
             for axis, name in axis_names.items():
                 path = (AXES, name, group, field)
-                out.append(VariableSpec("/".join((machine, *path)), path, obj, axis, ua_type))
+                node_id = "/".join((machine, *path))
+                kind = kinds.get(axis, LINEAR)
+                out.append(VariableSpec(node_id, path, obj, axis, ua_type, kind))
         else:
             path = (group, field)
             out.append(VariableSpec("/".join((machine, *path)), path, obj, 0, ua_type))

@@ -162,6 +162,31 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                     access.step(s, 1)
                 assert await mill.read_value() == 11.0
                 assert await lathe.read_value() == 4000.0
+
+                # the second machine's nodes are a copy of the first's (same shape):
+                # the same tree, each node its own, names and references its machine's
+                async def tree(node: Any, out: dict[str, Any]) -> dict[str, Any]:
+                    for child in await node.get_children():
+                        name = (await child.read_browse_name()).Name
+                        out[child.nodeid.Identifier] = (name, await child.read_node_class())
+                        await tree(child, out)
+                    return out
+
+                mill_tree = await tree(node_of(c, ns, "mill"), {})
+                lathe_tree = await tree(node_of(c, ns, "lathe"), {})
+                assert len(mill_tree) > 500
+                assert {
+                    k.replace("lathe", "mill", 1): v for k, v in lathe_tree.items()
+                } == mill_tree
+                parent = await node_of(c, ns, "lathe/Axes").get_parent()
+                assert parent.nodeid == ua.NodeId("lathe", ns)
+                assert (await parent.read_browse_name()).Name == "lathe"
+                tops = [
+                    (await n.read_browse_name()).Name for n in await c.nodes.objects.get_children()
+                ]
+                assert tops.count("mill") == tops.count("lathe") == 1
+                args = await node_of(c, ns, "lathe/RunNc/InputArguments").read_value()
+                assert [a.Name for a in args] == ["text"]
         finally:
             await iface.close()
 

@@ -69,7 +69,7 @@ from geo_server.transports.opcua.space import (
     machine_variables,
 )
 from geo_server.transports.share import LoopShare
-from geo_server.units import UNECE, unece_unit_id
+from geo_server.units import ACHS_TYP, UNECE, unece_unit_id
 
 log = logging.getLogger(__name__)
 
@@ -308,6 +308,11 @@ class OpcUaInterface:
         self.port = 0
         self.ns = 0
         self._vars: dict[Any, _Var] = {}
+        #: (shape, machine): the machine whose nodes the others of its shape copy
+        self._shapes: list[tuple[Any, str]] = []
+        #: machine -> the node ids of its nodes, and how to copy them (`_copy_nodes`)
+        self._subtrees: dict[str, list[Any]] = {}
+        self._plans: dict[str, list[tuple[str, Any, list[tuple[Any, str | None]]]]] = {}
         self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
         #: datachange callback handle -> the rule of its item (`items.py`)
         self._rules: dict[int, ItemRule] = {}
@@ -457,28 +462,33 @@ class OpcUaInterface:
     # ------------------------------------------------------------------ address space
 
     async def _build(self, machine: str, service: ObjectService) -> None:
-        """The machine's object, its folders and variables (`space.machine_variables`)
-        with their properties, added in one batch off the loop (about 0.1 s of asyncua
-        per machine; nothing serves them yet), then its methods."""
-        ua = _ua()
+        """The machine's object, its folders, variables (`space.machine_variables`) with
+        their properties and its methods, made off the loop (nothing serves them yet):
+        the first machine of a shape (its axes, their kinds, its dictionary) with
+        asyncua's AddNodes (about 0.1 s), every other one of that shape as a copy of
+        it (`_copy_nodes`, a few ms: a fleet of 500 is ready in seconds, not minutes)."""
+        info = service.info  # (its configuration: no catch-up of its cycles, no snapshot)
+        params = {axis: info.config.axes[axis].params for axis in info.axes}
+        names = {axis: p.name for axis, p in params.items()}
+        kinds = {axis: ACHS_TYP[p.kind] for axis, p in params.items()}
+        shape = (tuple(names.items()), tuple(kinds.items()), service.info.dictionary)
+        template = next((m for s, m in self._shapes if s == shape), None)
+        if template is None:
+            await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
+            self._shapes.append((shape, machine))
+        else:
+            await asyncio.to_thread(self._copy_nodes, template, machine)
+        self._serve(machine, service, machine_variables(machine, shape[2], names, kinds))
 
-        names = {int(a): n for a, n in service.status()["axis_names"].items()}
-        kind = service.info.dictionary.by_name("SIM::axis_type")
-        snap = service.current()
-        kinds = {axis: int(snap.value(kind, axis)) for axis in names}
-        await asyncio.to_thread(self._add_variables, machine, service, names, kinds)
-        root = self.server.get_node(ua.NodeId(machine, self.ns))
-        for method in METHODS:
-            await self._method(root, machine, service, method)
-
-    def _add_variables(
+    def _add_nodes(
         self, machine: str, service: ObjectService, names: dict[int, str], kinds: dict[int, int]
     ) -> None:
         ua = _ua()
 
         ns = self.ns
         objects = ua.NodeId(ua.ObjectIds.ObjectsFolder)
-        items = [_object_item(ua.NodeId(machine, ns), objects, ua.QualifiedName(machine, ns))]
+        root = ua.NodeId(machine, ns)
+        items = [_object_item(root, objects, ua.QualifiedName(machine, ns))]
         folders: set[tuple[str, ...]] = {()}
         specs = machine_variables(machine, service.info.dictionary, names, kinds)
         for spec in specs:
@@ -490,10 +500,87 @@ class OpcUaInterface:
                     node_id = ua.NodeId("/".join((machine, *path)), ns)
                     items.append(_object_item(node_id, parent, ua.QualifiedName(path[-1], ns)))
             items += self._variable_items(service, spec)
+        for method in METHODS:
+            items += self._method_items(root, machine, method)
         results = self.server.iserver.isession.iserver.node_mgt_service.add_nodes(items)
         for item, result in zip(items, results, strict=True):
             if not result.StatusCode.is_good():
                 raise RuntimeError(f"OPC UA node {item.RequestedNewNodeId}: {result.StatusCode}")
+        self._subtrees[machine] = [item.RequestedNewNodeId for item in items]
+
+    def _copy_nodes(self, template: str, machine: str) -> None:
+        """Copy the nodes of `template` (a machine of the same shape) as `machine`'s:
+        node ids, the object's name and the references within it renamed; what the
+        nodes share and no client can change (the other attributes, which only an
+        administrator could write, and references out of the machine) is shared."""
+        from asyncua.server.address_space import AttributeValue, NodeData
+
+        ua = _ua()
+
+        ns = self.ns
+        nodes = self.server.iserver.aspace
+        plan = self._plans.get(template) or self._plan(template)
+        ids = {suffix: ua.NodeId(machine + suffix, ns) for suffix, _, _ in plan}
+        own, value = ua.AttributeIds.NodeId, ua.AttributeIds.Value
+        named = _Named(ua.QualifiedName(machine, ns), ua.LocalizedText(machine))
+        root = ids[""]
+        copied = []
+        for suffix, old_id, refs in plan:
+            src = nodes[old_id]
+            new_id = ids[suffix]
+            node = NodeData(new_id)
+            attrs = dict(src.attributes)
+            attrs[own] = AttributeValue(ua.DataValue(ua.Variant(new_id, ua.VariantType.NodeId)))
+            if old_id in self._vars:  # its value's callbacks are its own
+                attrs[value] = AttributeValue(attrs[value].value)
+            if new_id == root:
+                attrs[ua.AttributeIds.BrowseName] = AttributeValue(
+                    ua.DataValue(ua.Variant(named.browse))
+                )
+                attrs[ua.AttributeIds.DisplayName] = AttributeValue(
+                    ua.DataValue(ua.Variant(named.display))
+                )
+            node.attributes = attrs
+            node.references = [
+                ref if to is None else _retargeted(ref, ids[to], named if to == "" else None)
+                for ref, to in refs
+            ]
+            nodes[new_id] = node
+            copied.append(new_id)
+        folder = nodes[ua.NodeId(ua.ObjectIds.ObjectsFolder)]
+        template_root = ua.NodeId(template, ns)
+        up = next(r for r in folder.references if r.NodeId == template_root)
+        folder.references.append(_retargeted(up, root, named))
+        self._subtrees[machine] = copied
+
+    def _plan(self, template: str) -> list[tuple[str, Any, list[tuple[Any, str | None]]]]:
+        """How to copy `template`'s nodes: each node's id below the machine (its suffix,
+        "" for the machine's object), and each of its references with the suffix of its
+        target when that is in the machine (None: a reference out of it, shared)."""
+        ns = self.ns
+        nodes = self.server.iserver.aspace
+        cut = len(template)
+
+        def suffix(node_id: Any) -> str | None:
+            ident = node_id.Identifier
+            if node_id.NamespaceIndex != ns or not isinstance(ident, str):
+                return None
+            if ident != template and not ident.startswith(template + "/"):
+                return None
+            return str(ident[cut:])
+
+        plan = []
+        for old_id in self._subtrees[template]:
+            refs = [(ref, suffix(ref.NodeId)) for ref in nodes[old_id].references]
+            plan.append((suffix(old_id) or "", old_id, refs))
+        self._plans[template] = plan
+        return plan
+
+    def _serve(self, machine: str, service: ObjectService, specs: list[VariableSpec]) -> None:
+        """Answer the values and methods of a machine's nodes from its service."""
+        ua = _ua()
+
+        ns = self.ns
         aspace = self.server.iserver.aspace
         value = ua.AttributeIds.Value
         for spec in specs:
@@ -507,6 +594,67 @@ class OpcUaInterface:
             aspace.set_attribute_value_callback(node_id, value, self._reader(var))
             # nothing is stored into the node: reads ask the service
             aspace.set_attribute_value_setter(node_id, value, _keep)
+        for method in METHODS:
+            node_id = ua.NodeId(f"{machine}/{method.name}", ns)
+            aspace.add_method_callback(node_id, self._caller(machine, service, method))
+
+    def _method_items(self, root: Any, machine: str, spec: MethodSpec) -> list[Any]:
+        """The AddNodesItems of one method of the machine's object and of its
+        InputArguments and OutputArguments (OPC 10000-3 §5.7; node ids below the
+        method's, so a copy of the machine renames them too)."""
+        ua = _ua()
+
+        ns = self.ns
+        node_id = ua.NodeId(f"{machine}/{spec.name}", ns)
+        items = [
+            ua.AddNodesItem(
+                ParentNodeId=root,
+                ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent),
+                RequestedNewNodeId=node_id,
+                BrowseName=ua.QualifiedName(spec.name, ns),
+                NodeClass=ua.NodeClass.Method,
+                NodeAttributes=ua.MethodAttributes(
+                    DisplayName=ua.LocalizedText(spec.name),
+                    Description=ua.LocalizedText(spec.description),
+                    Executable=True,
+                    # (a read-only interface: the method is there, not for this user)
+                    UserExecutable=not self.options.read_only,
+                ),
+            )
+        ]
+        out = (("result", "String", "the command's result as JSON"),)
+        for kind, args in (("InputArguments", spec.inputs), ("OutputArguments", out)):
+            if not args:
+                continue
+            described = [
+                ua.Argument(
+                    Name=arg,
+                    DataType=ua.NodeId(getattr(ua.ObjectIds, type_name)),
+                    ValueRank=ua.ValueRank.Scalar,
+                    Description=ua.LocalizedText(text),
+                )
+                for arg, type_name, text in args
+            ]
+            items.append(
+                ua.AddNodesItem(
+                    ParentNodeId=node_id,
+                    ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasProperty),
+                    RequestedNewNodeId=ua.NodeId(f"{machine}/{spec.name}/{kind}", ns),
+                    BrowseName=ua.QualifiedName(kind, 0),
+                    NodeClass=ua.NodeClass.Variable,
+                    NodeAttributes=ua.VariableAttributes(
+                        DisplayName=ua.LocalizedText(kind),
+                        Value=ua.Variant(described, ua.VariantType.ExtensionObject),
+                        DataType=ua.NodeId(ua.ObjectIds.Argument),
+                        ValueRank=ua.ValueRank.OneDimension,
+                        ArrayDimensions=[len(described)],
+                        AccessLevel=ua.AccessLevel.CurrentRead.mask,
+                        UserAccessLevel=ua.AccessLevel.CurrentRead.mask,
+                    ),
+                    TypeDefinition=ua.NodeId(ua.ObjectIds.PropertyType),
+                )
+            )
+        return items
 
     def _variable_items(self, service: ObjectService, spec: VariableSpec) -> list[Any]:
         """The AddNodesItems of one variable and its properties (EngineeringUnits,
@@ -641,43 +789,6 @@ class OpcUaInterface:
             SourceTimestamp=stamp,
             ServerTimestamp=dt.datetime.now(dt.UTC),
         )
-
-    async def _method(
-        self, root: Any, machine: str, service: ObjectService, spec: MethodSpec
-    ) -> None:
-        ua = _ua()
-
-        inputs = []
-        for name, type_name, text in spec.inputs:
-            arg = ua.Argument()
-            arg.Name = name
-            arg.DataType = ua.NodeId(getattr(ua.ObjectIds, type_name))
-            arg.ValueRank = -1
-            arg.Description = ua.LocalizedText(text)
-            inputs.append(arg)
-        out = ua.Argument()
-        out.Name = "result"
-        out.DataType = ua.NodeId(ua.ObjectIds.String)
-        out.ValueRank = -1
-        out.Description = ua.LocalizedText("the command's result as JSON")
-        node = await root.add_method(
-            ua.NodeId(f"{machine}/{spec.name}", self.ns),
-            f"{self.ns}:{spec.name}",
-            self._caller(machine, service, spec),
-            inputs,
-            [out],
-        )
-        await node.write_attribute(
-            ua.AttributeIds.Description,
-            ua.DataValue(
-                ua.Variant(ua.LocalizedText(spec.description), ua.VariantType.LocalizedText)
-            ),
-        )
-        if self.options.read_only:  # (Executable stays: the method is there, not for us)
-            await node.write_attribute(
-                ua.AttributeIds.UserExecutable,
-                ua.DataValue(ua.Variant(False, ua.VariantType.Boolean)),
-            )
 
     def _caller(self, machine: str, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
         ua = _ua()
@@ -1311,6 +1422,29 @@ def _index_range(text: str) -> list[tuple[int, int]] | None:
             return None
         out.append((first, last))
     return out
+
+
+@dataclass(frozen=True)
+class _Named:
+    """A machine's object's BrowseName and DisplayName (a copy's: `_copy_nodes`)."""
+
+    browse: Any
+    display: Any
+
+
+def _retargeted(ref: Any, target: Any, named: _Named | None) -> Any:
+    """A copy of the ReferenceDescription `ref` to `target` (with the target's names
+    when it is a machine's object), by its constructor (`dataclasses.replace` took
+    most of a copied machine's time)."""
+    return type(ref)(
+        ReferenceTypeId=ref.ReferenceTypeId,
+        IsForward=ref.IsForward,
+        NodeId=target,
+        BrowseName=ref.BrowseName if named is None else named.browse,
+        DisplayName=ref.DisplayName if named is None else named.display,
+        NodeClass=ref.NodeClass,
+        TypeDefinition=ref.TypeDefinition,
+    )
 
 
 def _build_date() -> dt.datetime:

@@ -93,6 +93,11 @@ UNECE: dict[str, tuple[str, str]] = {
     "mm/s²": ("M41", "millimetre per second squared"),
     "°/s²": ("M45", "degree [unit of angle] per second squared"),
     "µm/m": ("59", "part per million"),  # (µm/m is 10⁻⁶: a part per million)
+    # (the OPC UA CNC model's drive and channel values: transports/opcua/cnc.py)
+    "%": ("P1", "percent"),
+    "W": ("WTT", "watt"),
+    "N·m": ("NU", "newton metre"),
+    "mm/min": ("H81", "millimetre per minute"),
 }
 
 

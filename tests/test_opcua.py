@@ -93,8 +93,8 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
                         cls = await child.read_node_class()
                         if cls == ua.NodeClass.Variable:
                             found[child.nodeid.Identifier] = child
-                        elif cls == ua.NodeClass.Object:
-                            await walk(child)
+                        elif cls == ua.NodeClass.Object and "Cnc" not in child.nodeid.Identifier:
+                            await walk(child)  # (the CNC model: tests/test_opcua_companion.py)
 
                 await walk(root)
                 assert set(found) == set(specs)
@@ -166,10 +166,11 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                 # the second machine's nodes are a copy of the first's (same shape):
                 # the same tree, each node its own, names and references its machine's
                 async def tree(node: Any, out: dict[str, Any]) -> dict[str, Any]:
-                    for child in await node.get_children():
-                        name = (await child.read_browse_name()).Name
-                        out[child.nodeid.Identifier] = (name, await child.read_node_class())
-                        await tree(child, out)
+                    for ref in await node.get_children_descriptions():
+                        if ref.NodeId.Identifier in out:
+                            continue  # (a CNC axis organizes its compensation folders)
+                        out[ref.NodeId.Identifier] = (ref.BrowseName.Name, ref.NodeClass)
+                        await tree(c.get_node(ref.NodeId), out)
                     return out
 
                 mill_tree = await tree(node_of(c, ns, "mill"), {})
@@ -187,6 +188,15 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                 assert tops.count("mill") == tops.count("lathe") == 1
                 args = await node_of(c, ns, "lathe/RunNc/InputArguments").read_value()
                 assert [a.Name for a in args] == ["text"]
+                cnc_x = "lathe/CncInterface.CncAxisList.X"
+                channel = await node_of(c, ns, f"{cnc_x}.ActChannel").read_value()
+                assert channel == ua.NodeId("lathe/CncInterface.CncChannelList.Channel1", ns)
+                (coef,) = [  # the X axis' compensation, found from the CNC axis
+                    n
+                    for n in await node_of(c, ns, cnc_x).get_children()
+                    if n.nodeid.Identifier == "lathe/Axes/X/TEMPC"
+                ]
+                assert await (await coef.get_child(f"{ns}:coefficient")).read_value() == 4000.0
         finally:
             await iface.close()
 

@@ -41,7 +41,7 @@ import os
 import socket
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,7 +51,9 @@ from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
+from geo_server.transports.opcua import cnc
 from geo_server.transports.opcua.args import parse_endpoint
+from geo_server.transports.opcua.cnc import Live
 from geo_server.transports.opcua.items import (
     STATUS_VALUE_TIMESTAMP,
     ItemRule,
@@ -62,6 +64,7 @@ from geo_server.transports.opcua.items import (
 from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.metering import RequestMeter
 from geo_server.transports.opcua.space import (
+    AXES,
     METHODS,
     NAMESPACE_URI,
     MethodSpec,
@@ -69,7 +72,7 @@ from geo_server.transports.opcua.space import (
     machine_variables,
 )
 from geo_server.transports.share import LoopShare
-from geo_server.units import ACHS_TYP, UNECE, unece_unit_id
+from geo_server.units import ACHS_TYP, LINEAR, UNECE, unece_unit_id
 
 log = logging.getLogger(__name__)
 
@@ -228,14 +231,17 @@ class OpcUaOptions:
 
 @dataclass
 class _Var:
-    """A variable node of one machine and its sampling state."""
+    """A variable node of one machine and its sampling state: an object of the
+    dictionary (`spec`), or a read-only variable of a companion model computed from
+    objects (`live`, `cnc.py`)."""
 
-    spec: VariableSpec
+    spec: VariableSpec | None
     service: ObjectService
     machine: str
     node_id: Any  # ua.NodeId
     vtype: Any = None  # ua.VariantType of its values
     attval: Any = None  # asyncua's AttributeValue of its Value (the items' callbacks)
+    live: Live | None = None
     monitors: int = 0
     #: its items' sampling intervals (cycles) -> how many items sample at each
     rates: dict[int, int] = field(default_factory=dict)
@@ -243,6 +249,36 @@ class _Var:
     lasts: dict[int, Any] = field(default_factory=dict)
     #: items notified on every sample, changed or not (trigger StatusValueTimestamp)
     stamped: int = 0
+
+    def value(self, snap: Snapshot) -> Any:
+        """Its value in the cycle of `snap`."""
+        if self.live is not None:
+            return self.live.read(snap)
+        assert self.spec is not None
+        return snap.value(self.spec.obj, self.spec.axis)
+
+    @property
+    def readable(self) -> bool:
+        return self.spec.readable if self.spec is not None else True
+
+    @property
+    def ua_type(self) -> str:
+        return self.spec.ua_type if self.spec is not None else self._live().ua_type
+
+    @property
+    def eu_range(self) -> tuple[float, float] | None:
+        return self.spec.eu_range if self.spec is not None else None
+
+    @property
+    def at_rest(self) -> bool:
+        """Whether it can change while the machine rests (`varies_at_rest`)."""
+        if self.spec is not None:
+            return varies_at_rest(self.spec.obj)
+        return any(varies_at_rest(o) for o in self._live().sources)
+
+    def _live(self) -> Live:
+        assert self.live is not None
+        return self.live
 
     @property
     def every(self) -> int:
@@ -307,6 +343,7 @@ class OpcUaInterface:
         self.server: Any = None
         self.port = 0
         self.ns = 0
+        self.cnc_ns = 0  # (the CNC model's namespace index)
         self._vars: dict[Any, _Var] = {}
         #: (shape, machine): the machine whose nodes the others of its shape copy
         self._shapes: list[tuple[Any, str]] = []
@@ -429,8 +466,13 @@ class OpcUaInterface:
             [ua.AnonymousIdentityToken] if anonymous else [ua.UserNameIdentityToken]
         )
         self.ns = await server.register_namespace(NAMESPACE_URI)
+        # the CNC model's types (OPC 40502; `cnc.py`), after ours: ours stays index 2
+        await _off_loop(lambda: server.import_xml(str(cnc.NODESET), strict_mode=False))
+        self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
         for machine, service in self.services.items():
             await self._build(machine, service)
+        if len(self.services) == 1:  # (a fleet's are below each machine only)
+            await self._link_cnc_from_objects(next(iter(self.services)))
 
     async def close(self) -> None:
         if self.starting is not None and not self.starting.done():
@@ -475,10 +517,14 @@ class OpcUaInterface:
         template = next((m for s, m in self._shapes if s == shape), None)
         if template is None:
             await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
+            specs = machine_variables(machine, shape[2], names, kinds)
+            await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
             self._shapes.append((shape, machine))
         else:
             await asyncio.to_thread(self._copy_nodes, template, machine)
         self._serve(machine, service, machine_variables(machine, shape[2], names, kinds))
+        axes = {axis: (names[axis], kinds[axis]) for axis in names}
+        self._serve_cnc(machine, service, cnc.live_variables(shape[2], axes))
 
     def _add_nodes(
         self, machine: str, service: ObjectService, names: dict[int, str], kinds: dict[int, int]
@@ -507,6 +553,141 @@ class OpcUaInterface:
             if not result.StatusCode.is_good():
                 raise RuntimeError(f"OPC UA node {item.RequestedNewNodeId}: {result.StatusCode}")
         self._subtrees[machine] = [item.RequestedNewNodeId for item in items]
+
+    async def _add_cnc(
+        self,
+        machine: str,
+        names: dict[int, str],
+        kinds: dict[int, int],
+        specs: list[VariableSpec],
+    ) -> None:
+        """The machine's CncInterface (OPC 40502, `cnc.py`): the OPC Foundation's types
+        instantiated with their mandatory nodes (string ids below the machine's, so a
+        copy of the machine renames them), an axis per configured axis and one channel,
+        every value set (live ones are served by `_serve_cnc`), and each axis linked to
+        its compensation objects."""
+        from asyncua.common.instantiate_util import instantiate
+
+        ua = _ua()
+
+        server, ns, cns = self.server, self.ns, self.cnc_ns
+        root = server.get_node(ua.NodeId(machine, ns))
+        top = f"{machine}/{cnc.INTERFACE}"
+        await instantiate(
+            root,
+            server.get_node(ua.NodeId(cnc.INTERFACE_TYPE, cns)),
+            nodeid=ua.NodeId(top, ns),
+            bname=ua.QualifiedName(cnc.INTERFACE, cns),
+            dname=ua.LocalizedText(cnc.INTERFACE),
+            instantiate_optional=False,
+        )
+        placed = [(cnc.AXIS_LIST, name, cnc.AXIS_TYPE) for name in names.values()] + [
+            (cnc.CHANNEL_LIST, cnc.CHANNEL, cnc.CHANNEL_TYPE)
+        ]
+        for folder, name, kind in placed:
+            await instantiate(
+                server.get_node(ua.NodeId(f"{top}.{folder}", ns)),
+                server.get_node(ua.NodeId(kind, cns)),
+                nodeid=ua.NodeId(f"{top}.{folder}.{name}", ns),
+                bname=ua.QualifiedName(name, ns),
+                dname=ua.LocalizedText(name),
+                instantiate_optional=False,
+            )
+        made = [
+            node_id
+            for node_id in list(self.server.iserver.aspace.keys())
+            if node_id.NamespaceIndex == ns
+            and isinstance(node_id.Identifier, str)
+            and node_id.Identifier.startswith(top)
+        ]
+        axis_kinds = {names[axis]: kinds[axis] for axis in names}
+        for node_id in made:
+            self._fill_cnc(node_id, axis_kinds)
+        for axis, name in names.items():
+            groups = {spec.path[2] for spec in specs if spec.axis == axis and spec.path[0] == AXES}
+            for group in sorted(groups):
+                await server.get_node(ua.NodeId(f"{top}.{cnc.AXIS_LIST}.{name}", ns)).add_reference(
+                    ua.NodeId(f"{machine}/{AXES}/{name}/{group}", ns),
+                    ua.ObjectIds.Organizes,
+                )
+        self._subtrees[machine] += made
+
+    def _fill_cnc(self, node_id: Any, axis_kinds: dict[str, int]) -> None:
+        """The value of a variable of the CncInterface that nothing live serves: a
+        constant of `cnc.CONSTANTS`, the units and range of its analog parent, the
+        vendor's names, else the zero of its type (a Good value, as every mandatory
+        variable needs)."""
+        ua = _ua()
+
+        attrs = self.server.iserver.aspace[node_id].attributes
+        if attrs[ua.AttributeIds.NodeClass].value.Value.Value != ua.NodeClass.Variable:
+            return
+        name = attrs[ua.AttributeIds.BrowseName].value.Value.Value.Name
+        parent = node_id.Identifier.rsplit(".", 2)
+        owner = parent[-2] if len(parent) >= 2 else ""
+        axis = next((a for a in axis_kinds if f".{cnc.AXIS_LIST}.{a}." in node_id.Identifier), None)
+        kind = axis_kinds.get(axis, LINEAR) if axis is not None else LINEAR
+        value: Any
+        if name == "EngineeringUnits":
+            unit = cnc.UNITS.get(owner) or cnc.position_unit(kind)
+            value = ua.EUInformation(
+                NamespaceUri=UNECE_URI,
+                UnitId=unece_unit_id(unit),
+                DisplayName=ua.LocalizedText(unit),
+                Description=ua.LocalizedText(UNECE.get(unit, ("", unit))[1]),
+            )
+        elif name == "EURange":
+            low, high = (0.0, 100.0) if cnc.UNITS.get(owner) == "%" else cnc.POSITION_RANGE
+            value = ua.Range(low, high)
+        elif name == "IsRotational":
+            value = kind != LINEAR
+        elif name in ("VendorName", "VendorRevision", "Version"):
+            value = {"VendorName": MANUFACTURER, "VendorRevision": __version__}.get(name, "1.00")
+        elif name in cnc.CONSTANTS:
+            value = cnc.CONSTANTS[name]
+        else:
+            value = None
+        current = attrs[ua.AttributeIds.Value].value
+        given = current.Value if current is not None else None
+        if value is None and given is not None and given.Value is not None:
+            return  # (a value the type gave it)
+        datatype = attrs[ua.AttributeIds.DataType].value.Value.Value
+        rank = attrs[ua.AttributeIds.ValueRank].value.Value.Value
+        attrs[ua.AttributeIds.Value].value = ua.DataValue(_typed(value, datatype, rank))
+
+    def _serve_cnc(self, machine: str, service: ObjectService, live: list[Live]) -> None:
+        """Answer the live variables of the machine's CncInterface from its service, and
+        point its axes' ActChannel at its channel."""
+        ua = _ua()
+        from asyncua.server.address_space import AttributeValue
+
+        ns = self.ns
+        aspace = self.server.iserver.aspace
+        value = ua.AttributeIds.Value
+        top = f"{machine}/{cnc.INTERFACE}"
+        for spec in live:
+            node_id = ua.NodeId(".".join((top, *spec.path)), ns)
+            vtype = getattr(ua.VariantType, spec.ua_type)
+            attval = aspace[node_id].attributes[value]
+            var = _Var(None, service, machine, node_id, vtype, attval, live=spec)
+            self._vars[node_id] = var
+            aspace.set_attribute_value_callback(node_id, value, self._reader(var))
+            aspace.set_attribute_value_setter(node_id, value, _keep)
+        channel = ua.NodeId(f"{top}.{cnc.CHANNEL_LIST}.{cnc.CHANNEL}", ns)
+        for node_id in self._subtrees[machine]:
+            ident = node_id.Identifier
+            if isinstance(ident, str) and ident.endswith(".ActChannel"):
+                variant = ua.Variant(channel, ua.VariantType.NodeId)
+                aspace[node_id].attributes[value] = AttributeValue(ua.DataValue(variant))
+
+    async def _link_cnc_from_objects(self, machine: str) -> None:
+        """With one machine, its CncInterface is also where OPC 40502 puts it: in the
+        Objects folder (the same node)."""
+        ua = _ua()
+
+        await self.server.nodes.objects.add_reference(
+            ua.NodeId(f"{machine}/{cnc.INTERFACE}", self.ns), ua.ObjectIds.Organizes
+        )
 
     def _copy_nodes(self, template: str, machine: str) -> None:
         """Copy the nodes of `template` (a machine of the same shape) as `machine`'s:
@@ -764,7 +945,7 @@ class OpcUaInterface:
         ua = _ua()
 
         RequestMeter.touch(var.machine)
-        if not var.spec.readable:
+        if not var.readable:
             return ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadNotReadable))
         snap = snaps.get(var.machine)
         if snap is None:
@@ -775,7 +956,7 @@ class OpcUaInterface:
             snaps[var.machine] = snap
         if isinstance(snap, AdsError):
             return ua.DataValue(StatusCode=_status(snap))
-        return self._datavalue(var, snap.value(var.spec.obj, var.spec.axis), snap)
+        return self._datavalue(var, var.value(snap), snap)
 
     def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
         ua = _ua()
@@ -968,16 +1149,17 @@ class OpcUaInterface:
             return ua.StatusCode(ua.StatusCodes.BadNotWritable), None
         if self.options.read_only:
             return ua.StatusCode(getattr(ua.StatusCodes, READ_ONLY)), None
-        if not var.spec.writable:
+        spec = var.spec
+        if spec is None or not spec.writable:
             return ua.StatusCode(ua.StatusCodes.BadNotWritable), None
         if w.IndexRange:
             return ua.StatusCode(ua.StatusCodes.BadIndexRangeInvalid), None
         variant = w.Value.Value if w.Value is not None else None
-        expected = getattr(ua.VariantType, var.spec.ua_type)
+        expected = getattr(ua.VariantType, spec.ua_type)
         if variant is None or variant.VariantType != expected or variant.is_array:
             return ua.StatusCode(getattr(ua.StatusCodes, TYPE_MISMATCH)), None
         try:
-            prepared = var.service.prepare_name(var.spec.obj.name, var.spec.axis, variant.Value)
+            prepared = var.service.prepare_name(spec.obj.name, spec.axis, variant.Value)
         except AdsError as exc:
             return _status(exc), None
         return None, prepared
@@ -1124,8 +1306,8 @@ class OpcUaInterface:
             int(flt.Trigger),
             int(flt.DeadbandType),
             float(flt.DeadbandValue),
-            numeric=var.spec.ua_type not in ("Boolean", "String"),
-            eu_range=var.spec.eu_range,
+            numeric=var.ua_type not in ("Boolean", "String"),
+            eu_range=var.eu_range,
         )
 
     def _ruled(self, var: _Var, sub: Any, mid: int, rule: ItemRule) -> None:
@@ -1156,12 +1338,12 @@ class OpcUaInterface:
         """The machine's monitored variables (sampled by `_drain_queue`) and the cycles
         they need (`_Demand`)."""
         watched = [v for v in self._vars.values() if v.machine == machine and v.monitors]
-        self._watched[machine] = [v for v in watched if v.spec.readable]
+        self._watched[machine] = [v for v in watched if v.readable]
         demand = self._demands.get(machine)
         if demand is None:
             return
         demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
-        demand.at_rest = any(varies_at_rest(v.spec.obj) for v in watched)
+        demand.at_rest = any(v.at_rest for v in watched)
 
     def _sample(self, machine: str, service: ObjectService) -> Callable[[], None]:
         """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
@@ -1237,7 +1419,7 @@ class OpcUaInterface:
         for var in self._watched.get(machine, ()):
             if snap.cycle % var.every:
                 continue
-            value = snap.value(var.spec.obj, var.spec.axis)
+            value = var.value(snap)
             due = set()
             for every in var.rates:
                 if snap.cycle % every:
@@ -1445,6 +1627,37 @@ def _retargeted(ref: Any, target: Any, named: _Named | None) -> Any:
         NodeClass=ref.NodeClass,
         TypeDefinition=ref.TypeDefinition,
     )
+
+
+async def _off_loop(work: Callable[[], Awaitable[Any]]) -> Any:
+    """Run asyncua's coroutine `work` on a loop of its own in a worker thread: adding
+    nodes before the server serves touches nothing of this loop, and its seconds of
+    pure Python would hold up every interface on it."""
+    return await asyncio.to_thread(lambda: asyncio.run(_awaited(work)))
+
+
+async def _awaited(work: Callable[[], Awaitable[Any]]) -> Any:
+    return await work()
+
+
+#: The zero of each built-in DataType's id (Boolean 1 … String 12, NodeId 17)
+_ZEROS: dict[int, Any] = {1: False, 6: 0, 7: 0, 11: 0.0, 12: ""}
+
+
+def _typed(value: Any, datatype: Any, rank: int) -> Any:
+    """`value` (None: the type's zero) as a Variant of the variable's DataType and
+    ValueRank (an array: empty); an enumeration (not a built-in type) is an Int32."""
+    ua = _ua()
+
+    builtin = datatype.NamespaceIndex == 0 and datatype.Identifier in _ZEROS
+    vtype = ua.VariantType(datatype.Identifier) if builtin else ua.VariantType.Int32
+    if isinstance(value, ua.EUInformation | ua.Range):
+        return ua.Variant(value)
+    if rank >= 1:
+        return ua.Variant([] if value is None else value, vtype, is_array=True)
+    if value is None:
+        value = _ZEROS[datatype.Identifier] if builtin else 0
+    return ua.Variant(value, vtype)
 
 
 def _build_date() -> dt.datetime:

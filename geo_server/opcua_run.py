@@ -58,6 +58,7 @@ def options_from_args(args: Any, startup: Path | None, caps: Mapping[str, int]) 
         password=args.opcua_password,
         cert_dir=Path(folder) if folder else cert_folder(startup or default_startup_list()),
         encrypt_only=args.opcua_encrypt_only,
+        companion_models=not args.opcua_no_companions,
         background=True,
     )
     if "opcua" in caps:

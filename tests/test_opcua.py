@@ -45,7 +45,10 @@ def run(scenario: Callable[[], Awaitable[None]]) -> None:
 
 
 def options(**kw: Any) -> OpcUaOptions:
-    return OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **kw)
+    """Options on an ephemeral port; without the companion models unless asked (their
+    NodeSets take about 3 s to load, and these tests are about the rest; the models
+    are tested in tests/test_opcua_companion.py and by the fleet test here)."""
+    return OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **{"companion_models": False, **kw})
 
 
 async def started(services: dict[str, ObjectService], opts: OpcUaOptions) -> OpcUaInterface:
@@ -151,7 +154,7 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
     }
 
     async def scenario() -> None:
-        iface = await started(services, options())
+        iface = await started(services, options(companion_models=True))
         try:
             async with client(iface) as c:
                 ns = await c.get_namespace_index(NAMESPACE_URI)

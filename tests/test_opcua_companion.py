@@ -1,12 +1,14 @@
-"""OPC 40502 "CNC Systems", checked against the OPC Foundation's own definition.
+"""OPC 40502 "CNC Systems" and OPC 40501 "Machine Tools", checked against the OPC
+Foundation's own definitions.
 
-- The NodeSet the server loads is the one the OPC Foundation publishes (its SHA-256, UA-Nodeset
-  `CNC/Opc.Ua.CNC.NodeSet.xml`, CNC 1.00 of 2017-06-19).
-- This test reads that XML itself (not through the server's code), lists every mandatory
-  instance declaration of `CncInterfaceType`, `CncAxisType` and `CncChannelType` (with
-  their supertypes'), and has node-opcua's client (another stack, nobody here wrote it)
-  find each on the running server by its browse path, with the declared type and, for a
-  variable, a Good value.
+- The NodeSets the server loads are the ones the OPC Foundation publishes (their SHA-256,
+  UA-Nodeset: CNC 1.00 of 2017-06-19, DI 1.04.0, Machinery 1.03.0, IA 1.01.2, Machine
+  Tool 1.01.1).
+- This test reads the XML itself (not through the server's code), lists every mandatory
+  node of `CncInterfaceType`, `CncAxisType`, `CncChannelType` and `MachineToolType` (their
+  supertypes' and their declarations' types' included, across the files), and has
+  node-opcua's client (another stack, nobody here wrote it) find each on the running
+  server by its browse path, with the declared type and, for a variable, a Good value.
 - The axis values are those of ADS reads (pyads) of the same cycle, in mm (increments /
   10 000, docs/design.md §3.1).
 """
@@ -33,90 +35,149 @@ from test_ads_server import TIMEOUT, next_netid, start_server
 from geo_server import access
 from geo_server.client.ads_client import close_port_first
 from geo_server.service import ObjectService
-from geo_server.transports.opcua import cnc
+from geo_server.transports.opcua import cnc, machinetool
 from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
 
 NODE_DIR = Path(__file__).parent / "node"
 NODE = shutil.which("node")
 INSTALLED = (NODE_DIR / "node_modules" / "node-opcua-client").is_dir()
 REQUIRED = os.environ.get("GEO_SERVER_REQUIRE_NODE") == "1"
-#: the published file's SHA-256 (OPCFoundation/UA-Nodeset, CNC/Opc.Ua.CNC.NodeSet.xml)
-PUBLISHED_SHA256 = "c81eb71541f5846c126b913bc00e768fd04c39e1edb0a0c92e9d1552bfa1d9d6"
+#: the published files' SHA-256 (OPCFoundation/UA-Nodeset: CNC/, DI/, Machinery/, IA/ at
+#: a2d4ae8 (2024-10-18); MachineTool/ at f484a8d, MachineTool-1.01.1-2022-07-04)
+PUBLISHED_SHA256 = {
+    "Opc.Ua.CNC.NodeSet.xml": "c81eb71541f5846c126b913bc00e768fd04c39e1edb0a0c92e9d1552bfa1d9d6",
+    "Opc.Ua.Di.NodeSet2.xml": "ec376a3992f38740fd9263ec06e7560af2d56adb8ffdbd5f7ebc813ae0273fe5",
+    "Opc.Ua.Machinery.NodeSet2.xml": (
+        "f6f46f8c0c41ced2f4c6c7304728bcf989018c8013b6cc8e0fcaa23eefbc9931"
+    ),
+    "Opc.Ua.IA.NodeSet2.xml": "2a198ed96604eaf473d1ebfb4b29d745a7af8eed74c0f96ab1ac5f1fb71e4de9",
+    "Opc.Ua.MachineTool.NodeSet2.xml": (
+        "849b29895d096867856642c777b1f6b1c9854c9932354b10a45089d3af7f6e74"
+    ),
+}
 UA = "http://opcfoundation.org/UA/"
 CNC = "http://opcfoundation.org/UA/CNC"
+MACHINERY = "http://opcfoundation.org/UA/Machinery/"
+MACHINE_TOOL = "http://opcfoundation.org/UA/MachineTool/"
 GEO_NS = "urn:geo-server:cnc"
 XML_NS = {"u": "http://opcfoundation.org/UA/2011/03/UANodeSet.xsd"}
-MANDATORY, HAS_SUBTYPE, HAS_TYPE, HAS_RULE = "i=78", "i=45", "i=40", "i=37"
-HIERARCHICAL = {"i=46", "i=47"}  # HasProperty, HasComponent
+MANDATORY, HAS_SUBTYPE, HAS_TYPE, HAS_RULE = (f"{UA}|{i}" for i in (78, 45, 40, 37))
+#: HasProperty, HasComponent, HasAddIn
+HIERARCHICAL = {f"{UA}|46", f"{UA}|47", f"{UA}|17604"}
+#: an Object's entry in the list of expected nodes (no DataType, no ValueRank)
+OBJECT = ("UAObject", "", 0)
+#: the built-in DataTypes whose values are Variants of that very type (Boolean … String,
+#: NodeId, LocalizedText; not abstract ones nor structures, enumerations)
+BUILTIN = {str(i) for i in (*range(1, 13), 17, 21)}
 SIM_GROUP = 0x12F300  # the emulator's objects (docs/design.md §2.5)
 
 
 class NodeSet:
-    """The parts of a NodeSet2 file this test needs, read with ElementTree."""
+    """The parts of NodeSet2 files this test needs, read with ElementTree: nodes keyed
+    by `<namespace URI>|<id>` across the files."""
 
-    def __init__(self, path: Path) -> None:
-        root = ET.parse(path).getroot()
-        self.uris = [UA] + [u.text or "" for u in root.find("u:NamespaceUris", XML_NS) or []]
-        self.aliases = {a.get("Alias"): a.text for a in root.find("u:Aliases", XML_NS) or []}
-        self.nodes = {el.get("NodeId"): el for el in root if el.get("NodeId")}
+    def __init__(self, *paths: Path) -> None:
+        #: key -> (its element, its file's namespace URIs and aliases)
+        self.nodes: dict[str, tuple[Any, list[str], dict[str, str]]] = {}
+        for path in paths:
+            root = ET.parse(path).getroot()
+            uris = [UA] + [u.text or "" for u in root.find("u:NamespaceUris", XML_NS) or []]
+            aliases = {
+                a.get("Alias") or "": a.text or "" for a in root.find("u:Aliases", XML_NS) or []
+            }
+            for el in root:
+                if el.get("NodeId"):
+                    self.nodes[self.key(el.get("NodeId"), uris, aliases)] = (el, uris, aliases)
         self.types = {
-            self.name(el)[1]: nid
-            for nid, el in self.nodes.items()
+            self.name(k): k
+            for k, (el, _, _) in self.nodes.items()
             if el.tag.endswith("}UAObjectType")
         }
 
-    def refs(self, nid: str) -> list[tuple[str, bool, str]]:
-        found = self.nodes[nid].find("u:References", XML_NS)
-        out = []
-        for ref in found if found is not None else []:
-            kind = ref.get("ReferenceType") or ""
-            out.append((self.aliases.get(kind, kind), ref.get("IsForward") != "false", ref.text))
-        return out
+    @staticmethod
+    def key(nid: str, uris: list[str], aliases: dict[str, str]) -> str:
+        """`<namespace URI>|<id>` of "ns=1;i=1004", "i=68" or an alias ("HasComponent")."""
+        nid = aliases.get(nid, nid)
+        index, ident = nid.split(";", 1) if nid.startswith("ns=") else ("ns=0", nid)
+        return f"{uris[int(index[3:])]}|{ident.removeprefix('i=')}"
 
-    def name(self, el: Any) -> tuple[str, str]:
+    def refs(self, key: str) -> list[tuple[str, bool, str]]:
+        el, uris, aliases = self.nodes[key]
+        found = el.find("u:References", XML_NS)
+        return [
+            (
+                self.key(r.get("ReferenceType") or "", uris, aliases),
+                r.get("IsForward") != "false",
+                self.key(r.text or "", uris, aliases),
+            )
+            for r in (found if found is not None else [])
+        ]
+
+    def name(self, key: str) -> tuple[str, str]:
         """(namespace URI, name) of a node's BrowseName ("1:ActPos")."""
+        el, uris, _ = self.nodes[key]
         text = el.get("BrowseName")
         index, _, name = text.partition(":") if ":" in text else ("0", "", text)
-        return self.uris[int(index)], name
+        return uris[int(index)], name
 
-    def uri_id(self, nid: str) -> str:
-        """`<namespace URI>|<numeric id>` of "ns=1;i=1004" or "i=68"."""
-        nid = self.aliases.get(nid, nid)
-        index = int(nid.split(";")[0][3:]) if nid.startswith("ns=") else 0
-        return f"{self.uris[index]}|{nid.rsplit('i=', 1)[1]}"
+    def typedef(self, key: str) -> str:
+        return next(t for r, fwd, t in self.refs(key) if r == HAS_TYPE and fwd)
 
-    def mandatory(self, type_name: str) -> list[tuple[list[tuple[str, str]], str, str]]:
-        """Every mandatory instance declaration below an instance of `type_name` (its
-        supertypes' too): (browse path, its TypeDefinition, its node class)."""
-        out: list[tuple[list[tuple[str, str]], str, str]] = []
-        nid: str | None = self.types[type_name]
-        while nid is not None and nid in self.nodes:
-            self._walk(nid, [], out)
-            up = [t for r, fwd, t in self.refs(nid) if r == HAS_SUBTYPE and not fwd]
-            nid = up[0] if up else None
+    def _declared(self, key: str) -> dict[tuple[str, str], str]:
+        """The mandatory children a node declares itself."""
+        out = {}
+        for ref, forward, target in self.refs(key):
+            if forward and ref in HIERARCHICAL and target in self.nodes:
+                rules = [t for r, _, t in self.refs(target) if r == HAS_RULE]
+                if MANDATORY in rules:
+                    out[self.name(target)] = target
         return out
 
-    def _walk(self, nid: str, path: list[tuple[str, str]], out: list[Any]) -> None:
-        for ref, forward, target in self.refs(nid):
-            if not forward or ref not in HIERARCHICAL or target not in self.nodes:
-                continue
-            child = self.refs(target)
-            if not any(r == HAS_RULE and t == MANDATORY for r, _, t in child):
-                continue
-            typed = [t for r, _, t in child if r == HAS_TYPE]
-            el = self.nodes[target]
-            step = [*path, self.name(el)]
-            out.append((step, self.uri_id(typed[0]), el.tag.split("}")[1]))
-            self._walk(target, step, out)
+    def _members(self, type_key: str) -> dict[tuple[str, str], str]:
+        """The mandatory children of a type, its supertypes' included (a subtype's
+        declaration of a name replaces its supertype's)."""
+        chain = []
+        key: str | None = type_key
+        while key is not None and key in self.nodes:
+            chain.append(key)
+            up = [t for r, fwd, t in self.refs(key) if r == HAS_SUBTYPE and not fwd]
+            key = up[0] if up else None
+        out: dict[tuple[str, str], str] = {}
+        for key in reversed(chain):
+            out.update(self._declared(key))
+        return out
+
+    def mandatory(
+        self, type_name: str, uri: str = CNC
+    ) -> list[tuple[list[tuple[str, str]], str, str]]:
+        """Every mandatory node below an instance of the type: (browse path, its
+        TypeDefinition, its node class), from the type's declarations and, below each,
+        from the declaration's own children and its type's."""
+        out: list[tuple[list[tuple[str, str]], str, str]] = []
+
+        def walk(children: dict[tuple[str, str], str], path: list[tuple[str, str]]) -> None:
+            for name, decl in children.items():
+                typed = self.typedef(decl)
+                el, uris, aliases = self.nodes[decl]
+                datatype = self.key(el.get("DataType"), uris, aliases) if el.get("DataType") else ""
+                kind = (el.tag.split("}")[1], datatype, int(el.get("ValueRank", "-1")))
+                out.append(([*path, name], typed, kind))
+                if len(path) < 12:
+                    walk({**self._members(typed), **self._declared(decl)}, [*path, name])
+
+        walk(self._members(self.types[(uri, type_name)]), [])
+        return out
 
 
 @pytest.fixture(scope="module")
 def nodeset() -> NodeSet:
-    return NodeSet(cnc.NODESET)
+    return NodeSet(cnc.NODESET, *(path for _, path in machinetool.NODESETS))
 
 
-def test_the_nodeset_is_the_published_one() -> None:
-    assert hashlib.sha256(cnc.NODESET.read_bytes()).hexdigest() == PUBLISHED_SHA256
+def test_the_nodesets_are_the_published_ones() -> None:
+    files = [cnc.NODESET, *(path for _, path in machinetool.NODESETS)]
+    sums = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+    assert sums == PUBLISHED_SHA256
 
 
 def test_the_mandatory_declarations_read_from_the_xml(nodeset: NodeSet) -> None:
@@ -130,6 +191,11 @@ def test_the_mandatory_declarations_read_from_the_xml(nodeset: NodeSet) -> None:
     assert len(axis) > 30
     channel = {tuple(n for _, n in p) for p, _, _ in nodeset.mandatory("CncChannelType")}
     assert ("PosTcpBcsX", "RemDist") in channel and ("ActProgramStatus",) in channel
+    found = nodeset.mandatory("MachineToolType", MACHINE_TOOL)
+    tool = {tuple(n for _, n in p): t for p, t, _ in found}
+    assert tool[("Identification",)] == f"{MACHINE_TOOL}|11"  # MachineToolIdentificationType
+    assert tool[("Production", "ActiveProgram", "State", "CurrentState")] == f"{UA}|2760"
+    assert ("Identification", "SerialNumber") in tool  # (from Machinery's type, via HasAddIn)
 
 
 @pytest.mark.realtime
@@ -147,16 +213,19 @@ def test_every_mandatory_node_is_there_for_node_opcua(
     assert NODE is not None and INSTALLED, "GEO_SERVER_REQUIRE_NODE=1 but no node-opcua-client"
     top = [(CNC, cnc.INTERFACE)]
     wanted: list[tuple[list[tuple[str, str]], str, str]] = [
-        (top, f"{CNC}|{cnc.INTERFACE_TYPE}", "UAObject"),
-        ([(GEO_NS, "local"), (CNC, cnc.INTERFACE)], f"{CNC}|{cnc.INTERFACE_TYPE}", "UAObject"),
+        (top, f"{CNC}|{cnc.INTERFACE_TYPE}", OBJECT),
+        ([(GEO_NS, "local"), (CNC, cnc.INTERFACE)], f"{CNC}|{cnc.INTERFACE_TYPE}", OBJECT),
     ]
     wanted += [(top + p, t, c) for p, t, c in nodeset.mandatory("CncInterfaceType")]
     instances = [((CNC, cnc.AXIS_LIST), (GEO_NS, a), "CncAxisType") for a in "XYZC"]
     instances.append(((CNC, cnc.CHANNEL_LIST), (GEO_NS, cnc.CHANNEL), "CncChannelType"))
     for folder, name, type_name in instances:
         here = [*top, folder, name]
-        wanted.append((here, f"{CNC}|{nodeset.types[type_name].rsplit('=', 1)[1]}", "UAObject"))
+        wanted.append((here, nodeset.types[(CNC, type_name)], OBJECT))
         wanted += [(here + p, t, c) for p, t, c in nodeset.mandatory(type_name)]
+    tool = [(MACHINERY, "Machines"), (GEO_NS, "local")]
+    wanted.append((tool, nodeset.types[(MACHINE_TOOL, "MachineToolType")], OBJECT))
+    wanted += [(tool + p, t, c) for p, t, c in nodeset.mandatory("MachineToolType", MACHINE_TOOL)]
     paths = tmp_path / "paths.json"
     paths.write_text(json.dumps([p for p, _, _ in wanted]), encoding="utf-8")
 
@@ -178,15 +247,24 @@ def test_every_mandatory_node_is_there_for_node_opcua(
     seen = json.loads(result[-1].removeprefix("RESULT "))
     assert len(seen) == len(wanted) > 150
     problems = []
-    for (path, type_id, node_class), got in zip(wanted, seen, strict=True):
+    for (path, type_id, (node_class, datatype, rank)), got in zip(wanted, seen, strict=True):
         where = "/".join(n for _, n in path)
         if not got["found"]:
             problems.append(f"{where}: missing")
             continue
         if got["type"] != type_id:
             problems.append(f"{where}: type {got['type']}, not {type_id}")
-        if node_class == "UAVariable" and (got.get("status") != "Good" or not got.get("hasValue")):
+        if node_class != "UAVariable":
+            continue
+        if got.get("status") != "Good" or not got.get("hasValue"):
             problems.append(f"{where}: value {got.get('status')} {got.get('hasValue')}")
+        if datatype and got["dataType"] != datatype:
+            problems.append(f"{where}: DataType {got['dataType']}, not {datatype}")
+        if got["isArray"] != (rank >= 1):
+            problems.append(f"{where}: an array {got['isArray']}, ValueRank {rank}")
+        builtin = datatype.startswith(f"{UA}|") and datatype.split("|")[1] in BUILTIN
+        if builtin and got["variantType"] != int(datatype.split("|")[1]):
+            problems.append(f"{where}: a value of type {got['variantType']}, not {datatype}")
     assert problems == []
 
 
@@ -240,7 +318,15 @@ def test_the_axis_values_are_the_ads_values_of_the_same_cycle(
             rotary = c.get_node(
                 ua.NodeId(f"local/{cnc.INTERFACE}.{cnc.AXIS_LIST}.C.IsRotational", ns)
             )
-            return {**dict(zip(names, values, strict=True)), "C": await rotary.read_value()}
+            tool = "local/MachineTool"
+            serial = c.get_node(ua.NodeId(f"{tool}.Identification.SerialNumber", ns))
+            state = c.get_node(ua.NodeId(f"{tool}.Production.ActiveProgram.State.CurrentState", ns))
+            return {
+                **dict(zip(names, values, strict=True)),
+                "C": await rotary.read_value(),
+                "serial": await serial.read_value(),
+                "state": (await state.read_value()).Text,
+            }
 
     try:
         got = asyncio.run(read())
@@ -252,3 +338,70 @@ def test_the_axis_values_are_the_ads_values_of_the_same_cycle(
     assert got["PosIndirect.ActPos"] == drive / 10_000
     assert got["ActStatus"] == 1  # Moving
     assert (got["IsReferenced"], got["IsRotational"], got["C"]) == (True, False, True)
+    # the Machine Tool model: the machine's name is its serial number; no NC program runs
+    assert (got["serial"], got["state"]) == ("local", "Ended")
+
+
+@pytest.mark.slow
+def test_the_models_are_read_only_and_each_machine_has_its_own(default_cfg: Any) -> None:
+    """Two machines of one shape (the second's nodes are a copy of the first's): a
+    write of a model's constant is refused (Bad_NotWritable; with --opcua-read-only
+    Bad_UserAccessDenied) and changes nothing; each machine has its own serial number
+    and channel; a position variable is the CncPositionDataType of its three parts."""
+    from geo_server.machine.machine import Machine
+
+    services = {
+        name: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True))
+        for name in ("mill", "lathe")
+    }
+    access.write_name(services["lathe"], "SIM::target_position", 1, 100_000)
+    access.step(services["lathe"], 30)
+
+    async def scenario(read_only: bool) -> dict[str, Any]:
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", read_only=read_only)
+        iface = OpcUaInterface(services, options)
+        await iface.start()
+        try:
+            async with Client(iface.endpoint, timeout=10) as c:
+                ns = await c.get_namespace_index(GEO_NS)
+
+                def node(path: str) -> Any:
+                    return c.get_node(ua.NodeId(path, ns))
+
+                override = "lathe/CncInterface.CncChannelList.Channel1.CmdOverride"
+                write = ua.WriteValue(
+                    NodeId=ua.NodeId(override, ns),
+                    AttributeId=ua.AttributeIds.Value,
+                    Value=ua.DataValue(ua.Variant(55.5, ua.VariantType.Double)),
+                )
+                (status,) = await c.uaclient.write(ua.WriteParameters(NodesToWrite=[write]))
+                x = "lathe/CncInterface.CncAxisList.X"
+                level = await node(f"{x}.PosDirect.ActPos").get_user_access_level()
+                return {
+                    "status": status.name,
+                    "override": await node(override.replace("lathe", "mill")).read_value(),
+                    "writable": ua.AccessLevel.CurrentWrite in level,
+                    "serials": [
+                        await node(f"{m}/MachineTool.Identification.SerialNumber").read_value()
+                        for m in services
+                    ],
+                    "channel": await node(f"{x}.ActChannel").read_value(),
+                    "position": await node(f"{x}.PosDirect").read_value(),
+                    "parts": [
+                        await node(f"{x}.PosDirect.{p}").read_value()
+                        for p in ("ActPos", "CmdPos", "RemDist")
+                    ],
+                }
+        finally:
+            await iface.close()
+
+    got = asyncio.run(scenario(read_only=False))
+    assert got["status"] == "BadNotWritable"
+    assert (got["override"], got["writable"]) == (100.0, False)
+    assert got["serials"] == ["mill", "lathe"]
+    assert got["channel"].Identifier == "lathe/CncInterface.CncChannelList.Channel1"
+    position = got["position"]
+    assert [position.ActPos, position.CmdPos, position.RemDist] == got["parts"]
+    command = round(got["parts"][1] * 10_000)  # (increments)
+    assert 0 < command < 100_000 and got["parts"][2] == (100_000 - command) / 10_000
+    assert asyncio.run(scenario(read_only=True))["status"] == "BadUserAccessDenied"

@@ -37,7 +37,10 @@ def run(scenario: Callable[[], Awaitable[None]]) -> None:
 
 
 async def started(service: ObjectService, **kw: Any) -> OpcUaInterface:
-    iface = OpcUaInterface({"local": service}, OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **kw))
+    iface = OpcUaInterface(
+        {"local": service},
+        OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **{"companion_models": False, **kw}),
+    )
     await iface.start()
     return iface
 

@@ -25,7 +25,15 @@ from test_opcua import Collect, client, node_of, options, run, started
 from geo_server import access
 from geo_server.service import ObjectService
 from geo_server.transports.opcua import guard
-from geo_server.transports.opcua.items import ItemRule, Sample
+from geo_server.transports.opcua.items import (
+    ABSOLUTE,
+    STATUS_VALUE,
+    STATUS_VALUE_TIMESTAMP,
+    ItemRule,
+    Sample,
+    cycles_of,
+    rule_for,
+)
 from geo_server.transports.opcua.space import NAMESPACE_URI
 
 COUNT = "local/SIM/cycle_count"
@@ -193,6 +201,15 @@ def test_the_rule_of_an_item_by_hand() -> None:
     """`ItemRule` without a server: the cases above and the triggers of Part 4 §7.22.2."""
     rule = ItemRule(every=10, deadband=1.0)
     assert [c for c in range(25) if rule.samples(c)] == [0, 10, 20]
+    nan = float("nan")
+    assert not ItemRule().notifies(Sample(0, nan, 1), Sample(0, nan, 2))  # NaN stays NaN
+    assert rule.notifies(Sample(0, 1.0, 1), Sample(0, nan, 2))  # into NaN: once
+    assert rule.notifies(Sample(0, nan, 1), Sample(0, 1.0, 2))  # and out of it
+    # with a deadband, StatusValueTimestamp behaves as StatusValue
+    banded = rule_for(1, STATUS_VALUE_TIMESTAMP, ABSOLUTE, 1.0, numeric=True, eu_range=None)
+    assert isinstance(banded, ItemRule) and banded.trigger == STATUS_VALUE
+    # a NaN or infinite interval, of the item or of its subscription: the fastest
+    assert cycles_of(nan, nan, 1.0) == cycles_of(float("inf"), float("inf"), 1.0) == 1
     last = Sample(0, 1.0, 100)
     assert not rule.notifies(last, Sample(0, 1.9, 101))  # within the deadband
     assert rule.notifies(last, Sample(0, 2.1, 101))
@@ -289,10 +306,13 @@ def test_read_write_and_call_answer_the_specified_codes(service: ObjectService) 
                 assert server.ServerTimestamp and not server.SourceTimestamp
                 assert both.SourceTimestamp and both.ServerTimestamp
                 assert not (neither.SourceTimestamp or neither.ServerTimestamp)
-                part, scalar, bad = await read(2, (names, "0:2"), (coef, "0"), (coef, "2:1"))
+                part, scalar, bad, odd = await read(
+                    2, (names, "0:2"), (coef, "0"), (coef, "2:1"), (names, "\u00b2")
+                )
                 assert part.Value.Value == "1=X"  # (SIM::axis_names is "1=X 2=Y 3=Z 4=C")
                 assert scalar.StatusCode.value == ua.StatusCodes.BadIndexRangeNoData
                 assert bad.StatusCode.value == ua.StatusCodes.BadIndexRangeInvalid
+                assert odd.StatusCode.value == ua.StatusCodes.BadIndexRangeInvalid  # (a "²")
 
                 write = ua.WriteValue(
                     NodeId=ua.NodeId("local/no/such/node", ns),
@@ -314,6 +334,65 @@ def test_read_write_and_call_answer_the_specified_codes(service: ObjectService) 
                     ua.StatusCodes.BadMethodInvalid,
                     ua.StatusCodes.BadNodeIdUnknown,
                 ]
+        finally:
+            await iface.close()
+
+    run(scenario)
+
+
+@pytest.mark.slow
+def test_modify_sampling_mode_and_odd_intervals(service: ObjectService) -> None:
+    """ModifyMonitoredItems with an unknown item beside a known one answers each on its
+    own (Bad_MonitoredItemIdInvalid; asyncua failed the whole request, half applied);
+    an item in Sampling mode is not reported (Part 4 §5.12.1.3); a NaN publishing and
+    sampling interval is revised, not an internal error."""
+
+    async def scenario() -> None:
+        iface = await started({"local": service}, options())
+        try:
+            async with client(iface) as c:
+                ns = await c.get_namespace_index(NAMESPACE_URI)
+                count = node_of(c, ns, COUNT)
+                reported, sampled = Collect(), Collect()
+                sub, made = await item(c, reported, count, 1.0)
+                request = ua.MonitoredItemModifyRequest(
+                    MonitoredItemId=made,
+                    RequestedParameters=ua.MonitoringParameters(
+                        ClientHandle=1, SamplingInterval=5.0, QueueSize=guard.MAX_QUEUE_SIZE
+                    ),
+                )
+                unknown = ua.MonitoredItemModifyRequest(
+                    MonitoredItemId=987654,
+                    RequestedParameters=ua.MonitoringParameters(SamplingInterval=5.0),
+                )
+                done = await c.uaclient.modify_monitored_items(
+                    ua.ModifyMonitoredItemsParameters(
+                        SubscriptionId=sub.subscription_id, ItemsToModify=[request, unknown]
+                    )
+                )
+                assert [r.StatusCode.value for r in done] == [
+                    ua.StatusCodes.Good,
+                    ua.StatusCodes.BadMonitoredItemIdInvalid,
+                ]
+                assert done[0].RevisedSamplingInterval == 5.0
+                quiet = await c.create_subscription(
+                    ua.CreateSubscriptionParameters(RequestedPublishingInterval=float("nan")),
+                    sampled,
+                )
+                asked = ua.MonitoredItemCreateRequest(
+                    ItemToMonitor=ua.ReadValueId(NodeId=count.nodeid, AttributeId=13),
+                    MonitoringMode=ua.MonitoringMode.Sampling,
+                    RequestedParameters=ua.MonitoringParameters(
+                        ClientHandle=1, SamplingInterval=float("nan"), QueueSize=4
+                    ),
+                )
+                (kept,) = await quiet.create_monitored_items([asked])
+                assert isinstance(kept, int)  # (made, not BadInternalError)
+                await reported.until(1, COUNT)
+                access.step(service, 10)
+                await reported.until(3, COUNT)  # (every 5th cycle now)
+                await asyncio.sleep(0.1)
+                assert sampled.changes == []
         finally:
             await iface.close()
 

@@ -47,7 +47,8 @@ def serve(
 ) -> None:
     async def bounded() -> None:
         iface = OpcUaInterface(
-            {"local": service}, OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **kw)
+            {"local": service},
+            OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", **{"companion_models": False, **kw}),
         )
         await iface.start()
         try:
@@ -339,7 +340,7 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
     }
 
     async def scenario() -> None:
-        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0")
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
         iface = OpcUaInterface(services, options, {"a": share})
         await iface.start()
         try:
@@ -382,7 +383,7 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
     now = [0.0]
 
     async def scenario() -> None:
-        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0")
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
         iface = OpcUaInterface({"local": service}, options, loop_share=share)
         await iface.start()
         try:

@@ -4,7 +4,8 @@
 // geo-server's server and reads the target's NodeClass, its TypeDefinition (as
 // "<namespace URI>|<numeric id>") and, for a variable, the status of its value and
 // whether the value is there.
-// Prints one line "RESULT <JSON>": a list of {path, found, nodeClass, type, status, hasValue}.
+// Prints one line "RESULT <JSON>": a list of {path, found, nodeClass, type, status, hasValue,
+// variantType, isArray, dataType}.
 // Usage: node opcua_companion_check.js <endpoint URL> <file with the JSON list of paths>
 const fs = require("fs");
 const {
@@ -54,10 +55,14 @@ async function main() {
       const t = typed.references.length ? typed.references[0].nodeId : null;
       entry.type = t ? `${nsArray[t.namespace]}|${t.value}` : null;
       if (entry.nodeClass === 2) {
-        // a Variable
+        // a Variable: its value, and the value's type and shape beside the declared ones
         const dv = await session.read({ nodeId, attributeId: AttributeIds.Value });
         entry.status = dv.statusCode.name;
         entry.hasValue = dv.value.value !== null && dv.value.value !== undefined;
+        entry.variantType = dv.value.dataType;
+        entry.isArray = dv.value.arrayType !== 0; // (VariantArrayType.Scalar)
+        const dt = (await session.read({ nodeId, attributeId: AttributeIds.DataType })).value.value;
+        entry.dataType = `${nsArray[dt.namespace]}|${dt.value}`;
       }
     }
     out.push(entry);

@@ -30,11 +30,13 @@ docs/design.md §3.1):
 | `PosIndirect` `ActPos` | `SIM::drive_actual_position`: the drive's (motor encoder's) position |
 | `PosIndirect` `CmdPos` | `SIM::output_position`: the compensated position commanded to the drive |
 | `RemDist` (both) | `SIM::target_position` − `SIM::command_position` |
+| `PosDirect`, `PosIndirect` | a CncPositionDataType of their ActPos, CmdPos, RemDist |
 | `ZeroOffset`, `ActLoad`, `ActPower`, `ActTorque`, `CmdTorque` | 0 (constants) |
 
 Channel values: `ActProgramStatus` Running (1) while `SIM::program_running`, else Stopped
-(0); `ActStatus` Active (0) while running, else Reset (2); `ActProgramBlock` the running
-line (`SIM::program_line`, as text; "" at rest); `PosTcpBcs<X…C>` and `PosTcpWcs<X…C>` the
+(0); `ActStatus` Active (0) while running, else Reset (2); `ActProgramBlock` (the texts
+of the previous, the actual and the next block) an empty array: the emulator keeps
+line numbers, not block texts; `PosTcpBcs<X…C>` and `PosTcpWcs<X…C>` the
 positions of the axis of that name (no kinematics, no zero offsets: BCS = WCS = axis
 positions), 0 where the machine has no such axis; operation mode MDA (NC text runs as
 MDI), overrides 100 %, feed rates 0, program names "" (constants).
@@ -71,12 +73,16 @@ TCP_AXES = ("X", "Y", "Z", "A", "B", "C")
 
 @dataclass(frozen=True)
 class Live:
-    """A variable of the CncInterface read from the machine's snapshot."""
+    """A variable of a companion model read from the machine's snapshot."""
 
-    path: tuple[str, ...]  # browse names below the CncInterface
-    ua_type: str  # its values' built-in type ("Double", "Boolean", "Int32", "String")
+    path: tuple[str, ...]  # browse names from the model's instance (its name first)
+    ua_type: str  # its values' built-in type ("Double", "Boolean", "Int32", "String", …)
     sources: tuple[ObjectDef, ...]  # the objects it is computed from
     read: Callable[[Snapshot], Any]
+    #: a number a deadband applies to (not an enumeration, a flag or a structure)
+    number: bool = False
+    #: the model's structure its values are (`read` gives its fields in order), or ""
+    structure: str = ""
 
 
 #: constants: browse name -> value (wherever it is in the interface)
@@ -117,8 +123,17 @@ UNITS: dict[str, str] = {
     "ActJogIncrement": "mm",
     "ZeroOffset": "mm",
 }
-#: an SGN32 position's range in mm or ° (EURange of the positions)
+#: an SGN32 position's range in mm or ° (EURange of the positions and offsets)
 POSITION_RANGE = (-(2.0**31) / UNITS_PER_MM, (2.0**31 - 1) / UNITS_PER_MM)
+#: EURange of the other analog variables by unit: nominal, as a drive's data sheet
+#: gives them (the values are constants here; a percent deadband needs a range)
+RANGES: dict[str, tuple[float, float]] = {
+    "%": (0.0, 100.0),
+    "W": (0.0, 100_000.0),
+    "N·m": (-10_000.0, 10_000.0),
+    "mm/min": (0.0, 100_000.0),
+    "mm": POSITION_RANGE,
+}
 
 
 def position_unit(kind: int) -> str:
@@ -136,7 +151,7 @@ def live_variables(dictionary: Dictionary, axes: Mapping[int, tuple[str, int]]) 
     )
     out: list[Live] = []
     for axis, (name, _) in axes.items():
-        here = (AXIS_LIST, name)
+        here = (INTERFACE, AXIS_LIST, name)
         out += [
             Live((*here, "ActStatus"), "Int32", (velocity,), _status(velocity, axis)),
             Live(
@@ -158,14 +173,13 @@ def live_variables(dictionary: Dictionary, axes: Mapping[int, tuple[str, int]]) 
         ):
             out += _position((*here, group), actual, commanded, target, command, axis)
     by_name = {name: axis for axis, (name, _) in axes.items()}
-    program, line = by("SIM::program_running"), by("SIM::program_line")
-    channel = (CHANNEL_LIST, CHANNEL)
+    program = by("SIM::program_running")
+    channel = (INTERFACE, CHANNEL_LIST, CHANNEL)
     out += [
         Live(
             (*channel, "ActProgramStatus"), "Int32", (program,), _chosen(program, RUNNING, STOPPED)
         ),
         Live((*channel, "ActStatus"), "Int32", (program,), _chosen(program, ACTIVE, RESET)),
-        Live((*channel, "ActProgramBlock"), "String", (program, line), _block(program, line)),
     ]
     for system in ("Bcs", "Wcs"):
         for letter in TCP_AXES:
@@ -184,12 +198,24 @@ def _position(
     command: ObjectDef,
     axis: int,
 ) -> list[Live]:
-    """ActPos, CmdPos and RemDist of one CncPositionVariableType, in mm or °."""
+    """ActPos, CmdPos and RemDist of one CncPositionVariableType, in mm or °, and the
+    variable itself: a CncPositionDataType of the three."""
+    parts = (
+        _scaled(actual, axis),
+        _scaled(commanded, axis),
+        _remaining(target, command, axis),
+    )
+    sources = (actual, commanded, target, command)
     return [
-        Live((*group, "ActPos"), "Double", (actual,), _scaled(actual, axis)),
-        Live((*group, "CmdPos"), "Double", (commanded,), _scaled(commanded, axis)),
-        Live((*group, "RemDist"), "Double", (target, command), _remaining(target, command, axis)),
+        Live((*group, "ActPos"), "Double", (actual,), parts[0], number=True),
+        Live((*group, "CmdPos"), "Double", (commanded,), parts[1], number=True),
+        Live((*group, "RemDist"), "Double", (target, command), parts[2], number=True),
+        Live(group, "ExtensionObject", sources, _all(parts), structure="CncPositionDataType"),
     ]
+
+
+def _all(parts: tuple[Callable[[Snapshot], Any], ...]) -> Callable[[Snapshot], Any]:
+    return lambda snap: tuple(part(snap) for part in parts)
 
 
 def _scaled(obj: ObjectDef, axis: int) -> Callable[[Snapshot], Any]:
@@ -218,10 +244,6 @@ def _chosen(flag: ObjectDef, yes: int, no: int) -> Callable[[Snapshot], Any]:
     return lambda snap: yes if snap.value(flag, 0) else no
 
 
-def _block(program: ObjectDef, line: ObjectDef) -> Callable[[Snapshot], Any]:
-    return lambda snap: str(snap.value(line, 0)) if snap.value(program, 0) else ""
-
-
 __all__ = [
     "AXIS_LIST",
     "AXIS_TYPE",
@@ -234,6 +256,7 @@ __all__ = [
     "INTERFACE_TYPE",
     "NODESET",
     "POSITION_RANGE",
+    "RANGES",
     "TCP_AXES",
     "UNITS",
     "Live",

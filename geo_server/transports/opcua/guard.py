@@ -29,6 +29,7 @@ import contextlib
 import hashlib
 import inspect
 import logging
+import math
 import secrets
 import uuid
 from typing import Any
@@ -221,8 +222,10 @@ def _bound_subscriptions(session: Any, iserver: Any) -> None:
         held = sum(1 for s in subs.subscriptions.values() if s.session_id == session.session_id)
         if held >= SUBSCRIPTIONS_PER_SESSION:
             raise ServiceError(ua.StatusCodes.BadTooManySubscriptions)
-        params.RequestedPublishingInterval = max(
-            float(params.RequestedPublishingInterval), MIN_PUBLISHING_MS
+        asked = float(params.RequestedPublishingInterval)
+        # (NaN or infinity: the fastest allowed, as a negative interval; max() keeps NaN)
+        params.RequestedPublishingInterval = (
+            max(asked, MIN_PUBLISHING_MS) if math.isfinite(asked) else MIN_PUBLISHING_MS
         )
         return await create(params, *args, **kwargs)
 

@@ -64,11 +64,20 @@ class ItemRule:
             return False
         if self.trigger == STATUS_VALUE_TIMESTAMP and new.stamp != last.stamp:
             return True
-        if new.value == last.value:
+        if same(new.value, last.value):
             return False
         if self.deadband > 0.0 and _number(new.value) and _number(last.value):
+            if math.isnan(new.value) or math.isnan(last.value):
+                return True  # (into or out of NaN: once, Part 4 §7.22.2)
             return bool(abs(new.value - last.value) > self.deadband)
         return True
+
+
+def same(a: Any, b: Any) -> bool:
+    """Equal values, NaN equal to NaN (a value that stays NaN is not a change)."""
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return bool(a == b)
 
 
 def _number(value: Any) -> bool:
@@ -92,6 +101,8 @@ def rule_for(
         return ItemRule(every, trigger)
     if deadband_type not in (ABSOLUTE, PERCENT):
         return "BadMonitoredItemFilterUnsupported"
+    if trigger == STATUS_VALUE_TIMESTAMP:  # "the same behaviour as STATUS_VALUE" with a
+        trigger = STATUS_VALUE  # deadband (Part 4 §7.22.2)
     if not numeric:
         return "BadFilterNotAllowed"
     if not math.isfinite(deadband_value) or deadband_value < 0.0:
@@ -108,7 +119,7 @@ def cycles_of(asked_ms: float, publishing_ms: float, cycle_ms: float) -> int:
     """A sampling interval in whole GEO cycles, at least one (Part 4 §5.13.1.2: 0 is
     the fastest practical rate, -1 the subscription's publishing interval)."""
     if asked_ms < 0.0 or not math.isfinite(asked_ms):
-        asked_ms = publishing_ms
+        asked_ms = publishing_ms if math.isfinite(publishing_ms) else cycle_ms
     return max(1, round(min(max(asked_ms, cycle_ms), SLOWEST_MS) / cycle_ms))
 
 
@@ -123,4 +134,5 @@ __all__ = [
     "Sample",
     "cycles_of",
     "rule_for",
+    "same",
 ]

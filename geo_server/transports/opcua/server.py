@@ -38,6 +38,7 @@ import json
 import logging
 import math
 import os
+import re
 import socket
 import time
 from collections import deque
@@ -51,7 +52,7 @@ from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
-from geo_server.transports.opcua import cnc
+from geo_server.transports.opcua import cnc, machinetool
 from geo_server.transports.opcua.args import parse_endpoint
 from geo_server.transports.opcua.cnc import Live
 from geo_server.transports.opcua.items import (
@@ -60,6 +61,7 @@ from geo_server.transports.opcua.items import (
     Sample,
     cycles_of,
     rule_for,
+    same,
 )
 from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.metering import RequestMeter
@@ -190,6 +192,9 @@ class OpcUaOptions:
     cert_dir: Path | None = None
     #: Offer only Basic256Sha256 SignAndEncrypt (no unencrypted endpoint).
     encrypt_only: bool = False
+    #: The CNC (OPC 40502) and Machine Tool (OPC 40501) companion models of every
+    #: machine (docs/opcua.md); loading their NodeSets takes about 3 s of the start.
+    companion_models: bool = True
     #: TCP connections at once (asyncua's own default: 1000); more are refused.
     max_connections: int = 64
     #: Monitored items in one session (of any node); more are refused with
@@ -270,6 +275,14 @@ class _Var:
         return self.spec.eu_range if self.spec is not None else None
 
     @property
+    def numeric(self) -> bool:
+        """A number a deadband applies to (Part 4 §7.22.2: not a flag, a text, an
+        enumeration or a structure)."""
+        if self.spec is not None:
+            return self.spec.ua_type not in ("Boolean", "String")
+        return self._live().number
+
+    @property
     def at_rest(self) -> bool:
         """Whether it can change while the machine rests (`varies_at_rest`)."""
         if self.spec is not None:
@@ -343,13 +356,16 @@ class OpcUaInterface:
         self.server: Any = None
         self.port = 0
         self.ns = 0
-        self.cnc_ns = 0  # (the CNC model's namespace index)
+        #: the companion models' namespace indexes (CNC, Machine Tool, Machinery)
+        self.cnc_ns = self.mt_ns = self.machinery_ns = 0
         self._vars: dict[Any, _Var] = {}
         #: (shape, machine): the machine whose nodes the others of its shape copy
         self._shapes: list[tuple[Any, str]] = []
         #: machine -> the node ids of its nodes, and how to copy them (`_copy_nodes`)
         self._subtrees: dict[str, list[Any]] = {}
         self._plans: dict[str, list[tuple[str, Any, list[tuple[Any, str | None]]]]] = {}
+        #: template -> (a node out of it, the suffix of its node that node holds)
+        self._anchors: dict[str, list[tuple[Any, str]]] = {}
         self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
         #: datachange callback handle -> the rule of its item (`items.py`)
         self._rules: dict[int, ItemRule] = {}
@@ -467,11 +483,14 @@ class OpcUaInterface:
         )
         self.ns = await server.register_namespace(NAMESPACE_URI)
         # the CNC model's types (OPC 40502; `cnc.py`), after ours: ours stays index 2
-        await _off_loop(lambda: server.import_xml(str(cnc.NODESET), strict_mode=False))
-        self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
+        if opts.companion_models:
+            await _off_loop(lambda: _import_companions(server))
+            self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
+            self.mt_ns = await server.get_namespace_index(machinetool.MACHINE_TOOL_URI)
+            self.machinery_ns = await server.get_namespace_index(machinetool.MACHINERY_URI)
         for machine, service in self.services.items():
             await self._build(machine, service)
-        if len(self.services) == 1:  # (a fleet's are below each machine only)
+        if opts.companion_models and len(self.services) == 1:  # (a fleet's: below each)
             await self._link_cnc_from_objects(next(iter(self.services)))
 
     async def close(self) -> None:
@@ -517,14 +536,18 @@ class OpcUaInterface:
         template = next((m for s, m in self._shapes if s == shape), None)
         if template is None:
             await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
-            specs = machine_variables(machine, shape[2], names, kinds)
-            await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
+            if self.options.companion_models:
+                specs = machine_variables(machine, shape[2], names, kinds)
+                await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
+                await _off_loop(lambda: self._add_machine_tool(machine))
             self._shapes.append((shape, machine))
         else:
             await asyncio.to_thread(self._copy_nodes, template, machine)
         self._serve(machine, service, machine_variables(machine, shape[2], names, kinds))
-        axes = {axis: (names[axis], kinds[axis]) for axis in names}
-        self._serve_cnc(machine, service, cnc.live_variables(shape[2], axes))
+        if self.options.companion_models:
+            axes = {axis: (names[axis], kinds[axis]) for axis in names}
+            live = cnc.live_variables(shape[2], axes) + machinetool.live_variables(shape[2])
+            self._serve_models(machine, service, live)
 
     def _add_nodes(
         self, machine: str, service: ObjectService, names: dict[int, str], kinds: dict[int, int]
@@ -593,13 +616,7 @@ class OpcUaInterface:
                 dname=ua.LocalizedText(name),
                 instantiate_optional=False,
             )
-        made = [
-            node_id
-            for node_id in list(self.server.iserver.aspace.keys())
-            if node_id.NamespaceIndex == ns
-            and isinstance(node_id.Identifier, str)
-            and node_id.Identifier.startswith(top)
-        ]
+        made = self._made_below(top)
         axis_kinds = {names[axis]: kinds[axis] for axis in names}
         for node_id in made:
             self._fill_cnc(node_id, axis_kinds)
@@ -611,6 +628,39 @@ class OpcUaInterface:
                     ua.ObjectIds.Organizes,
                 )
         self._subtrees[machine] += made
+
+    async def _add_machine_tool(self, machine: str) -> None:
+        """The machine's MachineTool (OPC 40501, `machinetool.py`) in the Machinery
+        `Machines` folder, with its mandatory nodes (string ids below the machine's)."""
+        from asyncua.common.instantiate_util import instantiate
+
+        ua = _ua()
+
+        server, ns = self.server, self.ns
+        top = f"{machine}/{machinetool.INSTANCE}"
+        await instantiate(
+            server.get_node(ua.NodeId(machinetool.MACHINES_FOLDER, self.machinery_ns)),
+            server.get_node(ua.NodeId(machinetool.MACHINE_TOOL_TYPE, self.mt_ns)),
+            nodeid=ua.NodeId(top, ns),
+            bname=ua.QualifiedName(machine, ns),
+            dname=ua.LocalizedText(machine),
+            instantiate_optional=False,
+        )
+        made = self._made_below(top)
+        for node_id in made:
+            self._set_value(node_id, None)
+        self._subtrees[machine] += made
+
+    def _made_below(self, top: str) -> list[Any]:
+        """The nodes whose ids start with `top` (what an instantiation made)."""
+        ns = self.ns
+        return [
+            node_id
+            for node_id in list(self.server.iserver.aspace.keys())
+            if node_id.NamespaceIndex == ns
+            and isinstance(node_id.Identifier, str)
+            and node_id.Identifier.startswith(top)
+        ]
 
     def _fill_cnc(self, node_id: Any, axis_kinds: dict[str, int]) -> None:
         """The value of a variable of the CncInterface that nothing live serves: a
@@ -637,7 +687,7 @@ class OpcUaInterface:
                 Description=ua.LocalizedText(UNECE.get(unit, ("", unit))[1]),
             )
         elif name == "EURange":
-            low, high = (0.0, 100.0) if cnc.UNITS.get(owner) == "%" else cnc.POSITION_RANGE
+            low, high = cnc.RANGES.get(cnc.UNITS.get(owner, ""), cnc.POSITION_RANGE)
             value = ua.Range(low, high)
         elif name == "IsRotational":
             value = kind != LINEAR
@@ -647,6 +697,24 @@ class OpcUaInterface:
             value = cnc.CONSTANTS[name]
         else:
             value = None
+        self._set_value(node_id, value)
+
+    def _set_value(self, node_id: Any, value: Any) -> None:
+        """Store `value` (None: the zero of its type, unless the type gave it one) as
+        a variable's value, typed as the variable is (DataType, ValueRank), and make the
+        variable read-only."""
+        from asyncua.server.address_space import AttributeValue
+
+        ua = _ua()
+
+        attrs = self.server.iserver.aspace[node_id].attributes
+        if attrs[ua.AttributeIds.NodeClass].value.Value.Value != ua.NodeClass.Variable:
+            return
+        # a model's variable is read-only (its values are the machine's or constants,
+        # and a copy of the machine shares its constants: docs/opcua.md)
+        readable = ua.DataValue(ua.Variant(ua.AccessLevel.CurrentRead.mask, ua.VariantType.Byte))
+        attrs[ua.AttributeIds.AccessLevel] = AttributeValue(readable)
+        attrs[ua.AttributeIds.UserAccessLevel] = AttributeValue(readable)
         current = attrs[ua.AttributeIds.Value].value
         given = current.Value if current is not None else None
         if value is None and given is not None and given.Value is not None:
@@ -655,30 +723,42 @@ class OpcUaInterface:
         rank = attrs[ua.AttributeIds.ValueRank].value.Value.Value
         attrs[ua.AttributeIds.Value].value = ua.DataValue(_typed(value, datatype, rank))
 
-    def _serve_cnc(self, machine: str, service: ObjectService, live: list[Live]) -> None:
-        """Answer the live variables of the machine's CncInterface from its service, and
-        point its axes' ActChannel at its channel."""
+    def _serve_models(self, machine: str, service: ObjectService, live: list[Live]) -> None:
+        """Answer the live variables of the machine's companion models from its service,
+        and give it the values that are its own (its CNC axes' ActChannel, its machine
+        tool's identification): a copy's would be the first machine's."""
         ua = _ua()
         from asyncua.server.address_space import AttributeValue
 
         ns = self.ns
         aspace = self.server.iserver.aspace
         value = ua.AttributeIds.Value
-        top = f"{machine}/{cnc.INTERFACE}"
         for spec in live:
-            node_id = ua.NodeId(".".join((top, *spec.path)), ns)
+            node_id = ua.NodeId(f"{machine}/" + ".".join(spec.path), ns)
             vtype = getattr(ua.VariantType, spec.ua_type)
             attval = aspace[node_id].attributes[value]
             var = _Var(None, service, machine, node_id, vtype, attval, live=spec)
             self._vars[node_id] = var
             aspace.set_attribute_value_callback(node_id, value, self._reader(var))
             aspace.set_attribute_value_setter(node_id, value, _keep)
+        top = f"{machine}/{cnc.INTERFACE}"
         channel = ua.NodeId(f"{top}.{cnc.CHANNEL_LIST}.{cnc.CHANNEL}", ns)
+        own = {
+            f"{machine}/{machinetool.INSTANCE}.Identification.{name}": text
+            for name, text in machinetool.identification(machine).items()
+        }
         for node_id in self._subtrees[machine]:
             ident = node_id.Identifier
-            if isinstance(ident, str) and ident.endswith(".ActChannel"):
+            if not isinstance(ident, str):
+                continue
+            if ident.startswith(top) and ident.endswith(".ActChannel"):
                 variant = ua.Variant(channel, ua.VariantType.NodeId)
-                aspace[node_id].attributes[value] = AttributeValue(ua.DataValue(variant))
+            elif ident in own:
+                datatype = aspace[node_id].attributes[ua.AttributeIds.DataType].value.Value.Value
+                variant = _typed(own[ident], datatype, -1)
+            else:
+                continue
+            aspace[node_id].attributes[value] = AttributeValue(ua.DataValue(variant))
 
     async def _link_cnc_from_objects(self, machine: str) -> None:
         """With one machine, its CncInterface is also where OPC 40502 puts it: in the
@@ -704,7 +784,6 @@ class OpcUaInterface:
         ids = {suffix: ua.NodeId(machine + suffix, ns) for suffix, _, _ in plan}
         own, value = ua.AttributeIds.NodeId, ua.AttributeIds.Value
         named = _Named(ua.QualifiedName(machine, ns), ua.LocalizedText(machine))
-        root = ids[""]
         copied = []
         for suffix, old_id, refs in plan:
             src = nodes[old_id]
@@ -714,7 +793,7 @@ class OpcUaInterface:
             attrs[own] = AttributeValue(ua.DataValue(ua.Variant(new_id, ua.VariantType.NodeId)))
             if old_id in self._vars:  # its value's callbacks are its own
                 attrs[value] = AttributeValue(attrs[value].value)
-            if new_id == root:
+            if suffix in _NAMED:
                 attrs[ua.AttributeIds.BrowseName] = AttributeValue(
                     ua.DataValue(ua.Variant(named.browse))
                 )
@@ -723,15 +802,17 @@ class OpcUaInterface:
                 )
             node.attributes = attrs
             node.references = [
-                ref if to is None else _retargeted(ref, ids[to], named if to == "" else None)
+                ref if to is None else _retargeted(ref, ids[to], named if to in _NAMED else None)
                 for ref, to in refs
             ]
             nodes[new_id] = node
             copied.append(new_id)
-        folder = nodes[ua.NodeId(ua.ObjectIds.ObjectsFolder)]
-        template_root = ua.NodeId(template, ns)
-        up = next(r for r in folder.references if r.NodeId == template_root)
-        folder.references.append(_retargeted(up, root, named))
+        # the folders out of the machine that hold it (Objects, Machines)
+        for outside, suffix in self._anchors[template]:
+            held = ua.NodeId(template + suffix, ns)
+            up = next(r for r in nodes[outside].references if r.NodeId == held and r.IsForward)
+            named_here = named if suffix in _NAMED else None
+            nodes[outside].references.append(_retargeted(up, ids[suffix], named_here))
         self._subtrees[machine] = copied
 
     def _plan(self, template: str) -> list[tuple[str, Any, list[tuple[Any, str | None]]]]:
@@ -751,10 +832,18 @@ class OpcUaInterface:
             return str(ident[cut:])
 
         plan = []
+        anchors = []
         for old_id in self._subtrees[template]:
             refs = [(ref, suffix(ref.NodeId)) for ref in nodes[old_id].references]
-            plan.append((suffix(old_id) or "", old_id, refs))
+            here = suffix(old_id) or ""
+            plan.append((here, old_id, refs))
+            anchors += [
+                (ref.NodeId, here)
+                for ref, to in refs
+                if to is None and not ref.IsForward and ref.ReferenceTypeId in _HOLDING()
+            ]
         self._plans[template] = plan
+        self._anchors[template] = anchors
         return plan
 
     def _serve(self, machine: str, service: ObjectService, specs: list[VariableSpec]) -> None:
@@ -965,6 +1054,12 @@ class OpcUaInterface:
         if stamped is not snap:  # (the cycle's time once per snapshot, not per value)
             stamp = source_time(snap)
             self._stamped = (snap, stamp)
+        if var.vtype == ua.VariantType.LocalizedText:
+            value = ua.LocalizedText(value)
+        elif var.vtype == ua.VariantType.NodeId:  # (a state of the Machine Tool model)
+            value = ua.NodeId(value, self.mt_ns)
+        elif var.live is not None and var.live.structure:  # (asyncua made its class from
+            value = getattr(ua, var.live.structure)(*value)  # the model's NodeSet)
         return ua.DataValue(
             ua.Variant(value, var.vtype),
             SourceTimestamp=stamp,
@@ -1111,12 +1206,19 @@ class OpcUaInterface:
     async def _write(self, params: Any, user: Any, write: Any) -> list[Any]:
         ua = _ua()
 
+        from asyncua.server.user_managers import UserRole
+
         items = list(params.NodesToWrite)
         results: list[Any] = [None] * len(items)
         aspace = self.server.iserver.aspace
+        client = user is not None and user.role != UserRole.Admin  # (not the server itself)
         for i, w in enumerate(items):
             if w.NodeId not in aspace:  # (before asyncua's access check says Denied)
                 results[i] = ua.StatusCode(ua.StatusCodes.BadNodeIdUnknown)
+            elif client and self.options.read_only:  # (every node: asyncua's, the models')
+                results[i] = ua.StatusCode(getattr(ua.StatusCodes, READ_ONLY))
+            elif client and w.NodeId not in self._vars and not _writable(aspace, w):
+                results[i] = ua.StatusCode(ua.StatusCodes.BadNotWritable)
         others = [
             i for i, w in enumerate(items) if w.NodeId not in self._vars and results[i] is None
         ]
@@ -1125,7 +1227,7 @@ class OpcUaInterface:
             done = await (write(sub, user) if user is not None else write(sub))
             for i, status in zip(others, done, strict=True):
                 results[i] = status
-        ours = [i for i, w in enumerate(items) if w.NodeId in self._vars]
+        ours = [i for i, w in enumerate(items) if w.NodeId in self._vars and results[i] is None]
         by_service: dict[int, tuple[ObjectService, list[tuple[int, Any]]]] = {}
         for i in ours:
             w = items[i]
@@ -1227,12 +1329,22 @@ class OpcUaInterface:
             keep.append(i)
         created: list[Any] = []
         if keep:
+            asked = [params.ItemsToCreate[i] for i in keep]
+            sampling = ua.MonitoringMode.Sampling
+            # asyncua reports a new item's first value unless it is Disabled: one that
+            # only samples is made Disabled, then set to Sampling (Part 4 §5.12.1.3)
+            quiet = {k for k, a in enumerate(asked) if a.MonitoringMode == sampling}
             sub_params = ua.CreateMonitoredItemsParameters(
                 SubscriptionId=params.SubscriptionId,
                 TimestampsToReturn=params.TimestampsToReturn,
-                ItemsToCreate=[params.ItemsToCreate[i] for i in keep],
+                ItemsToCreate=[_disabled(a) if k in quiet else a for k, a in enumerate(asked)],
             )
             created = await create(sub_params)
+            made = sub.monitored_item_srv._monitored_items if sub is not None else {}
+            for k in quiet:
+                data = made.get(created[k].MonitoredItemId)
+                if created[k].StatusCode.is_good() and data is not None:
+                    data.mode = sampling
             for k, var, rule in rules:
                 if created[k].StatusCode.is_good():
                     self._ruled(var, sub, created[k].MonitoredItemId, rule)
@@ -1258,7 +1370,10 @@ class OpcUaInterface:
         passed: list[int] = []
         for i, request in enumerate(params.ItemsToModify):
             data = items.get(request.MonitoredItemId)
-            watched: Any = data.read_value_id if data is not None else None
+            if data is None:  # (asyncua would fail the whole request, half applied)
+                refused[i] = "BadMonitoredItemIdInvalid"
+                continue
+            watched: Any = data.read_value_id
             var = self._vars.get(watched.NodeId) if watched is not None else None
             if var is not None and watched.AttributeId == ua.AttributeIds.Value:
                 rule = self._rule(var, request.RequestedParameters, sub)
@@ -1306,7 +1421,7 @@ class OpcUaInterface:
             int(flt.Trigger),
             int(flt.DeadbandType),
             float(flt.DeadbandValue),
-            numeric=var.ua_type not in ("Boolean", "String"),
+            numeric=var.numeric,
             eu_range=var.eu_range,
         )
 
@@ -1424,7 +1539,7 @@ class OpcUaInterface:
             for every in var.rates:
                 if snap.cycle % every:
                     continue
-                if var.stamped or var.lasts.get(every, _NONE) != value:
+                if var.stamped or not same(var.lasts.get(every, _NONE), value):
                     var.lasts[every] = value
                     due.add(every)
             if due:
@@ -1453,8 +1568,8 @@ class OpcUaInterface:
                 continue  # (an item being made or deleted meanwhile)
             mid = owner._monitored_datachange.get(handle)
             item = owner._monitored_items.get(mid) if mid is not None else None
-            if mid is None or item is None or item.mode == ua.MonitoringMode.Disabled:
-                continue
+            if mid is None or item is None or item.mode != ua.MonitoringMode.Reporting:
+                continue  # (Sampling: sampled, not reported; Part 4 §5.12.1.3)
             values = item.mvalue
             old = values.current_dvalue
             if not rule.notifies(None if old is None else _sample(old), new):
@@ -1493,7 +1608,7 @@ async def run_method(service: ObjectService, name: str, args: list[str]) -> dict
 
 
 def _fault_id(text: str) -> int:
-    if not text.isdigit() or len(text) > 9:
+    if not re.fullmatch(r"[0-9]{1,9}", text):
         raise FaultError(f'ClearFaults takes a fault id or "all", not {text[:40]!r}')
     return int(text)
 
@@ -1590,13 +1705,17 @@ def _ranged(dv: Any, text: str) -> Any:
     )
 
 
+#: an index of a NumericRange: ASCII digits, at most a UInt32 (10 digits)
+_INDEX = re.compile(r"[0-9]{1,10}")
+
+
 def _index_range(text: str) -> list[tuple[int, int]] | None:
     """A NumericRange ("2", "0:3", "1:2,0:1") as (first, last) per dimension; None
     when its syntax is bad (a bound missing, last not above first)."""
     out = []
     for part in text.split(","):
         low, colon, high = part.partition(":")
-        if not low.isdigit() or (colon and not high.isdigit()) or len(part) > 21:
+        if not _INDEX.fullmatch(low) or (colon and not _INDEX.fullmatch(high)):
             return None
         first = int(low)
         last = int(high) if colon else first
@@ -1604,6 +1723,18 @@ def _index_range(text: str) -> list[tuple[int, int]] | None:
             return None
         out.append((first, last))
     return out
+
+
+#: the nodes of a machine whose BrowseName is the machine's name: its object, and its
+#: MachineTool in the Machines folder (suffixes of their node ids)
+_NAMED = ("", f"/{machinetool.INSTANCE}")
+
+
+def _HOLDING() -> tuple[Any, ...]:
+    """The references by which a folder out of a machine holds one of its nodes."""
+    ua = _ua()
+
+    return (ua.NodeId(ua.ObjectIds.Organizes), ua.NodeId(ua.ObjectIds.HasComponent))
 
 
 @dataclass(frozen=True)
@@ -1629,6 +1760,15 @@ def _retargeted(ref: Any, target: Any, named: _Named | None) -> Any:
     )
 
 
+async def _import_companions(server: Any) -> None:
+    """The companion models' types: CNC (`cnc.py`), then DI, Machinery, IA and Machine
+    Tool (`machinetool.py`), the OPC Foundation's NodeSets. asyncua reports the few
+    broken references of their own example instances (`strict_mode=False`)."""
+    await server.import_xml(str(cnc.NODESET), strict_mode=False)
+    for _, path in machinetool.NODESETS:
+        await server.import_xml(str(path), strict_mode=False)
+
+
 async def _off_loop(work: Callable[[], Awaitable[Any]]) -> Any:
     """Run asyncua's coroutine `work` on a loop of its own in a worker thread: adding
     nodes before the server serves touches nothing of this loop, and its seconds of
@@ -1640,8 +1780,9 @@ async def _awaited(work: Callable[[], Awaitable[Any]]) -> Any:
     return await work()
 
 
-#: The zero of each built-in DataType's id (Boolean 1 … String 12, NodeId 17)
-_ZEROS: dict[int, Any] = {1: False, 6: 0, 7: 0, 11: 0.0, 12: ""}
+#: The zero of each built-in DataType's id (Boolean 1, UInt16 5, Int32 6, UInt32 7,
+#: Double 11, String 12; NodeId 17 and LocalizedText 21 are made by `_typed`)
+_ZEROS: dict[int, Any] = {1: False, 5: 0, 6: 0, 7: 0, 11: 0.0, 12: "", 17: None, 21: ""}
 
 
 def _typed(value: Any, datatype: Any, rank: int) -> Any:
@@ -1653,6 +1794,10 @@ def _typed(value: Any, datatype: Any, rank: int) -> Any:
     vtype = ua.VariantType(datatype.Identifier) if builtin else ua.VariantType.Int32
     if isinstance(value, ua.EUInformation | ua.Range):
         return ua.Variant(value)
+    if rank < 1 and vtype == ua.VariantType.LocalizedText:
+        return ua.Variant(ua.LocalizedText(value or ""), vtype)
+    if rank < 1 and vtype == ua.VariantType.NodeId:
+        return ua.Variant(value if value is not None else ua.NodeId(), vtype)
     if rank >= 1:
         return ua.Variant([] if value is None else value, vtype, is_array=True)
     if value is None:
@@ -1664,6 +1809,30 @@ def _build_date() -> dt.datetime:
     """When this copy of geo-server was built or installed: its package's time."""
     stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
+
+
+def _disabled(request: Any) -> Any:
+    """A MonitoredItemCreateRequest as it is, but Disabled."""
+    ua = _ua()
+
+    return ua.MonitoredItemCreateRequest(
+        ItemToMonitor=request.ItemToMonitor,
+        MonitoringMode=ua.MonitoringMode.Disabled,
+        RequestedParameters=request.RequestedParameters,
+    )
+
+
+def _writable(aspace: Any, w: Any) -> bool:
+    """Whether a node of asyncua's (or a model's) lets its value be written at all
+    (AccessLevel CurrentWrite; other attributes only an administrator could write)."""
+    ua = _ua()
+
+    if w.AttributeId != ua.AttributeIds.Value:
+        return True  # (asyncua refuses it: BadUserAccessDenied)
+    level = aspace[w.NodeId].attributes.get(ua.AttributeIds.AccessLevel)
+    if level is None or level.value is None or level.value.Value is None:
+        return True
+    return bool(level.value.Value.Value & ua.AccessLevel.CurrentWrite.mask)
 
 
 def _change_filter() -> Any:

@@ -182,6 +182,8 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                 assert {
                     k.replace("lathe", "mill", 1): v for k, v in lathe_tree.items()
                 } == mill_tree
+                own = await node_of(c, ns, "lathe/Axes/X").read_attribute(ua.AttributeIds.NodeId)
+                assert own.Value.Value == ua.NodeId("lathe/Axes/X", ns)
                 parent = await node_of(c, ns, "lathe/Axes").get_parent()
                 assert parent.nodeid == ua.NodeId("lathe", ns)
                 assert (await parent.read_browse_name()).Name == "lathe"

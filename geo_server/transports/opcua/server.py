@@ -366,6 +366,8 @@ class OpcUaInterface:
         self._plans: dict[str, list[tuple[str, Any, list[tuple[Any, str | None]]]]] = {}
         #: template -> (a node out of it, the suffix of its node that node holds)
         self._anchors: dict[str, list[tuple[Any, str]]] = {}
+        #: the NodeId attribute every copied node shares: its value made when read
+        self._own_id: Any = None
         self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
         #: datachange callback handle -> the rule of its item (`items.py`)
         self._rules: dict[int, ItemRule] = {}
@@ -781,6 +783,9 @@ class OpcUaInterface:
         ns = self.ns
         nodes = self.server.iserver.aspace
         plan = self._plans.get(template) or self._plan(template)
+        if self._own_id is None:
+            self._own_id = AttributeValue(ua.DataValue())
+            self._own_id.value_callback = _node_id_value
         ids = {suffix: ua.NodeId(machine + suffix, ns) for suffix, _, _ in plan}
         own, value = ua.AttributeIds.NodeId, ua.AttributeIds.Value
         named = _Named(ua.QualifiedName(machine, ns), ua.LocalizedText(machine))
@@ -790,7 +795,7 @@ class OpcUaInterface:
             new_id = ids[suffix]
             node = NodeData(new_id)
             attrs = dict(src.attributes)
-            attrs[own] = AttributeValue(ua.DataValue(ua.Variant(new_id, ua.VariantType.NodeId)))
+            attrs[own] = self._own_id  # (made when read, from the node's id: `_own_id`)
             if old_id in self._vars:  # its value's callbacks are its own
                 attrs[value] = AttributeValue(attrs[value].value)
             if suffix in _NAMED:
@@ -1809,6 +1814,14 @@ def _build_date() -> dt.datetime:
     """When this copy of geo-server was built or installed: its package's time."""
     stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
+
+
+def _node_id_value(node_id: Any, attr: Any) -> Any:
+    """The value of a copied node's NodeId attribute (read rarely: made then; a
+    DataValue per node would be most of a copy's objects)."""
+    ua = _ua()
+
+    return ua.DataValue(ua.Variant(node_id, ua.VariantType.NodeId))
 
 
 def _disabled(request: Any) -> Any:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 #: DataChangeTrigger (Part 4 §7.22.2)
-STATUS, STATUS_VALUE, STATUS_VALUE_TIMESTAMP = 0, 1, 2
+STATUS_ONLY, STATUS_VALUE, STATUS_VALUE_TIMESTAMP = 0, 1, 2
 #: DeadbandType (Part 4 §7.22.2)
 NO_DEADBAND, ABSOLUTE, PERCENT = 0, 1, 2
 #: The slowest sampling interval granted (ms): an hour.
@@ -49,9 +49,6 @@ class ItemRule:
     trigger: int = STATUS_VALUE
     deadband: float = 0.0  # absolute (a percent deadband already converted)
 
-    def samples(self, cycle: int) -> bool:
-        return cycle % self.every == 0
-
     def notifies(self, last: Sample | None, new: Sample) -> bool:
         """Whether `new` is notified to an item last notified of `last`."""
         if last is None:
@@ -60,7 +57,7 @@ class ItemRule:
             return False
         if new.status != last.status:
             return True
-        if self.trigger == STATUS:
+        if self.trigger == STATUS_ONLY:
             return False
         if self.trigger == STATUS_VALUE_TIMESTAMP and new.stamp != last.stamp:
             return True
@@ -95,7 +92,7 @@ def rule_for(
 ) -> ItemRule | str:
     """The rule of a DataChangeFilter for a variable, or the name of the status code
     that refuses it."""
-    if trigger not in (STATUS, STATUS_VALUE, STATUS_VALUE_TIMESTAMP):
+    if trigger not in (STATUS_ONLY, STATUS_VALUE, STATUS_VALUE_TIMESTAMP):
         return "BadMonitoredItemFilterInvalid"
     if deadband_type == NO_DEADBAND:
         return ItemRule(every, trigger)
@@ -127,7 +124,7 @@ __all__ = [
     "ABSOLUTE",
     "NO_DEADBAND",
     "PERCENT",
-    "STATUS",
+    "STATUS_ONLY",
     "STATUS_VALUE",
     "STATUS_VALUE_TIMESTAMP",
     "ItemRule",

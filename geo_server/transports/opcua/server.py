@@ -106,10 +106,6 @@ READ_ONLY = "BadUserAccessDenied"
 #: Snapshots waiting to be sampled, per machine, while the loop is behind; older ones
 #: are dropped (counted in `late_samples`).
 SAMPLE_QUEUE = 256
-#: A value of each type for the node's creation (reads then ask the service).
-_ZERO: dict[str, Any] = {"Boolean": False, "String": "", "Double": 0.0}
-for _t in ("UInt16", "UInt32", "Int32"):
-    _ZERO[_t] = 0
 _FILETIME_EPOCH = dt.datetime(1601, 1, 1, tzinfo=dt.UTC)
 
 
@@ -682,12 +678,7 @@ class OpcUaInterface:
         value: Any
         if name == "EngineeringUnits":
             unit = cnc.UNITS.get(owner) or cnc.position_unit(kind)
-            value = ua.EUInformation(
-                NamespaceUri=UNECE_URI,
-                UnitId=unece_unit_id(unit),
-                DisplayName=ua.LocalizedText(unit),
-                Description=ua.LocalizedText(UNECE.get(unit, ("", unit))[1]),
-            )
+            value = _eu_information(unit)
         elif name == "EURange":
             low, high = cnc.RANGES.get(cnc.UNITS.get(owner, ""), cnc.POSITION_RANGE)
             value = ua.Range(low, high)
@@ -946,7 +937,7 @@ class OpcUaInterface:
         attrs = ua.VariableAttributes(
             DisplayName=ua.LocalizedText(spec.path[-1]),
             Description=ua.LocalizedText(spec.description),
-            Value=ua.Variant(_ZERO[spec.ua_type], vtype),
+            Value=ua.Variant(_ZEROS[vtype.value], vtype),
             DataType=ua.NodeId(vtype.value),
             ValueRank=ua.ValueRank.Scalar,
             AccessLevel=level,
@@ -966,13 +957,7 @@ class OpcUaInterface:
         ]
         props: list[tuple[str, Any]] = []
         if spec.unit:
-            eu = ua.EUInformation(
-                NamespaceUri=UNECE_URI,
-                UnitId=unece_unit_id(spec.unit),
-                DisplayName=ua.LocalizedText(spec.unit),
-                Description=ua.LocalizedText(UNECE.get(spec.unit, ("", spec.unit))[1]),
-            )
-            props.append(("EngineeringUnits", ua.Variant(eu)))
+            props.append(("EngineeringUnits", ua.Variant(_eu_information(spec.unit))))
         if spec.eu_range is not None:
             props.append(("EURange", ua.Variant(ua.Range(*spec.eu_range))))
         props.append(("AdsAddress", ua.Variant(spec.ads_address, ua.VariantType.String)))
@@ -1814,6 +1799,19 @@ def _build_date() -> dt.datetime:
     """When this copy of geo-server was built or installed: its package's time."""
     stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
+
+
+def _eu_information(unit: str) -> Any:
+    """The EngineeringUnits of a unit: its UN/CEFACT code as UnitId (-1 without one)
+    and its name (OPC 10000-8 §5.6.3; `units.UNECE`)."""
+    ua = _ua()
+
+    return ua.EUInformation(
+        NamespaceUri=UNECE_URI,
+        UnitId=unece_unit_id(unit),
+        DisplayName=ua.LocalizedText(unit),
+        Description=ua.LocalizedText(UNECE.get(unit, ("", unit))[1]),
+    )
 
 
 def _node_id_value(node_id: Any, attr: Any) -> Any:

@@ -486,8 +486,7 @@ class OpcUaInterface:
             self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
             self.mt_ns = await server.get_namespace_index(machinetool.MACHINE_TOOL_URI)
             self.machinery_ns = await server.get_namespace_index(machinetool.MACHINERY_URI)
-        for machine, service in self.services.items():
-            await self._build(machine, service)
+        await self._build_all()
         if opts.companion_models and len(self.services) == 1:  # (a fleet's: below each)
             await self._link_cnc_from_objects(next(iter(self.services)))
 
@@ -520,31 +519,50 @@ class OpcUaInterface:
 
     # ------------------------------------------------------------------ address space
 
-    async def _build(self, machine: str, service: ObjectService) -> None:
-        """The machine's object, its folders, variables (`space.machine_variables`) with
-        their properties and its methods, made off the loop (nothing serves them yet):
-        the first machine of a shape (its axes, their kinds, its dictionary) with
-        asyncua's AddNodes (about 0.1 s), every other one of that shape as a copy of
-        it (`_copy_nodes`, a few ms: a fleet of 500 is ready in seconds, not minutes)."""
-        info = service.info  # (its configuration: no catch-up of its cycles, no snapshot)
-        params = {axis: info.config.axes[axis].params for axis in info.axes}
-        names = {axis: p.name for axis, p in params.items()}
-        kinds = {axis: ACHS_TYP[p.kind] for axis, p in params.items()}
-        shape = (tuple(names.items()), tuple(kinds.items()), service.info.dictionary)
-        template = next((m for s, m in self._shapes if s == shape), None)
-        if template is None:
-            await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
-            if self.options.companion_models:
-                specs = machine_variables(machine, shape[2], names, kinds)
-                await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
-                await _off_loop(lambda: self._add_machine_tool(machine))
-            self._shapes.append((shape, machine))
-        else:
-            await asyncio.to_thread(self._copy_nodes, template, machine)
-        self._serve(machine, service, machine_variables(machine, shape[2], names, kinds))
+    async def _build_all(self) -> None:
+        """Every machine's object, its folders, variables (`space.machine_variables`)
+        with their properties, its methods and companion models, made off the loop
+        (nothing serves them yet): the first machine of a shape (its axes, their kinds,
+        its dictionary) with asyncua's AddNodes (0.1-0.2 s), every other one of that
+        shape as a copy of it (`_copy_nodes`), copied and served in batches on a worker
+        (`COPY_BATCH`: one hand-over of the interpreter per batch, not per machine, which
+        in a fleet of hundreds waits for its machines' cycle threads each time)."""
+        batch: list[tuple[str, str, ObjectService]] = []
+        for machine, service in self.services.items():
+            shape = _shape(service)
+            template = next((m for s, m in self._shapes if s == shape), None)
+            if template is None:
+                await self._build_first(machine, service, shape)
+                self._shapes.append((shape, machine))
+                continue
+            batch.append((template, machine, service))
+            if len(batch) >= COPY_BATCH:
+                await asyncio.to_thread(self._copy_batch, batch)
+                batch = []
+        if batch:
+            await asyncio.to_thread(self._copy_batch, batch)
+
+    async def _build_first(self, machine: str, service: ObjectService, shape: Any) -> None:
+        names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
+        await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
+        if self.options.companion_models:
+            specs = machine_variables(machine, dictionary, names, kinds)
+            await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
+            await _off_loop(lambda: self._add_machine_tool(machine))
+        self._serve_all(machine, service, shape)
+
+    def _copy_batch(self, batch: list[tuple[str, str, ObjectService]]) -> None:
+        for template, machine, service in batch:
+            self._copy_nodes(template, machine)
+            self._serve_all(machine, service, _shape(service))
+
+    def _serve_all(self, machine: str, service: ObjectService, shape: Any) -> None:
+        """Serve a machine's variables, methods and companion models."""
+        names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
+        self._serve(machine, service, machine_variables(machine, dictionary, names, kinds))
         if self.options.companion_models:
             axes = {axis: (names[axis], kinds[axis]) for axis in names}
-            live = cnc.live_variables(shape[2], axes) + machinetool.live_variables(shape[2])
+            live = cnc.live_variables(dictionary, axes) + machinetool.live_variables(dictionary)
             self._serve_models(machine, service, live)
 
     def _add_nodes(
@@ -1799,6 +1817,21 @@ def _build_date() -> dt.datetime:
     """When this copy of geo-server was built or installed: its package's time."""
     stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
+
+
+#: machines copied and served in one turn of a worker thread (`_build_all`)
+COPY_BATCH = 50
+
+
+def _shape(service: ObjectService) -> tuple[Any, ...]:
+    """What a machine's nodes depend on: (axis number, name) and (axis number, kind)
+    pairs in order, and its dictionary; from its configuration (no catch-up of its
+    cycles, no snapshot)."""
+    info = service.info
+    params = {axis: info.config.axes[axis].params for axis in info.axes}
+    names = tuple((axis, p.name) for axis, p in params.items())
+    kinds = tuple((axis, ACHS_TYP[p.kind]) for axis, p in params.items())
+    return names, kinds, info.dictionary
 
 
 def _eu_information(unit: str) -> Any:

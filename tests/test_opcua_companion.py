@@ -405,3 +405,43 @@ def test_the_models_are_read_only_and_each_machine_has_its_own(default_cfg: Any)
     command = round(got["parts"][1] * 10_000)  # (increments)
     assert 0 < command < 100_000 and got["parts"][2] == (100_000 - command) / 10_000
     assert asyncio.run(scenario(read_only=True))["status"] == "BadUserAccessDenied"
+
+
+@pytest.mark.slow
+def test_the_machines_messages_are_events_of_its_machine_tool(service: ObjectService) -> None:
+    """OPC 40501 Notification/Messages: a warning or error of the machine's list is a
+    NotificationEventType event there, with its text, a Severity (error 700, warning 400)
+    and the manual's error ID as Identifier."""
+
+    class Events:
+        def __init__(self) -> None:
+            self.got: list[Any] = []
+            self.arrived = asyncio.Event()
+
+        def event_notification(self, event: Any) -> None:
+            self.got.append(event)
+            self.arrived.set()
+
+    async def scenario() -> list[Any]:
+        iface = OpcUaInterface({"local": service}, OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0"))
+        await iface.start()
+        try:
+            async with Client(iface.endpoint, timeout=10) as c:
+                ns = await c.get_namespace_index(GEO_NS)
+                mt = await c.get_namespace_index(MACHINE_TOOL)
+                messages = c.get_node(ua.NodeId("local/MachineTool.Notification.Messages", ns))
+                handler = Events()
+                sub = await c.create_subscription(10, handler)
+                await sub.subscribe_events(messages, c.get_node(ua.NodeId(35, mt)))
+                service.report("cooling water low", severity="warning", error_id=990123)
+                access.step(service, 1)
+                while not handler.got:
+                    handler.arrived.clear()
+                    await handler.arrived.wait()
+                return handler.got
+        finally:
+            await iface.close()
+
+    (event,) = asyncio.run(asyncio.wait_for(scenario(), 30))
+    assert event.Message.Text == "cooling water low"
+    assert (event.Severity, event.Identifier, event.SourceName) == (400, "990123", "local")

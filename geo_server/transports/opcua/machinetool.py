@@ -18,7 +18,12 @@ asyncua cannot load; 1.01.1 is the newest version that loads.
                                                    emulator runs NC text as MDI), else "";
                                                    NumberInList 0; State: Running (1)
                                                    while it runs, else Ended (2)
-        Notification, Equipment                    present, empty (no optional parts)
+        Notification/Messages                      the machine's warnings and errors as
+                                                   NotificationEventType events (Message
+                                                   with file and line, Severity 700 for an
+                                                   error and 400 for a warning, Identifier
+                                                   the manual's error ID)
+        Equipment                                  present, empty (no optional parts)
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server.dictionary import Dictionary, ObjectDef
+from geo_server.events import Event
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua.cnc import Live
 
@@ -42,6 +48,10 @@ NODESETS: tuple[tuple[str, Path], ...] = (
 MACHINERY_URI, MACHINE_TOOL_URI = NODESETS[1][0], NODESETS[3][0]
 #: MachineToolType, and the Machines folder (Machinery), in their namespaces
 MACHINE_TOOL_TYPE, MACHINES_FOLDER = 13, 1001
+#: MessagesType (Notification/Messages) and NotificationEventType (its events)
+MESSAGES_TYPE, NOTIFICATION_EVENT_TYPE = 38, 35
+#: an event's Severity (OPC 10000-5 §6.4.2: 1-1000) by the message's severity
+SEVERITY = {"error": 700, "warning": 400}
 #: the instance's name in its node id (below the machine's)
 INSTANCE = "MachineTool"
 #: MachineOperationModeEnumeration
@@ -81,6 +91,15 @@ def live_variables(dictionary: Dictionary) -> list[Live]:
     ]
 
 
+def notification(event: Event) -> tuple[str, int, str]:
+    """(Message, Severity, Identifier) of the NotificationEventType event of a warning
+    or error of the machine's list (`geo-client errors`): the text with its file and
+    line, and the manual's error ID."""
+    d = event.diagnostic
+    where = f" ({d.file}:{d.line})" if d.file else ""
+    return f"{d.message}{where}", SEVERITY.get(d.severity, 400), str(d.error_id)
+
+
 def _either(flag: ObjectDef, yes: Any, no: Any) -> Callable[[Snapshot], Any]:
     return lambda snap: yes if snap.value(flag, 0) else no
 
@@ -94,8 +113,12 @@ __all__ = [
     "MACHINE_TOOL_TYPE",
     "MACHINE_TOOL_URI",
     "MANUAL",
+    "MESSAGES_TYPE",
     "NODESETS",
+    "NOTIFICATION_EVENT_TYPE",
     "RUNNING",
+    "SEVERITY",
     "identification",
     "live_variables",
+    "notification",
 ]

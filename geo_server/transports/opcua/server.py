@@ -49,6 +49,7 @@ from typing import Any
 
 from geo_server import __version__
 from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.events import Event
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
@@ -364,6 +365,11 @@ class OpcUaInterface:
         self._anchors: dict[str, list[tuple[Any, str]]] = {}
         #: the NodeId attribute every copied node shares: its value made when read
         self._own_id: Any = None
+        #: each machine's event subscription's end, its events' generator and the
+        #: events being sent (the loop's)
+        self._unwatch: list[Callable[[], None]] = []
+        self._generators: dict[str, Any] = {}
+        self._sending: set[asyncio.Future[None]] = set()
         self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
         #: datachange callback handle -> the rule of its item (`items.py`)
         self._rules: dict[int, ItemRule] = {}
@@ -440,6 +446,9 @@ class OpcUaInterface:
         await guard.start(server, opts.unread_close_s, self.meter)
         assert server.bserver is not None
         self.port = server.bserver.port
+        if opts.companion_models:
+            for machine, service in self.services.items():
+                self._unwatch.append(service.subscribe_events(self._on_event(machine)))
 
     async def _init_and_build(self, server: Any) -> None:
         """asyncua's standard address space (filled in a thread by asyncua), the
@@ -495,6 +504,9 @@ class OpcUaInterface:
             self.starting.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self.starting
+        for unwatch in self._unwatch:
+            unwatch()
+        self._unwatch.clear()
         for release in self._hold.values():
             release()
         self._hold.clear()
@@ -662,6 +674,18 @@ class OpcUaInterface:
             dname=ua.LocalizedText(machine),
             instantiate_optional=False,
         )
+        messages = server.get_node(ua.NodeId(f"{top}.Notification", ns))
+        await instantiate(  # (optional in 40501: where the machine's messages are events)
+            messages,
+            server.get_node(ua.NodeId(machinetool.MESSAGES_TYPE, self.mt_ns)),
+            nodeid=ua.NodeId(f"{top}.Notification.Messages", ns),
+            bname=ua.QualifiedName("Messages", self.mt_ns),
+            dname=ua.LocalizedText("Messages"),
+            instantiate_optional=False,
+        )
+        await server.get_node(ua.NodeId(f"{top}.Notification.Messages", ns)).set_event_notifier(
+            [ua.EventNotifier.SubscribeToEvents]
+        )
         made = self._made_below(top)
         for node_id in made:
             self._set_value(node_id, None)
@@ -779,6 +803,45 @@ class OpcUaInterface:
         await self.server.nodes.objects.add_reference(
             ua.NodeId(f"{machine}/{cnc.INTERFACE}", self.ns), ua.ObjectIds.Organizes
         )
+
+    def _on_event(self, machine: str) -> Callable[[Event], None]:
+        """The machine's warnings and errors, handed from the reporting thread (the
+        cycle's) to the loop, which sends each as an event (`_send_event`)."""
+        loop = self._loop
+        assert loop is not None
+
+        def on_event(event: Event) -> None:
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
+                loop.call_soon_threadsafe(self._post_event, machine, event)
+
+        return on_event
+
+    def _post_event(self, machine: str, event: Event) -> None:
+        task = asyncio.ensure_future(self._send_event(machine, event))
+        self._sending.add(task)
+        task.add_done_callback(self._sending.discard)
+
+    async def _send_event(self, machine: str, event: Event) -> None:
+        """One warning or error as a NotificationEventType event of the machine's
+        MachineTool/Notification/Messages (OPC 40501; `machinetool.notification`)."""
+        ua = _ua()
+
+        generator = self._generators.get(machine)
+        if generator is None:
+            generator = await self.server.get_event_generator(
+                ua.NodeId(machinetool.NOTIFICATION_EVENT_TYPE, self.mt_ns),
+                ua.NodeId(f"{machine}/{machinetool.INSTANCE}.Notification.Messages", self.ns),
+            )
+            self._generators[machine] = generator
+        text, severity, identifier = machinetool.notification(event)
+        generator.event.Severity = severity
+        generator.event.SourceName = machine
+        # (asyncua does not resolve the type of a model's own event field: given here)
+        generator.event.add_property("Identifier", identifier, ua.VariantType.String)
+        try:
+            await generator.trigger(message=text)
+        except Exception:  # (one event, not the others: as a broken monitored item)
+            log.exception("opcua event of %s", machine)
 
     def _copy_nodes(self, template: str, machine: str) -> None:
         """Copy the nodes of `template` (a machine of the same shape) as `machine`'s:

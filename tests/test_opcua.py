@@ -191,6 +191,13 @@ def test_a_fleet_serves_each_machine_under_its_name(default_cfg) -> None:
                     (await n.read_browse_name()).Name for n in await c.nodes.objects.get_children()
                 ]
                 assert tops.count("mill") == tops.count("lathe") == 1
+                machinery = await c.get_namespace_index("http://opcfoundation.org/UA/Machinery/")
+                folder = await c.nodes.objects.get_child(f"{machinery}:Machines")
+                tools = {
+                    (await n.read_browse_name()).Name: n.nodeid.Identifier
+                    for n in await folder.get_children()
+                }
+                assert tools == {"mill": "mill/MachineTool", "lathe": "lathe/MachineTool"}
                 args = await node_of(c, ns, "lathe/RunNc/InputArguments").read_value()
                 assert [a.Name for a in args] == ["text"]
                 cnc_x = "lathe/CncInterface.CncAxisList.X"

@@ -207,8 +207,11 @@ def test_the_rule_of_an_item_by_hand() -> None:
     # with a deadband, StatusValueTimestamp behaves as StatusValue
     banded = rule_for(1, STATUS_VALUE_TIMESTAMP, ABSOLUTE, 1.0, numeric=True, eu_range=None)
     assert isinstance(banded, ItemRule) and banded.trigger == STATUS_VALUE
-    # a NaN or infinite interval, of the item or of its subscription: the fastest
-    assert cycles_of(nan, nan, 1.0) == cycles_of(float("inf"), float("inf"), 1.0) == 1
+    # no interval (NaN) is the fastest, infinity the slowest (an hour); -1 the
+    # subscription's publishing interval, unless that is not a number
+    assert cycles_of(nan, 500.0, 1.0) == cycles_of(-1.0, nan, 1.0) == 1
+    assert cycles_of(float("inf"), 500.0, 1.0) == 3_600_000
+    assert cycles_of(-1.0, 500.0, 1.0) == 500
     last = Sample(0, 1.0, 100)
     assert not rule.notifies(last, Sample(0, 1.9, 101))  # within the deadband
     assert rule.notifies(last, Sample(0, 2.1, 101))
@@ -392,6 +395,10 @@ def test_modify_sampling_mode_and_odd_intervals(service: ObjectService) -> None:
                 await reported.until(3, COUNT)  # (every 5th cycle now)
                 await asyncio.sleep(0.1)
                 assert sampled.changes == []
+                # set to Reporting, it reports the value now (Part 4 §5.12.1.3)
+                await quiet.set_monitoring_mode(ua.MonitoringMode.Reporting)
+                got = await sampled.until(1, COUNT)
+                assert got[0][0] == service.current().cycle
         finally:
             await iface.close()
 

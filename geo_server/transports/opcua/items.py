@@ -114,8 +114,11 @@ def rule_for(
 
 def cycles_of(asked_ms: float, publishing_ms: float, cycle_ms: float) -> int:
     """A sampling interval in whole GEO cycles, at least one (Part 4 §5.13.1.2: 0 is
-    the fastest practical rate, -1 the subscription's publishing interval)."""
-    if asked_ms < 0.0 or not math.isfinite(asked_ms):
+    the fastest practical rate, -1 the subscription's publishing interval); NaN is the
+    fastest, anything above `SLOWEST_MS` (infinity too) the slowest."""
+    if math.isnan(asked_ms):
+        asked_ms = cycle_ms  # (no interval: the fastest; infinity is the slowest)
+    elif asked_ms < 0.0:
         asked_ms = publishing_ms if math.isfinite(publishing_ms) else cycle_ms
     return max(1, round(min(max(asked_ms, cycle_ms), SLOWEST_MS) / cycle_ms))
 

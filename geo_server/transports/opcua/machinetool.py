@@ -11,7 +11,7 @@ asyncua cannot load; 1.01.1 is the newest version that loads.
                                                    `<m>/MachineTool`)
         Identification                             Manufacturer "geo-server", SerialNumber
                                                    the machine's name, ProductInstanceUri
-                                                   urn:geo-server:<m>
+                                                   urn:geo-server:<host>:<m>
         Monitoring/MachineTool/OperationMode       Automatic (1) while an NC program runs,
                                                    else Manual (0)
         Production/ActiveProgram                   Name "MDI" while NC text runs (the
@@ -63,12 +63,13 @@ MANUFACTURER = "geo-server"
 MDI = "MDI"
 
 
-def identification(machine: str) -> dict[str, Any]:
-    """The Identification values of a machine (its name is its serial number)."""
+def identification(machine: str, host: str) -> dict[str, Any]:
+    """The Identification values of a machine on `host` (its name is its serial
+    number; its URI names the host too, to be unique beyond it: OPC 10000-100)."""
     return {
         "Manufacturer": MANUFACTURER,
         "SerialNumber": machine,
-        "ProductInstanceUri": f"urn:geo-server:{machine}",
+        "ProductInstanceUri": f"urn:geo-server:{host}:{machine}",
     }
 
 

@@ -365,6 +365,7 @@ class OpcUaInterface:
         self._anchors: dict[str, list[tuple[Any, str]]] = {}
         #: the NodeId attribute every copied node shares: its value made when read
         self._own_id: Any = None
+        self._closing = False  # (read by a build worker between machines)
         #: each machine's event subscription's end, its events' generator and the
         #: events being sent (the loop's)
         self._unwatch: list[Callable[[], None]] = []
@@ -500,6 +501,7 @@ class OpcUaInterface:
             await self._link_cnc_from_objects(next(iter(self.services)))
 
     async def close(self) -> None:
+        self._closing = True
         if self.starting is not None and not self.starting.done():
             self.starting.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -539,7 +541,7 @@ class OpcUaInterface:
         shape as a copy of it (`_copy_nodes`), copied and served in batches on a worker
         (`COPY_BATCH`: one hand-over of the interpreter per batch, not per machine, which
         in a fleet of hundreds waits for its machines' cycle threads each time)."""
-        batch: list[tuple[str, str, ObjectService]] = []
+        batch: list[tuple[str, str, ObjectService, Any]] = []
         for machine, service in self.services.items():
             shape = _shape(service)
             template = next((m for s, m in self._shapes if s == shape), None)
@@ -547,7 +549,7 @@ class OpcUaInterface:
                 await self._build_first(machine, service, shape)
                 self._shapes.append((shape, machine))
                 continue
-            batch.append((template, machine, service))
+            batch.append((template, machine, service, shape))
             if len(batch) >= COPY_BATCH:
                 await asyncio.to_thread(self._copy_batch, batch)
                 batch = []
@@ -563,10 +565,14 @@ class OpcUaInterface:
             await _off_loop(lambda: self._add_machine_tool(machine))
         self._serve_all(machine, service, shape)
 
-    def _copy_batch(self, batch: list[tuple[str, str, ObjectService]]) -> None:
-        for template, machine, service in batch:
+    def _copy_batch(self, batch: list[tuple[str, str, ObjectService, Any]]) -> None:
+        """Copy and serve machines (each with the shape its template was chosen by: a
+        reload meanwhile changes its configuration, not this build)."""
+        for template, machine, service, shape in batch:
+            if self._closing:  # (closed meanwhile: the worker is not cancelled with it)
+                return
             self._copy_nodes(template, machine)
-            self._serve_all(machine, service, _shape(service))
+            self._serve_all(machine, service, shape)
 
     def _serve_all(self, machine: str, service: ObjectService, shape: Any) -> None:
         """Serve a machine's variables, methods and companion models."""
@@ -780,7 +786,7 @@ class OpcUaInterface:
         channel = ua.NodeId(f"{top}.{cnc.CHANNEL_LIST}.{cnc.CHANNEL}", ns)
         own = {
             f"{machine}/{machinetool.INSTANCE}.Identification.{name}": text
-            for name, text in machinetool.identification(machine).items()
+            for name, text in machinetool.identification(machine, socket.gethostname()).items()
         }
         for node_id in self._subtrees[machine]:
             ident = node_id.Identifier
@@ -884,12 +890,12 @@ class OpcUaInterface:
             ]
             nodes[new_id] = node
             copied.append(new_id)
-        # the folders out of the machine that hold it (Objects, Machines)
+        # the nodes out of the machine that refer to it (Objects, Machines)
         for outside, suffix in self._anchors[template]:
             held = ua.NodeId(template + suffix, ns)
-            up = next(r for r in nodes[outside].references if r.NodeId == held and r.IsForward)
-            named_here = named if suffix in _NAMED else None
-            nodes[outside].references.append(_retargeted(up, ids[suffix], named_here))
+            for up in [r for r in nodes[outside].references if r.NodeId == held and r.IsForward]:
+                named_here = named if suffix in _NAMED else None
+                nodes[outside].references.append(_retargeted(up, ids[suffix], named_here))
         self._subtrees[machine] = copied
 
     def _plan(self, template: str) -> list[tuple[str, Any, list[tuple[Any, str | None]]]]:
@@ -914,11 +920,7 @@ class OpcUaInterface:
             refs = [(ref, suffix(ref.NodeId)) for ref in nodes[old_id].references]
             here = suffix(old_id) or ""
             plan.append((here, old_id, refs))
-            anchors += [
-                (ref.NodeId, here)
-                for ref, to in refs
-                if to is None and not ref.IsForward and ref.ReferenceTypeId in _HOLDING()
-            ]
+            anchors += [(ref.NodeId, here) for ref, to in refs if to is None and not ref.IsForward]
         self._plans[template] = plan
         self._anchors[template] = anchors
         return plan
@@ -1215,6 +1217,12 @@ class OpcUaInterface:
             return await self._create_items(params, create)
 
         subs.create_monitored_items = hooked_create
+        set_mode = subs.set_monitoring_mode
+
+        async def hooked_set_mode(params: Any) -> list[Any]:
+            return await self._set_mode(params, set_mode)
+
+        subs.set_monitoring_mode = hooked_set_mode
         modify = subs.modify_monitored_items
 
         def hooked_modify(params: Any) -> list[Any]:
@@ -1429,6 +1437,29 @@ class OpcUaInterface:
             )
         return results
 
+    async def _set_mode(self, params: Any, set_mode: Any) -> list[Any]:
+        """SetMonitoringMode; an item of ours that goes from Sampling to Reporting gets
+        its variable's value now, against the value last notified to it (asyncua does
+        that only coming from Disabled; samples taken meanwhile were not reported)."""
+        ua = _ua()
+
+        sub = self.server.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
+        items = sub.monitored_item_srv._monitored_items if sub is not None else {}
+        was = {mid: items[mid].mode for mid in params.MonitoredItemIds if mid in items}
+        results = await set_mode(params)
+        if sub is None or params.MonitoringMode != ua.MonitoringMode.Reporting:
+            return list(results)
+        for mid, mode in was.items():
+            data = items.get(mid)
+            watched = data.read_value_id if data is not None else None
+            if mode != ua.MonitoringMode.Sampling or watched is None or data is None:
+                continue
+            if watched.NodeId in self._vars and data.callback_handle is not None:
+                await sub.monitored_item_srv.trigger_datachange(
+                    data.callback_handle, watched.NodeId, watched.AttributeId
+                )
+        return list(results)
+
     def _modify_items(self, params: Any, modify: Any) -> list[Any]:
         """ModifyMonitoredItems: an item of our variables gets its new interval and
         filter as at its creation, or keeps both when the new filter is refused."""
@@ -1529,7 +1560,8 @@ class OpcUaInterface:
         if demand is None:
             return
         demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
-        demand.at_rest = any(v.at_rest for v in watched)
+        # (an item notified of every sample's new timestamp needs the cycles at rest too)
+        demand.at_rest = any(v.at_rest or v.stamped for v in watched)
 
     def _sample(self, machine: str, service: ObjectService) -> Callable[[], None]:
         """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
@@ -1776,7 +1808,7 @@ def _ranged(dv: Any, text: str) -> Any:
     )
 
 
-#: an index of a NumericRange: ASCII digits, at most a UInt32 (10 digits)
+#: an index of a NumericRange: ASCII digits, at most 10 (a UInt32's length)
 _INDEX = re.compile(r"[0-9]{1,10}")
 
 
@@ -1799,13 +1831,6 @@ def _index_range(text: str) -> list[tuple[int, int]] | None:
 #: the nodes of a machine whose BrowseName is the machine's name: its object, and its
 #: MachineTool in the Machines folder (suffixes of their node ids)
 _NAMED = ("", f"/{machinetool.INSTANCE}")
-
-
-def _HOLDING() -> tuple[Any, ...]:
-    """The references by which a folder out of a machine holds one of its nodes."""
-    ua = _ua()
-
-    return (ua.NodeId(ua.ObjectIds.Organizes), ua.NodeId(ua.ObjectIds.HasComponent))
 
 
 @dataclass(frozen=True)

@@ -336,7 +336,7 @@ def test_wait_lets_a_client_started_first_answer_once_the_server_is_up(
     )
     ports = ["--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--modbus-port", str(mport)]
     ports += ["--ads-port", str(aport), "--ads-udp-port", "0"]
-    ports += ["--opcua-endpoint", f"opc.tcp://127.0.0.1:{oport}"]
+    ports += ["--opcua-endpoint", f"opc.tcp://127.0.0.1:{oport}", "--opcua-no-companions"]
     server = subprocess.Popen(
         [*geo_server_cmd(), "run", "--homed", "--quiet", *ports],
         cwd=tmp_path,

@@ -72,6 +72,7 @@ class Server:
                 f"opc.tcp://127.0.0.1:{self.ports['opcua']}",
                 "--opcua-cert-dir",
                 str(tmp / "opcua"),
+                "--opcua-no-companions",  # (descriptors, not the models: 3 s less)
                 "--status-period",
                 "3600",
             ],

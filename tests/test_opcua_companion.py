@@ -442,6 +442,7 @@ def test_the_machines_messages_are_events_of_its_machine_tool(service: ObjectSer
         finally:
             await iface.close()
 
-    (event,) = asyncio.run(asyncio.wait_for(scenario(), 30))
+    # (the start loads five NodeSets: seconds of CPU, more on a loaded runner)
+    (event,) = asyncio.run(asyncio.wait_for(scenario(), 90))
     assert event.Message.Text == "cooling water low"
     assert (event.Severity, event.Identifier, event.SourceName) == (400, "990123", "local")

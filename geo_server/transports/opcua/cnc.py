@@ -177,9 +177,9 @@ def live_variables(dictionary: Dictionary, axes: Mapping[int, tuple[str, int]]) 
     channel = (INTERFACE, CHANNEL_LIST, CHANNEL)
     out += [
         Live(
-            (*channel, "ActProgramStatus"), "Int32", (program,), _chosen(program, RUNNING, STOPPED)
+            (*channel, "ActProgramStatus"), "Int32", (program,), either(program, RUNNING, STOPPED)
         ),
-        Live((*channel, "ActStatus"), "Int32", (program,), _chosen(program, ACTIVE, RESET)),
+        Live((*channel, "ActStatus"), "Int32", (program,), either(program, ACTIVE, RESET)),
     ]
     for system in ("Bcs", "Wcs"):
         for letter in TCP_AXES:
@@ -240,7 +240,8 @@ def _not(name: str, by: Callable[[str], ObjectDef], axis: int) -> Callable[[Snap
     return lambda snap: not snap.value(obj, axis)
 
 
-def _chosen(flag: ObjectDef, yes: int, no: int) -> Callable[[Snapshot], Any]:
+def either(flag: ObjectDef, yes: Any, no: Any) -> Callable[[Snapshot], Any]:
+    """A value read as `yes` while the machine-wide flag is set, else `no`."""
     return lambda snap: yes if snap.value(flag, 0) else no
 
 
@@ -260,6 +261,7 @@ __all__ = [
     "TCP_AXES",
     "UNITS",
     "Live",
+    "either",
     "live_variables",
     "position_unit",
 ]

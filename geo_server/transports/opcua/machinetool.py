@@ -28,14 +28,12 @@ asyncua cannot load; 1.01.1 is the newest version that loads.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from geo_server.dictionary import Dictionary, ObjectDef
+from geo_server.dictionary import Dictionary
 from geo_server.events import Event
-from geo_server.snapshot import Snapshot
-from geo_server.transports.opcua.cnc import Live
+from geo_server.transports.opcua.cnc import Live, either
 
 FOLDER = Path(__file__).with_name("nodesets")
 #: (namespace URI, NodeSet file), in the order they are loaded
@@ -83,12 +81,12 @@ def live_variables(dictionary: Dictionary) -> list[Live]:
             (INSTANCE, "Monitoring", "MachineTool", "OperationMode"),
             "Int32",
             (running,),
-            _either(running, AUTOMATIC, MANUAL),
+            either(running, AUTOMATIC, MANUAL),
         ),
-        Live((*program, "Name"), "String", (running,), _either(running, MDI, "")),
-        Live(state, "LocalizedText", (running,), _either(running, RUNNING[0], ENDED[0])),
-        Live((*state, "Number"), "UInt32", (running,), _either(running, RUNNING[1], ENDED[1])),
-        Live((*state, "Id"), "NodeId", (running,), _either(running, RUNNING[2], ENDED[2])),
+        Live((*program, "Name"), "String", (running,), either(running, MDI, "")),
+        Live(state, "LocalizedText", (running,), either(running, RUNNING[0], ENDED[0])),
+        Live((*state, "Number"), "UInt32", (running,), either(running, RUNNING[1], ENDED[1])),
+        Live((*state, "Id"), "NodeId", (running,), either(running, RUNNING[2], ENDED[2])),
     ]
 
 
@@ -99,10 +97,6 @@ def notification(event: Event) -> tuple[str, int, str]:
     d = event.diagnostic
     where = f" ({d.file}:{d.line})" if d.file else ""
     return f"{d.message}{where}", SEVERITY.get(d.severity, 400), str(d.error_id)
-
-
-def _either(flag: ObjectDef, yes: Any, no: Any) -> Callable[[Snapshot], Any]:
-    return lambda snap: yes if snap.value(flag, 0) else no
 
 
 __all__ = [

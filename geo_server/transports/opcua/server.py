@@ -1428,14 +1428,9 @@ class OpcUaInterface:
                 if created[k].StatusCode.is_good():
                     self._ruled(var, sub, created[k].MonitoredItemId, rule)
                     created[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
-        results: list[Any] = [None] * len(params.ItemsToCreate)
-        for k, i in enumerate(keep):
-            results[i] = created[k]
-        for i, status in refused.items():
-            results[i] = ua.MonitoredItemCreateResult(
-                StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status))
-            )
-        return results
+        return _merged(
+            len(params.ItemsToCreate), keep, created, refused, ua.MonitoredItemCreateResult
+        )
 
     async def _set_mode(self, params: Any, set_mode: Any) -> list[Any]:
         """SetMonitoringMode; an item of ours that goes from Sampling to Reporting gets
@@ -1499,14 +1494,9 @@ class OpcUaInterface:
             if done[k].StatusCode.is_good():
                 self._ruled(var, sub, params.ItemsToModify[passed[k]].MonitoredItemId, rule)
                 done[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
-        results: list[Any] = [None] * len(params.ItemsToModify)
-        for k, i in enumerate(passed):
-            results[i] = done[k]
-        for i, status in refused.items():
-            results[i] = ua.MonitoredItemModifyResult(
-                StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status))
-            )
-        return results
+        return _merged(
+            len(params.ItemsToModify), passed, done, refused, ua.MonitoredItemModifyResult
+        )
 
     def _rule(self, var: _Var, asked: Any, sub: Any) -> ItemRule | str:
         """The rule of an item of `var` with the MonitoringParameters `asked`, or the
@@ -1941,6 +1931,21 @@ def _node_id_value(node_id: Any, attr: Any) -> Any:
     ua = _ua()
 
     return ua.DataValue(ua.Variant(node_id, ua.VariantType.NodeId))
+
+
+def _merged(
+    count: int, passed: list[int], done: list[Any], refused: dict[int, str], result: Any
+) -> list[Any]:
+    """The results of a request's items in their order: asyncua's for those passed to
+    it, a `result` with the status named in `refused` for the others."""
+    ua = _ua()
+
+    out: list[Any] = [None] * count
+    for k, i in enumerate(passed):
+        out[i] = done[k]
+    for i, status in refused.items():
+        out[i] = result(StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status)))
+    return out
 
 
 def _disabled(request: Any) -> Any:

@@ -1,4 +1,5 @@
-"""The README's examples, run as a user would run them, so they cannot drift.
+"""The README's examples, and those of the docs pages they moved to (`SOURCES`), run as a
+user would run them, so they cannot drift.
 
 - `console` blocks are transcripts: each `$ command` runs in a shell (the installed
   console scripts on PATH) and its output must match the lines after it; `…` in a line
@@ -29,7 +30,21 @@ from pathlib import Path
 import pytest
 from conftest import free_port
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+#: The files whose fenced blocks run here: the README, and every docs page that holds
+#: examples moved out of it (issue 48). Each of their `console`, `python`, `sh` (mbpoll)
+#: and `js` blocks is run with the same checks, wherever it is.
+SOURCES = [
+    README,
+    DOCS / "fleets.md",
+    DOCS / "ads.md",
+    DOCS / "opcua.md",
+    DOCS / "recorder.md",
+    DOCS / "twin.md",
+    DOCS / "volumetric.md",
+]
 BIN = Path(sys.executable).parent
 TIMEOUT = 60.0
 
@@ -39,11 +54,16 @@ class Block:
     lang: str
     text: str
     line: int
+    source: str = "README.md"
+
+    @property
+    def id(self) -> str:
+        return f"{self.source}:line{self.line}"
 
 
-def blocks() -> list[Block]:
+def blocks(path: Path = README) -> list[Block]:
     out: list[Block] = []
-    lines = README.read_text(encoding="utf-8").splitlines()
+    lines = path.read_text(encoding="utf-8").splitlines()
     i = 0
     while i < len(lines):
         m = re.match(r"^```(\w*)\s*$", lines[i])
@@ -54,9 +74,13 @@ def blocks() -> list[Block]:
             while not lines[i].startswith("```"):
                 body.append(lines[i])
                 i += 1
-            out.append(Block(m.group(1), "\n".join(body) + "\n", start + 1))
+            out.append(Block(m.group(1), "\n".join(body) + "\n", start + 1, path.name))
         i += 1
     return out
+
+
+def all_blocks() -> list[Block]:
+    return [b for source in SOURCES for b in blocks(source)]
 
 
 def env() -> dict[str, str]:
@@ -166,12 +190,12 @@ def transcript(text: str) -> list[tuple[str, list[str]]]:
     return steps
 
 
-CONSOLE = [b for b in blocks() if b.lang == "console"]
+CONSOLE = [b for b in all_blocks() if b.lang == "console"]
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("block", CONSOLE, ids=[f"line{b.line}" for b in CONSOLE])
+@pytest.mark.parametrize("block", CONSOLE, ids=[b.id for b in CONSOLE])
 def test_console_transcripts(block: Block, tmp_path: Path) -> None:
     steps = transcript(block.text)
     assert steps, "a console block without commands"
@@ -208,7 +232,7 @@ def test_console_transcripts(block: Block, tmp_path: Path) -> None:
             server.close()
 
 
-PYTHON = [b for b in blocks() if b.lang == "python"]
+PYTHON = [b for b in all_blocks() if b.lang == "python"]
 
 
 @pytest.fixture(scope="module")
@@ -231,7 +255,7 @@ def expected_prints(text: str) -> list[str]:
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("block", PYTHON, ids=[f"line{b.line}" for b in PYTHON])
+@pytest.mark.parametrize("block", PYTHON, ids=[b.id for b in PYTHON])
 def test_python_examples(block: Block, shared_server: Server, tmp_path: Path) -> None:
     if "def test_" in block.text:
         return run_pytest_example(block, tmp_path)
@@ -281,10 +305,10 @@ def run_pytest_example(block: Block, tmp_path: Path) -> None:
     assert "5 passed" in r.stdout, r.stdout
 
 
-SH = [b for b in blocks() if b.lang == "sh" and b.text.startswith("mbpoll")]
+SH = [b for b in all_blocks() if b.lang == "sh" and b.text.startswith("mbpoll")]
 
 
-@pytest.mark.parametrize("block", SH, ids=[f"line{b.line}" for b in SH])
+@pytest.mark.parametrize("block", SH, ids=[b.id for b in SH])
 def test_mbpoll_lines(block: Block, shared_server: Server) -> None:
     if shutil.which("mbpoll") is None:
         pytest.skip("mbpoll is not installed (Debian: apt-get install -y mbpoll)")
@@ -295,7 +319,7 @@ def test_mbpoll_lines(block: Block, shared_server: Server) -> None:
         assert re.search(r"\[264\]:\s+40\b", r.stdout), r.stdout  # TEMPC::actual_offset of X
 
 
-JS = [b for b in blocks() if b.lang == "js"]
+JS = [b for b in all_blocks() if b.lang == "js"]
 NODE = shutil.which("node")
 NODE_DIR = README.parent / "tests" / "node"
 
@@ -307,7 +331,7 @@ NODE_DIR = README.parent / "tests" / "node"
     and (NODE is None or not (NODE_DIR / "node_modules" / "ads-client").is_dir()),
     reason="node or tests/node/node_modules missing (npm ci --prefix tests/node)",
 )
-@pytest.mark.parametrize("block", JS, ids=[f"line{b.line}" for b in JS])
+@pytest.mark.parametrize("block", JS, ids=[b.id for b in JS])
 def test_node_examples(block: Block, tmp_path: Path) -> None:
     """Issue 48 #3: each Node.js snippet as pasted into the file its first line names
     (an ES module), beside the project's Node clients (tests/node, whose node_modules
@@ -337,4 +361,29 @@ def test_node_examples(block: Block, tmp_path: Path) -> None:
 
 
 def test_the_readme_has_examples_of_each_kind() -> None:
-    assert len(CONSOLE) >= 2 and len(PYTHON) >= 4 and SH
+    """The README keeps its own runnable examples (the tour, one per interface); the
+    pages of `SOURCES` hold the rest, Node.js among them."""
+    mine = blocks(README)
+    assert len([b for b in mine if b.lang == "console"]) >= 2
+    assert len([b for b in mine if b.lang == "python"]) >= 4
+    assert [b for b in mine if b.lang == "sh" and b.text.startswith("mbpoll")]
+    assert len(CONSOLE) >= 2 and len(PYTHON) >= 4 and SH and JS
+
+
+def test_every_page_with_examples_is_a_source() -> None:
+    """A docs page of `SOURCES` holds at least one block that runs here (else it need
+    not be listed), and every page whose blocks the README's test would run is listed:
+    a `console` or `python` block with `# →` outside `SOURCES` would go unchecked."""
+    runnable = {"console", "python", "js"}
+    for source in SOURCES[1:]:
+        assert [b for b in blocks(source) if b.lang in runnable], source.name
+    listed = {s.name for s in SOURCES}
+    for page in sorted(DOCS.glob("*.md")):
+        if page.name in listed:
+            continue
+        unlisted = [
+            b.id
+            for b in blocks(page)
+            if b.lang == "console" or (b.lang == "python" and "# → " in b.text)
+        ]
+        assert not unlisted, f"{page.name}: examples the tests would not run: {unlisted}"

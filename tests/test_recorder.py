@@ -426,7 +426,7 @@ def test_cli_record_replay_compare(tmp_path, capsys, monkeypatch):
 @pytest.mark.slow
 def test_the_pytest_plugin_golden_fixture(pytester):
     pytester.makepyfile(
-        # the README's example, as written there
+        # the example of docs/recorder.md, as written there
         """
         def test_warm_ramp(geo_server, geo_golden):
             rec = geo_server.record("TEMPC::actual_offset@X", "TEMPC::offset_0@X")

@@ -446,3 +446,46 @@ def test_the_machines_messages_are_events_of_its_machine_tool(service: ObjectSer
     (event,) = asyncio.run(asyncio.wait_for(scenario(), 90))
     assert event.Message.Text == "cooling water low"
     assert (event.Severity, event.Identifier, event.SourceName) == (400, "990123", "local")
+
+
+def test_a_stop_during_the_models_import_does_not_wait_for_it(
+    service: ObjectService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGTERM while the companion models load (seconds, tens of them on a loaded host:
+    a fleet's CI teardown waited past 10 s, stress check): the server closes and its
+    loop ends without waiting for the import, which goes on alone, in a daemon thread
+    that the process's exit ends. Here the import blocks until the test lets it go."""
+    import threading
+
+    from geo_server.transports.opcua import server as opcua_server
+
+    importing, release = threading.Event(), threading.Event()
+
+    async def blocked_import(server: Any) -> None:
+        importing.set()
+        release.wait()  # (in the import's own thread; the test releases it at the end)
+
+    monkeypatch.setattr(opcua_server, "_import_companions", blocked_import)
+    opts = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=True, background=True)
+
+    async def start_and_close() -> None:
+        iface = OpcUaInterface({"local": service}, opts)
+        await iface.start()
+        await asyncio.to_thread(importing.wait, 30)
+        assert importing.is_set() and iface.starting is not None
+        assert not iface.starting.done()  # (still importing: the stop comes now)
+        await iface.close()
+
+    # the loop's run ends (asyncio.run waits for its default executor's workers): a
+    # thread of the test runs it, so that the old wait would not hang the test
+    ended = threading.Event()
+    runner = threading.Thread(
+        target=lambda: (asyncio.run(start_and_close()), ended.set()), daemon=True
+    )
+    runner.start()
+    try:
+        runner.join(30)  # (the test's patience; the close does not wait for the import)
+        assert ended.is_set(), "the loop waited for the companion models' import"
+    finally:
+        release.set()
+        runner.join(30)

@@ -40,6 +40,7 @@ import math
 import os
 import re
 import socket
+import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterator, Mapping
@@ -1856,10 +1857,35 @@ async def _import_companions(server: Any) -> None:
 
 
 async def _off_loop(work: Callable[[], Awaitable[Any]]) -> Any:
-    """Run asyncua's coroutine `work` on a loop of its own in a worker thread: adding
-    nodes before the server serves touches nothing of this loop, and its seconds of
-    pure Python would hold up every interface on it."""
-    return await asyncio.to_thread(lambda: asyncio.run(_awaited(work)))
+    """Run asyncua's coroutine `work` on a loop of its own in a thread of its own
+    (`opcua-build`): adding nodes before the server serves touches nothing of this
+    loop, and its seconds of pure Python would hold up every interface on it.
+
+    Not the loop's default executor: `asyncio.run` waits for its workers before it
+    returns, so a SIGTERM during the companion models' import (seconds, tens of them on
+    a loaded host) would wait for it. This thread is a daemon; a close cancels the
+    wait for it, and the process ends without waiting (`entry.exit_now`)."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[Any] = loop.create_future()
+
+    def settle(result: Any, exc: BaseException | None) -> None:
+        if done.cancelled():
+            return
+        if exc is not None:
+            done.set_exception(exc)
+        else:
+            done.set_result(result)
+
+    def run() -> None:
+        try:
+            result, exc = asyncio.run(_awaited(work)), None
+        except BaseException as error:  # (handed to the awaiting task)
+            result, exc = None, error
+        with contextlib.suppress(RuntimeError):  # (its loop closed meanwhile)
+            loop.call_soon_threadsafe(settle, result, exc)
+
+    threading.Thread(target=run, name="opcua-build", daemon=True).start()
+    return await done
 
 
 async def _awaited(work: Callable[[], Awaitable[Any]]) -> Any:

@@ -37,7 +37,7 @@ from geo_server.aio import wait_set
 from geo_server.compose import EngineOptions, Interfaces, build_machine
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
-from geo_server.machine.scheduler import switch_interval
+from geo_server.machine.scheduler import Engines, switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 
@@ -81,21 +81,31 @@ def run_fleet(args: argparse.Namespace) -> int:
             print(*(f"{m.name}: {line}" for line in exc.report()), sep="\n", file=sys.stderr)
             return 2
         configs[m.startup] = cfg
-        built = build_machine(cfg, EngineOptions.from_args(args))  # cycles on threads
+        built = build_machine(cfg, EngineOptions.from_args(args))
         service = built.service
         # a folder of recordings per machine: the same name never collides (docs/recorder.md §7)
         service.recordings.record_dir = recorder_cli.record_dir(args, m.name, cfg.startup_path)
         if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
             return 2
         served.append(Served(m, service, built.scheduler))
+    shares = all(s.scheduler.exact for s in served)  # (`Engines`: one thread for all)
     print(
         f"geo-server {__version__}: a fleet of {len(served)} machines "
         f"({', '.join(s.member.name for s in served[:5])}{', …' if len(served) > 5 else ''}), "
-        f"cycle {args.cycle_ms:g} ms ({args.mode}, {args.engine} engine, cycles on threads); "
+        f"cycle {args.cycle_ms:g} ms ({args.mode}, {args.engine} engine, cycles on "
+        f"{'one thread' if shares else 'a thread per machine'}); "
         "Ctrl-C stops",
         flush=True,
     )
-    code = serve(_serve(args, served), lambda: [s.scheduler.stop() for s in served])
+    # the exact engines of every machine on one thread (started with the cycles, below)
+    engines = Engines()
+
+    def stop_cycles() -> None:
+        for s in served:
+            s.scheduler.stop()
+        engines.stop()
+
+    code = serve(_serve(args, served, engines), stop_cycles)
     if code == 0:
         print(f"stopped: {len(served)} machines")
     return code
@@ -178,7 +188,7 @@ async def _watch_lag(worst: list[float]) -> None:
         worst[0] = max(worst[0], (loop.time() - t - LAG_TICK) * 1000)
 
 
-async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
+async def _serve(args: argparse.Namespace, served: list[Served], engines: Engines) -> None:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -197,9 +207,11 @@ async def _serve(args: argparse.Namespace, served: list[Served]) -> None:
         await _load_compiled()
         # many engine threads hand the GIL over more slowly (docs/design.md §13.1); set
         # here, the fleet process's composition root
-        sys.setswitchinterval(switch_interval(len(served)))
+        shared = sum(s.scheduler.exact for s in served)
+        sys.setswitchinterval(switch_interval(len(served) - shared + min(shared, 1)))
+        engines.start()
         for s in served:
-            s.scheduler.start()
+            s.scheduler.start(engines)  # (a punctual or free one: a thread of its own)
         lag = [0.0]
         watch = asyncio.ensure_future(_watch_lag(lag))
         interfaces.closes("the loop lag watch", lambda: _cancel(watch))

@@ -29,6 +29,7 @@ at the same cycle numbers.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import threading
 import time
@@ -262,6 +263,9 @@ class Scheduler:
         self._summary: tuple[tuple[int, int], dict[str, float]] = ((0, -1), {})
         self._punctual = 0
         self._here = False  # the exact loop runs in the caller's thread (`run_here`)
+        #: the one thread a fleet's exact engines share (`Engines`), instead of a thread
+        #: of this scheduler's own
+        self._shared: Engines | None = None
         # an injected overrun (geo_server/faults.py): after cycle `_next_overrun` the
         # time line slips by `_overrun_cycles` periods, every `_overrun_every` cycles
         self._next_overrun = _NEVER
@@ -301,7 +305,7 @@ class Scheduler:
                 self._overrun_cycles, self._overrun_every = cycles, every
                 self._on_overrun = on_overrun
                 self._next_overrun = self.machine.cycle + every
-        self._wake.set()
+        self._poke()
 
     def _give_back(self, periods: int) -> None:
         """An overrun cut short: `periods` of its slip were not lost after all."""
@@ -353,15 +357,27 @@ class Scheduler:
 
     # ------------------------------------------------------------------ control
 
-    def start(self) -> None:
-        """Start the cycle thread (free / realtime); nothing to do when stepped."""
-        if self.mode == "stepped" or self._thread is not None:
+    def start(self, shared: Engines | None = None) -> None:
+        """Start the cycle thread (free / realtime); nothing to do when stepped. With
+        `shared` (the exact engine), join that thread instead of starting one."""
+        if self.mode == "stepped" or self._thread is not None or self._shared is not None:
             return
         self._stop.clear()
         if self.mode == "realtime":
             self._begin_timeline()  # before any request can sync against it
+        if shared is not None and self._exact:
+            self._shared = shared
+            shared.add(self)
+            return
         self._thread = threading.Thread(target=self._loop(), name="geo-cycle", daemon=True)
         self._thread.start()
+
+    def _poke(self) -> None:
+        """Make the engine look again now (its plans changed: an operation queued, an
+        observer came or went, an overrun armed)."""
+        self._wake.set()
+        if self._shared is not None:
+            self._shared.poke(self)
 
     def run_here(self) -> None:
         """Run the free / real-time loop in the calling thread until `stop()` or
@@ -384,11 +400,11 @@ class Scheduler:
     def request_stop(self) -> None:
         """Ask the loop to end after its current cycle (from any thread; no waiting)."""
         self._stop.set()
-        self._wake.set()
+        self._poke()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
-        self._wake.set()
+        self._poke()
         self._overrun_cut.set()  # a punctual engine waiting out an overrun stops too
         if self._thread is not None:
             self._thread.join(timeout)
@@ -396,6 +412,8 @@ class Scheduler:
 
     @property
     def running(self) -> bool:
+        if self._shared is not None:
+            return self._shared.runs(self)
         return self._thread is not None and self._thread.is_alive()
 
     def step(self, n: int = 1) -> None:
@@ -445,7 +463,9 @@ class Scheduler:
         nothing to do (True)."""
         # (started, not `running`: a thread's liveness costs more than the rest of the
         # fast path; an engine thread that died is caught up by its observers instead)
-        if not self._exact or not (self._thread is not None or self._here):
+        if not self._exact or not (
+            self._thread is not None or self._here or self._shared is not None
+        ):
             return True
         t0 = time.perf_counter_ns()
         now = self._observed_at = self._clock()
@@ -495,7 +515,7 @@ class Scheduler:
             pending = self.machine.submit(op)
         finally:
             self._engine_lock.release()
-        self._wake.set()
+        self._poke()
         return pending
 
     def demand_every_cycle(self) -> Callable[[], None]:
@@ -527,7 +547,7 @@ class Scheduler:
             with self._every_lock:
                 self._demands = tuple(d for d in self._demands if d is not demand)
 
-        self._wake.set()
+        self._poke()
         return release
 
     def _next_demanded(self, cycle: int, quiescent: bool) -> int | None:
@@ -714,30 +734,46 @@ class Scheduler:
         self._here = threading.current_thread() is not self._thread
         try:
             while not self._stop.is_set() and not self._done():
-                self.wakes += 1
-                # A wake-up nobody asked for publishes nothing (whoever looks syncs; the
-                # stall watch reads the heartbeat), but in the cycle process: its server
-                # has no machine to sync, only the frames it is sent. Behind by more
-                # than a batch (the host was busy), the engine catches up a batch at a
-                # time and lets go of the lock in between, so a request never waits
-                # for more than one batch before it catches up to its own cycle.
-                m = self.machine
-                with self._engine_lock:
-                    target = self._reachable(self.due())
-                while True:
-                    with self._engine_lock:
-                        target = min(target, self.due())  # an overrun slipped the time line
-                        before = m.cycle
-                        step = target if m.quiescent else min(target, m.cycle + self.batch)
-                        self.advance(step, publish=self.waiter is not None and step == target)
-                        if m.cycle >= target or m.cycle == before or self._stop.is_set():
-                            wake = self._next_wake(clock())
-                            break
+                wake = self.run_pass(blocking=True)
                 delay = (wake - clock()) / 1e9
                 if delay > 0:
                     self._wait(delay)
         finally:
             self._here = False
+
+    def run_pass(self, blocking: bool) -> int:
+        """One wake-up of the exact engine: catch up to the cycle due (a batch at a time
+        while the machine moves); returns when it must look again (monotonic ns).
+
+        A wake-up nobody asked for publishes nothing (whoever looks syncs; the stall
+        watch reads the heartbeat), but in the cycle process: its server has no machine
+        to sync, only the frames it is sent. Behind by more than a batch (the host was
+        busy), the engine catches up a batch at a time and lets go of the lock in
+        between, so a request never waits for more than one batch before it catches up
+        to its own cycle. Not `blocking` (a thread shared with other machines: `Engines`),
+        a machine whose lock a request holds is left to that request and looked at again
+        a period later: one machine's catch-up never holds up the others'."""
+        clock = self._clock
+        self.wakes += 1
+        m = self.machine
+        if not self._engine_lock.acquire(blocking=blocking):
+            return clock() + self.period_ns
+        try:
+            target = self._reachable(self.due())
+        finally:
+            self._engine_lock.release()
+        while True:
+            if not self._engine_lock.acquire(blocking=blocking):
+                return clock() + self.period_ns
+            try:
+                target = min(target, self.due())  # an overrun slipped the time line
+                before = m.cycle
+                step = target if m.quiescent else min(target, m.cycle + self.batch)
+                self.advance(step, publish=self.waiter is not None and step == target)
+                if m.cycle >= target or m.cycle == before or self._stop.is_set():
+                    return self._next_wake(clock())
+            finally:
+                self._engine_lock.release()
 
     def _wait(self, seconds: float) -> None:
         if self.waiter is not None:
@@ -867,3 +903,97 @@ class Scheduler:
             "axes": list(m.axes),
             **self._cached_summary(),
         }
+
+
+class Engines:
+    """One thread, `geo-cycles`, for the exact engines of many machines (a fleet): a
+    fleet of 500 machines has one cycle thread, not 500 (docs/design.md §5.10).
+
+    Each machine's engine is woken at the time its own pass asked for (`run_pass`), the
+    earliest first; a machine whose plans change (`Scheduler._poke`: an operation
+    queued, an observer added) is looked at at once. A pass never waits for a machine
+    whose lock a request holds (that request is catching it up), so one machine's long
+    catch-up does not hold up the others. A pass that raises takes only its own machine
+    out (logged; its `running` turns False, as a dead thread's did); the others go on.
+    Only the composition root makes one, and starts and stops it, once."""
+
+    def __init__(self, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._members: set[Scheduler] = set()  # (guarded by `_lock`)
+        self._poked: list[Scheduler] = []  # looked at next, at once (guarded by `_lock`)
+        self._event = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def add(self, scheduler: Scheduler) -> None:
+        with self._lock:
+            self._members.add(scheduler)
+            self._poked.append(scheduler)
+        self._event.set()
+
+    def poke(self, scheduler: Scheduler) -> None:
+        """Look at `scheduler` at once (from any thread)."""
+        with self._lock:
+            self._poked.append(scheduler)
+        self._event.set()
+
+    def runs(self, scheduler: Scheduler) -> bool:
+        """`scheduler` is served by a live thread (False once it failed or stopped)."""
+        thread = self._thread
+        return thread is not None and thread.is_alive() and scheduler in self._members
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name="geo-cycles", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        self._event.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _leave(self, scheduler: Scheduler) -> None:
+        with self._lock:
+            self._members.discard(scheduler)
+
+    def _run(self) -> None:
+        clock = self._clock
+        heap: list[tuple[int, int, Scheduler]] = []
+        planned: dict[Scheduler, int] = {}  # each member's wake-up (older heap entries: stale)
+        order = 0  # (ties on the heap go first come, first served)
+        while not self._stop.is_set():
+            with self._lock:
+                poked, self._poked = self._poked, []
+                self._event.clear()
+                members = set(self._members)
+            now = clock()
+            for s in poked:
+                if s in members and planned.get(s) != now:
+                    planned[s] = now
+                    order += 1
+                    heapq.heappush(heap, (now, order, s))
+            while heap and heap[0][0] <= now and not self._stop.is_set():
+                wake, _, s = heapq.heappop(heap)
+                if planned.get(s) != wake:
+                    continue  # re-planned since (poked)
+                if s not in members or s._stop.is_set() or s._done():
+                    planned.pop(s, None)
+                    self._leave(s)
+                    continue
+                try:
+                    nxt = s.run_pass(blocking=False)
+                except Exception:
+                    log.exception("the GEO cycle of a machine failed; its engine stops")
+                    planned.pop(s, None)
+                    self._leave(s)
+                    continue
+                planned[s] = nxt
+                order += 1
+                heapq.heappush(heap, (nxt, order, s))
+                now = clock()
+            delay = (heap[0][0] - clock()) / 1e9 if heap else IDLE_WAKE
+            if delay > 0:
+                self._event.wait(delay)

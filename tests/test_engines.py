@@ -1,0 +1,102 @@
+"""One cycle thread for a fleet (issue 43 #1, docs/design.md §5.10 *Threads*): the exact
+engines of many machines run on the one `geo-cycles` thread of `Engines`, a write to
+any machine is applied in its next cycle as with a thread of its own, a machine whose
+lock a request holds does not hold up the others, and a machine whose cycle raises
+stops alone."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from geo_server import access
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Engines, Scheduler
+from geo_server.paths import default_startup_list
+from geo_server.service import ObjectService
+
+pytestmark = pytest.mark.realtime
+
+#: the longest a write waits for its cycle here: a bound of the test's patience, never
+#: an assertion about time (the write is applied in the next cycle, 1 ms)
+APPLIED_S = 10.0
+MACHINES = 3
+
+
+@pytest.fixture
+def fleet() -> Iterator[tuple[Engines, list[ObjectService]]]:
+    cfg = load_machine(default_startup_list())
+    engines = Engines()
+    services = []
+    for _ in range(MACHINES):
+        machine = Machine(cfg, cycle_s=0.001, homed=True)
+        scheduler = Scheduler(machine, mode="realtime", engine="exact")
+        services.append(ObjectService(machine, scheduler))
+    engines.start()
+    for service in services:
+        service.scheduler.start(engines)
+    try:
+        yield engines, services
+    finally:
+        for service in services:
+            service.scheduler.stop()
+        engines.stop()
+
+
+def write_coefficient(service: ObjectService, value: float) -> float:
+    """TEMPC::coefficient of X written (applied in the machine's next cycle), then read."""
+    access.write_name(service, "TEMPC::coefficient", 1, value).result(timeout=APPLIED_S)
+    return float(access.read_name(service, "TEMPC::coefficient", 1))
+
+
+def cycle_threads() -> list[str]:
+    return sorted(t.name for t in threading.enumerate() if t.name.startswith("geo-cycle"))
+
+
+def test_a_fleet_runs_on_one_thread_and_every_machine_applies_its_writes(fleet) -> None:
+    _, services = fleet
+    assert cycle_threads() == ["geo-cycles"]
+    for i, service in enumerate(services):
+        assert service.scheduler.running
+        assert write_coefficient(service, 4100.0 + i) == 4100.0 + i
+    # every machine's time goes on: its cycle counter follows the wall clock
+    before = [int(access.read_name(s, "SIM::cycle_count", 0)) for s in services]
+    assert write_coefficient(services[0], 4200.0) == 4200.0
+    after = [int(access.read_name(s, "SIM::cycle_count", 0)) for s in services]
+    assert all(b > a for a, b in zip(before, after, strict=True)), (before, after)
+
+
+def test_a_machine_held_by_a_request_does_not_hold_up_the_others(fleet) -> None:
+    """Machine 0's engine lock held (a request's long catch-up): the shared thread skips
+    it and machines 1 and 2 still apply their writes."""
+    _, services = fleet
+    held = services[0].scheduler._engine_lock
+    held.acquire()
+    try:
+        assert write_coefficient(services[1], 4321.0) == 4321.0
+        assert write_coefficient(services[2], 4322.0) == 4322.0
+    finally:
+        held.release()
+    assert write_coefficient(services[0], 4323.0) == 4323.0
+
+
+def test_a_machine_whose_cycle_raises_stops_alone(fleet, monkeypatch, caplog) -> None:
+    _, services = fleet
+    broken = services[1].scheduler
+
+    def fail(blocking: bool) -> int:
+        raise RuntimeError("a broken cycle")
+
+    monkeypatch.setattr(broken, "run_pass", fail)
+    broken._poke()  # (looked at at once)
+    for _ in range(1000):  # the thread takes it out at its next pass
+        if not broken.running:
+            break
+        threading.Event().wait(0.01)
+    assert not broken.running
+    assert "the GEO cycle of a machine failed" in caplog.text
+    assert services[0].scheduler.running and services[2].scheduler.running
+    assert write_coefficient(services[2], 4400.0) == 4400.0

@@ -362,6 +362,30 @@ def test_no_move_holds_the_drive_until_the_axis_moves(lists_copy: Path) -> None:
     assert value(m, "SIM::output_position", 1) == before
 
 
+def test_a_second_hold_keeps_the_first_ones_ramp(lists_copy: Path) -> None:
+    """Two compensations, each −20 increments on X at x = 100 mm (EXX = 2e-5·x), the
+    first with filter_steps 4, the second with 2, both switched on with NO_MOVE: the
+    drive keeps what it got when the first held it (VOLC::held +40) and, from the first
+    moving cycle, ramps the 40 out over the first hold's 4 cycles (30, 20, 10, 0): an
+    axis already held keeps what it holds, its ramp included."""
+    folder = lists_copy.parent
+    add_volc(lists_copy, smooth_files(folder), {})
+    second = smooth_files(folder).replace("filter_steps 4", "filter_steps 2")
+    (folder / "volc1.lis").write_text(second, encoding="utf-8")
+    with lists_copy.open("a", encoding="utf-8") as fh:
+        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
+    m.motion.set_position(0, 100 * 10_000)
+    for _ in range(30):
+        m.run_cycle()
+    m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n#VOLCOMP ON [ID1 NO_MOVE]\n", mdi=True)
+    for _ in range(5):
+        m.run_cycle()
+    assert value(m, "VOLC::held", 1) == 40
+    before_motion, from_motion = held_around_a_move(m, "G91 G01 X-0.01 F60", 8)
+    assert set(before_motion) <= {40} and from_motion[:4] == [30, 20, 10, 0]
+
+
 def test_s_limit_missing_refuses_activation(lists_copy: Path) -> None:
     add_volc(lists_copy, smooth_files(lists_copy.parent), {}, s_limit=None)
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)

@@ -101,12 +101,14 @@ def _ramp(S: np.ndarray, c: int) -> None:
 def hold(X: np.ndarray, slot: int, mode: float, steps: float, now: float) -> None:
     """Hold `now`, what the drive of `slot` gets now (`HELD`: until the axis moves;
     `RELEASE`: ramped out from the next step on) over `steps` cycles: a switch without
-    movement. An axis already held keeps what it holds."""
+    movement. An axis already held keeps what it holds and the ramp it holds it with
+    (a second switch without movement changes neither); a release ramps out over the
+    releasing switch's `steps`."""
     if X[MODE, slot] != HELD:
         X[KEEP, slot] = now
     if X[MODE, slot] != HELD or mode == RELEASE:
         X[MODE, slot] = mode
-    X[STEPS, slot] = max(steps, 1.0)
+        X[STEPS, slot] = max(steps, 1.0)
 
 
 @compiled

@@ -35,6 +35,7 @@ law's compiled copy sees the machine code of every law in its globals (`_compile
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -154,11 +155,18 @@ def on_load(warm_up: Callable[[], None]) -> None:
         warm_up()
 
 
+#: written into the cache folder once a `load` there has made every law's machine code
+#: and run the warm-ups: the cache is whole (a compile cut short leaves some laws'
+#: files and not this one)
+WHOLE = "whole"
+
+
 def cache_is_warm() -> bool:
-    """The cache holds machine code of these laws already: `load` reads it instead of
-    compiling (what a slow start is then waiting for: issue 45 #17)."""
+    """The cache holds the machine code of every law the warm-ups call: `load` reads it
+    instead of compiling (what a slow start is then waiting for: issue 45 #17). A cache
+    with only some laws' files (a compile cut short) is not warm."""
     folder = cache_dir()
-    return folder is not None and any(folder.glob("*.nbi"))
+    return folder is not None and (folder / WHOLE).is_file()
 
 
 def loaded() -> bool:
@@ -200,9 +208,19 @@ def load() -> None:
                 _compile()
                 for warm_up in _warm_ups:
                     warm_up()
+                _mark_whole()
         finally:
             _busy = False
         _loaded.set()
+
+
+def _mark_whole() -> None:
+    """`WHOLE` in the cache folder, after a `load` that made every law (nothing when
+    there is no folder, or it cannot be written: the next start compiles again)."""
+    folder = cache_dir()
+    if folder is not None and _warm_ups:
+        with contextlib.suppress(OSError):
+            (folder / WHOLE).touch()
 
 
 def _compile() -> None:

@@ -103,6 +103,30 @@ def test_a_copy_of_the_same_code_elsewhere_loads_the_machine_code_compiled_once(
     assert sorted(p.name for p in folder.iterdir()) == before
 
 
+@pytest.mark.slow
+def test_a_cache_cut_short_is_not_warm_until_a_load_made_every_law(tmp_path: Path) -> None:
+    """A compile cut short leaves some laws' files (here: all but `interp`'s) and no
+    mark: not warm (a fleet says "compiling", not "loading"); the next full load makes
+    the missing law and marks the cache whole."""
+    cache = tmp_path / "cache"
+    folder = _seed(cache, without="interp")
+    (folder / jit.WHOLE).unlink(missing_ok=True)
+    assert any(folder.glob("*.nbi"))
+    env = {k: v for k, v in os.environ.items() if k != "GEO_SERVER_JIT_CACHE"}
+    env |= {"PYTHONPATH": str(ROOT), "GEO_SERVER_JIT_CACHE": str(cache)}
+    code = (
+        "import geo_server.machine.machine\nfrom geo_server import jit\n"
+        "print(jit.cache_is_warm()); jit.load(); print(jit.cache_is_warm())"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
+        text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "True"]
+    assert (folder / jit.WHOLE).is_file()
+
+
 def test_an_edited_law_is_never_served_from_the_cache(tmp_path: Path) -> None:
     """The key is the content: one byte more in a compiled module is another folder."""
     tree = tmp_path / "tree"

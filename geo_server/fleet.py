@@ -3,8 +3,9 @@
     geo-server run --fleet fleet.toml          # machines named in a fleet file
     geo-server run --fleet-size 50 --homed     # 50 copies of one start-up list
 
-Each machine has its own name, start-up list, GEO cycle (the exact engine on a thread of
-its own: a machine at rest costs next to nothing) and object service. The interfaces:
+Each machine has its own name, start-up list, GEO cycle and object service; the exact
+engines of all of them run on one thread (`scheduler.Engines`: a machine at rest costs
+next to nothing). The interfaces:
 
 - **Zenoh**: one session for the whole fleet; machine `m` answers on `cnc/m/**` as a
   single machine does, and `cnc/fleet/status` (published each status period and
@@ -205,7 +206,8 @@ async def _serve(args: argparse.Namespace, served: list[Served], engines: Engine
         # cores the compiler needs (one machine starts interpreted: cli._serve). The
         # interfaces answer meanwhile, with each machine at its cycle 0.
         await _load_compiled()
-        # many engine threads hand the GIL over more slowly (docs/design.md §13.1); set
+        # the switch interval for the cycle threads there are: one for every exact
+        # engine, one more per punctual or free machine (docs/design.md §13.1); set
         # here, the fleet process's composition root
         shared = sum(s.scheduler.exact for s in served)
         sys.setswitchinterval(switch_interval(len(served) - shared + min(shared, 1)))

@@ -14,7 +14,7 @@ import pytest
 from geo_server import access
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
-from geo_server.machine.scheduler import Engines, Scheduler
+from geo_server.machine.scheduler import BATCH, Engines, Scheduler
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
 
@@ -100,3 +100,37 @@ def test_a_machine_whose_cycle_raises_stops_alone(fleet, monkeypatch, caplog) ->
     assert "the GEO cycle of a machine failed" in caplog.text
     assert services[0].scheduler.running and services[2].scheduler.running
     assert write_coefficient(services[2], 4400.0) == 4400.0
+
+
+def test_a_machine_whose_cycles_fail_is_not_looked_at_again_at_once(fleet, monkeypatch) -> None:
+    """Machine 1's cycle fails every time (logged and counted; the machine stays where it
+    is) while observers want every cycle of machines 0 and 1: the broken machine's
+    engine looks again a batch later, not at once, so the healthy machine keeps
+    getting its passes (a busy loop on the broken one starved it: 2 passes to the
+    broken one's thousands, review) and the other machines still apply their writes."""
+    _, services = fleet
+    healthy, broken = services[0].scheduler, services[1].scheduler
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("a broken cycle")
+
+    monkeypatch.setattr(broken.machine, "run_cycle", fail)
+    monkeypatch.setattr(broken.machine, "run_batch", fail)
+    releases = [healthy.demand_every_cycle(), broken.demand_every_cycle()]
+    try:
+        start, wakes = broken.due(), (healthy.wakes, broken.wakes)
+        while broken.due() < start + 200:  # (200 periods of its time line)
+            threading.Event().wait(0.01)
+        passes = (healthy.wakes - wakes[0], broken.wakes - wakes[1])
+        elapsed = broken.due() - start
+        assert broken.cycle_errors > 0
+        # the broken one: once a batch; the healthy one, observed every cycle and asked
+        # nothing: once a batch too (its snapshots published in the batch), at least
+        # half of those
+        assert passes[1] <= 2 * (elapsed // BATCH) + 10, passes
+        assert passes[0] >= elapsed // BATCH // 2, passes
+        assert write_coefficient(services[0], 4500.0) == 4500.0
+        assert write_coefficient(services[2], 4501.0) == 4501.0
+    finally:
+        for release in releases:
+            release()

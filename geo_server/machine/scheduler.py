@@ -90,9 +90,10 @@ INTERPRETED_LAG_S = 0.05
 SETTLE_CYCLES = 64
 #: the interpreter's GIL switch interval (seconds): short while a cycle thread runs, so
 #: it is not starved by the transports' threads (and a request's catch-up is not kept
-#: waiting for the lock by an engine thread); longer while more than `FEW_ENGINES`
-#: exact engines run in the process (a fleet), which would otherwise spend the cores on
-#: handing the lock around (docs/design.md §13.1)
+#: waiting for the lock by an engine thread); longer while more than `FEW_ENGINES` cycle
+#: threads run in the process (a fleet of punctual engines: a fleet's exact engines
+#: share one thread, `Engines`), which would otherwise spend the cores on handing the
+#: lock around (docs/design.md §13.1)
 SWITCH_SHORT = 0.0002
 SWITCH_FLEET = 0.001
 FEW_ENGINES = 4
@@ -750,9 +751,13 @@ class Scheduler:
         to sync, only the frames it is sent. Behind by more than a batch (the host was
         busy), the engine catches up a batch at a time and lets go of the lock in
         between, so a request never waits for more than one batch before it catches up
-        to its own cycle. Not `blocking` (a thread shared with other machines: `Engines`),
-        a machine whose lock a request holds is left to that request and looked at again
-        a period later: one machine's catch-up never holds up the others'."""
+        to its own cycle. A cycle that fails (logged and counted: `_guarded_cycle`)
+        leaves the machine where it was; the engine then looks again a batch later, not
+        at once. Not `blocking` (a thread shared with other machines: `Engines`), a pass
+        is one batch at most (the machines behind take turns: the next batch is planned
+        for now, after those already due), and a machine whose lock a request holds is
+        left to that request and looked at again a period later: no machine holds up
+        the others."""
         clock = self._clock
         self.wakes += 1
         m = self.machine
@@ -770,8 +775,14 @@ class Scheduler:
                 before = m.cycle
                 step = target if m.quiescent else min(target, m.cycle + self.batch)
                 self.advance(step, publish=self.waiter is not None and step == target)
+                if m.cycle == before and m.cycle < target and not self._stop.is_set():
+                    # nothing advanced (the cycle failed): again a batch later, not at
+                    # once (each failure is logged and counted)
+                    return max(self._next_wake(clock()), clock() + self.batch * self.period_ns)
                 if m.cycle >= target or m.cycle == before or self._stop.is_set():
                     return self._next_wake(clock())
+                if not blocking:
+                    return clock()  # (more to catch up: after the others due)
             finally:
                 self._engine_lock.release()
 
@@ -911,11 +922,13 @@ class Engines:
 
     Each machine's engine is woken at the time its own pass asked for (`run_pass`), the
     earliest first; a machine whose plans change (`Scheduler._poke`: an operation
-    queued, an observer added) is looked at at once. A pass never waits for a machine
-    whose lock a request holds (that request is catching it up), so one machine's long
-    catch-up does not hold up the others. A pass that raises takes only its own machine
-    out (logged; its `running` turns False, as a dead thread's did); the others go on.
-    Only the composition root makes one, and starts and stops it, once."""
+    queued, an observer added) is looked at at once. A pass computes one batch at most
+    (a machine far behind takes turns with the others), never waits for a machine whose
+    lock a request holds (that request is catching it up), and a machine whose cycle
+    fails is looked at again a batch later, not at once: no machine holds up the
+    others. A pass that raises takes only its own machine out (logged; its `running`
+    turns False, as a dead thread's did); the others go on. Only the composition root
+    makes one, and starts and stops it, once."""
 
     def __init__(self, clock: Callable[[], int] = time.monotonic_ns) -> None:
         self._clock = clock
@@ -975,6 +988,8 @@ class Engines:
                     planned[s] = now
                     order += 1
                     heapq.heappush(heap, (now, order, s))
+            # the passes due by `now`, each once; a pass planned again for now (more to
+            # catch up) comes in the next round, after the pokes that came meanwhile
             while heap and heap[0][0] <= now and not self._stop.is_set():
                 wake, _, s = heapq.heappop(heap)
                 if planned.get(s) != wake:
@@ -990,10 +1005,9 @@ class Engines:
                     planned.pop(s, None)
                     self._leave(s)
                     continue
-                planned[s] = nxt
+                planned[s] = max(nxt, now + 1)  # (not again in this round)
                 order += 1
-                heapq.heappush(heap, (nxt, order, s))
-                now = clock()
+                heapq.heappush(heap, (planned[s], order, s))
             delay = (heap[0][0] - clock()) / 1e9 if heap else IDLE_WAKE
             if delay > 0:
                 self._event.wait(delay)

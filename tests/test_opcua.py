@@ -766,3 +766,22 @@ def test_background_start_checks_the_port_first(service: ObjectService) -> None:
         await iface.close()
 
     run(scenario)
+
+
+def test_a_certificate_for_every_address_names_the_loopback_ones(tmp_path: Path) -> None:
+    """Bound to 0.0.0.0 (the container image), clients on the host reach the server at
+    127.0.0.1 (docs/container.md) and compare that with the certificate's names: they
+    are in it; bound to 127.0.0.1, only that one (review)."""
+    from cryptography import x509
+
+    from geo_server.transports.opcua.certs import ensure_certificate
+
+    def addresses(host: str) -> set[str]:
+        cert, _ = ensure_certificate(tmp_path / host, "urn:geo-server:server", host)
+        alt = x509.load_der_x509_certificate(cert.read_bytes()).extensions.get_extension_for_class(
+            x509.SubjectAlternativeName
+        )
+        return {str(ip) for ip in alt.value.get_values_for_type(x509.IPAddress)}
+
+    assert addresses("0.0.0.0") == {"0.0.0.0", "127.0.0.1", "::1"}
+    assert addresses("127.0.0.1") == {"127.0.0.1"}

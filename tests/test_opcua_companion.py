@@ -461,7 +461,7 @@ def test_a_stop_during_the_models_import_does_not_wait_for_it(
 
     importing, release = threading.Event(), threading.Event()
 
-    async def blocked_import(server: Any) -> None:
+    async def blocked_import(server: Any, closing: Any) -> None:
         importing.set()
         release.wait()  # (in the import's own thread; the test releases it at the end)
 

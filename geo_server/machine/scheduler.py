@@ -404,8 +404,12 @@ class Scheduler:
         self._poke()
 
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop the cycles: a thread of its own is joined (up to `timeout`); on a shared
+        thread (`Engines`) the machine leaves at that thread's next look, and a pass
+        running meanwhile ends after its batch (`Engines.stop` joins the thread)."""
         self._stop.set()
         self._poke()
+        self._shared = None  # (`running` False from now on; a `start` may join again)
         self._overrun_cut.set()  # a punctual engine waiting out an overrun stops too
         if self._thread is not None:
             self._thread.join(timeout)

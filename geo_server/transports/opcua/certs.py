@@ -33,9 +33,13 @@ def ensure_certificate(folder: Path, app_uri: str, host: str) -> tuple[Path, Pat
     private = cert_gen.generate_private_key()
     names: list[x509.GeneralName] = [x509.UniformResourceIdentifier(app_uri)]
     try:
-        names.append(x509.IPAddress(ipaddress.ip_address(host)))
+        ip = ipaddress.ip_address(host)
     except ValueError:
         names.append(x509.DNSName(host))
+    else:
+        names.append(x509.IPAddress(ip))
+        if ip.is_unspecified:  # every address (a container): the loopback ones are among them
+            names += [x509.IPAddress(ipaddress.ip_address(a)) for a in ("127.0.0.1", "::1")]
     # clients compare the host of the endpoint URL they were given with these names
     for name in dict.fromkeys(("localhost", socket.gethostname())):
         if name and name != host:

@@ -493,7 +493,7 @@ class OpcUaInterface:
         self.ns = await server.register_namespace(NAMESPACE_URI)
         # the CNC model's types (OPC 40502; `cnc.py`), after ours: ours stays index 2
         if opts.companion_models:
-            await _off_loop(lambda: _import_companions(server))
+            await _off_loop(lambda: _import_companions(server, lambda: self._closing))
             self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
             self.mt_ns = await server.get_namespace_index(machinetool.MACHINE_TOOL_URI)
             self.machinery_ns = await server.get_namespace_index(machinetool.MACHINERY_URI)
@@ -1847,12 +1847,14 @@ def _retargeted(ref: Any, target: Any, named: _Named | None) -> Any:
     )
 
 
-async def _import_companions(server: Any) -> None:
+async def _import_companions(server: Any, closing: Callable[[], bool]) -> None:
     """The companion models' types: CNC (`cnc.py`), then DI, Machinery, IA and Machine
     Tool (`machinetool.py`), the OPC Foundation's NodeSets. asyncua reports the few
-    broken references of their own example instances (`strict_mode=False`)."""
-    await server.import_xml(str(cnc.NODESET), strict_mode=False)
-    for _, path in machinetool.NODESETS:
+    broken references of their own example instances (`strict_mode=False`). Stops
+    between two NodeSets once the interface is `closing` (nobody waits for it then)."""
+    for path in (cnc.NODESET, *(path for _, path in machinetool.NODESETS)):
+        if closing():
+            return
         await server.import_xml(str(path), strict_mode=False)
 
 

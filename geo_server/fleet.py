@@ -89,12 +89,12 @@ def run_fleet(args: argparse.Namespace) -> int:
         if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
             return 2
         served.append(Served(m, service, built.scheduler))
-    shares = all(s.scheduler.exact for s in served)  # (`Engines`: one thread for all)
+    threads = _cycle_threads(served)
     print(
         f"geo-server {__version__}: a fleet of {len(served)} machines "
         f"({', '.join(s.member.name for s in served[:5])}{', …' if len(served) > 5 else ''}), "
         f"cycle {args.cycle_ms:g} ms ({args.mode}, {args.engine} engine, cycles on "
-        f"{'one thread' if shares else 'a thread per machine'}); "
+        f"{'one thread' if threads == 1 else f'{threads} threads'}); "
         "Ctrl-C stops",
         flush=True,
     )
@@ -110,6 +110,13 @@ def run_fleet(args: argparse.Namespace) -> int:
     if code == 0:
         print(f"stopped: {len(served)} machines")
     return code
+
+
+def _cycle_threads(served: list[Served]) -> int:
+    """The threads the machines' cycles run on: one for all the exact engines
+    (`Engines`), one more per punctual or free machine."""
+    exact = sum(s.scheduler.exact for s in served)
+    return len(served) - exact + min(exact, 1)
 
 
 def fleet_status(
@@ -209,8 +216,7 @@ async def _serve(args: argparse.Namespace, served: list[Served], engines: Engine
         # the switch interval for the cycle threads there are: one for every exact
         # engine, one more per punctual or free machine (docs/design.md §13.1); set
         # here, the fleet process's composition root
-        shared = sum(s.scheduler.exact for s in served)
-        sys.setswitchinterval(switch_interval(len(served) - shared + min(shared, 1)))
+        sys.setswitchinterval(switch_interval(_cycle_threads(served)))
         engines.start()
         for s in served:
             s.scheduler.start(engines)  # (a punctual or free one: a thread of its own)

@@ -108,6 +108,14 @@ def add_volc(
                 fh.write(f"lr_param.vol_comp.s_limit {s_limit}\n")
 
 
+def add_second_volc(startup: Path, volc: str) -> None:
+    """A second volumetric compensation (ID 1) from the VOLC list text `volc`, beside
+    the one `add_volc` configured."""
+    (startup.parent / "volc1.lis").write_text(volc, encoding="utf-8")
+    with startup.open("a", encoding="utf-8") as fh:
+        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+
+
 def value(m: Machine, name: str, axis: int = 0):
     return m.snapshot.value(D.by_name(name), axis)
 
@@ -371,9 +379,7 @@ def test_a_second_hold_keeps_the_first_ones_ramp(lists_copy: Path) -> None:
     folder = lists_copy.parent
     add_volc(lists_copy, smooth_files(folder), {})
     second = smooth_files(folder).replace("filter_steps 4", "filter_steps 2")
-    (folder / "volc1.lis").write_text(second, encoding="utf-8")
-    with lists_copy.open("a", encoding="utf-8") as fh:
-        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    add_second_volc(lists_copy, second)
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
     m.motion.set_position(0, 100 * 10_000)
     for _ in range(30):
@@ -526,9 +532,7 @@ def test_a_second_automatic_compensation_starts_while_one_acts(lists_copy: Path)
     auto = smooth_files(folder).replace("manual_activation 1", "manual_activation 0")
     add_volc(lists_copy, auto, {})
     cyxz = auto.replace("chain YXZ", "C 4\nchain CYXZ\nworkpiece_axes 1")
-    (folder / "volc1.lis").write_text(cyxz, encoding="utf-8")
-    with lists_copy.open("a", encoding="utf-8") as fh:
-        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    add_second_volc(lists_copy, cyxz)
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
     m.motion.homed[3] = False
     m.run_cycle()
@@ -565,9 +569,7 @@ def test_s_limit_bounds_the_sum_on_an_axis(lists_copy: Path) -> None:
     it, the axis would get −40 (004 p.14: the value for this axis)."""
     folder = lists_copy.parent
     add_volc(lists_copy, smooth_files(folder), {}, s_limit=30)
-    (folder / "volc1.lis").write_text(smooth_files(folder), encoding="utf-8")
-    with lists_copy.open("a", encoding="utf-8") as fh:
-        fh.write("vol_comp[1].max_records 10\nvol_comp[1].file_name volc1.lis\n")
+    add_second_volc(lists_copy, smooth_files(folder))
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
     m.motion.set_position(0, 100 * 10_000)
     m.start_program("#VOLCOMP ON [ID0 NO_MOVE]\n#VOLCOMP ON [ID1 NO_MOVE]\n", mdi=True)

@@ -171,12 +171,18 @@ def probe(
     seconds: float,
     timeout: float,
     pooled: dict[int, list[float]] | None = None,
+    control: int | None = None,
 ) -> dict[str, Any]:
     """Round trips to each target machine (1-based) on ADS and Modbus, interleaved, for
     `seconds`: per (interface, machine) the summary and the timeouts; every round trip
-    (s) also appended to `pooled[machine]`."""
+    (s) also appended to `pooled[machine]`. `control`: the port of a bare ADS responder
+    (bench/bare.py) read in the same rounds, pooled as machine 0: what the host alone
+    does to a round trip meanwhile."""
     out: dict[str, Any] = {}
     clients: list[tuple[str, int, Any, Any]] = []
+    if control is not None:
+        bare = RawAds(control, "10.77.0.1.1.1", timeout)
+        clients.append(("bare ADS", 0, bare, lambda a=bare: a.read("127.0.0.1.1.1")))
     for m in targets:
         ads = RawAds(ads_port, f"10.77.{m % 250}.1.1.1", timeout)
         netid = netid_at(BASE_NETID, m - 1)

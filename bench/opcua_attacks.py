@@ -31,20 +31,23 @@ import asyncio
 import contextlib
 import multiprocessing
 import os
+import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from common import (
     ServerProcess,
     emit,
     free_ports,
+    free_range,
     geo_server_argv,
     rss_kib,
     summary_us,
     table,
     wait_port,
 )
-from fleet_isolation import free_range, probe
+from fleet_isolation import probe
 
 ATTACKS = ("read-flood", "browse-flood", "bombs", "unread", "items")
 
@@ -168,10 +171,12 @@ def run_attacks(
     url: str,
     machine: str,
     targets: list[int],
-    aport: int,
-    mbase: int,
+    ports: tuple[int, int, int],
     pid: int,
 ) -> tuple[list[list[Any]], list[str]]:
+    """Each attack, alternated with quiet phases; `ports`: geo-server's ADS port, its
+    first Modbus port, and the bare ADS responder's (the control)."""
+    aport, mbase, control = ports
     ctx = multiprocessing.get_context("spawn")
     out: list[list[Any]] = []
     notes: list[str] = []
@@ -181,14 +186,14 @@ def run_attacks(
         answered = []
         rss = [rss_kib(pid)["VmRSS"]]
         for _ in range(args.rounds):
-            probe(targets, aport, mbase, args.seconds, args.timeout, quiet)
+            probe(targets, aport, mbase, args.seconds, args.timeout, quiet, control)
             stop, done = ctx.Event(), ctx.Value("q", 0)
             p = ctx.Process(
                 target=attack, args=(kind, url, machine, stop, done, args.nice), daemon=True
             )
             p.start()
             time.sleep(1.5)  # (connected, attacking)
-            probe(targets, aport, mbase, args.seconds, args.timeout, attacked)
+            probe(targets, aport, mbase, args.seconds, args.timeout, attacked, control)
             rss.append(rss_kib(pid)["VmRSS"])
             stop.set()
             p.join(15)
@@ -196,8 +201,10 @@ def run_attacks(
                 p.kill()
             answered.append(done.value)
             time.sleep(1.0)
-        q = summary_us([x * 1e6 for v in quiet.values() for x in v])
-        a = summary_us([x * 1e6 for v in attacked.values() for x in v])
+        q = summary_us([x * 1e6 for m, v in quiet.items() if m for x in v])
+        a = summary_us([x * 1e6 for m, v in attacked.items() if m for x in v])
+        # the host's own share of the rise: a bare responder's, probed alongside
+        bq, ba = (summary_us([x * 1e6 for x in d[0]])["p99"] for d in (quiet, attacked))
         out.append(
             [
                 kind,
@@ -208,6 +215,8 @@ def run_attacks(
                 a["p50"] / 1000,
                 a["p99"] / 1000,
                 round(a["p99"] / q["p99"], 2),
+                f"{bq / 1000:.2f} -> {ba / 1000:.2f} ({ba / bq:.2f})",
+                round((a["p99"] / q["p99"]) / (ba / bq), 2),
                 answered,
                 f"{rss[0] // 1024} -> {max(rss) // 1024}",
             ]
@@ -252,7 +261,7 @@ def main() -> None:
     args = ap.parse_args()
     n = args.machines
     zport, aport = free_ports(2)
-    mbase = free_range(n, {zport, aport})
+    mbase = free_range(n)
     ports = {"zenoh": zport, "ads": aport, "modbus": mbase}
     fleet = ["--fleet-size", str(n)] if n > 1 else []
     # the exact engine, geo-server run's default, as the figures in docs/benchmarks.md
@@ -260,13 +269,19 @@ def main() -> None:
     url = argv[argv.index("--opcua-endpoint") + 1]
     machine = "local-1" if n > 1 else "local"
     targets = [1] if n == 1 else sorted({2, n})
-    with ServerProcess(argv, "opcua-attacks") as server:
+    (control,) = free_ports(1)
+    bare = [sys.executable, str(Path(__file__).with_name("bare.py")), "ads", "--port", str(control)]
+    with (
+        ServerProcess(bare, "bare-ads") as responder,
+        ServerProcess(argv, "opcua-attacks") as server,
+    ):
+        wait_port(control, 30.0, responder.proc)
         wait_port(aport, 120.0, server.proc)
         end = time.monotonic() + 180
         while "opcua: ready" not in server.log_text() and time.monotonic() < end:
             time.sleep(0.2)
         time.sleep(1.0)
-        rows, notes = run_attacks(args, url, machine, targets, aport, mbase, server.pid)
+        rows, notes = run_attacks(args, url, machine, targets, (aport, mbase, control), server.pid)
         notes.append(stop_during_attack(url, machine, server))
     who = "machine 1 (ADS, Modbus)" if n == 1 else f"machines {targets} of {n} (ADS, Modbus)"
     md = table(
@@ -279,6 +294,8 @@ def main() -> None:
             "p50 ms",
             "p99 ms",
             "p99 ratio",
+            "bare ADS p99 ms (ratio)",
+            "ratio over bare",
             "answered",
             "RSS MiB",
         ],

@@ -3,6 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import contextlib
+import os
+import sys
+import threading
+from collections.abc import Coroutine
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 async def wait_set(event: asyncio.Event, timeout: float | None) -> bool:
@@ -25,3 +34,70 @@ async def wait_set(event: asyncio.Event, timeout: float | None) -> bool:
     except TimeoutError:
         return False
     return True
+
+
+class LoopThread:
+    """An event loop on a thread of its own, for an interface whose work is pure Python
+    and would otherwise hold the process's main loop (OPC UA's asyncua: docs/design.md
+    §9.1). Nothing runs at construction: `start` (the composition root's, through the
+    interface's start) starts the thread; `stop` ends it.
+
+    The thread is a daemon: a stop that times out (a library coroutine that ignores
+    its cancellation) does not keep the process from ending."""
+
+    def __init__(self, name: str, nice: int = 0) -> None:
+        self.name = name
+        self.nice = nice
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> asyncio.AbstractEventLoop:
+        """Start the thread and its loop (once); the loop, running."""
+        if self.loop is not None:
+            return self.loop
+        ready: concurrent.futures.Future[asyncio.AbstractEventLoop] = concurrent.futures.Future()
+        self._thread = threading.Thread(
+            target=self._run, args=(ready, self.nice), name=self.name, daemon=True
+        )
+        self._thread.start()
+        self.loop = ready.result()
+        return self.loop
+
+    @staticmethod
+    def _run(ready: concurrent.futures.Future[asyncio.AbstractEventLoop], nice: int) -> None:
+        if nice and sys.platform == "linux":  # (a thread's own niceness: Linux only)
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)
+        loop.call_soon(ready.set_result, loop)
+        try:
+            loop.run_forever()
+        finally:
+            left = asyncio.all_tasks(loop)
+            for task in left:
+                task.cancel()
+            if left:  # (their cancellation, a few steps; bounded all the same)
+                loop.run_until_complete(asyncio.wait(left, timeout=STOP_TASKS_S))
+            loop.close()  # (its executor shut down without waiting for its workers)
+
+    async def run(self, work: Coroutine[Any, Any, T]) -> T:
+        """Run `work` on this thread's loop and await its result on the caller's; a
+        cancellation of the awaiting task cancels `work`."""
+        assert self.loop is not None, "LoopThread.run before start"
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(work, self.loop))
+
+    async def stop(self, timeout: float) -> bool:
+        """Stop the loop (its tasks cancelled) and wait at most `timeout` seconds for
+        the thread to end; True when it has."""
+        loop, thread = self.loop, self._thread
+        if loop is None or thread is None:
+            return True
+        with contextlib.suppress(RuntimeError):  # (closed already)
+            loop.call_soon_threadsafe(loop.stop)
+        await asyncio.to_thread(thread.join, timeout)
+        return not thread.is_alive()
+
+
+#: `LoopThread`: how long its tasks left at a stop get to end their cancellation
+STOP_TASKS_S = 0.5

@@ -339,8 +339,8 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "opcua",
         "loop_share",
         "s per s",
-        "event-loop time OPC UA's requests take, and as much again its notifications "
-        "(`loop_burst_s` in a row after a quiet spell)",
+        "processor time OPC UA's requests take on its thread, and as much again its "
+        "notifications (`loop_burst_s` in a row after a quiet spell)",
         "requests wait, their connections' reading paused; notifications are sampled "
         "less often (`samples_skipped`)",
     ),

@@ -134,8 +134,9 @@ def fleet_status(
     the engine could not keep up, `ads_notifications` of its status); `starved` lists
     the machines whose count grew since the last status. Per machine `loop_share_holds`
     counts how often its ADS and Modbus requests waited for its share of the loop
-    (`loop_share` of its status); `throttled` lists the machines held back since the
-    last status: their clients ask more than their share."""
+    (`loop_share` of its status) and its OPC UA requests for its share of OPC UA's
+    (`opcua_share`); `throttled` lists the machines held back since the last status:
+    their clients ask more than their share."""
     machines = []
     for s in served:
         st = s.service.status()
@@ -167,6 +168,7 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
     """A machine's entry in the fleet's status, from its own status `st`."""
     notes = st.get("ads_notifications") or {}
     share = st.get("loop_share") or {}
+    opcua = st.get("opcua_share") or {}  # (its share of OPC UA's own loop)
     return {
         "name": member.name,
         "cycle": st["cycle"],
@@ -176,7 +178,7 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
         "computed_cycles": st["computed_cycles"],
         "notifications": int(notes.get("registrations", 0)),
         "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
-        "loop_share_holds": int(share.get("holds", 0)),
+        "loop_share_holds": int(share.get("holds", 0)) + int(opcua.get("holds", 0)),
         "netid": member.netid,
         "modbus_port": member.modbus_port,
     }

@@ -5,6 +5,7 @@ result instead when the waiting task is cancelled in the step the event is set i
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 from geo_server.aio import wait_set
 
@@ -44,3 +45,52 @@ def test_a_cancellation_in_the_step_the_event_is_set_ends_the_loop() -> None:
         return task in done, task.cancelled(), laps
 
     assert asyncio.run(main()) == (True, True, 0)
+
+
+def test_a_loop_thread_runs_work_on_its_own_thread_and_loop() -> None:
+    """`LoopThread`: nothing runs before `start`; `run` awaits work done on the
+    thread's own loop; a cancelled wait cancels the work there; `stop` ends the thread;
+    on Linux the thread runs at the niceness asked for (read back from the kernel)."""
+    import sys
+    import threading
+    from pathlib import Path
+
+    from geo_server.aio import LoopThread
+
+    before = {t.name for t in threading.enumerate()}
+    own = LoopThread("own-loop", nice=7)
+    assert own.loop is None and "own-loop" not in {t.name for t in threading.enumerate()}
+
+    async def where() -> tuple[str, int, asyncio.AbstractEventLoop]:
+        niceness = -1
+        if sys.platform == "linux":
+            stat = Path(f"/proc/self/task/{threading.get_native_id()}/stat").read_text()
+            niceness = int(stat[stat.rindex(")") + 2 :].split()[16])  # (field 19: nice)
+        return threading.current_thread().name, niceness, asyncio.get_running_loop()
+
+    async def main() -> None:
+        own.start()
+        name, niceness, loop = await own.run(where())
+        assert name == "own-loop" and loop is own.loop
+        assert loop is not asyncio.get_running_loop()
+        if sys.platform == "linux":
+            assert niceness == 7
+        cancelled = threading.Event()
+
+        async def forever() -> None:
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                cancelled.set()
+                raise
+
+        waiting = asyncio.ensure_future(own.run(forever()))
+        await asyncio.sleep(0.05)
+        waiting.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await waiting
+        assert await asyncio.to_thread(cancelled.wait, 10.0)
+        assert await own.stop(10.0)
+
+    asyncio.run(main())
+    assert {t.name for t in threading.enumerate()} == before

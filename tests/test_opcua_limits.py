@@ -11,8 +11,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
+import socket
 import struct
 import subprocess
+import threading
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -27,6 +29,7 @@ from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
+from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.transports.opcua import guard, operations
 from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
 from geo_server.transports.opcua.space import NAMESPACE_URI
@@ -77,6 +80,23 @@ async def held(share: LoopShare, request: Awaitable[Any]) -> asyncio.Future[Any]
         await asyncio.sleep(0.01)
     assert share.holds > holds and not waiting.done()
     return waiting
+
+
+async def read_until_held(
+    share: LoopShare, read: Callable[[], Awaitable[Any]]
+) -> asyncio.Future[Any]:
+    """Reads (each made by `read()`) one after the other until the server holds one
+    for `share`: that one, not done. The server charges a Read on its own thread after
+    answering it, so the client cannot know the burst is used up before a Read is held."""
+    for _ in range(1000):
+        holds = share.holds
+        waiting = asyncio.ensure_future(read())
+        while not waiting.done() and share.holds == holds:
+            await asyncio.sleep(0.005)
+        if not waiting.done():
+            return waiting
+        await waiting
+    raise AssertionError("no Read was held")
 
 
 async def refused(call: Awaitable[Any]) -> int:
@@ -333,7 +353,7 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
     machine b is answered; when the clock moves on, a's Read is answered too. Before,
     OPC UA drew on no share: a flood on one machine took the loop from every other."""
     now = [0.0]
-    share = LoopShare(rate=0.1, burst=0.002, clock=lambda: now[0])
+    fleet_share = LoopShare(rate=0.1, burst=0.002, clock=lambda: now[0])
     services = {
         name: ObjectService(Machine(load_machine(default_startup_list()), homed=True))
         for name in ("a", "b")
@@ -341,7 +361,9 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
 
     async def scenario() -> None:
         options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
-        iface = OpcUaInterface(services, options, {"a": share})
+        iface = OpcUaInterface(services, options, {"a": fleet_share})
+        share = iface.machine_shares["a"]  # (OPC UA's own loop: a share of it, at a's rate)
+        assert (share.rate, share.burst) == (fleet_share.rate, fleet_share.burst)
         await iface.start()
         try:
             async with (
@@ -352,9 +374,7 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
                 most = operations.OPERATION_LIMITS["MaxNodesPerRead"]
                 of_a = value_of(ua.NodeId("a/Axes/X/TEMPC/coefficient", ns))
                 params = ua.ReadParameters(NodesToRead=[of_a] * most)
-                while share.status["loop_s"] <= share.burst:  # (until the burst is used)
-                    await flood.uaclient.read(params)
-                waiting = await held(share, flood.uaclient.read(params))
+                waiting = await read_until_held(share, lambda: flood.uaclient.read(params))
                 b = other.get_node(ua.NodeId("b/Axes/X/TEMPC/coefficient", ns))
                 assert await b.read_value() == 4000.0
                 assert not waiting.done()
@@ -396,13 +416,74 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
                 params = ua.ReadParameters(NodesToRead=[value_of(ua.NodeId(TEMPC, ns))] * most)
                 await asyncio.sleep(share.burst / share.rate)  # (a full burst)
                 frozen[0] = now[0] = time.monotonic()
-                while share.wait() == 0.0:  # Reads until the burst is used up
-                    await first.uaclient.read(params)
+                first_held = await read_until_held(share, lambda: first.uaclient.read(params))
                 waiting = await held(share, second.uaclient.read(params))
-                frozen[0] = now[0] + 1.0  # the share is back
+                await asyncio.sleep(0.05)
+                assert not waiting.done() and not first_held.done()  # while the clock stands
+                frozen[0] = None  # the clock runs, the share fills again
                 assert (await waiting)[0].Value.Value == 4000.0
-                frozen[0] = None  # (the clients' CloseSession wait for it too)
+                assert (await first_held)[0].Value.Value == 4000.0
         finally:
             await iface.close()
 
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+
+
+def modbus_read(port: int) -> int:
+    """FC 3 of TEMPC::coefficient's registers (axis 1): the exception code or 0."""
+    from geo_server.dictionary import load_dictionary
+    from geo_server.transports.modbus.regmap import register_address
+
+    obj = load_dictionary().by_name("TEMPC::coefficient")
+    with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as s:
+        s.sendall(struct.pack(">HHHBBHH", 1, 0, 6, 1, 3, register_address(obj), 4))
+        buf = b""
+        while len(buf) < 9:
+            chunk = s.recv(64)
+            assert chunk
+            buf += chunk
+        return 0 if buf[7] == 3 else buf[8]
+
+
+def test_a_request_holding_asyncua_does_not_hold_the_other_interfaces() -> None:
+    """asyncua runs on a thread and loop of its own: while an OPC UA Read of machine
+    `held` cannot finish (its snapshot is not to be had until the test releases it),
+    Modbus of machine `free`, on the main loop, answers. Before, every OPC UA request
+    ran on the loop ADS, Modbus and the web HMI share, so a request that took seconds
+    held them all (issue 44 #7: a Browse of 10.7 s, an ADS read failing at 5 s)."""
+    armed, inside, release = threading.Event(), threading.Event(), threading.Event()
+
+    class Held(ObjectService):
+        def current(self, **kw: Any) -> Any:
+            if armed.is_set():
+                inside.set()
+                release.wait(TIMEOUT)
+            return super().current(**kw)
+
+    held = Held(Machine(load_machine(default_startup_list()), homed=True))
+    free = ObjectService(Machine(load_machine(default_startup_list()), homed=True))
+
+    async def scenario() -> None:
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
+        opcua = OpcUaInterface({"held": held}, options)
+        modbus = ModbusInterface(free, ModbusOptions(port=0))
+        await opcua.start()
+        await modbus.start()
+        try:
+            async with Client(opcua.endpoint, timeout=TIMEOUT) as client:
+                ns = await client.get_namespace_index(NAMESPACE_URI)
+                node = client.get_node(ua.NodeId("held/Axes/X/TEMPC/coefficient", ns))
+                armed.set()
+                reading = asyncio.ensure_future(node.read_value())
+                assert await asyncio.to_thread(inside.wait, TIMEOUT)  # the Read is held
+                assert await asyncio.to_thread(modbus_read, modbus.port) == 0
+                assert not reading.done()
+                armed.clear()
+                release.set()
+                assert await reading == 4000.0
+        finally:
+            release.set()
+            await modbus.close()
+            await opcua.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 2 * TIMEOUT))

@@ -1,15 +1,17 @@
 """OPC UA's requests charged to loop shares (docs/design.md §9.1 and §13.1 *Isolation*,
 `geo_server.transports.share`).
 
-All OPC UA work draws on one share of the event loop (`OpcUaOptions.loop_share`): the
-loop is shared with ADS, Modbus and the web HMI, and asyncua's work is pure Python, so a
-client flooding OPC UA would otherwise take the loop from them. A connection waits,
-its reading paused, while that share is used up.
+All OPC UA work draws on one share (`OpcUaOptions.loop_share`) of the processor time of
+its thread (`opcua`, a loop of its own: docs/design.md §9.1): asyncua's work is pure
+Python, and a client flooding OPC UA would otherwise take the cores and the interpreter
+lock from ADS, Modbus, the web HMI and the cycle. A connection waits, its reading paused,
+while that share is used up.
 
 In a fleet, one OPC UA server answers every machine of a fleet, and a request names its machines
 only in its nodes, so what a request costs is known after it ran: the interface marks the
 machines whose variables a request read, wrote, monitored or called (`touch`), and the
-loop thread's CPU time of the request is split among their shares (`end`). A connection
+thread's CPU time of the request is split among their shares (`end`: each machine's share
+of OPC UA's thread, at its fleet share's rate). A connection
 whose last request drew on a share that is used up waits, its reading paused, until the
 share is back (`wait`), as an ADS or Modbus connection of that machine would. Requests
 that touch no machine's variable (a Browse, the server's own nodes) draw on no share;

@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import __version__
+from geo_server.aio import LoopThread
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
@@ -171,6 +172,14 @@ def _collector_paused() -> Iterator[None]:
             gc.enable()
 
 
+#: the niceness of asyncua's thread (Linux): see `start`
+OPCUA_NICE = 10
+
+#: `close`: the longest it waits for asyncua's server to stop, and then again for its
+#: thread to end (SIGTERM ends the server within 2 s whatever its clients do: the
+#: guard aborts their connections, `guard.stop`)
+CLOSE_WAIT_S = 0.75
+
 #: monitored items notified of one value before the loop's other work runs (a thousand
 #: items of one variable took 30-40 ms in one go)
 NOTIFY_SLICE = 64
@@ -206,13 +215,14 @@ class OpcUaOptions:
     #: A client that has not read its answers for this long (seconds) is closed; until
     #: then its requests are not read (guard.py).
     unread_close_s: float = 10.0
-    #: The event loop's time (seconds per second) that OPC UA's requests may take, and
-    #: as much again its notifications (`metering.py`; two buckets, so a flood of
-    #: notifications never starves the requests, a client's keep-alive among them): the
-    #: loop is shared with ADS, Modbus and the web HMI, and asyncua's work is pure
-    #: Python. An HMI that reads 100 values every 100 ms takes about a thirtieth. Past
+    #: The processor time (seconds per second) that OPC UA's requests may take on its
+    #: thread, and as much again its notifications (`metering.py`; two buckets, so a
+    #: flood of notifications never starves the requests, a client's keep-alive among
+    #: them): asyncua's work is pure Python, and on a small host its thread competes
+    #: for the cores and the interpreter lock with ADS, Modbus, the web HMI and the
+    #: cycle. An HMI that reads 100 values every 100 ms takes about a thirtieth. Past
     #: it, requests wait and values are sampled less often.
-    loop_share: float = 0.2
+    loop_share: float = 0.1
     #: The most loop time (seconds) OPC UA may take in a row after a quiet spell (a
     #: client connecting and subscribing takes a few tens of ms), one request per turn
     #: of the loop, so the others' requests are answered in between.
@@ -340,15 +350,21 @@ class OpcUaInterface:
         loop_share: LoopShare | None = None,
     ) -> None:
         """`services`: machine name -> its object service; `shares` (a fleet's): machine
-        name -> its share of the event loop, which its OPC UA requests draw on
-        (`metering.py`); `loop_share`: OPC UA's own (default: of the options)."""
+        name -> its share of the event loop, whose rate its share of OPC UA's thread
+        takes (`machine_shares`, `metering.py`); `loop_share`: OPC UA's own (default: of
+        the options)."""
         self.services = dict(services)
         self.options = options or OpcUaOptions()
         opts = self.options
-        #: OPC UA's share of the loop for its requests (`OpcUaOptions.loop_share`), and
-        #: a fleet's machines'
+        #: OPC UA's share of its thread for its requests (`OpcUaOptions.loop_share`)
         self.loop_share = loop_share or LoopShare(opts.loop_share, opts.loop_burst_s)
-        self.meter = RequestMeter(self.loop_share, shares or {})
+        #: each machine's share of OPC UA's loop, at its fleet share's rate: asyncua runs
+        #: on a loop of its own (`_own`), so OPC UA's requests draw on shares of that
+        #: loop, the fleet's are the main loop's (ADS, Modbus)
+        self.machine_shares = {
+            m: LoopShare(s.rate, s.burst, s.clock) for m, s in (shares or {}).items()
+        }
+        self.meter = RequestMeter(self.loop_share, self.machine_shares)
         #: the share of its notifications (as much again, a bucket of its own)
         self.notify_share = LoopShare(opts.loop_share, opts.loop_burst_s)
         self.server: Any = None
@@ -383,7 +399,11 @@ class OpcUaInterface:
         self._woken = False  # a `_wake` is on its way to the loop
         self._stamped: tuple[Any, dt.datetime] = (None, _FILETIME_EPOCH)
         self._frozen = False
+        #: asyncua's loop and thread (`opcua`): every coroutine of this interface but
+        #: `start` and `close` runs there (docs/design.md §9.1, §5.10)
+        self._own = LoopThread("opcua", nice=OPCUA_NICE)
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._start_task: asyncio.Future[None] | None = None
         self.late_samples = 0
         #: samples skipped while the notifications' share was used up (the loop's)
         self.samples_skipped = 0
@@ -401,15 +421,26 @@ class OpcUaInterface:
 
     async def start(self) -> None:
         """Serve: at once, or with `options.background` once the address space is
-        built (see there); the port is checked now either way."""
+        built (see there); the port is checked now either way. asyncua runs on a
+        thread and loop of its own, started here, niced on Linux: a request's
+        milliseconds of pure Python then hold that loop, not the one of ADS, Modbus and
+        the web HMI (docs/design.md §9.1)."""
+        for machine, share in self.machine_shares.items():  # (their status: the loop's)
+            self.services[machine].status_extra["opcua_share"] = share.status
         if not self.options.background:
-            await self._start()
+            self._own.start()
+            try:
+                await self._own.run(self._start())
+            except BaseException:
+                await self._own.stop(CLOSE_WAIT_S)
+                raise
             return
         host, port = self.options.host_port
         if port:
             await asyncio.to_thread(probe_port, host, port)
         self.port = port
-        self.starting = asyncio.ensure_future(self._start())
+        self._own.start()
+        self.starting = asyncio.ensure_future(self._own.run(self._start()))
         self.starting.add_done_callback(self._started)
 
     def _started(self, task: asyncio.Future[None]) -> None:
@@ -420,11 +451,12 @@ class OpcUaInterface:
             self.on_started(self.failure)
 
     async def _start(self) -> None:
+        self._start_task = asyncio.current_task()
+        self._loop = asyncio.get_running_loop()
         # imported off the loop: 0.3 s the other interfaces would wait otherwise
         await asyncio.to_thread(importlib.import_module, "asyncua")
         from asyncua import Server
 
-        self._loop = asyncio.get_running_loop()
         quiet_library()
         opts = self.options
         users: Any = _Users(opts.user, opts.password)  # asyncua's UserManager protocol
@@ -502,11 +534,30 @@ class OpcUaInterface:
             await self._link_cnc_from_objects(next(iter(self.services)))
 
     async def close(self) -> None:
+        """Stop serving (within `CLOSE_WAIT_S` twice, whatever the clients do), and end
+        asyncua's thread."""
         self._closing = True
         if self.starting is not None and not self.starting.done():
-            self.starting.cancel()
+            self.starting.cancel()  # (its `on_started` is not called)
+        if self._own.loop is None:
+            return
+        try:
+            await asyncio.wait_for(self._own.run(self._close()), CLOSE_WAIT_S)
+        except (TimeoutError, RuntimeError):  # (its loop ended already)
+            pass
+        finally:
+            await self._own.stop(CLOSE_WAIT_S)
+        if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
+            self._frozen = False
+            gc.unfreeze()
+
+    async def _close(self) -> None:
+        """`close` on asyncua's loop."""
+        start = self._start_task
+        if start is not None and not start.done():
+            start.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self.starting
+                await start
         for unwatch in self._unwatch:
             unwatch()
         self._unwatch.clear()
@@ -523,9 +574,6 @@ class OpcUaInterface:
             server, self.server = self.server, None
             with contextlib.suppress(Exception):
                 await guard.stop(server)
-        if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
-            self._frozen = False
-            gc.unfreeze()
 
     @property
     def endpoint(self) -> str:

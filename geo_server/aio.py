@@ -65,10 +65,14 @@ class LoopThread:
 
     @staticmethod
     def _run(ready: concurrent.futures.Future[asyncio.AbstractEventLoop], nice: int) -> None:
-        if nice and sys.platform == "linux":  # (a thread's own niceness: Linux only)
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
-        loop = asyncio.new_event_loop()
+        try:
+            if nice and sys.platform == "linux":  # (a thread's own niceness: Linux only)
+                with contextlib.suppress(OSError):
+                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+            loop = asyncio.new_event_loop()
+        except BaseException as exc:  # (no loop: `start` raises it, never waits for ever)
+            ready.set_exception(exc)
+            return
         asyncio.set_event_loop(loop)
         loop.call_soon(ready.set_result, loop)
         try:
@@ -83,9 +87,12 @@ class LoopThread:
 
     async def run(self, work: Coroutine[Any, Any, T]) -> T:
         """Run `work` on this thread's loop and await its result on the caller's; a
-        cancellation of the awaiting task cancels `work`."""
-        assert self.loop is not None, "LoopThread.run before start"
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(work, self.loop))
+        cancellation of the awaiting task cancels `work`. RuntimeError (and `work`
+        closed, never run) when the loop is not running: not started, or stopped."""
+        if self.loop is None:
+            work.close()
+            raise RuntimeError(f"{self.name}: no loop running")
+        return await on_loop(self.loop, work)
 
     async def stop(self, timeout: float) -> bool:
         """Stop the loop (its tasks cancelled) and wait at most `timeout` seconds for
@@ -96,7 +103,24 @@ class LoopThread:
         with contextlib.suppress(RuntimeError):  # (closed already)
             loop.call_soon_threadsafe(loop.stop)
         await asyncio.to_thread(thread.join, timeout)
-        return not thread.is_alive()
+        if thread.is_alive():
+            return False
+        self.loop = self._thread = None  # (a `run` now raises; `start` starts anew)
+        return True
+
+
+async def on_loop(loop: asyncio.AbstractEventLoop | None, work: Coroutine[Any, Any, T]) -> T:
+    """Await `work` run on `loop` (another thread's); the caller's own loop (or None:
+    no other) runs it here. A cancellation of the awaiting task cancels `work`;
+    RuntimeError, `work` closed and never run, when `loop` is closed."""
+    if loop is None or loop is asyncio.get_running_loop():
+        return await work
+    try:
+        done = asyncio.run_coroutine_threadsafe(work, loop)
+    except RuntimeError:
+        work.close()  # (never run: no "never awaited" warning)
+        raise
+    return await asyncio.wrap_future(done)
 
 
 #: `LoopThread`: how long its tasks left at a stop get to end their cancellation

@@ -29,6 +29,7 @@ cyclic garbage collector paused, and frozen afterwards (`_collector_paused`).
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import datetime as dt
 import gc
@@ -43,13 +44,13 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Iterator, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from geo_server import __version__
-from geo_server.aio import LoopThread
+from geo_server.aio import LoopThread, on_loop
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
@@ -80,6 +81,7 @@ from geo_server.transports.share import LoopShare
 from geo_server.units import ACHS_TYP, LINEAR, UNECE, unece_unit_id
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: ADS return code -> OPC UA status code name (README *Errors and their codes*).
 STATUS: dict[int, str] = {
@@ -175,6 +177,14 @@ def _collector_paused() -> Iterator[None]:
 #: the niceness of asyncua's thread (Linux): see `start`
 OPCUA_NICE = 10
 
+#: In a fleet, the most of OPC UA's share one machine's requests may take: a client
+#: flooding one machine leaves the others' clients at least the rest
+MACHINE_PART = 0.5
+
+#: The longest a request on asyncua's thread waits for the main loop to catch the
+#: machine up (`_current`) before it is answered as a stall (0x707's status)
+HOST_WAIT_S = 2.0
+
 #: `close`: the longest it waits for asyncua's server to stop, and then again for its
 #: thread to end (SIGTERM ends the server within 2 s whatever its clients do: the
 #: guard aborts their connections, `guard.stop`)
@@ -208,7 +218,7 @@ class OpcUaOptions:
     #: BadTooManyMonitoredItems. 1000 is ten HMI screens of 100 values.
     max_monitored_items_per_session: int = 1000
     #: Monitored items in all sessions together, of any node (each of our variables'
-    #: costs a comparison per sampled cycle on the loop the other interfaces share).
+    #: costs a comparison per sampled cycle on OPC UA's thread).
     max_monitored_items: int = 5000
     #: Subscriptions in all sessions together (asyncua's own default: 1000).
     max_subscriptions: int = 256
@@ -358,11 +368,13 @@ class OpcUaInterface:
         opts = self.options
         #: OPC UA's share of its thread for its requests (`OpcUaOptions.loop_share`)
         self.loop_share = loop_share or LoopShare(opts.loop_share, opts.loop_burst_s)
-        #: each machine's share of OPC UA's loop, at its fleet share's rate: asyncua runs
-        #: on a loop of its own (`_own`), so OPC UA's requests draw on shares of that
-        #: loop, the fleet's are the main loop's (ADS, Modbus)
+        #: each machine's share of OPC UA's thread: its fleet share's rate, at most
+        #: `MACHINE_PART` of OPC UA's (so one machine's clients leave the others the
+        #: rest); asyncua runs on a loop of its own (`_own`), the fleet's shares are the
+        #: main loop's (ADS, Modbus)
+        most = self.loop_share.rate * MACHINE_PART
         self.machine_shares = {
-            m: LoopShare(s.rate, s.burst, s.clock) for m, s in (shares or {}).items()
+            m: LoopShare(min(s.rate, most), s.burst, s.clock) for m, s in (shares or {}).items()
         }
         self.meter = RequestMeter(self.loop_share, self.machine_shares)
         #: the share of its notifications (as much again, a bucket of its own)
@@ -403,12 +415,15 @@ class OpcUaInterface:
         #: `start` and `close` runs there (docs/design.md §9.1, §5.10)
         self._own = LoopThread("opcua", nice=OPCUA_NICE)
         self._loop: asyncio.AbstractEventLoop | None = None
+        #: the loop `start` was called on (ADS, Modbus, ...): the machine's catch-ups,
+        #: writes and methods run there (`_current`, `_on_host`)
+        self._host: asyncio.AbstractEventLoop | None = None
         self._start_task: asyncio.Future[None] | None = None
         self.late_samples = 0
         #: samples skipped while the notifications' share was used up (the loop's)
         self.samples_skipped = 0
         self.notifications = 0
-        #: failed logins per client address (guard.py): the loop's
+        #: failed logins per client address (guard.py): asyncua's loop's
         self.login_throttle = LoginThrottle()
         #: the background start (`OpcUaOptions.background`), its failure, and who is
         #: told when it is done (with the failure or None; after a failure the other
@@ -425,6 +440,7 @@ class OpcUaInterface:
         thread and loop of its own, started here, niced on Linux: a request's
         milliseconds of pure Python then hold that loop, not the one of ADS, Modbus and
         the web HMI (docs/design.md §9.1)."""
+        self._host = asyncio.get_running_loop()
         for machine, share in self.machine_shares.items():  # (their status: the loop's)
             self.services[machine].status_extra["opcua_share"] = share.status
         if not self.options.background:
@@ -432,6 +448,8 @@ class OpcUaInterface:
             try:
                 await self._own.run(self._start())
             except BaseException:
+                with contextlib.suppress(Exception):  # (whatever it got to: stopped)
+                    await asyncio.wait_for(self._own.run(self._close()), CLOSE_WAIT_S)
                 await self._own.stop(CLOSE_WAIT_S)
                 raise
             return
@@ -444,7 +462,7 @@ class OpcUaInterface:
         self.starting.add_done_callback(self._started)
 
     def _started(self, task: asyncio.Future[None]) -> None:
-        if task.cancelled():
+        if task.cancelled() or self._closing:
             return
         self.failure = task.exception()
         if self.on_started is not None:
@@ -536,20 +554,17 @@ class OpcUaInterface:
     async def close(self) -> None:
         """Stop serving (within `CLOSE_WAIT_S` twice, whatever the clients do), and end
         asyncua's thread."""
-        self._closing = True
-        if self.starting is not None and not self.starting.done():
-            self.starting.cancel()  # (its `on_started` is not called)
+        self._closing = True  # (a background start ending now tells nobody: `_started`)
         if self._own.loop is None:
             return
         try:
+            # (a background start is cancelled there, not here: its coroutine may not
+            # have begun yet, and `_close` comes after it on that loop)
             await asyncio.wait_for(self._own.run(self._close()), CLOSE_WAIT_S)
         except (TimeoutError, RuntimeError):  # (its loop ended already)
             pass
         finally:
             await self._own.stop(CLOSE_WAIT_S)
-        if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
-            self._frozen = False
-            gc.unfreeze()
 
     async def _close(self) -> None:
         """`close` on asyncua's loop."""
@@ -558,6 +573,9 @@ class OpcUaInterface:
             start.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await start
+        if self._frozen:  # its address space goes back to the collector (`_collector_paused`)
+            self._frozen = False  # (after the start: its freeze is behind us)
+            gc.unfreeze()
         for unwatch in self._unwatch:
             unwatch()
         self._unwatch.clear()
@@ -1161,13 +1179,48 @@ class OpcUaInterface:
         snap = snaps.get(var.machine)
         if snap is None:
             try:
-                snap = var.service.current()
+                snap = self._current(var.service)
             except AdsError as exc:
                 snap = exc
             snaps[var.machine] = snap
         if isinstance(snap, AdsError):
             return ua.DataValue(StatusCode=_status(snap))
         return self._datavalue(var, var.value(snap), snap)
+
+    def _current(self, service: ObjectService) -> Snapshot:
+        """`service.current()` run by the main loop's thread, this one waiting: the
+        exact engine's catch-up holds its lock, and this thread is niced: descheduled
+        while holding it, it would keep the machine's ADS and Modbus requests waiting.
+        0x707 when the main loop does not answer within `HOST_WAIT_S` (or has ended)."""
+        host = self._host
+        done: concurrent.futures.Future[Snapshot] = concurrent.futures.Future()
+
+        def run() -> None:
+            if not done.set_running_or_notify_cancel():
+                return
+            try:
+                done.set_result(service.current())
+            except BaseException as exc:  # (handed to the waiting thread)
+                done.set_exception(exc)
+
+        try:
+            if host is None:
+                raise RuntimeError("no main loop")
+            host.call_soon_threadsafe(run)
+            return done.result(HOST_WAIT_S)
+        except (RuntimeError, concurrent.futures.TimeoutError):
+            done.cancel()
+            raise AdsError(
+                AdsErrorCode.DEVICE_NOTREADY, "the server's main loop did not answer in time"
+            ) from None
+
+    async def _on_host(self, work: Coroutine[Any, Any, T]) -> T:
+        """Await `work` run on the main loop (a write's or a method's: they catch the
+        machine up, `_current`)."""
+        try:
+            return await on_loop(self._host, work)
+        except RuntimeError as exc:  # (the main loop has ended: the server stops)
+            raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the server is stopping") from exc
 
     def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
         ua = _ua()
@@ -1205,7 +1258,7 @@ class OpcUaInterface:
                     return ua.StatusCode(ua.StatusCodes.BadTypeMismatch)
                 texts.append(str(arg.Value or ""))
             try:
-                body = await run_method(service, spec.name, texts)
+                body = await self._on_host(run_method(service, spec.name, texts))
             except AdsError as exc:
                 log.info("opcua %s refused: %s", spec.name, exc.message)
                 return _status(exc)
@@ -1407,7 +1460,7 @@ class OpcUaInterface:
         batches = ([values] if values else []) + [[c] for c in commands]
         for batch in batches:
             try:
-                errors = await service.apply_writes([p for _, p in batch])
+                errors = await self._on_host(service.apply_writes([p for _, p in batch]))
             except AdsError as exc:
                 out += [(i, _status(exc)) for i, _ in batch]
                 continue

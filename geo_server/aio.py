@@ -45,9 +45,8 @@ class LoopThread:
     The thread is a daemon: a stop that times out (a library coroutine that ignores
     its cancellation) does not keep the process from ending."""
 
-    def __init__(self, name: str, nice: int = 0) -> None:
+    def __init__(self, name: str) -> None:
         self.name = name
-        self.nice = nice
         self.loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
 
@@ -57,18 +56,15 @@ class LoopThread:
             return self.loop
         ready: concurrent.futures.Future[asyncio.AbstractEventLoop] = concurrent.futures.Future()
         self._thread = threading.Thread(
-            target=self._run, args=(ready, self.nice), name=self.name, daemon=True
+            target=self._run, args=(ready,), name=self.name, daemon=True
         )
         self._thread.start()
         self.loop = ready.result()
         return self.loop
 
     @staticmethod
-    def _run(ready: concurrent.futures.Future[asyncio.AbstractEventLoop], nice: int) -> None:
+    def _run(ready: concurrent.futures.Future[asyncio.AbstractEventLoop]) -> None:
         try:
-            if nice and sys.platform == "linux":  # (a thread's own niceness: Linux only)
-                with contextlib.suppress(OSError):
-                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
             loop = asyncio.new_event_loop()
         except BaseException as exc:  # (no loop: `start` raises it, never waits for ever)
             ready.set_exception(exc)
@@ -107,6 +103,15 @@ class LoopThread:
             return False
         self.loop = self._thread = None  # (a `run` now raises; `start` starts anew)
         return True
+
+
+def nice_this_thread(nice: int) -> None:
+    """Make the calling thread `nice` (Linux: a thread's own niceness; elsewhere, where
+    it would be the process's, nothing). Raising it needs no privileges; it is never
+    lowered again, and threads this one starts from now on inherit it."""
+    if sys.platform == "linux":
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
 
 
 async def on_loop(loop: asyncio.AbstractEventLoop | None, work: Coroutine[Any, Any, T]) -> T:

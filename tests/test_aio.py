@@ -51,25 +51,30 @@ def test_a_cancellation_in_the_step_the_event_is_set_ends_the_loop() -> None:
 
 def test_a_loop_thread_runs_work_on_its_own_thread_and_loop() -> None:
     """`LoopThread`: nothing runs before `start`; `run` awaits work done on the
-    thread's own loop; a cancelled wait cancels the work there; `stop` ends the thread;
-    on Linux the thread runs at the niceness asked for (read back from the kernel)."""
+    thread's own loop; a cancelled wait cancels the work there; `stop` ends the thread.
+    `nice_this_thread` there makes that thread, and only it, nicer on Linux (read back
+    from the kernel; the OPC UA interface's serving thread: docs/design.md §9.1)."""
     import os
     import sys
     import threading
     from pathlib import Path
 
-    from geo_server.aio import LoopThread
+    from geo_server.aio import LoopThread, nice_this_thread
 
-    own = LoopThread("own-loop", nice=7)
+    own = LoopThread("own-loop")
     # (a process already nicer than 7 cannot lower it without privileges: it stays)
     expected = max(7, os.getpriority(os.PRIO_PROCESS, 0)) if sys.platform == "linux" else -1
     assert own.loop is None and "own-loop" not in {t.name for t in threading.enumerate()}
 
+    def niceness_of(tid: int) -> int:
+        stat = Path(f"/proc/self/task/{tid}/stat").read_text()
+        return int(stat[stat.rindex(")") + 2 :].split()[16])  # (field 19: nice)
+
     async def where() -> tuple[str, int, asyncio.AbstractEventLoop]:
         niceness = -1
+        nice_this_thread(7)
         if sys.platform == "linux":
-            stat = Path(f"/proc/self/task/{threading.get_native_id()}/stat").read_text()
-            niceness = int(stat[stat.rindex(")") + 2 :].split()[16])  # (field 19: nice)
+            niceness = niceness_of(threading.get_native_id())
         return threading.current_thread().name, niceness, asyncio.get_running_loop()
 
     async def main() -> None:
@@ -78,6 +83,8 @@ def test_a_loop_thread_runs_work_on_its_own_thread_and_loop() -> None:
         assert name == "own-loop" and loop is own.loop
         assert loop is not asyncio.get_running_loop()
         assert niceness == expected
+        if sys.platform == "linux":  # (the caller's thread is not touched)
+            assert niceness_of(threading.get_native_id()) == os.getpriority(os.PRIO_PROCESS, 0)
         cancelled = threading.Event()
 
         async def forever() -> None:

@@ -408,6 +408,64 @@ def test_the_models_are_read_only_and_each_machine_has_its_own(default_cfg: Any)
 
 
 @pytest.mark.slow
+def test_a_fleets_copies_are_made_on_first_use_and_reached_every_way(default_cfg: Any) -> None:
+    """Three machines of one shape: the second's and third's nodes are not made at the
+    start (issue 46 #7: a fleet of 500 spent 15 s copying them), yet a client finds
+    every machine under Objects and in the Machinery Machines folder, reaches the
+    third's coefficient by browse names (TranslateBrowsePaths) and reads 4000.0, and
+    finds the second's object with the same children as the first's."""
+    from geo_server.machine.machine import Machine
+
+    names = ("m1", "m2", "m3")
+    services = {n: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True)) for n in names}
+
+    async def scenario() -> dict[str, Any]:
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0")
+        iface = OpcUaInterface(services, options)
+        await iface.start()
+        nodes = iface.server.iserver.aspace._nodes  # (asyncua's own dict: what is made)
+
+        def made(name: str) -> bool:
+            return dict.__contains__(nodes, ua.NodeId(f"{name}/Axes/X/TEMPC/coefficient", iface.ns))
+
+        try:
+            before = [made(n) for n in names]
+            async with Client(iface.endpoint, timeout=10) as c:
+                ns = await c.get_namespace_index(GEO_NS)
+                machinery = await c.get_namespace_index(MACHINERY)
+                objects = [q.Name for q in await _browse_names(c.nodes.objects)]
+                folder = await c.nodes.objects.get_child(f"{machinery}:Machines")
+                tools = [q.Name for q in await _browse_names(folder)]
+                path = [f"{ns}:{part}" for part in ("m3", "Axes", "X", "TEMPC", "coefficient")]
+                value = await (await c.nodes.objects.get_child(path)).read_value()
+                first, second = (c.get_node(ua.NodeId(n, ns)) for n in ("m1", "m2"))
+                children = [
+                    sorted(q.Name for q in await _browse_names(node)) for node in (first, second)
+                ]
+            return {
+                "before": before,
+                "after": [made(n) for n in names],
+                "objects": objects,
+                "tools": tools,
+                "value": value,
+                "children": children,
+            }
+        finally:
+            await iface.close()
+
+    got = asyncio.run(scenario())
+    assert got["before"] == [True, False, False]
+    assert set(names) <= set(got["objects"]) and set(names) <= set(got["tools"])
+    assert got["value"] == 4000.0
+    assert got["children"][0] == got["children"][1] and "Axes" in got["children"][0]
+    assert got["after"] == [True, True, True]
+
+
+async def _browse_names(node: Any) -> list[Any]:
+    return [await child.read_browse_name() for child in await node.get_children()]
+
+
+@pytest.mark.slow
 def test_the_machines_messages_are_events_of_its_machine_tool(service: ObjectService) -> None:
     """OPC 40501 Notification/Messages: a warning or error of the machine's list is a
     NotificationEventType event there, with its text, a Severity (error 700, warning 400)

@@ -32,6 +32,7 @@ import logging
 import math
 import secrets
 import uuid
+from collections.abc import Callable
 from typing import Any
 
 from asyncua import Server
@@ -71,6 +72,47 @@ MAX_UNACKED = 64
 MIN_PUBLISHING_MS = 10.0
 _MESSAGE_TYPES = (b"HEL", b"OPN", b"MSG", b"CLO")
 _NONE_POLICY = "http://opcfoundation.org/UA/SecurityPolicy#None"
+
+
+class _LazyNodes(dict[Any, Any]):
+    """asyncua's `AddressSpace._nodes` with nodes made on first use: a look-up that
+    misses asks `materialize` to make the nodes the id belongs to (a copied machine of
+    a fleet, `OpcUaInterface._materialize`) and looks again. asyncua's own
+    `load_aspace_shelf` swaps the same dict for a mapping that loads nodes when first
+    asked for; its `AddressSpace` looks nodes up with `[]`, `get` and `in` only."""
+
+    def __init__(self, made: dict[Any, Any], materialize: Callable[[Any], bool]) -> None:
+        super().__init__(made)
+        self._materialize = materialize
+
+    def __missing__(self, node_id: Any) -> Any:
+        if self._materialize(node_id) and dict.__contains__(self, node_id):
+            return dict.__getitem__(self, node_id)
+        raise KeyError(node_id)
+
+    def get(self, node_id: Any, default: Any = None) -> Any:
+        try:
+            return self[node_id]
+        except KeyError:
+            return default
+
+    def __contains__(self, node_id: object) -> bool:
+        return dict.__contains__(self, node_id) or (
+            self._materialize(node_id) and dict.__contains__(self, node_id)
+        )
+
+
+def lazy_nodes(server: Any, materialize: Callable[[Any], bool]) -> None:
+    """From now on, `server`'s address space makes a node it does not have yet with
+    `materialize(node_id)` (True: made) when it is first asked for (`_LazyNodes`)."""
+    aspace = server.iserver.aspace
+    nodes = aspace._nodes
+    if isinstance(nodes, _LazyNodes):
+        nodes._materialize = materialize
+        return
+    if type(nodes) is not dict:  # (an asyncua that changed its address space)
+        raise RuntimeError(f"asyncua's address space keeps its nodes in a {type(nodes)}")
+    aspace._nodes = _LazyNodes(nodes, materialize)
 
 
 def asyncua_start_hash() -> str:

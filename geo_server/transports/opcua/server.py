@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from geo_server import __version__
-from geo_server.aio import LoopThread, on_loop
+from geo_server.aio import LoopThread, nice_this_thread, on_loop
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
@@ -385,6 +385,9 @@ class OpcUaInterface:
         #: the companion models' namespace indexes (CNC, Machine Tool, Machinery)
         self.cnc_ns = self.mt_ns = self.machinery_ns = 0
         self._vars: dict[Any, _Var] = {}
+        #: copied machines whose nodes are still to be made: name -> (template, its
+        #: service, its shape) (`_materialize`; asyncua's loop's)
+        self._pending: dict[str, tuple[str, ObjectService, Any]] = {}
         #: (shape, machine): the machine whose nodes the others of its shape copy
         self._shapes: list[tuple[Any, str]] = []
         #: machine -> the node ids of its nodes, and how to copy them (`_copy_nodes`)
@@ -413,7 +416,7 @@ class OpcUaInterface:
         self._frozen = False
         #: asyncua's loop and thread (`opcua`): every coroutine of this interface but
         #: `start` and `close` runs there (docs/design.md §9.1, §5.10)
-        self._own = LoopThread("opcua", nice=OPCUA_NICE)
+        self._own = LoopThread("opcua")
         self._loop: asyncio.AbstractEventLoop | None = None
         #: the loop `start` was called on (ADS, Modbus, ...): the machine's catch-ups,
         #: writes and methods run there (`_current`, `_on_host`)
@@ -495,6 +498,9 @@ class OpcUaInterface:
                 "MaxMonitoredItems": opts.max_monitored_items,
             },
         )
+        # served from now on: niced (built at the others' priority: a fleet's build
+        # competes with its machines' start, and its workers, made meanwhile, stay so)
+        nice_this_thread(OPCUA_NICE)
         await guard.start(server, opts.unread_close_s, self.meter)
         assert server.bserver is not None
         self.port = server.bserver.port
@@ -604,11 +610,12 @@ class OpcUaInterface:
         """Every machine's object, its folders, variables (`space.machine_variables`)
         with their properties, its methods and companion models, made off the loop
         (nothing serves them yet): the first machine of a shape (its axes, their kinds,
-        its dictionary) with asyncua's AddNodes (0.1-0.2 s), every other one of that
-        shape as a copy of it (`_copy_nodes`), copied and served in batches on a worker
-        (`COPY_BATCH`: one hand-over of the interpreter per batch, not per machine, which
-        in a fleet of hundreds waits for its machines' cycle threads each time)."""
-        batch: list[tuple[str, str, ObjectService, Any]] = []
+        its dictionary) with asyncua's AddNodes (0.1-0.2 s); every other one of that
+        shape is a copy of it (`_copy_nodes`) made when a request first touches one of
+        its nodes (`_materialize`): only the references that lead to it from outside
+        (Objects, the Machinery `Machines` folder) are made now. A copy takes 20-30 ms,
+        so a fleet of 500 would wait 15 s for them, most of which nobody browses."""
+        pending: dict[str, tuple[str, ObjectService, Any]] = {}
         for machine, service in self.services.items():
             shape = _shape(service)
             template = next((m for s, m in self._shapes if s == shape), None)
@@ -616,12 +623,40 @@ class OpcUaInterface:
                 await self._build_first(machine, service, shape)
                 self._shapes.append((shape, machine))
                 continue
-            batch.append((template, machine, service, shape))
-            if len(batch) >= COPY_BATCH:
-                await asyncio.to_thread(self._copy_batch, batch)
-                batch = []
-        if batch:
-            await asyncio.to_thread(self._copy_batch, batch)
+            pending[machine] = (template, service, shape)
+        if pending:
+            await asyncio.to_thread(self._anchor_all, pending)
+
+    def _anchor_all(self, pending: dict[str, tuple[str, ObjectService, Any]]) -> None:
+        """The references to each copied machine from outside it; its nodes are made on
+        first use (`guard.lazy_nodes`)."""
+        from geo_server.transports.opcua import guard
+
+        for machine, (template, _service, _shape) in pending.items():
+            if self._closing:  # (closed meanwhile: the worker is not cancelled with it)
+                return
+            self._anchor(template, machine)
+        self._pending.update(pending)
+        guard.lazy_nodes(self.server, self._materialize)
+        self._vars = _LazyVars(self._vars, self._materialize)
+
+    def _materialize(self, node_id: Any) -> bool:
+        """Make the nodes of the copied machine `node_id` belongs to, now that a request
+        asks for one of them (on asyncua's loop); False: it belongs to none still to
+        be made."""
+        if not self._pending or not isinstance(node_id, _ua().NodeId):
+            return False
+        ident = node_id.Identifier
+        if not isinstance(ident, str) or node_id.NamespaceIndex != self.ns:
+            return False
+        machine = ident.split("/", 1)[0]
+        pending = self._pending.pop(machine, None)
+        if pending is None:
+            return False
+        template, service, shape = pending
+        self._copy_nodes(template, machine)
+        self._serve_all(machine, service, shape)
+        return True
 
     async def _build_first(self, machine: str, service: ObjectService, shape: Any) -> None:
         names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
@@ -631,15 +666,6 @@ class OpcUaInterface:
             await _off_loop(lambda: self._add_cnc(machine, names, kinds, specs))
             await _off_loop(lambda: self._add_machine_tool(machine))
         self._serve_all(machine, service, shape)
-
-    def _copy_batch(self, batch: list[tuple[str, str, ObjectService, Any]]) -> None:
-        """Copy and serve machines (each with the shape its template was chosen by: a
-        reload meanwhile changes its configuration, not this build)."""
-        for template, machine, service, shape in batch:
-            if self._closing:  # (closed meanwhile: the worker is not cancelled with it)
-                return
-            self._copy_nodes(template, machine)
-            self._serve_all(machine, service, shape)
 
     def _serve_all(self, machine: str, service: ObjectService, shape: Any) -> None:
         """Serve a machine's variables, methods and companion models."""
@@ -957,13 +983,24 @@ class OpcUaInterface:
             ]
             nodes[new_id] = node
             copied.append(new_id)
-        # the nodes out of the machine that refer to it (Objects, Machines)
+        self._subtrees[machine] = copied
+
+    def _anchor(self, template: str, machine: str) -> None:
+        """The references to `machine`'s nodes from the nodes out of it that refer to
+        `template`'s (Objects, Machines), made before its nodes (`_materialize`)."""
+        ua = _ua()
+
+        ns = self.ns
+        nodes = self.server.iserver.aspace
+        if template not in self._plans:
+            self._plan(template)
+        named = _Named(ua.QualifiedName(machine, ns), ua.LocalizedText(machine))
         for outside, suffix in self._anchors[template]:
             held = ua.NodeId(template + suffix, ns)
+            here = ua.NodeId(machine + suffix, ns)
             for up in [r for r in nodes[outside].references if r.NodeId == held and r.IsForward]:
                 named_here = named if suffix in _NAMED else None
-                nodes[outside].references.append(_retargeted(up, ids[suffix], named_here))
-        self._subtrees[machine] = copied
+                nodes[outside].references.append(_retargeted(up, here, named_here))
 
     def _plan(self, template: str) -> list[tuple[str, Any, list[tuple[Any, str | None]]]]:
         """How to copy `template`'s nodes: each node's id below the machine (its suffix,
@@ -1925,6 +1962,33 @@ def _index_range(text: str) -> list[tuple[int, int]] | None:
 _NAMED = ("", f"/{machinetool.INSTANCE}")
 
 
+class _LazyVars(dict[Any, _Var]):
+    """`OpcUaInterface._vars` once machines are copied on first use: a look-up of a
+    node of a machine not made yet makes it (`materialize`), as the address space's
+    does (`guard.lazy_nodes`). Iterating sees the machines made so far, all of them a
+    monitored item can be on."""
+
+    def __init__(self, made: dict[Any, _Var], materialize: Callable[[Any], bool]) -> None:
+        super().__init__(made)
+        self._materialize = materialize
+
+    def __missing__(self, node_id: Any) -> _Var:
+        if self._materialize(node_id) and dict.__contains__(self, node_id):
+            return dict.__getitem__(self, node_id)
+        raise KeyError(node_id)
+
+    def get(self, node_id: Any, default: Any = None) -> Any:
+        try:
+            return self[node_id]
+        except KeyError:
+            return default
+
+    def __contains__(self, node_id: object) -> bool:
+        return dict.__contains__(self, node_id) or (
+            self._materialize(node_id) and dict.__contains__(self, node_id)
+        )
+
+
 @dataclass(frozen=True)
 class _Named:
     """A machine's object's BrowseName and DisplayName (a copy's: `_copy_nodes`)."""
@@ -2024,10 +2088,6 @@ def _build_date() -> dt.datetime:
     """When this copy of geo-server was built or installed: its package's time."""
     stamp = Path(__file__).resolve().parents[2].joinpath("__init__.py").stat().st_mtime
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
-
-
-#: machines copied and served in one turn of a worker thread (`_build_all`)
-COPY_BATCH = 50
 
 
 def _shape(service: ObjectService) -> tuple[Any, ...]:

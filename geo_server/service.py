@@ -273,8 +273,19 @@ class ObjectService:
                 "the GEO cycle is busy catching up (the host stalled): no current values",
             )
         snap = self.machine.snapshot
-        if stale_ok:
-            return snap
+        return snap if stale_ok else self._unless_stalled(snap)
+
+    def current_if_due(self) -> Snapshot | None:
+        """`current()` when it needs no catch-up (nothing is computed, the engine's lock
+        is not taken: the published snapshot is the one due, or the engine computes on
+        its own), else None: the caller then asks `current` on a thread that may hold
+        the lock (OPC UA's niced thread does not, docs/design.md §9.1). 0x707 as
+        `current` while the cycle is stalled."""
+        if not self.scheduler.shows_due():
+            return None
+        return self._unless_stalled(self.machine.snapshot)
+
+    def _unless_stalled(self, snap: Snapshot) -> Snapshot:
         stalled = self._stalled_for()
         if stalled:
             raise AdsError(

@@ -247,7 +247,7 @@ def test_the_seam_check_sees_a_crossing():
 
 #: The narrow service (docs/design.md §5.7): at most this many public methods, and no
 #: public properties (the machine's facts are `info`'s).
-NARROW_METHODS = 16
+NARROW_METHODS = 17
 #: What an interface may use of the object service besides its public methods: the
 #: services beside them, and the status items an interface adds.
 SERVICE_ATTRIBUTES = frozenset(

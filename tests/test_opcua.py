@@ -429,14 +429,20 @@ def test_one_read_request_is_answered_from_one_cycle(
     """The values of one Read request come from one snapshot, as an ADS sum read's: here
     every observation of the machine is followed by a cycle, so values taken one by one
     would each come from another cycle."""
-    real = service.current
+    real, real_if_due = service.current, service.current_if_due
 
     def current(**kw: Any) -> Any:
         snap = real(**kw)
         service.scheduler.step(1)  # the next observation sees the next cycle
         return snap
 
+    def current_if_due() -> Any:  # (what OPC UA asks first: §9.1)
+        snap = real_if_due()
+        service.scheduler.step(1)
+        return snap
+
     monkeypatch.setattr(service, "current", current)
+    monkeypatch.setattr(service, "current_if_due", current_if_due)
 
     async def scenario() -> None:
         iface = await started({"local": service}, options())

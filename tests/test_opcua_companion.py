@@ -413,14 +413,15 @@ def test_a_fleets_copies_are_made_on_first_use_and_reached_every_way(default_cfg
     start (issue 46 #7: a fleet of 500 spent 15 s copying them), yet a client finds
     every machine under Objects and in the Machinery Machines folder, reaches the
     third's coefficient by browse names (TranslateBrowsePaths) and reads 4000.0, and
-    finds the second's object with the same children as the first's."""
+    finds the second's object with the same children as the first's. (`make_all` off:
+    nothing made in the background meanwhile; with it, below, all are made.)"""
     from geo_server.machine.machine import Machine
 
     names = ("m1", "m2", "m3")
     services = {n: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True)) for n in names}
 
     async def scenario() -> dict[str, Any]:
-        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0")
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", make_all=False)
         iface = OpcUaInterface(services, options)
         await iface.start()
         nodes = iface.server.iserver.aspace._nodes  # (asyncua's own dict: what is made)
@@ -459,6 +460,42 @@ def test_a_fleets_copies_are_made_on_first_use_and_reached_every_way(default_cfg
     assert got["value"] == 4000.0
     assert got["children"][0] == got["children"][1] and "Axes" in got["children"][0]
     assert got["after"] == [True, True, True]
+
+
+@pytest.mark.slow
+def test_once_serving_a_fleets_copies_are_made_in_the_background(default_cfg: Any) -> None:
+    """With `make_all` (the default) the machines no request touched are made once the
+    server serves, each readable; a request across the fleet then makes none itself."""
+    from geo_server.machine.machine import Machine
+
+    names = ("m1", "m2", "m3", "m4")
+    services = {n: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True)) for n in names}
+
+    async def scenario() -> list[Any]:
+        iface = OpcUaInterface(services, OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0"))
+        await iface.start()
+        nodes = iface.server.iserver.aspace._nodes
+
+        def all_made() -> bool:
+            return all(
+                dict.__contains__(nodes, ua.NodeId(f"{n}/Axes/X/TEMPC/coefficient", iface.ns))
+                for n in names
+            )
+
+        try:
+            for _ in range(1000):  # (a few machines: a fraction of a second)
+                if all_made():
+                    break
+                await asyncio.sleep(0.01)
+            assert all_made()
+            async with Client(iface.endpoint, timeout=10) as c:
+                ns = await c.get_namespace_index(GEO_NS)
+                ids = [ua.NodeId(f"{n}/Axes/X/TEMPC/coefficient", ns) for n in names]
+                return [await c.get_node(i).read_value() for i in ids]
+        finally:
+            await iface.close()
+
+    assert asyncio.run(scenario()) == [4000.0] * 4
 
 
 async def _browse_names(node: Any) -> list[Any]:

@@ -364,9 +364,9 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
         options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
         iface = OpcUaInterface(services, options, {"a": fleet_share})
         share = iface.machine_shares["a"]  # (OPC UA's own thread: a share of it)
-        # a's fleet rate, but at most half of OPC UA's tenth: a flood of a's leaves the
-        # other machines' clients the other half
-        assert (iface.loop_share.rate, share.rate, share.burst) == (0.1, 0.05, 0.002)
+        # a's fleet rate (a tenth), at most half of OPC UA's fifth: a flood of a's
+        # leaves the other machines' clients the other half
+        assert (iface.loop_share.rate, share.rate, share.burst) == (0.2, 0.1, 0.002)
         await iface.start()
         try:
             async with (

@@ -523,3 +523,24 @@ def test_a_read_at_rest_with_an_old_heartbeat_waits_for_the_wake_under_way(cfg) 
         waker.join()
     finally:
         sched.stop()
+
+
+def test_current_if_due_never_catches_up(cfg) -> None:
+    """`ObjectService.current_if_due` (what OPC UA's niced thread asks, docs/design.md
+    §9.1): at t0 + 0.5 ms, cycle 0 is due and published, so it is answered without a
+    catch-up; at t0 + 3.5 ms cycle 3 is due and not computed: None, and nothing was
+    computed by asking (the machine is still at cycle 0); after `current()` (which
+    catches up) cycle 3 again. A stepped machine (no engine) always is."""
+    vc, m, sched = driven(cfg)
+    service = ObjectService(m, sched)
+    t0 = sched.t0
+    vc.t = t0 + 500_000
+    snap = service.current_if_due()
+    assert snap is not None and snap.cycle == 0
+    vc.t = t0 + 3_500_000
+    assert service.current_if_due() is None
+    assert m.cycle == 0  # (asking computed nothing)
+    assert service.current().cycle == 3
+    assert service.current_if_due() is service.current()
+    stepped = ObjectService(Machine(cfg, homed=True))
+    assert stepped.current_if_due() is stepped.machine.snapshot

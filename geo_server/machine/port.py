@@ -276,6 +276,11 @@ class CycleRunner(Protocol):
         seconds (0: only if nobody else is computing). `record`: time it as what
         catching up added to a request."""
 
+    def shows_due(self) -> bool:
+        """Whether `sync` has nothing to compute or wait for now (a look without a
+        lock: the published snapshot is the one due, or no exact engine runs)."""
+        ...
+
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (`MachinePort.submit` once the
         machine has caught up)."""

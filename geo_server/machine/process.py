@@ -631,6 +631,10 @@ class ProcessScheduler:
             self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
         return bool(done) and not m.closed
 
+    def shows_due(self) -> bool:
+        """`Scheduler.shows_due`: the snapshot the cycle process sent is the one due."""
+        return not self.exact or not self.running or self.machine.snapshot.cycle >= self.due()
+
     def submit(self, op: Operation) -> Pending:
         """Queue `op` for the cycle after the one due now (exact engine: the cycle
         process runs the cycles up to its arrival without it)."""

@@ -466,16 +466,11 @@ class Scheduler:
         one due. `record`: time it as what catching up added to a request (status
         `sync_p50_us`/`sync_p99_us`; a status's own catch-up is not one). Other modes:
         nothing to do (True)."""
-        # (started, not `running`: a thread's liveness costs more than the rest of the
-        # fast path; an engine thread that died is caught up by its observers instead)
-        if not self._exact or not (
-            self._thread is not None or self._here or self._shared is not None
-        ):
+        if not self._engine_started():
             return True
         t0 = time.perf_counter_ns()
         now = self._observed_at = self._clock()
-        m = self.machine
-        if m.snapshot.cycle == m.cycle == (now - self.t0) // self.period_ns:
+        if self._published_due(now):
             # the cycle due is computed and published already (requests faster than the
             # cycle): nothing to take the engine for (the engine never runs ahead of due)
             if record:
@@ -490,6 +485,22 @@ class Scheduler:
         if record:
             self.sync_stats.record(0.0, (time.perf_counter_ns() - t0) / 1000)
         return True
+
+    def _engine_started(self) -> bool:
+        # (started, not `running`: a thread's liveness costs more than the rest of the
+        # fast path; an engine thread that died is caught up by its observers instead)
+        return self._exact and (self._thread is not None or self._here or self._shared is not None)
+
+    def _published_due(self, now: int) -> bool:
+        m = self.machine
+        return bool(m.snapshot.cycle == m.cycle == (now - self.t0) // self.period_ns)
+
+    def shows_due(self) -> bool:
+        """Whether `sync` has nothing to compute now: not the exact engine (or not
+        started), or the cycle due is computed and published already. A look without
+        the engine's lock, for a caller that must not take it (OPC UA's niced thread,
+        docs/design.md §9.1)."""
+        return not self._engine_started() or self._published_due(self._clock())
 
     def shows_rest(self) -> bool:
         """The published snapshot holds every object that cannot vary at rest as it is

@@ -182,8 +182,10 @@ OPCUA_NICE = 10
 MACHINE_PART = 0.5
 
 #: The longest a request on asyncua's thread waits for the main loop to catch the
-#: machine up (`_current`) before it is answered as a stall (0x707's status)
-HOST_WAIT_S = 2.0
+#: machine up (`_current`) before it is answered as a stall (0x707's status): the
+#: service's own wait for a catch-up (`SYNC_WAIT`, 0.25 s) and as much again, well under
+#: the second after which asyncua's client gives up on a keep-alive
+HOST_WAIT_S = 0.5
 
 #: `close`: the longest it waits for asyncua's server to stop, and then again for its
 #: thread to end (SIGTERM ends the server within 2 s whatever its clients do: the
@@ -212,6 +214,10 @@ class OpcUaOptions:
     #: The CNC (OPC 40502) and Machine Tool (OPC 40501) companion models of every
     #: machine (docs/opcua.md); loading their NodeSets takes about 3 s of the start.
     companion_models: bool = True
+    #: A fleet's machines after the first of a shape are made when a request first
+    #: touches one of their nodes; with `make_all`, once serving, the rest are made in
+    #: the background too, one per turn of OPC UA's loop (`_make_pending`).
+    make_all: bool = True
     #: TCP connections at once (asyncua's own default: 1000); more are refused.
     max_connections: int = 64
     #: Monitored items in one session (of any node); more are refused with
@@ -232,7 +238,7 @@ class OpcUaOptions:
     #: for the cores and the interpreter lock with ADS, Modbus, the web HMI and the
     #: cycle. An HMI that reads 100 values every 100 ms takes about a thirtieth. Past
     #: it, requests wait and values are sampled less often.
-    loop_share: float = 0.1
+    loop_share: float = 0.2
     #: The most loop time (seconds) OPC UA may take in a row after a quiet spell (a
     #: client connecting and subscribing takes a few tens of ms), one request per turn
     #: of the loop, so the others' requests are answered in between.
@@ -388,6 +394,7 @@ class OpcUaInterface:
         #: copied machines whose nodes are still to be made: name -> (template, its
         #: service, its shape) (`_materialize`; asyncua's loop's)
         self._pending: dict[str, tuple[str, ObjectService, Any]] = {}
+        self._making: asyncio.Future[None] | None = None  # (`_make_pending`)
         #: (shape, machine): the machine whose nodes the others of its shape copy
         self._shapes: list[tuple[Any, str]] = []
         #: machine -> the node ids of its nodes, and how to copy them (`_copy_nodes`)
@@ -507,6 +514,8 @@ class OpcUaInterface:
         if opts.companion_models:
             for machine, service in self.services.items():
                 self._unwatch.append(service.subscribe_events(self._on_event(machine)))
+        if self._pending and opts.make_all:
+            self._making = asyncio.ensure_future(self._make_pending())
 
     async def _init_and_build(self, server: Any) -> None:
         """asyncua's standard address space (filled in a thread by asyncua), the
@@ -588,8 +597,10 @@ class OpcUaInterface:
         for release in self._hold.values():
             release()
         self._hold.clear()
+        for task in (self._making, self._drain):
+            if task is not None:
+                task.cancel()
         if self._drain is not None:
-            self._drain.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._drain
         if self.server is not None:
@@ -653,10 +664,29 @@ class OpcUaInterface:
         pending = self._pending.pop(machine, None)
         if pending is None:
             return False
+        if self.server is None:  # (closing: nothing is made any more)
+            self._pending[machine] = pending
+            return False
         template, service, shape = pending
-        self._copy_nodes(template, machine)
-        self._serve_all(machine, service, shape)
+        try:
+            self._copy_nodes(template, machine)
+            self._serve_all(machine, service, shape)
+        except BaseException:  # (made again, whole, at the next look-up)
+            self._pending[machine] = pending
+            raise
+        if self._frozen:  # (as the build's: out of the collector's way, `_collector_paused`)
+            gc.freeze()
         return True
+
+    async def _make_pending(self) -> None:
+        """Once serving, the machines no request has made yet, one per turn of the
+        loop: a request that touches many of them (a Read across a fleet, a client
+        browsing every machine's name) then finds them made, rather than making them
+        all itself (25 ms each). A request may still make one first."""
+        ua = _ua()
+        while self._pending and not self._closing:
+            self._materialize(ua.NodeId(next(iter(self._pending)), self.ns))
+            await asyncio.sleep(0)
 
     async def _build_first(self, machine: str, service: ObjectService, shape: Any) -> None:
         names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
@@ -925,6 +955,8 @@ class OpcUaInterface:
         MachineTool/Notification/Messages (OPC 40501; `machinetool.notification`)."""
         ua = _ua()
 
+        if machine in self._pending:  # (no item can be on a machine not made: nobody listens)
+            return
         generator = self._generators.get(machine)
         if generator is None:
             generator = await self.server.get_event_generator(
@@ -1225,11 +1257,17 @@ class OpcUaInterface:
         return self._datavalue(var, var.value(snap), snap)
 
     def _current(self, service: ObjectService) -> Snapshot:
-        """`service.current()` run by the main loop's thread, this one waiting: the
-        exact engine's catch-up holds its lock, and this thread is niced: descheduled
-        while holding it, it would keep the machine's ADS and Modbus requests waiting.
-        0x707 when the main loop does not answer within `HOST_WAIT_S` (or has ended)."""
+        """The snapshot due now: here when it needs no catch-up (`current_if_due`), else
+        `service.current()` run by the main loop's thread, this one waiting: the exact
+        engine's catch-up holds its lock, and this thread is niced: descheduled while
+        holding it, it would keep the machine's ADS and Modbus requests waiting. 0x707
+        when the main loop does not answer within `HOST_WAIT_S` (or has ended)."""
+        ready = service.current_if_due()
+        if ready is not None:
+            return ready
         host = self._host
+        if host is not None and _running_loop() is host:  # (called on the main loop itself)
+            return service.current()
         done: concurrent.futures.Future[Snapshot] = concurrent.futures.Future()
 
         def run() -> None:
@@ -1254,10 +1292,11 @@ class OpcUaInterface:
     async def _on_host(self, work: Coroutine[Any, Any, T]) -> T:
         """Await `work` run on the main loop (a write's or a method's: they catch the
         machine up, `_current`)."""
-        try:
-            return await on_loop(self._host, work)
-        except RuntimeError as exc:  # (the main loop has ended: the server stops)
-            raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the server is stopping") from exc
+        host = self._host
+        if host is not None and host.is_closed():  # (the main loop has ended: it stops)
+            work.close()
+            raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the server is stopping")
+        return await on_loop(host, work)
 
     def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
         ua = _ua()
@@ -1880,6 +1919,13 @@ def _taken(queue: deque[Snapshot]) -> list[Snapshot]:
 
 #: no value sampled yet (at an interval; `_Var.lasts`)
 _NONE = object()
+
+
+def _running_loop() -> asyncio.AbstractEventLoop | None:
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        return None
 
 
 def _cycle_ms(var: _Var) -> float:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -25,6 +24,7 @@ import pytest
 from asyncua import Client, ua
 from asyncua.ua.uaerrors import UaStatusCodeError
 from conftest import free_port, geo_server_running
+from support.probes import modbus_read
 
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
@@ -432,22 +432,6 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
 
 
-def modbus_read(port: int) -> int:
-    """FC 3 of TEMPC::coefficient's registers (axis 1): the exception code or 0."""
-    from geo_server.dictionary import load_dictionary
-    from geo_server.transports.modbus.regmap import register_address
-
-    obj = load_dictionary().by_name("TEMPC::coefficient")
-    with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as s:
-        s.sendall(struct.pack(">HHHBBHH", 1, 0, 6, 1, 3, register_address(obj), 4))
-        buf = b""
-        while len(buf) < 9:
-            chunk = s.recv(64)
-            assert chunk
-            buf += chunk
-        return 0 if buf[7] == 3 else buf[8]
-
-
 def test_a_request_holding_asyncua_does_not_hold_the_other_interfaces() -> None:
     """asyncua runs on a thread and loop of its own: while an OPC UA Write to machine
     `held` cannot finish (its value's check does not return until the test releases
@@ -485,7 +469,8 @@ def test_a_request_holding_asyncua_does_not_hold_the_other_interfaces() -> None:
                 if sys.platform == "linux":  # (niced: the kernel lets the loop's thread in)
                     ours = [t for t in threading.enumerate() if t.name == "opcua"]
                     assert ours and all(_niceness(t.native_id) == OPCUA_NICE for t in ours)
-                assert await asyncio.to_thread(modbus_read, modbus.port) == 0
+                coefficient = free.info.dictionary.by_name("TEMPC::coefficient")
+                assert await asyncio.to_thread(modbus_read, modbus.port, coefficient, TIMEOUT) == 0
                 assert not writing.done()
                 armed.clear()
                 release.set()

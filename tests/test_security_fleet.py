@@ -24,6 +24,7 @@ import time
 
 import pytest
 from conftest import run_in
+from support import probes
 from test_fleet import TIMEOUT, fleet, served_fleet, zget  # noqa: F401  (the fixture)
 from test_virtual_time import VirtualClock
 
@@ -99,15 +100,8 @@ class Ads:
 
 
 def modbus_read(port: int) -> int:
-    """FC 3 of TEMPC::offset_0's two registers (axis 1): the exception code or 0."""
-    with socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT) as s:
-        s.sendall(struct.pack(">HHHBBHH", 1, 0, 6, 1, 3, register_address(OFFSET_0), 2))
-        buf = b""
-        while len(buf) < 9:
-            chunk = s.recv(64)
-            assert chunk
-            buf += chunk
-        return 0 if buf[7] == 3 else buf[8]
+    """FC 3 of TEMPC::offset_0 (axis 1): the exception code or 0."""
+    return probes.modbus_read(port, OFFSET_0, TIMEOUT)
 
 
 # ---------------------------------------------------------------------- the fleet

@@ -74,12 +74,13 @@ _MESSAGE_TYPES = (b"HEL", b"OPN", b"MSG", b"CLO")
 _NONE_POLICY = "http://opcfoundation.org/UA/SecurityPolicy#None"
 
 
-class _LazyNodes(dict[Any, Any]):
-    """asyncua's `AddressSpace._nodes` with nodes made on first use: a look-up that
-    misses asks `materialize` to make the nodes the id belongs to (a copied machine of
-    a fleet, `OpcUaInterface._materialize`) and looks again. asyncua's own
-    `load_aspace_shelf` swaps the same dict for a mapping that loads nodes when first
-    asked for; its `AddressSpace` looks nodes up with `[]`, `get` and `in` only."""
+class MadeOnUse(dict[Any, Any]):
+    """A dict whose misses ask `materialize(key)` to make what the key belongs to and
+    look again: asyncua's `AddressSpace._nodes` with a fleet's copied machines made on
+    first use (`lazy_nodes`), and the interface's variables alike
+    (`OpcUaInterface._vars`). asyncua's own `load_aspace_shelf` swaps the same dict for
+    a mapping that loads nodes when first asked for; its `AddressSpace` looks nodes up
+    with `[]`, `get` and `in`. Iterating sees what is made so far."""
 
     def __init__(self, made: dict[Any, Any], materialize: Callable[[Any], bool]) -> None:
         super().__init__(made)
@@ -104,15 +105,15 @@ class _LazyNodes(dict[Any, Any]):
 
 def lazy_nodes(server: Any, materialize: Callable[[Any], bool]) -> None:
     """From now on, `server`'s address space makes a node it does not have yet with
-    `materialize(node_id)` (True: made) when it is first asked for (`_LazyNodes`)."""
+    `materialize(node_id)` (True: made) when it is first asked for (`MadeOnUse`)."""
     aspace = server.iserver.aspace
     nodes = aspace._nodes
-    if isinstance(nodes, _LazyNodes):
+    if isinstance(nodes, MadeOnUse):
         nodes._materialize = materialize
         return
     if type(nodes) is not dict:  # (an asyncua that changed its address space)
         raise RuntimeError(f"asyncua's address space keeps its nodes in a {type(nodes)}")
-    aspace._nodes = _LazyNodes(nodes, materialize)
+    aspace._nodes = MadeOnUse(nodes, materialize)
 
 
 def asyncua_start_hash() -> str:

@@ -649,7 +649,7 @@ class OpcUaInterface:
             self._anchor(template, machine)
         self._pending.update(pending)
         guard.lazy_nodes(self.server, self._materialize)
-        self._vars = _LazyVars(self._vars, self._materialize)
+        self._vars = guard.MadeOnUse(self._vars, self._materialize)
 
     def _materialize(self, node_id: Any) -> bool:
         """Make the nodes of the copied machine `node_id` belongs to, now that a request
@@ -2006,33 +2006,6 @@ def _index_range(text: str) -> list[tuple[int, int]] | None:
 #: the nodes of a machine whose BrowseName is the machine's name: its object, and its
 #: MachineTool in the Machines folder (suffixes of their node ids)
 _NAMED = ("", f"/{machinetool.INSTANCE}")
-
-
-class _LazyVars(dict[Any, _Var]):
-    """`OpcUaInterface._vars` once machines are copied on first use: a look-up of a
-    node of a machine not made yet makes it (`materialize`), as the address space's
-    does (`guard.lazy_nodes`). Iterating sees the machines made so far, all of them a
-    monitored item can be on."""
-
-    def __init__(self, made: dict[Any, _Var], materialize: Callable[[Any], bool]) -> None:
-        super().__init__(made)
-        self._materialize = materialize
-
-    def __missing__(self, node_id: Any) -> _Var:
-        if self._materialize(node_id) and dict.__contains__(self, node_id):
-            return dict.__getitem__(self, node_id)
-        raise KeyError(node_id)
-
-    def get(self, node_id: Any, default: Any = None) -> Any:
-        try:
-            return self[node_id]
-        except KeyError:
-            return default
-
-    def __contains__(self, node_id: object) -> bool:
-        return dict.__contains__(self, node_id) or (
-            self._materialize(node_id) and dict.__contains__(self, node_id)
-        )
 
 
 @dataclass(frozen=True)

@@ -150,11 +150,8 @@ class Server:
             time.sleep(0.2)
 
     def rewrite(self, text: str) -> str:
-        return (
-            text.replace("7447", str(self.zport))
-            .replace("48898", str(self.aport))
-            .replace("5020", str(self.mport))
-            .replace("4840", str(self.oport))
+        return rewrite_ports(
+            text, {7447: self.zport, 48898: self.aport, 5020: self.mport, 4840: self.oport}
         )
 
     def close(self) -> None:
@@ -165,6 +162,20 @@ class Server:
             self.proc.kill()
             self.proc.wait(10)
         self._log.close()
+
+
+def rewrite_ports(text: str, ports: dict[int, int]) -> str:
+    """The README's default ports in `text` replaced by a test server's, in one pass over
+    whole numbers: replacing one port after another rewrote a port just put in (Modbus
+    on 24840 became "2" followed by the OPC UA port)."""
+    pattern = r"\b(" + "|".join(str(p) for p in ports) + r")\b"
+    return re.sub(pattern, lambda m: str(ports[int(m[1])]), text)
+
+
+def test_a_port_put_in_is_not_rewritten_again() -> None:
+    ports = {5020: 24840, 4840: 24529}
+    assert rewrite_ports("-p 5020 and :4840/x", ports) == "-p 24840 and :24529/x"
+    assert rewrite_ports("15020 50201", ports) == "15020 50201"
 
 
 def matches(expected: list[str], got: list[str]) -> bool:

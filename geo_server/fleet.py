@@ -28,6 +28,7 @@ import contextlib
 import json
 import signal
 import sys
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,10 +120,15 @@ def _cycle_threads(served: list[Served]) -> int:
     return len(served) - exact + min(exact, 1)
 
 
+class Halted(Exception):
+    """A fleet's status was not computed: the fleet stops (`fleet_status`)."""
+
+
 def fleet_status(
     served: list[Served],
     loop_lag_ms: float = 0.0,
     publish: Mapping[str, Callable[[dict[str, Any]], None]] | None = None,
+    halted: threading.Event | None = None,
 ) -> dict[str, Any]:
     """Every machine's name, cycle, engine, overruns and addresses; the fleet's totals.
     Each machine's own status is handed to `publish[name]` on the way (its Zenoh
@@ -136,9 +142,14 @@ def fleet_status(
     counts how often its ADS and Modbus requests waited for its share of the loop
     (`loop_share` of its status) and its OPC UA requests for its share of OPC UA's
     (`opcua_share`); `throttled` lists the machines held back since the last status:
-    their clients ask more than their share."""
+    their clients ask more than their share.
+
+    Once `halted` is set (a SIGTERM), `Halted` instead: each machine catches up first,
+    seconds for hundreds of machines just started, and a stop must not wait for that."""
     machines = []
     for s in served:
+        if halted is not None and halted.is_set():
+            raise Halted
         st = s.service.status()
         if publish is not None and s.member.name in publish:
             publish[s.member.name](st)
@@ -198,12 +209,25 @@ async def _watch_lag(worst: list[float]) -> None:
         worst[0] = max(worst[0], (loop.time() - t - LAG_TICK) * 1000)
 
 
-async def _serve(args: argparse.Namespace, served: list[Served], engines: Engines) -> None:
-    stop = asyncio.Event()
+def _stop_on_signals() -> tuple[asyncio.Event, threading.Event]:
+    """Ctrl-C and SIGTERM set both: the loop's event, and the same for the status's
+    thread (`fleet_status`)."""
+    stop, halted = asyncio.Event(), threading.Event()
+
+    def on_signal() -> None:
+        stop.set()
+        halted.set()
+
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
-            loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(sig, on_signal)
+    return stop, halted
+
+
+async def _serve(args: argparse.Namespace, served: list[Served], engines: Engines) -> None:
+    stop, halted = _stop_on_signals()
+    loop = asyncio.get_running_loop()
     # as for one machine (geo_server/descriptors.py): the soft open-files limit raised to
     # the hard one, every interface's connections fitted under it, and accept failures
     # said once per period, not once per retry
@@ -255,13 +279,21 @@ async def _serve(args: argparse.Namespace, served: list[Served], engines: Engine
                 await loop.run_in_executor(None, queryable.undeclare)
 
             interfaces.closes("the fleet status queryable", undeclare)
-        says(await asyncio.to_thread(fleet_status, served, 0.0, publish))
+        try:
+            says(await asyncio.to_thread(fleet_status, served, 0.0, publish, halted))
+        except Halted:
+            return
         if args.http:  # its page shows the fleet's status: once the cycles run
             await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
         while not stop.is_set():
             await wait_set(stop, args.status_period)
+            if stop.is_set():  # (no last status: see `fleet_status`)
+                break
             worst, lag[0] = lag[0], 0.0
-            says(await asyncio.to_thread(fleet_status, served, worst, publish))
+            try:
+                says(await asyncio.to_thread(fleet_status, served, worst, publish, halted))
+            except Halted:
+                break
             if _done(args, served):
                 break
     finally:

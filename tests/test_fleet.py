@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,8 +23,12 @@ from conftest import free_port
 
 from geo_server.client.ads_client import close_port_first
 from geo_server.dictionary import load_dictionary
-from geo_server.fleetfile import FleetError, copies, load_fleet, member, netid_at
+from geo_server.fleet import Halted, Served, fleet_status
+from geo_server.fleetfile import FleetError, Member, copies, load_fleet, member, netid_at
+from geo_server.listfile import load_machine
+from geo_server.machine.machine import Machine
 from geo_server.paths import default_startup_list
+from geo_server.service import ObjectService
 
 D = load_dictionary()
 TIMEOUT = 5.0
@@ -111,6 +116,29 @@ def test_fleet_file_defaults_and_checks(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------- served
+
+
+def test_a_stop_does_not_wait_for_the_fleets_status() -> None:
+    """The fleet's status catches every machine up first: seconds for hundreds of
+    machines just started (a SIGTERM then took 5-6 s for 500). A stop during it ends it
+    before the next machine: here the stop comes while machine 1's status is made."""
+    cfg = load_machine(default_startup_list())
+    served = [
+        Served(Member(f"m{i}", default_startup_list(), f"127.0.0.1.{i}.1", 0), s, None)
+        for i, s in enumerate((ObjectService(Machine(cfg, homed=True)) for _ in range(3)), 1)
+    ]
+    halted = threading.Event()
+    published: list[str] = []
+
+    def publish(name: str):
+        return lambda st: (published.append(name), halted.set())
+
+    publishers = {s.member.name: publish(s.member.name) for s in served}
+    with pytest.raises(Halted):
+        fleet_status(served, 0.0, publishers, halted)
+    assert published == ["m1"]
+    halted.clear()
+    assert fleet_status(served, 0.0, None, halted)["count"] == 3
 
 
 @pytest.fixture

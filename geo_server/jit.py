@@ -44,7 +44,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar, cast
 
-from geo_server import jit_cache
+from geo_server import cache, jit_cache
 
 F = TypeVar("F", bound=Callable[..., Any])
 log = logging.getLogger(__name__)
@@ -77,12 +77,12 @@ _dir: tuple[Path | None, str] | None = None  # (the cache folder or None, how or
 
 
 def cache_dir() -> Path | None:
-    """Where the machine code is cached (jit_cache.cache_folder): `GEO_SERVER_JIT_CACHE`,
+    """Where the machine code is cached (cache.cache_folder): `GEO_SERVER_JIT_CACHE`,
     else the user's cache folder, else a private one under the temporary folder, in a
     folder per content key; None when none of them is safe (the laws compile in memory)."""
     global _dir
     if _dir is None:
-        _dir = jit_cache.cache_folder(_PACKAGE, MODULES)
+        _dir = cache.cache_folder(f"jit-{jit_cache.cache_key(_PACKAGE, MODULES)}")
         if _dir[0] is None:
             log.warning("the compiled cycle is not cached (it compiles in memory): %s", _dir[1])
     return _dir[0]

@@ -7,8 +7,8 @@ the copy in a virtualenv), compiles again, and the folder is whatever numba find
 writable. Here the laws' cache is keyed by content instead (`cache_key`: the compiled
 modules' sources, numba's, numpy's and Python's versions and the processor), so every
 copy of the same code on one machine shares one compile, and it lives in one folder that
-`cache_folder` checks before anything is read from it: numba's index is a pickle, and
-loading a pickle someone else wrote runs their code as this user.
+`cache.cache_folder` checks before anything is read from it: numba's index is a pickle,
+and loading a pickle someone else wrote runs their code as this user.
 
 This module is the one place that knows numba's cache classes (`law_cache` replaces a
 dispatcher's `_cache`); tests/test_jit_cache.py fails when a numba release changes them.
@@ -19,10 +19,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import os
-import stat
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -47,80 +44,6 @@ def cache_key(package: Path, modules: tuple[str, ...]) -> str:
         h.update(f"\0{rel}\0".encode())
         h.update((package / rel).read_bytes())
     return h.hexdigest()
-
-
-def user_cache() -> Path:
-    """The platform's cache folder for this user (`geo-server` in it)."""
-    if sys.platform == "win32":
-        base = os.environ.get("LOCALAPPDATA") or str(Path.home() / "AppData" / "Local")
-        return Path(base) / "geo-server" / "Cache"
-    if sys.platform == "darwin":
-        return Path.home() / "Library" / "Caches" / "geo-server"
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geo-server"
-
-
-def unsafe_because(folder: Path) -> str | None:
-    """Why machine code must not be loaded from `folder` (None: it may).
-
-    The folder must be this user's and writable by nobody else, and so must every folder
-    above it be this user's or root's and not writable by others — except a shared folder
-    with the sticky bit (/tmp), where others cannot rename or replace what is ours.
-    Anyone who could write there could plant a pickle that runs as this user. On Windows
-    (no owners here) the user's own profile folder is trusted."""
-    if not hasattr(os, "getuid"):
-        return None
-    uid = os.getuid()
-    try:
-        real = folder.resolve(strict=True)
-        st = real.stat()
-    except OSError as exc:
-        return f"{folder}: {exc.strerror or exc}"
-    if not stat.S_ISDIR(st.st_mode):
-        return f"{real} is not a folder"
-    if st.st_uid != uid:
-        return f"{real} belongs to user {st.st_uid}, not to this user ({uid})"
-    if st.st_mode & 0o022:
-        return f"{real} is writable by others (mode {stat.S_IMODE(st.st_mode):o})"
-    for parent in real.parents:
-        pst = parent.stat()
-        if pst.st_uid not in (uid, 0):
-            return f"{parent} (above {real}) belongs to user {pst.st_uid}"
-        if pst.st_mode & 0o022 and not pst.st_mode & stat.S_ISVTX:
-            return f"{parent} (above {real}) is writable by others without the sticky bit"
-    return None
-
-
-def cache_folder(package: Path, modules: tuple[str, ...]) -> tuple[Path | None, str]:
-    """The folder for this code's machine code and how it was chosen, or (None, why not):
-    `GEO_SERVER_JIT_CACHE` when set, else the user's cache folder, else a folder of this
-    user's own under the system's temporary folder; each created private (0700) and used
-    only if `unsafe_because` finds nothing. None: the cycle compiles in memory."""
-    key = f"jit-{cache_key(package, modules)}"
-    given = os.environ.get("GEO_SERVER_JIT_CACHE")
-    if given:
-        places = [(Path(given), "GEO_SERVER_JIT_CACHE")]
-    else:
-        uid = os.getuid() if hasattr(os, "getuid") else "user"
-        places = [
-            (user_cache(), "the user's cache folder"),
-            (Path(tempfile.gettempdir()) / f"geo-server-{uid}", "the temporary folder"),
-        ]
-    reasons = []
-    for base, how in places:
-        try:
-            base.mkdir(mode=0o700, parents=True, exist_ok=True)
-            why = unsafe_because(base)
-            if why is None:
-                (base / key).mkdir(mode=0o700, exist_ok=True)
-                why = unsafe_because(base / key)
-            if why is None:
-                with tempfile.TemporaryFile(dir=base / key):
-                    pass
-                return base / key, how
-        except OSError as exc:
-            why = f"{base}: {exc.strerror or exc}"
-        reasons.append(why)
-    return None, "; ".join(reasons)
 
 
 def numba_fits() -> str | None:

@@ -35,6 +35,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
             "geo_server.safefile",  # reads files on request: bounded, never blocking
             "geo_server.jit",  # the compiler of the cycle's laws
             "geo_server.jit_cache",  # where the compiled cycle is kept, and when that is safe
+            "geo_server.cache",  # the user's private cache folder (machine code, NodeSets)
             "geo_server.aio",  # asyncio helpers (a wait that never loses a cancellation)
             "geo_server.ports",  # free ports for servers that tests and benchmarks start
         ),
@@ -77,6 +78,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
     "geo_server.transports.share",  # a fleet machine's share of the loop, both draw on
     "geo_server.aio",  # asyncio helpers
+    "geo_server.cache",  # the private cache folder (OPC UA's imported NodeSets)
 )
 
 

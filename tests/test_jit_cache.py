@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from geo_server import jit, jit_cache
+from geo_server.cache import unsafe_because
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -206,7 +207,7 @@ def test_a_cache_folder_of_another_user_is_never_read(tmp_path: Path) -> None:
     cache = tmp_path / "theirs"
     cache.mkdir(mode=0o700)
     os.chown(cache, 65534, 65534)
-    why = jit_cache.unsafe_because(cache)
+    why = unsafe_because(cache)
     assert why is not None and "belongs to user 65534" in why
 
 
@@ -217,9 +218,9 @@ def test_a_private_folder_below_a_sticky_shared_one_is_used(tmp_path: Path) -> N
     shared.chmod(0o1777)
     mine = shared / "geo-server-me"
     mine.mkdir(mode=0o700)
-    assert jit_cache.unsafe_because(mine) is None
+    assert unsafe_because(mine) is None
     shared.chmod(0o777)  # without the sticky bit anyone could replace it
-    assert "without the sticky bit" in (jit_cache.unsafe_because(mine) or "")
+    assert "without the sticky bit" in (unsafe_because(mine) or "")
 
 
 def test_numba_still_has_the_cache_classes_this_project_subclasses() -> None:

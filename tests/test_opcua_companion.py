@@ -21,6 +21,7 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
@@ -552,7 +553,7 @@ def test_a_stop_during_the_models_import_does_not_wait_for_it(
     that the process's exit ends. Here the import blocks until the test lets it go."""
     import threading
 
-    from geo_server.transports.opcua import server as opcua_server
+    from geo_server.transports.opcua import companions
 
     importing, release = threading.Event(), threading.Event()
 
@@ -560,7 +561,7 @@ def test_a_stop_during_the_models_import_does_not_wait_for_it(
         importing.set()
         release.wait()  # (in the import's own thread; the test releases it at the end)
 
-    monkeypatch.setattr(opcua_server, "_import_companions", blocked_import)
+    monkeypatch.setattr(companions, "add", blocked_import)
     opts = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=True, background=True)
 
     async def start_and_close() -> None:
@@ -584,3 +585,111 @@ def test_a_stop_during_the_models_import_does_not_wait_for_it(
     finally:
         release.set()
         runner.join(30)
+
+
+#: a fresh process's address space after `companions.add`: its digest (every node's
+#: references and attributes, times left out: two processes start at other times) and
+#: whether asyncua's XML import ran
+SPACE = """
+import asyncio, hashlib, json, re
+from asyncua import Server, ua
+from geo_server.transports.opcua import companions
+from geo_server.transports.opcua.server import NAMESPACE_URI
+
+imported = []
+TIME = r"datetime\\.datetime\\([^)]*\\)"
+
+
+async def main():
+    server = Server()
+    await server.init()
+    await server.register_namespace(NAMESPACE_URI)
+    real = server.import_xml
+
+    async def import_xml(*args, **kwargs):
+        imported.append(args[0])
+        return await real(*args, **kwargs)
+
+    server.import_xml = import_xml
+    await companions.add(server, lambda: False)
+    nodes = server.iserver.aspace._nodes
+    h = hashlib.sha256()
+    for nodeid in sorted(nodes, key=repr):
+        values = sorted(
+            (int(a), repr(v.value and v.value.Value), repr(v.value and v.value.StatusCode))
+            for a, v in nodes[nodeid].attributes.items()
+        )
+        refs = sorted(repr(r) for r in nodes[nodeid].references)
+        h.update(re.sub(TIME, "T", repr((nodeid, values, refs))).encode())
+    made = nodes[ua.NodeId(2001, 3)].attributes[ua.AttributeIds.Value].value.Value.Value
+    print(json.dumps({
+        "digest": h.hexdigest(), "nodes": len(nodes), "imported": len(imported),
+        "made": type(made).__name__,
+    }))
+
+
+asyncio.run(main())
+"""
+
+
+@pytest.mark.slow
+def test_the_nodeset_cache_restores_what_asyncuas_import_makes(tmp_path: Path) -> None:
+    """Issue 46 #7: the companion models' import (3-6 s of a start) is restored from a
+    cache. Each in a fresh process: asyncua's import of the five NodeSets writes the
+    cache; the next start reads it and imports nothing, and its address space is the
+    import's node by node (references, attributes, values; the CNC model's structure
+    values of the class asyncua makes). A cache cut short is imported again and
+    rewritten."""
+    env = os.environ | {"GEO_SERVER_JIT_CACHE": str(tmp_path / "cache")}
+
+    def space() -> dict[str, Any]:
+        r = subprocess.run(
+            [sys.executable, "-c", SPACE], env=env, capture_output=True, text=True, timeout=120
+        )
+        assert r.returncode == 0, r.stderr
+        return dict(json.loads(r.stdout.splitlines()[-1]))
+
+    imported = space()
+    assert imported["imported"] == 5 and imported["made"] == "CncPositionDataType"
+    (cached,) = (tmp_path / "cache" / "opcua-nodesets").glob("companions-*.pickle")
+    restored = space()
+    assert restored == imported | {"imported": 0}
+    size = cached.stat().st_size
+    cached.write_bytes(cached.read_bytes()[: size // 2])
+    assert space() == imported
+    assert cached.stat().st_size == size
+
+
+@pytest.mark.slow
+def test_a_warmed_cache_is_the_one_a_server_restores(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, service: ObjectService
+) -> None:
+    """An image fills the cache when it is built (`companions.warm`, Containerfile): a
+    server started afterwards restores from it and imports no NodeSet."""
+    cache = tmp_path / "cache"
+    warm = "import asyncio; from geo_server.transports.opcua import companions as c; "
+    warm += "asyncio.run(c.warm())"
+    env = os.environ | {"GEO_SERVER_JIT_CACHE": str(cache)}
+    r = subprocess.run([sys.executable, "-c", warm], env=env, capture_output=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    (cached,) = (cache / "opcua-nodesets").glob("companions-*.pickle")
+    monkeypatch.setenv("GEO_SERVER_JIT_CACHE", str(cache))
+    from asyncua import Server
+
+    async def refused(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError(f"imported {args}")
+
+    monkeypatch.setattr(Server, "import_xml", refused)
+
+    async def scenario() -> str:
+        iface = OpcUaInterface({"local": service}, OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0"))
+        await iface.start()
+        try:
+            async with Client(iface.endpoint, timeout=10) as c:
+                axis_type = ua.NodeId(1004, await c.get_namespace_index(CNC))
+                return str((await c.get_node(axis_type).read_browse_name()).Name)
+        finally:
+            await iface.close()
+
+    assert asyncio.run(asyncio.wait_for(scenario(), 60)) == "CncAxisType"  # (the XML's)
+    assert list((cache / "opcua-nodesets").glob("companions-*.pickle")) == [cached]

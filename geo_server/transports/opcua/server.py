@@ -56,7 +56,7 @@ from geo_server.events import Event
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
-from geo_server.transports.opcua import cnc, machinetool
+from geo_server.transports.opcua import cnc, companions, machinetool
 from geo_server.transports.opcua.args import parse_endpoint
 from geo_server.transports.opcua.cnc import Live
 from geo_server.transports.opcua.items import (
@@ -70,6 +70,7 @@ from geo_server.transports.opcua.items import (
 from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.metering import RequestMeter
 from geo_server.transports.opcua.space import (
+    APPLICATION_URI,
     AXES,
     METHODS,
     NAMESPACE_URI,
@@ -534,7 +535,7 @@ class OpcUaInterface:
         iserver.max_subscriptions = opts.max_subscriptions
         server.set_endpoint(f"opc.tcp://{host}:{port}/")
         server.set_server_name("geo-server")
-        await server.set_application_uri("urn:geo-server:server")
+        await server.set_application_uri(APPLICATION_URI)
         if opts.user is not None and opts.cert_dir is None:
             # the password travels encrypted with the server's key (guard.py)
             raise ValueError("a user and password need a certificate folder (cert_dir)")
@@ -543,7 +544,7 @@ class OpcUaInterface:
             from geo_server.transports.opcua.certs import ensure_certificate
 
             cert, key = await asyncio.to_thread(
-                ensure_certificate, opts.cert_dir, "urn:geo-server:server", host
+                ensure_certificate, opts.cert_dir, APPLICATION_URI, host
             )
             await server.load_certificate(str(cert))
             await server.load_private_key(str(key))
@@ -558,7 +559,7 @@ class OpcUaInterface:
         self.ns = await server.register_namespace(NAMESPACE_URI)
         # the CNC model's types (OPC 40502; `cnc.py`), after ours: ours stays index 2
         if opts.companion_models:
-            await _off_loop(lambda: _import_companions(server, lambda: self._closing))
+            await _off_loop(lambda: companions.add(server, lambda: self._closing))
             self.cnc_ns = await server.get_namespace_index(cnc.CNC_URI)
             self.mt_ns = await server.get_namespace_index(machinetool.MACHINE_TOOL_URI)
             self.machinery_ns = await server.get_namespace_index(machinetool.MACHINERY_URI)
@@ -2029,17 +2030,6 @@ def _retargeted(ref: Any, target: Any, named: _Named | None) -> Any:
         NodeClass=ref.NodeClass,
         TypeDefinition=ref.TypeDefinition,
     )
-
-
-async def _import_companions(server: Any, closing: Callable[[], bool]) -> None:
-    """The companion models' types: CNC (`cnc.py`), then DI, Machinery, IA and Machine
-    Tool (`machinetool.py`), the OPC Foundation's NodeSets. asyncua reports the few
-    broken references of their own example instances (`strict_mode=False`). Stops
-    between two NodeSets once the interface is `closing` (nobody waits for it then)."""
-    for path in (cnc.NODESET, *(path for _, path in machinetool.NODESETS)):
-        if closing():
-            return
-        await server.import_xml(str(path), strict_mode=False)
 
 
 async def _off_loop(work: Callable[[], Awaitable[Any]]) -> Any:

@@ -24,6 +24,8 @@ from geo_server.units import LINEAR, raw_unit_on
 
 #: The namespace of every geo-server node (README *OPC UA*): stable across versions.
 NAMESPACE_URI = "urn:geo-server:cnc"
+#: the server's ApplicationUri (namespace 1, and its certificate's)
+APPLICATION_URI = "urn:geo-server:server"
 #: The folder of the per-axis objects under each machine.
 AXES = "Axes"
 #: Dictionary type -> OPC UA built-in type name (`ua.VariantType` member).

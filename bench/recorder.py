@@ -48,13 +48,12 @@ TWENTY = [
 PROGRAM = "N10 G90 G01 X200 Y150 Z-100 C90 F3000\nN20 X-200 Y-150 Z100 C-90\nN30 $GOTO N10\n"
 
 
-def cycle_times(service: ObjectService, n: int) -> np.ndarray:
-    m = service.machine
+def cycle_times(m: Machine, n: int) -> np.ndarray:
     out = np.empty(n)
     clock = time.perf_counter_ns
     for i in range(n):
         t0 = clock()
-        m.run_cycle()  # type: ignore[attr-defined]
+        m.run_cycle()
         out[i] = (clock() - t0) / 1000
     return out
 
@@ -68,9 +67,9 @@ def run(cycles: int) -> str:
     columns = len(Recorder(service, spec).columns)
     off, on = [], []
     for _round in range(20):  # alternate rounds: the same drift for both
-        off.append(cycle_times(service, cycles // 20))
+        off.append(cycle_times(machine, cycles // 20))
         rec = Recorder(service, spec).start()
-        on.append(cycle_times(service, cycles // 20))
+        on.append(cycle_times(machine, cycles // 20))
         rec.stop()
     base, rec_on = np.concatenate(off), np.concatenate(on)
     probe = Recorder(service, RecordSpec(list(TWENTY), samples=100_001))
@@ -147,7 +146,6 @@ def memory_child(rows: int) -> dict[str, float]:
 
 def inputs_child(writes: int) -> dict[str, float]:
     """Inputs kept while a trigger is awaited: 100 writes per cycle."""
-    from geo_server.machine.port import WriteObjects
 
     service = ObjectService(Machine(load_machine(default_startup_list()), homed=True))
     service.recordings.record_dir = Path(tempfile.mkdtemp(prefix="geo-bench-rec-"))
@@ -158,7 +156,7 @@ def inputs_child(writes: int) -> dict[str, float]:
     t0 = time.perf_counter()
     for _ in range(writes // 100):
         for k in range(100):
-            service.machine.submit(WriteObjects((("TEMPC::offset_0", 1, 40 + k),)))
+            service.submit_writes([service.prepare_name("TEMPC::offset_0", 1, 40 + k)])
         access.step(service, 1)
     elapsed = time.perf_counter() - t0
     gc.collect()

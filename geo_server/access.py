@@ -80,7 +80,7 @@ async def write_name_applied(
 def step(service: ObjectService, n: int = 1) -> Snapshot:
     """Run `n` cycles now (stepped mode: tests, replay, `geo-server measure`) and return
     the latest snapshot."""
-    service.scheduler.step(n)
+    service.stepper().step(n)
     return service.current(stale_ok=True)
 
 

@@ -291,7 +291,7 @@ class ProgramReport:
     period) and how it ends, from the machine's `SIM::program_running`/`_line` and the
     NC errors in its error list."""
 
-    def __init__(self, path: str, service: Any) -> None:
+    def __init__(self, path: str, service: ObjectService) -> None:
         self.path = path
         self.service = service
         d = service.info.dictionary

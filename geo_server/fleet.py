@@ -42,6 +42,7 @@ from geo_server.interfaces import CycleStoppedError, serve
 from geo_server.machine.scheduler import Engines, switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
+from geo_server.service import ObjectService
 
 
 def members_from_args(args: argparse.Namespace) -> list[Member]:
@@ -57,8 +58,8 @@ def members_from_args(args: argparse.Namespace) -> list[Member]:
 @dataclass
 class Served:
     member: Member
-    service: Any
-    scheduler: Any
+    service: ObjectService
+    scheduler: Any  # (a Scheduler or a ProcessScheduler: started with the fleet's engines)
     late: int = 0  # samples late at the last fleet status (`starved`)
     holds: int = 0  # loop-share holds at the last fleet status (`throttled`)
 

@@ -6,7 +6,7 @@ import asyncio
 import re
 import sys
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import Any, Protocol
 
 from geo_server.errors import GeoError
 from geo_server.faults import FaultError
@@ -64,7 +64,18 @@ def serve(main: Coroutine[Any, Any, None], stop: Callable[[], object]) -> int:
     return 0
 
 
-def inject_faults(specs: list[str] | None, service: Any, label: str = "") -> bool:
+class _Injecting(Protocol):
+    def inject(self, fault: str) -> dict[str, Any]: ...
+
+
+class _Faulted(Protocol):
+    """What `inject_faults` uses of the object service (`geo_server.seam`)."""
+
+    @property
+    def faults(self) -> _Injecting: ...
+
+
+def inject_faults(specs: list[str] | None, service: _Faulted, label: str = "") -> bool:
     """`run --fault`: inject each fault before the first cycle (docs/faults.md);
     False (after saying why) when one cannot be."""
     for spec in specs or ():

@@ -81,6 +81,7 @@ from geo_server.machine.port import (
 from geo_server.machine.port import varies_at_rest as _varies_at_rest
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import CompKind, Diagnostic, MachineConfig
+from geo_server.seam import Measured, PreparedWrite
 from geo_server.snapshot import Snapshot
 
 #: the longest a status or a server's own error waits for another thread's catch-up
@@ -114,15 +115,6 @@ class ServiceLimits:
     nc_max_lines: int = 500
     #: Seconds a measurement (`cmd/measure`) may hold a running machine in all.
     measure_deadline: float = 3600.0
-
-
-@dataclass(frozen=True)
-class PreparedWrite:
-    """A validated write: the object, the axis (0 for machine objects) and the value."""
-
-    obj: ObjectDef
-    axis: int
-    value: Any
 
 
 class MachineInfo:
@@ -179,6 +171,19 @@ class MachineInfo:
         return m.dictionary.lookup_address(index_group, element, channel, axis, m.axes)
 
 
+class Stepper:
+    """Runs the cycles of a machine in stepped mode, now (docs/design.md §5.4): what a
+    test, a measurement or a replay that owns a stepped machine is handed
+    (`ObjectService.stepper`), never an interface."""
+
+    def __init__(self, scheduler: CycleRunner) -> None:
+        self._scheduler = scheduler
+
+    def step(self, n: int = 1) -> None:
+        """Run `n` cycles."""
+        self._scheduler.step(n)
+
+
 class ObjectService:
     """Reads, writes, batches and subscriptions over one machine (the narrow service);
     its commands, faults, recordings and measurements are services of their own."""
@@ -193,9 +198,9 @@ class ObjectService:
             if not isinstance(machine, Machine):
                 raise TypeError("a machine in another process comes with its scheduler")
             scheduler = Scheduler(machine, mode="stepped")
-        self.machine = machine
-        self.scheduler = scheduler
-        self.limits = limits or ServiceLimits()
+        self._machine = machine
+        self._scheduler = scheduler
+        self._limits = limits or ServiceLimits()
         #: axes, cycle time, configuration, mode, dictionary
         self.info = MachineInfo(machine, scheduler)
         self._refusal_window = (0.0, 0)  # (second, reported in it)
@@ -214,13 +219,13 @@ class ObjectService:
         self._started_at = 0.0
         #: a heartbeat younger than this is no stall, and reads at rest need no catch-up
         #: (`rests_on`; the limits are frozen)
-        self._rest_fresh = self.limits.stall_after / 2
+        self._rest_fresh = self._limits.stall_after / 2
         # The commands, each a service of its own over the same ports and rules
         # (geo_server/commands, docs/design.md §5.7), built once here.
         self._ports = Ports(
             machine,
             scheduler,
-            self.limits,
+            self._limits,
             refuse_when_stalled=self._refuse_when_stalled,
             settle_sync=self._settle_sync,
             settle=self._settle,
@@ -243,6 +248,13 @@ class ObjectService:
         #: recordings asked for over an interface (docs/recorder.md §7)
         self.recordings = RecordingService(self._ports, self)
 
+    def stepper(self) -> Stepper:
+        """The stepper of this machine's cycles; RuntimeError while they run by
+        themselves (real time or free running, not paused: nobody else may run one)."""
+        if self._scheduler.running:
+            raise RuntimeError(f"the cycles run {self._scheduler.mode}: no stepper")
+        return Stepper(self._scheduler)
+
     # ------------------------------------------------------------------ snapshots
 
     def current(
@@ -262,17 +274,17 @@ class ObjectService:
         its rest (`rests_on`) the published snapshot already holds their values of the
         cycle due, and nothing is caught up (§13, *Reads at rest*)."""
         if at_rest_ok:
-            rest = self.machine.rest_snapshot
+            rest = self._machine.rest_snapshot
             if rest is not None and rests_on(self, rest):
                 return rest
-        sched = self.scheduler
+        sched = self._scheduler
         synced = sched.sync() if wait is None else sched.sync(wait)
         if not synced and not stale_ok:
             raise AdsError(
                 AdsErrorCode.DEVICE_NOTREADY,
                 "the GEO cycle is busy catching up (the host stalled): no current values",
             )
-        snap = self.machine.snapshot
+        snap = self._machine.snapshot
         return snap if stale_ok else self._unless_stalled(snap)
 
     def current_if_due(self) -> Snapshot | None:
@@ -281,9 +293,9 @@ class ObjectService:
         its own), else None: the caller then asks `current` on a thread that may hold
         the lock (OPC UA's niced thread does not, docs/design.md §9.1). 0x707 as
         `current` while the cycle is stalled."""
-        if not self.scheduler.shows_due():
+        if not self._scheduler.shows_due():
             return None
-        return self._unless_stalled(self.machine.snapshot)
+        return self._unless_stalled(self._machine.snapshot)
 
     def _unless_stalled(self, snap: Snapshot) -> Snapshot:
         stalled = self._stalled_for()
@@ -302,18 +314,18 @@ class ObjectService:
         now = time.monotonic()
         if not self._started_at:
             self._started_at = now
-        return now - max(self.machine.heartbeat, self._started_at)
+        return now - max(self._machine.heartbeat, self._started_at)
 
     def _stalled_for(self) -> float:
         """Seconds since the latest snapshot when the cycle is stalled, else 0. An old
         heartbeat is checked by a catch-up that does not wait (the exact engine sleeps
         at rest: a late wake is no stall; a hung engine holds its lock)."""
         age = self._heartbeat_age()
-        if age <= self.limits.stall_after or not self.scheduler.running:
+        if age <= self._limits.stall_after or not self._scheduler.running:
             return 0.0  # (the cheap test first: a thread's liveness costs more)
-        if self.scheduler.sync(wait=0, record=False):
+        if self._scheduler.sync(wait=0, record=False):
             age = self._heartbeat_age()
-        return age if age > self.limits.stall_after else 0.0
+        return age if age > self._limits.stall_after else 0.0
 
     # ------------------------------------------------------------------ addressing
 
@@ -327,14 +339,14 @@ class ObjectService:
         key = (index_group, index_offset, port)
         got = self._resolved.get(key)
         if got is None:
-            got = self._dictionary.resolve(index_group, index_offset, self.machine.axes, port)
+            got = self._dictionary.resolve(index_group, index_offset, self._machine.axes, port)
             self._resolved[key] = got
         return got
 
     def lookup(self, name: str, axis: int) -> ObjectDef:
         """Object by name for `axis`; 0x703 when the axis does not exist."""
         obj = self._dictionary.by_name(name)
-        if obj.scope == "axis" and axis not in self.machine.axes:
+        if obj.scope == "axis" and axis not in self._machine.axes:
             raise AdsError(
                 AdsErrorCode.DEVICE_INVALIDOFFSET, f"axis {axis} is not configured", obj.name
             )
@@ -438,7 +450,7 @@ class ObjectService:
                 return
             self._refusal_window = (start, count + 1)
         text = f"{what} refused: {exc.message} (ADS 0x{exc.code:X})"
-        self.machine.record(Diagnostic("error", text, entry=exc.name))
+        self._machine.record(Diagnostic("error", text, entry=exc.name))
 
     # ------------------------------------------------------------------ writes: queueing
 
@@ -461,7 +473,7 @@ class ObjectService:
                 raise result.error()
             return resolved(result)
         self._refuse_when_stalled()
-        return self.scheduler.submit(WriteObjects(tuple((w.obj, w.axis, w.value) for w in writes)))
+        return self._scheduler.submit(WriteObjects(tuple((w.obj, w.axis, w.value) for w in writes)))
 
     async def apply_writes(
         self, writes: Sequence[PreparedWrite], timeout: float | None = None
@@ -489,9 +501,9 @@ class ObjectService:
         raised; if a cycle has taken it already, wait on for its outcome (withdrawal is
         retried in case the cycle process was merely stopped while taking operations).
         """
-        if pending.done() or not self.scheduler.running:
+        if pending.done() or not self._scheduler.running:
             return pending.result() if pending.done() else None
-        limit = self.limits.write_timeout if timeout is None else timeout
+        limit = self._limits.write_timeout if timeout is None else timeout
         wrapped = asyncio.wrap_future(pending)
         done, _ = await asyncio.wait({wrapped}, timeout=limit)
         while not done:
@@ -502,7 +514,7 @@ class ObjectService:
 
     def _settle_sync(self, pending: Pending, timeout: float) -> Any:
         """`_settle` for a caller's thread (commands, a measurement)."""
-        if pending.done() or not self.scheduler.running:
+        if pending.done() or not self._scheduler.running:
             return pending.result() if pending.done() else None
         deadline = time.monotonic() + timeout
         while True:
@@ -532,7 +544,7 @@ class ObjectService:
         Keep it short and hand work to your own thread or event loop. Returns a function
         that unsubscribes.
         """
-        return self.machine.subscribe(callback)
+        return self._machine.subscribe(callback)
 
     def subscribe_changes(
         self,
@@ -554,7 +566,7 @@ class ObjectService:
                 callback(changed)
 
         unsubscribe = self.subscribe(on_cycle)
-        release = self.scheduler.demand_every_cycle()  # no change may go unseen
+        release = self._scheduler.demand_every_cycle()  # no change may go unseen
 
         def stop() -> None:
             unsubscribe()
@@ -568,7 +580,7 @@ class ObjectService:
         It runs on the reporting thread — the cycle's, with the cycle's lock held — so
         it must hand the event on and return: calling `status`, `report` or `current`
         from it would wait for the cycle it is called from."""
-        return self.machine.subscribe_events(callback)
+        return self._machine.subscribe_events(callback)
 
     def demand_cycles(self, demand: CycleDemand | None = None) -> Callable[[], None]:
         """Publish the cycles `demand` wants until the returned function is called (ADS
@@ -577,7 +589,7 @@ class ObjectService:
         choose (the cycle process) publishes every cycle's snapshot meanwhile."""
         if demand is not None and self._engine is not None:
             return self._engine.demand_cycles(demand)
-        return self.scheduler.demand_every_cycle()
+        return self._scheduler.demand_every_cycle()
 
     # ------------------------------------------------------------------ status, events
 
@@ -587,11 +599,12 @@ class ObjectService:
         A status is an observation like a read (docs/design.md §13): the exact engine
         catches up first, so `cycle` is the cycle due now (`_catch_up`)."""
         self._catch_up()
-        st = dict(self.scheduler.status())
+        st = dict(self._scheduler.status())
         stalled = self._stalled_for()
         st["stalled"] = bool(stalled)
         st["stalled_for_s"] = round(stalled, 3)
-        st["axis_names"] = {str(a): self.machine.cfg.axes[a].params.name for a in self.machine.axes}
+        axes = self._machine.cfg.axes
+        st["axis_names"] = {str(a): axes[a].params.name for a in self._machine.axes}
         st["faults"] = self.faults.status()
         st["refusals_unreported"] = self._refusals_unreported
         recording = self.recordings.status()
@@ -605,7 +618,7 @@ class ObjectService:
 
     def errors(self) -> list[dict[str, Any]]:
         """The last 100 warnings and errors, oldest first."""
-        return [e.as_dict() for e in list(self.machine.events)]
+        return [e.as_dict() for e in list(self._machine.events)]
 
     def report(self, message: str, *, severity: str = "error", error_id: int = 0) -> Pending:
         """Record a warning or error the server itself found (a rejected reload, a second
@@ -614,21 +627,26 @@ class ObjectService:
         refused; with the cycle in its own process it lands at the next cycle boundary
         (while that cycle is stalled: once it resumes). Its cycle is the one due now."""
         self._catch_up()
-        return self.machine.record(Diagnostic(severity, message, error_id=error_id))
+        return self._machine.record(Diagnostic(severity, message, error_id=error_id))
 
     def _catch_up(self) -> None:
         """Before a status or a server's own error: the exact engine computes up to the
         cycle due now (docs/design.md §13) — not while the cycle is stalled, when the
         answer must come at once and tells the last cycle there is."""
         if not self._stalled_for():  # (briefly: a status must answer, caught up or not)
-            self.scheduler.sync(wait=STATUS_SYNC_WAIT, record=False)
+            self._scheduler.sync(wait=STATUS_SYNC_WAIT, record=False)
 
     def _report_now(self, message: str, error_id: int = 0) -> None:
         """`report` and, when cycles run, wait (briefly) until it is in the list, so a
         client that asks for the errors right after the answer finds it."""
         pending = self.report(message, error_id=error_id)
         with contextlib.suppress(TimeoutError):
-            pending.result(timeout=self.limits.write_timeout if self.scheduler.running else 0)
+            pending.result(timeout=self._limits.write_timeout if self._scheduler.running else 0)
+
+
+def _conforms(service: ObjectService) -> Measured:
+    """(mypy) The service is what the layers below it type it as (`geo_server.seam`)."""
+    return service
 
 
 def is_command(obj: ObjectDef) -> bool:
@@ -662,7 +680,7 @@ def rests_on(service: ObjectService, snap: Snapshot | None) -> bool:
     it with a catch-up that does not wait and would call a wake of the engine under way
     a stall (0x707). (A heartbeat this young is no stall.) One function, no calls: a
     request runs it with cold caches after a pause."""
-    m = service.machine
+    m = service._machine
     return (
         snap is not None
         and snap is m.rest_snapshot
@@ -702,6 +720,7 @@ __all__ = [
     "ObjectService",
     "PreparedWrite",
     "ServiceLimits",
+    "Stepper",
     "check_readable",
     "format_value",
     "is_command",

@@ -420,7 +420,7 @@ def test_cyclic_interval_counts_from_the_last_sample(plc, service, loop_thread) 
 
 
 def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
-    plc, ads, service, loop_thread
+    plc, ads, service, machine, loop_thread
 ) -> None:
     """While the loop is busy, 50 cycles queue ONE hand-off; it then samples every
     snapshot handed over, in cycle order, so the stream is the one a punctual loop
@@ -457,7 +457,7 @@ def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
         release.set()
     run_in(loop_thread, asyncio.sleep(0))
     assert hand_offs == [c0 + 50]
-    epoch = service.machine.epoch  # FILETIME of cycle 0; 1 ms = 10 000 ticks
+    epoch = machine.epoch  # FILETIME of cycle 0; 1 ms = 10 000 ticks
     expected = [(c, epoch + c * 10_000) for c in range(c0 + 1, c0 + 51, 2)]
     assert [q.get(timeout=TIMEOUT) for _ in expected] == expected  # late, none lost
     assert step_sampled(service, loop_thread, 4) == [c0 + 51, c0 + 52, c0 + 53, c0 + 54]

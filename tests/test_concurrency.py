@@ -12,6 +12,7 @@ import textwrap
 import threading
 
 from geo_server.machine.machine import Machine
+from geo_server.machine.scheduler import Scheduler
 from geo_server.service import ObjectService
 
 #: imports every module of the package, then makes a machine, its stepped engine and
@@ -81,13 +82,13 @@ def test_a_subscriber_leaving_during_a_publication_makes_no_other_miss_it(
 
     leave.append(service.subscribe(first))
     service.subscribe(lambda snap: second.append(snap.cycle))
-    service.scheduler.step(1)
+    service.stepper().step(1)
     assert second == [1]
 
 
-def test_counting_a_catch_up_from_many_threads_loses_none(service: ObjectService) -> None:
+def test_counting_a_catch_up_from_many_threads_loses_none(machine: Machine) -> None:
     """Catch-ups are timed by whichever thread asked (the loop, Zenoh's, a worker)."""
-    stats = service.scheduler.sync_stats  # type: ignore[attr-defined]
+    stats = Scheduler(machine, mode="stepped").sync_stats
     n, threads = 20_000, 4
     start = threading.Barrier(threads)
 

@@ -27,26 +27,26 @@ MACHINES = 3
 
 
 @pytest.fixture
-def fleet() -> Iterator[tuple[Engines, list[ObjectService]]]:
+def fleet() -> Iterator[tuple[Engines, list[ObjectService], list[Scheduler]]]:
     cfg = load_machine(default_startup_list())
     before = set(threading.enumerate())
     engines = Engines()
-    services = []
+    services, schedulers = [], []
     for _ in range(MACHINES):
         machine = Machine(cfg, cycle_s=0.001, homed=True)
-        scheduler = Scheduler(machine, mode="realtime", engine="exact")
-        services.append(ObjectService(machine, scheduler))
+        schedulers.append(Scheduler(machine, mode="realtime", engine="exact"))
+        services.append(ObjectService(machine, schedulers[-1]))
     engines.start()
-    for service in services:
-        service.scheduler.start(engines)
+    for scheduler in schedulers:
+        scheduler.start(engines)
     try:
         # the threads these machines run on (not another test's, on this worker)
         started = sorted(t.name for t in set(threading.enumerate()) - before)
         assert started == ["geo-cycles"], started
-        yield engines, services
+        yield engines, services, schedulers
     finally:
-        for service in services:
-            service.scheduler.stop()
+        for scheduler in schedulers:
+            scheduler.stop()
         engines.stop()
 
 
@@ -57,9 +57,9 @@ def write_coefficient(service: ObjectService, value: float) -> float:
 
 
 def test_a_fleet_runs_on_one_thread_and_every_machine_applies_its_writes(fleet) -> None:
-    _, services = fleet  # (on one thread: the fixture checks it)
+    _, services, _ = fleet  # (on one thread: the fixture checks it)
     for i, service in enumerate(services):
-        assert service.scheduler.running
+        assert service.info.running
         assert write_coefficient(service, 4100.0 + i) == 4100.0 + i
     # every machine's time goes on: its cycle counter follows the wall clock
     before = [int(access.read_name(s, "SIM::cycle_count", 0)) for s in services]
@@ -71,8 +71,8 @@ def test_a_fleet_runs_on_one_thread_and_every_machine_applies_its_writes(fleet) 
 def test_a_machine_held_by_a_request_does_not_hold_up_the_others(fleet) -> None:
     """Machine 0's engine lock held (a request's long catch-up): the shared thread skips
     it and machines 1 and 2 still apply their writes."""
-    _, services = fleet
-    held = services[0].scheduler._engine_lock
+    _, services, schedulers = fleet
+    held = schedulers[0]._engine_lock
     held.acquire()
     try:
         assert write_coefficient(services[1], 4321.0) == 4321.0
@@ -83,8 +83,8 @@ def test_a_machine_held_by_a_request_does_not_hold_up_the_others(fleet) -> None:
 
 
 def test_a_machine_whose_cycle_raises_stops_alone(fleet, monkeypatch, caplog) -> None:
-    _, services = fleet
-    broken = services[1].scheduler
+    _, services, schedulers = fleet
+    broken = schedulers[1]
 
     def fail(blocking: bool) -> int:
         raise RuntimeError("a broken cycle")
@@ -97,7 +97,7 @@ def test_a_machine_whose_cycle_raises_stops_alone(fleet, monkeypatch, caplog) ->
         threading.Event().wait(0.01)
     assert not broken.running
     assert "the GEO cycle of a machine failed" in caplog.text
-    assert services[0].scheduler.running and services[2].scheduler.running
+    assert schedulers[0].running and schedulers[2].running
     assert write_coefficient(services[2], 4400.0) == 4400.0
 
 
@@ -107,8 +107,8 @@ def test_a_machine_whose_cycles_fail_is_not_looked_at_again_at_once(fleet, monke
     engine looks again a batch later, not at once, so the healthy machine keeps
     getting its passes (a busy loop on the broken one starved it: 2 passes to the
     broken one's thousands, review) and the other machines still apply their writes."""
-    _, services = fleet
-    healthy, broken = services[0].scheduler, services[1].scheduler
+    _, services, schedulers = fleet
+    healthy, broken = schedulers[0], schedulers[1]
 
     def fail(*args: object, **kwargs: object) -> None:
         raise RuntimeError("a broken cycle")

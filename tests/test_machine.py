@@ -226,7 +226,7 @@ def test_rejected_reload_changes_nothing(lists_copy: Path):
 
 def _set_coefficient_in_the_list(svc: ObjectService, text: str) -> None:
     """Axis 1's list says `lr_param.temp_comp_coefficient <text>` instead of 4000."""
-    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    axis_list = Path(svc.info.config.axes[1].params.path)
     before = axis_list.read_text(encoding="utf-8")
     after = before.replace("temp_comp_coefficient 4000", f"temp_comp_coefficient {text}")
     assert after != before
@@ -254,7 +254,7 @@ def test_valid_reload_ramps_to_the_new_value(lists_copy: Path):
 
 def test_save_round_trips(lists_copy: Path):
     svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
-    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    axis_list = Path(svc.info.config.axes[1].params.path)
     before = axis_list.read_bytes()
     access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
     access.write_name(svc, "TEMPC::offset_0", 1, -7)

@@ -125,7 +125,7 @@ def test_plan_errors_are_specific(tmp_path):
     access.step(svc, 1)
     with pytest.raises(MeasureError, match="not homed"):
         run_test(bench, plan())
-    cfg = svc.machine.cfg
+    cfg = svc.info.config
     assert plan_from_json({"axis": "x"}, cfg).targets == TARGETS  # the LSEC setpoints
     assert plan_from_json({"axis": 1, "runs": 3, "off": ["lead"]}, cfg).compensation_off == (
         "LEAD",

@@ -433,12 +433,12 @@ def test_one_read_request_is_answered_from_one_cycle(
 
     def current(**kw: Any) -> Any:
         snap = real(**kw)
-        service.scheduler.step(1)  # the next observation sees the next cycle
+        service.stepper().step(1)  # the next observation sees the next cycle
         return snap
 
     def current_if_due() -> Any:  # (what OPC UA asks first: §9.1)
         snap = real_if_due()
-        service.scheduler.step(1)
+        service.stepper().step(1)
         return snap
 
     monkeypatch.setattr(service, "current", current)

@@ -48,7 +48,9 @@ def ads(loop_thread, service):
     run_in(loop_thread, srv.close())
 
 
-def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_thread) -> None:
+def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(
+    ads, service, machine, loop_thread
+) -> None:
     sock = socket.create_connection(("127.0.0.1", ads.port), timeout=TIMEOUT)
     framer = Framer()
     try:
@@ -105,7 +107,7 @@ def test_a_long_pass_yields_to_the_loop_and_keeps_its_cycle(ads, service, loop_t
                         (value,) = struct.unpack("<I", s.data)
                         by_value[value].append((s.handle, stamp.timestamp))
         assert sorted(by_value) == cycles
-        epoch = service.machine.epoch  # FILETIME of cycle 0; 1 ms = 10 000 ticks
+        epoch = machine.epoch  # FILETIME of cycle 0; 1 ms = 10 000 ticks
         for value in by_value:
             samples = by_value[value]
             assert sorted(h for h, _ts in samples) == sorted(handles)  # once per handle

@@ -187,7 +187,7 @@ def _axis_1_values(svc: ObjectService) -> tuple[object, ...]:
 )
 def test_rejected_reload_keeps_the_running_values(lists_copy: Path, case: str, reason: str):
     svc = _service(lists_copy)
-    cfg_before = svc.machine.cfg
+    cfg_before = svc.info.config
     assert _axis_1_values(svc) == (4000.0, 40, 1000)
     axis_list = _axis_list(lists_copy)
     axis_list.write_bytes(BAD_AXIS_LISTS[case][0](_lf_text(lists_copy)))
@@ -195,7 +195,7 @@ def test_rejected_reload_keeps_the_running_values(lists_copy: Path, case: str, r
     assert not result.ok
     [error] = result.errors
     assert error.startswith(str(axis_list)) and reason in error
-    assert svc.machine.cfg is cfg_before
+    assert svc.info.config is cfg_before
     access.step(svc, 3)
     assert _axis_1_values(svc) == (4000.0, 40, 1000)
 

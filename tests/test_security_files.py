@@ -72,6 +72,7 @@ class Rig:
     outside: Path  # a folder not allowed
     allowed: Path  # a folder given at start (`--allow-dir`)
     service: ObjectService
+    machine: Machine  # (its NC player: stepped until the worker is done)
     ads: AdsServer
     zenoh: Served
     com: Any  # pyads.Connection to AMS port 553 (the COM task)
@@ -122,7 +123,7 @@ def rig(loop_thread, lists_copy: Path, tmp_path: Path) -> Iterator[Rig]:
     geo.open()
     com.write(COM_GROUP, INDEX_W, 0, pyads.PLCTYPE_UINT)  # the next file write updates ID 0
     try:
-        yield Rig(folder, outside, allowed, svc, srv, served, com, geo)
+        yield Rig(folder, outside, allowed, svc, m, srv, served, com, geo)
     finally:
         close_port_first(com)
         close_port_first(geo)
@@ -335,7 +336,7 @@ def test_nc_volcomp_update_reads_only_inside(rig: Rig) -> None:
     (r.folder / "volc0.lis").write_text(volc_naming("/etc/passwd"), encoding="utf-8")
     _, errs = get(r.zenoh.session, "cnc/t/nc", b"#VOLCOMP [ID0 UPDATE]\nM30\n", OCTET)
     assert not errs, errs
-    m = r.service.machine
+    m = r.machine
     for _ in range(100_000):  # the files are read in a worker thread: step until it is done
         access.step(r.service, 1)
         if m.player is None or not m.player.running:

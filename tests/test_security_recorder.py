@@ -27,7 +27,6 @@ from geo_clients.testing import GeoTestServer
 from geo_server import access
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import load_machine
-from geo_server.machine.port import WriteObjects
 from geo_server.recorder import Recorder, RecordSpec, compare, load_trace
 from geo_server.recorder.inputs import load_inputs
 from geo_server.recorder.paths import RecordPathError, default_record_dir, output_path
@@ -338,7 +337,7 @@ def test_inputs_while_the_trigger_is_awaited_are_bounded(tmp_path):
         mem = Recorder(svc, spec, limits=svc.recordings.limits).start()  # in memory: the same
         for _ in range(40):
             for k in range(100):
-                svc.machine.submit(WriteObjects((("TEMPC::offset_0", 1, 40 + k),)))
+                svc.submit_writes([svc.prepare_name("TEMPC::offset_0", 1, 40 + k)])
             srv.step(1)
             assert rec._inputs_bytes <= limit and mem._inputs_bytes <= limit
         st = rec.status()

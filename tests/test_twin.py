@@ -205,7 +205,7 @@ def test_a_bad_twin_file_fails_the_start_and_the_reload_keeps_the_old_twin(tmp_p
     assert f"{tmp_path / 'twin.toml'}:2:" in str(err.value)
     result = svc.commands.reload()
     assert not result.ok and "twin.toml:2" in result.message
-    twin_before = svc.machine.cfg.twin
+    twin_before = svc.info.config.twin
     assert twin_before is not None and twin_before.axes["X"].reversal == 5.0
 
 
@@ -220,7 +220,7 @@ def test_a_reload_that_lost_an_axis_to_a_typo_names_the_typo_first(lists_copy):
     assert not result.ok
     assert "achs_mdz[0]" in result.warnings[0] and "did you mean achs_mds[0]?" in result.warnings[0]
     assert "twin.toml:" in result.errors[0] and "no axis 'X'" in result.errors[0]
-    assert 1 in svc.machine.cfg.axes
+    assert 1 in svc.info.config.axes
 
 
 def test_a_reload_keeps_the_temperatures(tmp_path):

@@ -542,5 +542,5 @@ def test_current_if_due_never_catches_up(cfg) -> None:
     assert m.cycle == 0  # (asking computed nothing)
     assert service.current().cycle == 3
     assert service.current_if_due() is service.current()
-    stepped = ObjectService(Machine(cfg, homed=True))
-    assert stepped.current_if_due() is stepped.machine.snapshot
+    still = Machine(cfg, homed=True)
+    assert ObjectService(still).current_if_due() is still.snapshot

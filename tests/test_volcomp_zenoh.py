@@ -43,7 +43,7 @@ def test_enable_update_disable_through_zenoh(served_volc: Served) -> None:
     # EXX = 2e-5·x at x = 100 mm: −2e-5·100/1.00002 mm = −19.9996 increments
     assert value(s, "cnc/t/sim/axis/1/volc_correction") == -20
     # an update by name: the ID, then the file (the second write loads, 004 p.23)
-    folder = Path(svc.machine.cfg.startup_path).parent
+    folder = Path(svc.info.config.startup_path).parent
     (folder / "twice.csv").write_text("X EXX\n-1000 -0.04\n1000 0.04\n", encoding="utf-8")
     (folder / "v2.lis").write_text(
         smooth_files(folder).replace("exx.csv", "twice.csv"), encoding="utf-8"

@@ -329,7 +329,7 @@ def test_save_and_reload(loop_thread, lists_copy: Path):
     srv = Server(loop_thread, service)
     s = zenoh.open(session_config([srv.endpoint]))
     try:
-        axis_list = Path(service.machine.cfg.axes[1].params.path)
+        axis_list = Path(service.info.config.axes[1].params.path)
         before = axis_list.read_bytes()
         get_one(s, "cnc/t/axis/1/tempc/coefficient", b"1234.5", zenoh.Encoding.APPLICATION_JSON)
         access.step(service, 1)

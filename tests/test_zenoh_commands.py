@@ -161,7 +161,7 @@ def test_command_write_runs_off_the_loop(
     assert oks[0] == (key, payload)
     assert threads and LOOP_THREAD not in threads, threads
     if command == "save":
-        axis_list = Path(svc.machine.cfg.axes[1].params.path)
+        axis_list = Path(svc.info.config.axes[1].params.path)
         assert b"1234.5" in axis_list.read_bytes()
 
 
@@ -173,7 +173,7 @@ def test_command_write_keeps_its_error_codes(served_lists, key, payload, encodin
     """Off the loop, a rejected reload is still 0x70D and a bad value still 0x706."""
     srv = served_lists
     svc = srv.service
-    axis_list = Path(svc.machine.cfg.axes[1].params.path)
+    axis_list = Path(svc.info.config.axes[1].params.path)
     text = axis_list.read_bytes()
     line = b"temp_comp_coefficient 4000"
     assert line in text
@@ -282,7 +282,7 @@ def test_value_status_and_error_publications(served):
         svc = served.service
         access.write_name(svc, "TEMPC::coefficient", 1, 2500)
         access.step(svc, 1)
-        svc.machine.report(4242, "test error")
+        svc.report("test error", error_id=4242)
         seen: dict[str, object] = {}
         deadline = time.monotonic() + TIMEOUT  # status keeps coming: bound the loop itself
         while not ({"status", "errors"} <= seen.keys() and seen.get("coefficient") == 2500.0):

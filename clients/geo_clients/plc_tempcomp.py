@@ -803,9 +803,8 @@ class TemperatureAdapter:
         adapter goes on)."""
 
         def read() -> dict[int, float | None]:
-            of = getattr(self.source, "temperature_of", None)
-            if of is not None:
-                return {a: of(a, t) for a in self.axes}
+            if isinstance(self.source, TwinSensors):  # (one per axis)
+                return {a: self.source.temperature_of(a, t) for a in self.axes}
             return dict.fromkeys(self.axes, self.source.temperature(t))
 
         temps, exc, _ = self._retrying(read, f"t={t:.3f}s: reading the temperature")
@@ -1009,7 +1008,11 @@ def _source(args: argparse.Namespace, client: Any) -> tuple[TemperatureSource, C
     if args.csv:
         return CsvTemperature(args.csv), lambda: None
     if args.zenoh_key:
-        session = getattr(client, "session", None) if args.via == "zenoh" else None
+        session = None
+        if args.via == "zenoh":  # (its session, shared)
+            from geo_server.client.zenoh_client import ZenohClient
+
+            session = client.session if isinstance(client, ZenohClient) else None
         owned = None
         if session is None:
             import zenoh

@@ -10,6 +10,7 @@ from typing import Any
 
 from geo_server.commands.ports import Ports
 from geo_server.errors import AdsError, AdsErrorCode
+from geo_server.seam import Measured
 from geo_server.twin.measure import LiveBench, MeasureError, StepBench, plan_from_json, run_test
 
 
@@ -17,7 +18,7 @@ class MeasureService:
     """Measurements of one machine; `host` is the object service the bench reads and
     writes through (the same reads and writes as any client)."""
 
-    def __init__(self, ports: Ports, host: Any) -> None:
+    def __init__(self, ports: Ports, host: Measured) -> None:
         self.ports = ports
         self.host = host
         self._lock = threading.Lock()

@@ -15,13 +15,13 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.port import Operation
 from geo_server.recorder import Recorder, RecordSpec, SelectionError, TraceFileError
 from geo_server.recorder.paths import check_target, default_record_dir, machine_files, output_path
-from geo_server.recorder.recorder import RecorderLimits
+from geo_server.recorder.recorder import Recorded, RecorderLimits
 
 
 class RecordingService:
     """The recording of one machine; `host` is the object service it records from."""
 
-    def __init__(self, ports: Ports, host: Any) -> None:
+    def __init__(self, ports: Ports, host: Recorded) -> None:
         self.ports = ports
         self.host = host
         #: the recording under way and where it goes

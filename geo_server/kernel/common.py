@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from geo_server.model import AxisConfig, CompKind
+from geo_server.model import AxisConfig, CompKind, CrossComp, CrosstalkComp, PlaneComp
 
 #: Column index c of every per-compensation array `[n, 7]`.
 COMP_ORDER: tuple[CompKind, ...] = (
@@ -95,8 +95,8 @@ def filter_cycles(ax: AxisConfig) -> list[int]:
     """
     p, comp = ax.params, ax.comp
 
-    def n_of(part: object) -> int:
-        return int(getattr(part, "n_cycles", 0)) if part is not None else 0
+    def n_of(part: CrossComp | PlaneComp | CrosstalkComp | None) -> int:
+        return part.n_cycles if part is not None else 0
 
     ns = [
         p.n_backlash_cyc,

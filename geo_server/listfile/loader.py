@@ -16,7 +16,7 @@ Without any axis parameter list, every compensation list's axis gets default par
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path, PureWindowsPath
 
 from geo_server.errors import GeoError
@@ -30,8 +30,13 @@ from geo_server.model import (
     AxisConfig,
     AxisParams,
     CompKind,
+    CompList,
+    CrossComp,
     Diagnostic,
+    FrictComp,
+    LsecComp,
     MachineConfig,
+    PlaneComp,
 )
 from geo_server.twin.file import TwinFileError, find_twin
 
@@ -273,11 +278,13 @@ def _check_selected(configs: dict[int, AxisConfig], rep: Reporter) -> None:
 
 # --------------------------------------------------------------------------- reload
 
-_MAX_POINTS = {
-    CompKind.LEAD: ("lsec", "kw.ssfk.max_points", 1500),
-    CompKind.CROSS: ("cross", "kw.crosscomp.max_points", 1001),
-    CompKind.PLANE: ("plane", "kw.crosscomp2.max_points", 10201),
-    CompKind.FRICT: ("frict", "frict_comp.max_points", 20),
+_Table = CrossComp | PlaneComp | LsecComp | FrictComp
+#: per compensation: its table in a compensation list, its entry, its default max_points
+_MAX_POINTS: dict[CompKind, tuple[Callable[[CompList], _Table | None], str, int]] = {
+    CompKind.LEAD: (lambda c: c.lsec, "kw.ssfk.max_points", 1500),
+    CompKind.CROSS: (lambda c: c.cross, "kw.crosscomp.max_points", 1001),
+    CompKind.PLANE: (lambda c: c.plane, "kw.crosscomp2.max_points", 10201),
+    CompKind.FRICT: (lambda c: c.frict, "frict_comp.max_points", 20),
 }
 
 
@@ -292,8 +299,8 @@ def compare_max_points(old: MachineConfig, new: MachineConfig) -> list[Diagnosti
         before = old.axes.get(nr)
         if before is None:
             continue
-        for kind, (attr, entry, default) in _MAX_POINTS.items():
-            a, b = _max_points(before, attr, default), _max_points(cfg, attr, default)
+        for kind, (table, entry, default) in _MAX_POINTS.items():
+            a, b = _max_points(before, table, default), _max_points(cfg, table, default)
             if a != b:
                 path = cfg.comp.path if cfg.comp else ""
                 msg = f"max_points changed from {a} to {b}; not allowed after start-up"
@@ -311,6 +318,6 @@ def compare_max_points(old: MachineConfig, new: MachineConfig) -> list[Diagnosti
     return out
 
 
-def _max_points(cfg: AxisConfig, attr: str, default: int) -> int:
-    comp = getattr(cfg.comp, attr, None) if cfg.comp else None
+def _max_points(cfg: AxisConfig, table: Callable[[CompList], _Table | None], default: int) -> int:
+    comp = table(cfg.comp) if cfg.comp else None
     return comp.max_points if comp is not None else default

@@ -15,6 +15,7 @@ from geo_server.recorder.paths import default_record_dir
 from geo_server.recorder.recorder import RecordSpec
 from geo_server.recorder.selection import SelectionError
 from geo_server.recorder.trace import TraceFileError, load_trace
+from geo_server.service import ObjectService
 
 
 def add_spec_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
@@ -90,7 +91,7 @@ def record_dir(
 ) -> Path | None:
     """The recordings folder of `--record-dir` (a fleet's machine: its subfolder, also
     of the default folder beside `startup`); None: the service's default."""
-    if getattr(args, "record_dir", None):
+    if args.record_dir:
         base = Path(args.record_dir)
     elif machine and startup is not None:
         base = default_record_dir(startup)
@@ -99,11 +100,11 @@ def record_dir(
     return base / machine if machine else base
 
 
-def start_from_args(args: argparse.Namespace, service: Any) -> bool:
+def start_from_args(args: argparse.Namespace, service: ObjectService) -> bool:
     """`run --record`: start recording before the first cycle; False after saying why.
     Sets the recordings folder of `--record-dir` either way."""
     service.recordings.record_dir = record_dir(args)
-    if not getattr(args, "record", None):
+    if not args.record:
         return True
     try:
         # the local user's own file name: written where it says (docs/recorder.md §7)
@@ -111,13 +112,14 @@ def start_from_args(args: argparse.Namespace, service: Any) -> bool:
             spec_from_args(args), args.record_out, args.machine, local=True
         )
     except (AdsError, ValueError) as exc:
-        print(f"error: --record: {getattr(exc, 'message', exc)}", file=sys.stderr)
+        why = exc.message if isinstance(exc, AdsError) else exc
+        print(f"error: --record: {why}", file=sys.stderr)
         return False
     print(f"recording {st['columns']} values to {st['file']}", file=sys.stderr)
     return True
 
 
-def finish(service: Any) -> None:
+def finish(service: ObjectService) -> None:
     """Write the recording (once its trigger's samples are in, or at the end of `run`)."""
     if service.recordings.recording is None:
         return

@@ -27,9 +27,9 @@ import os
 import stat
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
 from geo_server.errors import GeoError
+from geo_server.model import MachineConfig
 from geo_server.paths import default_startup_list
 from geo_server.recorder.inputs import inputs_path
 from geo_server.recorder.recorder import LIMITS
@@ -54,7 +54,7 @@ def default_record_dir(startup: Path) -> Path:
     return (Path.cwd() if shipped else Path(startup).resolve().parent) / RECORDINGS
 
 
-def machine_files(cfg: Any) -> list[Path]:
+def machine_files(cfg: MachineConfig) -> list[Path]:
     """Every file the machine `cfg` was loaded from (start-up list, axis and
     compensation lists, twin file, VOLC lists and their correction files)."""
     from geo_server.twin.file import twin_path
@@ -62,8 +62,8 @@ def machine_files(cfg: Any) -> list[Path]:
     startup = Path(cfg.startup_path)
     base = startup.parent
     files = [startup, twin_path(startup), *(base / f for f in cfg.list_files)]
-    for v in getattr(cfg, "volumetric", ()):
-        files += [Path(f) for f in (getattr(v, "path", ""), *getattr(v, "param_files", ())) if f]
+    for v in cfg.volumetric:  # (VolComp: typed loosely in the model, see there)
+        files += [Path(f) for f in (v.path, *v.param_files) if f]
     return files
 
 

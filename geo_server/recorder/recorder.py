@@ -24,15 +24,18 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from geo_server import __version__
 from geo_server.listfile.writer import AtomicFile
+from geo_server.machine.port import Operation
 from geo_server.recorder.inputs import inputs_path, op_to_json
 from geo_server.recorder.selection import Trigger, parse_trigger, resolve_columns
 from geo_server.recorder.trace import Trace, TraceWriter
+from geo_server.seam import MachineFacts
+from geo_server.snapshot import Snapshot
 
 #: Rows kept without a trigger when the spec sets no limit (ten minutes of 1 ms cycles).
 DEFAULT_SAMPLES = 600_000
@@ -183,6 +186,23 @@ class _Layout:
     order: np.ndarray  # buffer column → requested column position
 
 
+class InputTaps(Protocol):
+    """Where a recording hears the inputs (`commands.record.RecordingService`)."""
+
+    def tap_inputs(self, callback: Callable[[int, Operation], None]) -> Callable[[], None]: ...
+
+
+class Recorded(Protocol):
+    """What a recording uses of the object service (`geo_server.seam`)."""
+
+    @property
+    def info(self) -> MachineFacts: ...
+    @property
+    def recordings(self) -> InputTaps: ...
+    def demand_cycles(self) -> Callable[[], None]: ...
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]: ...
+
+
 class Recorder:
     """Records `spec` from `service` (any `ObjectService`). In memory: `start`, then
     `stop` → `Trace`. To a file (`out`, a place the caller has checked, see
@@ -190,7 +210,7 @@ class Recorder:
 
     def __init__(
         self,
-        service: Any,
+        service: Recorded,
         spec: RecordSpec,
         name: str = "",
         *,

@@ -45,6 +45,7 @@ from geo_server.kernel.temperature import offset as tempc_offset
 from geo_server.listfile import rewrite_values
 from geo_server.listfile.writer import write_atomic
 from geo_server.model import COMP_NAMES, SELECTED_OBJECTS, MachineConfig
+from geo_server.seam import Measured, Stepping
 from geo_server.twin import iso230
 from geo_server.twin.iso230 import Evaluation
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM, parse_axis_names
@@ -194,12 +195,18 @@ def _selected(bench: Bench, axis: int, kind: str) -> bool:
 class StepBench:
     """A machine in stepped mode in this process: exact and as fast as the host."""
 
-    def __init__(self, service: Any, max_cycles_per_move: int = 200_000) -> None:
+    def __init__(self, service: Measured, max_cycles_per_move: int = 200_000) -> None:
         """`service`: a `geo_server.service.ObjectService` in stepped mode (duck-typed:
         this layer sits below the service); the bench steps its scheduler."""
         self.svc = service
         self.max_cycles = max_cycles_per_move
         self._periods: dict[int, float] = {}
+
+    @property
+    def _stepper(self) -> Stepping:
+        """The service's stepper (`ObjectService.stepper`: RuntimeError once its cycles
+        run by themselves)."""
+        return self.svc.stepper()
 
     def _period(self, axis: int) -> float:
         """The modulo period in increments (0: not a modulo axis): the command position
@@ -223,11 +230,11 @@ class StepBench:
         for _ in range(self.max_cycles):
             if self.at(axis, position):
                 return
-            self.svc.scheduler.step(1)
+            self._stepper.step(1)
         raise MeasureError(f"axis {axis} did not reach {position:.0f} increments")
 
     def dwell(self, seconds: float) -> None:
-        self.svc.scheduler.step(max(1, round(seconds / float(self.svc.info.cycle_s))))
+        self._stepper.step(max(1, round(seconds / float(self.svc.info.cycle_s))))
 
     def true_position(self, axis: int) -> float:
         return float(self.read("TWIN::true_position", axis))
@@ -237,7 +244,7 @@ class StepBench:
         since = self._cycle()
         pending = self.svc.nc.run(text)
         for _ in range(self.max_cycles):
-            self.svc.scheduler.step(1)
+            self._stepper.step(1)
             if not self.read("SIM::program_running", 0):
                 break
         else:
@@ -259,7 +266,7 @@ class StepBench:
 
     def write(self, name: str, axis: int, value: object) -> None:
         pending = self._submit(name, axis, value)
-        self.svc.scheduler.step(1)
+        self._stepper.step(1)
         if pending.done():
             _raise_refused(pending.result())
 
@@ -279,7 +286,7 @@ class LiveBench(StepBench):
 
     def __init__(
         self,
-        service: Any,
+        service: Measured,
         timeout_s: float = 120.0,
         deadline_s: float = 3600.0,
         cancel: threading.Event | None = None,

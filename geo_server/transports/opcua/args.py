@@ -3,6 +3,7 @@ server: the parser is built for every command."""
 
 from __future__ import annotations
 
+import argparse
 import os
 from typing import Any
 from urllib.parse import urlsplit
@@ -23,9 +24,9 @@ def parse_endpoint(url: str) -> tuple[str, int]:
     return parts.hostname, DEFAULT_PORT if port is None else port
 
 
-def check_args(args: Any) -> str | None:
+def check_args(args: argparse.Namespace) -> str | None:
     """What is wrong with the OPC UA options of `geo-server run`, or None."""
-    if getattr(args, "no_opcua", True):
+    if args.no_opcua:
         return None
     if (args.opcua_user is None) != (args.opcua_password is None):
         return "--opcua-user and --opcua-password go together"

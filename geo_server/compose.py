@@ -119,7 +119,7 @@ def connection_caps(args: argparse.Namespace, machines: int | None = None) -> di
     from geo_server.transports.ads.server import AdsOptions
     from geo_server.transports.modbus.server import ModbusOptions
     from geo_server.transports.tcp import BACKLOG
-    from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.transports.zenoh.options import ZenohOptions
 
     n = machines or 1
     wanted: dict[str, int] = {}
@@ -371,7 +371,7 @@ _Server = tuple[Any, Callable[[], str]]
 
 
 def _zenoh_options(args: argparse.Namespace, caps: dict[str, int], **more: Any) -> Any:
-    from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.transports.zenoh.options import ZenohOptions
 
     options = ZenohOptions(
         mode=args.zenoh_mode,
@@ -513,7 +513,8 @@ def loopback_interface(
     Modbus and ADS bind port 0 and report theirs)."""
     if via == "zenoh":
         from geo_server.ports import free_port
-        from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+        from geo_server.transports.zenoh.options import ZenohOptions
+        from geo_server.transports.zenoh.server import ZenohInterface
 
         port = free_port()  # (free a moment ago, never one handed out before)
         options = ZenohOptions(

@@ -354,7 +354,7 @@ def _option_classes() -> dict[str, Any]:
     from geo_server.transports.ads.server import AdsOptions
     from geo_server.transports.modbus.server import ModbusOptions
     from geo_server.transports.opcua.server import OpcUaOptions
-    from geo_server.transports.zenoh.server import ZenohOptions
+    from geo_server.transports.zenoh.options import ZenohOptions
     from geo_server.web.server import HmiOptions
 
     return {

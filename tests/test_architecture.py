@@ -79,6 +79,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
     "geo_server.transports.share",  # a fleet machine's share of the loop, both draw on
     "geo_server.aio",  # asyncio helpers
+    "geo_server.commands.requests",  # the JSON commands every interface takes
     "geo_server.cache",  # the private cache folder (OPC UA's imported NodeSets)
 )
 

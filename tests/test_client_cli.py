@@ -22,7 +22,8 @@ from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService
 from geo_server.transports.ads.server import AdsOptions, AdsServer
 from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface
 
 VIAS = ("zenoh", "modbus", "ads")
 

@@ -28,7 +28,8 @@ from geo_server.machine.machine import Machine
 from geo_server.machine.nc import NcError, parse_program
 from geo_server.paths import data_dir, default_startup_list
 from geo_server.service import ObjectService
-from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface
 from geo_server.web.server import HmiOptions, HmiServer
 
 NC = data_dir("lists") / "examples" / "nc"

@@ -243,7 +243,8 @@ def test_over_zenoh_stalled_reads_and_a_withdrawn_write(lists_copy, loop_thread)
     from conftest import free_port
 
     from geo_server.client.zenoh_client import ZenohClient
-    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+    from geo_server.transports.zenoh.options import ZenohOptions
+    from geo_server.transports.zenoh.server import ZenohInterface
 
     m = Stoppable(lists_copy, ServiceLimits(write_timeout=0.5, stall_after=0.3))
     endpoint = f"tcp/127.0.0.1:{free_port()}"

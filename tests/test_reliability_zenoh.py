@@ -30,12 +30,8 @@ from geo_server.client.zenoh_client import ServerConflictError, ZenohClient
 from geo_server.dictionary import load_dictionary
 from geo_server.errors import AdsError
 from geo_server.transports.zenoh.keys import KeySpace
-from geo_server.transports.zenoh.server import (
-    CLOSE_WAIT_S,
-    TRANSPORT_LIMITS,
-    ZenohInterface,
-    ZenohOptions,
-)
+from geo_server.transports.zenoh.options import TRANSPORT_LIMITS, ZenohOptions
+from geo_server.transports.zenoh.server import CLOSE_WAIT_S, ZenohInterface
 
 TIMEOUT = 5.0  # every get
 JSON = zenoh.Encoding.APPLICATION_JSON

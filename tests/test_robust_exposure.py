@@ -37,7 +37,7 @@ from geo_server.client.zenoh_client import client_config
 from geo_server.errors import AdsError
 from geo_server.transports.ads.server import AdsOptions
 from geo_server.transports.modbus.server import ModbusOptions
-from geo_server.transports.zenoh.server import ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
 
 BIN = Path(sys.executable).parent
 LOOPBACK = "127.0.0.1"

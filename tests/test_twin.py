@@ -281,7 +281,8 @@ def test_twin_objects_over_every_transport(loop_thread, default_cfg):
     from geo_server.client.zenoh_client import ZenohClient
     from geo_server.transports.ads.server import AdsOptions, AdsServer
     from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-    from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+    from geo_server.transports.zenoh.options import ZenohOptions
+    from geo_server.transports.zenoh.server import ZenohInterface
 
     svc = ObjectService(Machine(default_cfg, homed=True))
     access.write_name(svc, "SIM::target_position", 1, 654_321)

@@ -28,7 +28,8 @@ from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import Scheduler
 from geo_server.service import ObjectService
-from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface
 
 TIMEOUT = 5.0
 D = load_dictionary()

@@ -29,7 +29,8 @@ from geo_server.commands.lists import CommandService
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.service import ObjectService, is_command
-from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface
 
 TIMEOUT = 5.0
 JSON = zenoh.Encoding.APPLICATION_JSON

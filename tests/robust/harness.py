@@ -21,7 +21,8 @@ from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
 from geo_server.transports.ads.server import AdsOptions, AdsServer
 from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-from geo_server.transports.zenoh.server import ZenohInterface, ZenohOptions
+from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.server import ZenohInterface
 
 #: Every Zenoh get / Modbus request / ADS request of these tests has this timeout (s).
 TIMEOUT = 5.0

@@ -295,3 +295,19 @@ def test_value_status_and_error_publications(served):
     finally:
         for sub in subs:
             sub.undeclare()
+
+
+def test_nothing_handed_over_after_close_outlives_the_interface(loop_thread, service) -> None:
+    """A query or put Zenoh hands to the loop while the interface closes starts no task:
+    it would outlive the interface ("Task was destroyed but it is pending" when the loop
+    ended, seen in the suite for a refused put listed after the close)."""
+    s = Served(loop_thread, service)
+    s.close()
+
+    async def work() -> None:
+        raise AssertionError("ran after close")
+
+    coro = work()
+    assert s.iface._spawn(coro) is None
+    assert coro.cr_frame is None  # (closed: never run, no warning it was not awaited)
+    assert not s.iface._tasks

@@ -52,6 +52,7 @@ from geo_server.service import (
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
 from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.rivals import Rivals
 
 log = logging.getLogger(__name__)
 
@@ -178,10 +179,8 @@ class ZenohInterface:
         self._lister: asyncio.Task[None] | None = None
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
-        #: Other sessions found answering for this machine: key (their Zenoh id, or
-        #: "token"/"queryable" when the id is unknown) -> (Zenoh id or None, evidence).
-        self._rivals: dict[str, tuple[str | None, str]] = {}
-        self._matching = False  # a remote queryable covers all of cnc/<m>/**
+        #: other sessions found answering for this machine (`rivals.py`)
+        self.rivals = Rivals(self.keys.machine, self.keys.prefix, self._report, self._put_rivals)
         self._probe_wanted: asyncio.Event | None = None
         self._probes_started = 0
         #: held while a read is answered on Zenoh's thread (`_read_now`, `_refuse_busy`)
@@ -192,7 +191,7 @@ class ZenohInterface:
         #: `close`: a lock of its own, so that a probe never sends a read that could be
         #: answered at once to the loop (and its reply would not be kept)
         self._probing = threading.Lock()
-        self._probes_applied = 0
+        self._closed = False  # (no task is started once `close` began: `_spawn`)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -212,13 +211,14 @@ class ZenohInterface:
         log.info("zenoh session %s serves %s/**", self.zenoh_id, prefix)
         self.service.status_extra["zenoh_id"] = self.zenoh_id
         self.service.status_extra["zenoh_busy"] = self.busy
-        self._publish_rivals()
+        self.rivals.own = self.zenoh_id
+        self.rivals.publish()
         self._unsubscribe.append(self.service.subscribe_events(self._on_event))
         self._entities.append(s.declare_queryable(f"{prefix}/**", self._on_query))
         # Zenoh merges the liveliness tokens of one key: once ours is declared, a second
         # one on `alive` is invisible as such. So look for one before declaring ours.
         if await self._loop.run_in_executor(None, self._token_held):
-            self._add_rival("token", None, f"held the liveliness token {alive} first")
+            self.rivals.token_held(alive)
         self._entities.append(s.liveliness().declare_token(alive))
         # Liveliness changes on our key (another token coming or going) call for a look.
         self._entities.append(s.liveliness().declare_subscriber(alive, self._on_alive))
@@ -254,6 +254,7 @@ class ZenohInterface:
         self._spawn(self._rival_loop())
 
     async def close(self) -> None:
+        self._closed = True
         for unsub in self._unsubscribe:
             unsub()
         self._unsubscribe.clear()
@@ -302,7 +303,12 @@ class ZenohInterface:
     def endpoints(self) -> list[str]:
         return list(self.options.listen)
 
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None] | None:
+        """`coro` as a task `close` ends; none once it closes (a query or put Zenoh
+        handed over meanwhile is dropped: its task would outlive the interface)."""
+        if self._closed:
+            coro.close()
+            return None
         task = asyncio.ensure_future(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
@@ -732,16 +738,12 @@ class ZenohInterface:
             self._watched.set()
 
     def _alive_changed(self, deleted: bool) -> None:
-        # Our own token lives as long as this interface: a DELETE while we run is
-        # another session's token going away.
         if deleted:
-            self._drop_rival("token")
+            self.rivals.token_gone()
         self._want_probe()
 
     def _matching_changed(self, matching: bool) -> None:
-        self._matching = matching
-        if not matching:
-            self._drop_rival("queryable")
+        self.rivals.queryable(matching)
         self._want_probe()
 
     def _want_probe(self) -> None:
@@ -787,7 +789,7 @@ class ZenohInterface:
                 found.add(str(rid.zid))
 
         def on_done() -> None:
-            self._to_loop(self._probe_done, number, frozenset(found))
+            self._to_loop(self.rivals.probe_done, number, frozenset(found))
 
         session.get(
             f"{self.keys.prefix}/status",
@@ -798,63 +800,11 @@ class ZenohInterface:
             timeout=PROBE_TIMEOUT_S,
         )
 
-    def _probe_done(self, number: int, found: frozenset[str]) -> None:
-        if number < self._probes_applied:
-            return  # a later probe has answered already
-        self._probes_applied = number
-        status_key = f"{self.keys.prefix}/status"
-        others = {zid for zid in found if zid != self.zenoh_id}
-        for zid in sorted(others):
-            self._add_rival(zid, zid, f"answered {status_key}")
-        for key, (rival_zid, _evidence) in list(self._rivals.items()):
-            if rival_zid is not None and rival_zid not in others:
-                self._drop_rival(key)
-        if others:
-            # the id-less hints (a token, a queryable) most likely came from the sessions
-            # now known by id: keep the identified entries only
-            self._drop_rival("token", explained=True)
-            self._drop_rival("queryable", explained=True)
-        elif self._matching:
-            self._add_rival(
-                "queryable",
-                None,
-                f"declared a queryable on {self.keys.prefix}/** (and did not answer {status_key})",
-            )
+    def _report(self, text: str, severity: str) -> None:
+        self.service.report(text, severity=severity)
 
-    def _add_rival(self, key: str, zid: str | None, evidence: str) -> None:
-        """Record a rival; the first time, report it in the errors list."""
-        if key in self._rivals:
-            return
-        self._rivals[key] = (zid, evidence)
-        self._publish_rivals()
-        who = f"Zenoh session {zid}" if zid else "Zenoh session (id unknown)"
-        self.service.report(
-            f"another {who} {evidence}: it claims machine {self.keys.machine!r}, so clients "
-            f"may get its answers instead of this server's ({self.zenoh_id}). Stop it or give "
-            "each server its own machine name (--machine); on a shared network, admit only "
-            "known sessions (Zenoh access control, TLS, user/password authentication)",
-            severity="error",
-        )
-
-    def _drop_rival(self, key: str, *, explained: bool = False) -> None:
-        """Forget a rival: reported as gone, unless `explained` by an entry with an id."""
-        entry = self._rivals.pop(key, None)
-        if entry is None:
-            return
-        self._publish_rivals()
-        if explained:
-            return
-        who = f"Zenoh session {entry[0]}" if entry[0] else "the other Zenoh session"
-        self.service.report(
-            f"{who} no longer claims machine {self.keys.machine!r} (it {entry[1]} earlier)",
-            severity="warning",
-        )
-
-    def _publish_rivals(self) -> None:
-        """`zenoh_rivals` of the status JSON: one entry per rival, a new list each time."""
-        self.service.status_extra["zenoh_rivals"] = [
-            {"zenoh_id": zid, "evidence": evidence} for zid, evidence in self._rivals.values()
-        ]
+    def _put_rivals(self, rivals: list[dict[str, Any]]) -> None:
+        self.service.status_extra["zenoh_rivals"] = rivals
 
     # ------------------------------------------------------------------ publications
 

@@ -280,6 +280,12 @@ class ObjectDef:
     #: "position" | "offset" | "velocity": how clients show the raw value in engineering
     #: units (see `geo_server.units`); None: shown as it is.
     quantity: str | None = None
+    #: Whether the value can change while the machine rests (the counters, the twin's
+    #: clock and temperatures); every other object keeps the value of the cycle the
+    #: machine came to rest in (`Machine.skip`, docs/design.md §13): an on-change
+    #: observer of it needs no snapshot of a quiescent stretch, and a read at rest no
+    #: catch-up.
+    varies_at_rest: bool = False
 
     @property
     def index_group(self) -> int:
@@ -670,7 +676,17 @@ def _load(raw: dict[str, Any]) -> ObjectDef:
         command=raw.get("command"),
         list_key=raw.get("list_key"),
         quantity=raw.get("quantity"),
+        varies_at_rest=_flag(raw, "varies_at_rest"),
     )
+
+
+def _flag(raw: dict[str, Any], key: str) -> bool:
+    """A true/false field of an object (absent: false); anything else is a defect of the
+    dictionary, said with the object's name."""
+    value = raw.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"objects.toml: {raw.get('name')}: {key} must be true or false")
+    return value
 
 
 @cache

@@ -78,7 +78,6 @@ from geo_server.machine.port import (
     WriteObjects,
     resolved,
 )
-from geo_server.machine.port import varies_at_rest as _varies_at_rest
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import CompKind, Diagnostic, MachineConfig
 from geo_server.seam import Measured, PreparedWrite
@@ -656,10 +655,10 @@ def is_command(obj: ObjectDef) -> bool:
 
 
 def varies_at_rest(obj: ObjectDef) -> bool:
-    """Whether `obj` can change while the machine is quiescent (`machine/port.py`
-    `varies_at_rest`; docs/design.md §13): an on-change observer of any other object
-    needs no snapshot of a quiescent cycle."""
-    return _varies_at_rest(obj.name)
+    """Whether `obj` can change while the machine is quiescent (`varies_at_rest` in
+    objects.toml; docs/design.md §13): an on-change observer of any other object needs
+    no snapshot of a quiescent cycle."""
+    return obj.varies_at_rest
 
 
 def snapshot_for(service: ObjectService, obj: ObjectDef, wait: float | None = None) -> Snapshot:

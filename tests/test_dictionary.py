@@ -224,3 +224,46 @@ def test_saved_parameters_name_the_attributes_the_axis_list_reader_fills():
         assert obj.list_key in _FIELDS, obj.name
         assert obj.param_attr == _FIELDS[obj.list_key][0], obj.name
     assert [o.key_group for o in d.tempc_parameters()] == ["tempc"] * 3
+
+
+def test_only_the_objects_marked_varies_at_rest_change_at_rest(machine) -> None:
+    """Issue 47: which objects may change while the machine rests is declared in
+    objects.toml (`varies_at_rest`), and a read at rest is answered from the rest
+    snapshot for every other one. So: homed and standing, the machine comes to rest;
+    2 000 cycles more, each computed, leave every unmarked object of every axis as it
+    was, while the marked cycle counter moved on by exactly 2 000."""
+    from geo_server import access
+    from geo_server.service import ObjectService
+
+    service = ObjectService(machine)
+    for _ in range(10_000):
+        if machine.quiescent:
+            break
+        access.step(service, 1)
+    assert machine.quiescent
+    d = load_dictionary()
+    slots = [
+        (o, axis)
+        for o in d.objects
+        if o.readable
+        for axis in (machine.axes if o.scope == "axis" else (0,))
+    ]
+    before = access.step(service, 1)
+    after = access.step(service, 2000)
+    changed = [
+        f"{o.name}@{axis}"
+        for o, axis in slots
+        if not o.varies_at_rest and after.value(o, axis) != before.value(o, axis)
+    ]
+    assert changed == []
+    count = d.by_name("SIM::cycle_count")
+    assert count.varies_at_rest and after.value(count, 0) - before.value(count, 0) == 2000
+
+
+def test_a_varies_at_rest_that_is_not_true_or_false_is_refused() -> None:
+    from geo_server.dictionary import _load
+
+    raw = {"name": "SIM::x", "group": "sim", "id": 1, "type": "UNS32", "access": "r"}
+    assert _load(raw).varies_at_rest is False
+    with pytest.raises(ValueError, match="SIM::x: varies_at_rest must be true or false"):
+        _load(raw | {"varies_at_rest": "yes"})

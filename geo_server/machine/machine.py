@@ -439,8 +439,8 @@ class Machine:
 
     def shows_rest(self) -> bool:
         """True when the published snapshot shows every object that cannot vary at rest
-        (`port.varies_at_rest`) as it is in every cycle from now on until something is
-        queued: the machine is `quiescent`, and no cycle has been computed since a
+        (`varies_at_rest` in objects.toml) as it is in every cycle from now on until
+        something is queued: the machine is `quiescent`, and no cycle has been computed since a
         snapshot was built at rest (docs/design.md §13, *Reads at rest*). Lock-free, for
         any thread: each attribute is one read, and whichever state a racing cycle
         leaves, a True here means the values are those of a cycle at rest with nothing

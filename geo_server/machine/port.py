@@ -174,21 +174,6 @@ def resolved(result: Any = None, error: BaseException | None = None) -> Pending:
     return p
 
 
-#: Machine-wide objects whose value changes while a machine is quiescent (docs/design.md
-#: §13): the cycle counter, the overruns (an injected overrun slips the time line at rest)
-#: and the twin's clock and ambient temperature; and every object of the group below.
-_VARY_AT_REST = frozenset({"SIM::cycle_count", "SIM::overruns"})
-_VARY_AT_REST_GROUP = "TWIN::"
-
-
-def varies_at_rest(name: str) -> bool:
-    """Whether object `name` can change while the machine is quiescent (`Machine.skip`
-    advances only the counters and the twin). Every other object keeps the value of the
-    cycle the machine became quiescent in, so an on-change observer of it needs no
-    snapshot of a quiescent cycle (the ADS notifications, docs/design.md §13)."""
-    return name in _VARY_AT_REST or name.startswith(_VARY_AT_REST_GROUP)
-
-
 # ---------------------------------------------------------------------- protocols
 
 

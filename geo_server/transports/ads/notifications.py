@@ -53,7 +53,7 @@ and ADS requests:
   through its last sample, and the table tells the exact engine which cycles
   it wants published (`wants`, `next_wanted`: the `CycleDemand` of `machine/port.py`).
   An on-change registration of a value that cannot change while the machine is at rest
-  (`steady`, `machine.port.varies_at_rest`) wants no cycle of a quiescent stretch: its
+  (`steady`, `ObjectDef.varies_at_rest`) wants no cycle of a quiescent stretch: its
   value is the one it had when the stretch began, so the first cycle after the stretch
   is checked instead — a machine at rest is not made to build a snapshot per cycle for
   it. A sample taken later than its grid cycle for another reason (the loop or the
@@ -105,7 +105,7 @@ Reader = Callable[[int, int, int, Snapshot], bytes]
 #: the address resolution once per registration instead of once per sample.
 Preparer = Callable[[int, int, int, Snapshot], Callable[[Snapshot], bytes]]
 #: Given (IG, IO): True when the value there cannot change while the machine is
-#: quiescent (`machine.port.varies_at_rest` is False for it, or it is a constant).
+#: quiescent (`ObjectDef.varies_at_rest` is False for it, or it is a constant).
 Steady = Callable[[int, int], bool]
 
 

@@ -542,3 +542,21 @@ def test_reload_says_which_value_it_replaced_by_its_default(lists_copy: Path):
     (warning,) = [w for w in result.warnings if "40O0" in w]
     assert "achsmd1.lis:" in warning and "lr_param.temp_comp_coefficient" in warning
     assert "default used" in warning
+
+
+@pytest.mark.parametrize("scope", ["axis", "machine"])
+def test_a_readable_object_nothing_feeds_is_refused_at_load(default_cfg, scope: str) -> None:
+    """Issue 47: an object added to objects.toml that the machine does not compute read
+    0 without a word. The machine refuses it when it is built, naming it; a write-only
+    one (a command, a trigger) needs no source."""
+    from dataclasses import replace
+
+    from geo_server.dictionary import Dictionary
+
+    base = load_dictionary()
+    template = base.by_name("SIM::cycle_count")
+    extra = replace(template, name="SIM::nobody_feeds", id=0x0FF0, scope=scope, aliases=())
+    with pytest.raises(ValueError, match=r"nothing feeds the readable object\(s\) SIM::nobody"):
+        Machine(default_cfg, dictionary=Dictionary([*base.objects, extra]))
+    written = replace(extra, access="w")
+    Machine(default_cfg, dictionary=Dictionary([*base.objects, written]))

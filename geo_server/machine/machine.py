@@ -20,9 +20,9 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from time import monotonic, perf_counter_ns
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
@@ -77,47 +77,44 @@ from geo_server.volcomp.kernel import VOLC_ERROR, VolKernel
 log = logging.getLogger(__name__)
 
 
+def _fed(name: str) -> Any:
+    """A field of `_MachineColumns`: the column of machine object `name`."""
+    return field(metadata={"object": name})
+
+
 @dataclass(frozen=True, slots=True)
 class _MachineColumns:
     """Columns of the machine objects `Machine._build_snapshot` writes from the machine's
-    own state (the other machine objects are 0 or come from elsewhere)."""
+    own state, each field beside the object it feeds (the other machine objects are
+    write-only: `_unfed` checks)."""
 
-    cycle_count: int
-    cycle_time_us: int
-    overruns: int
-    last_error_id: int
-    program_running: int
-    program_line: int
-    ambient_temperature: int
-    twin_time: int
-    spindle_on: int
-    volc_active: int
-    volc_available: int
-    volc_index: int
-    volc_tool_length: int
-    volc_incorrect: int
+    cycle_count: int = _fed("SIM::cycle_count")
+    cycle_time_us: int = _fed("SIM::cycle_time_us")
+    overruns: int = _fed("SIM::overruns")
+    last_error_id: int = _fed("SIM::last_error_id")
+    program_running: int = _fed("SIM::program_running")
+    program_line: int = _fed("SIM::program_line")
+    ambient_temperature: int = _fed("TWIN::ambient_temperature")
+    twin_time: int = _fed("TWIN::time")
+    spindle_on: int = _fed("TWIN::spindle_on")
+    volc_active: int = _fed("VOLC::active")
+    volc_available: int = _fed("VOLC::available")
+    volc_index: int = _fed("VOLC::index")
+    volc_tool_length: int = _fed("VOLC::tool_length")
+    volc_incorrect: int = _fed("VOLC::incorrect")
 
-    #: the object of each field, in field order
-    OBJECTS: ClassVar[tuple[str, ...]] = (
-        "SIM::cycle_count",
-        "SIM::cycle_time_us",
-        "SIM::overruns",
-        "SIM::last_error_id",
-        "SIM::program_running",
-        "SIM::program_line",
-        "TWIN::ambient_temperature",
-        "TWIN::time",
-        "TWIN::spindle_on",
-        "VOLC::active",
-        "VOLC::available",
-        "VOLC::index",
-        "VOLC::tool_length",
-        "VOLC::incorrect",
-    )
+    @staticmethod
+    def objects() -> tuple[str, ...]:
+        """The machine objects fed, in field order."""
+        return tuple(f.metadata["object"] for f in fields(_MachineColumns))
 
     @classmethod
     def of(cls, mcol: Callable[[str], int]) -> _MachineColumns:
-        return cls(*(mcol(name) for name in cls.OBJECTS))
+        return cls(**{f.name: mcol(f.metadata["object"]) for f in fields(cls)})
+
+
+#: the text objects the machine writes (`Machine._snapshot_of`)
+_TEXTS = ("SIM::last_error", "SIM::axis_names", "VOLC::file")
 
 
 #: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
@@ -642,7 +639,13 @@ class Machine:
                 key = f"state:{name}"
                 pieces[key] = src(self)[:, None]
                 where[col(name)] = (key, 0)
-        if any(w is None for w in where):  # not fed by the machine: 0
+        unfed = _unfed(self.layout, where)
+        if unfed:
+            raise ValueError(
+                f"nothing feeds the readable object(s) {', '.join(unfed)}: objects.toml "
+                "names them, the machine does not compute them (docs/design.md §1.3a)"
+            )
+        if any(w is None for w in where):  # not fed by the machine (write-only): 0
             pieces["zero"] = np.zeros((n, 1))
         offset, start = {}, 0
         for key, piece in pieces.items():
@@ -1203,6 +1206,19 @@ _FROM_STATE: dict[str, str | Callable[[Machine], np.ndarray]] = {
     "VOLC::correction": lambda m: m.volc.offset,
     "VOLC::held": lambda m: m.volc.held,
 }
+
+
+def _unfed(layout: ObjectLayout, where: Sequence[tuple[str, int] | None]) -> list[str]:
+    """The readable objects no source feeds: an axis object without its column
+    (`where`), a machine object without its `_MachineColumns` field, a text the
+    machine does not write. Each would read 0 (or "") without a word."""
+    fed = {*_MachineColumns.objects(), *_TEXTS}
+    axis = zip(layout.axis_objects, where, strict=True)
+    machine = (*layout.machine_objects, *layout.text_objects)
+    return [
+        *(o.name for o, w in axis if w is None and o.readable),
+        *(o.name for o in machine if o.name not in fed and o.readable),
+    ]
 
 
 def _tempc_row(row: int) -> Callable[[Machine], np.ndarray]:

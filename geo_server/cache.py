@@ -22,7 +22,7 @@ def user_cache() -> Path:
 
 
 def unsafe_because(folder: Path) -> str | None:
-    """Why machine code must not be loaded from `folder` (None: it may).
+    """Why nothing cached (machine code, NodeSets) may be loaded from `folder` (None: it may).
 
     The folder must be this user's and writable by nobody else, and so must every folder
     above it be this user's or root's and not writable by others — except a shared folder

@@ -39,7 +39,7 @@ from geo_server.aio import wait_set
 from geo_server.compose import EngineOptions, Interfaces, build_machine
 from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
-from geo_server.machine.scheduler import Engines, switch_interval
+from geo_server.machine.scheduler import Engines, Scheduler, switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 from geo_server.service import ObjectService
@@ -59,7 +59,7 @@ def members_from_args(args: argparse.Namespace) -> list[Member]:
 class Served:
     member: Member
     service: ObjectService
-    scheduler: Any  # (a Scheduler or a ProcessScheduler: started with the fleet's engines)
+    scheduler: Scheduler  # (a fleet's cycles run in this process: `EngineOptions`)
     late: int = 0  # samples late at the last fleet status (`starved`)
     holds: int = 0  # loop-share holds at the last fleet status (`throttled`)
 
@@ -90,6 +90,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         service.recordings.record_dir = recorder_cli.record_dir(args, m.name, cfg.startup_path)
         if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
             return 2
+        assert isinstance(built.scheduler, Scheduler)  # (cycle_in "thread", as asked)
         served.append(Served(m, service, built.scheduler))
     threads = _cycle_threads(served)
     print(

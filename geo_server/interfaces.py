@@ -69,7 +69,7 @@ class _Injecting(Protocol):
 
 
 class _Faulted(Protocol):
-    """What `inject_faults` uses of the object service (`geo_server.seam`)."""
+    """What `inject_faults` uses of the object service (this layer is below it)."""
 
     @property
     def faults(self) -> _Injecting: ...

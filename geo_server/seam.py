@@ -4,8 +4,9 @@
 the commands it hands itself to (a measurement's bench, a recording): they cannot
 import it, and typed it `Any`, which let any attribute through (a renamed one hid a
 regression). Each types what it uses of the service as a Protocol built from these
-parts, in the manner of pymodbus' datastore context; `service.py` checks that the
-service is each of them (mypy, `_conforms`).
+parts, in the manner of pymodbus' datastore context; mypy checks that the service is
+each of them where it hands itself over (`service.py`: `MeasureService`,
+`RecordingService`, and `_conforms`).
 """
 
 from __future__ import annotations

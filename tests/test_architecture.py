@@ -437,10 +437,23 @@ def test_the_service_is_typed_everywhere():
 def test_a_service_has_no_public_attribute_beyond_its_services(machine) -> None:
     """An instance, not the class: attributes set in `__init__` (once `machine`,
     `scheduler` and `limits`, which the class check could not see) are seen too."""
+    from geo_server.commands.ports import Ports
+    from geo_server.machine.machine import Machine
+    from geo_server.machine.scheduler import Scheduler
     from geo_server.service import ObjectService
 
-    public = {n for n in vars(ObjectService(machine)) if not n.startswith("_")}
+    service = ObjectService(machine)
+    public = {n for n in vars(service) if not n.startswith("_")}
     assert public <= SERVICE_ATTRIBUTES, sorted(public - SERVICE_ATTRIBUTES)
+    # ...nor through the services beside it (`service.nc.ports.scheduler` was public)
+    behind = (Ports, Machine, Scheduler)
+    reach = [
+        f"{name}.{attr}"
+        for name in sorted(SERVICE_ATTRIBUTES - {"status_extra"})
+        for attr, value in vars(getattr(service, name)).items()
+        if not attr.startswith("_") and isinstance(value, behind)
+    ]
+    assert reach == []
 
 
 #: The interfaces' servers: only the composition root builds them (docs/design.md §1.2),

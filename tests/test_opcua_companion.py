@@ -693,3 +693,91 @@ def test_a_warmed_cache_is_the_one_a_server_restores(
 
     assert asyncio.run(asyncio.wait_for(scenario(), 60)) == "CncAxisType"  # (the XML's)
     assert list((cache / "opcua-nodesets").glob("companions-*.pickle")) == [cached]
+
+
+def _fresh_space() -> Any:
+    """asyncua's standard address space with geo-server's namespaces, as a server has
+    it before the companion models (`OpcUaInterface._init_and_build`)."""
+    from asyncua import Server
+
+    from geo_server.transports.opcua.space import APPLICATION_URI, NAMESPACE_URI
+
+    async def made() -> Any:
+        server = Server()
+        await server.init()
+        await server.set_application_uri(APPLICATION_URI)
+        await server.register_namespace(NAMESPACE_URI)
+        return server
+
+    return asyncio.run(made())
+
+
+def test_a_nodeset_cache_others_can_write_is_never_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The cache is a pickle: one planted where another user can write would run its
+    code as the server's user. Planted at the very name the server would read, in a
+    cache folder writable by others, it is not read: the NodeSets are imported."""
+    import pickle
+
+    from geo_server.transports.opcua import companions
+
+    server = _fresh_space()
+    uris = list(asyncio.run(server.get_namespace_array()))
+    monkeypatch.setenv("GEO_SERVER_JIT_CACHE", str(tmp_path / "safe"))
+    name = companions._cache_path(uris).name  # type: ignore[union-attr]
+    marker = tmp_path / "ran"
+
+    class Planted:
+        def __reduce__(self) -> Any:
+            return (os.system, (f"touch {marker}",))
+
+    unsafe = tmp_path / "unsafe"
+    (unsafe / "opcua-nodesets").mkdir(parents=True)
+    (unsafe / "opcua-nodesets" / name).write_bytes(pickle.dumps(Planted()))
+    unsafe.chmod(0o777)
+    monkeypatch.setenv("GEO_SERVER_JIT_CACHE", str(unsafe))
+    assert companions._cache_path(uris) is None
+    asyncio.run(companions.add(server, lambda: False))
+    assert not marker.exists()
+    assert asyncio.run(server.get_namespace_index(CNC)) == 3  # (imported)
+
+
+def test_a_restore_that_fails_takes_the_cache_away(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cache read whole whose restore then fails (a class asyncua could not make) has
+    changed the address space half: that start fails, and the cache is removed so the
+    next start imports instead of failing the same way."""
+    from geo_server.transports.opcua import companions
+
+    monkeypatch.setenv("GEO_SERVER_JIT_CACHE", str(tmp_path / "cache"))
+    server = _fresh_space()
+    path = companions._cache_path(list(asyncio.run(server.get_namespace_array())))
+    assert path is not None
+    path.write_bytes(b"x")
+    monkeypatch.setattr(companions, "_read", lambda p: companions._Added([], {}, {}, []))
+
+    async def broken(server: Any, added: Any) -> None:
+        raise AttributeError("CncPositionDataType")
+
+    monkeypatch.setattr(companions, "_restore", broken)
+    with pytest.raises(AttributeError):
+        asyncio.run(companions.add(server, lambda: False))
+    assert not path.exists()
+
+
+def test_a_cache_of_another_address_space_is_not_restored() -> None:
+    """`_fits`: nodes it would add that are there already, or older nodes whose
+    references are not as they were before the import, mean another address space."""
+    from geo_server.transports.opcua.companions import _Added, _fits
+
+    class Node:
+        def __init__(self, refs: int) -> None:
+            self.references = [object()] * refs
+
+    nodes = {"a": Node(2)}
+    assert _fits(nodes, _Added([], {"b": Node(0)}, {"a": (2, [])}, []))
+    assert not _fits(nodes, _Added([], {"a": Node(0)}, {}, []))  # (there already)
+    assert not _fits(nodes, _Added([], {}, {"a": (3, [])}, []))  # (other references)
+    assert not _fits(nodes, _Added([], {}, {"c": (0, [])}, []))  # (no such node)

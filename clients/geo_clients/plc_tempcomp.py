@@ -106,7 +106,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 from geo_clients.common import add_transport_arguments, client_from_args, transport_name
 from geo_server.dictionary import load_dictionary, round_half_away
@@ -486,6 +486,14 @@ class TemperatureSource(Protocol):
     def temperature(self, t: float) -> float | None: ...
 
 
+@runtime_checkable
+class PerAxisTemperatureSource(TemperatureSource, Protocol):
+    """A source with a temperature per axis (`TwinSensors`, or one of your own): each
+    axis is adapted to its own."""
+
+    def temperature_of(self, axis: int, t: float) -> float | None: ...
+
+
 @dataclass
 class WarmUp:
     """Simulated warm-up: `T(t) = end − (end − start)·exp(−t/time_constant)` [°C, s]."""
@@ -803,7 +811,7 @@ class TemperatureAdapter:
         adapter goes on)."""
 
         def read() -> dict[int, float | None]:
-            if isinstance(self.source, TwinSensors):  # (one per axis)
+            if isinstance(self.source, PerAxisTemperatureSource):
                 return {a: self.source.temperature_of(a, t) for a in self.axes}
             return dict.fromkeys(self.axes, self.source.temperature(t))
 

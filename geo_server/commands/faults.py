@@ -27,7 +27,7 @@ class FaultService(Faults):
         self, ports: Ports, set_overrun: SetOverrun | None, twin: Callable[[], TwinEngine] | None
     ) -> None:
         super().__init__()
-        self.ports = ports
+        self._ports = ports
         self._set_overrun = set_overrun
         self._twin = twin
         #: held from looking at what is active to acting on the machine: two injects at
@@ -61,7 +61,7 @@ class FaultService(Faults):
                 if f.target == "cycle" and self._set_overrun is not None:
                     self._set_overrun(0, 0)
                 elif f.target == "sensor" and self._twin is not None:
-                    self.ports.apply(SensorFault(self._twin().sensor_index(f.sensor), ""))
+                    self._ports.apply(SensorFault(self._twin().sensor_index(f.sensor), ""))
             return [f.as_dict() for f in gone]
 
     def _overrun(self, f: Fault) -> dict[str, Any]:
@@ -72,7 +72,7 @@ class FaultService(Faults):
             raise FaultError(
                 f"fault {f.text!r}: overrun fault {active[0].ident} is active; clear it first"
             )
-        cycles = max(1, round(f.value / (self.ports.machine.cycle_s * 1000)))
+        cycles = max(1, round(f.value / (self._ports.machine.cycle_s * 1000)))
         added = self.add(f)
         self._set_overrun(cycles, f.every, lambda: self.hit(added))
         return added.as_dict()
@@ -88,5 +88,5 @@ class FaultService(Faults):
         if any(twin.sensor_index(g.sensor) == k for g in self.of("sensor")):
             raise FaultError(f"fault {f.text!r}: that sensor has a fault already; clear it first")
         added = self.add(f)
-        self.ports.apply(SensorFault(k, f.kind, f.value))
+        self._ports.apply(SensorFault(k, f.kind, f.value))
         return added.as_dict()

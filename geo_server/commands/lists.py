@@ -20,23 +20,23 @@ class CommandService:
     an event loop calls them through `run_applied` (a worker thread)."""
 
     def __init__(self, ports: Ports) -> None:
-        self.ports = ports
+        self._ports = ports
         #: one list command at a time (0x708 after `command_wait`)
         self.lock = CommandLock(ports)
 
     def reload(self, startup: Path | str | None = None) -> CommandResult:
         """Reload the lists (`commands.reload`): validate everything first, swap at a
         cycle boundary or reject with the machine unchanged (recorded in `errors()`)."""
-        return self.lock.run("reload", lambda: reload_lists(self.ports, startup))
+        return self.lock.run("reload", lambda: reload_lists(self._ports, startup))
 
     def save(self) -> CommandResult:
         """Write the live TEMPC parameters back into the axis lists (`commands.save`)."""
-        return self.lock.run("save", lambda: save_lists(self.ports))
+        return self.lock.run("save", lambda: save_lists(self._ports))
 
     def volcomp_update(self, file_name: str) -> CommandResult:
         """cnc_interpr_vol_comp_file_w (`commands.volumetric`, 004 p.23)."""
         return self.lock.run(
-            "volcomp_update", lambda: update_volumetric(self.ports, file_name), detail=True
+            "volcomp_update", lambda: update_volumetric(self._ports, file_name), detail=True
         )
 
     def run(self, name: str, value: Any = None) -> CommandResult:

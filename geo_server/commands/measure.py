@@ -19,7 +19,7 @@ class MeasureService:
     writes through (the same reads and writes as any client)."""
 
     def __init__(self, ports: Ports, host: Measured) -> None:
-        self.ports = ports
+        self._ports = ports
         self.host = host
         self._lock = threading.Lock()
         self._cancel = threading.Event()
@@ -30,9 +30,9 @@ class MeasureService:
         `limits.measure_deadline` in all (`cancel` ends it). A bad plan is 0x706; one
         measurement at a time, and a test that cannot go on (axis not homed, moved by
         someone else, an NC error) is 0x708."""
-        limits = self.ports.limits
+        limits = self._ports.limits
         try:
-            plan = plan_from_json(spec, self.ports.machine.cfg)
+            plan = plan_from_json(spec, self._ports.machine.cfg)
         except MeasureError as exc:
             raise AdsError(AdsErrorCode.DEVICE_INVALIDDATA, str(exc), "measure") from None
         if not self._lock.acquire(blocking=False):
@@ -45,9 +45,9 @@ class MeasureService:
                     timeout_s=limits.command_wait + 60.0,
                     deadline_s=limits.measure_deadline,
                     cancel=self._cancel,
-                    settle=self.ports.settle_sync,
+                    settle=self._ports.settle_sync,
                 )
-                if self.ports.running
+                if self._ports.running
                 else StepBench(self.host)
             )
             started = time.monotonic()

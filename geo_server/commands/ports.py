@@ -108,14 +108,14 @@ class CommandLock:
     is answered 0x708 (busy); a failed command is recorded in the error list."""
 
     def __init__(self, ports: Ports) -> None:
-        self.ports = ports
+        self._ports = ports
         self._lock = threading.Lock()
 
     def run(
         self, command: str, work: Callable[[], CommandResult], detail: bool = False
     ) -> CommandResult:
         """`work()` under the lock; `detail`: the report names each error too."""
-        if not self._lock.acquire(timeout=self.ports.limits.command_wait):
+        if not self._lock.acquire(timeout=self._ports.limits.command_wait):
             return CommandResult(
                 False,
                 command,
@@ -130,5 +130,5 @@ class CommandLock:
             message = result.message
             if detail:
                 message += ": " + "; ".join(result.errors)
-            self.ports.report_now(message, result.error_id)
+            self._ports.report_now(message, result.error_id)
         return result

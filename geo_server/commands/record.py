@@ -22,7 +22,7 @@ class RecordingService:
     """The recording of one machine; `host` is the object service it records from."""
 
     def __init__(self, ports: Ports, host: Recorded) -> None:
-        self.ports = ports
+        self._ports = ports
         self.host = host
         #: the recording under way and where it goes
         self.recording: Recorder | None = None
@@ -53,7 +53,7 @@ class RecordingService:
                 raise AdsError(
                     AdsErrorCode.DEVICE_BUSY, "a recording runs already: stop it first", "record"
                 )
-            cfg = self.ports.machine.cfg
+            cfg = self._ports.machine.cfg
             try:
                 if isinstance(spec, dict):
                     spec = RecordSpec.from_json(spec, self.limits)
@@ -97,7 +97,7 @@ class RecordingService:
         """Call `callback(cycle, operation)` for each input the cycle applies (a
         recording's inputs, docs/recorder.md §4) until the returned function is called;
         the cycle in its own process has no taps (a no-op)."""
-        machine = self.ports.machine
+        machine = self._ports.machine
         if not isinstance(machine, Machine):
             return lambda: None
         machine.input_taps.append(callback)

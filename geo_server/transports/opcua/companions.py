@@ -31,6 +31,7 @@ import os
 import pickle
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
@@ -42,6 +43,9 @@ from geo_server.transports.opcua.space import APPLICATION_URI, NAMESPACE_URI
 
 log = logging.getLogger("geo_server.opcua")
 
+#: a temporary file older than this is left over from a process that ended while it
+#: wrote (younger ones may be another process's, writing now)
+STALE_TEMPORARY_S = 600.0
 #: the NodeSets in the order they need each other
 NODESETS: tuple[Path, ...] = (cnc.NODESET, *(path for _, path in machinetool.NODESETS))
 
@@ -81,7 +85,14 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
             log.warning("OPC UA: the NodeSet cache %s cannot be read (%s)", path, exc)
         else:
             if _fits(aspace._nodes, added):
-                await _restore(server, added)
+                try:
+                    await _restore(server, added)
+                except BaseException:
+                    # the address space is half changed: this start fails; the cache goes,
+                    # so the next one imports (and writes it again)
+                    with contextlib.suppress(OSError):
+                        path.unlink()
+                    raise
                 return
             log.warning("OPC UA: the NodeSet cache %s is of another address space", path)
     before = {nodeid: len(data.references) for nodeid, data in aspace._nodes.items()}
@@ -91,7 +102,12 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
         await server.import_xml(str(nodeset), strict_mode=False)
     if path is not None:
         uris_after = list(await server.get_namespace_array())
-        _write(path, _added(aspace, before, uris_after[len(uris) :]))
+        try:
+            added = _added(aspace, before, uris_after[len(uris) :])
+        except Exception as exc:  # (the import stands; only the cache is not written)
+            log.info("OPC UA: the NodeSet cache %s is not written (%s)", path, exc)
+        else:
+            _write(path, added)
 
 
 async def warm() -> None:
@@ -104,7 +120,11 @@ async def warm() -> None:
     await server.init()
     await server.set_application_uri(APPLICATION_URI)
     await server.register_namespace(NAMESPACE_URI)
+    uris = list(await server.get_namespace_array())
     await add(server, lambda: False)
+    path = _cache_path(uris)
+    if path is None or not path.is_file():  # (an image without it would import each start)
+        raise RuntimeError(f"the NodeSet cache was not written ({path or 'no safe folder'})")
 
 
 def _cache_path(uris: list[str]) -> Path | None:
@@ -167,17 +187,30 @@ class _Pickler(pickle.Pickler):
 
 
 def _write(path: Path, added: _Added) -> None:
-    buffer = io.BytesIO()
-    _Pickler(buffer, pickle.HIGHEST_PROTOCOL).dump(added)
+    """`added` pickled into `path`, whole or not at all (a temporary file renamed: two
+    fleets started at once), and the caches of other keys removed (an upgrade of
+    asyncua or of geo-server left its old one behind)."""
+    temporary = ""
     try:
-        fd, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        buffer = io.BytesIO()
+        _Pickler(buffer, pickle.HIGHEST_PROTOCOL).dump(added)
+        fd, temporary = tempfile.mkstemp(dir=path.parent, prefix="companions-", suffix=".tmp")
         with os.fdopen(fd, "wb") as file:
             file.write(buffer.getvalue())
-        os.replace(temporary, path)  # (whole or not at all, for a fleet started twice)
-    except OSError as exc:
+        os.replace(temporary, path)
+    except Exception as exc:  # (a full disk, an object pickle cannot take: not cached)
         log.info("OPC UA: the NodeSet cache %s cannot be written (%s)", path, exc)
-        with contextlib.suppress(OSError, UnboundLocalError):
-            os.unlink(temporary)
+        if temporary:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+        return
+    stale = time.time() - STALE_TEMPORARY_S
+    for old in path.parent.glob("companions-*"):
+        if old == path:
+            continue
+        with contextlib.suppress(OSError):  # (another process's, removed meanwhile)
+            if old.suffix == ".pickle" or old.stat().st_mtime < stale:
+                old.unlink()
 
 
 def _read(path: Path) -> _Added:

@@ -305,7 +305,8 @@ class ZenohInterface:
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None] | None:
         """`coro` as a task `close` ends; none once it closes (a query or put Zenoh
-        handed over meanwhile is dropped: its task would outlive the interface)."""
+        handed over meanwhile is dropped: its task would outlive the interface; its
+        count in `_in_flight` stays, which nothing reads once the interface is closed)."""
         if self._closed:
             coro.close()
             return None

@@ -93,7 +93,7 @@ def test_plane_master_may_be_the_slave_itself(tmp_path):
         ref.step(pos, zeros, zeros, m.motion.homed.copy(), zeros - 1)
     assert ref.actual[z, COLUMN[CompKind.PLANE]] == 137.5
     # V.A.PLANE_COMP_CURR in mm: 137.5 · 0.1 µm = 0.01375 mm
-    assert m.current(z, CompKind.PLANE) == pytest.approx(0.01375, abs=1e-12)
+    assert m.nc_side.current(z, CompKind.PLANE) == pytest.approx(0.01375, abs=1e-12)
 
 
 def test_plane_masters_still_must_differ(tmp_path):
@@ -148,14 +148,14 @@ def test_drive_enable_is_a_precondition_of_cross_and_of_70435(tmp_path):
     _run(m, "N10 G01 X10 F6000\nM30")
     assert m.player is not None and m.player.error is not None
     assert (m.player.error.error_id, m.player.error.line) == (70435, 1)
-    assert m.position(0) == 0.0  # X did not move
+    assert m.nc_side.position(0) == 0.0  # X did not move
     # Y's drive is not X's: only the compensated axis' enable counts
     access.write_name(svc, "SIM::drive_enable", 1, True)
     access.write_name(svc, "SIM::drive_enable", 2, False)
     access.step(svc, 2)
     _run(m, "N10 G01 X10 F6000\nM30")
     assert m.player.finished and m.player.error is None
-    assert m.position(0) == 100_000.0
+    assert m.nc_side.position(0) == 100_000.0
 
 
 def test_drive_actual_position_follows_only_an_enabled_drive(tmp_path):

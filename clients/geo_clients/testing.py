@@ -303,7 +303,7 @@ class GeoTestServer:
         if not wait:
             return 1
         slot = self.machine.slot(a)
-        return 1 + self.run_until(lambda s: s.machine.in_position([slot]), max_cycles)
+        return 1 + self.run_until(lambda s: s.machine.nc_side.in_position([slot]), max_cycles)
 
     def set_position(self, axis: int | str, position: float) -> None:
         """Jump the command position without motion (SIM::set_position) and step once."""

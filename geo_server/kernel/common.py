@@ -7,9 +7,9 @@ manuals, so that it stays independent of the kernel (issue 33).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
-from geo_server.model import AxisConfig, CompKind, CrossComp, CrosstalkComp, PlaneComp
+from geo_server.model import AxisConfig, AxisParams, CompKind, CrossComp, CrosstalkComp, PlaneComp
 
 #: Column index c of every per-compensation array `[n, 7]`.
 COMP_ORDER: tuple[CompKind, ...] = (
@@ -108,3 +108,28 @@ def filter_cycles(ax: AxisConfig) -> list[int]:
         n_of(comp.crosstalk) if comp else 0,
     ]
     return [max(1, int(n)) for n in ns]
+
+
+def listed_kinds(p: AxisParams) -> CompKind:
+    """The compensations the axis parameter list enables (000 §5.3 p.97: "enabled in the
+    axis parameter list")."""
+    return mask_of(
+        kind
+        for kind, on in (
+            (CompKind.BACKLASH, p.anwahl_losekomp != 0),
+            (CompKind.LEAD, p.ssfk),
+            (CompKind.TEMP, p.temp_comp),
+            (CompKind.CROSS, p.crosscomp),
+            (CompKind.PLANE, p.crosscomp2),
+            (CompKind.FRICT, p.frict_comp),
+            (CompKind.CROSSTALK, p.crosstalk),
+        )
+        if on
+    )
+
+
+def mask_of(kinds: Iterable[CompKind]) -> CompKind:
+    out = CompKind(0)
+    for k in kinds:
+        out |= k
+    return out

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field, fields, replace
 from time import monotonic, perf_counter_ns
@@ -31,8 +31,7 @@ from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
-from geo_server.kernel.common import ALL_KINDS, COLUMN
-from geo_server.listfile.values import Reporter
+from geo_server.kernel.common import COLUMN, listed_kinds
 from geo_server.machine.cycle import (
     ACCELERATION,
     DISPLAY,
@@ -52,7 +51,8 @@ from geo_server.machine.cycle import (
     derived,
 )
 from geo_server.machine.motion import Motion, MotionError
-from geo_server.machine.nc import Player, Program, VolcompCommand, parse_program
+from geo_server.machine.nc import Player, Program, parse_program
+from geo_server.machine.nc_side import NcSide
 from geo_server.machine.port import (
     Operation,
     Pending,
@@ -66,12 +66,11 @@ from geo_server.machine.port import (
     listen,
     resolved,
 )
-from geo_server.model import SELECTED_OBJECTS, AxisParams, CompKind, Diagnostic, MachineConfig
+from geo_server.model import SELECTED_OBJECTS, CompKind, Diagnostic, MachineConfig
 from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
-from geo_server.units import ACHS_TYP, UNITS_PER_MM, UNITS_PER_UM
-from geo_server.volcomp.config import reload_compensation
+from geo_server.units import ACHS_TYP, UNITS_PER_UM
 from geo_server.volcomp.kernel import VOLC_ERROR, VolKernel
 
 log = logging.getLogger(__name__)
@@ -117,28 +116,6 @@ class _MachineColumns:
 _TEXTS = ("SIM::last_error", "SIM::axis_names", "VOLC::file")
 
 
-#: seconds a #VOLCOMP UPDATE may take to read its files before it is given up
-VOLC_LOAD_TIMEOUT = 30.0
-#: the longest name `V.G.VOLCOMP[i].FILE[j] = "…"` takes (a STRING of 255, as the CNC's)
-MAX_VOLC_FILE_NAME = 255
-
-
-def _in_worker(fn: Callable[[], Any]) -> Future[Any]:
-    """Run `fn` in a daemon thread of its own (reading files off the cycle: one that
-    never delivers, a FIFO or a dead share, holds up neither other machines nor the
-    interpreter's exit)."""
-    fut: Future[Any] = Future()
-
-    def run() -> None:
-        try:
-            fut.set_result(fn())
-        except BaseException as exc:  # handed to the cycle, which reports it
-            fut.set_exception(exc)
-
-    threading.Thread(target=run, name="volcomp-load", daemon=True).start()
-    return fut
-
-
 class Machine:
     """A whole simulated machine built from a validated `MachineConfig`."""
 
@@ -161,6 +138,8 @@ class Machine:
         self.tempc = temperature.bindings(self.dictionary)
         self.kernel = Kernel(cfg, self.tempc)
         self.volc = self._new_volc(cfg)
+        #: the machine as the NC player sees it (positions, moves, COMP, #VOLCOMP)
+        self.nc_side = NcSide(self)
         #: cnc_interpr_vol_comp_index_w: the compensation the next file write updates
         self.volc_index = 0
         #: #VOLCOMP UPDATE: (ID, the worker reading its files)
@@ -790,7 +769,7 @@ class Machine:
         if on and kinds & CompKind.FRICT and not params.frict_comp:
             return CncErrorId.FRICT_NOT_SELECTED
         if on:
-            kinds &= _listed(params)
+            kinds &= listed_kinds(params)
         for kind in COMP_ORDER:
             if kinds & kind:
                 self.kernel.set_selected(slot, kind, on)
@@ -913,233 +892,12 @@ class Machine:
             )
         for w in prog.warnings:
             self._record(w)
-        self.player = Player(prog, self, self.cycle_s, mdi=mdi)
-
-    # ------------------------------------------------------------------ MachinePort (nc.py)
-
-    def position(self, slot: int) -> float:
-        return float(self.motion.pos[slot])
-
-    def modulo_period(self, slot: int) -> float:
-        return float(self._period[slot]) if self._modulo[slot] else 0.0
-
-    def move_linear(
-        self,
-        targets: dict[int, float],
-        feed: float | None,
-        rapid: bool,
-        next_dirs: dict[int, int],
-    ) -> None:
-        moving = [slot for slot, target in targets.items() if target != self.motion.pos[slot]]
-        self.motion.move_linear(targets, feed, rapid)
-        for slot in moving:
-            self.kernel.release(slot)  # the axis' next motion (COMP … NO_MOVE)
-        for slot, direction in next_dirs.items():
-            self.motion.announce_next(slot, direction)
-
-    def home(self, slots: Sequence[int]) -> None:
-        for slot in slots:
-            self.motion.home(slot)
-
-    def in_position(self, slots: Iterable[int]) -> bool:
-        return self.motion.all_in_position(slots)
-
-    def stop_axes(self, slots: Iterable[int]) -> None:
-        for s in slots:
-            self.motion.stop(s)
-
-    def comp(self, slot: int, on: bool, kinds: CompKind, no_move: bool) -> int:
-        return self._switch(slot, kinds, on, no_move)
-
-    def comp_off_all(self, slot: int, no_move: bool) -> int:
-        return self._switch(slot, ALL_KINDS, False, no_move)
-
-    def _switch(self, slot: int, kinds: CompKind, on: bool, no_move: bool) -> int:
-        """COMP ON/OFF (000 §5.1 p.94). Without NO_MOVE the offset is executed now (the
-        program waits for it), together with any offset an earlier NO_MOVE held back; with
-        NO_MOVE it is held until the axis' next motion."""
-        before = self.kernel.selected[slot].copy()
-        err = self.set_comp(slot, kinds, on)
-        if err:
-            return err
-        # only a switch that changes the selection has an offset to hold; an axis in
-        # motion executes it with that motion
-        changed = _mask(
-            k for k in COMP_ORDER if before[COLUMN[k]] != self.kernel.selected[slot, COLUMN[k]]
-        )
-        if no_move and self.motion.all_in_position([slot]):
-            self.kernel.hold(slot, changed)
-        else:
-            self.kernel.release(slot)
-        return 0
-
-    def volcomp(self, cmd: VolcompCommand) -> tuple[int, str]:
-        """`#VOLCOMP …` (004 p.21-23): switch, or start reading the files of an UPDATE
-        in a worker thread (the cycle never waits for a disk); ALL switches every
-        available compensation."""
-        volc = self.volc
-        ids = cmd.ids
-        if ids is None:
-            ids = tuple(
-                i for i, st in volc.states.items() if st.evaluator is not None or not cmd.on
-            )
-        try:
-            for ident in ids:
-                if cmd.update:
-                    self._volc_update(ident)
-                else:
-                    volc.switch(
-                        ident,
-                        cmd.on,
-                        cmd.no_move,
-                        cmd.cfact,
-                        self.motion.homed,
-                        self.kernel.drive_enabled,
-                    )
-        except (KeyError, ValueError) as exc:
-            return VOLC_ERROR, str(exc.args[0]) if exc.args else str(exc)
-        return 0, ""
-
-    def _volc_update(self, ident: int) -> None:
-        """Read compensation `ident` again from its VOLC list (004 p.23)."""
-        comp = self.volc.get(ident).comp
-        cfg = self.cfg
-
-        written = dict(self._volc_files.get(ident, {}))
-
-        def load() -> tuple[Any, list[Diagnostic]]:
-            diags: list[Diagnostic] = []
-            path = comp.path or comp.file_name
-            new = reload_compensation(cfg, ident, path, Reporter(diags), written)
-            return new, diags
-
-        self._volc_loading.append((ident, monotonic(), _in_worker(load)))
-
-    def volcomp_active(self, ident: int) -> bool:
-        st = self.volc.states.get(ident)
-        return st is not None and st.active
-
-    def volcomp_file(self, ident: int, index: int) -> str:
-        written = self._volc_files.get(ident, {})
-        if index in written:
-            return written[index]
-        st = self.volc.states.get(ident)
-        cfg = st.comp.config if st is not None else None
-        if cfg is None:
-            return ""
-        by_slot = dict(zip(cfg.file_slots, (name for name, _, _ in cfg.files), strict=True))
-        return by_slot.get(index, "")
-
-    def set_volcomp_file(self, ident: int, index: int, name: str) -> tuple[int, str]:
-        if ident not in self.volc.states:
-            return VOLC_ERROR, (
-                f"V.G.VOLCOMP[{ident}].FILE[{index}]: no volumetric compensation {ident} "
-                f"(vol_comp[{ident}] in the start-up list, 004 p.12)"
-            )
-        if not name.strip() or len(name) > MAX_VOLC_FILE_NAME:
-            return VOLC_ERROR, (
-                f"V.G.VOLCOMP[{ident}].FILE[{index}]: a file name of 1 … "
-                f"{MAX_VOLC_FILE_NAME} characters"
-            )
-        self._volc_files.setdefault(ident, {})[index] = name.strip()
-        return 0, ""
-
-    def volcomp_settled(self) -> bool:
-        """The #VOLCOMP ramps are over and the updates read and applied. An update
-        whose files did not load keeps the compensation as it was (like the CNC object,
-        docs/volumetric.md §7) and ends the program with its error; one still reading
-        after `VOLC_LOAD_TIMEOUT` s (a file that never delivers) is given up."""
-        while self._volc_loading:
-            ident, since, fut = self._volc_loading[0]
-            if not fut.done():
-                if monotonic() - since < VOLC_LOAD_TIMEOUT:
-                    break
-                self._volc_loading.pop(0)
-                raise AdsError(
-                    AdsErrorCode.DEVICE_TIMEOUT,
-                    f"#VOLCOMP [ID{ident} UPDATE]: its files were not read within "
-                    f"{VOLC_LOAD_TIMEOUT:.0f} s",
-                )
-            self._volc_loading.pop(0)
-            new, diags = fut.result()
-            for d in diags:
-                self._record(d)
-            if new is None or not new.available:
-                why = new.problem if new is not None else "not configured"
-                raise AdsError(
-                    AdsErrorCode.DEVICE_SYNTAX,
-                    f"#VOLCOMP [ID{ident} UPDATE] failed, compensation unchanged: {why}",
-                )
-            self.volc.update(ident, new)
-            self._volc_files.pop(ident, None)  # (the loaded list carries the names given)
-        return not self._volc_loading and self.volc.at_rest
-
-    def comp_settled(self, slots: Iterable[int]) -> bool:
-        """000 §5.1: the offset of a COMP switch is travelled before the program goes
-        on, i.e. the program waits until the axis' sin² ramps have ended (NO_MOVE
-        blocks do not wait: their offset is held until the axis' next motion)."""
-        return not any(self.kernel.ramping(s) for s in slots)
-
-    def effective(self, slot: int) -> CompKind:
-        """Effective now: the present selection (a COMP of this cycle included) with the
-        preconditions of the last cycle (000 §5.3; docs/design.md §6.8)."""
-        k = self.kernel
-        return _mask(
-            kind
-            for i, kind in enumerate(COMP_ORDER)
-            if k.selected[slot, i] and k.preconditions[slot, i]
-        )
-
-    def required(self, slot: int) -> CompKind:
-        """`prog_movement_requires_compensations` ∩ compensations selected in the axis
-        list: errors only for compensations also enabled there (000 §5.3, p.97)."""
-        p = self.cfg.axes[self.axes[slot]].params
-        monitored = ~(CompKind.FRICT | CompKind.CROSSTALK)  # no bit in 000 p.98
-        return p.prog_movement_requires_compensations & _listed(p) & monitored
-
-    def initialised(self, slot: int) -> CompKind:
-        """`V.A.<name>_COMP_INIT` (000 §5.2 p.95): enabled in the axis list and validly
-        configured (a valid table whose masters are axes of the machine), whether or not
-        it is selected (manual activation) or effective yet."""
-        p = self.cfg.axes[self.axes[slot]].params
-        configured = _mask(k for i, k in enumerate(COMP_ORDER) if self.kernel.configured[slot, i])
-        return _listed(p) & configured
-
-    def current(self, slot: int, kind: CompKind) -> float:
-        """`V.A.<name>_COMP_CURR` (000 §5.2 p.96): the output in mm (° on rotary axes);
-        friction, which has no position offset here, gives its additive current."""
-        value = float(self.kernel.actual[slot, COLUMN[kind]])
-        return value if kind == CompKind.FRICT else value / UNITS_PER_MM
+        self.player = Player(prog, self.nc_side, self.cycle_s, mdi=mdi)
 
     def set_drive_enable(self, slot: int, on: bool) -> None:
         """`SIM::drive_enable`: without it the axis' cross and plane compensation are not
         effective (000 §5.3 p.97 item 4) and the drive holds its actual position."""
         self.kernel.set_drive_enabled(slot, on)
-
-
-def _listed(p: AxisParams) -> CompKind:
-    """The compensations the axis parameter list enables (000 §5.3 p.97: "enabled in the
-    axis parameter list")."""
-    return _mask(
-        kind
-        for kind, on in (
-            (CompKind.BACKLASH, p.anwahl_losekomp != 0),
-            (CompKind.LEAD, p.ssfk),
-            (CompKind.TEMP, p.temp_comp),
-            (CompKind.CROSS, p.crosscomp),
-            (CompKind.PLANE, p.crosscomp2),
-            (CompKind.FRICT, p.frict_comp),
-            (CompKind.CROSSTALK, p.crosstalk),
-        )
-        if on
-    )
-
-
-def _mask(kinds: Iterable[CompKind]) -> CompKind:
-    out = CompKind(0)
-    for k in kinds:
-        out |= k
-    return out
 
 
 B, T, X, P, L, K = (

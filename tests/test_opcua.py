@@ -155,6 +155,7 @@ def test_browse_every_variable_with_its_attributes(service: ObjectService) -> No
                         assert (r.Low, r.High) == spec.eu_range
                     dv = values[i]
                     if spec.readable:
+                        assert dv.StatusCode.is_good(), node_id
                         assert dv.Value.VariantType == vtype
                         assert dv.Value.Value == snap.value(spec.obj, spec.axis)
                         assert dv.SourceTimestamp == source_time(snap)

@@ -759,7 +759,7 @@ class Machine:
         """COMP ON/OFF (manual §5.1). Returns 70495 for `COMP ON FRICT` without
         `lr_param.frict_comp` (000 p.73), else 0.
 
-        COMP ON switches on only compensations the axis list enables (`_listed`: what
+        COMP ON switches on only compensations the axis list enables (`listed_kinds`: what
         `*::activated` reads, "activated (selected) via" the axis parameter, 000 p.35;
         a list error clears the parameter, 000 §2.4): `COMP ON CROSS` on an axis
         without cross compensation leaves `CROSSC::activated` FALSE, and a temperature
@@ -1072,9 +1072,6 @@ def _warm_up() -> None:
     m.publish()
 
 
-jit.on_load(_warm_up)
-
-
 # ---------------------------------------------------------------------- the NC side
 
 
@@ -1320,3 +1317,7 @@ class NcSide:
     def message(self, text: str, line: int) -> None:
         """`#MSG` (`Machine.message`)."""
         self._m.message(text, line)
+
+
+# last: registered after `load`, the warm-up runs at once and needs every name above
+jit.on_load(_warm_up)

@@ -152,19 +152,26 @@ def _added(aspace: Any, before: dict[Any, int], namespaces: list[str]) -> _Added
     late = [
         (nodeid, attr)
         for nodeid, data in nodes.items()
-        for attr, value in data.attributes.items()
-        if value.value is not None and _made(value.value.Value.Value)
+        for attr, held in data.attributes.items()
+        if held.value is not None
+        and held.value.Value is not None
+        and _holds(held.value.Value.Value, lambda v: _is_made(type(v)))
     ]
     return _Added(namespaces, nodes, references, late)
 
 
-def _made(value: Any) -> bool:
-    """Whether `value` holds an instance of a class asyncua made at run time."""
-    if isinstance(value, list):
-        return any(_made(item) for item in value)
-    if _is_made(type(value)):
+def _holds(value: Any, found: Callable[[Any], bool]) -> bool:
+    """Whether `value`, the items of a list or the fields of a structure (at any depth)
+    hold a value `found` says yes to."""
+    if found(value):
         return True
-    return is_dataclass(value) and any(_made(getattr(value, f.name)) for f in fields(value))
+    if isinstance(value, list):
+        return any(_holds(item, found) for item in value)
+    return (
+        is_dataclass(value)
+        and not isinstance(value, type)
+        and any(_holds(getattr(value, f.name), found) for f in fields(value))
+    )
 
 
 def _is_made(cls: type) -> bool:
@@ -256,16 +263,12 @@ def _made_again(ua: Any, value: Any) -> Any:
         if isinstance(value.value, int):
             return cls(value.value)
         return cls(**{name: _made_again(ua, v) for name, v in value.value.items()})
-    if is_dataclass(value) and not isinstance(value, type) and _late_inside(value):
+    if is_dataclass(value) and not isinstance(value, type) and _holds(value, _is_late):
         return replace(
             value, **{f.name: _made_again(ua, getattr(value, f.name)) for f in fields(value)}
         )
     return value
 
 
-def _late_inside(value: Any) -> bool:
-    if isinstance(value, list):
-        return any(_late_inside(item) for item in value)
-    if isinstance(value, _Late):
-        return True
-    return is_dataclass(value) and any(_late_inside(getattr(value, f.name)) for f in fields(value))
+def _is_late(value: Any) -> bool:
+    return isinstance(value, _Late)

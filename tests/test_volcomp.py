@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 import shutil
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -441,6 +443,19 @@ def test_more_records_than_max_records(lists_copy: Path) -> None:
     assert "2 records in the correction files, more than vol_comp[0].max_records 1" in comp.problem
 
 
+def within_cycles(m: Machine, done: Callable[[], bool], cycles: int = 1000) -> bool:
+    """Poll `done` until it holds or machine `m` (in real time) has run `cycles` more
+    cycles: a bound in the machine's own time, not in reads — a cycle thread starved by
+    a busy host lets any number of reads run out before a 4-cycle ramp (filter_steps)
+    has ended; an UPDATE's files are read by a worker first (docs/volumetric.md §7)."""
+    end = m.cycle + cycles
+    while not done():
+        if m.cycle >= end:
+            return False
+        time.sleep(0.001)  # (the cycle thread needs the interpreter lock to advance)
+    return True
+
+
 @pytest.mark.realtime
 def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
     """004 p.19, p.22-23 through pyads on AMS port 553: enable (0x291), disable (0x292),
@@ -476,10 +491,11 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
     sim = corr.index_group
     try:
         com.write(0x120100, 0x291, 0, pyads.PLCTYPE_UINT)  # enable ID 0
-        for _ in range(50):
-            if geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -20:
-                break
-        assert geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -20
+
+        def correction() -> int:
+            return int(geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT))
+
+        assert within_cycles(m, lambda: correction() == -20), correction()
         assert geo.read(sim, active.index_offset(0), pyads.PLCTYPE_UINT) == 1
         com.write(0x120100, 0x292, 0, pyads.PLCTYPE_UINT)  # disable ID 0
         com.write(0x120100, 0x27D, 0, pyads.PLCTYPE_UINT)
@@ -488,11 +504,8 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
             folder / "other.lis"
         )
         com.write(0x120100, 0x291, 0, pyads.PLCTYPE_UINT)
-        for _ in range(50):
-            if geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -40:
-                break
         # twice the error: −4e-5·100/1.00004 mm = −39.998 increments
-        assert geo.read(sim, corr.index_offset(1), pyads.PLCTYPE_DINT) == -40
+        assert within_cycles(m, lambda: correction() == -40), correction()
         with pytest.raises(pyads.ADSError) as exc:  # write-only (004 p.19)
             com.read(0x120100, 0x291, pyads.PLCTYPE_UINT)
         assert exc.value.err_code == 0x704
@@ -509,10 +522,8 @@ def test_com_objects_over_ads_port_553(lists_copy: Path, loop_thread) -> None:
         host, port = srv.address.rsplit(":", 1)
         with AdsClient(host, int(port), netid="127.0.0.10.1.1") as client:
             client.write("cnc_vol_comp_disable_index_w", 0, 0)
-            for _ in range(50):  # ramped out over filter_steps (4 cycles)
-                if client.read("VOLC::active") == 0:
-                    break
-            assert client.read("VOLC::active") == 0
+            # ramped out over filter_steps (4 cycles)
+            assert within_cycles(m, lambda: client.read("VOLC::active") == 0)
             client.write("cnc_vol_comp_enable_index_w", 0, 0)
             assert client.read("VOLC::active") == 1
     finally:

@@ -22,10 +22,10 @@ from geo_server.aio import wait_set
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
 from geo_server.entry import EXIT_INTERRUPTED, exit_now
-from geo_server.interfaces import CycleStoppedError, inject_faults, serve
+from geo_server.interfaces import CycleStoppedError, serve
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
-from geo_server.transports.opcua import args as opcua_args
+from geo_server.transports.interface import plugs
 
 if TYPE_CHECKING:
     from geo_server.machine.port import CycleRunner
@@ -51,13 +51,6 @@ def _objects(args: argparse.Namespace) -> int:
         for o in d.objects:
             w.writerow(o.as_row())
         sys.stdout.write(buf.getvalue())
-    return 0
-
-
-def _modbus_map(args: argparse.Namespace) -> int:
-    from geo_server.transports.modbus.regmap import modbus_map
-
-    sys.stdout.write(modbus_map(args.format))
     return 0
 
 
@@ -155,6 +148,7 @@ def _run(args: argparse.Namespace) -> int:
             return 2
 
         return run_fleet(args)
+    from geo_server.commands.faults import inject_faults
     from geo_server.compose import EngineOptions, build_machine
     from geo_server.listfile import ListFileError, load_machine
     from geo_server.machine.nc import NcError
@@ -180,7 +174,7 @@ def _run(args: argparse.Namespace) -> int:
     built = build_machine(cfg, EngineOptions.from_args(args, args.cycle_in))
     machine: Any = built.machine
     scheduler, service = built.scheduler, built.service
-    if not inject_faults(args.fault, service):
+    if not inject_faults(args.fault, service.faults):
         return 2
     if not recorder_cli.start_from_args(args, service):
         return 2
@@ -423,39 +417,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--read-only", action="store_true", help="reject every write")
     r.add_argument(
-        "--http",
-        metavar="HOST:PORT",
-        help="serve the web HMI there (off by default; e.g. 127.0.0.1:8080; docs/web.md; "
-        "a fleet: its list at /, a machine at /m/NAME/). Edits need the token of the URL "
-        "printed at start; no TLS: keep it on loopback or behind a proxy",
-    )
-    h = r.add_argument_group("web HMI (docs/web.md §4)")
-    h.add_argument(
-        "--http-allowed-hosts",
-        action="append",
-        metavar="HOST[:PORT],…",
-        help="Host names the HMI answers to besides its address (e.g. hmi.example:8080; "
-        "repeatable); a request for any other Host is refused (DNS rebinding)",
-    )
-    h.add_argument(
-        "--http-token",
-        metavar="TOKEN",
-        default=os.environ.get("GEO_SERVER_HTTP_TOKEN"),
-        help="the secret edits, reload and save need (default: GEO_SERVER_HTTP_TOKEN, else "
-        "a new random one each run, printed in the page's URL)",
-    )
-    h.add_argument("--http-user", metavar="USER", help="HTTP Basic authentication on everything")
-    h.add_argument(
-        "--http-password",
-        metavar="PASSWORD",
-        default=os.environ.get("GEO_SERVER_HTTP_PASSWORD"),
-        help="its password (with --http-user; or the environment's GEO_SERVER_HTTP_PASSWORD, "
-        "which other users cannot see in the process list)",
-    )
-    h.add_argument(
-        "--http-read-only", action="store_true", help="the HMI shows, refuses every edit"
-    )
-    r.add_argument(
         "--fault",
         action="append",
         metavar="SPEC",
@@ -463,57 +424,8 @@ def build_parser() -> argparse.ArgumentParser:
         "ads:error=0x707,count=2  modbus:delay=200  cycle:overrun=40,every=1000  "
         "sensor@X:stuck; `geo-client fault clear` ends it",
     )
-    z = r.add_argument_group("zenoh")
-    z.add_argument("--no-zenoh", action="store_true", help="do not start the Zenoh interface")
-    z.add_argument(
-        "--zenoh-listen",
-        action="append",
-        metavar="ENDPOINT",
-        help="listen endpoint (default tcp/127.0.0.1:7447; repeatable)",
-    )
-    z.add_argument(
-        "--zenoh-connect",
-        action="append",
-        metavar="ENDPOINT",
-        help="router or peer to connect to (repeatable)",
-    )
-    z.add_argument("--zenoh-mode", choices=("peer", "client"), default="peer")
-    z.add_argument(
-        "--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control, …)"
-    )
-    z.add_argument("--zenoh-scouting", action="store_true", help="enable multicast scouting")
-    m = r.add_argument_group("modbus")
-    m.add_argument("--no-modbus", action="store_true", help="do not start Modbus TCP")
-    m.add_argument("--modbus-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
-    m.add_argument("--modbus-port", type=int, default=5020, help="listen port (default 5020)")
-    m.add_argument("--modbus-read-only", action="store_true", help="reject Modbus writes")
-    z.add_argument("--zenoh-read-only", action="store_true", help="reject Zenoh writes")
-    a = r.add_argument_group("ads")
-    a.add_argument("--no-ads", action="store_true", help="do not start ADS/AMS over TCP")
-    a.add_argument("--ads-host", default="127.0.0.1", help="listen address (default 127.0.0.1)")
-    a.add_argument("--ads-port", type=int, default=48898, help="listen port (default 48898)")
-    a.add_argument("--ads-netid", default="127.0.0.1.1.1", help="own AMS NetId")
-    a.add_argument(
-        "--ads-udp-port",
-        type=int,
-        default=48899,
-        help="UDP port of ADS discovery and add-route (default 48899, 0: off)",
-    )
-    a.add_argument("--ads-read-only", action="store_true", help="reject ADS writes (0x704)")
-    a.add_argument(
-        "--ads-route-user",
-        metavar="USER",
-        help="user name an add-route request on the discovery port must carry (with "
-        "--ads-route-password; without both, every add-route is refused with 0x704)",
-    )
-    a.add_argument(
-        "--ads-route-password",
-        metavar="PASSWORD",
-        default=os.environ.get("GEO_SERVER_ADS_ROUTE_PASSWORD"),
-        help="password an add-route request must carry (see --ads-route-user; or the "
-        "environment's GEO_SERVER_ADS_ROUTE_PASSWORD)",
-    )
-    opcua_args.add_arguments(r)
+    for plug in plugs():  # each interface's options (geo_server/interfaces.py)
+        plug.add_arguments(r)
     recorder_cli.add_run_arguments(r)
     r.set_defaults(func=_run)
 
@@ -531,9 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
     recorder_cli.add_replay_parser(sub)
     recorder_cli.add_compare_parser(sub)
 
-    mm = sub.add_parser("modbus-map", help="print the Modbus register map")
-    mm.add_argument("--format", choices=("md", "csv"), default="md")
-    mm.set_defaults(func=_modbus_map)
+    for plug in plugs():  # commands of an interface's own (`modbus-map`)
+        plug.add_commands(sub)
     return p
 
 
@@ -556,17 +467,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.command == "run" and args.cycle_in is None:
         args.cycle_in = default_cycle_in(engine=args.engine)
-    if args.command == "run" and (problem := opcua_args.check_args(args)):
-        print(f"error: {problem}", file=sys.stderr)
-        return 2
-    if args.command == "run" and args.http:
-        from geo_server.web.server import http_options
-
-        try:
-            http_options(args)
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+    if args.command == "run":
+        for plug in plugs():
+            if problem := plug.check(args):
+                print(f"error: {problem}", file=sys.stderr)
+                return 2
     return int(args.func(args))
 
 

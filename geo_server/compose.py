@@ -15,25 +15,28 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import importlib
 import sys
-from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, replace
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 from geo_server.descriptors import MIN_CAP, AcceptLog, DescriptorError, plan
-from geo_server.dictionary import GEO_AMS_PORT
-from geo_server.fleetfile import FLEET_STATUS_KEY, Member
-from geo_server.interfaces import InterfaceStartError, start_failure
+from geo_server.fleetfile import Member
+from geo_server.interfaces import REGISTRY, InterfaceStartError, start_failure
 from geo_server.machine.machine import Machine
 from geo_server.machine.port import CycleRunner, MachinePort
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import MachineConfig
 from geo_server.service import ObjectService, ServiceLimits
-
-if TYPE_CHECKING:
-    from geo_server.transports.share import LoopShare
+from geo_server.transports.interface import (
+    FleetMachine,
+    FleetStatus,
+    Interface,
+    Loopback,
+    Server,
+    load,
+    plugs,
+)
 
 
 @dataclass(frozen=True)
@@ -103,69 +106,50 @@ def build_machine(
 
 # ---------------------------------------------------------------------- interfaces
 
-#: Connections each machine's Modbus port queues before they are accepted: a fleet has a
-#: port per machine, and every queued connection may become a descriptor at once.
-FLEET_BACKLOG = 16
-
 
 def connection_caps(args: argparse.Namespace, machines: int | None = None) -> dict[str, int]:
     """Each interface's connection cap, fitted under the open-files limit (raised to the
-    hard limit first; geo_server/descriptors.py). Zenoh's counts its sessions and the
-    handshakes under way. `machines`: a fleet's size (None: one machine); a fleet's ADS
-    port admits `AdsOptions.max_connections_fleet`, its Modbus ports queue
-    `FLEET_BACKLOG` each and keep at least `MIN_CAP` connections each ("modbus" in the
-    result is the cap of each machine's port). `BACKLOG` is held for every other
-    listening queue, whatever the caps."""
-    from geo_server.transports.ads.server import AdsOptions
-    from geo_server.transports.modbus.server import ModbusOptions
-    from geo_server.transports.tcp import BACKLOG
-    from geo_server.transports.zenoh.options import ZenohOptions
-
+    hard limit first; geo_server/descriptors.py), from what each plug `wants`;
+    `machines`: a fleet's size (None: one machine). A cap per machine (Modbus's: a port
+    each) is that machine's, and keeps at least `MIN_CAP` connections each."""
     n = machines or 1
     wanted: dict[str, int] = {}
+    floors: dict[str, int] = {}
+    per_machine = set()
     fixed = 0
-    if not args.no_zenoh:
-        wanted["zenoh"] = ZenohOptions.max_sessions + ZenohOptions.accept_pending
-    if not args.no_modbus:
-        wanted["modbus"] = ModbusOptions.max_connections * n
-        fixed += (BACKLOG if machines is None else FLEET_BACKLOG) * n
-    if not args.no_ads:
-        fleet_cap = AdsOptions.max_connections_fleet
-        wanted["ads"] = AdsOptions.max_connections if machines is None else fleet_cap
-        fixed += BACKLOG
-    if args.http:  # (aiohttp is imported only for a web HMI)
-        from geo_server.web.server import HmiOptions
-
-        wanted["http"] = HmiOptions.max_connections
-        fixed += BACKLOG
-    if not args.no_opcua:  # one OPC UA server, for a fleet too
-        from geo_server.transports.opcua.server import OpcUaOptions
-
-        wanted["opcua"] = OpcUaOptions.max_connections
-        fixed += BACKLOG
-    caps, said = plan(wanted, fixed, floors={"modbus": MIN_CAP * n})
+    for plug in plugs():
+        if not plug.enabled(args):
+            continue
+        wants = plug.wants(args, machines)
+        wanted[plug.name] = wants.connections
+        fixed += wants.fixed
+        if wants.per_machine:
+            floors[plug.name] = MIN_CAP * n
+            per_machine.add(plug.name)
+    caps, said = plan(wanted, fixed, floors=floors)
     if said:
         print(said, file=sys.stderr, flush=True)
-    if "modbus" in caps:
-        caps["modbus"] //= n
-    return caps
+    return {name: cap // n if name in per_machine else cap for name, cap in caps.items()}
 
 
 @contextlib.contextmanager
-def _starting(name: str) -> Iterator[None]:
-    """Any failure to start interface `name` (a taken port, a bad address, Zenoh's
+def _starting(plug: Interface) -> Iterator[None]:
+    """Any failure to start interface `plug` (a taken port, a bad address, Zenoh's
     config) as an `InterfaceStartError` saying why (`start_failure`)."""
     try:
         yield
+    except InterfaceStartError:
+        raise
     except Exception as exc:
-        raise InterfaceStartError(start_failure(name, exc)) from exc
+        raise InterfaceStartError(start_failure(plug.name, exc, plug.port_option)) from exc
 
 
 class Interfaces:
-    """A server's interfaces, started in order and closed in the reverse order.
+    """A server's interfaces (`geo_server.interfaces.REGISTRY`), started in order and
+    closed in the reverse order: what each plug is lent while it starts (`Starting`).
 
     `plan` fits their connection caps under the open-files limit; `start_machine`
-    starts those of one machine, `start_fleet` (and `start_fleet_hmi`) those of a fleet,
+    starts those of one machine, `start_fleet` (and `start_fleet_late`) those of a fleet,
     each printing its start-up line. Whatever starts is registered before its start, so
     a half-started interface is closed too (`close`)."""
 
@@ -173,8 +157,7 @@ class Interfaces:
         #: connection caps by interface (`connection_caps`)
         self.caps = caps
         self._closers: list[tuple[str, Callable[[], Awaitable[Any]]]] = []
-        #: a fleet's machines by name -> publish its status on Zenoh (from any thread)
-        self.status_publishers: dict[str, Callable[[dict[str, Any]], None]] = {}
+        self._fleet: list[FleetMachine] = []
 
     @classmethod
     def plan(cls, args: argparse.Namespace, machines: int | None = None) -> Interfaces:
@@ -192,10 +175,10 @@ class Interfaces:
         """Have `close` (of `what`) called by `close`, before what was registered earlier."""
         self._closers.append((what, close))
 
-    async def start(self, name: str, server: Any, line: Callable[[], str] | None = None) -> None:
+    async def start(self, name: str, server: Server, line: Callable[[], str] | None) -> None:
         """Start `server`, of interface `name`, and print its start-up `line`."""
         self.closes(type(server).__name__, server.close)
-        with _starting(name):
+        with _starting(load(name)):
             await server.start()
         if line is not None:
             print(line(), flush=True)
@@ -212,290 +195,48 @@ class Interfaces:
 
     async def start_machine(self, args: argparse.Namespace, service: ObjectService) -> None:
         """`geo-server run`'s interfaces of one machine, those not turned off, each up
-        before the next starts: Zenoh, Modbus, ADS, the web HMI, OPC UA."""
-        for name, off, build in (
-            ("zenoh", args.no_zenoh, _zenoh),
-            ("modbus", args.no_modbus, _modbus),
-            ("ads", args.no_ads, _ads),
-            ("http", not args.http, _http),
-            ("opcua", args.no_opcua, _opcua),
-        ):
-            if not off:
-                if name == "opcua":  # asyncua takes most of a second to import: not on
-                    await _import_off_loop(_OPCUA_MODULE)  # the loop the others answer on
-                await self.start(name, *build(args, service, self.caps))
+        before the next starts, in the registry's order."""
+        for plug in plugs():
+            if plug.enabled(args):
+                await plug.prepare()
+                built = plug.build(args, service, self.caps)
+                await self.start(plug.name, built.server, built.line)
 
     async def start_fleet(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
-    ) -> Any:
-        """A fleet's interfaces (fleet.py), those not turned off: one Zenoh session with a
-        machine's keys per machine, a Modbus port per machine, one ADS port routing by
-        AMS NetId, one OPC UA server. The Zenoh session (None without Zenoh), for the
-        fleet's status. Each machine's Modbus, ADS and OPC UA requests draw on one share of
-        the event loop (`transports.share`, docs/design.md §13.1)."""
+        self,
+        args: argparse.Namespace,
+        machines: Sequence[tuple[Member, ObjectService]],
+        status: FleetStatus,
+    ) -> None:
+        """A fleet's interfaces (fleet.py), those not turned off and not waiting for its
+        first `status` (`start_fleet_late`). Each machine's requests draw on one share
+        of the event loop (`transports.share`, docs/design.md §13.1)."""
         from geo_server.transports.share import LoopShare, fleet_rate
 
         rate = fleet_rate(len(machines))
-        shares = [LoopShare(rate) if len(machines) > 1 else None for _ in machines]
-        session = None
-        if not args.no_zenoh:
-            session = await self._fleet_zenoh(args, machines)
-        if not args.no_modbus:
-            await self._fleet_modbus(args, machines, shares)
-        if not args.no_ads:
-            await self._fleet_ads(args, machines, shares)
-        if not args.no_opcua:
-            await _import_off_loop(_OPCUA_MODULE)
-            services = {m.name: service for m, service in machines}
-            where = args.fleet or args.startup  # the certificate beside the fleet file
-            said = f"{len(services)} machines: Objects/<name>"
-            by_name = {
-                m.name: share for (m, _), share in zip(machines, shares, strict=True) if share
-            }
-            built = _opcua_server(args, services, where, self.caps, said, by_name)
-            await self.start("opcua", *built)
-        return session
-
-    async def start_fleet_hmi(
-        self,
-        args: argparse.Namespace,
-        machines: Sequence[tuple[Member, ObjectService]],
-        status: Callable[[], dict[str, Any]],
-    ) -> None:
-        """The fleet's web HMI (`--http`): the fleet's page (its `status`) at `/`, each
-        machine's at `/m/<name>/`."""
-        from geo_server.web.server import FleetHmi, access_note, http_options
-
-        options = http_options(args, max_connections=self.caps["http"])
-        hmi = FleetHmi({m.name: service for m, service in machines}, status, options)
-        await self.start(
-            "http",
-            hmi,
-            lambda: (
-                f"http: web HMI on {hmi.url} (the fleet; a machine at /m/<name>/; "
-                f"{access_note(hmi.options)})"
-            ),
-        )
-
-    async def _fleet_zenoh(
-        self, args: argparse.Namespace, machines: Sequence[tuple[Member, ObjectService]]
-    ) -> Any:
-        import zenoh
-
-        from geo_server.transports.zenoh.server import ZenohInterface
-
-        base = _zenoh_options(args, self.caps)
-        loop = asyncio.get_running_loop()
-        with _starting("zenoh"):
-            session = await loop.run_in_executor(None, zenoh.open, base.zenoh_config())
-
-        async def close_session() -> None:
-            await loop.run_in_executor(None, session.close)
-
-        self.closes("the Zenoh session", close_session)
-        ifaces = []
-        for i, (m, service) in enumerate(machines):
-            # No status loop per machine (the fleet publishes every machine's status,
-            # computed off the loop); the rival probes and the looks for subscribers
-            # spread over their periods, the looks ten a second for the whole fleet: a
-            # hundred catch-ups, probes or looks at once kept the loop every machine
-            # shares busy for milliseconds to tens of milliseconds (docs/design.md §13.1).
-            # The periodic probes are twenty a second for the whole fleet at most (each
-            # starts a thread for its replies; Zenoh's reports of a new queryable or
-            # token still start one at once).
-            options = replace(
-                base,
-                machine=m.name,
-                status_period=0.0,
-                watch_recheck=max(base.watch_recheck, len(machines) / 10),
-                rival_check_period=max(base.rival_check_period, len(machines) / 20),
-                spread=i / len(machines),
+        self._fleet = [
+            FleetMachine(
+                m.name,
+                m.netid,
+                m.modbus_port,
+                service,
+                LoopShare(rate) if len(machines) > 1 else None,
             )
-            iface = ZenohInterface(service, options, session=session)
-            self.closes(type(iface).__name__, iface.close)
-            ifaces.append(iface)
-            self.status_publishers[m.name] = iface.publish_status
-        with _starting("zenoh"):  # together: each looks for a rival's token (up to 1 s)
-            await asyncio.gather(*(iface.start() for iface in ifaces))
-        print(
-            f"zenoh: {len(ifaces)} machines on {', '.join(base.listen)} (keys cnc/<name>/**, "
-            f"{FLEET_STATUS_KEY})",
-            flush=True,
-        )
-        return session
+            for m, service in machines
+        ]
+        await self._start_fleet(args, status, late=False)
 
-    async def _fleet_modbus(
-        self,
-        args: argparse.Namespace,
-        machines: Sequence[tuple[Member, ObjectService]],
-        shares: Sequence[LoopShare | None],
-    ) -> None:
-        from geo_server.transports.modbus.server import ModbusInterface
+    async def start_fleet_late(self, args: argparse.Namespace, status: FleetStatus) -> None:
+        """The fleet's interfaces that show its status (`starts_with_the_status`), once
+        its cycles run and the first status is known."""
+        await self._start_fleet(args, status, late=True)
 
-        for (m, service), share in zip(machines, shares, strict=True):
-            options = _modbus_options(
-                args, m.modbus_port, max_connections=self.caps["modbus"], backlog=FLEET_BACKLOG
-            )
-            await self.start("modbus", ModbusInterface(service, options, share))
-        first, last = machines[0][0].modbus_port, machines[-1][0].modbus_port
-        print(f"modbus: tcp://{args.modbus_host}:{first}…{last}, one port per machine", flush=True)
-
-    async def _fleet_ads(
-        self,
-        args: argparse.Namespace,
-        machines: Sequence[tuple[Member, ObjectService]],
-        shares: Sequence[LoopShare | None],
-    ) -> None:
-        from geo_server.transports.ads.server import AdsServer
-
-        (head, service), last = machines[0], machines[-1][0]
-        ads = AdsServer(
-            service,
-            _ads_options(args, head.netid, listener=True, max_connections_fleet=self.caps["ads"]),
-            share=shares[0],
-        )
-        for (m, other), share in zip(machines[1:], shares[1:], strict=True):
-            ads.add_device(other, _ads_options(args, m.netid), share)
-        await self.start(
-            "ads",
-            ads,
-            lambda: (
-                f"ads: tcp://{ads.address}, AMS NetIds {head.netid}…{last.netid} "
-                "(routed by target NetId)"
-            ),
-        )
-
-
-#: An interface's server and its start-up line.
-_Server = tuple[Any, Callable[[], str]]
-
-
-def _zenoh_options(args: argparse.Namespace, caps: dict[str, int], **more: Any) -> Any:
-    from geo_server.transports.zenoh.options import ZenohOptions
-
-    options = ZenohOptions(
-        mode=args.zenoh_mode,
-        listen=args.zenoh_listen or ["tcp/127.0.0.1:7447"],
-        connect=args.zenoh_connect or [],
-        config_file=args.zenoh_config,
-        multicast_scouting=args.zenoh_scouting,
-        read_only=args.read_only or args.zenoh_read_only,
-        **more,
-    )
-    if "zenoh" in caps:  # sessions and handshakes shrunk alike (`connection_caps`)
-        options.shrink_to(caps["zenoh"])
-    return options
-
-
-def _zenoh(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.transports.zenoh.server import ZenohInterface
-
-    options = _zenoh_options(args, caps, machine=args.machine)
-    return (
-        ZenohInterface(service, options),
-        lambda: (
-            f"zenoh: machine {args.machine!r} on {', '.join(options.listen)} "
-            f"(keys cnc/{args.machine}/**)"
-        ),
-    )
-
-
-def _modbus_options(args: argparse.Namespace, port: int, **more: Any) -> Any:
-    """One machine's Modbus options from `geo-server run`'s command line (one machine or
-    a fleet's member, on its own port)."""
-    from geo_server.transports.modbus.server import ModbusOptions
-
-    return ModbusOptions(
-        host=args.modbus_host,
-        port=port,
-        read_only=args.read_only or args.modbus_read_only,
-        **more,
-    )
-
-
-def _ads_options(
-    args: argparse.Namespace, netid: str, *, listener: bool = False, **more: Any
-) -> Any:
-    """One machine's ADS options from the command line; `listener`: the machine that owns
-    the TCP and UDP ports (the only one of a single run, a fleet's first)."""
-    from geo_server.transports.ads.server import AdsOptions
-
-    if listener:
-        more.update(
-            port=args.ads_port,
-            udp_port=args.ads_udp_port or None,
-            route_user=args.ads_route_user,
-            route_password=args.ads_route_password,
-        )
-    return AdsOptions(
-        host=args.ads_host, netid=netid, read_only=args.read_only or args.ads_read_only, **more
-    )
-
-
-def _modbus(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.transports.modbus.server import ModbusInterface
-
-    more = {"max_connections": caps["modbus"]} if "modbus" in caps else {}
-    mb = ModbusInterface(service, _modbus_options(args, args.modbus_port, **more))
-    return mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"
-
-
-def _ads(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.transports.ads.server import AdsServer
-
-    more = {"max_connections": caps["ads"]} if "ads" in caps else {}
-    ads = AdsServer(service, _ads_options(args, args.ads_netid, listener=True, **more))
-
-    def line() -> str:
-        said = f"ads: tcp://{ads.address} AMS NetId {args.ads_netid} port {GEO_AMS_PORT}"
-        if ads.udp_port is not None:
-            return said + f", discovery udp://{args.ads_host}:{ads.udp_port}"
-        return said + (f" (discovery off: {ads.udp_error})" if ads.udp_error else "")
-
-    return ads, line
-
-
-def _http(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    from geo_server.web.server import HmiServer, access_note, http_options
-
-    more = {"max_connections": caps["http"]} if "http" in caps else {}
-    hmi = HmiServer(service, http_options(args, machine=args.machine, **more))
-    return hmi, lambda: f"http: web HMI on {hmi.url} ({access_note(hmi.options)})"
-
-
-def _opcua(args: argparse.Namespace, service: ObjectService, caps: dict[str, int]) -> _Server:
-    return _opcua_server(
-        args, {args.machine: service}, args.startup, caps, f"Objects/{args.machine}"
-    )
-
-
-_OPCUA_MODULE = "geo_server.transports.opcua.server"
-
-
-async def _import_off_loop(module: str) -> None:
-    """Import `module` in a worker thread: the event loop keeps answering meanwhile."""
-    await asyncio.to_thread(importlib.import_module, module)
-
-
-def _opcua_server(
-    args: argparse.Namespace,
-    services: dict[str, ObjectService],
-    where: str | None,
-    caps: dict[str, int],
-    said: str,
-    shares: Mapping[str, LoopShare] | None = None,
-) -> _Server:
-    """One OPC UA server, each machine of `services` under its own name, its
-    certificate beside `where` (the start-up list or the fleet file; README *OPC UA*);
-    it starts in the background, and says so with `said` when ready (`announce`). In a
-    fleet, each machine's requests draw on its share of the loop (`shares`)."""
-    from geo_server.opcua_run import announce, options_from_args
-    from geo_server.transports.opcua.server import OpcUaInterface
-
-    options = options_from_args(args, Path(where) if where else None, caps)
-    ua = OpcUaInterface(services, options, shares)
-    announce(ua, said)
-    return ua, lambda: f"opcua: {ua.endpoint} starting (README *OPC UA*)"
+    async def _start_fleet(self, args: argparse.Namespace, status: FleetStatus, late: bool) -> None:
+        for plug in plugs():
+            if plug.enabled(args) and plug.starts_with_the_status == late:
+                await plug.prepare()
+                with _starting(plug):
+                    await plug.start_fleet(args, self._fleet, self, status)
 
 
 def loopback_interface(
@@ -506,30 +247,12 @@ def loopback_interface(
     netid: str,
     publish_period: float,
     status_period: float,
-) -> Any:
-    """`GeoTestServer`'s interface `via` (`zenoh`, `modbus` or `ads`; docs/design.md
-    §10), not started: on a free port of 127.0.0.1, Zenoh in peer mode with multicast
-    scouting off and an explicit listen endpoint (it needs its port number up front;
-    Modbus and ADS bind port 0 and report theirs)."""
-    if via == "zenoh":
-        from geo_server.ports import free_port
-        from geo_server.transports.zenoh.options import ZenohOptions
-        from geo_server.transports.zenoh.server import ZenohInterface
-
-        port = free_port()  # (free a moment ago, never one handed out before)
-        options = ZenohOptions(
-            machine=machine,
-            listen=[f"tcp/127.0.0.1:{port}"],
-            publish_period=publish_period,
-            status_period=status_period,
-        )
-        return ZenohInterface(service, options)
-    if via == "modbus":
-        from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
-
-        return ModbusInterface(service, ModbusOptions(port=0))
-    if via == "ads":
-        from geo_server.transports.ads.server import AdsOptions, AdsServer
-
-        return AdsServer(service, AdsOptions(port=0, netid=netid))
-    raise ValueError(f"no loopback interface {via!r} (zenoh, modbus or ads)")
+) -> Server:
+    """`GeoTestServer`'s interface `via` (docs/design.md §10), not started, on a free port
+    of 127.0.0.1 (`Interface.loopback`)."""
+    test = Loopback(machine, netid, publish_period, status_period)
+    server = load(via).loopback(service, test) if via in REGISTRY else None
+    if server is None:
+        able = [n for n in REGISTRY if type(load(n)).loopback is not Interface.loopback]
+        raise ValueError(f"no loopback interface {via!r} ({', '.join(able)})")
+    return server

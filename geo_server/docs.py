@@ -351,19 +351,11 @@ def _option_classes() -> dict[str, Any]:
     from geo_server.recorder.recorder import RecorderLimits
     from geo_server.safefile import FileLimits
     from geo_server.service import ServiceLimits
-    from geo_server.transports.ads.server import AdsOptions
-    from geo_server.transports.modbus.server import ModbusOptions
-    from geo_server.transports.opcua.server import OpcUaOptions
-    from geo_server.transports.zenoh.options import ZenohOptions
-    from geo_server.web.server import HmiOptions
+    from geo_server.transports.interface import plugs
 
     return {
-        "opcua": OpcUaOptions,
-        "http": HmiOptions,
+        **{plug.name: plug.limits() for plug in plugs()},
         "service": ServiceLimits,
-        "ads": AdsOptions,
-        "modbus": ModbusOptions,
-        "zenoh": ZenohOptions,
         "files": FileLimits,
         "recorder": RecorderLimits,
     }
@@ -372,12 +364,12 @@ def _option_classes() -> dict[str, Any]:
 def _fault_and_descriptor_rows() -> list[str]:
     """Bounds that are constants, not options: faults (docs/faults.md) and the
     descriptors kept beside the connection caps (geo_server/descriptors.py)."""
-    from geo_server.compose import FLEET_BACKLOG
     from geo_server.descriptors import RESERVE
     from geo_server.faults import MAX_FAULTS, MAX_PATTERN, MAX_TEXT
     from geo_server.fleetfile import MAX_FLEET_SIZE
     from geo_server.transports.ads.codec import MAX_ADDRESSES
     from geo_server.transports.ads.repeats import MAX_REPEAT_SIZE, MAX_REPEATS
+    from geo_server.transports.modbus.plug import FLEET_BACKLOG
     from geo_server.transports.tcp import BACKLOG
 
     return [
@@ -390,7 +382,7 @@ def _fault_and_descriptor_rows() -> list[str]:
         f"| all | accept queue of each TCP listener | {BACKLOG} | `tcp.BACKLOG` | "
         "counted in the descriptor budget |",
         f"| Modbus | accept queue of each machine's port in a fleet | {FLEET_BACKLOG} | "
-        "`compose.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
+        "`modbus.plug.FLEET_BACKLOG` | counted in the descriptor budget; each port keeps at least "
         "4 connections, or the fleet does not start |",
         f"| fleet | machines of one fleet (`--fleet-size`, a fleet file) | {MAX_FLEET_SIZE} | "
         "`fleetfile.MAX_FLEET_SIZE` | refused at start |",
@@ -455,13 +447,12 @@ def _default(cls: Any, name: str) -> Any:
 def limits_table() -> str:
     """The *Limits* table (docs/limits.md): every bound with its default value."""
     from geo_server.listfile.syntax import MAX_LIST_BYTES
+    from geo_server.transports.interface import plugs
     from geo_server.transports.modbus.codec import MAX_ADU
 
     classes = _option_classes()
-    where = {"service": "all", "ads": "ADS", "modbus": "Modbus", "zenoh": "Zenoh", "files": "files"}
-    where["recorder"] = "recorder"
-    where["http"] = "HTTP"
-    where["opcua"] = "OPC UA"
+    where = {"service": "all", "files": "files", "recorder": "recorder"}
+    where |= {plug.name: plug.title for plug in plugs()}
     lines = [
         "| interface | limit | default | option | past it |",
         "|---|---|---|---|---|",

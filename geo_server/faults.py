@@ -42,6 +42,7 @@ from enum import StrEnum
 from typing import Any, TypeVar
 
 from geo_server.errors import AdsErrorCode, GeoError
+from geo_server.interfaces import FAULT_KINDS, REGISTRY
 
 
 class FaultKind(StrEnum):
@@ -59,17 +60,16 @@ class FaultKind(StrEnum):
     OPEN = "open"
 
 
-#: The transports a fault can target; `all` means each of them.
-TRANSPORTS = ("ads", "modbus", "zenoh")
+#: The transports a fault can target (the interfaces registered with faults); `all`
+#: means each of them.
+TRANSPORTS = tuple(sorted(name for name, line in REGISTRY.items() if line.faults))
 #: What a transport fault does to a request it hits.
-TRANSPORT_KINDS = ("delay", "drop", "error", "disconnect")
+TRANSPORT_KINDS = FAULT_KINDS
 #: What a sensor fault does to the twin's sensor (docs/twin.md).
 SENSOR_KINDS = ("stuck", "noisy", "open")
 #: The reading of an open-circuit RTD input: the overrange value 0x7FFF of a 0.1 °C
 #: terminal (3276.7 °C), far outside any plausible machine temperature.
 OPEN_CIRCUIT_C = 3276.7
-#: Modbus exception codes a fault may answer (1…4, 6 busy, 0x0A/0x0B gateway).
-MODBUS_EXCEPTIONS = (1, 2, 3, 4, 6, 0x0A, 0x0B)
 #: Longest delay or overrun a fault may ask for, in ms (a minute).
 MAX_MS = 60_000.0
 OPS = ("any", "read", "write")
@@ -160,7 +160,7 @@ class Fault:
             return False
         if self.objects != "*" and not (name and self._matches(name)):
             return False
-        return self.kind != "disconnect" or transport != "zenoh"
+        return self.kind in REGISTRY[transport].faults  # (`all`: where it can act)
 
     async def delay(self) -> None:
         """Wait out this delay fault's `value` ms — less when it is cleared meanwhile:
@@ -234,7 +234,10 @@ def _target(fault: Fault, text: str) -> None:
     if target.startswith("sensor@") and len(target) > 7:
         fault.target, fault.sensor = "sensor", text[7:]  # as written: a sensor's name
         kinds: tuple[str, ...] = SENSOR_KINDS
-    elif target in (*TRANSPORTS, "all"):
+    elif target in TRANSPORTS:
+        fault.target = target
+        kinds = REGISTRY[target].faults
+    elif target == "all":
         fault.target = target
         kinds = TRANSPORT_KINDS
     elif target == "cycle":
@@ -242,19 +245,14 @@ def _target(fault: Fault, text: str) -> None:
         kinds = ("overrun",)
     else:
         raise FaultError(
-            f"fault {fault.text!r}: unknown target {target!r} (ads, modbus, zenoh, all, "
-            "cycle, sensor@<axis or sensor>)"
+            f"fault {fault.text!r}: unknown target {target!r} ({', '.join(TRANSPORTS)}, "
+            "all, cycle, sensor@<axis or sensor>)"
         )
     if fault.kind not in kinds:
         raise FaultError(
             f"fault {fault.text!r}: {target} has no fault {fault.kind!r} ({', '.join(kinds)})"
         )
     fault.kind = FaultKind(fault.kind)
-    if fault.target == "zenoh" and fault.kind == "disconnect":
-        raise FaultError(
-            f"fault {fault.text!r}: Zenoh has no client connection to drop (a query is "
-            "answered on the session); use zenoh:drop or zenoh:error"
-        )
 
 
 def _number(fault: Fault, what: str, text: str) -> float:
@@ -289,13 +287,16 @@ def _value(fault: Fault, value: str) -> None:
 
 
 def _check_code(fault: Fault, code: int) -> None:
-    """ADS return codes for ADS and Zenoh (and `all`, where Modbus answers the exception
-    the server gives that code); Modbus exception codes for `modbus` alone."""
-    if fault.target == "modbus" and code < 0x100:
-        if code not in MODBUS_EXCEPTIONS:
+    """ADS return codes for every transport (and `all`, where Modbus answers the
+    exception the server gives that code); an interface's own codes (Modbus exceptions,
+    `Registered.codes`) for it alone."""
+    line = REGISTRY.get(fault.target)
+    if line is not None and line.codes is not None and code < 0x100:
+        what, codes = line.codes
+        if code not in codes:
             raise FaultError(
-                f"fault {fault.text!r}: Modbus exception {code} is not one a server answers "
-                f"({', '.join(str(c) for c in MODBUS_EXCEPTIONS)})"
+                f"fault {fault.text!r}: {what} {code} is not one a server answers "
+                f"({', '.join(str(c) for c in codes)})"
             )
         return
     try:

@@ -37,12 +37,13 @@ from typing import Any
 from geo_server import jit
 from geo_server.aio import wait_set
 from geo_server.compose import EngineOptions, Interfaces, build_machine
-from geo_server.fleetfile import FLEET_STATUS_KEY, FleetError, Member, copies, load_fleet
+from geo_server.fleetfile import FleetError, Member, copies, load_fleet
 from geo_server.interfaces import CycleStoppedError, serve
 from geo_server.machine.scheduler import Engines, Scheduler, switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 from geo_server.service import ObjectService
+from geo_server.transports.interface import FleetStatus
 
 
 def members_from_args(args: argparse.Namespace) -> list[Member]:
@@ -67,7 +68,7 @@ class Served:
 def run_fleet(args: argparse.Namespace) -> int:
     """`geo-server run --fleet FILE | --fleet-size N` (exit code)."""
     from geo_server import __version__
-    from geo_server.interfaces import inject_faults
+    from geo_server.commands.faults import inject_faults
     from geo_server.listfile import ListFileError, load_machine
 
     try:
@@ -88,7 +89,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         service = built.service
         # a folder of recordings per machine: the same name never collides (docs/recorder.md §7)
         service.recordings.record_dir = recorder_cli.record_dir(args, m.name, cfg.startup_path)
-        if not inject_faults(args.fault, service, f"{m.name}: "):  # every machine gets them
+        if not inject_faults(args.fault, service.faults, f"{m.name}: "):  # every machine gets them
             return 2
         assert isinstance(built.scheduler, Scheduler)  # (cycle_in "thread", as asked)
         served.append(Served(m, service, built.scheduler))
@@ -229,14 +230,16 @@ def _stop_on_signals() -> tuple[asyncio.Event, threading.Event]:
 
 async def _serve(args: argparse.Namespace, served: list[Served], engines: Engines) -> None:
     stop, halted = _stop_on_signals()
-    loop = asyncio.get_running_loop()
     # as for one machine (geo_server/descriptors.py): the soft open-files limit raised to
     # the hard one, every interface's connections fitted under it, and accept failures
     # said once per period, not once per retry
     interfaces = Interfaces.plan(args, len(served))
     machines = [(s.member, s.service) for s in served]
+    current: list[dict[str, Any]] = [{}]  # the latest status (the web HMI's page)
+    latest: list[bytes | None] = [None]  # ... as JSON (Zenoh's `cnc/fleet/status`)
+    status = FleetStatus(lambda: current[0], lambda: latest[0])
     try:
-        session = await interfaces.start_fleet(args, machines)
+        await interfaces.start_fleet(args, machines, status)
         # A fleet's cycles start compiled: a hundred machines interpreted would take the
         # cores the compiler needs (one machine starts interpreted: cli._serve). The
         # interfaces answer meanwhile, with each machine at its cycle 0.
@@ -253,40 +256,25 @@ async def _serve(args: argparse.Namespace, served: list[Served], engines: Engine
         interfaces.closes("the loop lag watch", lambda: _cancel(watch))
         # the fleet's status, computed off the loop once per status period (each machine
         # catches up first: a few hundred machines take tens of milliseconds)
-        publish = interfaces.status_publishers
-        current: list[dict[str, Any]] = [{}]  # the latest status (the web HMI's page)
-        latest: list[bytes | None] = [None]  # ... as JSON (`cnc/fleet/status`)
+        publish = status.publishers
 
         def says(st: dict[str, Any]) -> None:
             """One status computation said everywhere, its status line first, then the
-            same dict to the HMI's page and on Zenoh: whoever reads a status anywhere
-            finds its line printed already (the line and `cnc/fleet/status` never
-            disagree on `throttled`, `starved`, ...)."""
+            same dict to the HMI's page and as JSON to the interfaces that serve it:
+            whoever reads a status anywhere finds its line printed already (the line and
+            `cnc/fleet/status` never disagree on `throttled`, `starved`, ...)."""
             print(status_line(st), flush=True)
             current[0] = st
-            latest[0] = json.dumps(st).encode()
-            if session is not None:
-                session.put(FLEET_STATUS_KEY, latest[0])
+            said = latest[0] = json.dumps(st).encode()
+            for put in status.said:
+                put(said)
 
-        if session is not None:
-            # Zenoh thread: answer with the latest status said (none before the first)
-            def answer(q: Any) -> None:
-                said = latest[0]
-                if said is not None:
-                    q.reply(FLEET_STATUS_KEY, said)
-
-            queryable = session.declare_queryable(FLEET_STATUS_KEY, answer)
-
-            async def undeclare() -> None:
-                await loop.run_in_executor(None, queryable.undeclare)
-
-            interfaces.closes("the fleet status queryable", undeclare)
         try:
             says(await asyncio.to_thread(fleet_status, served, 0.0, publish, halted))
         except Halted:
             return
-        if args.http:  # its page shows the fleet's status: once the cycles run
-            await interfaces.start_fleet_hmi(args, machines, lambda: current[0])
+        # those that show the fleet's status (its web HMI): once the cycles run
+        await interfaces.start_fleet_late(args, status)
         while not stop.is_set():
             await wait_set(stop, args.status_period)
             if stop.is_set():  # (no last status: see `fleet_status`)

@@ -28,8 +28,9 @@ DEFAULT_NETID = "127.0.0.1.1.1"
 DEFAULT_MODBUS_PORT = 5020
 #: A machine name is one Zenoh key chunk, without wildcards or a leading `@`.
 NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
-#: The Zenoh key of the fleet's status (no machine may be called "fleet").
-FLEET_STATUS_KEY = "cnc/fleet/status"
+#: A name no machine may have: Zenoh serves the fleet's status at `cnc/fleet/status`
+#: (`geo_server.transports.zenoh.plug.FLEET_STATUS_KEY`).
+RESERVED_NAME = "fleet"
 
 
 class FleetError(GeoError, ValueError):
@@ -75,7 +76,7 @@ def copies(n: int, name: str, startup: Path, base_netid: str, base_port: int) ->
     """`--fleet-size n`: n machines from one start-up list, named `<name>-1` … `<name>-n`."""
     if not 1 <= n <= MAX_FLEET_SIZE:
         raise FleetError(f"--fleet-size must be between 1 and {MAX_FLEET_SIZE}, not {n}")
-    if not NAME.fullmatch(name) or name == "fleet":
+    if not NAME.fullmatch(name) or name == RESERVED_NAME:
         raise FleetError(
             f"--machine {name!r} is not a machine name (letters, digits, _.-): "
             "the copies are named <machine>-1 …"
@@ -103,7 +104,7 @@ def load_fleet(path: Path, base_netid: str, base_port: int) -> list[Member]:
         if unknown:
             raise FleetError(f"{where}: unknown keys {sorted(unknown)}")
         name = entry.get("name")
-        if not isinstance(name, str) or not NAME.fullmatch(name) or name == "fleet":
+        if not isinstance(name, str) or not NAME.fullmatch(name) or name == RESERVED_NAME:
             raise FleetError(f"{where}: name {name!r} is not a machine name (letters, digits, _.-)")
         raw = entry.get("startup")
         if raw is not None and not isinstance(raw, str):

@@ -1,4 +1,10 @@
-"""Starting a server's interfaces: why one did not start, and what to do about it."""
+"""geo-server's interfaces: the registry of them, and why one did not start.
+
+`REGISTRY` is the one table of interfaces (docs/design.md §1.3), in the manner of
+python-can's backend table: each line names an interface, the module holding its plug
+(a `geo_server.transports.interface.Interface`, imported only when it is wanted) and the
+transport faults it carries out (docs/faults.md). Adding an interface is its module and
+one line here."""
 
 from __future__ import annotations
 
@@ -6,28 +12,50 @@ import asyncio
 import re
 import sys
 from collections.abc import Callable, Coroutine
-from typing import Any, Protocol
+from dataclasses import dataclass
+from typing import Any
 
 from geo_server.errors import GeoError
-from geo_server.faults import FaultError
+
+#: What a transport fault can do to a request it hits (docs/faults.md).
+FAULT_KINDS = ("delay", "drop", "error", "disconnect")
+
+
+@dataclass(frozen=True)
+class Registered:
+    """One line of the registry."""
+
+    #: the module whose `INTERFACE` is the interface's plug
+    plug: str
+    #: the transport faults it carries out (`FAULT_KINDS`; none: no fault targets it)
+    faults: tuple[str, ...] = ()
+    #: (what it calls them, codes) of its own an error fault aimed at it alone may
+    #: answer, below 0x100; every other code is an ADS return code
+    codes: tuple[str, tuple[int, ...]] | None = None
+
+
+#: Every interface, in the order they start (and the reverse of the order they close).
+REGISTRY: dict[str, Registered] = {
+    # a query is answered on the session: no connection of its own to drop
+    "zenoh": Registered("geo_server.transports.zenoh.plug", ("delay", "drop", "error")),
+    "modbus": Registered(
+        "geo_server.transports.modbus.plug",
+        FAULT_KINDS,
+        ("Modbus exception", (1, 2, 3, 4, 6, 0x0A, 0x0B)),  # (6 busy, 0x0A/0x0B gateway)
+    ),
+    "ads": Registered("geo_server.transports.ads.plug", FAULT_KINDS),
+    "http": Registered("geo_server.web.plug"),
+    "opcua": Registered("geo_server.transports.opcua.plug"),
+}
 
 
 class InterfaceStartError(GeoError):
     """An interface could not start (port in use, bad address or Zenoh config)."""
 
 
-#: What to change when an interface's port is taken (`start_failure`).
-_PORT_OPTION = {
-    "zenoh": "--zenoh-listen tcp/127.0.0.1:PORT",
-    "modbus": "--modbus-port PORT",
-    "ads": "--ads-port PORT",
-    "http": "--http HOST:PORT",
-    "opcua": "--opcua-endpoint opc.tcp://127.0.0.1:PORT (or --no-opcua)",
-}
-
-
-def start_failure(name: str, exc: BaseException) -> str:
-    """One line saying why an interface did not start and what to do about it.
+def start_failure(name: str, exc: BaseException, port_option: str) -> str:
+    """One line saying why interface `name` did not start and what to do about it (when
+    its port is taken: change `port_option`).
 
     Zenoh's errors carry the Rust source location of every layer (`… at
     /root/.cargo/…/tcp.rs:61.]`); that is left out, the reason stays."""
@@ -37,7 +65,7 @@ def start_failure(name: str, exc: BaseException) -> str:
         endpoint = ":".join(where[:2]) if where else "its address"
         return (
             f"{name} interface did not start: {endpoint} is in use (another geo-server?); "
-            f"choose another port with {_PORT_OPTION[name]} or stop the other server"
+            f"choose another port with {port_option} or stop the other server"
         )
     return f"{name} interface did not start: {text}"
 
@@ -62,27 +90,3 @@ def serve(main: Coroutine[Any, Any, None], stop: Callable[[], object]) -> int:
     finally:
         stop()
     return 0
-
-
-class _Injecting(Protocol):
-    def inject(self, fault: str) -> dict[str, Any]: ...
-
-
-class _Faulted(Protocol):
-    """What `inject_faults` uses of the object service (this layer is below it)."""
-
-    @property
-    def faults(self) -> _Injecting: ...
-
-
-def inject_faults(specs: list[str] | None, service: _Faulted, label: str = "") -> bool:
-    """`run --fault`: inject each fault before the first cycle (docs/faults.md);
-    False (after saying why) when one cannot be."""
-    for spec in specs or ():
-        try:
-            fault = service.faults.inject(spec)
-        except FaultError as exc:
-            print(f"error: {label}{exc}", file=sys.stderr)
-            return False
-        print(f"{label}fault {fault['id']} injected: {fault['fault']}", file=sys.stderr)
-    return True

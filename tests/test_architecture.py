@@ -61,7 +61,6 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (2, ("geo_server.web.views",)),  # pure: what an HMI shows, from a snapshot
     (7, ("geo_server.cli", "geo_server.docs", "geo_server.commissioning", "geo_server.fleet")),
     (7, ("geo_server.compose",)),  # the composition root: machine, engine, service
-    (7, ("geo_server.opcua_run",)),  # `run`'s OPC UA options, certificate folder
     (7, ("geo_server.entry",)),  # console scripts: import their program inside a try
     (8, ("geo_clients",)),
 ]
@@ -81,6 +80,10 @@ TRANSPORT_MAY_USE = (
     "geo_server.aio",  # asyncio helpers
     "geo_server.commands.requests",  # the JSON commands every interface takes
     "geo_server.cache",  # the private cache folder (OPC UA's imported NodeSets)
+    "geo_server.paths",  # where the user's files are (OPC UA's certificate folder)
+    "geo_server.interfaces",  # the registry of interfaces, and why one did not start
+    "geo_server.transports.interface",  # the contract every interface's plug keeps
+    "geo_server.ports",  # a free port for a test's Zenoh interface (`Interface.loopback`)
 )
 
 

@@ -79,7 +79,7 @@ def test_parse_every_example_of_the_docstring():
         ("ads", "expected <target>:<kind>[=value], e.g. ads:error=0x707"),
         ("can:error=1", "unknown target 'can' (ads, modbus, zenoh, all, cycle, sensor@"),
         ("ads:overrun=5", "ads has no fault 'overrun' (delay, drop, error, disconnect)"),
-        ("zenoh:disconnect", "Zenoh has no client connection to drop"),
+        ("zenoh:disconnect", "zenoh has no fault 'disconnect' (delay, drop, error)"),
         ("ads:error=0x999", "0x999 is not an ADS return code"),
         ("modbus:error=5", "Modbus exception 5 is not one a server answers (1, 2, 3, 4, 6, 10"),
         ("ads:delay", "delay needs a value (ms)"),

@@ -22,7 +22,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from geo_server import access
 from geo_server.machine.machine import Machine
-from geo_server.opcua_run import cert_folder
+from geo_server.transports.opcua.plug import cert_folder
 from geo_server.service import ObjectService
 from geo_server.transports.opcua import guard, logins
 from geo_server.transports.opcua.certs import CERT_FILE, KEY_FILE

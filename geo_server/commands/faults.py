@@ -4,6 +4,7 @@ cycle overruns through the engine in this process, sensor faults through the twi
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -90,3 +91,16 @@ class FaultService(Faults):
         added = self.add(f)
         self._ports.apply(SensorFault(k, f.kind, f.value))
         return added.as_dict()
+
+
+def inject_faults(specs: list[str] | None, faults: FaultService, label: str = "") -> bool:
+    """`run --fault`: inject each fault before the first cycle (docs/faults.md);
+    False (after saying why) when one cannot be."""
+    for spec in specs or ():
+        try:
+            fault = faults.inject(spec)
+        except FaultError as exc:
+            print(f"error: {label}{exc}", file=sys.stderr)
+            return False
+        print(f"{label}fault {fault['id']} injected: {fault['fault']}", file=sys.stderr)
+    return True

@@ -5,7 +5,3 @@ await server.start()      # server.port is the bound port (port=0: ephemeral)
 ...
 await server.close()
 """
-
-from geo_server.transports.ads.server import GEO_AMS_PORT, AdsOptions, AdsServer, AdsStats
-
-__all__ = ["GEO_AMS_PORT", "AdsOptions", "AdsServer", "AdsStats"]

@@ -93,7 +93,7 @@ class ModbusOptions:
     write_timeout: float | None = None
     max_connections: int = 64
     #: connections the listening socket queues before they are accepted (a fleet's
-    #: machines take fewer: `compose.FLEET_BACKLOG`; geo_server/descriptors.py)
+    #: machines take fewer: `plug.FLEET_BACKLOG`; geo_server/descriptors.py)
     backlog: int = BACKLOG
     max_pipeline: int = 32  # requests queued per connection before reading pauses
     incomplete_frame_timeout: float = 5.0

@@ -1,7 +1,7 @@
 """The OPC UA server's self-signed certificate (docs/security.md *OPC UA*).
 
 Made on first start and kept: clients that trusted it once go on trusting it (the
-folder: `geo_server.opcua_run.cert_folder`). The key is written for its owner only
+folder: `geo_server.transports.opcua.plug.cert_folder`). The key is written for its owner only
 (0600), both files atomically (a crash leaves no half file).
 """
 

@@ -57,8 +57,8 @@ from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua import cnc, companions, machinetool
-from geo_server.transports.opcua.args import parse_endpoint
 from geo_server.transports.opcua.cnc import Live
+from geo_server.transports.opcua.endpoint import parse_endpoint
 from geo_server.transports.opcua.items import (
     STATUS_VALUE_TIMESTAMP,
     ItemRule,

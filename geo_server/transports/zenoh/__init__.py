@@ -1,6 +1,3 @@
-"""The Zenoh interface: the key space (`keys`, pure functions) and the server (`server`)."""
-
-from geo_server.transports.zenoh.options import ZenohOptions
-from geo_server.transports.zenoh.server import ZenohInterface
-
-__all__ = ["ZenohInterface", "ZenohOptions"]
+"""The Zenoh interface: the key space (`keys`, pure functions), its options (`options`),
+the server (`server`) and its plug (`plug`). Nothing is imported here: the plug is read
+for every command, and loads Zenoh only when it serves."""

@@ -85,9 +85,10 @@ def test_a_loop_thread_runs_work_on_its_own_thread_and_loop() -> None:
         assert niceness == expected
         if sys.platform == "linux":  # (the caller's thread is not touched)
             assert niceness_of(threading.get_native_id()) == os.getpriority(os.PRIO_PROCESS, 0)
-        cancelled = threading.Event()
+        started, cancelled = threading.Event(), threading.Event()
 
         async def forever() -> None:
+            started.set()
             try:
                 await asyncio.Event().wait()
             except asyncio.CancelledError:
@@ -95,7 +96,8 @@ def test_a_loop_thread_runs_work_on_its_own_thread_and_loop() -> None:
                 raise
 
         waiting = asyncio.ensure_future(own.run(forever()))
-        await asyncio.sleep(0.05)
+        # (begun on the other loop: a cancel before that would keep it from ever running)
+        assert await asyncio.to_thread(started.wait, 10.0)
         waiting.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await waiting

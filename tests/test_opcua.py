@@ -22,10 +22,10 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from geo_server import access
 from geo_server.machine.machine import Machine
-from geo_server.transports.opcua.plug import cert_folder
 from geo_server.service import ObjectService
 from geo_server.transports.opcua import guard, logins
 from geo_server.transports.opcua.certs import CERT_FILE, KEY_FILE
+from geo_server.transports.opcua.plug import cert_folder
 from geo_server.transports.opcua.server import (
     STATUS,
     OpcUaInterface,
@@ -752,7 +752,9 @@ def test_connections_past_the_cap_are_closed_and_the_rest_served(service: Object
             for _, writer in idle:
                 writer.close()
                 await writer.wait_closed()
-            for _ in range(100):  # the server notices the closes on its next loop turns
+            # the server notices the closes on its next loop turns (its own thread)
+            deadline = asyncio.get_running_loop().time() + TIMEOUT
+            while asyncio.get_running_loop().time() < deadline:
                 try:
                     async with client(iface) as c:
                         ns = await c.get_namespace_index(NAMESPACE_URI)

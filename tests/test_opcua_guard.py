@@ -331,8 +331,10 @@ def test_a_session_and_its_subscriptions_end_with_its_connection(service: Object
             await sub.subscribe_data_change(c.get_node(ua.NodeId(TEMPC, ns)))
             assert len(iserver.subscription_service.subscriptions) == 1
             c.uaclient.disconnect_socket()  # no CloseSession
-            for _ in range(100):  # the server sees the connection go on its next turn
-                if not iserver.subscription_service.subscriptions:
+            # the server sees the connection go on one of its next turns (its own thread)
+            deadline = asyncio.get_running_loop().time() + TIMEOUT
+            while iserver.subscription_service.subscriptions:
+                if asyncio.get_running_loop().time() > deadline:
                     break
                 await asyncio.sleep(0.01)
             assert not iserver.subscription_service.subscriptions

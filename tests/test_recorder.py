@@ -177,7 +177,10 @@ def test_recording_in_a_real_time_machine_has_no_gaps():
     sched.start()
     try:
         service.nc.run("G91 G01 X2 F6000")
-        time.sleep(0.4)
+        start = m.cycle  # 150 cycles recorded, however slowly the host runs them
+        deadline = time.monotonic() + 30
+        while m.cycle < start + 150 and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         trace = rec.stop()
         sched.stop()

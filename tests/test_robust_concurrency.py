@@ -64,8 +64,11 @@ def test_concurrent_writers_on_all_transports(loop_thread, lists_copy):
 
         initial = {key: access.read_name(service, *key) for key in watched}
         unsubscribe = service.subscribe_changes(watched, on_change)
-        time.sleep(0.05)  # the observer's first call reports the initial values
-        assert all(observed[key] for key in watched)
+        # the observer's first call (on the cycle thread) reports the initial values
+        deadline = time.monotonic() + TIMEOUT
+        while not all(observed.get(key) for key in watched) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert all(observed.get(key) for key in watched)
         for key in watched:
             assert [v for _c, v in observed[key]] == [initial[key]]
             observed[key].clear()

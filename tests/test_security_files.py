@@ -28,6 +28,7 @@ import pyads
 import pytest
 import zenoh
 from conftest import run_in
+from support.machines import updates_read
 from test_volcomp import add_volc, smooth_files
 from test_zenoh_commands import OCTET, Served, get
 
@@ -337,7 +338,8 @@ def test_nc_volcomp_update_reads_only_inside(rig: Rig) -> None:
     _, errs = get(r.zenoh.session, "cnc/t/nc", b"#VOLCOMP [ID0 UPDATE]\nM30\n", OCTET)
     assert not errs, errs
     m = r.machine
-    for _ in range(100_000):  # the files are read in a worker thread: step until it is done
+    for _ in range(3000):  # the files are read in a worker thread: wait for it, then step
+        updates_read(m)
         access.step(r.service, 1)
         if m.player is None or not m.player.running:
             break

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.machines import updates_read
 
 from geo_server.dictionary import load_dictionary
 from geo_server.listfile import load_machine
@@ -618,6 +619,7 @@ def test_a_broken_update_keeps_the_compensation(lists_copy: Path) -> None:
     (folder / "exx.csv").write_text("X EXX\n0 nan\n", encoding="utf-8")
     m.start_program("#VOLCOMP [ID0 UPDATE]\n", mdi=True)
     for _ in range(3000):
+        updates_read(m)
         m.run_cycle()
         if m.player is not None and not m.player.running:
             break
@@ -813,6 +815,7 @@ def test_v_g_volcomp_variables_read_write_and_update(lists_copy: Path) -> None:
     m.start_program(program)
     seen = []
     for _ in range(3000):
+        updates_read(m)
         m.run_cycle()
         seen.append(value(m, "VOLC::correction", 1))
         if m.player is not None and not m.player.running:
@@ -927,6 +930,7 @@ def test_a_file_an_nc_program_names_is_refused_with_one_text(
     m = Machine(load_machine(lists_copy), cycle_s=0.001, homed=True)
     m.start_program(f'V.G.VOLCOMP[0].FILE[0] = "{name}"\n#VOLCOMP [ID0 UPDATE]\n', mdi=True)
     for _ in range(3000):
+        updates_read(m)
         m.run_cycle()
         if m.player is not None and not m.player.running:
             break

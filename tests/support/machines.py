@@ -253,3 +253,16 @@ def volumetric_machine(folder: Path) -> MachineConfig:
         c.problem for c in cfg.volumetric
     ]
     return cfg
+
+
+def updates_read(m: object, timeout: float = 30.0) -> None:
+    """Wait until every `#VOLCOMP [.. UPDATE]` machine `m` has under way has read its
+    files (a worker thread reads them; the next cycle applies what it read). Stepping
+    until a program ends counts cycles, and no count of cycles bounds a thread's wall
+    time: a busy host let 3000 cycles run out while the worker read (the test thread
+    owns the stepped machine, so it may look at what is loading)."""
+    from geo_server.machine.machine import Machine
+
+    assert isinstance(m, Machine)
+    for _ident, _since, fut in list(m._volc_loading):
+        fut.result(timeout=timeout)

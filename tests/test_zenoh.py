@@ -157,11 +157,11 @@ def test_other_spellings_of_a_key_are_answered_on_the_loop_and_remembered_nowher
     """A hostile peer spelling one address in endless ways (leading zeros, upper case)
     gets its answer from the loop's parser; the table of keys read on Zenoh's thread is
     the one made at start and does not grow."""
-    table = dict(server.iface._plain)
+    table = dict(server.iface.reads.plain_keys)
     for zeros in (1, 100, 10_000):
         key = "cnc/t/ads/551/0x120300/0X" + "0" * zeros + "10043"
         assert struct.unpack("<d", get_one(zs, key)) == (4000.0,)  # the manual's 4000
-    assert server.iface._plain == table
+    assert server.iface.reads.plain_keys == table
 
 
 def test_named_read_of_the_manual_temperature_parameters(server, zs):
@@ -754,7 +754,7 @@ def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_t
         for _ in range(2):
             assert get_one(zs, raw) == struct.pack("<i", -250)
             assert json.loads(get_one(zs, named)) == -250
-        assert {raw, named} <= set(srv.iface._kept)
+        assert {raw, named} <= set(srv.iface.reads.kept)
         cycle, computed = m.cycle, sched.computed
         vc.t += 5000 * P
         assert get_one(zs, raw) == struct.pack("<i", -250)
@@ -762,7 +762,7 @@ def test_a_get_sent_again_at_rest_is_answered_from_what_the_last_one_kept(loop_t
         first = json.loads(get_one(zs, count))
         vc.t += 5000 * P
         assert json.loads(get_one(zs, count)) == first + 5000
-        assert count not in srv.iface._kept
+        assert count not in srv.iface.reads.kept
         sched.submit(WriteObjects((("TEMPC::offset_0", 1, 125),)))
         vc.t += P
         assert get_one(zs, raw) == struct.pack("<i", 125)

@@ -12,10 +12,9 @@ Limits: the Zenoh transport itself is bounded (`ZenohOptions`: handshake time, p
 handshakes, sessions, links), so idle connections cannot lock new sessions out for long;
 payloads, NC text and JSON numbers are bounded before they are parsed.
 
-Rivals: another Zenoh session that answers queries for this machine's keys (an impostor,
-or a second server started with the same machine name) is looked for at start, whenever
-Zenoh reports a matching queryable or a liveliness change on `cnc/<m>/alive`, and every
-`rival_check_period`; one found is listed under `zenoh_rivals` in the status JSON and
+Beside it: what a get that reads is answered with (`reads.py`, a plain read on Zenoh's
+thread), and the look for rivals, other sessions claiming this machine (`watch.py`, over
+the sans-I/O `rivals.py`); one found is listed under `zenoh_rivals` in the status JSON and
 reported once in the errors list.
 """
 
@@ -28,7 +27,6 @@ import json
 import logging
 import threading
 import time
-import weakref
 from collections import deque
 from collections.abc import Awaitable, Coroutine
 from typing import Any
@@ -42,41 +40,22 @@ from geo_server.dictionary import ObjectDef, loads_json
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import carry_out
-from geo_server.service import (
-    ObjectService,
-    check_readable,
-    rests_on,
-    snapshot_for,
-    varies_at_rest,
-)
+from geo_server.service import ObjectService
 from geo_server.snapshot import Snapshot
 from geo_server.transports.zenoh.keys import KeySpace, Route
 from geo_server.transports.zenoh.options import ZenohOptions
+from geo_server.transports.zenoh.reads import JSON, OCTET, Reads, Reply, error_payload
 from geo_server.transports.zenoh.rivals import Rivals
+from geo_server.transports.zenoh.watch import RivalWatch, to_loop
 
 log = logging.getLogger(__name__)
 
-OCTET = zenoh.Encoding.APPLICATION_OCTET_STREAM
-JSON = zenoh.Encoding.APPLICATION_JSON
 MAX_PAYLOAD = 64 * 1024  # NC text or JSON larger than this is refused
 #: Refused puts waiting to be listed in the errors list (`_refused`); beyond, they are
 #: counted and listed as one line.
 MAX_REFUSALS_WAITING = 64
-#: Seconds a rival probe (a get to other sessions) may take; Zenoh ends it then.
-PROBE_TIMEOUT_S = 1.0
 #: seconds `close` waits for Zenoh to undeclare this interface and close its session
 CLOSE_WAIT_S = 5.0
-#: Least seconds between two rival probes, however often Zenoh reports changes.
-PROBE_MIN_GAP_S = 0.25
-
-
-def _json_reply(snap: Snapshot, obj: ObjectDef, axis: int) -> bytes:
-    """A named key's reply: the decoded value as JSON."""
-    return json.dumps(snap.value(obj, axis)).encode()
-
-
-def _error_payload(exc: AdsError) -> bytes:
-    return json.dumps(exc.as_dict()).encode()
 
 
 def _json_value(payload: bytes, obj: ObjectDef) -> Any:
@@ -127,26 +106,14 @@ class ZenohInterface:
         self._never_busy = frozenset(
             (f"{self.keys.prefix}/cmd/fault", f"{self.keys.prefix}/status")
         )
-        # KeyExprs built once: a wildcard get intersects every readable key and the
-        # publish loop puts every cycle; building (and validating) a KeyExpr from a str
-        # each time is pure overhead on the loop the GEO cycle shares the GIL with.
-        self._readable = [
-            (zenoh.KeyExpr(key), key, route) for key, route in self.keys.readable_keys().items()
-        ]
+        #: the answers to gets that read (`reads.py`)
+        self.reads = Reads(service, self.keys)
+        # KeyExprs built once: the publish loop puts every cycle
         self._status_ke = zenoh.KeyExpr(f"{self.keys.prefix}/status")
         self._errors_ke = zenoh.KeyExpr(f"{self.keys.prefix}/errors")
         self._session: zenoh.Session | None = None
         self._watch: zenoh.Publisher | None = None
         self._watched: asyncio.Event | None = None  # set while a subscriber matches
-        #: the keys a get is answered for on the Zenoh thread (`_read_now`): each readable
-        #: object's own named and raw key, as the server spells them (any other
-        #: spelling of an address is parsed and answered on the loop)
-        self._plain = {
-            key: route for _, key, route in self._readable if route.kind in ("raw", "named")
-        }
-        #: the reply to the last get of each plain key and the snapshot it came from
-        #: (`_plain_reply`)
-        self._kept: dict[str, tuple[weakref.ref[Snapshot], bytes, zenoh.Encoding]] = {}
         #: whether a subscriber matches `cnc/<m>/**` (no watch publisher: always)
         self._watching = True
         self._entities: list[Any] = []
@@ -179,25 +146,20 @@ class ZenohInterface:
         self._lister: asyncio.Task[None] | None = None
         #: Our own Zenoh id (set at start; in the status JSON as `zenoh_id`).
         self.zenoh_id = ""
-        #: other sessions found answering for this machine (`rivals.py`)
+        #: other sessions found answering for this machine (`rivals.py`, `watch.py`)
         self.rivals = Rivals(self.keys.machine, self.keys.prefix, self._report, self._put_rivals)
-        self._probe_wanted: asyncio.Event | None = None
-        self._probes_started = 0
+        self.watch = RivalWatch(self.keys, self.options, self.rivals)
         #: held while a read is answered on Zenoh's thread (`_read_now`, `_refuse_busy`)
-        #: and while the interface undeclares and closes (`close`): nothing is sent on a
-        #: session being closed
+        #: and while the interface undeclares and closes (`close`, and after it the
+        #: watch's `probing`, a lock of its own: a probe never sends a read that could be
+        #: answered at once to the loop): nothing is sent on a session being closed
         self._closing = threading.Lock()
-        #: held while a probe's get is sent (a worker thread) and, after `_closing`, by
-        #: `close`: a lock of its own, so that a probe never sends a read that could be
-        #: answered at once to the loop (and its reply would not be kept)
-        self._probing = threading.Lock()
         self._closed = False  # (no task is started once `close` began: `_spawn`)
 
     # ------------------------------------------------------------------ lifecycle
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
-        self._probe_wanted = asyncio.Event()
         if self._shared is not None:
             self._session = self._shared
         else:
@@ -206,7 +168,6 @@ class ZenohInterface:
             )
         s = self._session
         prefix = self.keys.prefix
-        alive = self.keys.alive_key
         self.zenoh_id = str(s.info.zid())
         log.info("zenoh session %s serves %s/**", self.zenoh_id, prefix)
         self.service.status_extra["zenoh_id"] = self.zenoh_id
@@ -215,24 +176,7 @@ class ZenohInterface:
         self.rivals.publish()
         self._unsubscribe.append(self.service.subscribe_events(self._on_event))
         self._entities.append(s.declare_queryable(f"{prefix}/**", self._on_query))
-        # Zenoh merges the liveliness tokens of one key: once ours is declared, a second
-        # one on `alive` is invisible as such. So look for one before declaring ours.
-        if await self._loop.run_in_executor(None, self._token_held):
-            self.rivals.token_held(alive)
-        self._entities.append(s.liveliness().declare_token(alive))
-        # Liveliness changes on our key (another token coming or going) call for a look.
-        self._entities.append(s.liveliness().declare_subscriber(alive, self._on_alive))
-        # A remote queryable covering all of cnc/<m>/** (as a second server, or an
-        # impostor copying one, declares it) turns this querier's matching status on.
-        querier = s.declare_querier(
-            f"{prefix}/**",
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            allowed_destination=zenoh.Locality.REMOTE,
-            timeout=PROBE_TIMEOUT_S,
-        )
-        self._entities.append(querier)
-        self._entities.append(querier.declare_matching_listener(self._on_matching))
+        await self.watch.start(s, self._entities)  # (its token, its hints of rivals)
         # A put of a value on an object key is a write (docs/design.md §7): bridges
         # through Zenoh's REST or MQTT plugins write with put. Only other sessions' puts:
         # this session's own publications of the values are local.
@@ -251,7 +195,7 @@ class ZenohInterface:
         self._spawn(self._publish_loop())
         if self.options.status_period > 0:
             self._spawn(self._status_loop())
-        self._spawn(self._rival_loop())
+        self._spawn(self.watch.run())
 
     async def close(self) -> None:
         self._closed = True
@@ -266,6 +210,7 @@ class ZenohInterface:
             self.service.status_extra.pop(key, None)
         entities, self._entities = list(reversed(self._entities)), []
         session, self._session = self._session, None
+        self.watch.stop()
 
         done: concurrent.futures.Future[None] = concurrent.futures.Future()
 
@@ -275,7 +220,7 @@ class ZenohInterface:
             # get sent from a worker thread (its task cancelled above, its thread not)
             # finishes first. (`done` is never cancelled: the wait below is shielded.)
             try:
-                with self._closing, self._probing:
+                with self._closing, self.watch.probing:
                     for ent in entities:
                         ent.undeclare()
                     if session is not None and session is not self._shared:
@@ -354,7 +299,7 @@ class ZenohInterface:
                             f"more than {self.options.max_pending} requests in flight on "
                             "this interface: try again",
                         )
-                        query.reply_err(_error_payload(err), encoding=JSON)
+                        query.reply_err(error_payload(err), encoding=JSON)
                 finally:
                     self._closing.release()
         finally:
@@ -362,59 +307,32 @@ class ZenohInterface:
 
     def _read_now(self, query: zenoh.Query) -> bool:
         """Zenoh thread: answer a get without payload of one object's key, with no fault
-        injected, when the cycle due is there without waiting (published already, or a
-        catch-up no other thread is running: `current(wait=0)`); True when answered.
-        What the loop would do, without the hop to it and back (docs/design.md §7).
-        Anything else — another spelling of the key, a wildcard, a write, a command,
-        status and errors, a refusal, an engine busy — goes to the loop, which answers
-        it as always."""
+        injected, when the cycle due is there without waiting (`Reads.plain`); True when
+        answered. Anything else — another spelling of the key, a wildcard, a write, a
+        command, status and errors, a refusal, an engine busy — goes to the loop, which
+        answers it as always."""
         if self._session is None or query.payload is not None or self.service.faults.active:
             return False
         ke = query.key_expr
         key = str(ke)
-        kept = self._kept.get(key)  # (only ever a plain key's: `_plain_reply`)
-        route = None if kept is not None else self._plain.get(key)
-        if kept is None and route is None:
+        if not self.reads.is_plain(key):
             return False
         # never a reply while the interface undeclares and closes (`close` holds the
         # lock; a read that finds it taken goes to the loop, as every read once did)
         if not self._closing.acquire(False):
             return False
         try:
-            if self._session is None:
+            reply = self.reads.plain(key) if self._session is not None else None
+            if reply is None:
                 return False
-            if kept is not None and rests_on(self.service, kept[0]()):
-                data, enc = kept[1], kept[2]  # (docs/design.md §13, *Repeated reads*)
-            else:
-                try:
-                    data, enc = self._plain_reply(key, route or self._plain[key])
-                except AdsError:
-                    return False
             self._queries_here += 1
             try:
-                query.reply(ke, data, encoding=enc)  # (as it came: not parsed again)
+                query.reply(ke, reply[0], encoding=reply[1])  # (as it came: not parsed again)
             finally:
                 query.drop()
             return True
         finally:
             self._closing.release()
-
-    def _plain_reply(self, key: str, route: Route) -> tuple[bytes, zenoh.Encoding]:
-        """Zenoh thread: the reply to a get of a plain key (`_read_now`) that no reply
-        kept from an earlier get answers, never waiting for a catch-up. A reply is kept
-        when its object cannot vary at rest and it came from the snapshot a read at rest
-        takes; it answers the next gets of `key` while that snapshot is still the one
-        (docs/design.md §13, *Repeated reads*): one per plain key, with a weak reference
-        to the snapshot (nothing kept keeps a snapshot alive)."""
-        svc = self.service
-        assert route.obj is not None  # (a plain key is an object's own)
-        if varies_at_rest(route.obj):
-            return self._read(route, None, wait=0)
-        snap = snapshot_for(svc, route.obj, wait=0)
-        data, enc = self._read(route, snap)
-        if rests_on(svc, snap):
-            self._kept[key] = (weakref.ref(snap), data, enc)
-        return data, enc
 
     def _accept(self, query: zenoh.Query) -> None:
         self._spawn(self._handle(query))
@@ -503,7 +421,7 @@ class ZenohInterface:
             await asyncio.to_thread(self.service.report, text)
             self.refused_puts += count
 
-    async def _write(self, route: Route, payload: bytes) -> tuple[bytes, zenoh.Encoding]:
+    async def _write(self, route: Route, payload: bytes) -> Reply:
         """Write the object of a raw or named key: what is stored, as a reply payload."""
         svc = self.service
         if route.kind == "raw":
@@ -531,15 +449,15 @@ class ZenohInterface:
                     raise AdsError(
                         AdsErrorCode.DEVICE_INVALIDACCESS, "a write needs a concrete key"
                     )
-                self._answer_wildcard(query)
+                self.reads.wildcard(query)
             else:
                 await self._answer(query, key, self.keys.parse(key), payload)
         except AdsError as exc:
-            query.reply_err(_error_payload(exc), encoding=JSON)
+            query.reply_err(error_payload(exc), encoding=JSON)
         except Exception as exc:  # never let one bad query take the interface down
             log.exception("zenoh query failed")
             err = AdsError(AdsErrorCode.DEVICE_ERROR, f"internal error: {exc}")
-            query.reply_err(_error_payload(err), encoding=JSON)
+            query.reply_err(error_payload(err), encoding=JSON)
         finally:
             self._finished += 1
             query.drop()
@@ -567,7 +485,7 @@ class ZenohInterface:
 
         def error(code: int) -> Awaitable[bool]:
             err = AdsError(code, f"injected fault {fault.ident}: {fault.text}")
-            query.reply_err(_error_payload(err), encoding=JSON)
+            query.reply_err(error_payload(err), encoding=JSON)
             return answered()
 
         async def delayed() -> bool:
@@ -579,73 +497,11 @@ class ZenohInterface:
             fault, drop=answered, error=error, disconnect=answered, delay=delayed
         )
 
-    def _answer_wildcard(self, query: zenoh.Query) -> None:
-        """One reply per readable key the wildcard matches, all from one snapshot.
-
-        The candidates are `KeySpace.readable_keys`: write-only objects (the commands
-        `SIM::reload`/`SIM::save`, `SIM::set_position`) are not among them, so a wildcard
-        skips them silently, and `status`/`errors` are answered when it matches them.
-        Should one key still fail to read, it is skipped and logged: the keys after it
-        are answered all the same (one bad object must not hide the rest, which a
-        `reply_err` in the middle would, since clients stop at the first error). While
-        the GEO cycle is stalled the object keys are not served as current: `status`
-        and `errors` are answered, then one `reply_err` 0x707 stands for the rest.
-
-        A wildcard that matches none of our keys (an unconfigured axis, a misspelt
-        field) is answered with `reply_err` (every get is answered), not with silence
-        that the client can only tell from its own timeout.
-        """
-        ke = query.key_expr
-        matched = [(key, route) for kexpr, key, route in self._readable if kexpr.intersects(ke)]
-        if not matched:
-            raise self.keys.no_match(str(ke))
-        try:
-            snap: Snapshot | None = self.service.current()
-            stalled: AdsError | None = None
-        except AdsError as exc:
-            snap, stalled = None, exc
-        for key, route in matched:
-            if snap is None and route.kind in ("raw", "named"):
-                continue
-            try:
-                payload, enc = self._read(route, snap)
-            except AdsError as exc:
-                log.warning("wildcard %s: %s skipped: %s", ke, key, exc.message)
-                continue
-            query.reply(key, payload, encoding=enc)
-        if stalled is not None:
-            query.reply_err(_error_payload(stalled), encoding=JSON)
-
-    def _read(
-        self, route: Route, snap: Snapshot | None, wait: float | None = None
-    ) -> tuple[bytes, zenoh.Encoding]:
-        """A read-only route's reply from `snap` (None: the snapshot due now for this
-        one object, waiting at most `wait` for a catch-up; status and errors are
-        answered even while the cycle is stalled)."""
-        if route.kind == "status":
-            return json.dumps(self.service.status()).encode(), JSON
-        if route.kind == "errors":
-            return json.dumps(self.service.errors()).encode(), JSON
-        if route.kind == "raw":
-            svc = self.service
-            data = svc.read(route.index_group, route.index_offset, None, snap, wait=wait)
-            return data, OCTET
-        if route.kind == "named":
-            assert route.obj is not None
-            check_readable(route.obj)
-            snap = snap or snapshot_for(self.service, route.obj, wait)
-            obj, axis = route.obj, route.axis
-            return snap.kept("json", obj, axis, lambda: _json_reply(snap, obj, axis)), JSON
-        raise AdsError(
-            AdsErrorCode.DEVICE_INVALIDACCESS,
-            f"{route.kind} needs a payload (get with payload runs it)",
-        )
-
     async def _answer(
         self, query: zenoh.Query, key: str, route: Route, payload: bytes | None
     ) -> None:
         if payload is None:
-            data, enc = self._read(route, None)
+            data, enc = self.reads.read(route, None)
             query.reply(key, data, encoding=enc)
             return
         if self.options.read_only:
@@ -706,29 +562,8 @@ class ZenohInterface:
 
     # ------------------------------------------------------------------ rivals
 
-    def _token_held(self) -> bool:
-        """Worker thread: does another session hold our liveliness token already?"""
-        session = self._session
-        if session is None:
-            return False
-        replies = session.liveliness().get(self.keys.alive_key, timeout=PROBE_TIMEOUT_S)
-        return any(r.ok is not None for r in replies)
-
     def _to_loop(self, fn: Any, *args: Any) -> None:
-        """Another thread: run `fn(*args)` on the loop (dropped once the loop is gone).
-        The loop may close between the check and the hand-off (server shutting down):
-        call_soon_threadsafe then raises RuntimeError, which must not reach the caller's
-        thread."""
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(fn, *args)
-
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        self._to_loop(self._alive_changed, sample.kind == zenoh.SampleKind.DELETE)
-
-    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
-        self._to_loop(self._matching_changed, bool(status.matching))
+        to_loop(self._loop, fn, *args)
 
     def _on_watch(self, status: zenoh.MatchingStatus) -> None:
         # (`_watching` is the loop's: `_publish_loop` sets it when it looks again)
@@ -737,69 +572,6 @@ class ZenohInterface:
     def _watch_changed(self, matching: bool) -> None:
         if matching and self._watched is not None:  # (the loop clears it when it waits)
             self._watched.set()
-
-    def _alive_changed(self, deleted: bool) -> None:
-        if deleted:
-            self.rivals.token_gone()
-        self._want_probe()
-
-    def _matching_changed(self, matching: bool) -> None:
-        self.rivals.queryable(matching)
-        self._want_probe()
-
-    def _want_probe(self) -> None:
-        if self._probe_wanted is not None:
-            self._probe_wanted.set()
-
-    async def _rival_loop(self) -> None:
-        """Look for rivals now, on every hint from Zenoh, and every `rival_check_period`
-        (the first period longer by `spread` of it)."""
-        assert self._probe_wanted is not None
-        loop = asyncio.get_running_loop()
-        shift = self.options.spread * self.options.rival_check_period
-        while True:
-            self._probe_wanted.clear()
-            if self._session is not None:
-                self._probes_started += 1
-                # a worker thread: Zenoh starts a thread for the replies' callbacks, and
-                # starting one waits for the interpreter lock (milliseconds in a fleet)
-                await loop.run_in_executor(None, self._start_probe, self._probes_started)
-            await asyncio.sleep(PROBE_MIN_GAP_S)
-            await wait_set(self._probe_wanted, self.options.rival_check_period + shift)
-            shift = 0.0
-
-    def _start_probe(self, number: int) -> None:
-        """Ask every *other* session's queryables for `cnc/<m>/status` (no waiting);
-        `number`: the probe's, counted on the loop.
-
-        The replies name their sender (`Reply.replier_id`); the answer is evaluated
-        when Zenoh ends the query (all answered, or `PROBE_TIMEOUT_S`).
-        """
-        with self._probing:
-            session = self._session
-            if session is not None:
-                self._send_probe(session, number)
-
-    def _send_probe(self, session: zenoh.Session, number: int) -> None:
-        """`_start_probe`'s get (under its lock)."""
-        found: set[str] = set()
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            rid = reply.replier_id
-            if rid is not None:
-                found.add(str(rid.zid))
-
-        def on_done() -> None:
-            self._to_loop(self.rivals.probe_done, number, frozenset(found))
-
-        session.get(
-            f"{self.keys.prefix}/status",
-            zenoh.handlers.Callback(on_reply, on_done),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            allowed_destination=zenoh.Locality.REMOTE,
-            timeout=PROBE_TIMEOUT_S,
-        )
 
     def _report(self, text: str, severity: str) -> None:
         self.service.report(text, severity=severity)

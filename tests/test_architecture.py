@@ -540,3 +540,34 @@ def test_every_compiled_module_keys_the_jit_cache():
     # the modules whose plain functions others compile, and the constants they read
     read = {"jit.py", "kernel/common.py", "kernel/layout.py", "kernel/temperature.py"}
     assert compiling | read == set(jit.MODULES), set(jit.MODULES) ^ (compiling | read)
+
+
+#: At most this many parameters per product function (issue 47): a part hands the compiled
+#: cycle one typed bundle (docs/design.md §13.3), a process its spec, not a list of arrays.
+MAX_PARAMETERS = 10
+
+
+def parameters(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = fn.args
+    count = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs)
+    count += (a.vararg is not None) + (a.kwarg is not None)
+    if a.args and a.args[0].arg in ("self", "cls"):
+        count -= 1
+    return count
+
+
+def test_no_function_takes_more_than_ten_parameters() -> None:
+    long = [
+        f"{module_name('geo_server', path)}.{node.name} ({parameters(node)})"
+        for path in ROOTS["geo_server"].rglob("*.py")
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and parameters(node) > MAX_PARAMETERS
+    ]
+    assert long == []
+
+
+def test_the_parameter_count_sees_a_long_signature() -> None:
+    tree = ast.parse("def f(self, a, b, *c, d, e=1, **f): ...\nasync def g(x, /, y): ...")
+    f, g = (n for n in tree.body if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef))
+    assert (parameters(f), parameters(g)) == (6, 2)

@@ -14,6 +14,8 @@ acceleration.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from geo_server.jit import compiled
@@ -110,26 +112,32 @@ def evaluate(
     return result
 
 
+class CrosstalkTable(NamedTuple):
+    """One slave's crosstalk table in the kernel's `tab` (000 §4.6): its kind (`OLD`, a
+    mode), where its values start and their count `m`, mode 3's triangles and edges,
+    whether it depends on the direction of motion, and 1/the limits of acceleration and
+    deceleration (the ratio's denominators)."""
+
+    kind: int
+    off: int
+    m: int
+    tri: int
+    ntri: int
+    edge: int
+    nedge: int
+    veldep: bool
+    inv_acc: float
+    inv_dec: float
+
+
 @compiled
 def value(
-    kind: int,
-    tab: np.ndarray,
-    off: int,
-    m: int,
-    tri: int,
-    ntri: int,
-    edge: int,
-    nedge: int,
-    veldep: bool,
-    inv_acc: float,
-    inv_dec: float,
-    acc: float,
-    vel: float,
-    x: float,
-    y: float,
+    tab: np.ndarray, table: CrosstalkTable, acc: float, vel: float, x: float, y: float
 ) -> float:
-    """The slave's offset (000 §4.6 p.84) for the dynamic master's acceleration `acc`
-    (units/s²) and velocity `vel`, and the position masters at (x, y)."""
+    """The slave's offset (000 §4.6 p.84) of its `table` for the dynamic master's
+    acceleration `acc` (units/s²) and velocity `vel`, and the position masters at
+    (x, y)."""
+    kind, off, m, tri, ntri, edge, nedge, veldep, inv_acc, inv_dec = table
     a = acc / UNITS_PER_MM  # mm/s² (°/s²)
     if kind == OLD:  # a table over the signed acceleration (001 §4.5)
         return interp(tab, off, m, a)

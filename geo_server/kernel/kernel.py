@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from geo_server.jit import Packed
 from geo_server.kernel import crosstalk, layout, sin2, step, temperature
 from geo_server.kernel.common import (
     ALL_KINDS,
@@ -62,6 +63,7 @@ from geo_server.kernel.layout import (
     TOTAL,
     WOFF,
     XT_ORDER_MAX,
+    KernelState,
 )
 from geo_server.kernel.tables import Packer
 from geo_server.model import AxisConfig, CompKind, MachineConfig
@@ -118,22 +120,6 @@ class Rows:
                 elif x.mode != 2 or x.master_pos1_ax_nr in slot:
                     r.lin.append(i)
         return r
-
-
-#: `Kernel.arrays`: what the compiled cycle takes, in `step.step`'s order
-Arrays = tuple[
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-    np.ndarray,
-]
 
 
 class Kernel:
@@ -222,6 +208,21 @@ class Kernel:
         # crosstalk's filter goes on from its present output (a new order reads no
         # targets an older load left behind)
         self.F7[HIST:, :, CROSSTALK] = self.F7[ACT, :, CROSSTALK]
+        self._state: Packed = tuple(
+            KernelState(
+                self.F7,
+                self.B7,
+                self.I7,
+                self.F1,
+                self.B1,
+                self.P,
+                self.IP,
+                self.G,
+                self.ring,
+                self.tab,
+                self.weights,
+            )
+        )
 
     def _configured(self, axes: list[AxisConfig], rows: Rows) -> None:
         c = self.configured
@@ -329,22 +330,11 @@ class Kernel:
 
     # ------------------------------------------------------------------ the cycle
 
-    def arrays(self) -> Arrays:
-        """The compiled cycle's arrays, in `step.step`'s order (the tables change on
-        reload: ask again after one)."""
-        return (
-            self.F7,
-            self.B7,
-            self.I7,
-            self.F1,
-            self.B1,
-            self.P,
-            self.IP,
-            self.G,
-            self.ring,
-            self.tab,
-            self.weights,
-        )
+    def state(self) -> Packed:
+        """What the compiled cycle takes of the kernel, a packed `KernelState` (`step.step`;
+        made by each load of the lists, whose tables are new arrays: ask again after a
+        reload)."""
+        return self._state
 
     def step(
         self,
@@ -358,7 +348,7 @@ class Kernel:
         commands of this cycle and the cycles until a known reversal (< 0: none; a float
         count is truncated towards 0, as `int()` does)."""
         step.step(
-            *self.arrays(),
+            self.state(),
             _floats(cmd_pos),
             _floats(cmd_vel),
             _floats(cmd_acc),
@@ -377,7 +367,7 @@ class Kernel:
     ) -> None:
         """A pass of b cycles ([b, n] commands, the homing flags unchanged): `step` for
         each row, every cycle's total offset into `total` ([b, n])."""
-        step.steps(*self.arrays(), pos, vel, acc, homed, reversal_in, total)
+        step.steps(self.state(), pos, vel, acc, homed, reversal_in, total)
 
 
 def _floats(x: np.ndarray) -> np.ndarray:

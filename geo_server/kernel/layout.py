@@ -19,6 +19,28 @@ see rows and blocks of them as the kernel's named arrays (`Kernel.actual`, …).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import numpy as np
+
+
+class KernelState(NamedTuple):
+    """What the compiled cycle takes of the kernel (`Kernel.state`): its arrays, named
+    (numba passes a named tuple of arrays as one argument)."""
+
+    F7: np.ndarray
+    B7: np.ndarray
+    I7: np.ndarray
+    F1: np.ndarray
+    B1: np.ndarray
+    P: np.ndarray
+    IP: np.ndarray
+    G: np.ndarray
+    ring: np.ndarray
+    tab: np.ndarray
+    weights: np.ndarray
+
+
 # ---- F7: [n, 7] float blocks
 ACT, TGT, PREV, DELTA, JUMP = range(5)
 #: crosstalk: its last targets, HIST the latest (000 p.83: its values pass the sin²

@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from geo_server.jit import compiled
+from geo_server.jit import Packed, compiled
 from geo_server.kernel import temperature
 from geo_server.kernel.common import BC, CROSS, CROSSTALK, FRICT, LEAD, PLANE, TEMP
+from geo_server.kernel.crosstalk import CrosstalkTable
 from geo_server.kernel.crosstalk import value as crosstalk_value
 from geo_server.kernel.friction import RING
 from geo_server.kernel.friction import base as friction_base
@@ -94,6 +95,7 @@ from geo_server.kernel.layout import (
     XT_T,
     XT_TRI,
     XT_VELDEP,
+    KernelState,
 )
 from geo_server.kernel.lsec import target as lsec_target
 from geo_server.kernel.plane import bilinear
@@ -179,9 +181,8 @@ def _targets(
         )
     if B7[EFF, i, CROSSTALK]:  # 000 §4.6
         m = IP[XT_DYN, i]
-        tgt[CROSSTALK] = crosstalk_value(
+        table = CrosstalkTable(
             IP[XT_KIND, i],
-            tab,
             IP[XT_T, i],
             IP[XT_N, i],
             IP[XT_TRI, i],
@@ -191,11 +192,9 @@ def _targets(
             IP[XT_VELDEP, i] != 0,
             P[XT_INV_ACC, i],
             P[XT_INV_DEC, i],
-            acc[m],
-            vel[m],
-            pos[IP[XT_P1, i]],
-            pos[IP[XT_P2, i]],
         )
+        x, y = pos[IP[XT_P1, i]], pos[IP[XT_P2, i]]
+        tgt[CROSSTALK] = crosstalk_value(tab, table, acc[m], vel[m], x, y)
 
 
 @compiled
@@ -279,21 +278,10 @@ def _lsec(
 
 
 @compiled
-def _friction(
-    i: int,
-    F7: np.ndarray,
-    B7: np.ndarray,
-    F1: np.ndarray,
-    P: np.ndarray,
-    IP: np.ndarray,
-    ring: np.ndarray,
-    wpos: int,
-    tab: np.ndarray,
-    vel: float,
-    rev_in: int,
-) -> None:
+def _friction(i: int, k: KernelState, wpos: int, vel: float, rev_in: int) -> None:
     """Friction (000 §4.5): this cycle's value into the axis' delay line, the value
     written `delay_cycles` ago out (0 while not effective)."""
+    F7, B7, F1, P, IP, ring, tab = k.F7, k.B7, k.F1, k.P, k.IP, k.ring, k.tab
     cur = 0.0
     tgt = 0.0
     eff = B7[EFF, i, FRICT]
@@ -310,26 +298,21 @@ def _friction(
 
 @compiled
 def step(
-    F7: np.ndarray,
-    B7: np.ndarray,
-    I7: np.ndarray,
-    F1: np.ndarray,
-    B1: np.ndarray,
-    P: np.ndarray,
-    IP: np.ndarray,
-    G: np.ndarray,
-    ring: np.ndarray,
-    tab: np.ndarray,
-    weights: np.ndarray,
+    kernel: Packed,
     pos: np.ndarray,
     vel: np.ndarray,
     acc: np.ndarray,
     homed: np.ndarray,
     rev_in: np.ndarray,
 ) -> None:
-    """One GEO cycle for every axis (the module docstring; docs/design.md §5.1 step 3)
-    with the command position, velocity and acceleration, the homing flags and the
-    cycles until a known reversal (< 0: none) of every axis."""
+    """One GEO cycle for every axis of `kernel` (a packed `KernelState`; the module
+    docstring; docs/design.md §5.1 step 3) with the command position, velocity and
+    acceleration, the homing flags and the cycles until a known reversal (< 0: none) of
+    every axis."""
+    k = KernelState(*kernel)
+    F7, B7, I7, F1, B1, P, IP, G, tab, weights = (
+        k.F7, k.B7, k.I7, k.F1, k.B1, k.P, k.IP, k.G, k.tab, k.weights,
+    )  # fmt: skip
     n = F7.shape[1]
     first = G[FIRST] != 0
     wpos = G[RING_POS]
@@ -359,7 +342,7 @@ def step(
         if rev or s == 0.0:
             F1[PATH, i] = 0.0
         F1[PATH, i] += abs(pos[i] - (pos[i] if first else F1[POSP, i]))
-        _friction(i, F7, B7, F1, P, IP, ring, wpos, tab, v, rev_in[i])
+        _friction(i, k, wpos, v, rev_in[i])
         total = 0.0
         for c in (BC, TEMP, CROSS, PLANE, LEAD, CROSSTALK):
             F7[DELTA, i, c] = F7[ACT, i, c] - F7[PREV, i, c]
@@ -374,17 +357,7 @@ def step(
 
 @compiled
 def steps(
-    F7: np.ndarray,
-    B7: np.ndarray,
-    I7: np.ndarray,
-    F1: np.ndarray,
-    B1: np.ndarray,
-    P: np.ndarray,
-    IP: np.ndarray,
-    G: np.ndarray,
-    ring: np.ndarray,
-    tab: np.ndarray,
-    weights: np.ndarray,
+    kernel: Packed,
     pos: np.ndarray,
     vel: np.ndarray,
     acc: np.ndarray,
@@ -394,25 +367,9 @@ def steps(
 ) -> None:
     """`step` for each row of the commands ([b, n]: a pass of b cycles), every cycle's
     total offset into `total` ([b, n])."""
+    F1 = KernelState(*kernel).F1
     for b in range(pos.shape[0]):
-        step(
-            F7,
-            B7,
-            I7,
-            F1,
-            B1,
-            P,
-            IP,
-            G,
-            ring,
-            tab,
-            weights,
-            pos[b],
-            vel[b],
-            acc[b],
-            homed,
-            rev_in[b],
-        )
+        step(kernel, pos[b], vel[b], acc[b], homed, rev_in[b])
         total[b] = F1[TOTAL]
 
 

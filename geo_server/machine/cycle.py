@@ -16,10 +16,12 @@ flags returned.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from geo_server.jit import compiled
-from geo_server.kernel.layout import ACT, DRIVE, PREV, TOTAL
+from geo_server.jit import Packed, compiled
+from geo_server.kernel.layout import ACT, DRIVE, PREV, TOTAL, KernelState
 from geo_server.kernel.step import step
 from geo_server.machine.motion import (
     ACC,
@@ -29,14 +31,15 @@ from geo_server.machine.motion import (
     POS,
     START_QUEUED,
     VEL,
+    MotionState,
     display,
     profile_step,
     reversal_in,
 )
-from geo_server.twin.engine import MOTION, twin_cycle
+from geo_server.twin.engine import MOTION, TwinState, twin_cycle
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.step import DIFF as VDIFF
-from geo_server.volcomp.step import ENDED, FAULT, OFF
+from geo_server.volcomp.step import ENDED, FAULT, OFF, VolState
 from geo_server.volcomp.step import SUM as VSUM
 from geo_server.volcomp.step import attention as volc_attention
 from geo_server.volcomp.step import step as volc_step
@@ -63,55 +66,47 @@ DISPLAY, VELOCITY, ACCELERATION, FEED_UM, OUTPUT, LOSE = range(7, 13)
 NROWS = 13
 
 
+class CycleOut(NamedTuple):
+    """Where `cycles` writes: the cycles until a known reversal per axis (`reversal_in`),
+    the output to the drives, and the drives' actual position where enabled."""
+
+    reversal: np.ndarray
+    output: np.ndarray
+    drive_act: np.ndarray
+
+
 @compiled
 def cycles(
     count: int,
     resume: bool,
     check: bool,
-    MF: np.ndarray,
-    MI: np.ndarray,
-    MB: np.ndarray,
-    dt: float,
-    F7: np.ndarray,
-    B7: np.ndarray,
-    I7: np.ndarray,
-    F1: np.ndarray,
-    B1: np.ndarray,
-    P: np.ndarray,
-    IP: np.ndarray,
-    G: np.ndarray,
-    ring: np.ndarray,
-    tab: np.ndarray,
-    weights: np.ndarray,
-    WA: np.ndarray,
-    WN: np.ndarray,
-    WSN: np.ndarray,
-    WS: np.ndarray,
-    WC: np.ndarray,
-    amb: np.ndarray,
+    motion: Packed,
+    kernel: Packed,
+    vol: Packed,
+    twin: Packed,
     spindle: bool,
-    rev: np.ndarray,
-    vtf: np.ndarray,
-    vti: np.ndarray,
-    VH: np.ndarray,
-    VS: np.ndarray,
-    VX: np.ndarray,
-    tool_length: float,
-    output: np.ndarray,
-    drive_act: np.ndarray,
+    out: Packed,
 ) -> tuple[int, int]:
-    """Up to `count` cycles; (cycles completed, flags of the last one). `resume`: the
-    first cycle's motion has run already (after `PLAN`). `check`: first ask whether the
-    volumetric compensations need Python (`volcomp.step.attention`; then nothing is
-    computed and the flags say `VOLC_PREPARE`) — only operations change what it looks
-    at, so once before a pass is enough. Writes the cycles until a known
-    reversal into `rev`, the output to the drives (command + total offset + the
-    volumetric offset `VX` — sum and held difference, `volcomp.step.X` — where the
-    machine has volumetric compensations) into
-    `output` and, where the drive is enabled, into `drive_act`."""
+    """Up to `count` cycles of the parts' states (packed: `MotionState`, `KernelState`,
+    `VolState`, `TwinState`, and `CycleOut` where it writes); (cycles completed, flags of
+    the last one). `resume`: the first cycle's motion has run already (after `PLAN`). `check`:
+    first ask whether the volumetric compensations need Python
+    (`volcomp.step.attention`; then nothing is computed and the flags say
+    `VOLC_PREPARE`) — only operations change what it looks at, so once before a pass is
+    enough. Writes into `out` the cycles until a known reversal, the output to the drives
+    (command + total offset + the volumetric offset — sum and held difference,
+    `volcomp.step.X` — where the machine has volumetric compensations) and, where the
+    drive is enabled, the drive's actual position."""
+    mo, k, vo, tw, o = (
+        MotionState(*motion), KernelState(*kernel), VolState(*vol), TwinState(*twin),
+        CycleOut(*out),
+    )  # fmt: skip
+    MF, MI, MB, dt = mo.F, mo.I, mo.B, mo.dt
+    K1, B1, VX = k.F1, k.B1, vo.X
+    rev, output, drive_act = o.reversal, o.output, o.drive_act
     n = MF.shape[1]
-    vol = VH.shape[0] > 0
-    if vol and check and not resume and volc_attention(VH, VS, MB[HOMED], B1[DRIVE]):
+    has_vol = vo.H.shape[0] > 0
+    if has_vol and check and not resume and volc_attention(vo.H, vo.S, MB[HOMED], B1[DRIVE]):
         return 0, VOLC_PREPARE
     ended = 0
     for done in range(count):
@@ -121,24 +116,21 @@ def cycles(
             if flags & START_QUEUED:
                 return done, flags | PLAN
         reversal_in(MF, MI, rev)
-        step(
-            F7, B7, I7, F1, B1, P, IP, G, ring, tab, weights, MF[POS], MF[VEL], MF[ACC],
-            MB[HOMED], rev,
-        )  # fmt: skip
-        if vol:
-            vflags = volc_step(vtf, vti, VH, VS, VX, tool_length, MF[POS], MF[VEL])
+        step(kernel, MF[POS], MF[VEL], MF[ACC], MB[HOMED], rev)
+        if has_vol:
+            vflags = volc_step(vo.tf, vo.ti, vo.H, vo.S, VX, vo.tool_length, MF[POS], MF[VEL])
             vflags <<= VOLC_SHIFT
             flags |= vflags & VOLC_OFF
             ended |= vflags & VOLC_ENDED
         for i in range(n):
-            out = MF[POS, i] + F1[TOTAL, i]
-            if vol:
-                out = out + VX[VSUM, i] + VX[VDIFF, i]
-            output[i] = out
+            x = MF[POS, i] + K1[TOTAL, i]
+            if has_vol:
+                x = x + VX[VSUM, i] + VX[VDIFF, i]
+            output[i] = x
             if B1[DRIVE, i]:
-                drive_act[i] = out
-        twin = twin_cycle(WA, WN, WSN, WS, WC, amb, MF[VEL], spindle)
-        flags |= (twin & MOTION) << TWIN_SHIFT
+                drive_act[i] = x
+        twin_flags = twin_cycle(tw.A, tw.N, tw.SN, tw.S, tw.C, tw.amb, MF[VEL], spindle)
+        flags |= (twin_flags & MOTION) << TWIN_SHIFT
         if flags:
             return done + 1, flags | ended
     return count, ended

@@ -30,6 +30,7 @@ from geo_server import jit
 from geo_server.dictionary import Dictionary, ObjectDef, load_dictionary
 from geo_server.errors import AdsError, AdsErrorCode, CncErrorId
 from geo_server.events import Event
+from geo_server.jit import Packed
 from geo_server.kernel import COMP_ORDER, Kernel, temperature
 from geo_server.kernel.common import ALL_KINDS, COLUMN, listed_kinds, mask_of
 from geo_server.listfile.values import Reporter
@@ -48,6 +49,7 @@ from geo_server.machine.cycle import (
     VOLC_OFF,
     VOLC_PREPARE,
     VOLC_SHIFT,
+    CycleOut,
     cycles,
     derived,
 )
@@ -193,6 +195,8 @@ class Machine:
         #: the drives' actual positions (dig_act_pos, 000 p.19; SIM::drive_actual_position):
         #: an enabled drive follows its command exactly, a disabled one stays where it is
         self._drive_act = np.zeros(n)
+        #: ... and the reversals: where the compiled cycle writes (`cycle.cycles`)
+        self._out: Packed = tuple(CycleOut(self._reversal, self._output, self._drive_act))
         self._lose = self._mrows[LOSE]
         self._lose[:] = [cfg.axes[a].params.lose for a in self.axes]
         self._modulo = np.array([cfg.axes[a].params.modulo for a in self.axes])
@@ -316,31 +320,13 @@ class Machine:
         `VolKernel.settle` (`volcomp.step.OFF` of the last cycle, `ENDED` of any,
         `FAULT` from `prepare`)."""
         mo, tw, k, volc = self.motion, self.twin, self.kernel, self.volc
-        vol = volc.arrays()
+        kernel, vol, out = k.state(), volc.state(), self._out
         done = 0
         vflags = 0
         resume = False
         while True:
             ran, flags = cycles(
-                count - done,
-                resume,
-                prepare,
-                mo.F,
-                mo.I,
-                mo.B,
-                mo.dt,
-                *k.arrays(),
-                tw.A,
-                tw.N,
-                tw.SN,
-                tw.S,
-                tw.C,
-                tw.amb,
-                self.spindle_on,
-                self._reversal,
-                *vol,
-                self._output,
-                self._drive_act,
+                count - done, resume, prepare, mo.state, kernel, vol, tw.state, self.spindle_on, out
             )
             done += ran
             vflags |= flags & (VOLC_OFF | VOLC_ENDED)

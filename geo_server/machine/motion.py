@@ -34,11 +34,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from geo_server.errors import GeoError
-from geo_server.jit import compiled
+from geo_server.jit import Packed, compiled
 from geo_server.model import AxisParams
 from geo_server.units import UNITS_PER_MM
 
@@ -84,6 +85,16 @@ NB = 5
 ARRIVED, START_QUEUED = 1, 2
 
 
+class MotionState(NamedTuple):
+    """What the compiled cycle takes of the motion (`Motion.state`): its arrays (rows
+    above) and the cycle time."""
+
+    F: np.ndarray
+    I: np.ndarray  # noqa: E741
+    B: np.ndarray
+    dt: float
+
+
 class MotionError(GeoError, ValueError):
     """A motion command that cannot be executed (busy axis, bad feed, bad slot)."""
 
@@ -110,6 +121,8 @@ class Motion:
         self.F = np.zeros((NF, n))
         self.I = np.zeros((NI, n), dtype=np.int64)
         self.B = np.zeros((NB, n), dtype=bool)
+        #: ... as the compiled cycle takes them (`machine.cycle.cycles`)
+        self.state: Packed = tuple(MotionState(self.F, self.I, self.B, self.dt))
         f, b = self.F, self.B
         self.pos, self.vel, self.acc, self.target = f[POS], f[VEL], f[ACC], f[TARGET]
         self.feed, self.v_max, self.a_max, self.period = f[FEED], f[V_MAX], f[A_MAX], f[PERIOD]

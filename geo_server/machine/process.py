@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
@@ -222,23 +223,29 @@ class _ChildChannel:
             self.out.flush(lambda b: os.write(self.fd, b))
 
 
-def _child_main(
-    conn: Any,
-    cfg: MachineConfig,
-    cycle_s: float,
-    homed: bool,
-    time_scale: float | None,
-    mode: str,
-    max_cycles: int,
-    slots: SlotTable,
-    setup: Callable[[Scheduler], Callable[[], None] | None] | None = None,
-    engine: str = "exact",
-    wake_conn: Any = None,
-) -> None:
-    """Entry point of the GEO-cycle process. `setup` (picklable; benchmarks) may adjust
-    the scheduler before the first cycle and return a function to run after the last.
-    With the exact engine the process sleeps on its two pipes: commands, and wake-ups
-    from a server that needs the cycle due now (`ProcessScheduler.sync`)."""
+@dataclass(frozen=True)
+class ChildSpec:
+    """The machine and engine the GEO-cycle process runs (pickled to it at its start)."""
+
+    cfg: MachineConfig
+    cycle_s: float
+    homed: bool
+    time_scale: float | None
+    mode: str
+    max_cycles: int
+    engine: str
+    #: the shared slots of its published values (`SlotTable`)
+    slots: SlotTable
+    #: picklable (benchmarks): may adjust the scheduler before the first cycle and return
+    #: a function to run after the last
+    setup: Callable[[Scheduler], Callable[[], None] | None] | None = None
+
+
+def _child_main(conn: Any, wake_conn: Any, spec: ChildSpec) -> None:
+    """Entry point of the GEO-cycle process: the machine of `spec`, commanded over
+    `conn`. With the exact engine the process sleeps on its two pipes: commands, and
+    wake-ups from a server that needs the cycle due now (`wake_conn`,
+    `ProcessScheduler.sync`)."""
     # Ctrl-C in a terminal reaches the whole process group: the server stops the cycle
     # (its `stop` message), the child must not die first of KeyboardInterrupt.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -249,17 +256,17 @@ def _child_main(
     # for its first frame (`FIRST_FRAME_TIMEOUT`)
     jit.load()
     sys.setswitchinterval(switch_interval(1))  # (this process's composition root)
-    machine = Machine(cfg, cycle_s=cycle_s, homed=homed, time_scale=time_scale)
-    sched = Scheduler(machine, mode=mode, max_cycles=max_cycles, engine=engine)
+    machine = Machine(spec.cfg, cycle_s=spec.cycle_s, homed=spec.homed, time_scale=spec.time_scale)
+    sched = Scheduler(machine, mode=spec.mode, max_cycles=spec.max_cycles, engine=spec.engine)
     sched.idle_wake = IDLE_WAKE_PROCESS  # a frame well within SYNC_DEAD of the last
-    channel = _ChildChannel(fd, sched, slots, wake_conn)
+    channel = _ChildChannel(fd, sched, spec.slots, wake_conn)
     machine.subscribe(channel.on_cycle)
     machine.subscribe_events(channel.events.append)
     if channel.exact:
         sched.waiter = channel.wait
     else:
         sched.before_cycle = channel.drain
-    finish = setup(sched) if setup is not None else None
+    finish = spec.setup(sched) if spec.setup is not None else None
     sched.run_here()
     if finish is not None:
         finish()
@@ -555,16 +562,18 @@ class ProcessScheduler:
             target=_child_main,
             args=(
                 m.child_conn,
-                m.cfg,
-                m.cycle_s,
-                m.homed,
-                m.time_scale,
-                self.mode,
-                self.max_cycles,
-                m.slots,
-                self.child_setup,
-                self.engine,
                 m.wake_conn,
+                ChildSpec(
+                    m.cfg,
+                    m.cycle_s,
+                    m.homed,
+                    m.time_scale,
+                    self.mode,
+                    self.max_cycles,
+                    self.engine,
+                    m.slots,
+                    self.child_setup,
+                ),
             ),
             name="geo-cycle",
             daemon=True,

@@ -31,11 +31,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from geo_server.faults import OPEN_CIRCUIT_C
-from geo_server.jit import compiled
+from geo_server.jit import Packed, compiled
 from geo_server.kernel.tables import Packer, interp
 from geo_server.twin.model import AxisTwin, Curve, RigidBody, TwinConfig
 from geo_server.twin.noise import STATE, normal, seed
@@ -99,6 +100,32 @@ def _curve(c: Curve, tab: Packer) -> tuple[int, int]:
     """A 1-D error curve (mm → increments, µm → increments) into `tab`: (offset, points)."""
     pos = np.asarray(c.positions, dtype=float) * UNITS_PER_MM
     return tab.table(pos, np.asarray(c.errors, dtype=float) * UNITS_PER_UM), len(pos)
+
+
+class TwinState(NamedTuple):
+    """What the compiled cycle takes of the twin (`TwinEngine.state`, `twin_cycle`'s
+    arrays): per axis, per node, per sensor, its scalars and counters, the ambient
+    profile."""
+
+    A: np.ndarray
+    N: np.ndarray
+    SN: np.ndarray
+    S: np.ndarray
+    C: np.ndarray
+    amb: np.ndarray
+
+
+class Geometry(NamedTuple):
+    """The twin's geometric errors as `errors` takes them (step 4): squareness [n, n],
+    the tables, the curves (integers: table, points, over which axis, onto which; floats:
+    period, weight) and the grids over two axes (integers, floats)."""
+
+    square: np.ndarray
+    tab: np.ndarray
+    curve_i: np.ndarray
+    curve_f: np.ndarray
+    grid_i: np.ndarray
+    grid_f: np.ndarray
 
 
 class TwinEngine:
@@ -278,6 +305,10 @@ class TwinEngine:
                 g.step2 * UNITS_PER_MM,
             )
         self.tab = tab.done()
+        #: ... as `errors` takes them
+        self.geometry: Packed = tuple(
+            Geometry(self.square, self.tab, self.curve_i, self.curve_f, self.grid_i, self.grid_f)
+        )
         #: per axis: periodic amplitude and wave number, friction (coulomb, viscous per
         #: increment/s) of the drive's current (`errors`)
         self.E = np.array(
@@ -309,6 +340,8 @@ class TwinEngine:
         nd_rows[SPINDLE_GAIN] = [nd.spindle_gain for nd in nodes]
         #: the ambient profile: (time s, temperature °C) rows
         self.amb = np.array([[p[0] for p in cfg.ambient], [p[1] for p in cfg.ambient]])
+        #: the arrays the compiled cycle takes (`machine.cycle.cycles`)
+        self.state: Packed = tuple(TwinState(self.A, self.N, self.SN, self.S, self.C, self.amb))
         self.ambient = ambient_at(0.0, self.amb)
         self.S[T_REF] = self.t_ref = cfg.reference_temperature
         # expansion: coefficient (per K, dimensionless) and reference per axis, its node
@@ -414,20 +447,7 @@ class TwinEngine:
         """This cycle's error, true position, residual and friction current (outputs
         only: `step` keeps the state, so a cycle nobody observes may leave them):
         `errors`, and the rigid-body errors of a volumetric model when there is one."""
-        errors(
-            self.A,
-            self.E,
-            self.square,
-            self.tab,
-            self.curve_i,
-            self.curve_f,
-            self.grid_i,
-            self.grid_f,
-            output,
-            command,
-            velocity,
-            self.O,
-        )
+        errors(self.A, self.E, self.geometry, output, command, velocity, self.O)
         if self._rigid is not None:
             self._rigid_errors(output, self.error)
             np.add(output, self.error, out=self.true_position)
@@ -565,20 +585,19 @@ def grid_error(tab: np.ndarray, off: int, rows: int, cols: int, u: float, v: flo
 def errors(
     A: np.ndarray,
     E: np.ndarray,
-    square: np.ndarray,
-    tab: np.ndarray,
-    curve_i: np.ndarray,
-    curve_f: np.ndarray,
-    grid_i: np.ndarray,
-    grid_f: np.ndarray,
+    geometry: Packed,
     output: np.ndarray,
     command: np.ndarray,
     velocity: np.ndarray,
     O: np.ndarray,  # noqa: E741
 ) -> None:
-    """The errors at the drive positions `output` (the module docstring, step 4) and
-    what follows from them (step 5), into the rows of `O`: error, true position,
-    residual (true − `command`), friction current sign(v)·c + k·v of the drive."""
+    """The errors at the drive positions `output` (the module docstring, step 4; the
+    geometric ones of `geometry`, a packed `Geometry`) and what follows from them (step
+    5), into the rows of `O`: error, true position, residual (true − `command`), friction
+    current sign(v)·c + k·v of the drive."""
+    g = Geometry(*geometry)
+    square, tab, curve_i, curve_f = g.square, g.tab, g.curve_i, g.curve_f
+    grid_i, grid_f = g.grid_i, g.grid_f
     n = len(output)
     e = O[0]
     for i in range(n):

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from geo_server.jit import Packed
 from geo_server.listfile.checks import EMU_VOLC_ERROR
 from geo_server.model import AxisParams
 from geo_server.volcomp import step as vs
@@ -154,12 +155,10 @@ class VolKernel:
         self.ti = np.concatenate(its) if its else np.zeros(1, dtype=np.int64)
         self.H = H
 
-    def arrays(
-        self,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """What the compiled cycle takes (`step.step`'s order; the models change on an
-        update: ask again after one)."""
-        return self.tf, self.ti, self.H, self.S, self.X, self.tool_length
+    def state(self) -> Packed:
+        """What the compiled cycle takes, a packed `VolState` (the models change on an
+        update, the tool length on a write: ask again before each pass)."""
+        return tuple(vs.VolState(self.tf, self.ti, self.H, self.S, self.X, self.tool_length))
 
     @property
     def offset(self) -> np.ndarray:

@@ -27,6 +27,7 @@ machine axis: the sum (`SUM`, increments, `VOLC::correction`) and the held diffe
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -79,6 +80,20 @@ FOLLOW, HELD, RELEASE = 0.0, 1.0, 2.0
 #: why); a compensation's ramp ended at 0 (it is no longer active); and `VolKernel.
 #: prepare`'s: one was switched off for an axis fault
 OFF, ENDED, FAULT = 1, 2, 4
+
+
+class VolState(NamedTuple):
+    """What the compiled cycle takes of the volumetric compensations
+    (`VolKernel.state`): the models' floats and integers (`law.py`'s layout), the
+    compensations' headers `H` and states `S`, the result `X` (`SUM`, `DIFF`) and the
+    tool length in mm."""
+
+    tf: np.ndarray
+    ti: np.ndarray
+    H: np.ndarray
+    S: np.ndarray
+    X: np.ndarray
+    tool_length: float
 
 
 @compiled

@@ -351,7 +351,7 @@ FOREIGN_REFLECTION = {
     ("geo_server.client.ads_client", "exc"): "pyads' exceptions",
     ("geo_server.transports.opcua.companions", "module"): "asyncua's modules",
     ("geo_server.transports.opcua.server", "sub"): "asyncua's subscription, or None",
-    ("geo_server.transports.opcua.server", "callback"): "asyncua's callbacks",
+    ("geo_server.transports.opcua.internals", "callback"): "asyncua's callbacks",
     ("geo_server.transports.zenoh.server", "status"): "zenoh's MatchingStatus",
     ("geo_clients.hmi", "out"): "a caller's stream, a terminal or not",
 }

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from geo_server import cache
-from geo_server.transports.opcua import cnc, machinetool
+from geo_server.transports.opcua import cnc, internals, machinetool
 from geo_server.transports.opcua.space import APPLICATION_URI, NAMESPACE_URI
 
 log = logging.getLogger("geo_server.opcua")
@@ -75,7 +75,7 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
     """The companion models' types in `server` (after `init`): from the cache when it
     has them, else imported (and cached). Stops between two NodeSets once the interface
     is `closing` (nobody waits for it then)."""
-    aspace = server.iserver.aspace
+    nodes = internals.nodes(server)
     uris = list(await server.get_namespace_array())
     path = _cache_path(uris)
     if path is not None and path.is_file():
@@ -84,7 +84,7 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
         except Exception as exc:  # (truncated, corrupt: imported again below)
             log.warning("OPC UA: the NodeSet cache %s cannot be read (%s)", path, exc)
         else:
-            if _fits(aspace._nodes, added):
+            if _fits(nodes, added):
                 try:
                     await _restore(server, added)
                 except BaseException:
@@ -95,7 +95,7 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
                     raise
                 return
             log.warning("OPC UA: the NodeSet cache %s is of another address space", path)
-    before = {nodeid: len(data.references) for nodeid, data in aspace._nodes.items()}
+    before = {nodeid: len(data.references) for nodeid, data in nodes.items()}
     for nodeset in NODESETS:
         if closing():
             return
@@ -103,7 +103,7 @@ async def add(server: Any, closing: Callable[[], bool]) -> None:
     if path is not None:
         uris_after = list(await server.get_namespace_array())
         try:
-            added = _added(aspace, before, uris_after[len(uris) :])
+            added = _added(nodes, before, uris_after[len(uris) :])
         except Exception as exc:  # (the import stands; only the cache is not written)
             log.info("OPC UA: the NodeSet cache %s is not written (%s)", path, exc)
         else:
@@ -142,12 +142,12 @@ def _cache_path(uris: list[str]) -> Path | None:
     return folder / f"companions-{h.hexdigest()}.pickle"
 
 
-def _added(aspace: Any, before: dict[Any, int], namespaces: list[str]) -> _Added:
-    nodes = {nodeid: data for nodeid, data in aspace._nodes.items() if nodeid not in before}
+def _added(every: dict[Any, Any], before: dict[Any, int], namespaces: list[str]) -> _Added:
+    nodes = {nodeid: data for nodeid, data in every.items() if nodeid not in before}
     references = {
-        nodeid: (count, list(aspace._nodes[nodeid].references[count:]))
+        nodeid: (count, list(every[nodeid].references[count:]))
         for nodeid, count in before.items()
-        if len(aspace._nodes[nodeid].references) != count
+        if len(every[nodeid].references) != count
     }
     late = [
         (nodeid, attr)
@@ -243,7 +243,7 @@ async def _restore(server: Any, added: _Added) -> None:
     ua = sys.modules["asyncua.ua"]
     for uri in added.namespaces:
         await server.register_namespace(uri)
-    nodes = server.iserver.aspace._nodes
+    nodes = internals.nodes(server)
     nodes.update(added.nodes)
     for nodeid, (_, references) in added.references.items():
         nodes[nodeid].references.extend(references)

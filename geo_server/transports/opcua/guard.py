@@ -4,8 +4,9 @@
 asyncua's server is written for a trusted network: sequential authentication tokens that
 any connection may present, a session that may move to another secure channel before
 its user is checked, a discovery registry anyone may fill, frames buffered whatever size
-their header claims. This module is the one place that knows asyncua's server internals;
-it changes them for one server instance only, never for the process:
+their header claims. This module knows asyncua's transport and sessions (internals.py
+the rest: the address space, the services and subscriptions the interface hooks); it
+changes them for one server instance only, never for the process:
 
 - `start` replaces `Server.start` (its body, with `GuardedBinaryServer`): every
   connection gets a `GuardedProtocol`, which refuses a frame at its header (an unknown
@@ -18,16 +19,15 @@ it changes them for one server instance only, never for the process:
   encrypted channel or an encrypted token, RegisterServer refused (not a discovery
   server), subscriptions answered only to the session that owns them.
 
-`ASYNCUA_START` is the hash of the `Server.start` this replaces: tests/test_opcua_guard.py
-fails on an asyncua whose start changed, so the copy is looked at again.
+`internals.RELIED_ON` holds the hash of the `Server.start` this replaces and of every
+asyncua function it subclasses or hooks: tests/test_opcua_internals.py fails on an asyncua
+where one changed, so the copy and the hooks are looked at again.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
-import inspect
 import logging
 import math
 import secrets
@@ -35,7 +35,6 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
-from asyncua import Server
 from asyncua import ua as _ua
 from asyncua.common.utils import ServiceError
 from asyncua.server.binary_server_asyncio import BinaryServer, OPCUAProtocol
@@ -48,9 +47,6 @@ from geo_server.transports.share import LoopShare
 
 log = logging.getLogger("geo_server.opcua")
 ua: Any = _ua  # (asyncua's types: used as the wire's values, not checked here)
-
-#: sha256 of `inspect.getsource(asyncua.Server.start)` that `start` copies (asyncua 2.1)
-ASYNCUA_START = "0e7d0b97d12c9075cbbca20bf115f77b371aab02997bc61bb302b607755b6579"
 
 #: Part 6 §7.1.2.3: a Hello's ReceiveBufferSize and SendBufferSize are at least 8192
 MIN_BUFFER = 8192
@@ -114,10 +110,6 @@ def lazy_nodes(server: Any, materialize: Callable[[Any], bool]) -> None:
     if type(nodes) is not dict:  # (an asyncua that changed its address space)
         raise RuntimeError(f"asyncua's address space keeps its nodes in a {type(nodes)}")
     aspace._nodes = MadeOnUse(nodes, materialize)
-
-
-def asyncua_start_hash() -> str:
-    return hashlib.sha256(inspect.getsource(Server.start).encode()).hexdigest()
 
 
 def _address(name: Any) -> str:
@@ -524,7 +516,7 @@ async def advertise(server: Any, capabilities: dict[str, int]) -> None:
 
 
 async def start(server: Any, unread_close_s: float, meter: RequestMeter) -> None:
-    """`Server.start` of asyncua 2.1 (`ASYNCUA_START`) with the guarded transport, and
+    """`Server.start` of asyncua 2.1 (`internals.RELIED_ON`) with the guarded transport, and
     requests bounded by `MAX_REQUEST`; a client that reads no answers for
     `unread_close_s` is closed; `meter` charges requests to loop shares (metering.py)."""
     iserver = server.iserver
@@ -565,4 +557,4 @@ async def stop(server: Any) -> None:
     await server.stop()
 
 
-__all__ = ["advertise", "asyncua_start_hash", "guard", "start", "stop"]
+__all__ = ["advertise", "guard", "start", "stop"]

@@ -56,7 +56,7 @@ from geo_server.events import Event
 from geo_server.faults import FaultError
 from geo_server.service import ObjectService, is_command, varies_at_rest
 from geo_server.snapshot import Snapshot
-from geo_server.transports.opcua import cnc, companions, machinetool
+from geo_server.transports.opcua import cnc, companions, internals, machinetool
 from geo_server.transports.opcua.cnc import Live
 from geo_server.transports.opcua.endpoint import parse_endpoint
 from geo_server.transports.opcua.items import (
@@ -530,9 +530,7 @@ class OpcUaInterface:
         await server.set_build_info(
             PRODUCT_URI, MANUFACTURER, PRODUCT_NAME, __version__, __version__, _build_date()
         )
-        iserver = server.iserver
-        iserver.max_connections = opts.max_connections
-        iserver.max_subscriptions = opts.max_subscriptions
+        internals.set_limits(server, opts.max_connections, opts.max_subscriptions)
         server.set_endpoint(f"opc.tcp://{host}:{port}/")
         server.set_server_name("geo-server")
         await server.set_application_uri(APPLICATION_URI)
@@ -729,7 +727,7 @@ class OpcUaInterface:
             items += self._variable_items(service, spec)
         for method in METHODS:
             items += self._method_items(root, machine, method)
-        results = self.server.iserver.isession.iserver.node_mgt_service.add_nodes(items)
+        results = internals.add_nodes(self.server, items)
         for item, result in zip(items, results, strict=True):
             if not result.StatusCode.is_good():
                 raise RuntimeError(f"OPC UA node {item.RequestedNewNodeId}: {result.StatusCode}")
@@ -826,7 +824,7 @@ class OpcUaInterface:
         ns = self.ns
         return [
             node_id
-            for node_id in list(self.server.iserver.aspace.keys())
+            for node_id in list(internals.address_space(self.server).keys())
             if node_id.NamespaceIndex == ns
             and isinstance(node_id.Identifier, str)
             and node_id.Identifier.startswith(top)
@@ -839,7 +837,7 @@ class OpcUaInterface:
         variable needs)."""
         ua = _ua()
 
-        attrs = self.server.iserver.aspace[node_id].attributes
+        attrs = internals.address_space(self.server)[node_id].attributes
         if attrs[ua.AttributeIds.NodeClass].value.Value.Value != ua.NodeClass.Variable:
             return
         name = attrs[ua.AttributeIds.BrowseName].value.Value.Value.Name
@@ -868,18 +866,16 @@ class OpcUaInterface:
         """Store `value` (None: the zero of its type, unless the type gave it one) as
         a variable's value, typed as the variable is (DataType, ValueRank), and make the
         variable read-only."""
-        from asyncua.server.address_space import AttributeValue
-
         ua = _ua()
 
-        attrs = self.server.iserver.aspace[node_id].attributes
+        attrs = internals.address_space(self.server)[node_id].attributes
         if attrs[ua.AttributeIds.NodeClass].value.Value.Value != ua.NodeClass.Variable:
             return
         # a model's variable is read-only (its values are the machine's or constants,
         # and a copy of the machine shares its constants: docs/opcua.md)
         readable = ua.DataValue(ua.Variant(ua.AccessLevel.CurrentRead.mask, ua.VariantType.Byte))
-        attrs[ua.AttributeIds.AccessLevel] = AttributeValue(readable)
-        attrs[ua.AttributeIds.UserAccessLevel] = AttributeValue(readable)
+        attrs[ua.AttributeIds.AccessLevel] = internals.attribute_value(readable)
+        attrs[ua.AttributeIds.UserAccessLevel] = internals.attribute_value(readable)
         current = attrs[ua.AttributeIds.Value].value
         given = current.Value if current is not None else None
         if value is None and given is not None and given.Value is not None:
@@ -893,10 +889,8 @@ class OpcUaInterface:
         and give it the values that are its own (its CNC axes' ActChannel, its machine
         tool's identification): a copy's would be the first machine's."""
         ua = _ua()
-        from asyncua.server.address_space import AttributeValue
-
         ns = self.ns
-        aspace = self.server.iserver.aspace
+        aspace = internals.address_space(self.server)
         value = ua.AttributeIds.Value
         for spec in live:
             node_id = ua.NodeId(f"{machine}/" + ".".join(spec.path), ns)
@@ -923,7 +917,7 @@ class OpcUaInterface:
                 variant = _typed(own[ident], datatype, -1)
             else:
                 continue
-            aspace[node_id].attributes[value] = AttributeValue(ua.DataValue(variant))
+            aspace[node_id].attributes[value] = internals.attribute_value(ua.DataValue(variant))
 
     async def _link_cnc_from_objects(self, machine: str) -> None:
         """With one machine, its CncInterface is also where OPC 40502 puts it: in the
@@ -980,15 +974,13 @@ class OpcUaInterface:
         node ids, the object's name and the references within it renamed; what the
         nodes share and no client can change (the other attributes, which only an
         administrator could write, and references out of the machine) is shared."""
-        from asyncua.server.address_space import AttributeValue, NodeData
-
         ua = _ua()
 
         ns = self.ns
-        nodes = self.server.iserver.aspace
+        nodes = internals.address_space(self.server)
         plan = self._plans.get(template) or self._plan(template)
         if self._own_id is None:
-            self._own_id = AttributeValue(ua.DataValue())
+            self._own_id = internals.attribute_value(ua.DataValue())
             self._own_id.value_callback = _node_id_value
         ids = {suffix: ua.NodeId(machine + suffix, ns) for suffix, _, _ in plan}
         own, value = ua.AttributeIds.NodeId, ua.AttributeIds.Value
@@ -997,16 +989,16 @@ class OpcUaInterface:
         for suffix, old_id, refs in plan:
             src = nodes[old_id]
             new_id = ids[suffix]
-            node = NodeData(new_id)
+            node = internals.node_data(new_id)
             attrs = dict(src.attributes)
             attrs[own] = self._own_id  # (made when read, from the node's id: `_own_id`)
             if old_id in self._vars:  # its value's callbacks are its own
-                attrs[value] = AttributeValue(attrs[value].value)
+                attrs[value] = internals.attribute_value(attrs[value].value)
             if suffix in _NAMED:
-                attrs[ua.AttributeIds.BrowseName] = AttributeValue(
+                attrs[ua.AttributeIds.BrowseName] = internals.attribute_value(
                     ua.DataValue(ua.Variant(named.browse))
                 )
-                attrs[ua.AttributeIds.DisplayName] = AttributeValue(
+                attrs[ua.AttributeIds.DisplayName] = internals.attribute_value(
                     ua.DataValue(ua.Variant(named.display))
                 )
             node.attributes = attrs
@@ -1024,7 +1016,7 @@ class OpcUaInterface:
         ua = _ua()
 
         ns = self.ns
-        nodes = self.server.iserver.aspace
+        nodes = internals.address_space(self.server)
         if template not in self._plans:
             self._plan(template)
         named = _Named(ua.QualifiedName(machine, ns), ua.LocalizedText(machine))
@@ -1040,7 +1032,7 @@ class OpcUaInterface:
         "" for the machine's object), and each of its references with the suffix of its
         target when that is in the machine (None: a reference out of it, shared)."""
         ns = self.ns
-        nodes = self.server.iserver.aspace
+        nodes = internals.address_space(self.server)
         cut = len(template)
 
         def suffix(node_id: Any) -> str | None:
@@ -1067,7 +1059,7 @@ class OpcUaInterface:
         ua = _ua()
 
         ns = self.ns
-        aspace = self.server.iserver.aspace
+        aspace = internals.address_space(self.server)
         value = ua.AttributeIds.Value
         for spec in specs:
             node_id = ua.NodeId(spec.node_id, ns)
@@ -1224,7 +1216,7 @@ class OpcUaInterface:
             from asyncua.common.utils import ServiceError
 
             raise ServiceError(ua.StatusCodes.BadTimestampsToReturnInvalid)
-        read_attribute = self.server.iserver.aspace.read_attribute_value
+        read_attribute = internals.address_space(self.server).read_attribute_value
         snaps: dict[str, Snapshot | AdsError] = {}
         out = []
         for item in params.NodesToRead:
@@ -1349,8 +1341,8 @@ class OpcUaInterface:
         """Route the reads, writes, monitored items and their removal of our variables
         through this interface; everything else stays asyncua's."""
         ua = _ua()
-        iserver = self.server.iserver
-        attrs = iserver.attribute_service
+        hooked = internals.services(self.server)
+        attrs = hooked.attribute
         attrs.read = self._read
         write = attrs.write
 
@@ -1358,7 +1350,7 @@ class OpcUaInterface:
             return await self._write(params, user, write)
 
         attrs.write = hooked_write
-        aspace = iserver.aspace
+        aspace = internals.address_space(self.server)
         add, delete = aspace.add_datachange_callback, aspace.delete_datachange_callback
 
         def hooked_add(node_id: Any, attr: Any, callback: Any) -> Any:
@@ -1382,14 +1374,14 @@ class OpcUaInterface:
 
         aspace.add_datachange_callback = hooked_add
         aspace.delete_datachange_callback = hooked_delete
-        methods = iserver.method_service
+        methods = hooked.method
         call = methods.call
 
         async def hooked_call(requests: list[Any]) -> list[Any]:
             return await self._call(requests, call)
 
         methods.call = hooked_call
-        subs = iserver.subscription_service
+        subs = hooked.subscription
         create = subs.create_monitored_items
 
         async def hooked_create(params: Any) -> list[Any]:
@@ -1434,7 +1426,7 @@ class OpcUaInterface:
         or of its type or one of that type's supertypes."""
         ua = _ua()
 
-        aspace = self.server.iserver.aspace
+        aspace = internals.address_space(self.server)
         if object_id not in aspace:
             return int(ua.StatusCodes.BadNodeIdUnknown)
         if method_id not in aspace:
@@ -1468,7 +1460,7 @@ class OpcUaInterface:
 
         items = list(params.NodesToWrite)
         results: list[Any] = [None] * len(items)
-        aspace = self.server.iserver.aspace
+        aspace = internals.address_space(self.server)
         client = user is not None and user.role != UserRole.Admin  # (not the server itself)
         for i, w in enumerate(items):
             if w.NodeId not in aspace:  # (before asyncua's access check says Denied)
@@ -1554,12 +1546,12 @@ class OpcUaInterface:
         sampling interval in whole GEO cycles and its rule; create the rest."""
         ua = _ua()
 
-        subs = self.server.iserver.subscription_service
-        sub = subs.subscriptions.get(params.SubscriptionId)
+        subs = internals.subscriptions(self.server)
+        sub = subs.get(params.SubscriptionId)
         session = getattr(sub, "session_id", None)
         in_session = total = 0
-        for s in subs.subscriptions.values():
-            held = len(s.monitored_item_srv._monitored_items)
+        for s in subs.values():
+            held = len(internals.monitored_items(s))
             total += held
             in_session += held if s.session_id == session else 0
         opts = self.options
@@ -1598,7 +1590,7 @@ class OpcUaInterface:
                 ItemsToCreate=[_disabled(a) if k in quiet else a for k, a in enumerate(asked)],
             )
             created = await create(sub_params)
-            made = sub.monitored_item_srv._monitored_items if sub is not None else {}
+            made = internals.monitored_items(sub)
             for k in quiet:
                 data = made.get(created[k].MonitoredItemId)
                 if created[k].StatusCode.is_good() and data is not None:
@@ -1617,8 +1609,8 @@ class OpcUaInterface:
         that only coming from Disabled; samples taken meanwhile were not reported)."""
         ua = _ua()
 
-        sub = self.server.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
-        items = sub.monitored_item_srv._monitored_items if sub is not None else {}
+        sub = internals.subscriptions(self.server).get(params.SubscriptionId)
+        items = internals.monitored_items(sub)
         was = {mid: items[mid].mode for mid in params.MonitoredItemIds if mid in items}
         results = await set_mode(params)
         if sub is None or params.MonitoringMode != ua.MonitoringMode.Reporting:
@@ -1629,8 +1621,8 @@ class OpcUaInterface:
             if mode != ua.MonitoringMode.Sampling or watched is None or data is None:
                 continue
             if watched.NodeId in self._vars and data.callback_handle is not None:
-                await sub.monitored_item_srv.trigger_datachange(
-                    data.callback_handle, watched.NodeId, watched.AttributeId
+                await internals.trigger_datachange(
+                    sub, data.callback_handle, watched.NodeId, watched.AttributeId
                 )
         return list(results)
 
@@ -1639,8 +1631,8 @@ class OpcUaInterface:
         filter as at its creation, or keeps both when the new filter is refused."""
         ua = _ua()
 
-        sub = self.server.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
-        items = sub.monitored_item_srv._monitored_items if sub is not None else {}
+        sub = internals.subscriptions(self.server).get(params.SubscriptionId)
+        items = internals.monitored_items(sub)
         refused: dict[int, str] = {}
         rules: list[tuple[int, _Var, ItemRule]] = []
         passed: list[int] = []
@@ -1698,7 +1690,7 @@ class OpcUaInterface:
 
     def _ruled(self, var: _Var, sub: Any, mid: int, rule: ItemRule) -> None:
         """Give the item `mid` of `sub` its rule (replacing the one it had)."""
-        data = sub.monitored_item_srv._monitored_items.get(mid)
+        data = internals.monitored_items(sub).get(mid)
         handle = data.callback_handle if data is not None else None
         if handle is None or self._handles.get(handle) != var.node_id:
             return
@@ -1825,22 +1817,19 @@ class OpcUaInterface:
         without its deep copy of the value per item (most of its cost: `dv` is made for
         this and never changed): the item's last value, queued for the item's
         subscription with the item's queue size."""
-        from asyncua.server.monitored_item_service import MonitoredItemService
-
         ua = _ua()
 
         new = _sample(dv)
-        callbacks = list(var.attval.datachange_callbacks.items())
+        callbacks = internals.callbacks_of(var.attval)
         for i, (handle, callback) in enumerate(callbacks):
             if i and i % NOTIFY_SLICE == 0:  # the loop's other work in between
                 await asyncio.sleep(0)
             rule = self._rules.get(handle)
-            owner = getattr(callback, "__self__", None)
-            if rule is None or rule.every not in due or not isinstance(owner, MonitoredItemService):
+            target = internals.item_of(callback, handle) if rule is not None else None
+            if rule is None or rule.every not in due or target is None:
                 continue  # (an item being made or deleted meanwhile)
-            mid = owner._monitored_datachange.get(handle)
-            item = owner._monitored_items.get(mid) if mid is not None else None
-            if mid is None or item is None or item.mode != ua.MonitoringMode.Reporting:
+            item = target.item
+            if item.mode != ua.MonitoringMode.Reporting:
                 continue  # (Sampling: sampled, not reported; Part 4 §5.12.1.3)
             values = item.mvalue
             old = values.current_dvalue
@@ -1848,7 +1837,7 @@ class OpcUaInterface:
                 continue
             values.old_dvalue, values.current_dvalue = old, dv
             note = ua.MonitoredItemNotification(ClientHandle=item.client_handle, Value=dv)
-            await owner.isub.enqueue_datachange_event(mid, note, item.queue_size)
+            await internals.enqueue(target, note)
 
 
 async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:

@@ -47,8 +47,6 @@ from geo_server.kernel.layout import (
     FIRST,
     HELD,
     HIST,
-    HOME1,
-    HOME2,
     KIDX,
     NCYC,
     PATH,
@@ -58,7 +56,7 @@ from geo_server.kernel.layout import (
     PREV,
     RING_POS,
     SEL,
-    TC_COEF,
+    TEMPC_ROWS,
     TGT,
     TOTAL,
     WOFF,
@@ -169,7 +167,7 @@ class Kernel:
         self.F1[DIR] = [initial_direction(ax.params.anwahl_losekomp) for ax in axes]
         self.F1[PATH] = np.inf  # no reversal yet: the post-reversal weight is 1
         for row, attr in enumerate(self.tempc.attrs):
-            self.F1[TC_COEF + row] = [getattr(ax.params, attr) for ax in axes]
+            self.F1[TEMPC_ROWS[row]] = [getattr(ax.params, attr) for ax in axes]
         self.G[FIRST] = 1
         self._setup(cfg, idle=True)
 
@@ -195,7 +193,7 @@ class Kernel:
         _friction(axes, rows.frict, self.P, self.IP, tab)
         _crosstalk(axes, rows.lin + rows.tri + rows.old, self._slot, self.P, self.IP, tab)
         self.tab = tab.done()
-        self.I7[HOME1], self.I7[HOME2] = _homing(axes, rows, self._slot)
+        self.homing = _homing(axes, rows, self._slot)
         ncyc = np.array([filter_cycles(ax) for ax in axes], dtype=np.int64).reshape(self.n, 7)
         ncyc[:, FRICT] = 0  # friction is not sin²-filtered: its output is the delay line
         # crosstalk keeps that many targets: a list's larger n_cycles deactivates the
@@ -221,6 +219,7 @@ class Kernel:
                 self.ring,
                 self.tab,
                 self.weights,
+                self.homing,
             )
         )
 
@@ -302,12 +301,13 @@ class Kernel:
     def tempc_params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Live coefficient, offset_0, position_0 (views, 000 §3.2.3 objects 0x43–0x45)."""
         f = self.F1
-        return f[TC_COEF], f[TC_COEF + 1], f[TC_COEF + 2]
+        coef, off0, pos0 = (f[row] for row in TEMPC_ROWS)
+        return coef, off0, pos0
 
     def write_tempc(self, slot: int, field: str, value: float) -> None:
         """TEMPC parameter write: a step event with temp_comp_n_cycles (docs/design.md
         §3.5)."""
-        self.F1[TC_COEF + self.tempc.fields.index(field), slot] = float(value)
+        self.F1[TEMPC_ROWS[self.tempc.fields.index(field)], slot] = float(value)
         self._event(slot, TEMP)
 
     def reload(self, cfg: MachineConfig) -> None:
@@ -324,7 +324,7 @@ class Kernel:
             for c, on in selection:
                 self.selected[i, c] = on
             for row, value in values:
-                self.F1[TC_COEF + row, i] = value
+                self.F1[TEMPC_ROWS[row], i] = value
         self.B7[PEND] = True
         self.G[PENDING] = 1
 
@@ -494,31 +494,19 @@ def _crosstalk(
 
 
 def _homing(axes: list[AxisConfig], rows: Rows, slot: dict[int, int]) -> np.ndarray:
-    """The homing flags each column needs (docs/design.md §6.0, §6.8), as two indices
-    into the extended flags [homed of each axis | True | False] (`step._homed`):
-    temperature needs the axis homed (000 §3.2 p.17), LSEC too (000 §5.3 item 2), cross
-    its master (000 p.29), plane both masters (000 §5.3 item 3); backlash (000 p.10),
-    friction and crosstalk need none — but each needs its configuration (n + 1: never)."""
+    """Which axes must be homed for each column of each axis to act (docs/design.md
+    §6.0, §6.8), a mask [n, 7, n]: temperature needs the axis homed (000 §3.2 p.17),
+    LSEC too (000 §5.3 item 2), cross its master (000 p.29), plane both masters (000 §5.3
+    item 3); backlash (000 p.10), friction and crosstalk none. Whether a column is
+    configured at all is `B7[CONF]` (`Kernel._configured`)."""
     n = len(axes)
-    h = np.full((2, n, 7), n, dtype=np.int64)
-    h[0, :, TEMP] = np.arange(n)
-    h[0, :, LEAD] = np.arange(n)
-    for i, ax in enumerate(axes):
-        p = ax.params
-        if not (p.anwahl_losekomp != 0 and p.lose != 0):
-            h[0, i, BC] = n + 1
-    for c in (CROSS, PLANE, LEAD, FRICT, CROSSTALK):
-        h[1, :, c] = n + 1  # until configured below
+    needs = np.zeros((n, 7, n), dtype=bool)
+    for i in range(n):
+        needs[i, TEMP, i] = needs[i, LEAD, i] = True
     for i in rows.cross:
-        h[0, i, CROSS] = slot[axes[i].comp.cross.master_ax_nr]
-        h[1, i, CROSS] = n
+        needs[i, CROSS, slot[axes[i].comp.cross.master_ax_nr]] = True
     for i in rows.plane:
-        h[0, i, PLANE] = slot[axes[i].comp.plane.master1_ax_nr]
-        h[1, i, PLANE] = slot[axes[i].comp.plane.master2_ax_nr]
-    for i in rows.lsec:
-        h[1, i, LEAD] = n
-    for i in rows.frict:
-        h[1, i, FRICT] = n
-    for i in rows.lin + rows.tri + rows.old:
-        h[1, i, CROSSTALK] = n
-    return h
+        plane = axes[i].comp.plane
+        needs[i, PLANE, slot[plane.master1_ax_nr]] = True
+        needs[i, PLANE, slot[plane.master2_ax_nr]] = True
+    return needs

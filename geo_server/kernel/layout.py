@@ -7,8 +7,10 @@ see rows and blocks of them as the kernel's named arrays (`Kernel.actual`, …).
 
 * `F7` [NF7, n, 7] floats and `B7` [NB7, n, 7] booleans: one [n, 7] block per quantity of
   every axis and compensation column (`common.COMP_ORDER`);
-* `I7` [NI7, n, 7] integers: the sin² filter's k and length N per column, where its
-  weights start, and which homing flags the column needs;
+* `I7` [NI7, n, 7] integers: the sin² filter's k and length N per column, and where its
+  weights start;
+* `homing` [n, 7, n] booleans: which axes must be homed for a column of an axis to act
+  (a mask; whether the column is configured at all is `B7[CONF]`);
 * `F1` [NF1, n] floats and `B1` [NB1, n] booleans: one vector per per-axis quantity;
 * `P` [NP, n] floats and `IP` [NIP, n] integers: the per-axis parameters and table
   offsets of one load of the lists (refilled in place on reload);
@@ -39,6 +41,7 @@ class KernelState(NamedTuple):
     ring: np.ndarray
     tab: np.ndarray
     weights: np.ndarray
+    homing: np.ndarray
 
 
 # ---- F7: [n, 7] float blocks
@@ -54,8 +57,8 @@ EFF, SEL, HELD, PRE, PEND, EVENT, CONF = range(7)
 NB7 = 7
 
 # ---- I7: [n, 7] integer blocks
-KIDX, NCYC, WOFF, HOME1, HOME2 = range(5)  # HOME*: index into the extended homed flags
-NI7 = 5
+KIDX, NCYC, WOFF = range(3)
+NI7 = 3
 
 # ---- F1: per-axis float vectors (state)
 (
@@ -68,6 +71,8 @@ NI7 = 5
     TC_POS0,
 ) = range(7)
 NF1 = 7
+#: the live TEMPC parameters' rows, in the order of `TempcObjects.fields`
+TEMPC_ROWS = (TC_COEF, TC_OFF0, TC_POS0)
 
 # ---- B1: per-axis boolean vectors (state)
 DRIVE, REV = range(2)  # drive enabled (SIM::drive_enable); a reversal this cycle

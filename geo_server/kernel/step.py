@@ -25,6 +25,7 @@ from geo_server.kernel.friction import base as friction_base
 from geo_server.kernel.friction import weigh as friction_weigh
 from geo_server.kernel.layout import (
     ACT,
+    CONF,
     CR_M,
     CR_N,
     CR_T,
@@ -42,8 +43,6 @@ from geo_server.kernel.layout import (
     FR_T,
     HELD,
     HIST,
-    HOME1,
-    HOME2,
     INIT_DIR,
     JUMP,
     KIDX,
@@ -106,18 +105,17 @@ _offset = compiled(temperature.offset)
 
 
 @compiled
-def _homed(homed: np.ndarray, idx: int) -> bool:
-    """The extended homing flags of `layout.HOME1`/`HOME2`: an axis' flag, or n (no
-    homing needed: True), or n + 1 (not configured: False)."""
-    n = len(homed)
-    if idx < n:
-        return bool(homed[idx])
-    return idx == n
+def _homed(needs: np.ndarray, homed: np.ndarray) -> bool:
+    """Every axis the mask `needs` names is homed (`layout.KernelState.homing`)."""
+    for j in range(len(homed)):  # noqa: SIM110 (numba compiles no generator)
+        if needs[j] and not homed[j]:
+            return False
+    return True
 
 
 @compiled
 def _effective(
-    i: int, B7: np.ndarray, I7: np.ndarray, B1: np.ndarray, homed: np.ndarray, rev: bool
+    i: int, B7: np.ndarray, homing: np.ndarray, B1: np.ndarray, homed: np.ndarray, rev: bool
 ) -> None:
     """Effective = selected ∧ preconditions (docs/design.md §6.8: homing per column, a
     valid table, and for cross and plane the drive enabled, 000 §5.3 p.97 item 4); a
@@ -125,7 +123,7 @@ def _effective(
     reversal for backlash and bilateral LSEC (P-AXIS-00243; `lsec_bilateral` below)."""
     drive = B1[DRIVE, i]
     for c in range(7):
-        pre = _homed(homed, I7[HOME1, i, c]) and _homed(homed, I7[HOME2, i, c])
+        pre = B7[CONF, i, c] and _homed(homing[i, c], homed)
         if c in (CROSS, PLANE):
             pre = pre and drive
         B7[PRE, i, c] = pre
@@ -327,7 +325,7 @@ def step(
         B1[REV, i] = rev
         for c in range(7):
             F7[PREV, i, c] = F7[ACT, i, c]
-        _effective(i, B7, I7, B1, homed, rev)
+        _effective(i, B7, k.homing, B1, homed, rev)
         _targets(i, F7, F1, P, IP, B7, tab, pos, vel, acc)
         for c in (BC, TEMP, CROSS, PLANE):
             _filter(i, c, F7, B7, I7, weights)

@@ -1,13 +1,14 @@
 """The composition root (docs/design.md §1.2): a server built from options in one place —
 a machine, the engine that runs its cycles and the object service over both
-(`build_machine`), and the interfaces that serve it (`Interfaces`: Zenoh, Modbus, ADS,
-the web HMI, OPC UA) for one machine (`Interfaces.start_machine`), a fleet
-(`Interfaces.start_fleet`) or a test (`loopback_interface`). Used by `geo-server run`
-(`cli`), each fleet (`fleet`) and `GeoTestServer` (`geo_clients.testing`) alike.
-Nothing else constructs a `Machine`, a scheduler and an `ObjectService` together (the
-recorder's replay builds its own stepped machine), nor an interface's server
+(`build_machine`), and the interfaces of the registry that serve it (`Interfaces`, over
+each interface's plug: docs/design.md §1.3b) for one machine
+(`Interfaces.start_machine`), a fleet (`Interfaces.start_fleet`) or a test
+(`loopback_interface`). Used by `geo-server run` (`cli`), each fleet (`fleet`) and
+`GeoTestServer` (`geo_clients.testing`) alike. Nothing else constructs a `Machine`, a
+scheduler and an `ObjectService` together (the recorder's replay builds its own stepped
+machine); an interface's server is built by its plug when this asks
 (tests/test_architecture.py). The transports are imported when built: a command that
-serves nothing does not load Zenoh, aiohttp or asyncua.
+serves nothing does not load Zenoh, aiohttp or asyncua (tests/test_interface_registry.py).
 """
 
 from __future__ import annotations

@@ -60,9 +60,12 @@ class FaultKind(StrEnum):
     OPEN = "open"
 
 
-#: The transports a fault can target (the interfaces registered with faults); `all`
-#: means each of them.
-TRANSPORTS = tuple(sorted(name for name, line in REGISTRY.items() if line.faults))
+def fault_targets() -> tuple[str, ...]:
+    """The transports a fault can target: the interfaces registered with faults, as the
+    registry says now (`all` means each of them)."""
+    return tuple(sorted(name for name, line in REGISTRY.items() if line.faults))
+
+
 #: What a transport fault does to a request it hits.
 TRANSPORT_KINDS = FAULT_KINDS
 #: What a sensor fault does to the twin's sensor (docs/twin.md).
@@ -149,8 +152,8 @@ class Fault:
 
     def transports(self) -> tuple[str, ...]:
         if self.target == "all":
-            return TRANSPORTS
-        return (self.target,) if self.target in TRANSPORTS else ()
+            return fault_targets()
+        return (self.target,) if self.target in fault_targets() else ()
 
     def applies(self, transport: str, op: str, name: str) -> bool:
         """Does this fault concern a `op` request on object `name` over `transport`?"""
@@ -234,7 +237,7 @@ def _target(fault: Fault, text: str) -> None:
     if target.startswith("sensor@") and len(target) > 7:
         fault.target, fault.sensor = "sensor", text[7:]  # as written: a sensor's name
         kinds: tuple[str, ...] = SENSOR_KINDS
-    elif target in TRANSPORTS:
+    elif target in fault_targets():
         fault.target = target
         kinds = REGISTRY[target].faults
     elif target == "all":
@@ -245,7 +248,7 @@ def _target(fault: Fault, text: str) -> None:
         kinds = ("overrun",)
     else:
         raise FaultError(
-            f"fault {fault.text!r}: unknown target {target!r} ({', '.join(TRANSPORTS)}, "
+            f"fault {fault.text!r}: unknown target {target!r} ({', '.join(fault_targets())}, "
             "all, cycle, sensor@<axis or sensor>)"
         )
     if fault.kind not in kinds:
@@ -313,7 +316,7 @@ def _option(fault: Fault, item: str) -> None:
     key, value = key.strip().lower(), value.strip()
     if not sep or not value:
         raise FaultError(f"fault {fault.text!r}: option {item!r} needs a value (key=value)")
-    transport = fault.target in (*TRANSPORTS, "all")
+    transport = fault.target in (*fault_targets(), "all")
     if key == "ops" and transport:
         if value not in OPS:
             raise FaultError(f"fault {fault.text!r}: ops={value} (any, read, write)")

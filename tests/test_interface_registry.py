@@ -134,3 +134,23 @@ def test_the_example_is_on_the_command_line_once_registered(line_registered) -> 
 
     args = build_parser().parse_args(["run", "--no-line"])
     assert args.no_line and args.line_port == 5099
+
+
+def test_a_command_that_serves_nothing_loads_no_server_library() -> None:
+    """`geo-server objects` builds the parser with every plug's options, and loads none
+    of the libraries the interfaces serve with (nor the compiler)."""
+    import subprocess
+    import sys
+
+    heavy = (*SERVING_LIBRARIES, "numba")
+    code = (
+        "import contextlib, io, sys\n"
+        "from geo_server.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    assert main(['objects', '--format', 'csv']) == 0\n"
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -444,14 +444,17 @@ def test_more_records_than_max_records(lists_copy: Path) -> None:
     assert "2 records in the correction files, more than vol_comp[0].max_records 1" in comp.problem
 
 
-def within_cycles(m: Machine, done: Callable[[], bool], cycles: int = 1000) -> bool:
-    """Poll `done` until it holds or machine `m` (in real time) has run `cycles` more
-    cycles: a bound in the machine's own time, not in reads — a cycle thread starved by
-    a busy host lets any number of reads run out before a 4-cycle ramp (filter_steps)
-    has ended; an UPDATE's files are read by a worker first (docs/volumetric.md §7)."""
-    end = m.cycle + cycles
+def within_cycles(
+    m: Machine, done: Callable[[], bool], cycles: int = 1000, seconds: float = 30.0
+) -> bool:
+    """Poll `done` until it holds, or machine `m` (in real time) has run `cycles` more
+    cycles and `seconds` have passed: a bound in the machine's own time, not in reads — a
+    cycle thread starved by a busy host lets any number of reads run out before a 4-cycle
+    ramp (filter_steps) has ended — and in wall time for an UPDATE, whose files a worker
+    reads first (docs/volumetric.md §7)."""
+    end, late = m.cycle + cycles, time.monotonic() + seconds
     while not done():
-        if m.cycle >= end:
+        if m.cycle >= end and time.monotonic() >= late:
             return False
         time.sleep(0.001)  # (the cycle thread needs the interpreter lock to advance)
     return True

@@ -5,10 +5,11 @@ per interface naming the module that holds its `Interface` (its *plug*, `INTERFA
 A plug says what `geo-server run` needs to know of its interface — its name, its
 command-line options and what is wrong with them, whether it is on, the connections it
 wants, how to build its server for one machine and how to start it for a fleet — and
-nothing more: `compose`, `cli`, `docs` and the architecture test iterate the registry
-and never name an interface. A plug imports its server only when it builds one: the
-parser is made for every command, and a command that serves nothing loads no Zenoh,
-aiohttp or asyncua.
+nothing more: `compose`, `cli`, `fleet` and `faults` iterate the registry and never name
+an interface (tests/test_interface_registry.py); `docs` takes each interface's options
+class from it (and names constants of some for the Limits page). A plug imports its
+server only when it builds one: the parser is made for every command, and a command that
+serves nothing loads no Zenoh, aiohttp or asyncua.
 """
 
 from __future__ import annotations

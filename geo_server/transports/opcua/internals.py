@@ -6,8 +6,8 @@ sample to many monitored items without a deep copy per item, or to refuse monito
 past a limit: the interface (server.py) does it through asyncua's internal server, its
 address space, services and subscriptions, reached only through the functions here.
 The guard in front of asyncua's transport and sessions (guard.py) is the other module
-that knows asyncua's internals; tests/test_architecture.py checks that no third one
-reaches `iserver`.
+that knows asyncua's internals; tests/test_opcua_internals.py checks that no third module
+of geo_server reaches `iserver`, `aspace`, `_monitored_items` and the like.
 
 `RELIED_ON` holds the sha256 of the source of every asyncua function whose behaviour
 these two modules and server.py depend on, hook or re-implement (`datachange_callback`:
@@ -22,6 +22,8 @@ import importlib
 import inspect
 from collections.abc import Callable
 from typing import Any, NamedTuple
+
+from asyncua.server.monitored_item_service import MonitoredItemService
 
 #: The asyncua these internals were read from (pyproject.toml pins >=2.1,<3).
 ASYNCUA = "2.1.0"
@@ -261,8 +263,6 @@ def item_of(callback: Callable[..., Any], handle: int) -> Target | None:
     """The monitored item `callback` (asyncua's `MonitoredItemService.datachange_
     callback`, bound) notifies for `handle`; None while it is being made or deleted, or
     for a callback of anything else."""
-    from asyncua.server.monitored_item_service import MonitoredItemService
-
     owner = getattr(callback, "__self__", None)  # (a bound method's instance: asyncua's)
     if not isinstance(owner, MonitoredItemService):
         return None

@@ -1825,9 +1825,11 @@ class OpcUaInterface:
             if i and i % NOTIFY_SLICE == 0:  # the loop's other work in between
                 await asyncio.sleep(0)
             rule = self._rules.get(handle)
-            target = internals.item_of(callback, handle) if rule is not None else None
-            if rule is None or rule.every not in due or target is None:
-                continue  # (an item being made or deleted meanwhile)
+            if rule is None or rule.every not in due:
+                continue  # (not due; or an item being made or deleted meanwhile)
+            target = internals.item_of(callback, handle)
+            if target is None:
+                continue
             item = target.item
             if item.mode != ua.MonitoringMode.Reporting:
                 continue  # (Sampling: sampled, not reported; Part 4 §5.12.1.3)

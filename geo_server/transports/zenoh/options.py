@@ -65,13 +65,13 @@ class ZenohOptions:
     #: Seconds between two looks whether anybody subscribes to this machine, while
     #: nobody does (Zenoh's matching listener reports it at once; this is in case it
     #: did not). A look asks Zenoh and takes milliseconds one time in ten when the
-    #: interpreter lock is busy: a fleet looks less often per machine (`compose`).
+    #: interpreter lock is busy: a fleet looks less often per machine (`plug`).
     watch_recheck: float = 1.0
     #: How far (a fraction of their periods, 0 to 1) this machine's periodic looks —
     #: rival probes, the publish loop's check for subscribers — are shifted after the
     #: first: the machines of a fleet start together, and a hundred probes or checks at
     #: once kept the event loop that answers every machine busy for milliseconds to tens
-    #: of milliseconds (docs/design.md §13.1). `compose` spreads a fleet evenly.
+    #: of milliseconds (docs/design.md §13.1). The plug spreads a fleet evenly.
     spread: float = 0.0
 
     def shrink_to(self, connections: int) -> None:

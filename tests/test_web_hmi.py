@@ -5,6 +5,7 @@ JSON without a browser."""
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import os
 import re
@@ -400,8 +401,12 @@ def test_nobody_watching_costs_one_sample_a_second(tmp_path):
     opts = HmiOptions(port=0, period=0.02, idle_period=0.2)
     served = Served(copy_lists(tmp_path), opts)
     try:
+        t0 = time.monotonic()
         time.sleep(1.0)
-        assert 2 <= served.hmi.samples <= 6 and served.hmi.pushes == 0
+        samples, elapsed = served.hmi.samples, time.monotonic() - t0
+        # one per idle period (the first at start), never one per period: a host that
+        # oversleeps only stretches the window, which the bound follows
+        assert 2 <= samples <= elapsed / opts.idle_period + 2 and served.hmi.pushes == 0
 
         async def watch() -> tuple[dict, list[dict]]:
             async with (
@@ -412,11 +417,14 @@ def test_nobody_watching_costs_one_sample_a_second(tmp_path):
                 got = [json.loads((await ws.receive()).data) for _ in range(10)]
                 return hello, got
 
-        t0 = time.monotonic()
         hello, got = served.run(watch())
-        assert time.monotonic() - t0 < 1.5  # ten pushes at 50 Hz, not at 5 Hz
         assert len(hello["trends"]["t"]) >= 3 and len(hello["trends"]["series"]) == 12
-        assert [m["type"] for m in got].count("live") >= 9
+        live = [m for m in got if m["type"] == "live"]
+        assert len(live) >= 9
+        # pushed at the page's period (0.02 s), not the idle one (0.2 s): the pushes' own
+        # time stamps, whatever the client's delays
+        gaps = sorted(b["t"] - a["t"] for a, b in itertools.pairwise(live))
+        assert gaps[len(gaps) // 2] < opts.idle_period / 2, gaps
         assert served.hmi.pushes >= 9
     finally:
         served.close()

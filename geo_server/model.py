@@ -66,6 +66,40 @@ SELECTED_OBJECTS: dict[CompKind, str] = {
 }
 
 
+class Sealed:
+    """A part of a loaded configuration: built field by field by the loader, then sealed
+    (`seal`) and read-only from there on — for the machine and for every interface that
+    reads it (`ObjectService.info.config`) alike. A reload or a save makes a new
+    configuration and the machine swaps it whole at a cycle boundary (docs/design.md
+    §4.4-4.5), so whoever holds one holds a snapshot that never changes under it.
+    (`dataclasses.replace` makes an unsealed copy, to change and seal.)"""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if self.__dict__.get("_sealed", False):
+            raise AttributeError(
+                f"{type(self).__name__}.{name} is read-only: a loaded configuration does "
+                "not change (a reload or a save makes a new one)"
+            )
+        object.__setattr__(self, name, value)
+
+
+def seal(part: Any) -> None:
+    """Make `part` and every `Sealed` part it holds (in its fields, lists, tuples and
+    dicts) read-only."""
+    if isinstance(part, Sealed):
+        if part.__dict__.get("_sealed", False):
+            return
+        object.__setattr__(part, "_sealed", True)
+        for value in list(vars(part).values()):
+            seal(value)
+    elif isinstance(part, list | tuple):
+        for item in part:
+            seal(item)
+    elif isinstance(part, dict):
+        for item in part.values():
+            seal(item)
+
+
 @dataclass(frozen=True)
 class Source:
     """Where a value came from: list file and 1-based line number."""
@@ -122,7 +156,7 @@ class Diagnostic:
 
 
 @dataclass
-class AxisParams:
+class AxisParams(Sealed):
     """Axis parameter list [AXIS] (`achsmd*.lis`) entries the emulator uses."""
 
     log_nr: int
@@ -164,7 +198,7 @@ class AxisParams:
 
 
 @dataclass
-class CrossComp:
+class CrossComp(Sealed):
     """`kw.crosscomp.*` (000 §4.2): slave offset over one master's command position."""
 
     master_ax_nr: int
@@ -178,7 +212,7 @@ class CrossComp:
 
 
 @dataclass
-class PlaneComp:
+class PlaneComp(Sealed):
     """`kw.crosscomp2.*` (000 §4.3): bilinear grid over two masters.
 
     `table[j, i]`: j indexes master 2, i indexes master 1 (000 p.43). Unassigned points
@@ -201,7 +235,7 @@ class PlaneComp:
 
 
 @dataclass
-class LsecComp:
+class LsecComp(Sealed):
     """`kw.ssfk.*` (000 §4.4): leadscrew error table.
 
     `setpoint` holds the interpolation points (computed from kw_startpos + i·interval when
@@ -224,7 +258,7 @@ class LsecComp:
 
 
 @dataclass
-class FrictComp:
+class FrictComp(Sealed):
     """`frict_comp.*` (000 §4.5): additive current over |velocity|."""
 
     vin: np.ndarray  # float64 [table_entries], µm/s (rotary 0.001°/s), ascending >= 0
@@ -248,7 +282,7 @@ CROSSTALK_COLUMNS = (
 
 
 @dataclass
-class CrosstalkComp:
+class CrosstalkComp(Sealed):
     """`kw.crosstalk.*` in either dialect (000 §4.6 new; 001 §4.5 / 003 §3.5 old).
 
     New model: `mode` 1/2/3, reference `acceleration` (> 0) / `deceleration` (< 0) in
@@ -277,7 +311,7 @@ class CrosstalkComp:
 
 
 @dataclass
-class CompList:
+class CompList(Sealed):
     """One compensation value list [COMP] (`achskw*.lis`)."""
 
     path: str
@@ -291,7 +325,7 @@ class CompList:
 
 
 @dataclass
-class AxisConfig:
+class AxisConfig(Sealed):
     """Everything known about one logical axis after loading and validation."""
 
     params: AxisParams
@@ -303,7 +337,7 @@ class AxisConfig:
 
 
 @dataclass
-class MachineConfig:
+class MachineConfig(Sealed):
     """A whole machine: the start-up list and every axis it names, validated."""
 
     startup_path: Path

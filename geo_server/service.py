@@ -138,7 +138,9 @@ class MachineInfo:
     @property
     def config(self) -> MachineConfig:
         """The machine's configuration as loaded from its lists (the current one after
-        a reload): axes, parameters, tables, file paths."""
+        a reload or a save): axes, parameters, tables, file paths. Read-only (sealed: a
+        write raises AttributeError); a reload or a save swaps in a new one, so a
+        configuration held stays as it was."""
         return self._machine.cfg
 
     @property

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.machines import with_params
 
 from geo_server import access
 from geo_server.dictionary import load_dictionary
@@ -119,8 +120,8 @@ def test_comp_off_is_program_global(machine):
 
 
 def test_manual_activation_is_deselected_at_program_end(default_cfg):
-    default_cfg.axes[1].params.temp_comp_manual_activation = True
-    machine = Machine(default_cfg, homed=True)
+    cfg = with_params(default_cfg, 1, temp_comp_manual_activation=True)
+    machine = Machine(cfg, homed=True)
     svc = ObjectService(machine)
     machine.step(1)
     assert access.read_name(svc, "TEMPC::activated", 1) is False  # manual: off until COMP ON
@@ -268,7 +269,34 @@ def test_save_round_trips(lists_copy: Path):
     cfg = load_machine(lists_copy)
     assert cfg.axes[1].params.temp_comp_coefficient == 1234.5
     assert cfg.axes[1].params.temp_comp_offset_0 == -7
+    # the configuration as saved is the machine's from the next cycle boundary on (a
+    # new one, swapped whole: a loaded configuration never changes under its readers)
+    access.step(svc, 1)
+    assert svc.info.config.axes[1].params.temp_comp_coefficient == 1234.5
     assert svc.commands.save().files == []  # nothing changed since: nothing written
+
+
+def test_a_loaded_configuration_is_read_only(lists_copy: Path):
+    """What an interface reads of the machine (`info.config`) cannot be changed under it
+    (docs/design.md §4.4-4.5): a write to any part is refused; a save makes a new
+    configuration, swapped at the next cycle boundary, and the one a reader holds stays
+    as it was (4000 is the list's coefficient of axis 1)."""
+    svc = ObjectService(Machine(load_machine(lists_copy), homed=True))
+    cfg = svc.info.config
+    with pytest.raises(AttributeError, match="read-only"):
+        cfg.axes[1].params.temp_comp_coefficient = 1.0
+    with pytest.raises(AttributeError, match="read-only"):
+        cfg.startup_path = Path("/etc/passwd")
+    comp = cfg.axes[1].comp
+    assert comp is not None
+    with pytest.raises(AttributeError, match="read-only"):
+        comp.lsec = None
+    access.write_name(svc, "TEMPC::coefficient", 1, 1234.5)
+    access.step(svc, 1)
+    assert svc.commands.save().ok
+    access.step(svc, 1)
+    assert cfg.axes[1].params.temp_comp_coefficient == 4000.0
+    assert svc.info.config.axes[1].params.temp_comp_coefficient == 1234.5
 
 
 # ------------------------------------------------------------------------- determinism
@@ -450,8 +478,8 @@ def test_invalid_table_is_selected_but_not_effective(lists_copy: Path):
 def test_reset_deselects_manual_activation_compensations(default_cfg):
     """000 §5.1: compensations selected by COMP ON under manual activation are
     deselected by a CNC reset (as at program end)."""
-    default_cfg.axes[1].params.temp_comp_manual_activation = True
-    machine = Machine(default_cfg, homed=True)
+    cfg = with_params(default_cfg, 1, temp_comp_manual_activation=True)
+    machine = Machine(cfg, homed=True)
     svc = ObjectService(machine)
     machine.start_program("N10 X[COMP ON TEMP]\nN20 G04 10\nN30 M30\n")
     machine.step(40)

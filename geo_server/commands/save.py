@@ -4,13 +4,16 @@ written."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from geo_server.commands.ports import CommandResult, Ports
 from geo_server.dictionary import Dictionary, ObjectDef
-from geo_server.errors import AdsErrorCode
+from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import ListFileError, rewrite_values
+from geo_server.machine.port import Saved
+from geo_server.model import AxisParams, MachineConfig, seal
 from geo_server.paths import is_product_data
 from geo_server.snapshot import Snapshot
 
@@ -26,6 +29,7 @@ def save_lists(ports: Ports) -> CommandResult:
     snap = ports.snapshot()
     files: list[str] = []
     errors: list[str] = []
+    saved: dict[int, AxisParams] = {}
     for axis in machine.axes:
         params = machine.cfg.axes[axis].params
         changes = _changed_parameters(machine.dictionary, params, snap, axis)
@@ -42,8 +46,13 @@ def save_lists(ports: Ports) -> CommandResult:
         except (OSError, ListFileError) as exc:
             errors.append(f"{params.path}: {exc}")
             continue
-        _note_saved(machine.dictionary, params, changes)
+        saved[axis] = _as_saved(machine.dictionary, params, changes)
         files.append(params.path)
+    if saved:
+        try:  # the configuration as saved, swapped in whole at a cycle boundary
+            ports.apply(Saved(_with_params(machine.cfg, saved)))
+        except AdsError as exc:
+            errors.append(f"saved, but not yet taken as the stored values: {exc.message}")
     return CommandResult(
         not errors, "save", errors=errors, files=files, code=AdsErrorCode.DEVICE_ERROR
     )
@@ -83,14 +92,21 @@ def _read_only_default(path: str | Path) -> str:
     )
 
 
-def _note_saved(dictionary: Dictionary, params: Any, changes: dict[str, str]) -> None:
-    """After a save, the lists hold the live values: remember them as the stored ones."""
+def _as_saved(dictionary: Dictionary, params: AxisParams, changes: dict[str, str]) -> AxisParams:
+    """After a save, the lists hold the live values: `params` with them as the stored
+    ones (a new, unsealed copy)."""
     attrs = {o.list_key: o.param_attr or "" for o in dictionary.saved_parameters()}
+    stored: dict[str, Any] = {}
     for entry, text in changes.items():
         attr = attrs[entry]
         current = getattr(params, attr)
-        setattr(
-            params,
-            attr,
-            type(current)(float(text)) if not isinstance(current, bool) else text == "1",
-        )
+        stored[attr] = type(current)(float(text)) if not isinstance(current, bool) else text == "1"
+    return replace(params, **stored)
+
+
+def _with_params(cfg: MachineConfig, saved: dict[int, AxisParams]) -> MachineConfig:
+    """`cfg` with the saved axes' parameters, sealed (the other parts are shared)."""
+    axes = {nr: replace(ax, params=saved[nr]) if nr in saved else ax for nr, ax in cfg.axes.items()}
+    new = replace(cfg, axes=axes)
+    seal(new)
+    return new

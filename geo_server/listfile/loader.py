@@ -37,6 +37,7 @@ from geo_server.model import (
     LsecComp,
     MachineConfig,
     PlaneComp,
+    seal,
 )
 from geo_server.twin.file import TwinFileError, find_twin
 
@@ -103,7 +104,7 @@ def load_machine(startup: Path | str, allow_dirs: Sequence[Path | str] = ()) -> 
     from geo_server.volcomp.config import load_volumetric
 
     volumetric = load_volumetric(stup, startup.parent, axes, rep, (startup.parent, *extra))
-    return MachineConfig(
+    cfg = MachineConfig(
         startup_path=startup,
         axes=configs,
         diagnostics=diags,
@@ -111,6 +112,8 @@ def load_machine(startup: Path | str, allow_dirs: Sequence[Path | str] = ()) -> 
         volumetric=volumetric,
         allow_dirs=extra,
     )
+    seal(cfg)  # read-only from here on, for the machine and every interface
+    return cfg
 
 
 def _read(path: Path, kind: ListKind, rep: Reporter) -> Values:

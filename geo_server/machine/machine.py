@@ -61,6 +61,7 @@ from geo_server.machine.port import (
     Record,
     Reload,
     Reset,
+    Saved,
     SensorFault,
     StartProgram,
     VolcUpdate,
@@ -543,6 +544,9 @@ class Machine:
                 return self.reset()
             case Reload(cfg):
                 return self.reload(cfg)
+            case Saved(cfg):
+                self.cfg = cfg
+                return None
             case Record(diagnostic):
                 self._record(diagnostic)
                 return None

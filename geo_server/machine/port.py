@@ -68,6 +68,14 @@ class Reload:
 
 
 @dataclass(frozen=True)
+class Saved:
+    """The lists hold the live values now: swap in `cfg`, the configuration as saved, at
+    this cycle boundary (no step event: nothing the kernel uses changed)."""
+
+    cfg: MachineConfig
+
+
+@dataclass(frozen=True)
 class Record:
     """Put a warning or error the server itself found (a rejected reload, a second
     server with this machine's name) into the machine's error list, so that
@@ -96,7 +104,7 @@ class SensorFault:
     sigma: float = 0.0
 
 
-Operation = WriteObjects | StartProgram | Reset | Reload | Record | VolcUpdate | SensorFault
+Operation = WriteObjects | StartProgram | Reset | Reload | Saved | Record | VolcUpdate | SensorFault
 
 
 # ---------------------------------------------------------------------- pending

@@ -43,7 +43,15 @@ from geo_server.events import Event
 from geo_server.machine.ipc import FrameDecoder, OutBuffer, SlotTable, encode_frame
 from geo_server.machine.machine import Machine
 from geo_server.machine.nc import parse_program
-from geo_server.machine.port import Operation, Pending, Record, Reload, StartProgram, listen
+from geo_server.machine.port import (
+    Operation,
+    Pending,
+    Record,
+    Reload,
+    Saved,
+    StartProgram,
+    listen,
+)
 from geo_server.machine.scheduler import (
     ENGINES,
     IDLE_WAKE_PROCESS,
@@ -506,7 +514,7 @@ class RemoteMachine:
                 continue
             fut, slot, op = entry
             self.slots.release(slot)
-            if ok and isinstance(op, Reload):
+            if ok and isinstance(op, Reload | Saved):  # (the child swapped it in too)
                 self.cfg = op.cfg
             if not fut.set_running_or_notify_cancel():
                 continue

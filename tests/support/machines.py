@@ -266,3 +266,13 @@ def updates_read(m: object, timeout: float = 30.0) -> None:
     assert isinstance(m, Machine)
     for _ident, _since, fut in list(m._volc_loading):
         fut.result(timeout=timeout)
+
+
+def with_params(cfg: MachineConfig, axis: int, **changes: object) -> MachineConfig:
+    """`cfg` with axis `axis`'s parameters changed (a loaded configuration is sealed:
+    geo_server.model.Sealed; the copy is not, as a test's own machine needs)."""
+    from dataclasses import replace
+
+    ax = cfg.axes[axis]
+    axes = {**cfg.axes, axis: replace(ax, params=replace(ax.params, **changes))}
+    return replace(cfg, axes=axes)

@@ -16,6 +16,7 @@ flags returned.
 
 from __future__ import annotations
 
+from enum import IntFlag
 from typing import NamedTuple
 
 import numpy as np
@@ -44,21 +45,39 @@ from geo_server.volcomp.step import SUM as VSUM
 from geo_server.volcomp.step import attention as volc_attention
 from geo_server.volcomp.step import step as volc_step
 
-#: `cycles`' flags besides the motion's (`ARRIVED`) and the twin's (`MOTION`),
-#: which occupy the low bits: the cycle stopped after its motion to plan a queued move
-PLAN = 1 << 8
 #: the twin's flags, shifted above the motion's
 TWIN_SHIFT = 4
-assert not (PLAN & (ARRIVED | START_QUEUED)) and MOTION << TWIN_SHIFT < PLAN
 #: the volumetric step's flags (`volcomp.step.OFF`, `ENDED`), shifted above `PLAN`
 VOLC_SHIFT = 9
-VOLC_OFF = OFF << VOLC_SHIFT
-VOLC_ENDED = ENDED << VOLC_SHIFT
-#: (Python's: `VolKernel.prepare` switched a compensation off for an axis fault)
-VOLC_FAULT = FAULT << VOLC_SHIFT
-#: `cycles` computed nothing: the volumetric compensations need `VolKernel.prepare`
-VOLC_PREPARE = 1 << 12
-assert PLAN < VOLC_OFF and VOLC_FAULT < VOLC_PREPARE
+
+
+class CycleFlag(IntFlag):
+    """The flags `cycles` returns with its count, as Python reads them (`CycleFlag(raw)`);
+    the compiled code sets the same bits as the plain ints below."""
+
+    #: an axis arrived / a queued move waits to start (the motion's own flags)
+    ARRIVED = ARRIVED
+    START_QUEUED = START_QUEUED
+    #: the twin: a velocity changed sign (`twin.engine.MOTION`, shifted)
+    TWIN_MOTION = MOTION << TWIN_SHIFT
+    #: the cycle stopped after its motion, to plan a queued move
+    PLAN = 1 << 8
+    #: a volumetric compensation switched off for its s_limit / a ramp ended
+    VOLC_OFF = OFF << VOLC_SHIFT
+    VOLC_ENDED = ENDED << VOLC_SHIFT
+    #: (Python's: `VolKernel.prepare` switched a compensation off for an axis fault)
+    VOLC_FAULT = FAULT << VOLC_SHIFT
+    #: nothing computed: the volumetric compensations need `VolKernel.prepare`
+    VOLC_PREPARE = 1 << 12
+
+
+# the compiled code's constants (numba reads plain ints)
+PLAN = int(CycleFlag.PLAN)
+VOLC_OFF = int(CycleFlag.VOLC_OFF)
+VOLC_ENDED = int(CycleFlag.VOLC_ENDED)
+VOLC_PREPARE = int(CycleFlag.VOLC_PREPARE)
+assert not (PLAN & (ARRIVED | START_QUEUED)) and CycleFlag.TWIN_MOTION < PLAN
+assert PLAN < VOLC_OFF and CycleFlag.VOLC_FAULT < VOLC_PREPARE
 # Rows of the machine's per-cycle buffer (`Machine._mbuf`, its [n, NROWS] view): the
 # published deltas of the seven compensation columns (rows 0–6), then what `derived`
 # computes for a snapshot, the output to the drives (`cycles`) and the configured backlash

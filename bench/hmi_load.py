@@ -94,7 +94,8 @@ def engine_run(engine: str, rounds: int, seconds: float, folder: Path) -> dict[s
     ports = {"zenoh": zp, "modbus": mp, "ads": ap}
     program = folder / "loop.nc"
     program.write_text(PROGRAM, encoding="utf-8")
-    extra = ["--http", f"{HOST}:{hp}", "--program", str(program)]
+    # recordings asked for over Zenoh go to --record-dir only (docs/security.md)
+    extra = ["--http", f"{HOST}:{hp}", "--program", str(program), "--record-dir", str(folder)]
     argv = geo_server_argv(1.0, ports, extra=extra, engine=engine)
     samples: dict[str, dict[str, list[np.ndarray]]] = {
         k: {"baseline": [], "loaded": []} for k in [*READERS, "cycle"]
@@ -109,8 +110,8 @@ def engine_run(engine: str, rounds: int, seconds: float, folder: Path) -> dict[s
                 watcher = None
                 if kind == "loaded":
                     watcher = HmiWatcher(hp)
-                    out = folder / f"trace-{engine}-{r}.csv"
-                    started = record(session, {"start": {"objects": TWENTY, "out": str(out)}})
+                    out = f"trace-{engine}-{r}.csv"  # (a name in --record-dir)
+                    started = record(session, {"start": {"objects": TWENTY, "out": out}})
                     assert started["recording"]["columns"] == 20, started
                 time.sleep(1.0)
                 for label, factory in READERS.items():

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geo_server import jit
 from geo_server.kernel import Kernel
 
 # the synthetic machines and the reference kernel (the test oracle) are test support
@@ -55,6 +56,9 @@ def main() -> None:
     ap.add_argument("--axes", default="1,8,32,128")
     args = ap.parse_args()
     ref_cycles = args.ref_cycles or args.cycles
+    # the compiled laws (geo_server/jit.py): without this, `Kernel.step` runs them
+    # interpreted, about a thousand times slower (what the composition root avoids)
+    jit.load()
     print("| axes | Kernel median µs | Kernel p99 µs | Reference median µs | Reference p99 µs |")
     print("|---:|---:|---:|---:|---:|")
     for n in (int(x) for x in args.axes.split(",")):

@@ -47,6 +47,7 @@ from geo_server.kernel.layout import (
     FIRST,
     HELD,
     HIST,
+    HOMING_MAX,
     KIDX,
     NCYC,
     PATH,
@@ -193,7 +194,7 @@ class Kernel:
         _friction(axes, rows.frict, self.P, self.IP, tab)
         _crosstalk(axes, rows.lin + rows.tri + rows.old, self._slot, self.P, self.IP, tab)
         self.tab = tab.done()
-        self.homing = _homing(axes, rows, self._slot)
+        self.homing, self.homing_n = _homing(axes, rows, self._slot)
         ncyc = np.array([filter_cycles(ax) for ax in axes], dtype=np.int64).reshape(self.n, 7)
         ncyc[:, FRICT] = 0  # friction is not sin²-filtered: its output is the delay line
         # crosstalk keeps that many targets: a list's larger n_cycles deactivates the
@@ -220,6 +221,7 @@ class Kernel:
                 self.tab,
                 self.weights,
                 self.homing,
+                self.homing_n,
             )
         )
 
@@ -493,20 +495,28 @@ def _crosstalk(
         P[layout.XT_INV_DEC, i] = 1.0 / abs(x.deceleration) if x.deceleration else 0.0
 
 
-def _homing(axes: list[AxisConfig], rows: Rows, slot: dict[int, int]) -> np.ndarray:
+def _homing(
+    axes: list[AxisConfig], rows: Rows, slot: dict[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """Which axes must be homed for each column of each axis to act (docs/design.md
-    §6.0, §6.8), a mask [n, 7, n]: temperature needs the axis homed (000 §3.2 p.17),
-    LSEC too (000 §5.3 item 2), cross its master (000 p.29), plane both masters (000 §5.3
-    item 3); backlash (000 p.10), friction and crosstalk none. Whether a column is
-    configured at all is `B7[CONF]` (`Kernel._configured`)."""
+    §6.0, §6.8): [n, 7, HOMING_MAX] slots and [n, 7] how many — temperature needs the axis
+    homed (000 §3.2 p.17), LSEC too (000 §5.3 item 2), cross its master (000 p.29), plane
+    both masters (000 §5.3 item 3); backlash (000 p.10), friction and crosstalk none.
+    Whether a column is configured at all is `B7[CONF]` (`Kernel._configured`)."""
     n = len(axes)
-    needs = np.zeros((n, 7, n), dtype=bool)
+    needs = np.zeros((n, 7, HOMING_MAX), dtype=np.int64)
+    count = np.zeros((n, 7), dtype=np.int64)
+
+    def need(i: int, c: int, *slots: int) -> None:
+        needs[i, c, : len(slots)] = slots
+        count[i, c] = len(slots)
+
     for i in range(n):
-        needs[i, TEMP, i] = needs[i, LEAD, i] = True
+        need(i, TEMP, i)
+        need(i, LEAD, i)
     for i in rows.cross:
-        needs[i, CROSS, slot[axes[i].comp.cross.master_ax_nr]] = True
+        need(i, CROSS, slot[axes[i].comp.cross.master_ax_nr])
     for i in rows.plane:
         plane = axes[i].comp.plane
-        needs[i, PLANE, slot[plane.master1_ax_nr]] = True
-        needs[i, PLANE, slot[plane.master2_ax_nr]] = True
-    return needs
+        need(i, PLANE, slot[plane.master1_ax_nr], slot[plane.master2_ax_nr])
+    return needs, count

@@ -9,8 +9,9 @@ see rows and blocks of them as the kernel's named arrays (`Kernel.actual`, …).
   every axis and compensation column (`common.COMP_ORDER`);
 * `I7` [NI7, n, 7] integers: the sin² filter's k and length N per column, and where its
   weights start;
-* `homing` [n, 7, n] booleans: which axes must be homed for a column of an axis to act
-  (a mask; whether the column is configured at all is `B7[CONF]`);
+* `homing` [n, 7, HOMING_MAX] integers and `homing_n` [n, 7]: the axes (slots) that must
+  be homed for a column of an axis to act, and how many of them there are (whether the
+  column is configured at all is `B7[CONF]`);
 * `F1` [NF1, n] floats and `B1` [NB1, n] booleans: one vector per per-axis quantity;
 * `P` [NP, n] floats and `IP` [NIP, n] integers: the per-axis parameters and table
   offsets of one load of the lists (refilled in place on reload);
@@ -42,6 +43,7 @@ class KernelState(NamedTuple):
     tab: np.ndarray
     weights: np.ndarray
     homing: np.ndarray
+    homing_n: np.ndarray
 
 
 # ---- F7: [n, 7] float blocks
@@ -59,6 +61,8 @@ NB7 = 7
 # ---- I7: [n, 7] integer blocks
 KIDX, NCYC, WOFF = range(3)
 NI7 = 3
+#: the most axes one column needs homed (a plane compensation: its two masters)
+HOMING_MAX = 2
 
 # ---- F1: per-axis float vectors (state)
 (

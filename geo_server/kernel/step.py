@@ -105,25 +105,24 @@ _offset = compiled(temperature.offset)
 
 
 @compiled
-def _homed(needs: np.ndarray, homed: np.ndarray) -> bool:
-    """Every axis the mask `needs` names is homed (`layout.KernelState.homing`)."""
-    for j in range(len(homed)):  # noqa: SIM110 (numba compiles no generator)
-        if needs[j] and not homed[j]:
+def _homed(needs: np.ndarray, count: int, homed: np.ndarray) -> bool:
+    """The first `count` axes of `needs` are homed (`layout.KernelState.homing`)."""
+    for j in range(count):  # noqa: SIM110 (numba compiles no generator)
+        if not homed[needs[j]]:
             return False
     return True
 
 
 @compiled
-def _effective(
-    i: int, B7: np.ndarray, homing: np.ndarray, B1: np.ndarray, homed: np.ndarray, rev: bool
-) -> None:
+def _effective(i: int, k: KernelState, homed: np.ndarray, rev: bool) -> None:
     """Effective = selected ∧ preconditions (docs/design.md §6.8: homing per column, a
     valid table, and for cross and plane the drive enabled, 000 §5.3 p.97 item 4); a
     change is a step event (§3.5), as is a pending TEMPC write, reload or release, and a
     reversal for backlash and bilateral LSEC (P-AXIS-00243; `lsec_bilateral` below)."""
-    drive = B1[DRIVE, i]
+    B7 = k.B7
+    drive = k.B1[DRIVE, i]
     for c in range(7):
-        pre = B7[CONF, i, c] and _homed(homing[i, c], homed)
+        pre = B7[CONF, i, c] and _homed(k.homing[i, c], k.homing_n[i, c], homed)
         if c in (CROSS, PLANE):
             pre = pre and drive
         B7[PRE, i, c] = pre
@@ -325,7 +324,7 @@ def step(
         B1[REV, i] = rev
         for c in range(7):
             F7[PREV, i, c] = F7[ACT, i, c]
-        _effective(i, B7, k.homing, B1, homed, rev)
+        _effective(i, k, homed, rev)
         _targets(i, F7, F1, P, IP, B7, tab, pos, vel, acc)
         for c in (BC, TEMP, CROSS, PLANE):
             _filter(i, c, F7, B7, I7, weights)

@@ -72,10 +72,10 @@ MODULES = (
     "kernel/step.py",
     "volcomp/law.py",
     "volcomp/step.py",
-    "machine/motion.py",
+    "machine/profile.py",
     "machine/cycle.py",
     "twin/noise.py",
-    "twin/engine.py",
+    "twin/laws.py",
 )
 
 _PACKAGE = Path(__file__).resolve().parent

@@ -31,7 +31,7 @@ from geo_server.machine.scheduler import Scheduler
 from geo_server.model import Diagnostic
 from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService, ServiceLimits
-from geo_server.twin.engine import ambient_at
+from geo_server.twin.laws import ambient_at
 
 P = 1_000_000  # 1 ms in ns
 MOVES = "N10 G90 G01 X120 Y-40 F6000\nN20 X-30 Y25\nN30 G04 X0.02\nN40 X60 Z-10\nM30\n"

@@ -1,8 +1,8 @@
 """The computed part of a GEO cycle, compiled (docs/design.md §5.1 steps 2–3, §13.3).
 
-`cycles` runs the motion's profiles (`motion.profile_step`), the compensation kernel
+`cycles` runs the motion's profiles (`profile.profile_step`), the compensation kernel
 (`kernel.step.step`), the volumetric compensations (`volcomp.step.step`), the output to
-the drives and the twin's state (`engine.twin_cycle`) for one cycle or a pass of many —
+the drives and the twin's state (`twin.laws.twin_cycle`) for one cycle or a pass of many —
 the same function in a loop, so a pass gives the numbers of as many single cycles by
 construction. It stops after a cycle that needs Python (its flags): an axis arrived (the
 NC program, the twin's scatter draw), a velocity changed sign, a
@@ -24,7 +24,7 @@ import numpy as np
 from geo_server.jit import Packed, compiled
 from geo_server.kernel.layout import ACT, DRIVE, PREV, TOTAL, KernelState
 from geo_server.kernel.step import step
-from geo_server.machine.motion import (
+from geo_server.machine.profile import (
     ACC,
     ARRIVED,
     FEED,
@@ -37,7 +37,7 @@ from geo_server.machine.motion import (
     profile_step,
     reversal_in,
 )
-from geo_server.twin.engine import MOTION, TwinState, twin_cycle
+from geo_server.twin.laws import MOTION, TwinState, twin_cycle
 from geo_server.units import UNITS_PER_MM, UNITS_PER_UM
 from geo_server.volcomp.step import DIFF as VDIFF
 from geo_server.volcomp.step import ENDED, FAULT, OFF, VolState
@@ -58,7 +58,7 @@ class CycleFlag(IntFlag):
     #: an axis arrived / a queued move waits to start (the motion's own flags)
     ARRIVED = ARRIVED
     START_QUEUED = START_QUEUED
-    #: the twin: a velocity changed sign (`twin.engine.MOTION`, shifted)
+    #: the twin: a velocity changed sign (`twin.laws.MOTION`, shifted)
     TWIN_MOTION = MOTION << TWIN_SHIFT
     #: the cycle stopped after its motion, to plan a queued move
     PLAN = 1 << 8

@@ -63,3 +63,18 @@ def test_only_internals_and_the_guard_reach_asyncuas_internal_server() -> None:
 def test_the_confinement_check_sees_a_reach() -> None:
     source = "a = self.server.iserver.aspace\nn = sub.monitored_item_srv._monitored_items\n"
     assert len(internal_uses(source)) == 4
+
+
+def test_the_interface_module_imports_no_asyncua() -> None:
+    """The OPC UA plug reads the options class from server.py when planning a start;
+    asyncua (most of a second) is imported later, off the loop (`OpcUa.prepare`)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\nimport geo_server.transports.opcua.server\nprint('asyncua' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert out.stdout.strip() == "False", out.stderr

@@ -17,13 +17,12 @@ changed (or moved), so that each use is looked at again before the pin moves.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 import inspect
 from collections.abc import Callable
 from typing import Any, NamedTuple
-
-from asyncua.server.monitored_item_service import MonitoredItemService
 
 #: The asyncua these internals were read from (pyproject.toml pins >=2.1,<3).
 ASYNCUA = "2.1.0"
@@ -263,8 +262,8 @@ def item_of(callback: Callable[..., Any], handle: int) -> Target | None:
     """The monitored item `callback` (asyncua's `MonitoredItemService.datachange_
     callback`, bound) notifies for `handle`; None while it is being made or deleted, or
     for a callback of anything else."""
-    owner = getattr(callback, "__self__", None)  # (a bound method's instance: asyncua's)
-    if not isinstance(owner, MonitoredItemService):
+    owner: Any = getattr(callback, "__self__", None)  # (a bound method's: asyncua's)
+    if not isinstance(owner, _monitored_item_service()):
         return None
     mid = owner._monitored_datachange.get(handle)
     item = owner._monitored_items.get(mid) if mid is not None else None
@@ -276,6 +275,16 @@ async def enqueue(target: Target, note: Any) -> None:
     item's queue size (what `datachange_callback` does after its copy of the value)."""
     isub = target.owner.isub
     await isub.enqueue_datachange_event(target.mid, note, target.item.queue_size)
+
+
+@functools.cache
+def _monitored_item_service() -> Any:
+    """asyncua's `MonitoredItemService`, imported when first needed (once): server.py
+    imports this module, and importing it loads no asyncua (the plug reads its options
+    class before OPC UA's start imports asyncua off the loop)."""
+    from asyncua.server.monitored_item_service import MonitoredItemService
+
+    return MonitoredItemService
 
 
 def attribute_value(data_value: Any) -> Any:

@@ -66,8 +66,6 @@ def fault_targets() -> tuple[str, ...]:
     return tuple(sorted(name for name, line in REGISTRY.items() if line.faults))
 
 
-#: What a transport fault does to a request it hits.
-TRANSPORT_KINDS = FAULT_KINDS
 #: What a sensor fault does to the twin's sensor (docs/twin.md).
 SENSOR_KINDS = ("stuck", "noisy", "open")
 #: The reading of an open-circuit RTD input: the overrange value 0x7FFF of a 0.1 °C
@@ -242,7 +240,7 @@ def _target(fault: Fault, text: str) -> None:
         kinds = REGISTRY[target].faults
     elif target == "all":
         fault.target = target
-        kinds = TRANSPORT_KINDS
+        kinds = FAULT_KINDS  # (what a transport fault does to a request it hits)
     elif target == "cycle":
         fault.target = target
         kinds = ("overrun",)

@@ -16,7 +16,8 @@ name them and `save` can rewrite exactly that token.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from enum import IntFlag
 from pathlib import Path
 from typing import Any
@@ -370,3 +371,10 @@ class MachineConfig(Sealed):
     def deactivated(self) -> list[Diagnostic]:
         """The diagnostics that switched a compensation off."""
         return [d for d in self.diagnostics if d.deactivated is not None]
+
+
+def with_axis_params(cfg: MachineConfig, params: Mapping[int, AxisParams]) -> MachineConfig:
+    """`cfg` with the parameters of the axes in `params` replaced: a new configuration,
+    not sealed, that shares every other part with `cfg` (`save` seals it)."""
+    axes = {nr: replace(ax, params=params.get(nr, ax.params)) for nr, ax in cfg.axes.items()}
+    return replace(cfg, axes=axes)

@@ -93,9 +93,6 @@ class Line(Interface):
         g.add_argument("--no-line", action="store_true", help="do not serve lines")
         g.add_argument("--line-port", type=int, default=5099, help="listen port")
 
-    def enabled(self, args: argparse.Namespace) -> bool:
-        return not args.no_line
-
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:
         return Wants(LineOptions.max_connections, BACKLOG)
 

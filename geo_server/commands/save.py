@@ -13,7 +13,7 @@ from geo_server.dictionary import Dictionary, ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.listfile import ListFileError, rewrite_values
 from geo_server.machine.port import Saved
-from geo_server.model import AxisParams, MachineConfig, seal
+from geo_server.model import AxisParams, MachineConfig, seal, with_axis_params
 from geo_server.paths import is_product_data
 from geo_server.snapshot import Snapshot
 
@@ -50,7 +50,7 @@ def save_lists(ports: Ports) -> CommandResult:
         files.append(params.path)
     if saved:
         try:  # the configuration as saved, swapped in whole at a cycle boundary
-            ports.apply(Saved(_with_params(machine.cfg, saved)))
+            ports.apply(Saved(_as_saved_config(machine.cfg, saved)))
         except AdsError as exc:
             errors.append(f"saved, but not yet taken as the stored values: {exc.message}")
     return CommandResult(
@@ -104,9 +104,8 @@ def _as_saved(dictionary: Dictionary, params: AxisParams, changes: dict[str, str
     return replace(params, **stored)
 
 
-def _with_params(cfg: MachineConfig, saved: dict[int, AxisParams]) -> MachineConfig:
+def _as_saved_config(cfg: MachineConfig, saved: dict[int, AxisParams]) -> MachineConfig:
     """`cfg` with the saved axes' parameters, sealed (the other parts are shared)."""
-    axes = {nr: replace(ax, params=saved[nr]) if nr in saved else ax for nr, ax in cfg.axes.items()}
-    new = replace(cfg, axes=axes)
+    new = with_axis_params(cfg, saved)
     seal(new)
     return new

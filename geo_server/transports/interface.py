@@ -130,9 +130,14 @@ class Interface(ABC):
         """What is wrong with its options (None: nothing), said before anything starts."""
         return None
 
-    @abstractmethod
     def enabled(self, args: argparse.Namespace) -> bool:
-        """Is it to be started?"""
+        """Is it to be started? (By default: unless `--no-NAME` was given.)"""
+        return not vars(args)[f"no_{self.name}"]
+
+    def cap(self, caps: Mapping[str, int]) -> dict[str, int]:
+        """Its options' `max_connections` from the planned `caps`, if planned (a server
+        built without a plan keeps its options' default)."""
+        return {"max_connections": caps[self.name]} if self.name in caps else {}
 
     @abstractmethod
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:

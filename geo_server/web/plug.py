@@ -94,7 +94,7 @@ class Http(Interface):
     ) -> Startable:
         from geo_server.web.server import HmiServer, access_note, http_options
 
-        more = {"max_connections": caps["http"]} if "http" in caps else {}
+        more = self.cap(caps)
         hmi = HmiServer(service, http_options(args, machine=args.machine, **more))
         return Startable(hmi, lambda: f"http: web HMI on {hmi.url} ({access_note(hmi.options)})")
 

@@ -273,6 +273,6 @@ def with_params(cfg: MachineConfig, axis: int, **changes: object) -> MachineConf
     geo_server.model.Sealed; the copy is not, as a test's own machine needs)."""
     from dataclasses import replace
 
-    ax = cfg.axes[axis]
-    axes = {**cfg.axes, axis: replace(ax, params=replace(ax.params, **changes))}
-    return replace(cfg, axes=axes)
+    from geo_server.model import with_axis_params
+
+    return with_axis_params(cfg, {axis: replace(cfg.axes[axis].params, **changes)})

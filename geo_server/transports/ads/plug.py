@@ -59,9 +59,6 @@ class Ads(Interface):
             "environment's GEO_SERVER_ADS_ROUTE_PASSWORD)",
         )
 
-    def enabled(self, args: argparse.Namespace) -> bool:
-        return not args.no_ads
-
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:
         from geo_server.transports.ads.options import AdsOptions
 
@@ -79,7 +76,7 @@ class Ads(Interface):
     ) -> Startable:
         from geo_server.transports.ads.server import AdsServer
 
-        more = {"max_connections": caps["ads"]} if "ads" in caps else {}
+        more = self.cap(caps)
         ads = AdsServer(service, _options(args, args.ads_netid, listener=True, **more))
 
         def line() -> str:

@@ -49,9 +49,6 @@ class Modbus(Interface):
         mm.add_argument("--format", choices=("md", "csv"), default="md")
         mm.set_defaults(func=_modbus_map)
 
-    def enabled(self, args: argparse.Namespace) -> bool:
-        return not args.no_modbus
-
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:
         from geo_server.transports.modbus.server import ModbusOptions
 
@@ -69,7 +66,7 @@ class Modbus(Interface):
     ) -> Startable:
         from geo_server.transports.modbus.server import ModbusInterface
 
-        more = {"max_connections": caps["modbus"]} if "modbus" in caps else {}
+        more = self.cap(caps)
         mb = ModbusInterface(service, _options(args, args.modbus_port, **more))
         return Startable(
             mb, lambda: f"modbus: tcp://{mb.endpoint} (unit id = axis number, unit 0 = machine)"

@@ -90,9 +90,6 @@ class OpcUa(Interface):
             return str(exc)
         return None
 
-    def enabled(self, args: argparse.Namespace) -> bool:
-        return not args.no_opcua
-
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:
         from geo_server.transports.opcua.server import OpcUaOptions
 

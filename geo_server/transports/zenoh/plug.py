@@ -58,9 +58,6 @@ class Zenoh(Interface):
         z.add_argument("--zenoh-scouting", action="store_true", help="enable multicast scouting")
         z.add_argument("--zenoh-read-only", action="store_true", help="reject Zenoh writes")
 
-    def enabled(self, args: argparse.Namespace) -> bool:
-        return not args.no_zenoh
-
     def wants(self, args: argparse.Namespace, machines: int | None) -> Wants:
         from geo_server.transports.zenoh.options import ZenohOptions
 

@@ -658,6 +658,12 @@ def test_plc_retries_through_a_cycle_overrun():
         try:
             assert client.read("TEMPC::coefficient", 1) == COEFFICIENT_X
             service.faults.inject("cycle:overrun=800,count=1,every=1")
+            # the overrun under way before the first write (a status is an observation:
+            # the engine catches up to the cycle that overruns); else, on a busy host, the
+            # write could land in the cycle before it and pass at its first attempt
+            deadline = time.monotonic() + 10
+            while service.status()["overruns"] == 0 and time.monotonic() < deadline:
+                time.sleep(0.001)
             ad = _adapter(client, retries=6, retry_delay=0.2, sleep=time.sleep)
             r = ad.tick(0.0)
         finally:

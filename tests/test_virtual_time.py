@@ -337,6 +337,40 @@ def test_a_machine_at_rest_far_behind_is_skipped_not_given_up(cfg) -> None:
     assert m.overruns == 1 and sched.skipped > 0
 
 
+def test_a_machine_settled_after_a_stall_publishes_what_its_observers_want(cfg) -> None:
+    """Far behind, a freshly homed machine computes the cycles that make it quiescent
+    before it skips the rest (above) — and those cycles are published like any other
+    to an observer of every cycle (ADS cyclic notifications in the cycle process) and
+    to one of chosen cycles: a cyclic stream keeps no gap. (Before, the settling cycles
+    were computed unpublished: a notification every 3 cycles, its cycle process held 60
+    ms by a busy host, sampled cycles 26, 29, 32, 37.)"""
+    vc, m, sched = driven(cfg)
+    seen: list[int] = []
+    m.subscribe(lambda snap: seen.append(snap.cycle))
+    release = sched.demand_every_cycle()
+    vc.t += 1500 * P + P // 2
+    sched.sync()
+    assert (m.cycle, m.overruns) == (1500, 0)
+    assert seen == list(range(1, 1501))
+    release()
+
+    class EveryThird:  # a `CycleDemand`: cycles 3, 6, 9, ... (at rest too)
+        def wants(self, cycle: int, quiescent: bool) -> bool:
+            return cycle % 3 == 0
+
+        def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+            return cycle + 3 - cycle % 3
+
+    vc, m, sched = driven(cfg)
+    seen.clear()
+    m.subscribe(lambda snap: seen.append(snap.cycle))
+    sched.demand_cycles(EveryThird())
+    vc.t += 1500 * P + P // 2
+    sched.sync()
+    assert (m.cycle, m.overruns) == (1500, 0)
+    assert [c for c in seen if c % 3 == 0] == list(range(3, 1501, 3))
+
+
 def _moving_and_behind(vc: VirtualClock, m: Machine, sched: Scheduler, cycles: int) -> None:
     """X set moving to 100 mm (a second at 100 mm/s), two cycles on, then the clock
     `cycles` periods ahead and one catch-up."""

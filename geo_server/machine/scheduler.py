@@ -666,8 +666,15 @@ class Scheduler:
         # only the last cycle of the batch is looked at (and every one while
         # someone samples every cycle, and those an observer wants): the others
         # need not build their snapshot
-        wanted = bool(demands) and not every and self._demanded(before + 1, False)
-        if not self._computed_cycle(bool(every) or wanted or (publish and m.cycle + 1 == target)):
+        return self._computed_observed(publish and m.cycle + 1 == target)
+
+    def _computed_observed(self, publish: bool = False) -> bool:
+        """`_computed_cycle`, published when `publish` or when an observer wants the cycle:
+        someone samples every cycle, or a `CycleDemand` wants it (counted in
+        `demanded`)."""
+        wanted = not self._every and bool(self._demands)
+        wanted = wanted and self._demanded(self.machine.cycle + 1, False)
+        if not self._computed_cycle(bool(self._every) or wanted or publish):
             return False
         if wanted:
             self.demanded += 1
@@ -696,9 +703,12 @@ class Scheduler:
         if lag > self.max_lag and not m.quiescent and m.standing():
             # standing but not yet quiescent (its first cycles: a fleet starting a
             # hundred machines at once leaves some of them a second behind): the few
-            # cycles that make it quiescent, then the rest is skipped — no overrun
+            # cycles that make it quiescent, then the rest is skipped — no overrun; each
+            # published if an observer wants it, as every computed cycle is
             for _ in range(SETTLE_CYCLES):
-                if m.quiescent or m.cycle >= target or not self._computed_cycle(False):
+                if m.quiescent or m.cycle >= target:
+                    break
+                if not self._computed_observed():
                     break
             lag = target - m.cycle
         if lag > self.max_lag and not m.quiescent:

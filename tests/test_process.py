@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -112,6 +113,48 @@ def test_acknowledged_write_is_in_the_snapshot_and_ramps(remote):
     st = svc.status()
     assert st["cycle_in"] == "process" and st["mode"] == "realtime"
     assert st["cycle"] >= cycle + 25 and st["cycle_pid"] not in (None, os.getpid())
+
+
+@pytest.mark.slow
+def test_every_cycle_arrives_from_the_moment_the_demand_returns(remote, monkeypatch):
+    """A demand of every cycle (ADS notifications, a recording, `subscribe_changes`) is in
+    force when `demand_every_cycle` returns, however late its message reaches the cycle
+    process: from the snapshot the server holds then on, every cycle arrives. Here the
+    message is held 50 ms on its way (the sender thread on a busy host) while reads wake
+    the cycle process; before, the demand returned at once and the cycles in between
+    arrived only where a read looked (an ADS stream every 3 cycles got 44, 50, 55)."""
+    machine, sched, _svc = remote
+    send = machine.control
+
+    def late(message: tuple) -> None:
+        if message[0] == "every":
+            threading.Timer(0.05, send, (message,)).start()
+        else:
+            send(message)
+
+    monkeypatch.setattr(machine, "control", late)
+    seen: list[int] = []
+    machine.subscribe(lambda snap: seen.append(snap.cycle))
+    done = threading.Event()
+
+    def reads() -> None:
+        while not done.is_set():
+            sched.sync()
+            time.sleep(0.002)
+
+    reader = threading.Thread(target=reads)
+    reader.start()
+    try:
+        time.sleep(0.01)
+        release = sched.demand_every_cycle()
+        first = machine.snapshot.cycle
+        wait_cycle(machine, first + 100)
+    finally:
+        done.set()
+        reader.join()
+    release()
+    after = [c for c in seen if c >= first]
+    assert after == list(range(first, after[-1] + 1))
 
 
 @pytest.mark.slow

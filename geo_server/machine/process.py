@@ -101,6 +101,7 @@ class _ChildChannel:
         "acks",
         "dec",
         "events",
+        "every_seq",
         "exact",
         "fd",
         "held",
@@ -128,6 +129,8 @@ class _ChildChannel:
         self.held: Snapshot | None = None  # exact engine: the newest snapshot not framed yet
         self.sent = -1  # cycle of the last snapshot framed
         self.status_sent = 0  # cycle of the last status
+        #: the server's last every-cycle demand message applied (`ProcessScheduler`)
+        self.every_seq = 0
 
     def on_done(self, seq: int, fut: Future[Any]) -> None:
         ok, payload = _outcome(fut)
@@ -156,7 +159,8 @@ class _ChildChannel:
                 pending = self.machine.submit(op)
                 pending.add_done_callback(functools.partial(self.on_done, seq))
         elif msg[0] == "every":
-            sched._every = int(msg[1])
+            _, count, self.every_seq = msg
+            sched.hold_every(count)
         elif msg[0] == "stop":
             sched.request_stop()
 
@@ -172,6 +176,7 @@ class _ChildChannel:
             status,
             snap.stamp,
             self.sched.t0,
+            self.every_seq,
         )
 
     def on_cycle(self, snap: Snapshot) -> None:
@@ -183,12 +188,12 @@ class _ChildChannel:
             status = sched.status()
             self.status_sent = snap.cycle
         quiet = not self.acks and not self.events and status is None
-        if self.exact and quiet and not sched._every:
+        if self.exact and quiet and not sched.every_held:
             # framed once the batch is done (`wait`), unless a newer one comes first
             self.held = snap
             return
         self.held = None
-        self.out.add(self.frame(snap, status), droppable=quiet and not sched._every)
+        self.out.add(self.frame(snap, status), droppable=quiet and not sched.every_held)
         self.sent = snap.cycle
         self.acks.clear()
         self.events.clear()
@@ -365,6 +370,9 @@ class RemoteMachine:
         self.t0 = 0
         #: notified whenever a frame arrives (`ProcessScheduler.sync` waits on it)
         self.arrived = threading.Condition()
+        #: the last every-cycle demand message the cycle process had applied when it sent
+        #: the newest frame (`ProcessScheduler.demand_every_cycle`)
+        self.every_seq = 0
         self._outbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
         self._backlog = 0  # bytes queued for the child and not written yet
         self._sender = threading.Thread(target=self._send_loop, name="geo-cycle-send", daemon=True)
@@ -483,7 +491,7 @@ class RemoteMachine:
                     )
 
     def _dispatch(self, msg: tuple[Any, ...]) -> None:
-        _, cycle, values, machine, texts, acks, events, status, stamp, t0 = msg
+        _, cycle, values, machine, texts, acks, events, status, stamp, t0, every_seq = msg
         self.t0 = t0
         # Events first, as in the cycle itself (an event is recorded while its cycle runs,
         # before that cycle's snapshot is published): whoever sees the snapshot of a program
@@ -502,6 +510,7 @@ class RemoteMachine:
             stamp,
         )
         self.snapshot_time = self.heartbeat = time.monotonic()
+        self.every_seq = every_seq  # (after the snapshot: whoever sees it holds that one)
         self.first_frame.set()
         with self.arrived:
             self.arrived.notify_all()
@@ -554,6 +563,7 @@ class ProcessScheduler:
         self.mode = mode
         self.engine = engine
         self._every = 0
+        self._every_seq = 0  # the last every-cycle demand message sent (`demand_every_cycle`)
         self._every_lock = threading.Lock()
         self.sync_stats = CycleStats(2000)  # what waiting for the cycle process added (µs)
         self.max_cycles = max_cycles
@@ -658,11 +668,19 @@ class ProcessScheduler:
         return self.machine.submit(op, self.due() if self.exact else 0)
 
     def demand_every_cycle(self) -> Callable[[], None]:
-        """`Scheduler.demand_every_cycle`, told to the cycle process."""
+        """`Scheduler.demand_every_cycle`, told to the cycle process — and in force when
+        this returns: the snapshot the server holds then, and every later one, was
+        published while the cycle process knew of it (`_in_force`)."""
+        m = self.machine
+        seq = 0
         with self._every_lock:
             self._every += 1
             if self._every == 1:
-                self.machine.control(("every", 1))
+                self._every_seq += 1
+                seq = self._every_seq
+                m.control(("every", 1, seq))
+        if seq:
+            self._in_force(seq)
         released = False
 
         def release() -> None:
@@ -673,9 +691,24 @@ class ProcessScheduler:
                 released = True
                 self._every -= 1
                 if self._every == 0:
-                    self.machine.control(("every", 0))
+                    self._every_seq += 1
+                    m.control(("every", 0, self._every_seq))
 
         return release
+
+    def _in_force(self, seq: int) -> None:
+        """Wait (at most `SYNC_WAIT`) for a frame sent after the cycle process applied the
+        every-cycle demand `seq`. Until then it published only the cycles someone looked
+        at: an ADS registration sampled from such a snapshot found its next cycles
+        missing (a cyclic stream every 3 cycles with 44, 50, 55 on a busy host, the
+        demand's message a few milliseconds late). It answers with its next cycle's
+        frame (`Scheduler.hold_every`). A cycle process that is silent (`SYNC_DEAD`) is
+        not waited for."""
+        m = self.machine
+        if not self.running or time.monotonic() - m.snapshot_time > SYNC_DEAD:
+            return
+        with m.arrived:  # (the message itself wakes a sleeping cycle process)
+            m.arrived.wait_for(lambda: m.every_seq >= seq or m.closed, SYNC_WAIT)
 
     def status(self) -> dict[str, Any]:
         st = dict(self.machine.status)

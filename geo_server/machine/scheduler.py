@@ -550,6 +550,20 @@ class Scheduler:
 
         return release
 
+    @property
+    def every_held(self) -> bool:
+        """Someone samples every cycle (`demand_every_cycle`, `hold_every`)."""
+        return self._every > 0
+
+    def hold_every(self, count: int) -> None:
+        """The cycle process: its server holds `count` every-cycle demands (that
+        server's `demand_every_cycle`), set here, not counted. A demand that begins is
+        served from the next cycle on, not a batch later: the server waits for it."""
+        with self._every_lock:
+            self._every = count
+        if count:
+            self._observed_at = self._clock()
+
     def demand_cycles(self, demand: CycleDemand) -> Callable[[], None]:
         """An observer needs the snapshots of the cycles `demand` wants (ADS
         notifications, docs/design.md §13): until the returned function is called, the

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
 import signal
 import struct
 import subprocess
@@ -426,6 +427,52 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
                 frozen[0] = None  # the clock runs, the share fills again
                 assert (await waiting)[0].Value.Value == 4000.0
                 assert (await first_held)[0].Value.Value == 4000.0
+        finally:
+            await iface.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+
+
+def test_publishing_draws_on_the_share_of_notifications(service: ObjectService) -> None:
+    """A subscription's Publish responses draw on OPC UA's share for notifications
+    (guard.py `_metered_publishing`): while that share is used up, its clock standing
+    still, no response goes out; once the clock moves on, the item's newest value does.
+    The item watches `i=2258` (CurrentTime), which asyncua itself writes every second,
+    so only the publishing is held here, not our sampling. Before, Publish responses
+    drew on nothing: 1 000 items on a value changing every cycle, published every 10 ms,
+    kept the OPC UA thread busy without a pause (bench/opcua_attacks.py `items`)."""
+    frozen: list[float | None] = [None]
+
+    def clock() -> float:
+        return time.monotonic() if frozen[0] is None else frozen[0]
+
+    share = LoopShare(rate=0.1, burst=0.002, clock=clock)
+
+    async def scenario() -> None:
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
+        iface = OpcUaInterface({"local": service}, options, notify_share=share)
+        await iface.start()
+        got: asyncio.Queue[Any] = asyncio.Queue()
+
+        class Handler:
+            def datachange_notification(self, _node: Any, value: Any, _data: Any) -> None:
+                got.put_nowait(value)
+
+        try:
+            async with Client(iface.endpoint, timeout=10) as c:
+                sub = await c.create_subscription(50, Handler())
+                now = c.get_node(ua.NodeId(ua.ObjectIds.Server_ServerStatus_CurrentTime))
+                await sub.subscribe_data_change(now)
+                await asyncio.wait_for(got.get(), 5)  # (its value when made)
+                last = await asyncio.wait_for(got.get(), 5)  # (written a second later)
+                frozen[0] = clock()
+                share.charge(share.burst + 0.001)  # used up, 10 ms of the clock short
+                holds = share.holds
+                await asyncio.sleep(2.5)  # two writes of CurrentTime, fifty periods
+                assert got.empty() and share.holds > holds
+                frozen[0] = None
+                newest = await asyncio.wait_for(got.get(), 5)
+                assert newest > last + datetime.timedelta(seconds=1.5)
         finally:
             await iface.close()
 

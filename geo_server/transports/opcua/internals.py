@@ -154,6 +154,13 @@ RELIED_ON: dict[str, str] = {
     "asyncua.server.internal_subscription:InternalSubscription.enqueue_datachange_event": (
         "83acd6e086d9b1c9a22db83708576fb56fd61d42c85b0ade5c9c75d7650c1928"
     ),
+    # (guard.py: each period's publishing looked up on the instance, and hooked there)
+    "asyncua.server.internal_subscription:InternalSubscription.publish_results": (
+        "61ce721eff3735ea0af1220d5e9b8691fb05a99bb488685fec4ff3cf88ad3818"
+    ),
+    "asyncua.server.internal_subscription:InternalSubscription._subscription_loop": (
+        "3a0267cf3db3e20ff3f084539e6b427c006ff72c81ff20071c6e995952781f00"
+    ),
 }
 
 

@@ -365,11 +365,12 @@ class OpcUaInterface:
         shares: Mapping[str, LoopShare] | None = None,
         *,
         loop_share: LoopShare | None = None,
+        notify_share: LoopShare | None = None,
     ) -> None:
         """`services`: machine name -> its object service; `shares` (a fleet's): machine
         name -> its share of the event loop, whose rate its share of OPC UA's thread
-        takes (`machine_shares`, `metering.py`); `loop_share`: OPC UA's own (default: of
-        the options)."""
+        takes (`machine_shares`, `metering.py`); `loop_share`, `notify_share`: OPC UA's
+        own, for its requests and for its notifications (default: of the options)."""
         self.services = dict(services)
         self.options = options or OpcUaOptions()
         opts = self.options
@@ -384,8 +385,9 @@ class OpcUaInterface:
             m: LoopShare(min(s.rate, most), s.burst, s.clock) for m, s in (shares or {}).items()
         }
         self.meter = RequestMeter(self.loop_share, self.machine_shares)
-        #: the share of its notifications (as much again, a bucket of its own)
-        self.notify_share = LoopShare(opts.loop_share, opts.loop_burst_s)
+        #: the share of its notifications, sampled and published (as much again, a
+        #: bucket of its own)
+        self.notify_share = notify_share or LoopShare(opts.loop_share, opts.loop_burst_s)
         self.server: Any = None
         self.port = 0
         self.ns = 0
@@ -497,7 +499,7 @@ class OpcUaInterface:
         self._hook()
         from geo_server.transports.opcua import guard
 
-        guard.guard(server, self.login_throttle)  # (docs/security.md, OPC UA)
+        guard.guard(server, self.login_throttle, self.notify_share)  # (docs/security.md)
         await guard.advertise(
             server,
             {

@@ -13,6 +13,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyads
@@ -121,8 +122,9 @@ def test_every_cycle_arrives_from_the_moment_the_demand_returns(remote, monkeypa
     force when `demand_every_cycle` returns, however late its message reaches the cycle
     process: from the snapshot the server holds then on, every cycle arrives. Here the
     message is held 50 ms on its way (the sender thread on a busy host) while reads wake
-    the cycle process; before, the demand returned at once and the cycles in between
-    arrived only where a read looked (an ADS stream every 3 cycles got 44, 50, 55)."""
+    the cycle process, and a second demand is made meanwhile; before, a demand returned
+    at once and the cycles in between arrived only where a read looked (an ADS stream
+    every 3 cycles got 44, 50, 55)."""
     machine, sched, _svc = remote
     send = machine.control
 
@@ -142,17 +144,28 @@ def test_every_cycle_arrives_from_the_moment_the_demand_returns(remote, monkeypa
             sched.sync()
             time.sleep(0.002)
 
+    demands: dict[str, tuple[Any, int]] = {}
+
+    def demand(who: str) -> None:
+        release = sched.demand_every_cycle()
+        demands[who] = (release, machine.snapshot.cycle)
+
     reader = threading.Thread(target=reads)
     reader.start()
     try:
         time.sleep(0.01)
-        release = sched.demand_every_cycle()
-        first = machine.snapshot.cycle
+        first_one = threading.Thread(target=demand, args=("first",))
+        first_one.start()
+        time.sleep(0.01)
+        demand("second")  # while the first one's message is on its way
+        first_one.join()
+        first = min(cycle for _release, cycle in demands.values())
         wait_cycle(machine, first + 100)
     finally:
         done.set()
         reader.join()
-    release()
+    for release, _cycle in demands.values():
+        release()
     after = [c for c in seen if c >= first]
     assert after == list(range(first, after[-1] + 1))
 

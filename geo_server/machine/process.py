@@ -564,6 +564,7 @@ class ProcessScheduler:
         self.engine = engine
         self._every = 0
         self._every_seq = 0  # the last every-cycle demand message sent (`demand_every_cycle`)
+        self._every_on = 0  # the last one of them that began a demand
         self._every_lock = threading.Lock()
         self.sync_stats = CycleStats(2000)  # what waiting for the cycle process added (µs)
         self.max_cycles = max_cycles
@@ -672,15 +673,14 @@ class ProcessScheduler:
         this returns: the snapshot the server holds then, and every later one, was
         published while the cycle process knew of it (`_in_force`)."""
         m = self.machine
-        seq = 0
         with self._every_lock:
             self._every += 1
             if self._every == 1:
                 self._every_seq += 1
-                seq = self._every_seq
-                m.control(("every", 1, seq))
-        if seq:
-            self._in_force(seq)
+                self._every_on = self._every_seq
+                m.control(("every", 1, self._every_on))
+            seq = self._every_on  # (a second demand waits for the first one's message too)
+        self._in_force(seq)
         released = False
 
         def release() -> None:

@@ -686,9 +686,10 @@ class Scheduler:
         """`_computed_cycle`, published when `publish` or when an observer wants the cycle:
         someone samples every cycle, or a `CycleDemand` wants it (counted in
         `demanded`)."""
-        wanted = not self._every and bool(self._demands)
+        every = self._every  # (once: another thread's demand may end meanwhile)
+        wanted = not every and bool(self._demands)
         wanted = wanted and self._demanded(self.machine.cycle + 1, False)
-        if not self._computed_cycle(bool(self._every) or wanted or publish):
+        if not self._computed_cycle(bool(every) or wanted or publish):
             return False
         if wanted:
             self.demanded += 1

@@ -433,18 +433,25 @@ def test_opcua_work_draws_on_its_share_of_the_loop(service: ObjectService) -> No
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
 
 
-def test_publishing_draws_on_the_share_of_notifications(service: ObjectService) -> None:
+def test_publishing_draws_on_the_share_of_notifications(
+    service: ObjectService, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A subscription's Publish responses draw on OPC UA's share for notifications
-    (guard.py `_metered_publishing`): while that share is used up, its clock standing
-    still, no response goes out; once the clock moves on, the item's newest value does.
-    The item watches `i=2258` (CurrentTime), which asyncua itself writes every second,
-    so only the publishing is held here, not our sampling. Before, Publish responses
-    drew on nothing: 1 000 items on a value changing every cycle, published every 10 ms,
-    kept the OPC UA thread busy without a pause (bench/opcua_attacks.py `items`)."""
+    (guard.py `_metered_publishing`): while that share is used up no response goes out,
+    then the item's newest value does — and however long it stays used up, a
+    subscription publishes again `PUBLISH_HOLD_MAX` after its last publish (the share
+    is everyone's: one that publishes seldom does not wait for a flood's turn). The item
+    watches `i=2258` (CurrentTime), which asyncua itself writes every second, so only
+    the publishing is held here, not our sampling. The share is used up by setting its
+    clock 2 s back and holding it there (its only writer stays the OPC UA thread).
+    Before, Publish responses drew on nothing: 1 000 items on a value changing every
+    cycle, published every 10 ms, kept the OPC UA thread busy without a pause
+    (bench/opcua_attacks.py `items`)."""
     frozen: list[float | None] = [None]
 
     def clock() -> float:
-        return time.monotonic() if frozen[0] is None else frozen[0]
+        at = frozen[0]
+        return time.monotonic() if at is None else at
 
     share = LoopShare(rate=0.1, burst=0.002, clock=clock)
 
@@ -465,14 +472,21 @@ def test_publishing_draws_on_the_share_of_notifications(service: ObjectService) 
                 await sub.subscribe_data_change(now)
                 await asyncio.wait_for(got.get(), 5)  # (its value when made)
                 last = await asyncio.wait_for(got.get(), 5)  # (written a second later)
-                frozen[0] = clock()
-                share.charge(share.burst + 0.001)  # used up, 10 ms of the clock short
+                # held as long as the share is used up
+                monkeypatch.setattr(guard, "PUBLISH_HOLD_MAX", 60.0)
                 holds = share.holds
+                frozen[0] = time.monotonic() - 2.0  # 0.2 s of the share short
                 await asyncio.sleep(2.5)  # two writes of CurrentTime, fifty periods
                 assert got.empty() and share.holds > holds
                 frozen[0] = None
                 newest = await asyncio.wait_for(got.get(), 5)
                 assert newest > last + datetime.timedelta(seconds=1.5)
+                # at most `PUBLISH_HOLD_MAX` (0.5 s) after the last publish, used up or not
+                monkeypatch.undo()
+                frozen[0] = time.monotonic() - 2.0
+                holds = share.holds
+                after = await asyncio.wait_for(got.get(), 5)
+                assert after > newest and share.holds > holds
         finally:
             await iface.close()
 

@@ -68,6 +68,9 @@ MAX_UNACKED = 64
 #: the shortest publishing interval (ms) a subscription gets (asyncua granted 0: a
 #: publish loop that never sleeps)
 MIN_PUBLISHING_MS = 10.0
+#: the longest (seconds) a subscription's publishing waits for OPC UA's share of
+#: notifications (`_metered_publishing`): twice a second at least, whatever the others do
+PUBLISH_HOLD_MAX = 0.5
 _MESSAGE_TYPES = (b"HEL", b"OPN", b"MSG", b"CLO")
 _NONE_POLICY = "http://opcfoundation.org/UA/SecurityPolicy#None"
 
@@ -297,19 +300,26 @@ def _metered_publishing(sub: Any, share: LoopShare) -> None:
     notifications (`OpcUaOptions.loop_share`; its sampling draws on it too). Building and
     sending a Publish response is asyncua's pure Python, about 10 µs a notification: 1 000
     items on a value that changes every cycle, published every 10 ms, kept its thread
-    busy without a pause, and the other interfaces' p99 rose fourfold (issue 44). A
-    period that finds the share used up publishes nothing; each item keeps its newest
-    notifications (up to its queue size) for the next period that publishes, so the
-    client gets fewer, fuller responses, nothing lost but what the queue size drops
-    anyway. A response to a Publish request that waited for results (`requestdata`) is
-    that request's, charged to the request meter (`GuardedProtocol`)."""
+    busy without a pause (issue 44). A period that finds the share used up publishes
+    nothing, unless the subscription's last period that did is `PUBLISH_HOLD_MAX` ago:
+    the share is everyone's, and a subscription that publishes seldom (an HMI's, every
+    second) must not wait for a flooding one's turn — nor a keep-alive for long. Held
+    items keep their newest notifications, as many as their queue size (a queue of one:
+    the newest value). A response to a Publish request that waited for results
+    (`requestdata`) is that request's, charged to the request meter (`GuardedProtocol`).
+    asyncua calls `publish_results` without a request only from the periodic loop and
+    from `_trigger_publish`, which publishes only for an interval of 0 (never here:
+    `MIN_PUBLISHING_MS`)."""
     publish = sub.publish_results
+    last = [time.monotonic()]
 
     async def publish_results(requestdata: Any = None) -> bool:
         if requestdata is not None:
             return bool(await publish(requestdata))
-        if share.wait() > 0.0:
+        now = time.monotonic()
+        if share.wait() > 0.0 and now - last[0] < PUBLISH_HOLD_MAX:
             return False
+        last[0] = now
         began = time.thread_time()
         try:
             return bool(await publish())

@@ -161,6 +161,12 @@ RELIED_ON: dict[str, str] = {
     "asyncua.server.internal_subscription:InternalSubscription._subscription_loop": (
         "3a0267cf3db3e20ff3f084539e6b427c006ff72c81ff20071c6e995952781f00"
     ),
+    "asyncua.server.internal_subscription:InternalSubscription._trigger_publish": (
+        "ef1353aab64eccc0e08e6648c12a3b3bf4612f15519e0f8a42caf03da834dba6"
+    ),
+    "asyncua.server.uaprocessor:UaProcessor.forward_publish_response": (
+        "9e380500dd66b1721a6c54b22293c6e54bb2b5603d99491eadf6f3be54900f10"
+    ),
 }
 
 

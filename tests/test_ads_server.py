@@ -468,6 +468,40 @@ def test_cycle_hand_offs_are_coalesced_and_every_cycle_is_sampled(
     plc.del_device_notification(*handles)
 
 
+def test_failed_registrations_ask_the_engine_for_cycles_once(
+    plc, service, loop_thread, monkeypatch
+) -> None:
+    """The cycles the registrations want are asked of the engine with the first one and
+    given back `DEMAND_LINGER_S` after the last one went. With the cycle in its own
+    process a new demand waits for the child's next frame (on the event loop): before,
+    each AddNotification of a client whose registrations failed one after another (an
+    unknown object, 0x703) asked and gave back again, a round trip to the child each."""
+    from geo_server.transports.ads import sampling
+
+    monkeypatch.setattr(sampling, "DEMAND_LINGER_S", 0.2, raising=False)
+    asked: list[object] = []
+    released: list[object] = []
+    demand_cycles = service.demand_cycles
+
+    def counted(demand=None):
+        asked.append(demand)
+        release = demand_cycles(demand)
+
+        def counted_release() -> None:
+            released.append(demand)
+            release()
+
+        return counted_release
+
+    monkeypatch.setattr(service, "demand_cycles", counted)
+    for _ in range(10):
+        with pytest.raises(pyads.ADSError) as err:
+            plc.add_device_notification((GEO, 0x10FFF), pyads.NotificationAttrib(4), lambda *a: 0)
+        assert err.value.err_code == 0x703
+    assert len(asked) == 1
+    assert wait_for(loop_thread, lambda: len(released) == 1)
+
+
 def test_notifications_removed_when_client_disconnects(ads, loop_thread, service) -> None:
     conn = pyads.Connection(next_netid(), 551, ads.address)
     conn.open()

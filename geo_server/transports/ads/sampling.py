@@ -6,6 +6,7 @@ shared fairly between the machines behind one port in rounds of `sample_budget`.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections import deque
 from collections.abc import Callable
@@ -27,6 +28,11 @@ _SAMPLE_STEP = 32
 #: A machine's share of one sampling round is at least this long (seconds), however many
 #: machines have samples waiting: a pass makes progress in every round.
 _MIN_SHARE = 0.0002
+#: How long (seconds) the cycles stay demanded after the last registration went: the
+#: cycle process answers a new demand with its next frame, and the registration that
+#: makes it waits for that (`ProcessScheduler.demand_every_cycle`); a client adding and
+#: deleting (or failing to add) one registration after another waits once, not each time.
+DEMAND_LINGER_S = 1.0
 
 
 def add_notification(
@@ -137,20 +143,42 @@ class Sampler:
         self._pass_cost = 0.0
         # While registrations exist the cycle publishes every cycle's snapshot.
         self._every_cycle: Callable[[], None] | None = None
+        # the demand's end, `DEMAND_LINGER_S` after the last registration went
+        self._linger: asyncio.TimerHandle | None = None
 
     def stop(self) -> None:
         self._pass = None
         self._handed.clear()
         self._ready.clear()
-        self.demand(False)
+        self._release(ended=True)
 
     def demand(self, on: bool) -> None:
         """Ask the engine for the snapshots the registrations want while any exist (the
         exact engine publishes only the cycles someone looks at, docs/design.md §13):
-        this sampler is the `CycleDemand` (`wants`)."""
-        if on and self._every_cycle is None:
-            self._every_cycle = self.dev.service.demand_cycles(self)
-        elif not on and self._every_cycle is not None:
+        this sampler is the `CycleDemand` (`wants`). The demand ends `DEMAND_LINGER_S`
+        after the last registration went (a new one meanwhile keeps it)."""
+        if on:
+            if self._linger is not None:
+                self._linger.cancel()
+                self._linger = None
+            if self._every_cycle is None:
+                self._every_cycle = self.dev.service.demand_cycles(self)
+            return
+        if self._every_cycle is None or self._linger is not None:
+            return
+        loop = self.dev.loop
+        if loop is None or loop.is_closed():
+            self._release()
+        else:
+            self._linger = loop.call_later(DEMAND_LINGER_S, self._release)
+
+    def _release(self, ended: bool = False) -> None:
+        """End the demand: it lingered long enough with no registration, or the server
+        stops (`ended`)."""
+        if self._linger is not None:
+            self._linger.cancel()
+            self._linger = None
+        if self._every_cycle is not None and (ended or not len(self.dev.notifications)):
             self._every_cycle()
             self._every_cycle = None
 

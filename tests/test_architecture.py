@@ -350,7 +350,7 @@ FOREIGN_REFLECTION = {
     ("geo_server.interfaces", "exc"): "any exception; an OSError's errno",
     ("geo_server.client.ads_client", "exc"): "pyads' exceptions",
     ("geo_server.transports.opcua.companions", "module"): "asyncua's modules",
-    ("geo_server.transports.opcua.server", "sub"): "asyncua's subscription, or None",
+    ("geo_server.transports.opcua.monitoring", "sub"): "asyncua's subscription, or None",
     ("geo_server.transports.opcua.internals", "callback"): "asyncua's callbacks",
     ("geo_server.transports.zenoh.server", "status"): "zenoh's MatchingStatus",
     ("geo_clients.hmi", "out"): "a caller's stream, a terminal or not",

@@ -10,9 +10,10 @@ that knows asyncua's internals; tests/test_opcua_internals.py checks that no thi
 of geo_server reaches `iserver`, `aspace`, `_monitored_items` and the like.
 
 `RELIED_ON` holds the sha256 of the source of every asyncua function whose behaviour
-these two modules and server.py depend on, hook or re-implement (`datachange_callback`:
-`server._notify`); tests/test_opcua_internals.py fails on an asyncua where one of them
-changed (or moved), so that each use is looked at again before the pin moves.
+these two modules, server.py and monitoring.py depend on, hook or re-implement
+(`datachange_callback`: `monitoring.Monitoring._notify`); tests/test_opcua_internals.py
+fails on an asyncua where one of them changed (or moved), so that each use is looked at
+again before the pin moves.
 """
 
 from __future__ import annotations
@@ -141,7 +142,7 @@ RELIED_ON: dict[str, str] = {
     "asyncua.server.subscription_service:SubscriptionService.set_monitoring_mode": (
         "226c05d5517c85fa85605f0804018891b71df1c2e25853851f80d23805eefe68"
     ),
-    # server.py: `_notify` does what `datachange_callback` does, without its copy per item
+    # monitoring.py: `_notify` does what `datachange_callback` does, without its copy per item
     "asyncua.server.monitored_item_service:MonitoredItemService.__init__": (
         "6179ce8fbf4dddb33e19f3e5f16b19345e529e2771cd7a87c37814f8b8dd0238"
     ),
@@ -168,6 +169,15 @@ RELIED_ON: dict[str, str] = {
         "9e380500dd66b1721a6c54b22293c6e54bb2b5603d99491eadf6f3be54900f10"
     ),
 }
+
+
+def ua() -> Any:
+    """asyncua's `ua` module (its public types), imported when first needed: server.py
+    and monitoring.py import without asyncua. Typed as Any: its stubs type numbers as
+    NewTypes (`Int16`, `UInt32`) that plain ints do not satisfy."""
+    from asyncua import ua as module
+
+    return module
 
 
 def source_hash(where: str) -> str:

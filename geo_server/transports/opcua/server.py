@@ -37,15 +37,12 @@ import hmac
 import importlib
 import json
 import logging
-import math
 import os
 import re
 import socket
 import threading
-import time
-from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -54,21 +51,15 @@ from geo_server.aio import LoopThread, nice_this_thread, on_loop
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
-from geo_server.service import ObjectService, is_command, varies_at_rest
+from geo_server.service import ObjectService, is_command
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua import cnc, companions, internals, machinetool
 from geo_server.transports.opcua.cnc import Live
 from geo_server.transports.opcua.endpoint import parse_endpoint
-from geo_server.transports.opcua.items import (
-    STATUS_VALUE_TIMESTAMP,
-    ItemRule,
-    Sample,
-    cycles_of,
-    rule_for,
-    same,
-)
+from geo_server.transports.opcua.internals import ua as _ua
 from geo_server.transports.opcua.logins import LoginThrottle
 from geo_server.transports.opcua.metering import RequestMeter
+from geo_server.transports.opcua.monitoring import FILETIME_EPOCH, Monitoring, Var
 from geo_server.transports.opcua.space import (
     APPLICATION_URI,
     AXES,
@@ -109,10 +100,6 @@ PRODUCT_NAME = MANUFACTURER = "geo-server"
 TYPE_MISMATCH = "BadTypeMismatch"
 #: Status of a write or method call on a read-only interface.
 READ_ONLY = "BadUserAccessDenied"
-#: Snapshots waiting to be sampled, per machine, while the loop is behind; older ones
-#: are dropped (counted in `late_samples`).
-SAMPLE_QUEUE = 256
-_FILETIME_EPOCH = dt.datetime(1601, 1, 1, tzinfo=dt.UTC)
 
 
 def probe_port(host: str, port: int) -> None:
@@ -124,14 +111,6 @@ def probe_port(host: str, port: int) -> None:
         if os.name == "posix":  # as asyncio's create_server, which listens afterwards
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(address)
-
-
-def _ua() -> Any:
-    """asyncua's `ua` module, imported when first needed. Typed as Any: its stubs type
-    numbers as NewTypes (`Int16`, `UInt32`) that plain ints do not satisfy."""
-    from asyncua import ua
-
-    return ua
 
 
 def quiet_library() -> None:
@@ -151,7 +130,7 @@ def status_name(exc: AdsError) -> str:
 
 def source_time(snap: Snapshot) -> dt.datetime:
     """The cycle's place on the time line (`Snapshot.stamp`, FILETIME) as UTC time."""
-    return _FILETIME_EPOCH + dt.timedelta(microseconds=snap.stamp // 10)
+    return FILETIME_EPOCH + dt.timedelta(microseconds=snap.stamp // 10)
 
 
 @contextlib.contextmanager
@@ -192,10 +171,6 @@ HOST_WAIT_S = 0.5
 #: thread to end (SIGTERM ends the server within 2 s whatever its clients do: the
 #: guard aborts their connections, `guard.stop`)
 CLOSE_WAIT_S = 0.75
-
-#: monitored items notified of one value before the loop's other work runs (a thousand
-#: items of one variable took 30-40 ms in one go)
-NOTIFY_SLICE = 64
 
 
 @dataclass
@@ -259,102 +234,6 @@ class OpcUaOptions:
         return parse_endpoint(self.endpoint)
 
 
-@dataclass
-class _Var:
-    """A variable node of one machine and its sampling state: an object of the
-    dictionary (`spec`), or a read-only variable of a companion model computed from
-    objects (`live`, `cnc.py`)."""
-
-    spec: VariableSpec | None
-    service: ObjectService
-    machine: str
-    node_id: Any  # ua.NodeId
-    vtype: Any = None  # ua.VariantType of its values
-    attval: Any = None  # asyncua's AttributeValue of its Value (the items' callbacks)
-    live: Live | None = None
-    monitors: int = 0
-    #: its items' sampling intervals (cycles) -> how many items sample at each
-    rates: dict[int, int] = field(default_factory=dict)
-    #: sampling interval -> the value sampled last at it (`_notify_snapshot`)
-    lasts: dict[int, Any] = field(default_factory=dict)
-    #: items notified on every sample, changed or not (trigger StatusValueTimestamp)
-    stamped: int = 0
-
-    def value(self, snap: Snapshot) -> Any:
-        """Its value in the cycle of `snap`."""
-        if self.live is not None:
-            return self.live.read(snap)
-        assert self.spec is not None
-        return snap.value(self.spec.obj, self.spec.axis)
-
-    @property
-    def readable(self) -> bool:
-        return self.spec.readable if self.spec is not None else True
-
-    @property
-    def ua_type(self) -> str:
-        return self.spec.ua_type if self.spec is not None else self._live().ua_type
-
-    @property
-    def eu_range(self) -> tuple[float, float] | None:
-        return self.spec.eu_range if self.spec is not None else None
-
-    @property
-    def numeric(self) -> bool:
-        """A number a deadband applies to (Part 4 §7.22.2: not a flag, a text, an
-        enumeration or a structure)."""
-        if self.spec is not None:
-            return self.spec.ua_type not in ("Boolean", "String")
-        return self._live().number
-
-    @property
-    def at_rest(self) -> bool:
-        """Whether it can change while the machine rests (`varies_at_rest`)."""
-        if self.spec is not None:
-            return varies_at_rest(self.spec.obj)
-        return any(varies_at_rest(o) for o in self._live().sources)
-
-    def _live(self) -> Live:
-        assert self.live is not None
-        return self.live
-
-    @property
-    def every(self) -> int:
-        """Sampled every `every` cycles: each of its items' intervals is a multiple."""
-        return math.gcd(*self.rates) if self.rates else 1
-
-    def count(self, rule: ItemRule, delta: int) -> None:
-        """An item of `rule` added (+1) or removed (-1); the samples at its interval
-        are compared afresh (a new item's first value was read, not sampled)."""
-        left = self.rates.get(rule.every, 0) + delta
-        if left > 0:
-            self.rates[rule.every] = left
-        else:
-            self.rates.pop(rule.every, None)
-        self.lasts.pop(rule.every, None)
-        self.stamped += delta if rule.trigger == STATUS_VALUE_TIMESTAMP else 0
-
-
-class _Demand:
-    """The cycles the monitored variables of one machine need (the engine's
-    `CycleDemand`, docs/design.md §13): every `step`-th cycle, and while the machine is at
-    rest only when one of them can change at rest (`geo_server.service.varies_at_rest`):
-    the others cannot change then, so there is nothing to notify. Called on the engine's
-    thread: it only reads two fields the loop sets."""
-
-    def __init__(self) -> None:
-        self.step = 1
-        self.at_rest = False
-
-    def wants(self, cycle: int, quiescent: bool) -> bool:
-        return cycle % self.step == 0 and (self.at_rest or not quiescent)
-
-    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
-        if quiescent and not self.at_rest:
-            return None
-        return (cycle // self.step + 1) * self.step
-
-
 class OpcUaInterface:
     """Serve the objects of one machine, or of every machine of a fleet, over OPC UA."""
 
@@ -393,7 +272,7 @@ class OpcUaInterface:
         self.ns = 0
         #: the companion models' namespace indexes (CNC, Machine Tool, Machinery)
         self.cnc_ns = self.mt_ns = self.machinery_ns = 0
-        self._vars: dict[Any, _Var] = {}
+        self._vars: dict[Any, Var] = {}
         #: copied machines whose nodes are still to be made: name -> (template, its
         #: service, its shape) (`_materialize`; asyncua's loop's)
         self._pending: dict[str, tuple[str, ObjectService, Any]] = {}
@@ -413,16 +292,15 @@ class OpcUaInterface:
         self._unwatch: list[Callable[[], None]] = []
         self._generators: dict[str, Any] = {}
         self._sending: set[asyncio.Future[None]] = set()
-        self._handles: dict[int, Any] = {}  # datachange callback handle -> node id
-        #: datachange callback handle -> the rule of its item (`items.py`)
-        self._rules: dict[int, ItemRule] = {}
-        self._hold: dict[str, Callable[[], None]] = {}
-        self._queue: dict[str, deque[Snapshot]] = {}
-        self._demands: dict[str, _Demand] = {}
-        self._watched: dict[str, list[_Var]] = {}
-        self._drain: asyncio.Task[None] | None = None
-        self._woken = False  # a `_wake` is on its way to the loop
-        self._stamped: tuple[Any, dt.datetime] = (None, _FILETIME_EPOCH)
+        #: the monitored items of our variables and their sampling (monitoring.py)
+        self.monitoring = Monitoring(
+            self._vars,
+            self.notify_share,
+            self._datavalue,
+            opts.max_monitored_items_per_session,
+            opts.max_monitored_items,
+        )
+        self._stamped: tuple[Any, dt.datetime] = (None, FILETIME_EPOCH)
         self._frozen = False
         #: asyncua's loop and thread (`opcua`): every coroutine of this interface but
         #: `start` and `close` runs there (docs/design.md §9.1, §5.10)
@@ -432,10 +310,6 @@ class OpcUaInterface:
         #: writes and methods run there (`_current`, `_on_host`)
         self._host: asyncio.AbstractEventLoop | None = None
         self._start_task: asyncio.Future[None] | None = None
-        self.late_samples = 0
-        #: samples skipped while the notifications' share was used up (the loop's)
-        self.samples_skipped = 0
-        self.notifications = 0
         #: failed logins per client address (guard.py): asyncua's loop's
         self.login_throttle = LoginThrottle()
         #: the background start (`OpcUaOptions.background`), its failure, and who is
@@ -483,7 +357,7 @@ class OpcUaInterface:
 
     async def _start(self) -> None:
         self._start_task = asyncio.current_task()
-        self._loop = asyncio.get_running_loop()
+        self._loop = self.monitoring.loop = asyncio.get_running_loop()
         # imported off the loop: 0.3 s the other interfaces would wait otherwise
         await asyncio.to_thread(importlib.import_module, "asyncua")
         from asyncua import Server
@@ -492,7 +366,7 @@ class OpcUaInterface:
         opts = self.options
         users: Any = _Users(opts.user, opts.password)  # asyncua's UserManager protocol
         server = Server(user_manager=users)
-        self.server = server
+        self.server = self.monitoring.server = server
         with _collector_paused():
             self._frozen = True
             await self._init_and_build(server)
@@ -595,15 +469,12 @@ class OpcUaInterface:
         for unwatch in self._unwatch:
             unwatch()
         self._unwatch.clear()
-        for release in self._hold.values():
-            release()
-        self._hold.clear()
-        for task in (self._making, self._drain):
-            if task is not None:
-                task.cancel()
-        if self._drain is not None:
+        drain = self.monitoring.close()
+        if self._making is not None:
+            self._making.cancel()
+        if drain is not None:
             with contextlib.suppress(asyncio.CancelledError):
-                await self._drain
+                await drain
         if self.server is not None:
             from geo_server.transports.opcua import guard
 
@@ -898,7 +769,7 @@ class OpcUaInterface:
             node_id = ua.NodeId(f"{machine}/" + ".".join(spec.path), ns)
             vtype = getattr(ua.VariantType, spec.ua_type)
             attval = aspace[node_id].attributes[value]
-            var = _Var(None, service, machine, node_id, vtype, attval, live=spec)
+            var = Var(None, service, machine, node_id, vtype, attval, live=spec)
             self._vars[node_id] = var
             aspace.set_attribute_value_callback(node_id, value, self._reader(var))
             aspace.set_attribute_value_setter(node_id, value, _keep)
@@ -1067,7 +938,7 @@ class OpcUaInterface:
             node_id = ua.NodeId(spec.node_id, ns)
             vtype = getattr(ua.VariantType, spec.ua_type)
             attval = aspace[node_id].attributes[value]
-            var = _Var(spec, service, machine, node_id, vtype, attval)
+            var = Var(spec, service, machine, node_id, vtype, attval)
             self._vars[node_id] = var
             # asyncua's own reads of the value (a new monitored item's first value);
             # a client's Read goes through `_read`
@@ -1200,7 +1071,7 @@ class OpcUaInterface:
             )
         return items
 
-    def _reader(self, var: _Var) -> Callable[[Any, Any], Any]:
+    def _reader(self, var: Var) -> Callable[[Any, Any], Any]:
         def read(node_id: Any, attr: Any) -> Any:
             return self._read_var(var, {})
 
@@ -1232,7 +1103,7 @@ class OpcUaInterface:
             out.append(_stamped(dv, stamps))
         return out
 
-    def _read_var(self, var: _Var, snaps: dict[str, Snapshot | AdsError]) -> Any:
+    def _read_var(self, var: Var, snaps: dict[str, Snapshot | AdsError]) -> Any:
         """The DataValue of one variable from the machine's snapshot of this request
         (`snaps`, taken now if it has none yet)."""
         ua = _ua()
@@ -1293,7 +1164,7 @@ class OpcUaInterface:
             raise AdsError(AdsErrorCode.DEVICE_NOTREADY, "the server is stopping")
         return await on_loop(host, work)
 
-    def _datavalue(self, var: _Var, value: Any, snap: Snapshot) -> Any:
+    def _datavalue(self, var: Var, value: Any, snap: Snapshot) -> Any:
         ua = _ua()
 
         stamped, stamp = self._stamped
@@ -1355,23 +1226,17 @@ class OpcUaInterface:
         aspace = internals.address_space(self.server)
         add, delete = aspace.add_datachange_callback, aspace.delete_datachange_callback
 
+        monitoring = self.monitoring
+
         def hooked_add(node_id: Any, attr: Any, callback: Any) -> Any:
             result = add(node_id, attr, callback)
-            var = self._vars.get(node_id)
             sampled = attr == ua.AttributeIds.Value  # (other attributes never change)
-            if var is not None and sampled and result[0].is_good():
-                self._handles[result[1]] = node_id
-                self._monitor(var, +1)
+            if sampled and result[0].is_good():
+                monitoring.added(node_id, result[1])
             return result
 
         def hooked_delete(handle: int) -> Any:
-            node_id = self._handles.pop(handle, None)
-            if node_id is not None:
-                var = self._vars[node_id]
-                rule = self._rules.pop(handle, None)
-                if rule is not None:
-                    var.count(rule, -1)
-                self._monitor(var, -1)
+            monitoring.deleted(handle)
             return delete(handle)
 
         aspace.add_datachange_callback = hooked_add
@@ -1387,19 +1252,19 @@ class OpcUaInterface:
         create = subs.create_monitored_items
 
         async def hooked_create(params: Any) -> list[Any]:
-            return await self._create_items(params, create)
+            return await monitoring.create_items(params, create)
 
         subs.create_monitored_items = hooked_create
         set_mode = subs.set_monitoring_mode
 
         async def hooked_set_mode(params: Any) -> list[Any]:
-            return await self._set_mode(params, set_mode)
+            return await monitoring.set_mode(params, set_mode)
 
         subs.set_monitoring_mode = hooked_set_mode
         modify = subs.modify_monitored_items
 
         def hooked_modify(params: Any) -> list[Any]:
-            return self._modify_items(params, modify)
+            return monitoring.modify_items(params, modify)
 
         subs.modify_monitored_items = hooked_modify
 
@@ -1495,7 +1360,7 @@ class OpcUaInterface:
                 results[i] = status
         return results
 
-    def _prepare(self, var: _Var, w: Any) -> tuple[Any, Any]:
+    def _prepare(self, var: Var, w: Any) -> tuple[Any, Any]:
         """(a refusal's status, None) or (None, the prepared write)."""
         ua = _ua()
 
@@ -1540,308 +1405,6 @@ class OpcUaInterface:
         return out
 
     # ------------------------------------------------------------------ monitored items
-
-    async def _create_items(self, params: Any, create: Any) -> list[Any]:
-        """Refuse items past the limits (BadTooManyMonitoredItems), whatever node they
-        watch (the server's own nodes too), and items of our variables whose filter
-        cannot apply (`items.rule_for`); give each item of our variables its own
-        sampling interval in whole GEO cycles and its rule; create the rest."""
-        ua = _ua()
-
-        subs = internals.subscriptions(self.server)
-        sub = subs.get(params.SubscriptionId)
-        session = getattr(sub, "session_id", None)
-        in_session = total = 0
-        for s in subs.values():
-            held = len(internals.monitored_items(s))
-            total += held
-            in_session += held if s.session_id == session else 0
-        opts = self.options
-        keep: list[int] = []
-        refused: dict[int, str] = {}
-        rules: list[tuple[int, _Var, ItemRule]] = []
-        for i, item in enumerate(params.ItemsToCreate):
-            if (
-                in_session >= opts.max_monitored_items_per_session
-                or total >= opts.max_monitored_items
-            ):
-                refused[i] = "BadTooManyMonitoredItems"
-                continue
-            var = self._vars.get(item.ItemToMonitor.NodeId)
-            if var is not None:
-                RequestMeter.touch(var.machine)
-            if var is not None and item.ItemToMonitor.AttributeId == ua.AttributeIds.Value:
-                rule = self._rule(var, item.RequestedParameters, sub)
-                if isinstance(rule, str):
-                    refused[i] = rule
-                    continue
-                rules.append((len(keep), var, rule))
-            in_session += 1
-            total += 1
-            keep.append(i)
-        created: list[Any] = []
-        if keep:
-            asked = [params.ItemsToCreate[i] for i in keep]
-            sampling = ua.MonitoringMode.Sampling
-            # asyncua reports a new item's first value unless it is Disabled: one that
-            # only samples is made Disabled, then set to Sampling (Part 4 §5.12.1.3)
-            quiet = {k for k, a in enumerate(asked) if a.MonitoringMode == sampling}
-            sub_params = ua.CreateMonitoredItemsParameters(
-                SubscriptionId=params.SubscriptionId,
-                TimestampsToReturn=params.TimestampsToReturn,
-                ItemsToCreate=[_disabled(a) if k in quiet else a for k, a in enumerate(asked)],
-            )
-            created = await create(sub_params)
-            made = internals.monitored_items(sub)
-            for k in quiet:
-                data = made.get(created[k].MonitoredItemId)
-                if created[k].StatusCode.is_good() and data is not None:
-                    data.mode = sampling
-            for k, var, rule in rules:
-                if created[k].StatusCode.is_good():
-                    self._ruled(var, sub, created[k].MonitoredItemId, rule)
-                    created[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
-        return _merged(
-            len(params.ItemsToCreate), keep, created, refused, ua.MonitoredItemCreateResult
-        )
-
-    async def _set_mode(self, params: Any, set_mode: Any) -> list[Any]:
-        """SetMonitoringMode; an item of ours that goes from Sampling to Reporting gets
-        its variable's value now, against the value last notified to it (asyncua does
-        that only coming from Disabled; samples taken meanwhile were not reported)."""
-        ua = _ua()
-
-        sub = internals.subscriptions(self.server).get(params.SubscriptionId)
-        items = internals.monitored_items(sub)
-        was = {mid: items[mid].mode for mid in params.MonitoredItemIds if mid in items}
-        results = await set_mode(params)
-        if sub is None or params.MonitoringMode != ua.MonitoringMode.Reporting:
-            return list(results)
-        for mid, mode in was.items():
-            data = items.get(mid)
-            watched = data.read_value_id if data is not None else None
-            if mode != ua.MonitoringMode.Sampling or watched is None or data is None:
-                continue
-            if watched.NodeId in self._vars and data.callback_handle is not None:
-                await internals.trigger_datachange(
-                    sub, data.callback_handle, watched.NodeId, watched.AttributeId
-                )
-        return list(results)
-
-    def _modify_items(self, params: Any, modify: Any) -> list[Any]:
-        """ModifyMonitoredItems: an item of our variables gets its new interval and
-        filter as at its creation, or keeps both when the new filter is refused."""
-        ua = _ua()
-
-        sub = internals.subscriptions(self.server).get(params.SubscriptionId)
-        items = internals.monitored_items(sub)
-        refused: dict[int, str] = {}
-        rules: list[tuple[int, _Var, ItemRule]] = []
-        passed: list[int] = []
-        for i, request in enumerate(params.ItemsToModify):
-            data = items.get(request.MonitoredItemId)
-            if data is None:  # (asyncua would fail the whole request, half applied)
-                refused[i] = "BadMonitoredItemIdInvalid"
-                continue
-            watched: Any = data.read_value_id
-            var = self._vars.get(watched.NodeId) if watched is not None else None
-            if var is not None and watched.AttributeId == ua.AttributeIds.Value:
-                rule = self._rule(var, request.RequestedParameters, sub)
-                if isinstance(rule, str):
-                    refused[i] = rule
-                    continue
-                rules.append((len(passed), var, rule))
-            passed.append(i)
-        done = (
-            modify(
-                ua.ModifyMonitoredItemsParameters(
-                    SubscriptionId=params.SubscriptionId,
-                    TimestampsToReturn=params.TimestampsToReturn,
-                    ItemsToModify=[params.ItemsToModify[i] for i in passed],
-                )
-            )
-            if passed
-            else []
-        )
-        for k, var, rule in rules:
-            if done[k].StatusCode.is_good():
-                self._ruled(var, sub, params.ItemsToModify[passed[k]].MonitoredItemId, rule)
-                done[k].RevisedSamplingInterval = rule.every * _cycle_ms(var)
-        return _merged(
-            len(params.ItemsToModify), passed, done, refused, ua.MonitoredItemModifyResult
-        )
-
-    def _rule(self, var: _Var, asked: Any, sub: Any) -> ItemRule | str:
-        """The rule of an item of `var` with the MonitoringParameters `asked`, or the
-        status that refuses its filter."""
-        publishing = float(sub.data.RevisedPublishingInterval) if sub is not None else 0.0
-        every = cycles_of(float(asked.SamplingInterval), publishing, _cycle_ms(var))
-        flt = asked.Filter
-        if _plain(flt):
-            return ItemRule(every)
-        if not isinstance(flt, _change_filter()):
-            return "BadFilterNotAllowed"  # (an event or aggregate filter on a value)
-        return rule_for(
-            every,
-            int(flt.Trigger),
-            int(flt.DeadbandType),
-            float(flt.DeadbandValue),
-            numeric=var.numeric,
-            eu_range=var.eu_range,
-        )
-
-    def _ruled(self, var: _Var, sub: Any, mid: int, rule: ItemRule) -> None:
-        """Give the item `mid` of `sub` its rule (replacing the one it had)."""
-        data = internals.monitored_items(sub).get(mid)
-        handle = data.callback_handle if data is not None else None
-        if handle is None or self._handles.get(handle) != var.node_id:
-            return
-        old = self._rules.get(handle)
-        if old is not None:
-            var.count(old, -1)
-        self._rules[handle] = rule
-        var.count(rule, +1)
-        self._retune(var.machine)
-
-    def _monitor(self, var: _Var, delta: int) -> None:
-        """Count the monitored items of `var`; the first one of a machine starts
-        sampling it every cycle, the last one's removal stops that."""
-        var.monitors = max(0, var.monitors + delta)
-        watched = any(v.monitors for v in self._vars.values() if v.machine == var.machine)
-        if watched and var.machine not in self._hold:
-            self._hold[var.machine] = self._sample(var.machine, var.service)
-        elif not watched and var.machine in self._hold:
-            self._hold.pop(var.machine)()
-        self._retune(var.machine)
-
-    def _retune(self, machine: str) -> None:
-        """The machine's monitored variables (sampled by `_drain_queue`) and the cycles
-        they need (`_Demand`)."""
-        watched = [v for v in self._vars.values() if v.machine == machine and v.monitors]
-        self._watched[machine] = [v for v in watched if v.readable]
-        demand = self._demands.get(machine)
-        if demand is None:
-            return
-        demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
-        # (an item notified of every sample's new timestamp needs the cycles at rest too)
-        demand.at_rest = any(v.at_rest or v.stamped for v in watched)
-
-    def _sample(self, machine: str, service: ObjectService) -> Callable[[], None]:
-        """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
-        loop = self._loop
-        assert loop is not None
-        queue = self._queue.setdefault(machine, deque())
-
-        def on_cycle(snap: Snapshot) -> None:  # the cycle's thread: hand over, return
-            # (deque appends and pops are atomic; the loop is woken once for all the
-            # snapshots that arrive until it drains them, not once per cycle)
-            queue.append(snap)
-            if len(queue) > SAMPLE_QUEUE:
-                with contextlib.suppress(IndexError):
-                    queue.popleft()
-                    self.late_samples += 1
-            if not self._woken:
-                self._woken = True
-                with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
-                    loop.call_soon_threadsafe(self._wake)
-
-        wanted = self._demands[machine] = _Demand()
-        release = service.demand_cycles(wanted)  # the exact engine publishes only those
-        # `subscribe` hands over the snapshots themselves, with their time stamps
-        unsubscribe = service.subscribe(on_cycle)
-
-        def stop() -> None:
-            unsubscribe()
-            release()
-            self._demands.pop(machine, None)
-            queue.clear()
-
-        return stop
-
-    def _wake(self) -> None:
-        self._woken = False  # (before draining: a snapshot arriving now wakes again)
-        if self._drain is None or self._drain.done():
-            self._drain = asyncio.ensure_future(self._drain_queue())
-
-    async def _drain_queue(self) -> None:
-        """Each sampled cycle's changed values, one DataValue each, to the monitored
-        items of their variables (`_notify`), in cycle order, each snapshot followed by
-        the loop's other work (the cycle's thread keeps adding snapshots: draining them
-        without a pause could hold the loop for good)."""
-        share = self.notify_share
-        while True:
-            wait = share.wait()
-            if wait > 0.0:  # OPC UA's share is used up: sample less often
-                await asyncio.sleep(wait)
-                self._coalesce()
-            batch = [(m, s) for m, q in self._queue.items() for s in _taken(q)]
-            if not batch:
-                return
-            for machine, snap in batch:
-                began = time.thread_time()
-                await self._notify_snapshot(machine, snap)
-                share.charge(time.thread_time() - began)
-                await asyncio.sleep(0)
-
-    def _coalesce(self) -> None:
-        """Keep only the newest snapshot of each machine (`samples_skipped` counts the
-        others; `late_samples` is the cycle's thread's)."""
-        for queue in self._queue.values():
-            while len(queue) > 1:
-                with contextlib.suppress(IndexError):
-                    queue.popleft()
-                    self.samples_skipped += 1
-
-    async def _notify_snapshot(self, machine: str, snap: Snapshot) -> None:
-        """The values of one sampled cycle to the monitored items that sample it: at
-        each sampling interval that falls on this cycle, a value that differs from the
-        one sampled last at that interval (or any value, for an item notified of every
-        sample) goes to its items (`_notify`), one DataValue shared by them."""
-        for var in self._watched.get(machine, ()):
-            if snap.cycle % var.every:
-                continue
-            value = var.value(snap)
-            due = set()
-            for every in var.rates:
-                if snap.cycle % every:
-                    continue
-                if var.stamped or not same(var.lasts.get(every, _NONE), value):
-                    var.lasts[every] = value
-                    due.add(every)
-            if due:
-                self.notifications += 1
-                await self._notify(var, self._datavalue(var, value, snap), due)
-
-    async def _notify(self, var: _Var, dv: Any, due: set[int]) -> None:
-        """`dv` to the monitored items of `var` that sample at an interval in `due` and
-        whose rule passes it (`ItemRule.notifies`, against the value last notified to
-        the item), as asyncua's `datachange_callback` does after a write of the node,
-        without its deep copy of the value per item (most of its cost: `dv` is made for
-        this and never changed): the item's last value, queued for the item's
-        subscription with the item's queue size."""
-        ua = _ua()
-
-        new = _sample(dv)
-        callbacks = internals.callbacks_of(var.attval)
-        for i, (handle, callback) in enumerate(callbacks):
-            if i and i % NOTIFY_SLICE == 0:  # the loop's other work in between
-                await asyncio.sleep(0)
-            rule = self._rules.get(handle)
-            if rule is None or rule.every not in due:
-                continue  # (not due; or an item being made or deleted meanwhile)
-            target = internals.item_of(callback, handle)
-            if target is None:
-                continue
-            item = target.item
-            if item.mode != ua.MonitoringMode.Reporting:
-                continue  # (Sampling: sampled, not reported; Part 4 §5.12.1.3)
-            values = item.mvalue
-            old = values.current_dvalue
-            if not rule.notifies(None if old is None else _sample(old), new):
-                continue
-            values.old_dvalue, values.current_dvalue = old, dv
-            note = ua.MonitoredItemNotification(ClientHandle=item.client_handle, Value=dv)
-            await internals.enqueue(target, note)
 
 
 async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:
@@ -1899,38 +1462,11 @@ def _object_item(node_id: Any, parent: Any, name: Any) -> Any:
     )
 
 
-def _taken(queue: deque[Snapshot]) -> list[Snapshot]:
-    """The snapshots in `queue` now, taken out (the cycle's thread may drop the oldest
-    meanwhile: `SAMPLE_QUEUE`)."""
-    out = []
-    for _ in range(len(queue)):
-        try:
-            out.append(queue.popleft())
-        except IndexError:
-            break
-    return out
-
-
-#: no value sampled yet (at an interval; `_Var.lasts`)
-_NONE = object()
-
-
 def _running_loop() -> asyncio.AbstractEventLoop | None:
     try:
         return asyncio.get_running_loop()
     except RuntimeError:
         return None
-
-
-def _cycle_ms(var: _Var) -> float:
-    return var.service.info.cycle_s * 1000.0
-
-
-def _sample(dv: Any) -> Sample:
-    """What `items.ItemRule` compares of a DataValue."""
-    value = dv.Value.Value if dv.Value is not None else None
-    stamp = dv.SourceTimestamp or _FILETIME_EPOCH.replace(tzinfo=None)
-    return Sample(dv.StatusCode.value, value, stamp.replace(tzinfo=None))
 
 
 #: TimestampsToReturn: Source, Server, Both, Neither (OPC 10000-4 §7.40)
@@ -2124,32 +1660,6 @@ def _node_id_value(node_id: Any, attr: Any) -> Any:
     return ua.DataValue(ua.Variant(node_id, ua.VariantType.NodeId))
 
 
-def _merged(
-    count: int, passed: list[int], done: list[Any], refused: dict[int, str], result: Any
-) -> list[Any]:
-    """The results of a request's items in their order: asyncua's for those passed to
-    it, a `result` with the status named in `refused` for the others."""
-    ua = _ua()
-
-    out: list[Any] = [None] * count
-    for k, i in enumerate(passed):
-        out[i] = done[k]
-    for i, status in refused.items():
-        out[i] = result(StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status)))
-    return out
-
-
-def _disabled(request: Any) -> Any:
-    """A MonitoredItemCreateRequest as it is, but Disabled."""
-    ua = _ua()
-
-    return ua.MonitoredItemCreateRequest(
-        ItemToMonitor=request.ItemToMonitor,
-        MonitoringMode=ua.MonitoringMode.Disabled,
-        RequestedParameters=request.RequestedParameters,
-    )
-
-
 def _writable(aspace: Any, w: Any) -> bool:
     """Whether a node of asyncua's (or a model's) lets its value be written at all
     (AccessLevel CurrentWrite; other attributes only an administrator could write)."""
@@ -2161,29 +1671,6 @@ def _writable(aspace: Any, w: Any) -> bool:
     if level is None or level.value is None or level.value.Value is None:
         return True
     return bool(level.value.Value.Value & ua.AccessLevel.CurrentWrite.mask)
-
-
-def _change_filter() -> Any:
-    """The DataChangeFilter class that asyncua decodes (`ua.DataChangeFilter` is a
-    subclass of it that the decoder does not make)."""
-    from asyncua.ua import uaprotocol_auto
-
-    return uaprotocol_auto.DataChangeFilter
-
-
-def _plain(flt: Any) -> bool:
-    """No filter (None, or an empty ExtensionObject as asyncua's client sends), or a
-    DataChangeFilter that asks for the default: a notification when the status or the
-    value changes, without a deadband (OPC UA 1.05 Part 4 §7.22.2)."""
-    if not flt:
-        return True
-    ua = _ua()
-
-    return (
-        isinstance(flt, _change_filter())
-        and flt.Trigger == ua.DataChangeTrigger.StatusValue
-        and flt.DeadbandType == ua.DeadbandType.None_
-    )
 
 
 def _keep(node: Any, attr: Any, value: Any) -> None:

@@ -111,6 +111,38 @@ def test_each_item_samples_at_its_own_interval(service: ObjectService) -> None:
 
 
 @pytest.mark.slow
+def test_an_item_of_a_fleets_copied_machine_is_sampled(default_cfg: Any) -> None:
+    """The second machine of a shape is a copy made on first use (`guard.lazy_nodes`):
+    an item of its cycle count is sampled like one of the first machine's, cycle for
+    cycle. (When the items moved to monitoring.py they looked their variables up in
+    the mapping of before the copies, which has the first machine's only: the second's
+    item got its first value and no other.)"""
+    from geo_server.machine.machine import Machine
+
+    services = {
+        name: ObjectService(Machine(default_cfg, cycle_s=0.001, homed=True))
+        for name in ("m1", "m2")
+    }
+
+    async def scenario() -> None:
+        iface = await started(services, options(make_all=False))
+        try:
+            async with client(iface) as c:
+                ns = await c.get_namespace_index(NAMESPACE_URI)
+                seen = Collect()
+                await item(c, seen, node_of(c, ns, "m2/SIM/cycle_count"), 1.0)
+                await seen.until(1, "m2/SIM/cycle_count")
+                start = services["m2"].current().cycle
+                access.step(services["m2"], 3)
+                got = await seen.until(4, "m2/SIM/cycle_count")
+                assert [v for v, _ in got][1:] == [start + 1, start + 2, start + 3]
+        finally:
+            await iface.close()
+
+    run(scenario)
+
+
+@pytest.mark.slow
 def test_a_deadband_compares_with_the_value_last_notified(service: ObjectService) -> None:
     """The coefficient creeps by 0.4 µm/m per cycle. An absolute deadband of 1.0 is
     passed at 1.2 and 2.4 (1.2 past the last notified each time); a percent deadband of

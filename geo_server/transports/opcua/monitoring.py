@@ -179,6 +179,7 @@ class Monitoring:
         self._watched: dict[str, list[Var]] = {}
         self._drain: asyncio.Task[None] | None = None
         self._woken = False  # a `_wake` is on its way to the loop
+        self._closed = False
         self.late_samples = 0
         #: samples skipped while the notifications' share was used up (the loop's)
         self.samples_skipped = 0
@@ -187,13 +188,13 @@ class Monitoring:
     def close(self) -> asyncio.Task[None] | None:
         """Stop sampling: the engines' demands given back; the drain under way is
         cancelled and returned (to await)."""
+        self._closed = True  # (a `_wake` already on its way starts no new drain)
         for release in self._hold.values():
             release()
         self._hold.clear()
-        drain, self._drain = self._drain, None
-        if drain is not None:
-            drain.cancel()
-        return drain
+        if self._drain is not None:
+            self._drain.cancel()
+        return self._drain
 
     def added(self, node_id: Any, handle: int) -> None:
         """asyncua made a data-change callback (`handle`) of the value of `node_id`."""
@@ -427,6 +428,8 @@ class Monitoring:
 
     def _wake(self) -> None:
         self._woken = False  # (before draining: a snapshot arriving now wakes again)
+        if self._closed:
+            return
         if self._drain is None or self._drain.done():
             self._drain = asyncio.ensure_future(self._drain_queue())
 

@@ -479,6 +479,7 @@ class OpcUaInterface:
             from geo_server.transports.opcua import guard
 
             server, self.server = self.server, None
+            self.monitoring.server = None
             with contextlib.suppress(Exception):
                 await guard.stop(server)
 
@@ -522,6 +523,9 @@ class OpcUaInterface:
         self._pending.update(pending)
         guard.lazy_nodes(self.server, self._materialize)
         self._vars = guard.MadeOnUse(self._vars, self._materialize)
+        # (a new mapping: the items look their variables up in it too, and a copied
+        # machine's variables land only there)
+        self.monitoring.variables = self._vars
 
     def _materialize(self, node_id: Any) -> bool:
         """Make the nodes of the copied machine `node_id` belongs to, now that a request
@@ -1403,8 +1407,6 @@ class OpcUaInterface:
             for (i, _), err in zip(batch, errors, strict=True):
                 out.append((i, ua.StatusCode() if err is None else _status(err)))
         return out
-
-    # ------------------------------------------------------------------ monitored items
 
 
 async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:

@@ -342,7 +342,8 @@ _LIMITS: list[tuple[str, str, str, str, str]] = [
         "processor time OPC UA's requests take on its thread, and as much again its "
         "notifications (`loop_burst_s` in a row after a quiet spell)",
         "requests wait, their connections' reading paused; notifications are sampled "
-        "less often (`samples_skipped`); a subscription's publishing waits, for at most "
+        "less often (`samples_skipped` of the machine's `opcua_items` status); a "
+        "subscription's publishing waits, for at most "
         "`guard.PUBLISH_HOLD_MAX` (0.5 s) after its last publish",
     ),
 ]

@@ -140,7 +140,8 @@ def fleet_status(
     Starvation shows too (docs/design.md §13.1): `loop_lag_ms`, how late the event loop
     that serves every machine ran a timer in the last status period, and per machine
     `samples_late`, its notification samples taken later than their cycle (the loop or
-    the engine could not keep up, `ads_notifications` of its status); `starved` lists
+    the engine could not keep up, `ads_notifications` of its status) or dropped before
+    OPC UA sampled them (`opcua_items`); `starved` lists
     the machines whose count grew since the last status. Per machine `loop_share_holds`
     counts how often its ADS and Modbus requests waited for its share of the loop
     (`loop_share` of its status) and its OPC UA requests for its share of OPC UA's
@@ -183,6 +184,7 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
     notes = st.get("ads_notifications") or {}
     share = st.get("loop_share") or {}
     opcua = st.get("opcua_share") or {}  # (its share of OPC UA's own loop)
+    items = st.get("opcua_items") or {}  # (its OPC UA monitored items' sampling)
     return {
         "name": member.name,
         "cycle": st["cycle"],
@@ -191,7 +193,9 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
         "stalled": st["stalled"],
         "computed_cycles": st["computed_cycles"],
         "notifications": int(notes.get("registrations", 0)),
-        "samples_late": int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
+        "samples_late": int(notes.get("samples_late", 0))
+        + int(notes.get("samples_refused", 0))
+        + int(items.get("samples_late", 0)),
         "loop_share_holds": int(share.get("holds", 0)) + int(opcua.get("holds", 0)),
         "netid": member.netid,
         "modbus_port": member.modbus_port,

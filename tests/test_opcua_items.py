@@ -15,6 +15,7 @@ cycle, not to time.
 from __future__ import annotations
 
 import asyncio
+import time
 from importlib.metadata import version
 from typing import Any
 
@@ -34,7 +35,9 @@ from geo_server.transports.opcua.items import (
     cycles_of,
     rule_for,
 )
+from geo_server.transports.opcua.server import OpcUaInterface
 from geo_server.transports.opcua.space import NAMESPACE_URI
+from geo_server.transports.share import LoopShare
 
 COUNT = "local/SIM/cycle_count"
 COEF = "local/Axes/X/TEMPC/coefficient"
@@ -104,6 +107,59 @@ def test_each_item_samples_at_its_own_interval(service: ObjectService) -> None:
                 assert [v for v, _ in await slow.until(5, COUNT)][3:] == later
                 await asyncio.sleep(0.1)  # (a third value would have come with these)
                 assert len(slow.changes) == 5
+        finally:
+            await iface.close()
+
+    run(scenario)
+
+
+@pytest.mark.slow
+def test_the_status_counts_the_items_their_samples_and_the_skipped(
+    service: ObjectService,
+) -> None:
+    """`status()["opcua_items"]`: one item on the cycle count; five cycles stepped are
+    five samples and five values notified. Then OPC UA's share of notifications is used
+    up (its clock held 2 s back: about 2 s to wait) while six cycles are stepped: the
+    sampling waits (before it takes any) and samples only the newest, the five before it counted in
+    `samples_skipped` — what docs/security.md tells an operator to look for when the
+    share is used up. (Before, these were counted on the interface and shown nowhere.)"""
+    frozen: list[float | None] = [None]
+
+    def clock() -> float:
+        at = frozen[0]
+        return time.monotonic() if at is None else at
+
+    share = LoopShare(rate=0.1, burst=0.002, clock=clock)
+
+    def counts() -> dict[str, int]:
+        return dict(service.status()["opcua_items"])
+
+    async def scenario() -> None:
+        iface = OpcUaInterface({"local": service}, options(), notify_share=share)
+        await iface.start()
+        try:
+            async with client(iface) as c:
+                ns = await c.get_namespace_index(NAMESPACE_URI)
+                seen = Collect()
+                await item(c, seen, node_of(c, ns, COUNT), 1.0)
+                await seen.until(1, COUNT)
+                before = counts()
+                assert before["items"] == 1
+                start = service.current().cycle
+                access.step(service, 5)
+                await seen.until(6, COUNT)
+                after = counts()
+                assert after["samples"] - before["samples"] == 5
+                assert after["notifications"] - before["notifications"] == 5
+                frozen[0] = time.monotonic() - 2.0  # 0.2 s of the share short
+                access.step(service, 6)  # (in a few ms: the sampling waits 2 s)
+                got = await seen.until(7, COUNT)
+                frozen[0] = None
+                assert [v for v, _ in got][6:] == [start + 11]  # the newest only
+                last = counts()
+                assert last["samples_skipped"] - after["samples_skipped"] == 5
+                assert last["samples"] - after["samples"] == 1
+                assert last["samples_late"] == 0
         finally:
             await iface.close()
 

@@ -42,7 +42,7 @@ from geo_server.transports.opcua.space import VariableSpec
 from geo_server.transports.share import LoopShare
 
 #: Snapshots waiting to be sampled, per machine, while the loop is behind; older ones
-#: are dropped (counted in `late_samples`).
+#: are dropped (counted in `samples_late`).
 SAMPLE_QUEUE = 256
 #: monitored items notified of one value before the loop's other work runs (a thousand
 #: items of one variable took 30-40 ms in one go)
@@ -180,10 +180,22 @@ class Monitoring:
         self._drain: asyncio.Task[None] | None = None
         self._woken = False  # a `_wake` is on its way to the loop
         self._closed = False
-        self.late_samples = 0
-        #: samples skipped while the notifications' share was used up (the loop's)
-        self.samples_skipped = 0
-        self.notifications = 0
+        #: per machine, what its status shows as `opcua_items` (`counts`)
+        self._counts: dict[str, dict[str, int]] = {}
+
+    def counts(self, machine: str) -> dict[str, int]:
+        """What `machine`'s status shows as `opcua_items` (its keys fixed, its values
+        replaced; each key has one writer): `items`, the monitored items of its
+        variables; `samples`, its cycles sampled; `samples_skipped`, those skipped
+        while OPC UA's share of notifications was used up (its newest kept);
+        `samples_late`, those dropped because the loop was `SAMPLE_QUEUE` behind (the
+        cycle's thread's); `notifications`, the values notified to its items."""
+        return self._counts.setdefault(
+            machine,
+            dict.fromkeys(
+                ("items", "samples", "samples_skipped", "samples_late", "notifications"), 0
+            ),
+        )
 
     def close(self) -> asyncio.Task[None] | None:
         """Stop sampling: the engines' demands given back; the drain under way is
@@ -375,7 +387,9 @@ class Monitoring:
         """Count the monitored items of `var`; the first one of a machine starts
         sampling it every cycle, the last one's removal stops that."""
         var.monitors = max(0, var.monitors + delta)
-        watched = any(v.monitors for v in self.variables.values() if v.machine == var.machine)
+        items = sum(v.monitors for v in self.variables.values() if v.machine == var.machine)
+        self.counts(var.machine)["items"] = items
+        watched = items > 0
         if watched and var.machine not in self._hold:
             self._hold[var.machine] = self._sampling(var.machine, var.service)
         elif not watched and var.machine in self._hold:
@@ -399,6 +413,7 @@ class Monitoring:
         loop = self.loop
         assert loop is not None
         queue = self._queue.setdefault(machine, deque())
+        counts = self.counts(machine)
 
         def on_cycle(snap: Snapshot) -> None:  # the cycle's thread: hand over, return
             # (deque appends and pops are atomic; the loop is woken once for all the
@@ -407,7 +422,7 @@ class Monitoring:
             if len(queue) > SAMPLE_QUEUE:
                 with contextlib.suppress(IndexError):
                     queue.popleft()
-                    self.late_samples += 1
+                    counts["samples_late"] += 1
             if not self._woken:
                 self._woken = True
                 with contextlib.suppress(RuntimeError):  # the loop is closed: nobody listens
@@ -455,18 +470,21 @@ class Monitoring:
 
     def _coalesce(self) -> None:
         """Keep only the newest snapshot of each machine (`samples_skipped` counts the
-        others; `late_samples` is the cycle's thread's)."""
-        for queue in self._queue.values():
+        others; `samples_late` is the cycle's thread's)."""
+        for machine, queue in self._queue.items():
+            counts = self.counts(machine)
             while len(queue) > 1:
                 with contextlib.suppress(IndexError):
                     queue.popleft()
-                    self.samples_skipped += 1
+                    counts["samples_skipped"] += 1
 
     async def _notify_snapshot(self, machine: str, snap: Snapshot) -> None:
         """The values of one sampled cycle to the monitored items that sample it: at
         each sampling interval that falls on this cycle, a value that differs from the
         one sampled last at that interval (or any value, for an item notified of every
         sample) goes to its items (`_notify`), one DataValue shared by them."""
+        counts = self.counts(machine)
+        counts["samples"] += 1
         for var in self._watched.get(machine, ()):
             if snap.cycle % var.every:
                 continue
@@ -479,7 +497,7 @@ class Monitoring:
                     var.lasts[every] = value
                     due.add(every)
             if due:
-                self.notifications += 1
+                counts["notifications"] += 1
                 await self._notify(var, self.datavalue(var, value, snap), due)
 
     async def _notify(self, var: Var, dv: Any, due: set[int]) -> None:

@@ -330,6 +330,8 @@ class OpcUaInterface:
         self._host = asyncio.get_running_loop()
         for machine, share in self.machine_shares.items():  # (their status: the loop's)
             self.services[machine].status_extra["opcua_share"] = share.status
+        for machine, service in self.services.items():  # (made before asyncua's loop runs)
+            service.status_extra["opcua_items"] = self.monitoring.counts(machine)
         if not self.options.background:
             self._own.start()
             try:

@@ -63,7 +63,10 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
         rv.NodeId, rv.AttributeId = node, ua.AttributeIds.Value
         return rv
 
-    clients = [Client(url, timeout=30) for _ in range(1 if kind in ("unread", "items") else 4)]
+    # (no keep-alive probe: asyncua's client gives its connection up when its probe, queued
+    # behind its own flood, waits past a second, and the flood would end after seconds)
+    n = 1 if kind in ("unread", "items") else 4
+    clients = [Client(url, timeout=30, watchdog_intervall=3600.0) for _ in range(n)]
     for c in clients:
         await c.connect()
     ns = await clients[0].get_namespace_index(NAMESPACE_URI)

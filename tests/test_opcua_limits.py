@@ -33,6 +33,7 @@ from geo_server.paths import default_startup_list
 from geo_server.service import ObjectService
 from geo_server.transports.modbus.server import ModbusInterface, ModbusOptions
 from geo_server.transports.opcua import guard, operations
+from geo_server.transports.opcua.metering import RequestMeter
 from geo_server.transports.opcua.server import OPCUA_NICE, OpcUaInterface, OpcUaOptions
 from geo_server.transports.opcua.space import NAMESPACE_URI
 from geo_server.transports.share import LoopShare
@@ -386,6 +387,121 @@ def test_a_fleets_opcua_requests_draw_on_their_machines_share() -> None:
                 got = await waiting
                 assert got[0].Value.Value == 4000.0
                 now[0] += 1.0  # (its CloseSession waits for the share too)
+        finally:
+            await iface.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+
+
+def test_held_requests_are_let_in_in_fair_order() -> None:
+    """`RequestMeter` without a server (start-time fair queuing, metering.py): OPC UA's
+    share used up, three connections keep requests of 10 ms of processor time coming,
+    and a fourth asks once after them. When the share is back the first three requests
+    go in the order they came (their tags are equal), then the fourth — before any of
+    the three's second request, whatever they asked before — then the three's second
+    ones. Before, every held connection slept on its own and all woke together: a
+    client that asked once waited for the herd, again and again (2.4 s beside a flood)."""
+    now = [0.0]
+    ticking = [False]
+
+    def clock() -> float:
+        if ticking[0]:  # (each look finds the share back: the order is the tags' alone)
+            now[0] += 1.0
+        return now[0]
+
+    share = LoopShare(rate=0.5, burst=0.002, clock=clock)
+    meter = RequestMeter(share, {})
+    order: list[str] = []
+
+    async def scenario() -> None:
+        share.charge(1.0)  # used up, and the clock stands
+
+        async def connection(key: str, requests: int) -> None:
+            for _ in range(requests):
+                ticket = meter.admit_now(key) or await meter.admit(key)
+                order.append(key)
+                meter.end(ticket, time.thread_time() - 0.010)
+
+        flood = [asyncio.ensure_future(connection(k, 3)) for k in ("f1", "f2", "f3")]
+        while meter.waiting < 3:
+            await asyncio.sleep(0)
+        once = asyncio.ensure_future(connection("once", 1))
+        while meter.waiting < 4:
+            await asyncio.sleep(0)
+        assert order == [] and share.holds > 0
+        ticking[0] = True
+        await asyncio.gather(*flood, once)
+        meter.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+    assert order[:4] == ["f1", "f2", "f3", "once"]
+    assert sorted(order[4:7]) == sorted(order[7:]) == ["f1", "f2", "f3"]
+
+
+def test_a_client_beside_a_flood_waits_for_one_request_of_each(
+    service: ObjectService, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Three connections each keep four Reads of 100 values in flight while OPC UA's
+    share is used up (its clock stands still); a fourth client sends one Read of one
+    value. When the clock moves on, the server answers at most one Read of each of the
+    three before the fourth's (the order it ended them in, observed on the server: the
+    clients' sockets may deliver in another). Measured before (bench/opcua_attacks.py's
+    Read flood with its clients' keep-alive off, and a client reading once every 0.1 s
+    beside it): that client waited up to 2.4 s for one Read, and asyncua's client gave
+    its connection up when its keep-alive probe waited a second; now at most 0.04 s."""
+    frozen: list[float | None] = [None]
+
+    def clock() -> float:
+        at = frozen[0]
+        return time.monotonic() if at is None else at
+
+    share = LoopShare(rate=0.1, burst=0.002, clock=clock)
+
+    async def scenario() -> None:
+        options = OpcUaOptions(endpoint="opc.tcp://127.0.0.1:0", companion_models=False)
+        iface = OpcUaInterface({"local": service}, options, loop_share=share)
+        ended: list[int] = []  # the client port of each request the server ended
+        end = iface.meter.end
+
+        def recording(ticket: Any, began: float | None) -> Any:
+            ended.append(ticket.key.peer_name[1])
+            return end(ticket, began)
+
+        monkeypatch.setattr(iface.meter, "end", recording)
+        await iface.start()
+        try:
+            async with (
+                Client(iface.endpoint, timeout=10) as f1,
+                Client(iface.endpoint, timeout=10) as f2,
+                Client(iface.endpoint, timeout=10) as f3,
+                Client(iface.endpoint, timeout=10) as once,
+            ):
+                ns = await f1.get_namespace_index(NAMESPACE_URI)
+                most = operations.OPERATION_LIMITS["MaxNodesPerRead"]
+                tempc = value_of(ua.NodeId(TEMPC, ns))
+                params = ua.ReadParameters(NodesToRead=[tempc] * most)
+                frozen[0] = time.monotonic() - 1.0  # 0.1 s of the share short
+                flood = [
+                    asyncio.ensure_future(c.uaclient.read(params))
+                    for c in (f1, f2, f3)
+                    for _ in range(4)
+                ]
+                while iface.meter.waiting < 3:  # (one held per connection, the rest behind)
+                    await asyncio.sleep(0.01)
+                single = ua.ReadParameters(NodesToRead=[tempc])
+                mine = asyncio.ensure_future(once.uaclient.read(single))
+                while iface.meter.waiting < 4:
+                    await asyncio.sleep(0.01)
+                ended.clear()
+                frozen[0] = None
+                assert (await mine)[0].Value.Value == 4000.0
+                port = once.uaclient.protocol.transport.get_extra_info("sockname")[1]
+                while port not in ended:  # (the server ends it after sending its answer)
+                    await asyncio.sleep(0.01)
+                before = ended[: ended.index(port)]
+                assert len(before) == len(set(before)) <= 3, ended
+                for got in await asyncio.gather(*flood):
+                    assert got[0].Value.Value == 4000.0
         finally:
             await iface.close()
 

@@ -44,7 +44,7 @@ from asyncua.server.uaprocessor import UaProcessor
 
 from geo_server.transports.opcua import operations
 from geo_server.transports.opcua.logins import LoginThrottle
-from geo_server.transports.opcua.metering import RequestMeter
+from geo_server.transports.opcua.metering import RequestMeter, Ticket
 from geo_server.transports.share import LoopShare
 
 log = logging.getLogger("geo_server.opcua")
@@ -447,20 +447,23 @@ class GuardedProtocol(OPCUAProtocol):
         # connection without ever yielding, so a burst of them held every interface
         await asyncio.sleep(0)
         meter = self.meter
-        await self._wait_for_share(meter)
-        await meter.take_turn()
-        began = meter.begin()
+        ticket = await self._wait_for_share(meter)
+        began = None
         try:
+            await meter.take_turn()
+            began = meter.begin()
             return bool(await super()._process_one_msg(header, buf))
         finally:
-            self._charged = meter.end(began)
+            self._charged = meter.end(ticket, began)
 
-    async def _wait_for_share(self, meter: RequestMeter) -> None:
-        """While the shares of the machines its last request touched are used up, the
-        connection is neither read nor served (docs/design.md §13.1)."""
+    async def _wait_for_share(self, meter: RequestMeter) -> Ticket:
+        """While the shares of the machines its last request touched are used up, and
+        until OPC UA's share lets it in (`RequestMeter.admit`: in fair order while it is
+        used up), the connection is neither read nor served (docs/design.md §13.1)."""
         wait = meter.wait(self._charged)
-        if wait <= 0.0:
-            return
+        ticket = meter.admit_now(self) if wait <= 0.0 else None
+        if ticket is not None:
+            return ticket
         self._held = True
         if self.transport is not None:
             self.transport.pause_reading()
@@ -468,6 +471,7 @@ class GuardedProtocol(OPCUAProtocol):
             while wait > 0.0:
                 await asyncio.sleep(wait)
                 wait = meter.wait(self._charged)
+            return meter.admit_now(self) or await meter.admit(self)
         finally:
             self._held = False
             transport = self.transport
@@ -477,6 +481,7 @@ class GuardedProtocol(OPCUAProtocol):
     def connection_lost(self, ex: BaseException | None) -> None:
         if self._unread is not None:
             self._unread.cancel()
+        self.meter.forget(self)
         self._writable.set()  # (the processing loop ends with the connection)
         super().connection_lost(ex)
 

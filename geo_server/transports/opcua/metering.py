@@ -17,6 +17,16 @@ share is back (`wait`), as an ADS or Modbus connection of that machine would. Re
 that touch no machine's variable (a Browse, the server's own nodes) draw on no share;
 they are bounded per request (`operations.py`).
 
+While OPC UA's share is used up, whose request runs when it is back is decided here,
+fairly (`admit`, start-time fair queuing over connections): each connection's requests
+are tagged with the processor time its earlier ones took, and the request with the
+smallest tag runs next, one at a time. A connection that asks seldom (a SCADA client's
+read, asyncua's keep-alive probe) is served as soon as the share is back, ahead of a
+flood's queued requests. Before, every held connection slept on its own until the
+share was back, and all woke together: a request waited for everyone's, and a
+legitimate client beside a flood of four connections waited up to 2.4 s for one Read;
+asyncua's client gives a connection up when its keep-alive probe waits a second.
+
 The machines touched are kept in a context variable: each connection's requests run in
 that connection's own task, so two connections' requests never mix their marks.
 """
@@ -24,24 +34,119 @@ that connection's own task, so two connections' requests never mix their marks.
 from __future__ import annotations
 
 import asyncio
+import heapq
+import itertools
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from contextvars import ContextVar
+from dataclasses import dataclass, field
 
 from geo_server.transports.share import LoopShare
 
 _touched: ContextVar[set[str] | None] = ContextVar("geo_server_opcua_touched", default=None)
 
 
+@dataclass(eq=False)
+class Ticket:
+    """One request let in by `RequestMeter.admit`: its connection, its start tag (the
+    connection's processor time of OPC UA, in the queue's virtual time) and, when it was
+    queued, what tells the queue it ended (`RequestMeter.end`)."""
+
+    key: Hashable
+    start: float
+    ended: asyncio.Future[None] | None = None
+
+
+@dataclass(order=True)
+class _Waiting:
+    start: float
+    seq: int
+    admitted: asyncio.Future[Ticket] = field(compare=False)
+    key: Hashable = field(compare=False)
+
+
 class RequestMeter:
     """OPC UA's share of the loop (`overall`: every request draws on it), the shares of
-    a fleet's machines by name (`machines`: a request draws on those it touched), and
-    the requests' charges."""
+    a fleet's machines by name (`machines`: a request draws on those it touched), the
+    requests' charges, and the fair order of the requests held for OPC UA's share."""
 
     def __init__(self, overall: LoopShare, machines: Mapping[str, LoopShare]) -> None:
         self.overall = overall
         self.machines = dict(machines)
         self._turn_taken = False
+        #: the requests held for `overall`, smallest start tag first (`admit`)
+        self._queue: list[_Waiting] = []
+        self._seq = itertools.count()
+        #: each connection's finish tag: its last request's start tag and processor time
+        self._tags: dict[Hashable, float] = {}
+        #: the virtual time: the start tag of the request let in last
+        self._now = 0.0
+        self._dispatcher: asyncio.Task[None] | None = None
+        self._wait = 0.0  # what `admit_now` found (the dispatcher's first sleep)
+
+    def admit_now(self, key: Hashable) -> Ticket | None:
+        """Connection `key`'s next request may run at once on OPC UA's share (it has time
+        and nobody waits), or None: then `admit`. A share found used up counts a hold."""
+        if self._queue or self._dispatcher is not None:
+            return None
+        self._wait = self.overall.wait()
+        if self._wait > 0.0:
+            return None
+        start = self._now = max(self._now, self._tags.get(key, 0.0))
+        return Ticket(key, start)
+
+    async def admit(self, key: Hashable) -> Ticket:
+        """Wait until connection `key`'s next request may run on OPC UA's share, in the
+        fair order (the module's docstring), after `admit_now` said None."""
+        start = max(self._now, self._tags.get(key, 0.0))
+        admitted: asyncio.Future[Ticket] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._queue, _Waiting(start, next(self._seq), admitted, key))
+        if self._dispatcher is None:  # (`admit_now` looked at the share just now)
+            self._dispatcher = asyncio.ensure_future(self._dispatch(self._wait))
+        try:
+            return await admitted
+        except asyncio.CancelledError:  # (let in as its connection went: the next may go)
+            if admitted.done() and not admitted.cancelled():
+                _ended(admitted.result())
+            raise
+
+    async def _dispatch(self, wait: float) -> None:
+        """Let the held requests in, smallest start tag first, each once the share has
+        time again and the one before it has ended — or has run for a burst's time: a
+        request that waits for the main loop (a Call, a Write) does not hold the others."""
+        try:
+            while self._queue:
+                if wait > 0.0:
+                    await asyncio.sleep(wait)
+                wait = self.overall.wait()
+                if wait > 0.0:
+                    continue
+                waiting = heapq.heappop(self._queue)
+                if waiting.admitted.done():  # (its connection went while it waited)
+                    continue
+                ended: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+                self._now = max(self._now, waiting.start)
+                waiting.admitted.set_result(Ticket(waiting.key, waiting.start, ended))
+                await asyncio.wait((ended,), timeout=self.overall.burst)
+        finally:
+            self._dispatcher = None
+
+    @property
+    def waiting(self) -> int:
+        """Requests held for OPC UA's share now, one at most per connection."""
+        return sum(1 for w in self._queue if not w.admitted.done())
+
+    def forget(self, key: Hashable) -> None:
+        """Connection `key` is gone: its tag too."""
+        self._tags.pop(key, None)
+
+    def close(self) -> None:
+        """The server stops: nobody is let in any more."""
+        for waiting in self._queue:
+            waiting.admitted.cancel()
+        self._queue.clear()
+        if self._dispatcher is not None:
+            self._dispatcher.cancel()
 
     async def take_turn(self) -> None:
         """Wait for this turn of the event loop to have no OPC UA request yet, and take
@@ -63,10 +168,11 @@ class RequestMeter:
         if touched is not None:
             touched.add(machine)
 
-    def wait(self, last: Sequence[LoopShare]) -> float:
+    @staticmethod
+    def wait(last: Sequence[LoopShare]) -> float:
         """0.0, or how long (seconds) a connection whose last request drew on the
-        machines' shares `last` must wait for OPC UA's share and those to be back."""
-        return max((share.wait() for share in (self.overall, *last)), default=0.0)
+        machines' shares `last` must wait for those to be back (OPC UA's own: `admit`)."""
+        return max((share.wait() for share in last), default=0.0)
 
     @staticmethod
     def begin() -> float:
@@ -74,19 +180,28 @@ class RequestMeter:
         _touched.set(set())
         return time.thread_time()
 
-    def end(self, began: float) -> list[LoopShare]:
-        """The request ended: its CPU time charged to OPC UA's share and, split evenly,
-        to the shares of the machines it touched; those machines' shares."""
-        took = time.thread_time() - began
+    def end(self, ticket: Ticket, began: float | None) -> list[LoopShare]:
+        """The request of `ticket` ended (`began`: None when it never started): its CPU
+        time charged to OPC UA's share, to its connection's tag and, split evenly, to the
+        shares of the machines it touched; those machines' shares. The next held
+        request may go."""
+        took = 0.0 if began is None else time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
         # at most a burst: the wait after one request stays a fraction of a second
         # (asyncua's client gives a connection up when its keep-alive Read waits 1 s)
         self.overall.charge(min(took, self.overall.burst))
+        self._tags[ticket.key] = ticket.start + took
+        _ended(ticket)
         shares = [self.machines[m] for m in sorted(touched) if m in self.machines]
         for share in shares:
             share.charge(took / len(shares))
         return shares
 
 
-__all__ = ["RequestMeter"]
+def _ended(ticket: Ticket) -> None:
+    if ticket.ended is not None and not ticket.ended.done():
+        ticket.ended.set_result(None)
+
+
+__all__ = ["RequestMeter", "Ticket"]

@@ -484,6 +484,7 @@ class OpcUaInterface:
             self.monitoring.server = None
             with contextlib.suppress(Exception):
                 await guard.stop(server)
+        self.meter.close()  # (the requests it still held: their connections are gone)
 
     @property
     def endpoint(self) -> str:

@@ -72,19 +72,30 @@ class LoopShare:
         self._credit -= seconds
         self.status["loop_s"] += seconds
 
-    def wait(self) -> float:
+    def wait(self, *, count: bool = True) -> float:
         """0.0: the machine may be served now; else how long (seconds) its requests must
-        wait for its share to be back (each such answer counts a hold)."""
+        wait for its share to be back (each such answer counts a hold, unless `count` is
+        False: the caller counts its holds itself, `hold`)."""
         now = self.clock()
         credit = min(self.burst, self._credit + (now - self._at) * self.rate)
         self._credit, self._at = credit, now
         if credit > 0.0:
             return 0.0
         seconds = -credit / self.rate + 1e-4  # (just past: the next look finds it back)
+        if count:
+            self.hold(seconds)
+        return seconds
+
+    def hold(self, seconds: float = 0.0) -> None:
+        """A request waits for the share (`seconds`: for how long, when known; a caller
+        that learns it later adds it with `held`)."""
         st = self.status
         st["holds"] += 1
         st["held_s"] += seconds
-        return seconds
+
+    def held(self, seconds: float) -> None:
+        """A request counted by `hold` waited `seconds` in all."""
+        self.status["held_s"] += seconds
 
     @property
     def holds(self) -> int:

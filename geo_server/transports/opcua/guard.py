@@ -461,17 +461,22 @@ class GuardedProtocol(OPCUAProtocol):
         until OPC UA's share lets it in (`RequestMeter.admit`: in fair order while it is
         used up), the connection is neither read nor served (docs/design.md §13.1)."""
         wait = meter.wait(self._charged)
-        ticket = meter.admit_now(self) if wait <= 0.0 else None
-        if ticket is not None:
-            return ticket
+        if wait <= 0.0:
+            ticket = meter.admit_now(self)
+            if ticket is not None:
+                return ticket
         self._held = True
         if self.transport is not None:
             self.transport.pause_reading()
         try:
-            while wait > 0.0:
-                await asyncio.sleep(wait)
-                wait = meter.wait(self._charged)
-            return meter.admit_now(self) or await meter.admit(self)
+            if wait > 0.0:
+                while wait > 0.0:
+                    await asyncio.sleep(wait)
+                    wait = meter.wait(self._charged)
+                ticket = meter.admit_now(self)
+                if ticket is not None:
+                    return ticket
+            return await meter.admit(self)
         finally:
             self._held = False
             transport = self.transport
@@ -481,7 +486,6 @@ class GuardedProtocol(OPCUAProtocol):
     def connection_lost(self, ex: BaseException | None) -> None:
         if self._unread is not None:
             self._unread.cancel()
-        self.meter.forget(self)
         self._writable.set()  # (the processing loop ends with the connection)
         super().connection_lost(ex)
 

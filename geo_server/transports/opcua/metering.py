@@ -37,7 +37,8 @@ import asyncio
 import heapq
 import itertools
 import time
-from collections.abc import Hashable, Mapping, Sequence
+import weakref
+from collections.abc import Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 
@@ -52,7 +53,7 @@ class Ticket:
     connection's processor time of OPC UA, in the queue's virtual time) and, when it was
     queued, what tells the queue it ended (`RequestMeter.end`)."""
 
-    key: Hashable
+    key: object
     start: float
     ended: asyncio.Future[None] | None = None
 
@@ -62,7 +63,8 @@ class _Waiting:
     start: float
     seq: int
     admitted: asyncio.Future[Ticket] = field(compare=False)
-    key: Hashable = field(compare=False)
+    key: object = field(compare=False)
+    since: float = field(compare=False)
 
 
 class RequestMeter:
@@ -78,31 +80,37 @@ class RequestMeter:
         self._queue: list[_Waiting] = []
         self._seq = itertools.count()
         #: each connection's finish tag: its last request's start tag and processor time
-        self._tags: dict[Hashable, float] = {}
+        #: (weak: a connection's tag goes with it, also one written by a request that
+        #: ended after its connection was lost)
+        self._tags: weakref.WeakKeyDictionary[object, float] = weakref.WeakKeyDictionary()
         #: the virtual time: the start tag of the request let in last
         self._now = 0.0
         self._dispatcher: asyncio.Task[None] | None = None
-        self._wait = 0.0  # what `admit_now` found (the dispatcher's first sleep)
+        self._wait = 0.0  # what `admit_now` found last (the dispatcher's first sleep)
 
-    def admit_now(self, key: Hashable) -> Ticket | None:
-        """Connection `key`'s next request may run at once on OPC UA's share (it has time
-        and nobody waits), or None: then `admit`. A share found used up counts a hold."""
+    def admit_now(self, key: object) -> Ticket | None:
+        """Connection `key` (weakly referenced) may run its next request at once on OPC
+        UA's share (it has time and nobody waits), or None: then `admit`."""
         if self._queue or self._dispatcher is not None:
             return None
-        self._wait = self.overall.wait()
+        self._wait = self.overall.wait(count=False)
         if self._wait > 0.0:
             return None
         start = self._now = max(self._now, self._tags.get(key, 0.0))
         return Ticket(key, start)
 
-    async def admit(self, key: Hashable) -> Ticket:
+    async def admit(self, key: object) -> Ticket:
         """Wait until connection `key`'s next request may run on OPC UA's share, in the
-        fair order (the module's docstring), after `admit_now` said None."""
+        fair order (the module's docstring); counted as a hold of the share, with the
+        time it waited."""
         start = max(self._now, self._tags.get(key, 0.0))
         admitted: asyncio.Future[Ticket] = asyncio.get_running_loop().create_future()
-        heapq.heappush(self._queue, _Waiting(start, next(self._seq), admitted, key))
-        if self._dispatcher is None:  # (`admit_now` looked at the share just now)
-            self._dispatcher = asyncio.ensure_future(self._dispatch(self._wait))
+        since = self.overall.clock()
+        heapq.heappush(self._queue, _Waiting(start, next(self._seq), admitted, key, since))
+        self.overall.hold()
+        if self._dispatcher is None:  # (after an `admit_now` that found the share used up:
+            wait, self._wait = self._wait, 0.0  # its wait; else the dispatcher looks now)
+            self._dispatcher = asyncio.ensure_future(self._dispatch(wait))
         try:
             return await admitted
         except asyncio.CancelledError:  # (let in as its connection went: the next may go)
@@ -118,7 +126,7 @@ class RequestMeter:
             while self._queue:
                 if wait > 0.0:
                     await asyncio.sleep(wait)
-                wait = self.overall.wait()
+                wait = self.overall.wait(count=False)  # (each request counted once: `admit`)
                 if wait > 0.0:
                     continue
                 waiting = heapq.heappop(self._queue)
@@ -126,6 +134,7 @@ class RequestMeter:
                     continue
                 ended: asyncio.Future[None] = asyncio.get_running_loop().create_future()
                 self._now = max(self._now, waiting.start)
+                self.overall.held(self.overall.clock() - waiting.since)
                 waiting.admitted.set_result(Ticket(waiting.key, waiting.start, ended))
                 await asyncio.wait((ended,), timeout=self.overall.burst)
         finally:
@@ -136,10 +145,6 @@ class RequestMeter:
         """Requests held for OPC UA's share now, one at most per connection."""
         return sum(1 for w in self._queue if not w.admitted.done())
 
-    def forget(self, key: Hashable) -> None:
-        """Connection `key` is gone: its tag too."""
-        self._tags.pop(key, None)
-
     def close(self) -> None:
         """The server stops: nobody is let in any more."""
         for waiting in self._queue:
@@ -147,6 +152,7 @@ class RequestMeter:
         self._queue.clear()
         if self._dispatcher is not None:
             self._dispatcher.cancel()
+            self._dispatcher = None  # (one cancelled before its first step never ends)
 
     async def take_turn(self) -> None:
         """Wait for this turn of the event loop to have no OPC UA request yet, and take

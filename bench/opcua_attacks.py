@@ -6,10 +6,17 @@ against machine 1 over OPC UA while the probes time ADS Reads (4 bytes, raw AMS/
 Modbus FC 3 reads (2 registers) — of machine 1 alone, or of machines 2 and N in a fleet —
 alternated with quiet phases (`--rounds` pairs, so slow drifts of a shared host touch
 both alike). Printed per attack: the probes' p50/p99 quiet and under attack, their ratio
-(the issue's target: at most 2), the requests the attacker got answered, and the
-server's RSS before and after.
+(the issue's target: at most 2), the requests the attacker got answered, the server's RSS
+before and after, and what a legitimate OPC UA client got meanwhile: it reads one value
+every 0.1 s (asyncua's client, its keep-alive probe on) — its slowest Read and whether
+it kept its connection.
 
-    python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--out FILE]
+    python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--apart]
+                                  [--out FILE]
+
+`--apart`: OPC UA is served by a second `geo-server run` of its own machine (OPC UA
+only, at niceness 10), the probes read the first (no OPC UA): what the others would keep
+if asyncua ran in a process of its own — the same host, no interpreter lock shared.
 
 The attacks (each within or past the server's limits, as a hostile client would):
 
@@ -157,6 +164,33 @@ async def _attack(kind: str, url: str, machine: str, stop: Any, done: Any) -> No
             c.uaclient.disconnect_socket()
 
 
+async def _legit(url: str, machine: str, stop: Any, slowest: Any, lost: Any) -> None:
+    from asyncua import Client, ua
+
+    from geo_server.transports.opcua.space import NAMESPACE_URI
+
+    async with Client(url, timeout=10) as c:  # (asyncua's defaults: it probes every second)
+        ns = await c.get_namespace_index(NAMESPACE_URI)
+        node = c.get_node(ua.NodeId(f"{machine}/Axes/X/TEMPC/coefficient", ns))
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                await node.read_value()
+            except Exception:  # (its connection given up: what the attack cost it)
+                lost.value = 1
+                return
+            slowest.value = max(slowest.value, time.perf_counter() - t0)
+            await asyncio.sleep(0.1)
+
+
+def legit(url: str, machine: str, stop: Any, slowest: Any, lost: Any) -> None:
+    """A legitimate OPC UA client beside the attack, in a process of its own."""
+    import logging
+
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+    asyncio.run(_legit(url, machine, stop, slowest, lost))
+
+
 def attack(kind: str, url: str, machine: str, stop: Any, done: Any, nice: int) -> None:
     """The attacker's process (its CPU would otherwise compete with the probes'
     interpreter lock: that measured the client, not the server)."""
@@ -188,20 +222,26 @@ def run_attacks(
         attacked: dict[int, list[float]] = {}
         answered = []
         rss = [rss_kib(pid)["VmRSS"]]
+        slowest, lost = ctx.Value("d", 0.0), ctx.Value("i", 0)
         for _ in range(args.rounds):
             probe(targets, aport, mbase, args.seconds, args.timeout, quiet, control)
             stop, done = ctx.Event(), ctx.Value("q", 0)
             p = ctx.Process(
                 target=attack, args=(kind, url, machine, stop, done, args.nice), daemon=True
             )
+            client = ctx.Process(
+                target=legit, args=(url, machine, stop, slowest, lost), daemon=True
+            )
+            client.start()
             p.start()
             time.sleep(1.5)  # (connected, attacking)
             probe(targets, aport, mbase, args.seconds, args.timeout, attacked, control)
             rss.append(rss_kib(pid)["VmRSS"])
             stop.set()
-            p.join(15)
-            if p.is_alive():
-                p.kill()
+            for proc in (p, client):
+                proc.join(15)
+                if proc.is_alive():
+                    proc.kill()
             answered.append(done.value)
             time.sleep(1.0)
         q = summary_us([x * 1e6 for m, v in quiet.items() if m for x in v])
@@ -221,6 +261,7 @@ def run_attacks(
                 f"{bq / 1000:.2f} -> {ba / 1000:.2f} ({ba / bq:.2f})",
                 round((a["p99"] / q["p99"]) / (ba / bq), 2),
                 answered,
+                f"{slowest.value * 1000:.0f}" + (" (dropped)" if lost.value else ""),
                 f"{rss[0] // 1024} -> {max(rss) // 1024}",
             ]
         )
@@ -260,6 +301,12 @@ def main() -> None:
         help="run the attacker at this niceness (on a 2-core host its own CPU otherwise "
         "competes with the probes and the server: an attacker on another host does not)",
     )
+    ap.add_argument(
+        "--apart",
+        action="store_true",
+        help="OPC UA served by a second geo-server process (OPC UA only, niced), the "
+        "probes on the first: what asyncua in a process of its own would leave the others",
+    )
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
     n = args.machines
@@ -268,24 +315,32 @@ def main() -> None:
     ports = {"zenoh": zport, "ads": aport, "modbus": mbase}
     fleet = ["--fleet-size", str(n)] if n > 1 else []
     # the exact engine, geo-server run's default, as the figures in docs/benchmarks.md
-    argv = geo_server_argv(1.0, ports, engine="exact", extra=[*fleet, "--ads-udp-port", "0"])
-    url = argv[argv.index("--opcua-endpoint") + 1]
+    apart = ["--no-opcua"] if args.apart else []
+    extra = [*fleet, "--ads-udp-port", "0", *apart]
+    argv = geo_server_argv(1.0, ports, engine="exact", extra=extra)
+    served = argv
+    if args.apart:  # OPC UA alone in a second process, niced as asyncua's thread is
+        zport2, aport2 = free_ports(2)
+        ports2 = {"zenoh": zport2, "ads": aport2, "modbus": free_range(n)}
+        only = [*fleet, "--no-ads", "--no-modbus", "--no-zenoh"]
+        served = ["nice", "-n", "10", *geo_server_argv(1.0, ports2, engine="exact", extra=only)]
+    url = served[served.index("--opcua-endpoint") + 1]
     machine = "local-1" if n > 1 else "local"
     targets = [1] if n == 1 else sorted({2, n})
     (control,) = free_ports(1)
     bare = [sys.executable, str(Path(__file__).with_name("bare.py")), "ads", "--port", str(control)]
-    with (
-        ServerProcess(bare, "bare-ads") as responder,
-        ServerProcess(argv, "opcua-attacks") as server,
-    ):
+    with contextlib.ExitStack() as stack:
+        responder = stack.enter_context(ServerProcess(bare, "bare-ads"))
+        server = stack.enter_context(ServerProcess(argv, "opcua-attacks"))
+        opcua = stack.enter_context(ServerProcess(served, "opcua-apart")) if args.apart else server
         wait_port(control, 30.0, responder.proc)
         wait_port(aport, 120.0, server.proc)
         end = time.monotonic() + 180
-        while "opcua: ready" not in server.log_text() and time.monotonic() < end:
+        while "opcua: ready" not in opcua.log_text() and time.monotonic() < end:
             time.sleep(0.2)
         time.sleep(1.0)
         rows, notes = run_attacks(args, url, machine, targets, (aport, mbase, control), server.pid)
-        notes.append(stop_during_attack(url, machine, server))
+        notes.append(stop_during_attack(url, machine, opcua))
     who = "machine 1 (ADS, Modbus)" if n == 1 else f"machines {targets} of {n} (ADS, Modbus)"
     md = table(
         [
@@ -300,12 +355,14 @@ def main() -> None:
             "bare ADS p99 ms (ratio)",
             "ratio over bare",
             "answered",
+            "OPC UA client's slowest Read, ms",
             "RSS MiB",
         ],
         rows,
     )
+    where = ", OPC UA in a process of its own (--apart)" if args.apart else ""
     emit(
-        f"OPC UA attacks, probes of {who}, {args.rounds} rounds of {args.seconds:g} s\n\n"
+        f"OPC UA attacks{where}, probes of {who}, {args.rounds} rounds of {args.seconds:g} s\n\n"
         f"{md}\n\n" + "\n".join(notes),
         args.out,
     )

@@ -496,13 +496,16 @@ class ObjectService:
         return [e if isinstance(e, AdsError) else None for e in outcome]
 
     async def _settle(self, pending: Pending, timeout: float | None = None) -> Any:
-        """Wait for a queued operation (running cycles only; stepped: None at once).
+        """Wait for a queued operation (cycles that run by themselves; stepped: None at
+        once). Also before they started: `geo-server run` starts its interfaces first,
+        and a write answered then, before its cycle ran, was not seen by a read sent
+        after the answer.
 
         After `timeout` (default `write_timeout`) the operation is withdrawn and 0x719
         raised; if a cycle has taken it already, wait on for its outcome (withdrawal is
         retried in case the cycle process was merely stopped while taking operations).
         """
-        if pending.done() or not self._scheduler.running:
+        if pending.done() or self._stepped():
             return pending.result() if pending.done() else None
         limit = self._limits.write_timeout if timeout is None else timeout
         wrapped = asyncio.wrap_future(pending)
@@ -515,7 +518,7 @@ class ObjectService:
 
     def _settle_sync(self, pending: Pending, timeout: float) -> Any:
         """`_settle` for a caller's thread (commands, a measurement)."""
-        if pending.done() or not self._scheduler.running:
+        if pending.done() or self._stepped():
             return pending.result() if pending.done() else None
         deadline = time.monotonic() + timeout
         while True:
@@ -525,6 +528,11 @@ class ObjectService:
                 if pending.withdraw():
                     raise _not_applied(timeout) from None
                 deadline = time.monotonic() + 0.25
+
+    def _stepped(self) -> bool:
+        """Nobody runs the cycles but the owner's steps: a queued operation waits for
+        them, not for the caller."""
+        return self._scheduler.mode == "stepped" and not self._scheduler.running
 
     def _refuse_when_stalled(self) -> None:
         stalled = self._stalled_for()

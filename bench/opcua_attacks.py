@@ -11,12 +11,11 @@ before and after, and what a legitimate OPC UA client got meanwhile: it reads on
 every 0.1 s (asyncua's client, its keep-alive probe on) — its slowest Read and whether
 it kept its connection.
 
-    python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--apart]
-                                  [--out FILE]
+    python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--out FILE]
 
-`--apart`: OPC UA is served by a second `geo-server run` of its own machine (OPC UA
-only, at niceness 10), the probes read the first (no OPC UA): what the others would keep
-if asyncua ran in a process of its own — the same host, no interpreter lock shared.
+OPC UA is served from a process of its own (transports/opcua/apart.py); the RSS shown is
+the server's, not that one's. (Until it was, `--apart` served OPC UA from a second
+`geo-server run` to measure what that would give: docs/benchmarks.md.)
 
 The attacks (each within or past the server's limits, as a hostile client would):
 
@@ -301,12 +300,6 @@ def main() -> None:
         help="run the attacker at this niceness (on a 2-core host its own CPU otherwise "
         "competes with the probes and the server: an attacker on another host does not)",
     )
-    ap.add_argument(
-        "--apart",
-        action="store_true",
-        help="OPC UA served by a second geo-server process (OPC UA only, niced), the "
-        "probes on the first: what asyncua in a process of its own would leave the others",
-    )
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
     n = args.machines
@@ -315,32 +308,24 @@ def main() -> None:
     ports = {"zenoh": zport, "ads": aport, "modbus": mbase}
     fleet = ["--fleet-size", str(n)] if n > 1 else []
     # the exact engine, geo-server run's default, as the figures in docs/benchmarks.md
-    apart = ["--no-opcua"] if args.apart else []
-    extra = [*fleet, "--ads-udp-port", "0", *apart]
-    argv = geo_server_argv(1.0, ports, engine="exact", extra=extra)
-    served = argv
-    if args.apart:  # OPC UA alone in a second process, niced as asyncua's thread is
-        zport2, aport2 = free_ports(2)
-        ports2 = {"zenoh": zport2, "ads": aport2, "modbus": free_range(n)}
-        only = [*fleet, "--no-ads", "--no-modbus", "--no-zenoh"]
-        served = ["nice", "-n", "10", *geo_server_argv(1.0, ports2, engine="exact", extra=only)]
-    url = served[served.index("--opcua-endpoint") + 1]
+    argv = geo_server_argv(1.0, ports, engine="exact", extra=[*fleet, "--ads-udp-port", "0"])
+    url = argv[argv.index("--opcua-endpoint") + 1]
     machine = "local-1" if n > 1 else "local"
     targets = [1] if n == 1 else sorted({2, n})
     (control,) = free_ports(1)
     bare = [sys.executable, str(Path(__file__).with_name("bare.py")), "ads", "--port", str(control)]
-    with contextlib.ExitStack() as stack:
-        responder = stack.enter_context(ServerProcess(bare, "bare-ads"))
-        server = stack.enter_context(ServerProcess(argv, "opcua-attacks"))
-        opcua = stack.enter_context(ServerProcess(served, "opcua-apart")) if args.apart else server
+    with (
+        ServerProcess(bare, "bare-ads") as responder,
+        ServerProcess(argv, "opcua-attacks") as server,
+    ):
         wait_port(control, 30.0, responder.proc)
         wait_port(aport, 120.0, server.proc)
         end = time.monotonic() + 180
-        while "opcua: ready" not in opcua.log_text() and time.monotonic() < end:
+        while "opcua: ready" not in server.log_text() and time.monotonic() < end:
             time.sleep(0.2)
         time.sleep(1.0)
         rows, notes = run_attacks(args, url, machine, targets, (aport, mbase, control), server.pid)
-        notes.append(stop_during_attack(url, machine, opcua))
+        notes.append(stop_during_attack(url, machine, server))
     who = "machine 1 (ADS, Modbus)" if n == 1 else f"machines {targets} of {n} (ADS, Modbus)"
     md = table(
         [
@@ -360,9 +345,8 @@ def main() -> None:
         ],
         rows,
     )
-    where = ", OPC UA in a process of its own (--apart)" if args.apart else ""
     emit(
-        f"OPC UA attacks{where}, probes of {who}, {args.rounds} rounds of {args.seconds:g} s\n\n"
+        f"OPC UA attacks, probes of {who}, {args.rounds} rounds of {args.seconds:g} s\n\n"
         f"{md}\n\n" + "\n".join(notes),
         args.out,
     )

@@ -402,7 +402,7 @@ def _fault_and_descriptor_rows() -> list[str]:
 
 def _opcua_guard_rows() -> list[str]:
     """The OPC UA guard's bounds (geo_server/transports/opcua/guard.py, logins.py)."""
-    from geo_server.transports.opcua import guard, logins, operations
+    from geo_server.transports.opcua import apart, guard, logins, operations
     from geo_server.transports.opcua.guard import MAX_REQUEST, MIN_BUFFER, SESSIONS_PER_CONNECTION
 
     per_request = [
@@ -436,6 +436,11 @@ def _opcua_guard_rows() -> list[str]:
         "refused unchecked (BadUserAccessDenied) |",
         f"| OPC UA | addresses whose failed logins are remembered | {logins.LOGIN_ADDRESSES} | "
         "`logins.LOGIN_ADDRESSES` | the oldest forgotten |",
+        f"| OPC UA | snapshots waiting to be sent to OPC UA's process | {apart.SNAP_BACKLOG} | "
+        "`apart.SNAP_BACKLOG` | the newer ones dropped (counted in the machine's `opcua_items` "
+        "status as `samples_late`); its monitored items skip those cycles |",
+        f"| OPC UA | the wait for OPC UA's process to stop | {apart.STOP_WAIT_S:g} s | "
+        "`apart.STOP_WAIT_S` | killed |",
     ]
 
 

@@ -11,11 +11,13 @@ each of them where it hands itself over (`service.py`: `MeasureService`,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 from geo_server.dictionary import Dictionary, ObjectDef
+from geo_server.errors import AdsError
+from geo_server.events import Event
 from geo_server.model import MachineConfig
 from geo_server.snapshot import Snapshot
 
@@ -42,6 +44,22 @@ class MachineFacts(Protocol):
     def dictionary(self) -> Dictionary: ...
     @property
     def mode(self) -> str: ...
+
+
+@dataclass(frozen=True)
+class Facts:
+    """A machine's facts as a value (`MachineFacts`), for a process that cannot ask the
+    service (OPC UA's own, `transports.opcua.apart`): sent once, as they were then."""
+
+    axes: tuple[int, ...]
+    cycle_s: float
+    config: MachineConfig
+    dictionary: Dictionary
+    mode: str
+
+    @classmethod
+    def of(cls, info: MachineFacts) -> Facts:
+        return cls(info.axes, info.cycle_s, info.config, info.dictionary, info.mode)
 
 
 class Outcome(Protocol):
@@ -76,3 +94,59 @@ class Measured(Protocol):
     def submit_writes(self, writes: Sequence[PreparedWrite]) -> Outcome: ...
     def errors(self) -> list[dict[str, Any]]: ...
     def stepper(self) -> Stepping: ...
+
+
+class ChosenCycles(Protocol):
+    """The cycles an observer wants published (`machine.port.CycleDemand`)."""
+
+    def wants(self, cycle: int, quiescent: bool) -> bool: ...
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None: ...
+
+
+class CommandsApplied(Protocol):
+    """Runs a list command and waits for it (`commands.lists.CommandService`): its
+    `CommandResult`."""
+
+    async def run_applied(self, name: str, value: Any = None) -> Any: ...
+
+
+class NcApplied(Protocol):
+    """Starts NC text or a reset and waits for the cycle that did (`commands.nc.NcService`)."""
+
+    async def run_applied(self, text: str, *, timeout: float | None = None) -> int: ...
+    async def reset_applied(self, *, timeout: float | None = None) -> int: ...
+
+
+class FaultsInjecting(Protocol):
+    """Injects and clears faults (`commands.faults.FaultService`)."""
+
+    def inject(self, fault: str) -> dict[str, Any]: ...
+    def clear(self, ident: int | None = None) -> list[dict[str, Any]]: ...
+
+
+class OpcUaService(Protocol):
+    """What OPC UA uses of a machine's service (`geo_server.transports.opcua`):
+    `ObjectService` itself, or, in OPC UA's own process, its stand-in there
+    (`transports.opcua.apart.RemoteService`, docs/design.md §9.1)."""
+
+    @property
+    def info(self) -> MachineFacts: ...
+    @property
+    def nc(self) -> NcApplied: ...
+    @property
+    def commands(self) -> CommandsApplied: ...
+    @property
+    def faults(self) -> FaultsInjecting: ...
+    @property
+    def status_extra(self) -> dict[str, Any]: ...
+    def current(
+        self, *, stale_ok: bool = False, wait: float | None = None, at_rest_ok: bool = False
+    ) -> Snapshot: ...
+    def current_if_due(self) -> Snapshot | None: ...
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]: ...
+    def subscribe_events(self, callback: Callable[[Event], None]) -> Callable[[], None]: ...
+    def demand_cycles(self, demand: ChosenCycles | None = None) -> Callable[[], None]: ...
+    def prepare_name(self, name: str | ObjectDef, axis: int, value: Any) -> PreparedWrite: ...
+    async def apply_writes(
+        self, writes: Sequence[PreparedWrite], timeout: float | None = None
+    ) -> list[AdsError | None]: ...

@@ -80,7 +80,7 @@ from geo_server.machine.port import (
 )
 from geo_server.machine.scheduler import Scheduler
 from geo_server.model import CompKind, Diagnostic, MachineConfig
-from geo_server.seam import Measured, PreparedWrite
+from geo_server.seam import Measured, OpcUaService, PreparedWrite
 from geo_server.snapshot import Snapshot
 
 #: the longest a status or a server's own error waits for another thread's catch-up
@@ -655,6 +655,11 @@ class ObjectService:
 
 def _conforms(service: ObjectService) -> Measured:
     """(mypy) The service is what the layers below it type it as (`geo_server.seam`)."""
+    return service
+
+
+def _conforms_opcua(service: ObjectService) -> OpcUaService:
+    """(mypy) The service is what OPC UA types it as, in its process or its own."""
     return service
 
 

@@ -73,6 +73,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.events",
     "geo_server.units",  # engineering units and their codes (a shared type, docs/design.md)
     "geo_server.service",
+    "geo_server.seam",  # the service as OPC UA types it (in its own process too)
     "geo_server.access",  # reads and writes by name, over the service's public methods
     "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share

@@ -24,7 +24,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from geo_server.service import ObjectService, varies_at_rest
+from geo_server.seam import OpcUaService
+from geo_server.service import varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua import internals
 from geo_server.transports.opcua.cnc import Live
@@ -59,7 +60,7 @@ class Var:
     objects (`live`, `cnc.py`)."""
 
     spec: VariableSpec | None
-    service: ObjectService
+    service: OpcUaService
     machine: str
     node_id: Any  # ua.NodeId
     vtype: Any = None  # ua.VariantType of its values
@@ -135,9 +136,17 @@ class Demand:
     the others cannot change then, so there is nothing to notify. Called on the engine's
     thread: it only reads two fields the loop sets."""
 
-    def __init__(self) -> None:
-        self.step = 1
-        self.at_rest = False
+    def __init__(self, step: int = 1, at_rest: bool = False) -> None:
+        self.step = step
+        self.at_rest = at_rest
+        #: told of each change (`set`): OPC UA's own process tells the server's
+        self.changed: Callable[[], None] | None = None
+
+    def set(self, step: int, at_rest: bool) -> None:
+        """The cycles wanted from now on (the loop's: `Monitoring._retune`)."""
+        self.step, self.at_rest = step, at_rest
+        if self.changed is not None:
+            self.changed()
 
     def wants(self, cycle: int, quiescent: bool) -> bool:
         return cycle % self.step == 0 and (self.at_rest or not quiescent)
@@ -404,11 +413,13 @@ class Monitoring:
         demand = self._demands.get(machine)
         if demand is None:
             return
-        demand.step = math.gcd(*(v.every for v in watched)) if watched else 1
         # (an item notified of every sample's new timestamp needs the cycles at rest too)
-        demand.at_rest = any(v.at_rest or v.stamped for v in watched)
+        demand.set(
+            math.gcd(*(v.every for v in watched)) if watched else 1,
+            any(v.at_rest or v.stamped for v in watched),
+        )
 
-    def _sampling(self, machine: str, service: ObjectService) -> Callable[[], None]:
+    def _sampling(self, machine: str, service: OpcUaService) -> Callable[[], None]:
         """Every cycle's snapshot of `machine`, handed to the loop (`_drain_queue`)."""
         loop = self.loop
         assert loop is not None

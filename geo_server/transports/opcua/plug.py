@@ -29,10 +29,11 @@ from geo_server.transports.tcp import BACKLOG
 
 if TYPE_CHECKING:
     from geo_server.service import ObjectService
-    from geo_server.transports.opcua.server import OpcUaInterface, OpcUaOptions
+    from geo_server.transports.opcua.apart import OpcUaProcess
+    from geo_server.transports.opcua.server import OpcUaOptions
     from geo_server.transports.share import LoopShare
 
-_SERVER_MODULE = "geo_server.transports.opcua.server"
+_SERVER_MODULE = "geo_server.transports.opcua.apart"
 
 
 class OpcUa(Interface):
@@ -101,7 +102,7 @@ class OpcUa(Interface):
         return OpcUaOptions
 
     async def prepare(self) -> None:
-        """asyncua takes most of a second to import: not on the loop the others answer on."""
+        """Its modules take a while to import: not on the loop the others answer on."""
         await asyncio.to_thread(importlib.import_module, _SERVER_MODULE)
 
     def build(
@@ -133,14 +134,15 @@ def _server(
     said: str,
     shares: Mapping[str, LoopShare] | None = None,
 ) -> Startable:
-    """One OPC UA server, each machine of `services` under its own name, its
-    certificate beside `where` (the start-up list or the fleet file); it starts in the
-    background, and says so with `said` when ready (`announce`). In a fleet, each
-    machine's requests draw on its share of the loop (`shares`)."""
-    from geo_server.transports.opcua.server import OpcUaInterface
+    """One OPC UA server, in a process of its own (`apart.py`), each machine of
+    `services` under its own name, its certificate beside `where` (the start-up list or
+    the fleet file); it starts in the background, and says so with `said` when ready
+    (`announce`). In a fleet, each machine's requests draw on its share of the loop
+    (`shares`)."""
+    from geo_server.transports.opcua.apart import OpcUaProcess
 
     options = options_from_args(args, Path(where) if where else None, caps)
-    ua = OpcUaInterface(dict(services), options, shares)
+    ua = OpcUaProcess(dict(services), options, shares)
     announce(ua, said)
     return Startable(ua, lambda: f"opcua: {ua.endpoint} starting (README *OPC UA*)")
 
@@ -161,7 +163,7 @@ def cert_folder(startup: Path) -> Path:
     return Path(startup).resolve().parent / "opcua"
 
 
-def announce(iface: OpcUaInterface, where: str) -> None:
+def announce(iface: OpcUaProcess, where: str) -> None:
     """`geo-server run`: say when the background start is done, or why it failed."""
 
     def said(exc: BaseException | None) -> None:

@@ -51,7 +51,8 @@ from geo_server.aio import LoopThread, nice_this_thread, on_loop
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
 from geo_server.faults import FaultError
-from geo_server.service import ObjectService, is_command
+from geo_server.seam import OpcUaService
+from geo_server.service import is_command
 from geo_server.snapshot import Snapshot
 from geo_server.transports.opcua import cnc, companions, internals, machinetool
 from geo_server.transports.opcua.cnc import Live
@@ -239,7 +240,7 @@ class OpcUaInterface:
 
     def __init__(
         self,
-        services: Mapping[str, ObjectService],
+        services: Mapping[str, OpcUaService],
         options: OpcUaOptions | None = None,
         shares: Mapping[str, LoopShare] | None = None,
         *,
@@ -275,7 +276,7 @@ class OpcUaInterface:
         self._vars: dict[Any, Var] = {}
         #: copied machines whose nodes are still to be made: name -> (template, its
         #: service, its shape) (`_materialize`; asyncua's loop's)
-        self._pending: dict[str, tuple[str, ObjectService, Any]] = {}
+        self._pending: dict[str, tuple[str, OpcUaService, Any]] = {}
         self._making: asyncio.Future[None] | None = None  # (`_make_pending`)
         #: (shape, machine): the machine whose nodes the others of its shape copy
         self._shapes: list[tuple[Any, str]] = []
@@ -502,7 +503,7 @@ class OpcUaInterface:
         its nodes (`_materialize`): only the references that lead to it from outside
         (Objects, the Machinery `Machines` folder) are made now. A copy takes 20-30 ms,
         so a fleet of 500 would wait 15 s for them, most of which nobody browses."""
-        pending: dict[str, tuple[str, ObjectService, Any]] = {}
+        pending: dict[str, tuple[str, OpcUaService, Any]] = {}
         for machine, service in self.services.items():
             shape = _shape(service)
             template = next((m for s, m in self._shapes if s == shape), None)
@@ -514,7 +515,7 @@ class OpcUaInterface:
         if pending:
             await asyncio.to_thread(self._anchor_all, pending)
 
-    def _anchor_all(self, pending: dict[str, tuple[str, ObjectService, Any]]) -> None:
+    def _anchor_all(self, pending: dict[str, tuple[str, OpcUaService, Any]]) -> None:
         """The references to each copied machine from outside it; its nodes are made on
         first use (`guard.lazy_nodes`)."""
         from geo_server.transports.opcua import guard
@@ -567,7 +568,7 @@ class OpcUaInterface:
             self._materialize(ua.NodeId(next(iter(self._pending)), self.ns))
             await asyncio.sleep(0)
 
-    async def _build_first(self, machine: str, service: ObjectService, shape: Any) -> None:
+    async def _build_first(self, machine: str, service: OpcUaService, shape: Any) -> None:
         names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
         await asyncio.to_thread(self._add_nodes, machine, service, names, kinds)
         if self.options.companion_models:
@@ -576,7 +577,7 @@ class OpcUaInterface:
             await _off_loop(lambda: self._add_machine_tool(machine))
         self._serve_all(machine, service, shape)
 
-    def _serve_all(self, machine: str, service: ObjectService, shape: Any) -> None:
+    def _serve_all(self, machine: str, service: OpcUaService, shape: Any) -> None:
         """Serve a machine's variables, methods and companion models."""
         names, kinds, dictionary = dict(shape[0]), dict(shape[1]), shape[2]
         self._serve(machine, service, machine_variables(machine, dictionary, names, kinds))
@@ -586,7 +587,7 @@ class OpcUaInterface:
             self._serve_models(machine, service, live)
 
     def _add_nodes(
-        self, machine: str, service: ObjectService, names: dict[int, str], kinds: dict[int, int]
+        self, machine: str, service: OpcUaService, names: dict[int, str], kinds: dict[int, int]
     ) -> None:
         ua = _ua()
 
@@ -764,7 +765,7 @@ class OpcUaInterface:
         rank = attrs[ua.AttributeIds.ValueRank].value.Value.Value
         attrs[ua.AttributeIds.Value].value = ua.DataValue(_typed(value, datatype, rank))
 
-    def _serve_models(self, machine: str, service: ObjectService, live: list[Live]) -> None:
+    def _serve_models(self, machine: str, service: OpcUaService, live: list[Live]) -> None:
         """Answer the live variables of the machine's companion models from its service,
         and give it the values that are its own (its CNC axes' ActChannel, its machine
         tool's identification): a copy's would be the first machine's."""
@@ -934,7 +935,7 @@ class OpcUaInterface:
         self._anchors[template] = anchors
         return plan
 
-    def _serve(self, machine: str, service: ObjectService, specs: list[VariableSpec]) -> None:
+    def _serve(self, machine: str, service: OpcUaService, specs: list[VariableSpec]) -> None:
         """Answer the values and methods of a machine's nodes from its service."""
         ua = _ua()
 
@@ -1014,7 +1015,7 @@ class OpcUaInterface:
             )
         return items
 
-    def _variable_items(self, service: ObjectService, spec: VariableSpec) -> list[Any]:
+    def _variable_items(self, service: OpcUaService, spec: VariableSpec) -> list[Any]:
         """The AddNodesItems of one variable and its properties (EngineeringUnits,
         EURange, AdsAddress)."""
         ua = _ua()
@@ -1129,7 +1130,7 @@ class OpcUaInterface:
             return ua.DataValue(StatusCode=_status(snap))
         return self._datavalue(var, var.value(snap), snap)
 
-    def _current(self, service: ObjectService) -> Snapshot:
+    def _current(self, service: OpcUaService) -> Snapshot:
         """The snapshot due now: here when it needs no catch-up (`current_if_due`), else
         `service.current()` run by the main loop's thread, this one waiting: the exact
         engine's catch-up holds its lock, and this thread is niced: descheduled while
@@ -1190,7 +1191,7 @@ class OpcUaInterface:
             ServerTimestamp=dt.datetime.now(dt.UTC),
         )
 
-    def _caller(self, machine: str, service: ObjectService, spec: MethodSpec) -> Callable[..., Any]:
+    def _caller(self, machine: str, service: OpcUaService, spec: MethodSpec) -> Callable[..., Any]:
         ua = _ua()
 
         async def call(parent: Any, *args: Any) -> Any:
@@ -1352,7 +1353,7 @@ class OpcUaInterface:
             for i, status in zip(others, done, strict=True):
                 results[i] = status
         ours = [i for i, w in enumerate(items) if w.NodeId in self._vars and results[i] is None]
-        by_service: dict[int, tuple[ObjectService, list[tuple[int, Any]]]] = {}
+        by_service: dict[int, tuple[OpcUaService, list[tuple[int, Any]]]] = {}
         for i in ours:
             w = items[i]
             var = self._vars[w.NodeId]
@@ -1391,7 +1392,7 @@ class OpcUaInterface:
         return None, prepared
 
     async def _apply(
-        self, service: ObjectService, group: list[tuple[int, Any]]
+        self, service: OpcUaService, group: list[tuple[int, Any]]
     ) -> list[tuple[int, Any]]:
         """Apply the prepared writes of one machine: values in one cycle, each command
         (reload/save by object) on its own."""
@@ -1412,14 +1413,15 @@ class OpcUaInterface:
         return out
 
 
-async def run_method(service: ObjectService, name: str, args: list[str]) -> dict[str, Any]:
+async def run_method(service: OpcUaService, name: str, args: list[str]) -> dict[str, Any]:
     """One command by method name, as the other interfaces run it: the result as JSON,
     or the AdsError of its refusal."""
     if name in ("Reload", "Save"):
         result = await service.commands.run_applied(name.lower())
         if not result.ok:
             raise result.error()
-        return result.as_dict()
+        answer: dict[str, Any] = result.as_dict()
+        return answer
     if name == "RunNc":
         cycle = await service.nc.run_applied(args[0])
         return {"ok": True, "command": "nc", "cycle": cycle}
@@ -1633,7 +1635,7 @@ def _build_date() -> dt.datetime:
     return dt.datetime.fromtimestamp(stamp, dt.UTC)
 
 
-def _shape(service: ObjectService) -> tuple[Any, ...]:
+def _shape(service: OpcUaService) -> tuple[Any, ...]:
     """What a machine's nodes depend on: (axis number, name) and (axis number, kind)
     pairs in order, and its dictionary; from its configuration (no catch-up of its
     cycles, no snapshot)."""

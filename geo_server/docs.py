@@ -437,7 +437,7 @@ def _opcua_guard_rows() -> list[str]:
         f"| OPC UA | addresses whose failed logins are remembered | {logins.LOGIN_ADDRESSES} | "
         "`logins.LOGIN_ADDRESSES` | the oldest forgotten |",
         f"| OPC UA | snapshots waiting to be sent to OPC UA's process | {apart.SNAP_BACKLOG} | "
-        "`apart.SNAP_BACKLOG` | the newer ones dropped (counted in the machine's `opcua_items` "
+        "`apart.SNAP_BACKLOG` | the oldest dropped (counted in the machine's `opcua_items` "
         "status as `samples_late`); its monitored items skip those cycles |",
         f"| OPC UA | the wait for OPC UA's process to stop | {apart.STOP_WAIT_S:g} s | "
         "`apart.STOP_WAIT_S` | killed |",

@@ -102,7 +102,7 @@ def test_the_server_unpickles_only_plain_values_from_the_child() -> None:
     """The child faces the network; what it sends is read with `_Restricted`: plain
     values and the errors it passes on, never a class that would run code here."""
     from geo_server.errors import AdsError, AdsErrorCode
-    from geo_server.transports.opcua.apart import _Restricted
+    from geo_server.transports.opcua.apart import _portable, _Restricted, _shown
 
     plain = ("call", 7, "local", "apply", ([("TEMPC::coefficient", 1, 12.5)],))
     assert _Restricted.loads(pickle.dumps(plain)) == plain
@@ -111,6 +111,13 @@ def test_the_server_unpickles_only_plain_values_from_the_child() -> None:
     for hostile in (os.system, subprocess.Popen, Path("/etc/passwd")):
         with pytest.raises(pickle.UnpicklingError):
             _Restricted.loads(pickle.dumps(hostile))
+    # what the child sends of an error the server can read (a certificate folder that
+    # cannot be written: a PermissionError keeps its errno)
+    denied = _Restricted.loads(pickle.dumps(_portable(PermissionError(13, "Permission denied"))))
+    assert type(denied) is PermissionError and denied.errno == 13
+    # of a machine's status only OPC UA's own keys, numbers only
+    forged = {"stalled": True, "opcua_items": {"items": 3, "x": "y"}, "opcua_share": [1]}
+    assert _shown(forged) == {"opcua_items": {"items": 3}}
 
 
 @pytest.mark.slow

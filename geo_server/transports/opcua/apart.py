@@ -63,8 +63,9 @@ from geo_server.transports.share import LoopShare
 
 log = logging.getLogger(__name__)
 
-#: how long the server waits for the child to stop before it kills it (its own close
-#: takes milliseconds, at most twice `CLOSE_WAIT_S`): SIGTERM ends the server within 2 s
+#: how long the server waits for the child to stop before it kills it: its own close
+#: takes milliseconds, at most twice `CLOSE_WAIT_S` (1.5 s) when asyncua's server hangs,
+#: and then it is killed mid-close; SIGTERM ends the server within 2 s
 STOP_WAIT_S = 1.2
 #: snapshots of one machine waiting to be sent to the child, past which its oldest are
 #: dropped (counted: its status's `opcua_items` `samples_late`), as the child's own
@@ -116,10 +117,13 @@ def _current(service: OpcUaService) -> tuple[Any, ...]:
 
 
 def _prepare(service: OpcUaService, name: str, axis: int, value: Any) -> Any:
-    checked = service.prepare_name(name, axis, value).value
-    # (a plain value: the child sends it back with the write, and the server reads
-    # nothing but plain values from it, `_Restricted`)
-    return checked.item() if isinstance(checked, np.generic) else checked
+    return _plain(service.prepare_name(name, axis, value).value)
+
+
+def _plain(value: Any) -> Any:
+    """A checked value as the child sends it back with the write: the server reads
+    nothing but plain values from it (`_Restricted`)."""
+    return value.item() if isinstance(value, np.generic) else value
 
 
 async def _apply(service: OpcUaService, writes: list[tuple[str, int, Any]]) -> Any:
@@ -221,6 +225,8 @@ class OpcUaProcess:
             await asyncio.to_thread(probe_port, host, port)
         self.port = port
         self._ready = loop.create_future()
+        if self._closing:  # (closed while the port was checked: nothing to start)
+            return
         self._spawning = asyncio.ensure_future(self._spawn())
         if not self.options.background:
             await asyncio.shield(self._ready)
@@ -285,9 +291,12 @@ class OpcUaProcess:
                 msg = _Restricted.loads(self._conn.recv_bytes(MAX_MESSAGE))
                 if not self._answered_here(msg):
                     loop.call_soon_threadsafe(self._on_message, msg)
-        except Exception as exc:  # (EOF; a message too long or not of plain values: ended)
-            if not isinstance(exc, EOFError | OSError):
-                log.error("opcua: a message of its process refused: %s", exc)
+        except Exception as exc:  # (EOF; a message too long or not of plain values)
+            if not isinstance(exc, EOFError):
+                # trusted no further: it ends, as if it had died (`_ended` says so)
+                log.error("opcua: a message of its process refused (%s): it is stopped", exc)
+                with contextlib.suppress(Exception):
+                    self._proc.kill()
             with contextlib.suppress(RuntimeError):  # (the loop has ended: nobody listens)
                 loop.call_soon_threadsafe(self._ended)
 
@@ -327,19 +336,23 @@ class OpcUaProcess:
                 if m is None:
                     self._send(msgs)
                     return
-                if m[0] == "snaps":
-                    msgs += self._taken(m[1])
-                else:
+                if m[0] != "snaps":
                     msgs.append(m)
+                elif len(msgs) < SEND_BATCH:
+                    msgs += self._taken(m[1], SEND_BATCH - len(msgs))
+                else:  # (this send is full: after what was put meanwhile)
+                    out.put(m)
             if not self._send(msgs):
                 return
 
-    def _taken(self, machine: str) -> list[tuple[Any, ...]]:
-        """Up to `SEND_BATCH` of the machine's waiting snapshots; its marker is put
-        back when more wait."""
+    def _taken(self, machine: str, most: int) -> list[tuple[Any, ...]]:
+        """Up to `most` of the machine's waiting snapshots; its marker is put back when
+        more wait. (One thread publishes a machine's snapshots at a time, the engine
+        lock's holder, and this one takes them: a marker is never lost, at worst one
+        more is put.)"""
         waiting = self._snaps.get(machine)
         taken: list[tuple[Any, ...]] = []
-        while waiting and len(taken) < SEND_BATCH:
+        while waiting and len(taken) < most:
             with contextlib.suppress(IndexError):
                 taken.append(("snap", machine, _fields(waiting.popleft())))
         if waiting:
@@ -381,10 +394,11 @@ class OpcUaProcess:
                 service = self.services.get(machine)
                 if service is None:
                     continue
-                items = extra.get("opcua_items")
-                if isinstance(items, dict) and machine in self.dropped:
+                shown = _shown(extra)  # (what OPC UA may show, nothing else of the status)
+                items = shown.get("opcua_items")
+                if items is not None and machine in self.dropped:
                     items["samples_late"] = items.get("samples_late", 0) + self.dropped[machine]
-                service.status_extra.update(extra)
+                service.status_extra.update(shown)
         elif kind == "ready":
             self.port = int(msg[1])
             self._started(None)
@@ -513,14 +527,35 @@ class OpcUaProcess:
         self._demands.clear()
 
 
+def _builtin_subclasses(cls: type) -> list[type]:
+    found = [c for c in cls.__subclasses__() if c.__module__ == "builtins"]
+    return found + [s for c in found for s in _builtin_subclasses(c)]
+
+
+#: what OPC UA's process may put in a machine's status
+STATUS_KEYS = ("opcua_share", "opcua_items")
+
+
+def _shown(extra: Any) -> dict[str, dict[str, int | float]]:
+    """The child's status of one machine, only its keys, only numbers in them."""
+    if not isinstance(extra, dict):
+        return {}
+    return {
+        key: {k: v for k, v in part.items() if isinstance(k, str) and type(v) in (int, float)}
+        for key in STATUS_KEYS
+        if isinstance(part := extra.get(key), dict)
+    }
+
+
 class _Restricted(pickle.Unpickler):
     """Unpickles what the child may send: plain values and the errors it passes on,
     nothing that runs code (`find_class` refuses every other class)."""
 
     ALLOWED: ClassVar[dict[tuple[str, str], Any]] = {
         ("builtins", "RuntimeError"): RuntimeError,
-        ("builtins", "OSError"): OSError,
         ("builtins", "ValueError"): ValueError,
+        # (an OSError with an errno is rebuilt as the built-in class of that errno)
+        **{("builtins", c.__name__): c for c in (OSError, *_builtin_subclasses(OSError))},
         ("geo_server.errors", "AdsError"): AdsError,
         ("geo_server.errors", "AdsErrorCode"): AdsErrorCode,
         ("geo_server.faults", "FaultError"): FaultError,
@@ -764,7 +799,14 @@ class RemoteService:
         return release
 
     def prepare_name(self, name: str | ObjectDef, axis: int, value: Any) -> PreparedWrite:
+        """Checked here, as the service checks it (its object writable on an axis the
+        machine has, the value its type's); only a refusal goes to the server, whose
+        check says it again and notes it in the machine's error list, as in one
+        process. The server checks every write again when it applies it (`_apply`)."""
         obj = self.info.dictionary.by_name(name) if isinstance(name, str) else name
+        if obj.writable and (obj.scope != "axis" or axis in self.info.axes):
+            with contextlib.suppress(AdsError):
+                return PreparedWrite(obj, axis, _plain(obj.coerce(value)))
         checked = self._link.call(self._machine, "prepare", obj.name, axis, value, wait=HOST_WAIT_S)
         return PreparedWrite(obj, axis, checked)
 
@@ -784,7 +826,11 @@ def serve(
     shares: Mapping[str, tuple[float, float]],
 ) -> None:
     """OPC UA's process (`multiprocessing`'s target): its composition root."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (the server stops it)
+    # (the server stops it: a Ctrl-C or a SIGTERM sent to the whole process group, as a
+    # service manager may, must not end it first)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform != "win32":
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(format="%(message)s", level=logging.WARNING)
     asyncio.run(_serve(conn, options, facts, shares))
 
@@ -842,8 +888,8 @@ def _portable(exc: BaseException) -> BaseException:
     its text as the built-in classes; any other is a RuntimeError that says what it was."""
     if type(exc) in (AdsError, FaultError):
         return exc
-    if isinstance(exc, OSError):
-        return OSError(exc.errno, exc.strerror or str(exc))
+    if isinstance(exc, OSError):  # (with an errno: the built-in class of that errno)
+        return OSError(exc.errno, exc.strerror or str(exc)) if exc.errno else OSError(str(exc))
     if isinstance(exc, ValueError):
         return ValueError(str(exc))
     return RuntimeError(f"{type(exc).__name__}: {exc}")

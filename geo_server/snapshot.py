@@ -88,6 +88,33 @@ class Snapshot:
     def slot(self, axis: int) -> int:
         return self.axes.index(axis)
 
+    def wire(self) -> tuple[Any, ...]:
+        """The snapshot as another process is sent it (the cycle's own process, OPC UA's):
+        its numbers as bytes; the receiver has its own layout (`from_wire`)."""
+        return (
+            self.cycle,
+            self.axes,
+            self.values.tobytes(),
+            self.values.shape,
+            self.machine.tobytes(),
+            self.texts,
+            self.stamp,
+        )
+
+    @classmethod
+    def from_wire(cls, wire: tuple[Any, ...], layout: ObjectLayout) -> Snapshot:
+        """The snapshot `wire` carries, with `layout` (of the same dictionary)."""
+        cycle, axes, values, shape, machine, texts, stamp = wire
+        return cls(
+            cycle,
+            tuple(axes),
+            np.frombuffer(values, dtype=np.float64).reshape(shape),
+            np.frombuffer(machine, dtype=np.float64),
+            layout,
+            tuple(texts),
+            stamp,
+        )
+
     def value(self, obj: ObjectDef, axis: int) -> Any:
         """Decoded value of `obj` for `axis` (axis 0 for machine objects)."""
         if obj.scope == "machine":

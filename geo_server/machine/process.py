@@ -35,8 +35,6 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-import numpy as np
-
 from geo_server import jit
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -167,14 +165,10 @@ class _ChildChannel:
     def frame(self, snap: Snapshot, status: dict[str, Any] | None) -> tuple[Any, ...]:
         return (
             "cycle",
-            snap.cycle,
-            snap.values.tobytes(),
-            snap.machine.tobytes(),
-            snap.texts,
+            snap.wire(),
             self.acks[:],
             self.events[:],
             status,
-            snap.stamp,
             self.sched.t0,
             self.every_seq,
         )
@@ -350,7 +344,6 @@ class RemoteMachine:
         self.heartbeat = self.snapshot_time  # a frame is the cycle process's sign of life
         #: never: only a frame of the cycle due tells the machine's state (`shows_rest`)
         self.rest_snapshot: Snapshot | None = None
-        self._shape = local.snapshot.values.shape
         self.events: deque[Event] = deque(local.events, maxlen=100)
         self._listeners: list[Callable[[Snapshot], None]] = []
         self._event_listeners: list[Callable[[Event], None]] = []
@@ -491,7 +484,7 @@ class RemoteMachine:
                     )
 
     def _dispatch(self, msg: tuple[Any, ...]) -> None:
-        _, cycle, values, machine, texts, acks, events, status, stamp, t0, every_seq = msg
+        _, wire, acks, events, status, t0, every_seq = msg
         self.t0 = t0
         # Events first, as in the cycle itself (an event is recorded while its cycle runs,
         # before that cycle's snapshot is published): whoever sees the snapshot of a program
@@ -500,15 +493,7 @@ class RemoteMachine:
             self.events.append(ev)
             for listener in list(self._event_listeners):
                 _guarded(listener, ev)
-        self.snapshot = Snapshot(
-            cycle,
-            self.axes,
-            np.frombuffer(values).reshape(self._shape),
-            np.frombuffer(machine),
-            self.layout,
-            texts,
-            stamp,
-        )
+        self.snapshot = Snapshot.from_wire(wire, self.layout)
         self.snapshot_time = self.heartbeat = time.monotonic()
         self.every_seq = every_seq  # (after the snapshot: whoever sees it holds that one)
         self.first_frame.set()

@@ -83,37 +83,11 @@ STATUS_PERIOD_S = 0.5
 CALL_WAIT_S = 5.0
 
 
-def _fields(snap: Snapshot) -> tuple[Any, ...]:
-    """A snapshot's values as the pipe carries them (its layout is the child's own)."""
-    return (
-        snap.cycle,
-        snap.axes,
-        snap.values.tobytes(),
-        snap.values.shape,
-        snap.machine.tobytes(),
-        snap.texts,
-        snap.stamp,
-    )
-
-
-def _snapshot(fields: tuple[Any, ...], layout: ObjectLayout) -> Snapshot:
-    cycle, axes, values, shape, machine, texts, stamp = fields
-    return Snapshot(
-        cycle,
-        axes,
-        np.frombuffer(values, dtype=np.float64).reshape(shape),
-        np.frombuffer(machine, dtype=np.float64),
-        layout,
-        texts,
-        stamp,
-    )
-
-
 # ---------------------------------------------------------------------- the server's side
 
 
 def _current(service: OpcUaService) -> tuple[Any, ...]:
-    return _fields(service.current())
+    return service.current().wire()
 
 
 def _prepare(service: OpcUaService, name: str, axis: int, value: Any) -> Any:
@@ -317,7 +291,7 @@ class OpcUaProcess:
             return True
         if snap is None:
             return False
-        self._reply(rid, True, _fields(snap))
+        self._reply(rid, True, snap.wire())
         return True
 
     def _write(self) -> None:
@@ -354,7 +328,7 @@ class OpcUaProcess:
         taken: list[tuple[Any, ...]] = []
         while waiting and len(taken) < most:
             with contextlib.suppress(IndexError):
-                taken.append(("snap", machine, _fields(waiting.popleft())))
+                taken.append(("snap", machine, waiting.popleft().wire()))
         if waiting:
             self._out.put(("snaps", machine))
         return taken
@@ -612,7 +586,7 @@ class Link:
 
     def snapshot(self, machine: str, fields: tuple[Any, ...]) -> Snapshot:
         """A snapshot of `machine` from what the pipe carried."""
-        return _snapshot(fields, self._layouts[machine])
+        return Snapshot.from_wire(fields, self._layouts[machine])
 
     def send(self, msg: tuple[Any, ...]) -> None:
         with self._lock:

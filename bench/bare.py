@@ -5,7 +5,8 @@
     python bench/bare.py ads    --port P   # asyncio responder: every Read gets 8 fixed bytes
     python bench/bare.py pyads  --port P   # pyads' own AdsTestServer (AdvancedHandler)
 
-Each serves on 127.0.0.1 until SIGTERM/SIGINT. They are the denominators of the
+Each serves on 127.0.0.1 until SIGTERM/SIGINT (`--time-slice-us`: with the scheduler slice
+`geo-server run` asks for, geo_server/timeslice.py). They are the denominators of the
 transport ratios (docs/design.md §11): the same client library talks to these and to geo-server.
 """
 
@@ -20,6 +21,8 @@ import sys
 import threading
 
 from common import address
+
+from geo_server import timeslice
 
 #: What every bare server answers: TEMPC::coefficient 4000.0 as REAL64, at its addresses.
 VALUE = struct.pack("<d", 4000.0)
@@ -168,7 +171,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("kind", choices=sorted(SERVERS))
     ap.add_argument("--port", type=int, required=True)
+    ap.add_argument(
+        "--time-slice-us",
+        type=int,
+        default=0,
+        help="the scheduler slice to ask Linux for, as geo-server run does (0: the kernel's)",
+    )
     args = ap.parse_args()
+    if args.time_slice_us:
+        timeslice.request(args.time_slice_us)
     SERVERS[args.kind](args.port)
     return 0
 

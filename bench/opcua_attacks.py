@@ -12,6 +12,14 @@ every 0.1 s (asyncua's client, its keep-alive probe on) — its slowest Read and
 it kept its connection.
 
     python bench/opcua_attacks.py [--machines N] [--seconds S] [--rounds R] [--out FILE]
+        [--server-slice-us US] [--probe-slice-us US]
+
+The server asks Linux for a short scheduler slice (`geo-server run --time-slice-us`,
+geo_server/timeslice.py), and so do the probes and the bare responder here: on a host
+this small the attacker's process shares the cores with them, and a probe that waits
+out the attacker's turn before it reads its answer times its own wake-up, not the
+server (a client on another host does not). The attacker and the legitimate client keep
+the kernel's slice. `--server-slice-us 0 --probe-slice-us 0`: everyone the kernel's.
 
 OPC UA is served from a process of its own (transports/opcua/apart.py); the RSS shown is
 the server's, not that one's. (Until it was, `--apart` served OPC UA from a second
@@ -54,6 +62,8 @@ from common import (
     wait_port,
 )
 from fleet_isolation import probe
+
+from geo_server import timeslice
 
 ATTACKS = ("read-flood", "browse-flood", "bombs", "unread", "items")
 
@@ -186,6 +196,7 @@ def legit(url: str, machine: str, stop: Any, slowest: Any, lost: Any) -> None:
     """A legitimate OPC UA client beside the attack, in a process of its own."""
     import logging
 
+    timeslice.request(0)  # (the kernel's, as any client's: not the probe's it was started by)
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     asyncio.run(_legit(url, machine, stop, slowest, lost))
 
@@ -195,6 +206,7 @@ def attack(kind: str, url: str, machine: str, stop: Any, done: Any, nice: int) -
     interpreter lock: that measured the client, not the server)."""
     import logging
 
+    timeslice.request(0)  # (the kernel's, as any client's: not the probe's it was started by)
     if nice:
         os.nice(nice)
 
@@ -300,20 +312,42 @@ def main() -> None:
         help="run the attacker at this niceness (on a 2-core host its own CPU otherwise "
         "competes with the probes and the server: an attacker on another host does not)",
     )
+    ap.add_argument(
+        "--probe-slice-us",
+        type=int,
+        default=timeslice.DEFAULT_US,
+        help="the scheduler slice the probes and the bare responder ask for, as geo-server "
+        "run does (so each times the server's answer, not its own wake-up behind the "
+        "attacker's turn); 0: the kernel's",
+    )
+    ap.add_argument(
+        "--server-slice-us",
+        type=int,
+        default=timeslice.DEFAULT_US,
+        help="geo-server run's --time-slice-us (0: the kernel's, as before it asked)",
+    )
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
+    if args.probe_slice_us:
+        timeslice.request(args.probe_slice_us)
     n = args.machines
     zport, aport = free_ports(2)
     mbase = free_range(n)
     ports = {"zenoh": zport, "ads": aport, "modbus": mbase}
     fleet = ["--fleet-size", str(n)] if n > 1 else []
     # the exact engine, geo-server run's default, as the figures in docs/benchmarks.md
-    argv = geo_server_argv(1.0, ports, engine="exact", extra=[*fleet, "--ads-udp-port", "0"])
+    argv = geo_server_argv(
+        1.0,
+        ports,
+        engine="exact",
+        extra=[*fleet, "--ads-udp-port", "0", "--time-slice-us", str(args.server_slice_us)],
+    )
     url = argv[argv.index("--opcua-endpoint") + 1]
     machine = "local-1" if n > 1 else "local"
     targets = [1] if n == 1 else sorted({2, n})
     (control,) = free_ports(1)
     bare = [sys.executable, str(Path(__file__).with_name("bare.py")), "ads", "--port", str(control)]
+    bare += ["--time-slice-us", str(args.probe_slice_us)]
     with (
         ServerProcess(bare, "bare-ads") as responder,
         ServerProcess(argv, "opcua-attacks") as server,

@@ -17,7 +17,7 @@ import traceback
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from geo_server import __version__
+from geo_server import __version__, timeslice
 from geo_server.aio import wait_set
 from geo_server.console import closes_quietly_on_broken_pipe, status_line
 from geo_server.dictionary import COLUMNS, dictionary_markdown, load_dictionary
@@ -391,6 +391,16 @@ def build_parser() -> argparse.ArgumentParser:
         "transports: the default of the punctual engine on Linux and macOS) or in a "
         "thread of the server (the default of the exact engine, and on Windows)",
     )
+    r.add_argument(
+        "--time-slice-us",
+        type=int,
+        default=timeslice.DEFAULT_US,
+        metavar="US",
+        help=f"the scheduler time slice the server asks Linux (6.12 or later) for, "
+        f"{timeslice.MIN_US}-{timeslice.MAX_US} µs, so that an answer does not wait for a "
+        f"busy neighbour's turn to end; OPC UA's process keeps the kernel's; 0: the "
+        f"kernel's for all (docs/design.md §5)",
+    )
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument(
         "--quiet",
@@ -467,11 +477,23 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.command == "run" and args.cycle_in is None:
         args.cycle_in = default_cycle_in(engine=args.engine)
+    if (
+        args.command == "run"
+        and args.time_slice_us
+        and not timeslice.MIN_US <= args.time_slice_us <= timeslice.MAX_US
+    ):
+        print(
+            f"error: --time-slice-us must be 0 or {timeslice.MIN_US}-{timeslice.MAX_US}",
+            file=sys.stderr,
+        )
+        return 2
     if args.command == "run":
         for plug in plugs():
             if problem := plug.check(args):
                 print(f"error: {problem}", file=sys.stderr)
                 return 2
+        if args.time_slice_us:  # (before any thread: every thread and child inherits it)
+            timeslice.request(args.time_slice_us)
     return int(args.func(args))
 
 

@@ -43,6 +43,7 @@ LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (1, ("geo_server.dictionary", "geo_server.model", "geo_server.twin.model")),
     (1, ("geo_server.fleetfile", "geo_server.interfaces", "geo_server.faults")),
     (1, ("geo_server.descriptors",)),  # the process's descriptors, planned at start
+    (1, ("geo_server.timeslice",)),  # the process's scheduler slice, asked for at start
     (2, ("geo_server.snapshot", "geo_server.events", "geo_server.units")),
     (2, ("geo_server.seam",)),  # the service as the layers below it type it
     (3, ("geo_server.listfile",)),
@@ -78,6 +79,7 @@ TRANSPORT_MAY_USE = (
     "geo_server.faults",  # injected faults the transports carry out (docs/faults.md)
     "geo_server.transports.tcp",  # the TCP listener the Modbus and ADS servers share
     "geo_server.transports.share",  # a fleet machine's share of the loop, both draw on
+    "geo_server.timeslice",  # OPC UA's process gives the server's slice back
     "geo_server.aio",  # asyncio helpers
     "geo_server.commands.requests",  # the JSON commands every interface takes
     "geo_server.cache",  # the private cache folder (OPC UA's imported NodeSets)

@@ -20,6 +20,7 @@ import pytest
 from asyncua import Client, ua
 from conftest import free_port, geo_server_cmd
 from support.probes import modbus_read
+from support.procfs import children, spawned
 from test_opcua import Collect, node_of, options
 from test_opcua_items import item
 
@@ -145,17 +146,6 @@ def test_a_start_that_fails_in_the_child_is_said_once(service: ObjectService) ->
     assert "certificate" in str(heard[0])
 
 
-def _children(pid: int) -> list[int]:
-    """The child processes of `pid`, whichever of its threads started them."""
-    tasks = Path(f"/proc/{pid}/task").iterdir()
-    return [int(c) for t in tasks for c in (t / "children").read_text().split()]
-
-
-def _spawned(pid: int) -> bool:
-    """Whether `pid` is a process `multiprocessing` spawned (OPC UA's)."""
-    return b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
-
-
 def _listening(port: int) -> bool:
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) == 0
@@ -182,7 +172,7 @@ def test_a_child_that_dies_is_said_and_the_others_keep_serving(tmp_path: Path) -
             for line in proc.stdout:
                 if line.startswith("opcua: ready"):
                     break
-            (child,) = (c for c in _children(proc.pid) if _spawned(c))
+            (child,) = (c for c in children(proc.pid) if spawned(c))
             assert _listening(port)
             os.kill(child, signal.SIGKILL)
             deadline = time.monotonic() + TIMEOUT

@@ -46,6 +46,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from geo_server import timeslice
 from geo_server.dictionary import ObjectDef
 from geo_server.errors import AdsError, AdsErrorCode
 from geo_server.events import Event
@@ -806,6 +807,9 @@ def serve(
     if sys.platform != "win32":
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(format="%(message)s", level=logging.WARNING)
+    # (the slice the server asked for lets its wake-ups preempt: not this process's,
+    # which the network drives — an attacker's work must wait its turn; geo_server/timeslice.py)
+    timeslice.request(0)
     asyncio.run(_serve(conn, options, facts, shares))
 
 

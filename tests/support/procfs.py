@@ -22,8 +22,12 @@ def slices_ns(pid: int) -> dict[str, int]:
     it (`se.slice` of /proc/PID/task/TID/sched, ns)."""
     out = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
-        name = (task / "comm").read_text().strip()
-        for line in (task / "sched").read_text().splitlines():
+        try:
+            name = (task / "comm").read_text().strip()
+            lines = (task / "sched").read_text().splitlines()
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # (a thread that ended meanwhile)
+        for line in lines:
             if line.startswith("se.slice"):
                 out[f"{name}/{task.name}"] = int(line.split(":")[1])
     return out

@@ -105,7 +105,12 @@ def window(data: Any, c0: int, c1: int, cycle_ms: float) -> dict[str, float]:
 
 
 def one_case(
-    demo_axes: int, cycle_ms: float, loaded: bool, seconds: float, cycle_in: str = "thread"
+    demo_axes: int,
+    cycle_ms: float,
+    loaded: bool,
+    seconds: float,
+    cycle_in: str = "thread",
+    slice_us: int | None = None,
 ) -> dict[str, Any]:
     """One fresh server, warm-up, one measured window; the window's figures."""
     zp, mp, ap = free_ports(3)
@@ -119,7 +124,7 @@ def one_case(
             demo_axes,
             stats_size=expected,
             dump=dump,
-            extra=cycle_in_argv(cycle_in),
+            extra=[*cycle_in_argv(cycle_in), *slice_argv(slice_us)],
         )
         name = f"sched-{demo_axes or 'default'}-{cycle_ms}-{cycle_in}"
         with ServerProcess(argv, name) as srv:
@@ -171,13 +176,19 @@ def cycle_in_argv(cycle_in: str) -> list[str]:
     return ["--cycle-in", cycle_in]
 
 
+def slice_argv(slice_us: int | None) -> list[str]:
+    return [] if slice_us is None else ["--time-slice-us", str(slice_us)]
+
+
 def run(args: argparse.Namespace) -> str:
     rows = []
     details = []
     for cycle_in, demo_axes in [(c, d) for c in args.cycle_in for d in args.machines]:
         for cycle_ms in (1.0, 0.25):
             for loaded in (False, True):
-                r = one_case(demo_axes, cycle_ms, loaded, args.seconds, cycle_in)
+                r = one_case(
+                    demo_axes, cycle_ms, loaded, args.seconds, cycle_in, args.time_slice_us
+                )
                 label = "default (4 axes)" if demo_axes == 0 else f"demo {demo_axes} axes"
                 label += f", cycle {cycle_in}"
                 print(
@@ -287,6 +298,12 @@ def main() -> None:
         "--cycle-in",
         default="thread,process",
         help="where the GEO cycle runs: thread, process or both (default thread,process)",
+    )
+    ap.add_argument(
+        "--time-slice-us",
+        type=int,
+        default=None,
+        help="the server's scheduler slice (geo-server run --time-slice-us; 0: the kernel's)",
     )
     ap.add_argument("--out", help="also write the Markdown here")
     args = ap.parse_args()

@@ -90,6 +90,7 @@ def main() -> int:
     args = cli.build_parser().parse_args(["run", *rest])
     if args.cycle_in is None:
         args.cycle_in = cli.default_cycle_in(engine=args.engine)
+    cli.ask_time_slice(args.time_slice_us)  # (as `geo-server run`'s composition root)
 
     local = build_machine(args, own.demo_axes)
     scheduler: Any

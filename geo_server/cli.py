@@ -485,17 +485,20 @@ def main(argv: list[str] | None = None) -> int:
             if problem := plug.check(args):
                 print(f"error: {problem}", file=sys.stderr)
                 return 2
-        # (every thread so far, and so every one and every child started from now on;
-        # the default where it can be had, a slice not had said only when asked for)
-        asked = args.time_slice_us
-        applied = timeslice.request(timeslice.DEFAULT_US if asked is None else asked)
-        if applied is None and asked:
-            print(
-                "note: the kernel keeps its own time slice (--time-slice-us needs Linux "
-                "6.12 or later on 64-bit x86 or Arm)",
-                file=sys.stderr,
-            )
+        ask_time_slice(args.time_slice_us)
     return int(args.func(args))
+
+
+def ask_time_slice(asked: int | None) -> None:
+    """The composition root's scheduler slice (`--time-slice-us`, geo_server/timeslice.py):
+    asked for every thread so far, and so for every one and every child started from now
+    on; the default where it can be had, a slice not had said only when asked for."""
+    if timeslice.request(timeslice.DEFAULT_US if asked is None else asked) is None and asked:
+        print(
+            "note: the kernel keeps its own time slice (--time-slice-us needs Linux "
+            "6.12 or later on 64-bit x86 or Arm)",
+            file=sys.stderr,
+        )
 
 
 def entry() -> None:

@@ -79,10 +79,11 @@ def current_us() -> int | None:
     return int(attr[5] // 1000)
 
 
-def request(us: int) -> int | None:
+def request(us: int, *, process: bool = True) -> int | None:
     """Ask for a slice of `us` µs (`MIN_US`-`MAX_US`; 0: the kernel's default) for every
-    thread of this process — those a library started at its import too — and so for
-    every thread and child process started afterwards, keeping each one's policy,
+    thread of this process — those a library started at its import too — (`process`
+    False: for the calling thread alone) and so for every thread and child process
+    started afterwards, keeping each one's policy,
     niceness and reset-on-fork flag; a thread of another policy (real-time, deadline,
     idle) is left as it is. The calling thread's slice once it has it, else None: not
     Linux 6.12 or later on a 64-bit x86 or Arm, or the kernel refused it (see the
@@ -96,8 +97,8 @@ def request(us: int) -> int | None:
     me = threading.get_native_id()
     done: set[int] = set()
     mine = False
-    for _ in range(_PASSES):
-        tids = _threads(me) - done
+    for _ in range(_PASSES if process else 1):
+        tids = (_threads(me) if process else {me}) - done
         for tid in sorted(tids, key=lambda t: t != me):  # (this one first)
             done.add(tid)
             applied = _set(libc, set_call, get_call, tid, us)

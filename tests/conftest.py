@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from geo_server import jit, ports
+from geo_server import jit, ports, timeslice
 from geo_server.listfile import load_machine
 from geo_server.machine.machine import Machine
 from geo_server.machine.scheduler import switch_interval
@@ -62,6 +62,9 @@ def pytest_configure(config: pytest.Config) -> None:
     # what `geo-server run` sets for its cycle thread (the suite is the composition root
     # of the machines its tests make: library code never changes it)
     sys.setswitchinterval(switch_interval(1))
+    # and the scheduler slice it asks for (docs/design.md §5.11): set here once, so a
+    # test that runs `geo_server.cli.main` in this process changes nothing for the next
+    timeslice.request(timeslice.DEFAULT_US)
 
 
 #: Memory blocks the allocator may gain after a test before the cyclic collector runs

@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -20,7 +21,8 @@ from support.procfs import children, slices_ns, spawned
 from geo_server import timeslice
 
 #: A process of its own: its threads' slices as /proc says (None where it says nothing)
-#: before and after `request(argv[1])`, a thread started before it (at niceness 7, its
+#: at the kernel's default (the suite runs at the server's slice) and after
+#: `request(argv[1])`, a thread started before it (at niceness 7, its
 #: own) and one after, and the slice once given back.
 _PROBE = """
 import json, os, sys, threading
@@ -33,6 +35,7 @@ def kernel(tid=None):
     except OSError:
         return None
     return next((int(l.split(":")[1]) for l in lines if l.startswith("se.slice")), None)
+timeslice.request(0)  # (the kernel's default, whatever this process inherited)
 go, ready = threading.Event(), threading.Event()
 def earlier_thread():
     os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 7)
@@ -195,3 +198,33 @@ def test_run_gives_every_server_thread_the_slice_and_opcua_the_kernels(
     assert len(server) >= 4, server  # (the loop, the cycle, OPC UA's pipe, …)
     assert set(server.values()) == {server_ns or default}, server
     assert set(opcua.values()) == {default}, opcua
+
+
+@pytest.mark.slow
+@needs_slices
+def test_the_punctual_cycle_keeps_the_kernels_slice(tmp_path: Path) -> None:
+    """The punctual engine spins before each deadline: its thread, and it alone, keeps
+    the kernel's slice, which a short one would hand away every 100 µs of the spin."""
+    default = _probe(100)["default"]
+    args = ["run", "--homed", "--engine", "punctual", "--cycle-in", "thread", "--no-zenoh"]
+    args += ["--no-opcua", "--status-period", "60", "--ads-udp-port", "0"]
+    args += ["--ads-port", str(free_port()), "--modbus-port", str(free_port())]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.Popen(
+        [*geo_server_cmd(), *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith("geo-server "):  # (its first line: the cycle starts after)
+                break
+        deadline = time.monotonic() + 60
+        while (slices := sorted(slices_ns(proc.pid).values()))[-1] != default:
+            assert time.monotonic() < deadline, slices  # (the cycle thread not started)
+            time.sleep(0.05)
+    finally:
+        stop_process(proc, signal.SIGINT, 30)
+        if proc.stdout is not None:
+            proc.stdout.close()
+    assert slices.count(default) == 1, slices
+    assert set(slices) == {100_000, default}, slices

@@ -5,9 +5,10 @@
     python bench/bare.py ads    --port P   # asyncio responder: every Read gets 8 fixed bytes
     python bench/bare.py pyads  --port P   # pyads' own AdsTestServer (AdvancedHandler)
 
-Each serves on 127.0.0.1 until SIGTERM/SIGINT (`--time-slice-us`: with the scheduler slice
-`geo-server run` asks for, geo_server/timeslice.py). They are the denominators of the
-transport ratios (docs/design.md §11): the same client library talks to these and to geo-server.
+Each serves on 127.0.0.1 until SIGTERM/SIGINT, at the scheduler slice `geo-server run` asks
+for by default (`--time-slice-us`, geo_server/timeslice.py). They are the denominators of
+the transport ratios (docs/design.md §11): the same client library talks to these and to
+geo-server, both at the same slice.
 """
 
 from __future__ import annotations
@@ -174,12 +175,12 @@ def main() -> int:
     ap.add_argument(
         "--time-slice-us",
         type=int,
-        default=0,
-        help="the scheduler slice to ask Linux for, as geo-server run does (0: the kernel's)",
+        default=timeslice.DEFAULT_US,
+        help="the scheduler slice to ask Linux for, as geo-server run does by default "
+        "(0: the kernel's)",
     )
     args = ap.parse_args()
-    if args.time_slice_us:
-        timeslice.request(args.time_slice_us)
+    timeslice.request(args.time_slice_us)
     SERVERS[args.kind](args.port)
     return 0
 

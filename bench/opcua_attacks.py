@@ -328,8 +328,7 @@ def main() -> None:
     )
     ap.add_argument("--out", help="write the Markdown here too")
     args = ap.parse_args()
-    if args.probe_slice_us:
-        timeslice.request(args.probe_slice_us)
+    timeslice.request(args.probe_slice_us)
     n = args.machines
     zport, aport = free_ports(2)
     mbase = free_range(n)

@@ -399,7 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"the scheduler time slice the server asks Linux (6.12 or later) for, "
         f"{timeslice.MIN_US}-{timeslice.MAX_US} µs (default {timeslice.DEFAULT_US}), so "
         f"that an answer does not wait for a busy neighbour's turn to end; OPC UA's "
-        f"process keeps the kernel's; 0: the kernel's for all (docs/design.md §5.11)",
+        f"process and the punctual cycle keep the kernel's; 0: the kernel's for all "
+        f"(docs/design.md §5.11)",
     )
     r.add_argument("--status-period", type=float, default=1.0, help="seconds between status lines")
     r.add_argument(
@@ -495,8 +496,8 @@ def ask_time_slice(asked: int | None) -> None:
     on; the default where it can be had, a slice not had said only when asked for."""
     if timeslice.request(timeslice.DEFAULT_US if asked is None else asked) is None and asked:
         print(
-            "note: the kernel keeps its own time slice (--time-slice-us needs Linux "
-            "6.12 or later on 64-bit x86 or Arm)",
+            "note: the time slice asked for could not be had (it needs Linux 6.12 or "
+            "later on 64-bit x86 or Arm, and the normal or batch policy): the kernel's kept",
             file=sys.stderr,
         )
 

@@ -14,7 +14,8 @@ fair share; only who runs first at a wake-up changes. The composition root asks 
 (`request`, `geo-server run --time-slice-us`) for every thread the process has (a
 library's started at import among them); threads and child processes started later
 inherit it, and OPC UA's process gives it back (`request(0)`), so the interface an
-attacker drives never preempts the others.
+attacker drives never preempts the others; so does the punctual engine's cycle thread
+for itself (`request(0, process=False)`: it spins before each deadline).
 
 Elsewhere (other systems, 32-bit builds, kernels before 6.12) `request` changes nothing
 and says so with None; a thread of a real-time, deadline or idle policy (`chrt`) is left

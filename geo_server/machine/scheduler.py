@@ -391,7 +391,16 @@ class Scheduler:
     def _loop(self) -> Callable[[], None]:
         if self.mode == "free":
             return self._run_free
-        return self._run_exact if self.exact else self._run_realtime
+        return self._run_exact if self.exact else self._run_punctual
+
+    def _run_punctual(self) -> None:
+        """`_run_realtime` on the thread that runs it (the cycle's thread, or the main
+        thread of the cycle's process), at the kernel's slice: the loop spins before each
+        deadline, and with the short slice the server asks for, the kernel handed its
+        core to any other ready task every 100 µs of the spin (bench/scheduler.py, 250 µs
+        cycle in its own process, idle: lateness p99 0.16 → 23 µs; docs/design.md §5.11)."""
+        timeslice.request(0, process=False)
+        self._run_realtime()
 
     @property
     def exact(self) -> bool:
@@ -875,11 +884,6 @@ class Scheduler:
             log.exception("GEO cycle %d failed", self.machine.cycle)
 
     def _run_realtime(self) -> None:
-        # The punctual cycle spins before each deadline (§5.4): with the short slice the
-        # server asks for, the kernel would hand its core to any other ready task every
-        # 100 µs of the spin (bench/scheduler.py: at 250 µs idle, the longest lateness
-        # 0.4 → 3.6 ms). This thread keeps the kernel's (docs/design.md §5.11).
-        timeslice.request(0, process=False)
         period = self.period_ns
         clock = self._clock
         deadline = clock() + period

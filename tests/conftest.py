@@ -12,7 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
@@ -106,13 +106,16 @@ def geo_server_cmd() -> list[str]:
 
 
 @contextlib.contextmanager
-def geo_server_running(args: list[str], cwd: Path, ready: str) -> Iterator[subprocess.Popen[str]]:
+def geo_server_running(
+    args: list[str], cwd: Path, ready: str, launcher: Sequence[str] = ()
+) -> Iterator[subprocess.Popen[str]]:
     """`geo-server ARGS` in a subprocess (this environment's installed copy: no
-    PYTHONPATH), once it printed a line starting with `ready`; stopped with Ctrl-C
-    (SIGINT) after, unless it ended already."""
+    PYTHONPATH; started by `launcher`, a command that runs the rest, when given), once
+    it printed a line starting with `ready`; stopped with Ctrl-C (SIGINT) after, unless
+    it ended already."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     proc = subprocess.Popen(
-        [*geo_server_cmd(), *args], cwd=cwd, env=env, stdout=subprocess.PIPE, text=True
+        [*launcher, *geo_server_cmd(), *args], cwd=cwd, env=env, stdout=subprocess.PIPE, text=True
     )
     try:
         assert proc.stdout is not None

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
-from conftest import free_port, geo_server_cmd, stop_process
+from conftest import free_port, geo_server_cmd, geo_server_running
 from support.procfs import children, slices_ns, spawned
 
 from geo_server import timeslice
@@ -160,7 +159,8 @@ def test_run_refuses_a_slice_out_of_range(us: str, tmp_path: Path) -> None:
     )
 
 
-#: Starts `geo-server ARGS…` with a slice of 300 µs already asked for, as a parent with
+#: Starts `geo-server ARGS…` (`geo_server_running`'s launcher) with a slice of 300 µs
+#: already asked for, as a parent with
 #: its own (a benchmark's probe, a service manager) would hand it down.
 _LAUNCH = "import os, sys; from geo_server import timeslice; timeslice.request(300); " + (
     "os.execv(sys.argv[1], sys.argv[1:])"
@@ -178,27 +178,16 @@ def test_run_gives_every_server_thread_the_slice_and_opcua_the_kernels(
     interfaces' — has the slice asked for; OPC UA's process, which the network drives,
     has the kernel's default; with 0, everyone has it."""
     default = _probe(100)["default"]
-    args = [*geo_server_cmd(), "run", "--homed", "--no-zenoh", "--status-period", "60"]
+    args = ["run", "--homed", "--no-zenoh", "--status-period", "60", "--ads-udp-port", "0"]
     args += ["--ads-port", str(free_port()), "--modbus-port", str(free_port())]
     args += ["--opcua-endpoint", f"opc.tcp://127.0.0.1:{free_port()}", "--opcua-no-companions"]
-    args += ["--ads-udp-port", "0"]
     if us is not None:
         args += ["--time-slice-us", str(us)]
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    launch = [sys.executable, "-c", _LAUNCH, *args]
-    proc = subprocess.Popen(launch, cwd=tmp_path, env=env, stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("opcua: ready"):
-                break
+    launcher = [sys.executable, "-c", _LAUNCH]
+    with geo_server_running(args, tmp_path, "opcua: ready", launcher) as proc:
         server = slices_ns(proc.pid)
         (child,) = (c for c in children(proc.pid) if spawned(c))
         opcua = slices_ns(child)
-    finally:
-        stop_process(proc, signal.SIGINT, 30)
-        if proc.stdout is not None:
-            proc.stdout.close()
     assert len(server) >= 4, server  # (the loop, the cycle, OPC UA's pipe, …)
     assert set(server.values()) == {server_ns or default}, server
     assert set(opcua.values()) == {default}, opcua
@@ -215,24 +204,13 @@ def test_the_punctual_cycle_keeps_the_kernels_slice(cycle_in: str, tmp_path: Pat
     args = ["run", "--homed", "--engine", "punctual", "--cycle-in", cycle_in, "--no-zenoh"]
     args += ["--no-opcua", "--status-period", "60", "--ads-udp-port", "0"]
     args += ["--ads-port", str(free_port()), "--modbus-port", str(free_port())]
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    proc = subprocess.Popen(
-        [*geo_server_cmd(), *args], cwd=tmp_path, env=env, stdout=subprocess.PIPE, text=True
-    )
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("geo-server "):  # (its first line: the cycle starts after)
-                break
+    # (its first line: the cycle starts after it)
+    with geo_server_running(args, tmp_path, "geo-server ") as proc:
         deadline = time.monotonic() + 60
         while (slices := _cycle_slices(proc.pid, cycle_in))[-1] != default:
             assert time.monotonic() < deadline, slices  # (the cycle not started yet)
             time.sleep(0.05)
         server = slices_ns(proc.pid)
-    finally:
-        stop_process(proc, signal.SIGINT, 30)
-        if proc.stdout is not None:
-            proc.stdout.close()
     assert slices.count(default) == 1, slices
     assert set(slices) <= {100_000, default}, slices
     if cycle_in == "process":  # (the server's own threads: all at the short one)

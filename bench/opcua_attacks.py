@@ -19,7 +19,8 @@ geo_server/timeslice.py), and so do the probes and the bare responder here: on a
 this small the attacker's process shares the cores with them, and a probe that waits
 out the attacker's turn before it reads its answer times its own wake-up, not the
 server (a client on another host does not). The attacker and the legitimate client keep
-the kernel's slice. `--server-slice-us 0 --probe-slice-us 0`: everyone the kernel's.
+the kernel's slice, each in a session of its own (`_apart_from_the_probes`).
+`--server-slice-us 0 --probe-slice-us 0`: everyone the kernel's.
 
 OPC UA is served from a process of its own (transports/opcua/apart.py); the RSS shown is
 the server's, not that one's. (Until it was, `--apart` served OPC UA from a second
@@ -192,11 +193,21 @@ async def _legit(url: str, machine: str, stop: Any, slowest: Any, lost: Any) -> 
             await asyncio.sleep(0.1)
 
 
+def _apart_from_the_probes() -> None:
+    """A client process as one started elsewhere on the host is: at the kernel's slice
+    (not the probes' it was started by) and in a session of its own (with Linux's
+    autogroups, a process of the probes' session shares their group's processor share,
+    and its load would delay the probes' own wake-ups as no other client's could)."""
+    timeslice.request(0)
+    if hasattr(os, "setsid"):
+        os.setsid()
+
+
 def legit(url: str, machine: str, stop: Any, slowest: Any, lost: Any) -> None:
     """A legitimate OPC UA client beside the attack, in a process of its own."""
     import logging
 
-    timeslice.request(0)  # (the kernel's, as any client's: not the probe's it was started by)
+    _apart_from_the_probes()
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     asyncio.run(_legit(url, machine, stop, slowest, lost))
 
@@ -206,7 +217,7 @@ def attack(kind: str, url: str, machine: str, stop: Any, done: Any, nice: int) -
     interpreter lock: that measured the client, not the server)."""
     import logging
 
-    timeslice.request(0)  # (the kernel's, as any client's: not the probe's it was started by)
+    _apart_from_the_probes()
     if nice:
         os.nice(nice)
 

@@ -82,13 +82,13 @@ def current_us() -> int | None:
 
 def request(us: int, *, process: bool = True) -> int | None:
     """Ask for a slice of `us` µs (`MIN_US`-`MAX_US`; 0: the kernel's default) for every
-    thread of this process — those a library started at its import too — (`process`
-    False: for the calling thread alone) and so for every thread and child process
-    started afterwards, keeping each one's policy,
-    niceness and reset-on-fork flag; a thread of another policy (real-time, deadline,
-    idle) is left as it is. The calling thread's slice once it has it, else None: not
-    Linux 6.12 or later on a 64-bit x86 or Arm, or the kernel refused it (see the
-    module); the other threads may have been given it all the same."""
+    thread of this process, those a library started at its import too (`process` False:
+    the calling thread alone), and so for every thread and child process started
+    afterwards, keeping each one's policy, niceness and reset-on-fork flag; a thread of
+    another policy (real-time, deadline, idle) is left as it is. The calling thread's
+    slice once it has it, else None: not Linux 6.12 or later on a 64-bit x86 or Arm, or
+    the kernel refused it (see the module); the other threads may have been given it
+    all the same."""
     if (why := problem(us)) is not None:
         raise ValueError(why)
     calls = _syscalls()

@@ -97,10 +97,17 @@ class Measured(Protocol):
 
 
 class ChosenCycles(Protocol):
-    """The cycles an observer wants published (`machine.port.CycleDemand`)."""
+    """An observer that needs the snapshots of chosen cycles (ADS notifications, OPC
+    UA's items; `machine.port.CycleDemand` is this): the exact engine publishes a cycle
+    it computes or skips when `wants` says so, and wakes for the next one `next_wanted`
+    names. Both are called on the engine's thread (or a request's catch-up) with the
+    engine lock held, so they must be quick and lock-free."""
 
-    def wants(self, cycle: int, quiescent: bool) -> bool: ...
-    def next_wanted(self, cycle: int, quiescent: bool) -> int | None: ...
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        """Publish the snapshot of `cycle` (`quiescent`: the machine is at rest)."""
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        """The first cycle after `cycle` whose snapshot is wanted (None: none)."""
 
 
 class CommandsApplied(Protocol):

@@ -21,6 +21,8 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
+from geo_server.seam import ChosenCycles
+
 if TYPE_CHECKING:
     from geo_server.dictionary import Dictionary, ObjectDef
     from geo_server.events import Event
@@ -185,17 +187,9 @@ def resolved(result: Any = None, error: BaseException | None = None) -> Pending:
 # ---------------------------------------------------------------------- protocols
 
 
-class CycleDemand(Protocol):
-    """An observer that needs the snapshots of chosen cycles (ADS notifications): the
-    exact engine publishes a cycle it computes or skips when `wants` says so, and wakes
-    for the next one `next_wanted` names. Both are called on the engine's thread (or a
-    request's catch-up) with the engine lock held, so they must be quick and lock-free."""
-
-    def wants(self, cycle: int, quiescent: bool) -> bool:
-        """Publish the snapshot of `cycle` (`quiescent`: the machine is at rest)."""
-
-    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
-        """The first cycle after `cycle` whose snapshot is wanted (None: none)."""
+#: An observer that needs the snapshots of chosen cycles (ADS notifications, OPC UA's
+#: items): defined once, where OPC UA's own process can use it too (`seam.ChosenCycles`).
+CycleDemand = ChosenCycles
 
 
 class MachinePort(Protocol):

@@ -13,6 +13,7 @@ import argparse
 import json
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -459,6 +460,32 @@ def _open_ready(args: argparse.Namespace, endpoint: str | None) -> GeoClient:
             time.sleep(0.2)
 
 
+def _opened(args: argparse.Namespace, endpoint: str | None) -> GeoClient:
+    """`_open_ready` on a thread of its own, waited for here in short steps: Ctrl-C
+    interrupts the wait at once. (Called here, zenoh.open held the main thread inside
+    Rust until its session was open or its 10 s open timeout had passed — against an
+    endpoint that accepts and says nothing, Ctrl-C took effect 10 s late.) The process
+    ends with `entry.exit_now`, so an opening left behind holds nothing up."""
+    done = threading.Event()
+    got: list[GeoClient] = []
+    failed: list[BaseException] = []
+
+    def opening() -> None:
+        try:
+            got.append(_open_ready(args, endpoint))
+        except BaseException as exc:  # (raised again on the main thread)
+            failed.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=opening, name="geo-client-open", daemon=True).start()
+    while not done.wait(0.1):  # (a step: a wait without one is not interrupted on Windows)
+        pass
+    if failed:
+        raise failed[0]
+    return got[0]
+
+
 @closes_quietly_on_broken_pipe
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
@@ -492,7 +519,7 @@ def main(argv: list[str] | None = None) -> int:
             host = (endpoint or "127.0.0.1:5020").rsplit(":", 1)[0]
             endpoint = f"{host}:{found.modbus_port}"
     try:
-        client = _open_ready(args, endpoint)
+        client = _opened(args, endpoint)
     except ServerUnreachable as exc:  # one line, the same on every transport
         print(f"error: {exc}", file=sys.stderr)
         return 2

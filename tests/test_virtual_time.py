@@ -578,3 +578,73 @@ def test_current_if_due_never_catches_up(cfg) -> None:
     assert service.current_if_due() is service.current()
     still = Machine(cfg, homed=True)
     assert ObjectService(still).current_if_due() is still.snapshot
+
+
+def test_a_catch_up_hands_its_snapshots_out_together_after_its_last_cycle(cfg) -> None:
+    """A catch-up's snapshots reach the listeners in their order, each one, but only once
+    its last cycle is reached (`Machine.held_back`): a listener that wakes a thread of
+    its own (OPC UA's process, ADS notifications) wakes it once per catch-up — woken at
+    the first cycle, that thread took the interpreter lock at each later cycle's
+    compiled calls. At rest (skipped cycles, a `CycleDemand` of every cycle) and moving
+    (computed cycles, an observer of every cycle) alike. (Before, each listener was
+    called as its cycle was published: the machine stood at that cycle.)"""
+
+    class EveryCycle:  # a `CycleDemand`: every cycle, at rest too
+        def wants(self, cycle: int, quiescent: bool) -> bool:
+            return True
+
+        def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+            return cycle + 1
+
+    vc, m, sched = driven(cfg)
+    vc.t += 30 * P + P // 2  # (quiescent from cycle 22 on)
+    sched.sync()
+    assert m.quiescent and m.cycle == 30
+    calls: list[tuple[int, int]] = []  # (the snapshot's cycle, the machine's then)
+    m.subscribe(lambda snap: calls.append((snap.cycle, m.cycle)))
+    release = sched.demand_cycles(EveryCycle())
+    vc.t += 16 * P
+    sched.sync()
+    assert calls == [(c, 46) for c in range(31, 47)]
+    release()
+
+    calls.clear()
+    every = sched.demand_every_cycle()
+    m.submit(WriteObjects((("SIM::target_position", 1, 1_000_000.0),)))
+    vc.t += P
+    sched.sync()  # (the write's cycle: handed out at once, its acknowledgement waits)
+    assert calls == [(47, 47)]
+    calls.clear()
+    vc.t += 8 * P
+    sched.sync()
+    assert not m.quiescent
+    assert calls == [(c, 55) for c in range(48, 56)]
+    every()
+
+
+def test_a_cycle_that_applies_an_operation_hands_out_the_held_snapshots_first(cfg) -> None:
+    """Inside `held_back`, a cycle that applies an operation hands the snapshots held so
+    far to the listeners before the operation is acknowledged, and its own right after:
+    the cycle process sends each acknowledgement with the next snapshot it hands out,
+    and the snapshot that shows a write must not come after its acknowledgement's."""
+    m = Machine(cfg, homed=True)
+    for _ in range(5):
+        m.run_cycle()
+    order: list[object] = []
+    m.subscribe(lambda snap: order.append(snap.cycle))
+    with m.held_back():
+        for _ in range(2):
+            m.skip(1)
+            m.publish()
+        assert order == []
+        with m.held_back():  # (nested: the outermost hands out)
+            m.skip(1)
+            m.publish()
+        assert order == []
+        pending = m.submit(WriteObjects((("SIM::target_position", 1, 1000.0),)))
+        pending.add_done_callback(lambda _p: order.append("ack"))
+        m.run_cycle()
+        assert order == [6, 7, 8, "ack", 9]
+        m.run_cycle()
+        assert order == [6, 7, 8, "ack", 9]
+    assert order == [6, 7, 8, "ack", 9, 10]

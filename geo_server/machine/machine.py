@@ -15,10 +15,11 @@ through `submit()` (a queue applied at the next cycle boundary) and the publishe
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field, fields, replace
 from time import monotonic, perf_counter_ns
@@ -180,6 +181,9 @@ class Machine:
         self.last_error_id = 0
         self.last_error = ""  # SIM::last_error: the latest warning or error, as text
         self.listeners: list[Callable[[Snapshot], None]] = []
+        #: snapshots published inside `held_back`, not handed to the listeners yet (None:
+        #: outside it; the engine lock's holder's, as everything `publish` touches)
+        self._held: list[Snapshot] | None = None
         self.event_listeners: list[Callable[[Event], None]] = []
         self._queue: deque[tuple[Operation, Pending]] = deque()
         self._queue_lock = threading.Lock()
@@ -259,6 +263,10 @@ class Machine:
             # Acknowledge the operations only now: a read right after an acknowledged
             # write sees its effect (the snapshot of the cycle that applied it is
             # published). Even a failed cycle answers them, so no client waits for nothing.
+            # The snapshots `held_back` before this cycle go out first: the cycle process
+            # sends each acknowledgement with the next snapshot it hands out.
+            if applied:
+                self._hand_out_held()
             for pending, result, exc in applied:
                 if not pending.set_running_or_notify_cancel():
                     continue  # cannot happen: a withdrawn operation is not in the queue
@@ -266,8 +274,10 @@ class Machine:
                     pending.set_result(result)
                 else:
                     pending.set_exception(exc)
-        for listener in tuple(self.listeners):  # (a copy: one may unsubscribe meanwhile)
-            listener(snap)
+        if self._held is not None and not applied:
+            self._held.append(snap)
+        else:
+            self._hand_out(snap)
         return snap
 
     # ------------------------------------------------------------------ batches
@@ -460,12 +470,45 @@ class Machine:
                 self._rest_key = key if self.quiescent else None
             self._show(snap)
             self.snapshot_time = monotonic()
+        if self._held is not None:
+            self._held.append(snap)
+        else:
+            self._hand_out(snap)
+        return snap
+
+    @contextlib.contextmanager
+    def held_back(self) -> Iterator[None]:
+        """The snapshots `publish`ed inside go to the listeners at its end, in their order,
+        each as it would have on its own (a cycle computed inside hands those before it
+        out first). The exact engine publishes its catch-ups so (`Scheduler.advance`): a
+        listener that hands its snapshots to a thread of its own (OPC UA's process, ADS
+        notifications) wakes that thread once per catch-up, not at its first cycle —
+        woken then, it took the interpreter lock at each of the next cycles' compiled
+        calls (they let it go; docs/design.md §13, *Handing out a catch-up*). Nested,
+        the outermost hands out."""
+        if self._held is not None:
+            yield
+            return
+        self._held = []
+        try:
+            yield
+        finally:
+            self._hand_out_held()
+            self._held = None
+
+    def _hand_out_held(self) -> None:
+        held = self._held
+        if held:
+            self._held = []
+            for snap in held:
+                self._hand_out(snap)
+
+    def _hand_out(self, snap: Snapshot) -> None:
         for listener in tuple(self.listeners):  # (a copy: one may unsubscribe meanwhile)
             try:
                 listener(snap)
             except Exception:  # one broken subscriber must not stop the engine
                 log.exception("snapshot listener failed")
-        return snap
 
     def _step_program(self) -> None:
         """Advance the NC program; a command the machine cannot carry out ends the program

@@ -612,6 +612,10 @@ class Scheduler:
         `max_lag` cycles that must be computed
         (the host cannot keep up) the time line moves on instead: an overrun, counted
         with the cycles given up, as the punctual engine does."""
+        with self.machine.held_back():  # (its snapshots to the listeners in one go)
+            self._advance(target, publish)
+
+    def _advance(self, target: int, publish: bool) -> None:
         m = self.machine
         target = self._reachable(target)
         if target <= m.cycle:

@@ -96,12 +96,20 @@ class Measured(Protocol):
     def stepper(self) -> Stepping: ...
 
 
+#: the most snapshots a catch-up holds back before it hands them to the listeners
+#: (`Machine.held_back`): a listener's own count of what waits for it (ADS's
+#: `sample_backlog`, which its `wants` refuses cycles past) lags the cycles published by
+#: at most this many
+HELD_MAX = 16
+
+
 class ChosenCycles(Protocol):
     """An observer that needs the snapshots of chosen cycles (ADS notifications, OPC
     UA's items; `machine.port.CycleDemand` is this): the exact engine publishes a cycle
     it computes or skips when `wants` says so, and wakes for the next one `next_wanted`
     names. Both are called on the engine's thread (or a request's catch-up) with the
-    engine lock held, so they must be quick and lock-free."""
+    engine lock held, so they must be quick and lock-free. The snapshots of a catch-up
+    reach the listeners together, after it or every `HELD_MAX` of them."""
 
     def wants(self, cycle: int, quiescent: bool) -> bool:
         """Publish the snapshot of `cycle` (`quiescent`: the machine is at rest)."""

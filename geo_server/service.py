@@ -545,10 +545,12 @@ class ObjectService:
     # ------------------------------------------------------------------ subscriptions
 
     def subscribe(self, callback: Callable[[Snapshot], None]) -> Callable[[], None]:
-        """Call `callback(snapshot)` after every published cycle, on the thread that
-        publishes it. The exact engine publishes only the cycles someone looks at (and
-        every cycle while `demand_cycles()` is held, as `subscribe_changes` and a
-        recording do); the other engines publish every cycle.
+        """Call `callback(snapshot)` after every published cycle, in cycle order, on the
+        thread that publishes it. The exact engine publishes only the cycles someone
+        looks at (and every cycle while `demand_cycles()` is held, as `subscribe_changes`
+        and a recording do), and hands a catch-up's snapshots out together after its
+        last cycle (or every `seam.HELD_MAX`); the other engines publish every cycle as
+        it ends.
 
         Keep it short and hand work to your own thread or event loop. Returns a function
         that unsubscribes.

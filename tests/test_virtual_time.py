@@ -648,3 +648,77 @@ def test_a_cycle_that_applies_an_operation_hands_out_the_held_snapshots_first(cf
         m.run_cycle()
         assert order == [6, 7, 8, "ack", 9]
     assert order == [6, 7, 8, "ack", 9, 10]
+
+
+class _EveryCycle:  # a `CycleDemand`: every cycle, at rest too
+    def wants(self, cycle: int, quiescent: bool) -> bool:
+        return True
+
+    def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
+        return cycle + 1
+
+
+def test_a_long_catch_up_hands_out_every_held_max_snapshots(cfg) -> None:
+    """A catch-up holds back at most `seam.HELD_MAX` (16) snapshots: a long one (a host
+    that stalled) hands them out every 16 — what waits for a listener stays bounded,
+    and its own count of it (ADS's `sample_backlog`) lags by at most that many."""
+    vc, m, sched = driven(cfg)
+    vc.t += 30 * P + P // 2
+    sched.sync()
+    calls: list[tuple[int, int]] = []
+    m.subscribe(lambda snap: calls.append((snap.cycle, m.cycle)))
+    release = sched.demand_cycles(_EveryCycle())
+    vc.t += 40 * P
+    sched.sync()
+    assert calls == (
+        [(c, 46) for c in range(31, 47)]
+        + [(c, 62) for c in range(47, 63)]
+        + [(c, 70) for c in range(63, 71)]
+    )
+    release()
+
+
+def test_a_listener_that_catches_up_again_misses_nothing(cfg) -> None:
+    """A listener may read through the service on the engine's thread, and that catch-up
+    (the engine lock is re-entrant) publishes inside the hand-out: its snapshots are
+    held and handed out too, after the others, none lost."""
+    vc, m, sched = driven(cfg)
+    vc.t += 30 * P + P // 2
+    sched.sync()
+    seen: list[int] = []
+
+    def reads_again(snap) -> None:
+        seen.append(snap.cycle)
+        if snap.cycle == 31:
+            vc.t += 2 * P
+            sched.sync()
+
+    m.subscribe(reads_again)
+    release = sched.demand_cycles(_EveryCycle())
+    vc.t += 4 * P
+    sched.sync()
+    assert seen == [31, 32, 33, 34, 35, 36]
+    release()
+
+
+def test_a_listener_that_raises_past_exception_does_not_stop_the_hand_out_for_good(cfg) -> None:
+    """A listener that raises a BaseException (a KeyboardInterrupt on the thread that
+    drives the machine) ends that hand-out, not the next ones: a later snapshot reaches
+    the listeners at once again."""
+    m = Machine(cfg, homed=True)
+    for _ in range(5):
+        m.run_cycle()
+    seen: list[int] = []
+
+    def interrupted(snap) -> None:
+        seen.append(snap.cycle)
+        if snap.cycle == 6:
+            raise KeyboardInterrupt
+
+    m.subscribe(interrupted)
+    with pytest.raises(KeyboardInterrupt), m.held_back():
+        m.skip(1)
+        m.publish()
+    m.skip(1)
+    m.publish()
+    assert seen == [6, 7]

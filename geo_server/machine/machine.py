@@ -67,6 +67,7 @@ from geo_server.machine.port import (
     resolved,
 )
 from geo_server.model import SELECTED_OBJECTS, CompKind, Diagnostic, MachineConfig
+from geo_server.seam import HELD_MAX
 from geo_server.snapshot import ObjectLayout, Snapshot, filetime_now
 from geo_server.twin.engine import TwinEngine
 from geo_server.twin.model import TwinConfig
@@ -274,10 +275,10 @@ class Machine:
                     pending.set_result(result)
                 else:
                     pending.set_exception(exc)
-        if self._held is not None and not applied:
-            self._held.append(snap)
-        else:
+        if applied:
             self._hand_out(snap)
+        else:
+            self._handed_out(snap)
         return snap
 
     # ------------------------------------------------------------------ batches
@@ -453,7 +454,8 @@ class Machine:
 
     def publish(self) -> Snapshot:
         """Build and hand out the snapshot of the cycle reached, when `skip` or an
-        unpublished `run_cycle` has left the published one behind (else nothing to do)."""
+        unpublished `run_cycle` has left the published one behind (else nothing to do):
+        to the listeners now, or inside `held_back` at its end."""
         with self._cycle_lock:
             if self.snapshot.cycle == self.cycle:
                 return self.snapshot
@@ -470,10 +472,7 @@ class Machine:
                 self._rest_key = key if self.quiescent else None
             self._show(snap)
             self.snapshot_time = monotonic()
-        if self._held is not None:
-            self._held.append(snap)
-        else:
-            self._hand_out(snap)
+        self._handed_out(snap)
         return snap
 
     @contextlib.contextmanager
@@ -493,8 +492,23 @@ class Machine:
         try:
             yield
         finally:
+            # (a listener may catch up again, on this thread: what it publishes meanwhile
+            # is held and handed out here too, until none is left)
+            try:
+                while self._held:
+                    self._hand_out_held()
+            finally:
+                self._held = None
+
+    def _handed_out(self, snap: Snapshot) -> None:
+        """`snap` to the listeners now, or held (`held_back`: at most `HELD_MAX`)."""
+        held = self._held
+        if held is None:
+            self._hand_out(snap)
+            return
+        held.append(snap)
+        if len(held) >= HELD_MAX:
             self._hand_out_held()
-            self._held = None
 
     def _hand_out_held(self) -> None:
         held = self._held

@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Protocol, cast
 
 from geo_server.errors import AdsError
+from geo_server.seam import HELD_MAX
 from geo_server.service import varies_at_rest
 from geo_server.snapshot import Snapshot
 from geo_server.transports.ads import codec, handles, symbols
@@ -195,9 +196,12 @@ class Sampler:
 
     @property
     def _backlog(self) -> int:
-        """This machine's share of the port's `sample_backlog`."""
+        """This machine's share of the port's `sample_backlog`, below `HANDOFF_MAX` by
+        `HELD_MAX`: the snapshots a catch-up holds back arrive after `wants` counted
+        `_handed`, and the deque must not drop them uncounted."""
         head = self.dev.head
-        return max(16, head.options.sample_backlog // len(head.devices))
+        share = max(16, head.options.sample_backlog // len(head.devices))
+        return min(share, HANDOFF_MAX - HELD_MAX)
 
     def next_wanted(self, cycle: int, quiescent: bool) -> int | None:
         """`CycleDemand` (engine thread): the next cycle the registrations want."""

@@ -461,6 +461,63 @@ def test_held_requests_are_let_in_in_fair_order() -> None:
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
 
 
+def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
+    """In a fleet, a machine's share of OPC UA (`RequestMeter.machines`) holds its
+    connections in the same fair order as OPC UA's own share: while machine m1's share
+    is used up, `flood` keeps requests of 10 ms of m1's processor time coming and
+    `client` requests of 1 ms of it. Let in by their tags, among the first eleven
+    exactly one is the flood's. (Before, each held connection slept on its own until
+    m1's share was back and all went together: a client reading a machine beside a
+    flood on it waited for every flooding connection's request, several seconds in a
+    fleet of 30 with 4 flooding connections, and asyncua's client gave its connection
+    up.) OPC UA's own share is not what holds them here (`rate` 1, a large burst)."""
+    now = [0.0]
+    ticking = [False]
+
+    def clock() -> float:
+        if ticking[0]:  # (each look finds the share back: the order is the tags' alone)
+            now[0] += 1.0
+        return now[0]
+
+    m1 = LoopShare(rate=0.1, burst=0.002, clock=clock)
+    meter = RequestMeter(LoopShare(rate=1.0, burst=100.0), {"m1": m1})
+    flood, client = _Connection("flood"), _Connection("client")
+    order: list[str] = []
+    let_in = asyncio.Event()
+
+    async def scenario() -> None:
+        async def connection(conn: _Connection, cost: float, requests: int) -> None:
+            charged: list[str] = ["m1"]  # (its last request read m1)
+            for _ in range(requests):
+                tickets = []
+                for gate in meter.gates(charged):
+                    tickets.append(gate.admit_now(conn) or await gate.admit(conn))
+                order.append(conn.name)
+                let_in.set()
+                began = RequestMeter.begin()
+                RequestMeter.touch("m1")
+                charged = meter.end(tickets, began - cost)
+
+        m1.charge(0.003)  # used up, and the clock stands
+        both = [
+            asyncio.ensure_future(connection(flood, 0.010, 5)),
+            asyncio.ensure_future(connection(client, 0.001, 30)),
+        ]
+        while meter.waiting < 2:
+            await asyncio.sleep(0)
+        assert m1.holds == 2 and order == []
+        ticking[0] = True
+        while len(order) < 11:
+            await let_in.wait()
+            let_in.clear()
+        assert order[:11].count("flood") == 1, order
+        await asyncio.gather(*both)
+        assert m1.status["loop_s"] > 0.079  # (5 · 10 ms + 30 · 1 ms, charged to m1)
+        meter.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+
+
 def test_a_client_beside_a_flood_waits_for_one_request_of_each(
     service: ObjectService, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -492,9 +549,9 @@ def test_a_client_beside_a_flood_waits_for_one_request_of_each(
         ended: list[int] = []  # the client port of each request the server ended
         end = iface.meter.end
 
-        def recording(ticket: Any, began: float | None) -> Any:
-            ended.append(ticket.key.peer_name[1])
-            return end(ticket, began)
+        def recording(tickets: Any, began: float | None) -> Any:
+            ended.append(tickets[-1].key.peer_name[1])
+            return end(tickets, began)
 
         monkeypatch.setattr(iface.meter, "end", recording)
         await iface.start()

@@ -408,7 +408,7 @@ class GuardedProtocol(OPCUAProtocol):
         self._writable.set()
         self._unread: asyncio.TimerHandle | None = None
         self._held = False  # reading paused for a used-up share (`_process_one_msg`)
-        self._charged: list[LoopShare] = []  # the shares its last request drew on
+        self._charged: list[str] = []  # the machines whose shares its last request drew on
         super().connection_made(transport)
         if self.processor is not None:  # (None: refused at max_connections)
             processor: Any = GuardedProcessor(self.iserver, self.transport, self.limits)
@@ -447,41 +447,40 @@ class GuardedProtocol(OPCUAProtocol):
         # connection without ever yielding, so a burst of them held every interface
         await asyncio.sleep(0)
         meter = self.meter
-        ticket = await self._wait_for_share(meter)
+        tickets = await self._wait_for_shares(meter)
         began = None
         try:
             await meter.take_turn()
             began = meter.begin()
             return bool(await super()._process_one_msg(header, buf))
         finally:
-            self._charged = meter.end(ticket, began)
+            self._charged = meter.end(tickets, began)
 
-    async def _wait_for_share(self, meter: RequestMeter) -> Ticket:
-        """While the shares of the machines its last request touched are used up, and
-        until OPC UA's share lets it in (`RequestMeter.admit`: in fair order while it is
-        used up), the connection is neither read nor served (docs/design.md §13.1)."""
-        wait = meter.wait(self._charged)
-        if wait <= 0.0:
-            ticket = meter.admit_now(self)
-            if ticket is not None:
-                return ticket
-        self._held = True
-        if self.transport is not None:
-            self.transport.pause_reading()
+    async def _wait_for_shares(self, meter: RequestMeter) -> list[Ticket]:
+        """Until the shares of the machines its last request touched, then OPC UA's
+        own, let it in (`RequestMeter.gates`: each in fair order while it is used up),
+        the connection is neither read nor served (docs/design.md §13.1)."""
+        tickets: list[Ticket] = []
         try:
-            if wait > 0.0:
-                while wait > 0.0:
-                    await asyncio.sleep(wait)
-                    wait = meter.wait(self._charged)
-                ticket = meter.admit_now(self)
-                if ticket is not None:
-                    return ticket
-            return await meter.admit(self)
+            for gate in meter.gates(self._charged):
+                ticket = gate.admit_now(self)
+                if ticket is None:
+                    if not self._held:
+                        self._held = True
+                        if self.transport is not None:
+                            self.transport.pause_reading()
+                    ticket = await gate.admit(self)
+                tickets.append(ticket)
+        except BaseException:  # (its connection went while it waited: the next may go)
+            meter.release(tickets)
+            raise
         finally:
-            self._held = False
-            transport = self.transport
-            if transport is not None and not transport.is_closing() and self._writable.is_set():
-                transport.resume_reading()
+            if self._held:
+                self._held = False
+                transport = self.transport
+                if transport is not None and not transport.is_closing() and self._writable.is_set():
+                    transport.resume_reading()
+        return tickets
 
     def connection_lost(self, ex: BaseException | None) -> None:
         if self._unread is not None:

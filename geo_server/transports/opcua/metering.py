@@ -13,19 +13,21 @@ machines whose variables a request read, wrote, monitored or called (`touch`), a
 thread's CPU time of the request is split among their shares (`end`: each machine's share
 of OPC UA's thread, at its fleet share's rate). A connection
 whose last request drew on a share that is used up waits, its reading paused, until the
-share is back (`wait`), as an ADS or Modbus connection of that machine would. Requests
+share lets it in (`gates`), as an ADS or Modbus connection of that machine would. Requests
 that touch no machine's variable (a Browse, the server's own nodes) draw on no share;
 they are bounded per request (`operations.py`).
 
-While OPC UA's share is used up, whose request runs when it is back is decided here,
-fairly (`admit`, start-time fair queuing over connections): each connection's requests
-are tagged with the processor time its earlier ones took, and the request with the
-smallest tag runs next, one at a time. A connection that asks seldom (a SCADA client's
-read, asyncua's keep-alive probe) is served as soon as the share is back, ahead of a
-flood's queued requests. Before, every held connection slept on its own until the
-share was back, and all woke together: a request waited for everyone's, and a
-legitimate client beside a flood of four connections waited up to 2.4 s for one Read;
-asyncua's client gives a connection up when its keep-alive probe waits a second.
+While a share is used up — OPC UA's own or a machine's — whose request runs when it is
+back is decided fairly (`FairShare`, start-time fair queuing over connections): each
+connection's requests are tagged with the processor time its earlier ones took of that
+share, and the request with the smallest tag runs next, one at a time. A connection that
+asks seldom (a SCADA client's read, asyncua's keep-alive probe) is served as soon as the
+share is back, ahead of a flood's queued requests. Before, every held connection slept on
+its own until the share was back, and all woke together: a request waited for everyone's,
+and a legitimate client beside a flood of four connections waited up to 2.4 s for one
+Read (OPC UA's share), or, reading the flooded machine of a fleet of 30, 6 s (its
+machine's); asyncua's client gives a connection up when its keep-alive probe waits a
+second.
 
 The machines touched are kept in a context variable: each connection's requests run in
 that connection's own task, so two connections' requests never mix their marks.
@@ -67,16 +69,15 @@ class _Waiting:
     since: float = field(compare=False)
 
 
-class RequestMeter:
-    """OPC UA's share of the loop (`overall`: every request draws on it), the shares of
-    a fleet's machines by name (`machines`: a request draws on those it touched), the
-    requests' charges, and the fair order of the requests held for OPC UA's share."""
+class FairShare:
+    """A `LoopShare` whose held requests go in start-time fair order (the module's
+    docstring): while the share is used up, connections queue with their start tags (the
+    processor time their earlier requests took of it, in the queue's virtual time), and
+    the one with the smallest goes next, one at a time, once the share has time again."""
 
-    def __init__(self, overall: LoopShare, machines: Mapping[str, LoopShare]) -> None:
-        self.overall = overall
-        self.machines = dict(machines)
-        self._turn_taken = False
-        #: the requests held for `overall`, smallest start tag first (`admit`)
+    def __init__(self, share: LoopShare) -> None:
+        self.share = share
+        #: the requests held for the share, smallest start tag first (`admit`)
         self._queue: list[_Waiting] = []
         self._seq = itertools.count()
         #: each connection's finish tag: its last request's start tag and processor time
@@ -89,25 +90,24 @@ class RequestMeter:
         self._wait = 0.0  # what `admit_now` found last (the dispatcher's first sleep)
 
     def admit_now(self, key: object) -> Ticket | None:
-        """Connection `key` (weakly referenced) may run its next request at once on OPC
-        UA's share (it has time and nobody waits), or None: then `admit`."""
+        """Connection `key` (weakly referenced) may run its next request at once (the
+        share has time and nobody waits), or None: then `admit`."""
         if self._queue or self._dispatcher is not None:
             return None
-        self._wait = self.overall.wait(count=False)
+        self._wait = self.share.wait(count=False)
         if self._wait > 0.0:
             return None
         start = self._now = max(self._now, self._tags.get(key, 0.0))
         return Ticket(key, start)
 
     async def admit(self, key: object) -> Ticket:
-        """Wait until connection `key`'s next request may run on OPC UA's share, in the
-        fair order (the module's docstring); counted as a hold of the share, with the
-        time it waited."""
+        """Wait until connection `key`'s next request may run, in the fair order;
+        counted as a hold of the share, with the time it waited."""
         start = max(self._now, self._tags.get(key, 0.0))
         admitted: asyncio.Future[Ticket] = asyncio.get_running_loop().create_future()
-        since = self.overall.clock()
+        since = self.share.clock()
         heapq.heappush(self._queue, _Waiting(start, next(self._seq), admitted, key, since))
-        self.overall.hold()
+        self.share.hold()
         if self._dispatcher is None:  # (after an `admit_now` that found the share used up:
             wait, self._wait = self._wait, 0.0  # its wait; else the dispatcher looks now)
             self._dispatcher = asyncio.ensure_future(self._dispatch(wait))
@@ -126,7 +126,7 @@ class RequestMeter:
             while self._queue:
                 if wait > 0.0:
                     await asyncio.sleep(wait)
-                wait = self.overall.wait(count=False)  # (each request counted once: `admit`)
+                wait = self.share.wait(count=False)  # (each request counted once: `admit`)
                 if wait > 0.0:
                     continue
                 waiting = heapq.heappop(self._queue)
@@ -134,15 +134,22 @@ class RequestMeter:
                     continue
                 ended: asyncio.Future[None] = asyncio.get_running_loop().create_future()
                 self._now = max(self._now, waiting.start)
-                self.overall.held(self.overall.clock() - waiting.since)
+                self.share.held(self.share.clock() - waiting.since)
                 waiting.admitted.set_result(Ticket(waiting.key, waiting.start, ended))
-                await asyncio.wait((ended,), timeout=self.overall.burst)
+                await asyncio.wait((ended,), timeout=self.share.burst)
         finally:
             self._dispatcher = None
 
+    def paid(self, key: object, took: float, start: float | None = None) -> None:
+        """Connection `key`'s request took `took` seconds of the share's processor time
+        (`start`: its ticket's start tag; None: it was not let in here)."""
+        if start is None:
+            start = max(self._now, self._tags.get(key, 0.0))
+        self._tags[key] = start + took
+
     @property
     def waiting(self) -> int:
-        """Requests held for OPC UA's share now, one at most per connection."""
+        """Requests held now, one at most per connection."""
         return sum(1 for w in self._queue if not w.admitted.done())
 
     def close(self) -> None:
@@ -153,6 +160,45 @@ class RequestMeter:
         if self._dispatcher is not None:
             self._dispatcher.cancel()
             self._dispatcher = None  # (one cancelled before its first step never ends)
+
+
+class RequestMeter:
+    """OPC UA's share of the loop (`overall`: every request draws on it), the shares of
+    a fleet's machines by name (`machines`: a request draws on those it touched), the
+    requests' charges, and the fair order of the requests held for any of them."""
+
+    def __init__(self, overall: LoopShare, machines: Mapping[str, LoopShare]) -> None:
+        self.overall = overall
+        self.fair = FairShare(overall)
+        #: a fleet's machines' shares, each with its own fair order
+        self.machines = {m: FairShare(share) for m, share in machines.items()}
+        self._turn_taken = False
+
+    def admit_now(self, key: object) -> Ticket | None:
+        """Connection `key` may run its next request at once on OPC UA's share, or None:
+        then `admit` (`FairShare.admit_now`)."""
+        return self.fair.admit_now(key)
+
+    async def admit(self, key: object) -> Ticket:
+        """Wait for OPC UA's share, in the fair order (`FairShare.admit`)."""
+        return await self.fair.admit(key)
+
+    def gates(self, machines: Sequence[str]) -> list[FairShare]:
+        """What a connection whose last request touched `machines` waits for before its
+        next: those machines' shares (a fleet's), then OPC UA's own."""
+        return [self.machines[m] for m in machines if m in self.machines] + [self.fair]
+
+    @property
+    def waiting(self) -> int:
+        """Requests held now for OPC UA's share or a machine's, one at most per
+        connection in each."""
+        return self.fair.waiting + sum(g.waiting for g in self.machines.values())
+
+    def close(self) -> None:
+        """The server stops: nobody is let in any more."""
+        self.fair.close()
+        for gate in self.machines.values():
+            gate.close()
 
     async def take_turn(self) -> None:
         """Wait for this turn of the event loop to have no OPC UA request yet, and take
@@ -175,34 +221,39 @@ class RequestMeter:
             touched.add(machine)
 
     @staticmethod
-    def wait(last: Sequence[LoopShare]) -> float:
-        """0.0, or how long (seconds) a connection whose last request drew on the
-        machines' shares `last` must wait for those to be back (OPC UA's own: `admit`)."""
-        return max((share.wait() for share in last), default=0.0)
-
-    @staticmethod
     def begin() -> float:
         """A request starts (in its connection's task): its marks and CPU time from now."""
         _touched.set(set())
         return time.thread_time()
 
-    def end(self, ticket: Ticket, began: float | None) -> list[LoopShare]:
-        """The request of `ticket` ended (`began`: None when it never started): its CPU
-        time charged to OPC UA's share, to its connection's tag and, split evenly, to the
-        shares of the machines it touched; those machines' shares. The next held
-        request may go."""
+    @staticmethod
+    def release(tickets: Sequence[Ticket]) -> None:
+        """Tickets let in for a request that will not run: the next held may go."""
+        for ticket in tickets:
+            _ended(ticket)
+
+    def end(self, ticket: Ticket | Sequence[Ticket], began: float | None) -> list[str]:
+        """The request let in with `ticket` (OPC UA's; or the tickets of `gates`, OPC
+        UA's last) ended (`began`: None when it never started): its CPU time charged to
+        OPC UA's share and its connection's tag there, and, split evenly, to the shares
+        and tags of the machines it touched. The next held requests may go. Returns
+        those machines: what the connection's next request waits for (`gates`)."""
+        tickets = [ticket] if isinstance(ticket, Ticket) else list(ticket)
         took = 0.0 if began is None else time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
         # at most a burst: the wait after one request stays a fraction of a second
         # (asyncua's client gives a connection up when its keep-alive Read waits 1 s)
         self.overall.charge(min(took, self.overall.burst))
-        self._tags[ticket.key] = ticket.start + took
-        _ended(ticket)
-        shares = [self.machines[m] for m in sorted(touched) if m in self.machines]
-        for share in shares:
-            share.charge(took / len(shares))
-        return shares
+        mine = tickets[-1]
+        self.fair.paid(mine.key, took, mine.start)
+        self.release(tickets)
+        machines = [m for m in sorted(touched) if m in self.machines]
+        for m in machines:
+            gate = self.machines[m]
+            gate.share.charge(took / len(machines))
+            gate.paid(mine.key, took / len(machines))
+        return machines
 
 
 def _ended(ticket: Ticket) -> None:
@@ -210,4 +261,4 @@ def _ended(ticket: Ticket) -> None:
         ticket.ended.set_result(None)
 
 
-__all__ = ["RequestMeter", "Ticket"]
+__all__ = ["FairShare", "RequestMeter", "Ticket"]

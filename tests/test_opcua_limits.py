@@ -513,6 +513,16 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
         assert order[:11].count("flood") == 1, order
         await asyncio.gather(*both)
         assert m1.status["loop_s"] > 0.079  # (5 · 10 ms + 30 · 1 ms, charged to m1)
+        # a request is charged at most OPC UA's burst, to a machine's share too: the
+        # wait after one stays a fraction of a second
+        meter.overall.burst = 0.05
+        before = m1.status["loop_s"]
+        began = RequestMeter.begin()
+        RequestMeter.touch("m1")
+        ticket = meter.admit_now(client)
+        assert ticket is not None
+        meter.end(ticket, began - 0.5)
+        assert m1.status["loop_s"] - before == pytest.approx(0.05)
         meter.close()
 
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))

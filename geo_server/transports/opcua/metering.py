@@ -242,16 +242,18 @@ class RequestMeter:
         took = 0.0 if began is None else time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
-        # at most a burst: the wait after one request stays a fraction of a second
-        # (asyncua's client gives a connection up when its keep-alive Read waits 1 s)
-        self.overall.charge(min(took, self.overall.burst))
+        # at most a burst (OPC UA's), also to a machine's share: the wait after one
+        # request stays a fraction of a second (asyncua's client gives a connection up
+        # when its keep-alive Read waits 1 s)
+        most = self.overall.burst
+        self.overall.charge(min(took, most))
         mine = tickets[-1]
         self.fair.paid(mine.key, took, mine.start)
         self.release(tickets)
         machines = [m for m in sorted(touched) if m in self.machines]
         for m in machines:
             gate = self.machines[m]
-            gate.share.charge(took / len(machines))
+            gate.share.charge(min(took / len(machines), most))
             gate.paid(mine.key, took / len(machines))
         return machines
 

@@ -489,15 +489,14 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
         async def connection(conn: _Connection, cost: float, requests: int) -> None:
             charged: list[str] = ["m1"]  # (its last request read m1)
             for _ in range(requests):
-                tickets = []
-                for gate in meter.gates(charged):
-                    tickets.append(gate.admit_now(conn) or await gate.admit(conn))
+                tickets = await meter.let_in(conn, charged, lambda: None)
                 order.append(conn.name)
                 let_in.set()
-                began = RequestMeter.begin()
+                began = RequestMeter.begin(tickets)
                 RequestMeter.touch("m1")
                 charged = meter.end(tickets, began - cost)
 
+        assert meter.gates(["m1"]) == [meter.machines["m1"], meter.fair]
         m1.charge(0.003)  # used up, and the clock stands
         both = [
             asyncio.ensure_future(connection(flood, 0.010, 5)),
@@ -513,8 +512,9 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
         assert order[:11].count("flood") == 1, order
         await asyncio.gather(*both)
         assert m1.status["loop_s"] > 0.079  # (5 · 10 ms + 30 · 1 ms, charged to m1)
-        # a request is charged at most OPC UA's burst, to a machine's share too: the
-        # wait after one stays a fraction of a second
+        # a request is charged to a machine's share at most what makes it wait after
+        # one as long as OPC UA's own would (its burst over its rate: 0.05 / 1.0 s):
+        # 0.1 · 0.05 s = 5 ms of m1's, though it took 0.5 s
         meter.overall.burst = 0.05
         before = m1.status["loop_s"]
         began = RequestMeter.begin()
@@ -522,8 +522,39 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
         ticket = meter.admit_now(client)
         assert ticket is not None
         meter.end(ticket, began - 0.5)
-        assert m1.status["loop_s"] - before == pytest.approx(0.05)
+        assert m1.status["loop_s"] - before == pytest.approx(0.005)
         meter.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
+
+
+def test_a_machines_queue_waits_for_the_request_it_let_in_to_begin() -> None:
+    """A connection a machine's share let in may still wait at OPC UA's own (both used
+    up): the machine's queue lets the next in only once that request began and then ran
+    for a burst (or ended), not a burst after it was let in. (Before, it let one in
+    every 2 ms, the machine share's burst: the whole queue got past the machine before
+    any request of it was charged, and each then ran on the machine's share.) Three
+    connections held at m1; m1 back, OPC UA's share still used up: one passes m1,
+    two still wait there, also after a hundred of m1's bursts."""
+    m1_back = [False]
+    m1 = LoopShare(rate=0.1, burst=0.002, clock=lambda: 1000.0 if m1_back[0] else 0.0)
+    overall = LoopShare(rate=0.2, burst=0.05, clock=lambda: 0.0)
+    meter = RequestMeter(overall, {"m1": m1})
+    conns = [_Connection(f"c{i}") for i in range(3)]
+
+    async def scenario() -> None:
+        m1.charge(0.003)
+        overall.charge(0.06)  # (both used up; OPC UA's clock stands for good)
+        waiting = [asyncio.ensure_future(meter.let_in(c, ["m1"], lambda: None)) for c in conns]
+        while meter.machines["m1"].waiting < 3:
+            await asyncio.sleep(0)
+        m1_back[0] = True
+        while meter.fair.waiting < 1:
+            await asyncio.sleep(0)
+        await asyncio.sleep(100 * m1.burst)  # (its dispatcher's timeouts come first)
+        assert (meter.machines["m1"].waiting, meter.fair.waiting) == (2, 1)
+        meter.close()
+        await asyncio.gather(*waiting, return_exceptions=True)
 
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
 

@@ -48,8 +48,9 @@ class LoopShare:
     """One machine's bucket of event-loop time (see the module's docstring).
 
     `status` is the dict a machine's status shows as `loop_share` (`ObjectService.
-    status_extra`): `rate`, `loop_s` (loop time its requests took), `holds` (how often
-    its requests had to wait for their share) and `held_s` (for how long, together).
+    status_extra`): `rate`, `loop_s` (loop time its requests were charged: what they
+    took, OPC UA's at most a burst each), `holds` (how often its requests had to wait
+    for their share) and `held_s` (for how long, together).
     """
 
     __slots__ = ("_at", "_credit", "burst", "clock", "rate", "status")

@@ -451,36 +451,29 @@ class GuardedProtocol(OPCUAProtocol):
         began = None
         try:
             await meter.take_turn()
-            began = meter.begin()
+            began = meter.begin(tickets)
             return bool(await super()._process_one_msg(header, buf))
         finally:
             self._charged = meter.end(tickets, began)
 
     async def _wait_for_shares(self, meter: RequestMeter) -> list[Ticket]:
         """Until the shares of the machines its last request touched, then OPC UA's
-        own, let it in (`RequestMeter.gates`: each in fair order while it is used up),
+        own, let it in (`RequestMeter.let_in`: each in fair order while it is used up),
         the connection is neither read nor served (docs/design.md §13.1)."""
-        tickets: list[Ticket] = []
         try:
-            for gate in meter.gates(self._charged):
-                ticket = gate.admit_now(self)
-                if ticket is None:
-                    if not self._held:
-                        self._held = True
-                        if self.transport is not None:
-                            self.transport.pause_reading()
-                    ticket = await gate.admit(self)
-                tickets.append(ticket)
-        except BaseException:  # (its connection went while it waited: the next may go)
-            meter.release(tickets)
-            raise
+            return await meter.let_in(self, self._charged, self._hold)
         finally:
             if self._held:
                 self._held = False
                 transport = self.transport
                 if transport is not None and not transport.is_closing() and self._writable.is_set():
                     transport.resume_reading()
-        return tickets
+
+    def _hold(self) -> None:
+        if not self._held:
+            self._held = True
+            if self.transport is not None:
+                self.transport.pause_reading()
 
     def connection_lost(self, ex: BaseException | None) -> None:
         if self._unread is not None:

@@ -40,7 +40,7 @@ import heapq
 import itertools
 import time
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 
@@ -51,12 +51,15 @@ _touched: ContextVar[set[str] | None] = ContextVar("geo_server_opcua_touched", d
 
 @dataclass(eq=False)
 class Ticket:
-    """One request let in by `RequestMeter.admit`: its connection, its start tag (the
-    connection's processor time of OPC UA, in the queue's virtual time) and, when it was
-    queued, what tells the queue it ended (`RequestMeter.end`)."""
+    """One request let in by a `FairShare`: its connection, its start tag (the
+    connection's processor time of that share, in the queue's virtual time), the share
+    and, when it was queued, what tells the queue it began (`RequestMeter.begin`) and
+    ended (`RequestMeter.end`)."""
 
     key: object
     start: float
+    gate: FairShare | None = None
+    began: asyncio.Future[None] | None = None
     ended: asyncio.Future[None] | None = None
 
 
@@ -98,7 +101,7 @@ class FairShare:
         if self._wait > 0.0:
             return None
         start = self._now = max(self._now, self._tags.get(key, 0.0))
-        return Ticket(key, start)
+        return Ticket(key, start, self)
 
     async def admit(self, key: object) -> Ticket:
         """Wait until connection `key`'s next request may run, in the fair order;
@@ -121,7 +124,10 @@ class FairShare:
     async def _dispatch(self, wait: float) -> None:
         """Let the held requests in, smallest start tag first, each once the share has
         time again and the one before it has ended — or has run for a burst's time: a
-        request that waits for the main loop (a Call, a Write) does not hold the others."""
+        request that waits for the main loop (a Call, a Write) does not hold the others.
+        Its burst counts from when it began: a machine's ticket may wait at OPC UA's
+        share first, and letting the next in meanwhile let the whole queue through
+        before any of them was charged."""
         try:
             while self._queue:
                 if wait > 0.0:
@@ -132,10 +138,14 @@ class FairShare:
                 waiting = heapq.heappop(self._queue)
                 if waiting.admitted.done():  # (its connection went while it waited)
                     continue
-                ended: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+                loop = asyncio.get_running_loop()
+                began: asyncio.Future[None] = loop.create_future()
+                ended: asyncio.Future[None] = loop.create_future()
                 self._now = max(self._now, waiting.start)
                 self.share.held(self.share.clock() - waiting.since)
-                waiting.admitted.set_result(Ticket(waiting.key, waiting.start, ended))
+                ticket = Ticket(waiting.key, waiting.start, self, began, ended)
+                waiting.admitted.set_result(ticket)
+                await asyncio.wait((began, ended), return_when=asyncio.FIRST_COMPLETED)
                 await asyncio.wait((ended,), timeout=self.share.burst)
         finally:
             self._dispatcher = None
@@ -188,6 +198,25 @@ class RequestMeter:
         next: those machines' shares (a fleet's), then OPC UA's own."""
         return [self.machines[m] for m in machines if m in self.machines] + [self.fair]
 
+    async def let_in(
+        self, key: object, machines: Sequence[str], on_hold: Callable[[], None]
+    ) -> list[Ticket]:
+        """The tickets of connection `key`'s next request, its last one having touched
+        `machines`: each of `gates` lets it in at once, or in fair order while its share
+        is used up (`on_hold` is called before each such wait). OPC UA's ticket last."""
+        tickets: list[Ticket] = []
+        try:
+            for gate in self.gates(machines):
+                ticket = gate.admit_now(key)
+                if ticket is None:
+                    on_hold()
+                    ticket = await gate.admit(key)
+                tickets.append(ticket)
+        except BaseException:  # (its connection went while it waited: the next may go)
+            self.release(tickets)
+            raise
+        return tickets
+
     @property
     def waiting(self) -> int:
         """Requests held now for OPC UA's share or a machine's, one at most per
@@ -221,8 +250,12 @@ class RequestMeter:
             touched.add(machine)
 
     @staticmethod
-    def begin() -> float:
-        """A request starts (in its connection's task): its marks and CPU time from now."""
+    def begin(tickets: Sequence[Ticket] = ()) -> float:
+        """The request of `tickets` starts (in its connection's task): its marks and CPU
+        time from now; the queues that let it in count its burst from now."""
+        for ticket in tickets:
+            if ticket.began is not None and not ticket.began.done():
+                ticket.began.set_result(None)
         _touched.set(set())
         return time.thread_time()
 
@@ -242,19 +275,21 @@ class RequestMeter:
         took = 0.0 if began is None else time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
-        # at most a burst (OPC UA's), also to a machine's share: the wait after one
-        # request stays a fraction of a second (asyncua's client gives a connection up
-        # when its keep-alive Read waits 1 s)
-        most = self.overall.burst
-        self.overall.charge(min(took, most))
-        mine = tickets[-1]
-        self.fair.paid(mine.key, took, mine.start)
+        # at most a burst to OPC UA's share, and to a machine's what makes it wait as
+        # long after one request: a fraction of a second at the default share (asyncua's
+        # client gives a connection up when its keep-alive Read waits 1 s)
+        overall = self.overall
+        overall.charge(min(took, overall.burst))
+        starts = {t.gate: t.start for t in tickets}
+        key = tickets[-1].key
+        self.fair.paid(key, took, starts.get(self.fair))
         self.release(tickets)
         machines = [m for m in sorted(touched) if m in self.machines]
         for m in machines:
-            gate = self.machines[m]
-            gate.share.charge(min(took / len(machines), most))
-            gate.paid(mine.key, took / len(machines))
+            gate, part = self.machines[m], took / len(machines)
+            # (at most what waits as long after it as OPC UA's burst does on its share)
+            gate.share.charge(min(part, gate.share.rate * overall.burst / overall.rate))
+            gate.paid(key, part, starts.get(gate))
         return machines
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import functools
 import json
 import signal
 import sys
@@ -43,7 +44,11 @@ from geo_server.machine.scheduler import Engines, Scheduler, switch_interval
 from geo_server.paths import default_startup_list
 from geo_server.recorder import cli as recorder_cli
 from geo_server.service import ObjectService
-from geo_server.transports.interface import FleetStatus
+from geo_server.transports.interface import FleetStatus, plugs
+from geo_server.transports.share import STATUS_KEY
+
+#: the interfaces' plugs (loaded once: a fleet's status asks each of them per machine)
+_PLUGS = functools.cache(plugs)
 
 
 def members_from_args(args: argparse.Namespace) -> list[Member]:
@@ -180,11 +185,10 @@ def fleet_status(
 
 
 def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
-    """A machine's entry in the fleet's status, from its own status `st`."""
-    notes = st.get("ads_notifications") or {}
-    share = st.get("loop_share") or {}
-    opcua = st.get("opcua_share") or {}  # (its share of OPC UA's own loop)
-    items = st.get("opcua_items") or {}  # (its OPC UA monitored items' sampling)
+    """A machine's entry in the fleet's status, from its own status `st`: its share of
+    the loop's holds, and what each interface's entries add (`Interface.fleet_counts`)."""
+    share = st.get(STATUS_KEY) or {}
+    counts = [plug.fleet_counts(st) for plug in _PLUGS()]
     return {
         "name": member.name,
         "cycle": st["cycle"],
@@ -192,11 +196,9 @@ def _machine_status(member: Member, st: dict[str, Any]) -> dict[str, Any]:
         "overruns": st["overruns"],
         "stalled": st["stalled"],
         "computed_cycles": st["computed_cycles"],
-        "notifications": int(notes.get("registrations", 0)),
-        "samples_late": int(notes.get("samples_late", 0))
-        + int(notes.get("samples_refused", 0))
-        + int(items.get("samples_late", 0)),
-        "loop_share_holds": int(share.get("holds", 0)) + int(opcua.get("holds", 0)),
+        "notifications": sum(c.notifications for c in counts),
+        "samples_late": sum(c.samples_late for c in counts),
+        "loop_share_holds": int(share.get("holds", 0)) + sum(c.holds for c in counts),
         "netid": member.netid,
         "modbus_port": member.modbus_port,
     }

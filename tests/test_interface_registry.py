@@ -22,6 +22,8 @@ from geo_server.transports.interface import Interface, load
 GEO = Path(geo_server.__file__).parent
 #: The modules that must know interfaces only through the registry.
 ROOTS = ("compose.py", "cli.py", "fleet.py", "faults.py")
+#: Strings that look like an interface's yet are the fleet file's own (`Member`'s fields)
+FLEET_FIELDS = ("modbus_port",)
 #: Libraries a plug may import only when it serves (the parser is built for every command).
 SERVING_LIBRARIES = ("zenoh", "aiohttp", "asyncua", "pymodbus", "cryptography")
 
@@ -33,7 +35,8 @@ def packages() -> dict[str, str]:
 
 def named_interfaces(source: str) -> list[str]:
     """Where `source` names an interface: an import from an interface's package, a
-    string that is an interface's name or one of its options."""
+    string that is an interface's name, one of its options or one of its status entries
+    (`opcua_share`: a plug reads those, `Interface.fleet_counts`)."""
     tree = ast.parse(source)
     found = []
     for node in ast.walk(tree):
@@ -47,8 +50,10 @@ def named_interfaces(source: str) -> list[str]:
                 if n == package or n.startswith(package + ".")
             ]
         elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            if node.value in FLEET_FIELDS:
+                continue
             for name in REGISTRY:
-                if node.value == name or re.match(rf"--(no-)?{name}\b", node.value):
+                if node.value == name or re.match(rf"--(no-)?{name}\b|{name}_\w", node.value):
                     found.append(f"line {node.lineno}: {node.value!r}")
     return found
 
@@ -65,8 +70,9 @@ def test_the_check_sees_an_interface_named() -> None:
         "caps['modbus'] = 4\n"
         "p.add_argument('--opcua-user')\n"
         "from geo_server.transports.share import LoopShare\n"  # (shared, not an interface)
+        "items = st.get('opcua_items')\n"
     )
-    assert len(named_interfaces(source)) == 4
+    assert len(named_interfaces(source)) == 5
 
 
 @pytest.mark.parametrize("name", list(REGISTRY))

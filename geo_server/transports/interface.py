@@ -43,6 +43,18 @@ class Startable(NamedTuple):
     line: Callable[[], str] | None
 
 
+class FleetCounts(NamedTuple):
+    """What an interface's entries of a machine's status (`ObjectService.status_extra`)
+    add to the machine's row of a fleet's status (geo_server/fleet.py)."""
+
+    #: notification registrations
+    notifications: int = 0
+    #: samples taken later than their cycle, refused or dropped (`starved`)
+    samples_late: int = 0
+    #: requests held for a share of the processor (`throttled`)
+    holds: int = 0
+
+
 class Wants(NamedTuple):
     """What an interface asks of the process's descriptors (geo_server/descriptors.py)."""
 
@@ -167,6 +179,11 @@ class Interface(ABC):
         status: FleetStatus,
     ) -> None:
         """Start what serves a fleet's `machines` (`starting.start`), say so."""
+
+    def fleet_counts(self, status: Mapping[str, Any]) -> FleetCounts:
+        """What its entries of a machine's `status` add to the machine's row of the
+        fleet's status (none by default)."""
+        return FleetCounts()
 
     def loopback(self, service: ObjectService, test: Loopback) -> Server | None:
         """`GeoTestServer`'s server of this interface (None: it has none), not started, on

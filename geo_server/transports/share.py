@@ -26,6 +26,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+#: A machine's status entry of its share (`LoopShare.status`), written by the interfaces
+#: that charge it (ADS, Modbus) and read by the fleet's status
+STATUS_KEY = "loop_share"
 #: The loop time (seconds per second) one machine's requests may take in a fleet of ten
 #: machines or more (`fleet_rate`): a tenth, ten times a machine's even share in a fleet
 #: of 100, several hundred ADS Reads a second. A flood on one machine of a fleet of 100

@@ -14,6 +14,8 @@ from geo_server.transports.ads.notifications import MAX_FLEET, MAX_PER_OWNER, MA
 #: oldest go (their samples are delayed to a later cycle, never lost). The exact engine
 #: stops handing them over earlier, at `AdsOptions.sample_backlog`.
 HANDOFF_MAX = 2000
+#: a machine's status entry of its ADS notifications (`sampling.Sampler.update_status`)
+NOTIFICATIONS_STATUS = "ads_notifications"
 
 
 @dataclass

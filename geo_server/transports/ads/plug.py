@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from geo_server.dictionary import GEO_AMS_PORT
 from geo_server.transports.interface import (
+    FleetCounts,
     FleetMachine,
     FleetStatus,
     Interface,
@@ -118,6 +119,15 @@ class Ads(Interface):
         from geo_server.transports.ads.server import AdsServer
 
         return AdsServer(service, AdsOptions(port=0, netid=test.netid))
+
+    def fleet_counts(self, status: Mapping[str, Any]) -> FleetCounts:
+        from geo_server.transports.ads.options import NOTIFICATIONS_STATUS
+
+        notes = status.get(NOTIFICATIONS_STATUS) or {}
+        return FleetCounts(
+            notifications=int(notes.get("registrations", 0)),
+            samples_late=int(notes.get("samples_late", 0)) + int(notes.get("samples_refused", 0)),
+        )
 
 
 def _options(

@@ -22,7 +22,7 @@ from geo_server.transports.ads.codec import AddNotificationRequest, AmsHeader, S
 from geo_server.transports.ads.connection import Connection
 from geo_server.transports.ads.device import Device
 from geo_server.transports.ads.notifications import Batch, SamplingPass
-from geo_server.transports.ads.options import HANDOFF_MAX
+from geo_server.transports.ads.options import HANDOFF_MAX, NOTIFICATIONS_STATUS
 
 #: Registrations sampled between two looks at the clock (keeps the budget check cheap).
 _SAMPLE_STEP = 32
@@ -209,6 +209,7 @@ class Sampler:
 
     def update_status(self) -> None:
         """What `status()["ads_notifications"]` shows (a dict the status reads)."""
+
         st = self._status
         st["registrations"] = len(self.dev.notifications)
         st["samples_late"] = self.dev.notifications.late
@@ -216,7 +217,7 @@ class Sampler:
         st["cycles_shed"] = self.dev.stats.cycles_shed
         st["pass_cost_ns"] = round(self._pass_cost * 1e9)
         st["waiting_snapshots"] = len(self._handed)
-        self.dev.service.status_extra["ads_notifications"] = st
+        self.dev.service.status_extra[NOTIFICATIONS_STATUS] = st
 
     def on_cycle_thread(self, snap: Snapshot) -> None:
         """GEO cycle thread: hand the cycle's snapshot to the loop, when someone listens.

@@ -62,7 +62,7 @@ from geo_server.transports.ads.router import CLOSE, Router
 from geo_server.transports.ads.sampling import Sampler
 from geo_server.transports.ads.system import serve_system
 from geo_server.transports.ads.tasks import serve_task
-from geo_server.transports.share import LoopShare
+from geo_server.transports.share import STATUS_KEY, LoopShare
 from geo_server.transports.tcp import Listener
 
 log = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ class AdsServer:
         #: some machine behind the port has a loop share (at the head: time the batches)
         self.shared = share is not None
         if share is not None:
-            service.status_extra["loop_share"] = share.status
+            service.status_extra[STATUS_KEY] = share.status
         self.options = options or AdsOptions()
         self.router = router
         #: the devices this server routes to, by AMS NetId (itself included)
@@ -128,7 +128,7 @@ class AdsServer:
         self._symbols: symbols.SymbolTable | None = None
         self._udp: asyncio.DatagramTransport | None = None
         #: why discovery is off although a UDP port was asked for ("" when it runs)
-        self.udp_error = ""
+        self.udp_error: str = ""
 
     # ------------------------------------------------------------------ lifecycle
 

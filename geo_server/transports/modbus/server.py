@@ -68,7 +68,7 @@ from geo_server.transports.modbus.regmap import (
     UnitMap,
     exception_for,
 )
-from geo_server.transports.share import LoopShare
+from geo_server.transports.share import STATUS_KEY, LoopShare
 from geo_server.transports.tcp import BACKLOG, Listener
 
 log = logging.getLogger(__name__)
@@ -147,7 +147,7 @@ class ModbusInterface:
         self.options = options or ModbusOptions()
         self.share = share
         if share is not None:
-            service.status_extra["loop_share"] = share.status
+            service.status_extra[STATUS_KEY] = share.status
         self.map = ModbusMap.build(service.info.dictionary)
         #: unit id -> the axis of its objects' index offsets (0: machine-wide)
         self.unit_axis = {MACHINE_UNIT: 0, DIRECT_UNIT: 0}

@@ -60,6 +60,7 @@ from geo_server.transports.opcua.server import (
     OpcUaOptions,
     probe_port,
 )
+from geo_server.transports.opcua.status import ITEMS_STATUS, STATUS_KEYS
 from geo_server.transports.share import LoopShare
 
 log = logging.getLogger(__name__)
@@ -370,7 +371,7 @@ class OpcUaProcess:
                 if service is None:
                     continue
                 shown = _shown(extra)  # (what OPC UA may show, nothing else of the status)
-                items = shown.get("opcua_items")
+                items = shown.get(ITEMS_STATUS)
                 if items is not None and machine in self.dropped:
                     items["samples_late"] = items.get("samples_late", 0) + self.dropped[machine]
                 service.status_extra.update(shown)
@@ -399,7 +400,7 @@ class OpcUaProcess:
         self.ended = True
         self._release_all()
         for service in self.services.values():  # (nothing of OPC UA to show any more)
-            for key in ("opcua_share", "opcua_items"):
+            for key in STATUS_KEYS:
                 service.status_extra.pop(key, None)
         if self._closing or self.failure is not None:  # (its failed start: said once)
             return
@@ -505,10 +506,6 @@ class OpcUaProcess:
 def _builtin_subclasses(cls: type) -> list[type]:
     found = [c for c in cls.__subclasses__() if c.__module__ == "builtins"]
     return found + [s for c in found for s in _builtin_subclasses(c)]
-
-
-#: what OPC UA's process may put in a machine's status
-STATUS_KEYS = ("opcua_share", "opcua_items")
 
 
 def _shown(extra: Any) -> dict[str, dict[str, int | float]]:

@@ -12,11 +12,12 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from geo_server.interfaces import start_failure
 from geo_server.paths import default_startup_list, is_product_data
 from geo_server.transports.interface import (
+    FleetCounts,
     FleetMachine,
     FleetStatus,
     Interface,
@@ -25,6 +26,7 @@ from geo_server.transports.interface import (
     Wants,
 )
 from geo_server.transports.opcua.endpoint import parse_endpoint
+from geo_server.transports.opcua.status import ITEMS_STATUS, SHARE_STATUS
 from geo_server.transports.tcp import BACKLOG
 
 if TYPE_CHECKING:
@@ -124,6 +126,13 @@ class OpcUa(Interface):
         said = f"{len(services)} machines: Objects/<name>"
         built = _server(args, services, where, starting.caps, said, shares)
         await starting.start(self.name, built.server, built.line)
+
+    def fleet_counts(self, status: Mapping[str, Any]) -> FleetCounts:
+        items = status.get(ITEMS_STATUS) or {}
+        share = status.get(SHARE_STATUS) or {}
+        return FleetCounts(
+            samples_late=int(items.get("samples_late", 0)), holds=int(share.get("holds", 0))
+        )
 
 
 def _server(

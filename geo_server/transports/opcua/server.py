@@ -70,6 +70,7 @@ from geo_server.transports.opcua.space import (
     VariableSpec,
     machine_variables,
 )
+from geo_server.transports.opcua.status import ITEMS_STATUS, SHARE_STATUS
 from geo_server.transports.share import LoopShare
 from geo_server.units import ACHS_TYP, LINEAR, UNECE, unece_unit_id
 
@@ -330,9 +331,9 @@ class OpcUaInterface:
         the web HMI (docs/design.md §9.1)."""
         self._host = asyncio.get_running_loop()
         for machine, share in self.machine_shares.items():  # (their status: the loop's)
-            self.services[machine].status_extra["opcua_share"] = share.status
+            self.services[machine].status_extra[SHARE_STATUS] = share.status
         for machine, service in self.services.items():  # (made before asyncua's loop runs)
-            service.status_extra["opcua_items"] = self.monitoring.counts(machine)
+            service.status_extra[ITEMS_STATUS] = self.monitoring.counts(machine)
         if not self.options.background:
             self._own.start()
             try:

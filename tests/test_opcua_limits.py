@@ -400,6 +400,39 @@ class _Connection:
         self.name = name
 
 
+class _Ticking:
+    """A share's clock that stands until `ticking`, then moves a second on at each look
+    (each look finds the share back: the order is the tags' alone), and the order the
+    connections' requests were let in."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.ticking = False
+        self.order: list[str] = []
+        self.let_in = asyncio.Event()
+
+    def clock(self) -> float:
+        if self.ticking:
+            self.now += 1.0
+        return self.now
+
+    def entered(self, conn: _Connection) -> None:
+        self.order.append(conn.name)
+        self.let_in.set()
+
+    async def first(self, meter: RequestMeter, share: LoopShare, n: int = 11) -> list[str]:
+        """Once two connections are held (each counted once), the clock moves on: the
+        first `n` let in."""
+        while meter.waiting < 2:
+            await asyncio.sleep(0)
+        assert share.holds == 2 and self.order == []
+        self.ticking = True
+        while len(self.order) < n:
+            await self.let_in.wait()
+            self.let_in.clear()
+        return self.order[:n]
+
+
 def test_held_requests_are_let_in_in_fair_order() -> None:
     """`RequestMeter` without a server (start-time fair queuing, metering.py): while
     OPC UA's share is used up, `dear` keeps requests of 10 ms of processor time coming
@@ -409,19 +442,10 @@ def test_held_requests_are_let_in_in_fair_order() -> None:
     it would be six. Then a third connection that had asked nothing queues one request
     behind both: it goes before either's next one. The share's holds count each queued
     request once."""
-    now = [0.0]
-    ticking = [False]
-
-    def clock() -> float:
-        if ticking[0]:  # (each look finds the share back: the order is the tags' alone)
-            now[0] += 1.0
-        return now[0]
-
-    share = LoopShare(rate=0.5, burst=0.002, clock=clock)
+    t = _Ticking()
+    share = LoopShare(rate=0.5, burst=0.002, clock=t.clock)
     meter = RequestMeter(share, {})
     dear, cheap, once = _Connection("dear"), _Connection("cheap"), _Connection("once")
-    order: list[str] = []
-    let_in = asyncio.Event()
 
     async def scenario() -> None:
         share.charge(0.003)  # used up (a millisecond short), and the clock stands
@@ -429,33 +453,25 @@ def test_held_requests_are_let_in_in_fair_order() -> None:
         async def connection(conn: _Connection, cost: float, requests: int) -> None:
             for _ in range(requests):
                 ticket = meter.admit_now(conn) or await meter.admit(conn)
-                order.append(conn.name)
-                let_in.set()
+                t.entered(conn)
                 meter.end(ticket, time.thread_time() - cost)
 
         both = [
             asyncio.ensure_future(connection(dear, 0.010, 5)),
             asyncio.ensure_future(connection(cheap, 0.001, 30)),
         ]
-        while meter.waiting < 2:
-            await asyncio.sleep(0)
-        assert share.holds == 2 and order == []
-        ticking[0] = True
-        while len(order) < 11:
-            await let_in.wait()
-            let_in.clear()
-        assert order[:11].count("dear") == 1, order
-        ticking[0] = False  # (held again: the next request of each waits)
+        assert (await t.first(meter, share)).count("dear") == 1, t.order
+        t.ticking = False  # (held again: the next request of each waits)
         share.charge(0.003)
         while meter.waiting < 2:
             await asyncio.sleep(0)
         third = asyncio.ensure_future(connection(once, 0.001, 1))
         while meter.waiting < 3:
             await asyncio.sleep(0)
-        seen = len(order)
-        ticking[0] = True
+        seen = len(t.order)
+        t.ticking = True
         await asyncio.gather(*both, third)
-        assert order[seen] == "once", order[seen:]
+        assert t.order[seen] == "once", t.order[seen:]
         meter.close()
 
     asyncio.run(asyncio.wait_for(scenario(), TIMEOUT))
@@ -471,27 +487,17 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
     flood on it waited for every flooding connection's request, several seconds in a
     fleet of 30 with 4 flooding connections, and asyncua's client gave its connection
     up.) OPC UA's own share is not what holds them here (`rate` 1, a large burst)."""
-    now = [0.0]
-    ticking = [False]
-
-    def clock() -> float:
-        if ticking[0]:  # (each look finds the share back: the order is the tags' alone)
-            now[0] += 1.0
-        return now[0]
-
-    m1 = LoopShare(rate=0.1, burst=0.002, clock=clock)
+    t = _Ticking()
+    m1 = LoopShare(rate=0.1, burst=0.002, clock=t.clock)
     meter = RequestMeter(LoopShare(rate=1.0, burst=100.0), {"m1": m1})
     flood, client = _Connection("flood"), _Connection("client")
-    order: list[str] = []
-    let_in = asyncio.Event()
 
     async def scenario() -> None:
         async def connection(conn: _Connection, cost: float, requests: int) -> None:
             charged: list[str] = ["m1"]  # (its last request read m1)
             for _ in range(requests):
                 tickets = await meter.let_in(conn, charged, lambda: None)
-                order.append(conn.name)
-                let_in.set()
+                t.entered(conn)
                 began = RequestMeter.begin(tickets)
                 RequestMeter.touch("m1")
                 charged = meter.end(tickets, began - cost)
@@ -502,14 +508,7 @@ def test_a_machines_held_requests_are_let_in_in_fair_order_too() -> None:
             asyncio.ensure_future(connection(flood, 0.010, 5)),
             asyncio.ensure_future(connection(client, 0.001, 30)),
         ]
-        while meter.waiting < 2:
-            await asyncio.sleep(0)
-        assert m1.holds == 2 and order == []
-        ticking[0] = True
-        while len(order) < 11:
-            await let_in.wait()
-            let_in.clear()
-        assert order[:11].count("flood") == 1, order
+        assert (await t.first(meter, m1)).count("flood") == 1, t.order
         await asyncio.gather(*both)
         assert m1.status["loop_s"] > 0.079  # (5 · 10 ms + 30 · 1 ms, charged to m1)
         # a request is charged to a machine's share at most what makes it wait after

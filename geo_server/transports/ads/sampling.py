@@ -209,7 +209,6 @@ class Sampler:
 
     def update_status(self) -> None:
         """What `status()["ads_notifications"]` shows (a dict the status reads)."""
-
         st = self._status
         st["registrations"] = len(self.dev.notifications)
         st["samples_late"] = self.dev.notifications.late

@@ -178,20 +178,16 @@ class RequestMeter:
     requests' charges, and the fair order of the requests held for any of them."""
 
     def __init__(self, overall: LoopShare, machines: Mapping[str, LoopShare]) -> None:
-        self.overall = overall
+        #: OPC UA's share, with its fair order
         self.fair = FairShare(overall)
         #: a fleet's machines' shares, each with its own fair order
         self.machines = {m: FairShare(share) for m, share in machines.items()}
         self._turn_taken = False
 
-    def admit_now(self, key: object) -> Ticket | None:
-        """Connection `key` may run its next request at once on OPC UA's share, or None:
-        then `admit` (`FairShare.admit_now`)."""
-        return self.fair.admit_now(key)
-
-    async def admit(self, key: object) -> Ticket:
-        """Wait for OPC UA's share, in the fair order (`FairShare.admit`)."""
-        return await self.fair.admit(key)
+    @property
+    def overall(self) -> LoopShare:
+        """OPC UA's share (every request draws on it)."""
+        return self.fair.share
 
     def gates(self, machines: Sequence[str]) -> list[FairShare]:
         """What a connection whose last request touched `machines` waits for before its
@@ -265,13 +261,12 @@ class RequestMeter:
         for ticket in tickets:
             _ended(ticket)
 
-    def end(self, ticket: Ticket | Sequence[Ticket], began: float | None) -> list[str]:
-        """The request let in with `ticket` (OPC UA's; or the tickets of `gates`, OPC
-        UA's last) ended (`began`: None when it never started): its CPU time charged to
-        OPC UA's share and its connection's tag there, and, split evenly, to the shares
-        and tags of the machines it touched. The next held requests may go. Returns
-        those machines: what the connection's next request waits for (`gates`)."""
-        tickets = [ticket] if isinstance(ticket, Ticket) else list(ticket)
+    def end(self, tickets: Sequence[Ticket], began: float | None) -> list[str]:
+        """The request let in with `tickets` (`let_in`'s, OPC UA's last) ended (`began`:
+        None when it never started): its CPU time charged to OPC UA's share and its
+        connection's tag there, and, split evenly, to the shares and tags of the
+        machines it touched. The next held requests may go. Returns those machines:
+        what the connection's next request waits for (`gates`)."""
         took = 0.0 if began is None else time.thread_time() - began
         touched = _touched.get() or set()
         _touched.set(None)
